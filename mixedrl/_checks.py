@@ -1,0 +1,128 @@
+"""Input validation shared by every public function of mixedrl.
+
+Every check raises :class:`ValueError` whose message starts with the *argument name* and states the
+problem, so a user sees at once which input was wrong. Checks never modify their input: they return a
+validated float64 copy (numpy) or the tensor itself (torch).
+
+The tolerance for "symmetric" and "positive semi-definite" is relative to the matrix scale,
+``tol = 1e-10 * max(1, max|C_ij|)`` for symmetry and ``-1e-10 * max(1, max eig)`` for the smallest
+eigenvalue (so a covariance with entries of 1e-20, as in the paper's vehicle prior, is accepted, and
+a clearly indefinite one is not).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import torch
+
+__all__ = [
+    "as_vector",
+    "as_matrix",
+    "as_batch",
+    "check_covariance",
+    "check_finite",
+    "check_positive_int",
+    "check_unknown_keys",
+]
+
+SYMMETRY_RTOL = 1e-10
+PSD_RTOL = 1e-10
+
+
+def check_finite(value: np.ndarray | torch.Tensor, name: str) -> None:
+    """Raise ``ValueError`` if ``value`` holds NaN or +-inf."""
+    if isinstance(value, torch.Tensor):
+        ok = bool(torch.isfinite(value).all())
+    else:
+        ok = bool(np.all(np.isfinite(value)))
+    if not ok:
+        raise ValueError(f"{name}: contains NaN or inf")
+
+
+def _to_float_array(value: Any, name: str) -> np.ndarray:
+    if isinstance(value, torch.Tensor):
+        value = value.detach().cpu().numpy()
+    try:
+        arr = np.array(value, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"{name}: cannot be converted to a float array ({exc})") from None
+    return arr
+
+
+def as_vector(value: Any, name: str, n: int | None = None) -> np.ndarray:
+    """Return ``value`` as a finite float64 vector of shape ``(n,)``.
+
+    Raises
+    ------
+    ValueError
+        If the shape is wrong or an entry is not finite.
+    """
+    arr = _to_float_array(value, name)
+    if arr.ndim != 1 or (n is not None and arr.shape[0] != n):
+        want = f"({n},)" if n is not None else "(n,)"
+        raise ValueError(f"{name}: expected shape {want}, got {arr.shape}")
+    check_finite(arr, name)
+    return arr
+
+
+def as_matrix(value: Any, name: str, shape: tuple[int | None, int | None] = (None, None)) -> np.ndarray:
+    """Return ``value`` as a finite float64 matrix with the given shape (``None`` = any)."""
+    arr = _to_float_array(value, name)
+    if arr.ndim != 2 or any(s is not None and s != a for s, a in zip(shape, arr.shape)):
+        want = "(" + ", ".join("?" if s is None else str(s) for s in shape) + ")"
+        raise ValueError(f"{name}: expected shape {want}, got {arr.shape}")
+    check_finite(arr, name)
+    return arr
+
+
+def as_batch(value: Any, name: str, n: int) -> np.ndarray:
+    """Return one sample ``(n,)`` or a batch ``(N, n)`` as a finite float64 array of shape ``(N, n)``."""
+    arr = _to_float_array(value, name)
+    if arr.ndim == 1:
+        arr = arr[None, :]
+    if arr.ndim != 2 or arr.shape[1] != n:
+        raise ValueError(f"{name}: expected shape ({n},) or (N, {n}), got {np.shape(value)}")
+    check_finite(arr, name)
+    return arr
+
+
+def check_covariance(value: Any, name: str, n: int | None = None) -> np.ndarray:
+    """Return ``value`` as a symmetric positive semi-definite float64 ``(n, n)`` matrix.
+
+    Symmetry is checked to ``1e-10`` relative to the largest entry, and the smallest eigenvalue must be
+    ``>= -1e-10`` relative to the largest eigenvalue. The returned matrix is exactly symmetrised
+    (``(C + C^T) / 2``) so that downstream Cholesky/eigh calls see an exactly symmetric input.
+
+    Raises
+    ------
+    ValueError
+        Wrong shape, NaN/inf, not symmetric, or not positive semi-definite; the message names ``name``.
+    """
+    arr = as_matrix(value, name, (n, n))
+    if arr.shape[0] != arr.shape[1]:
+        raise ValueError(f"{name}: a covariance must be square, got {arr.shape}")
+    scale = max(1.0, float(np.max(np.abs(arr)))) if arr.size else 1.0
+    if not np.allclose(arr, arr.T, rtol=0.0, atol=SYMMETRY_RTOL * scale):
+        raise ValueError(f"{name}: covariance is not symmetric (max |C - C^T| = {np.max(np.abs(arr - arr.T)):.3g})")
+    arr = 0.5 * (arr + arr.T)
+    if arr.size:
+        eig = np.linalg.eigvalsh(arr)
+        if eig[0] < -PSD_RTOL * max(1e-300, abs(eig[-1])):
+            raise ValueError(f"{name}: covariance is not positive semi-definite (smallest eigenvalue {eig[0]:.3g})")
+    return arr
+
+
+def check_positive_int(value: Any, name: str) -> int:
+    """Return ``value`` as an int ``>= 1``."""
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
+        raise ValueError(f"{name}: expected a positive integer, got {value!r}")
+    return int(value)
+
+
+def check_unknown_keys(given: dict[str, Any], allowed: set[str] | frozenset[str], where: str) -> None:
+    """Raise ``ValueError`` listing every key of ``given`` that is not in ``allowed``."""
+    unknown = sorted(set(given) - set(allowed))
+    if unknown:
+        raise ValueError(f"{where}: unknown key(s) {unknown}; allowed: {sorted(allowed)}")

@@ -1,0 +1,1 @@
+"""Algorithms: exact policy iteration (Algorithm 1), AGPI actor-critic (Algorithm 2), baselines."""

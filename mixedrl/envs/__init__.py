@@ -1,0 +1,1 @@
+"""Environments: the double-lane-change vehicle (eq. 53) and its Gymnasium face."""
