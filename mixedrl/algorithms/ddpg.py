@@ -1,0 +1,235 @@
+"""The data-driven baseline of Section V: DDPG (Lillicrap et al. 2015) on true-environment transitions.
+
+DDPG never calls the model ``f`` for planning: it learns ``Q(x, u; w)`` and ``pi(x; theta)`` only from
+transitions ``(x, u, l, x')`` of the true environment (:meth:`mixedrl.tasks.Task.true_step`), stored in
+a replay buffer, with target networks and Gaussian exploration noise. Everything the algorithm allows is
+shared with Algorithm 2 (:mod:`mixedrl.algorithms.agpi`): the MLP class, hidden sizes and activation,
+Adam with the same learning rates and decay, the gradient clip, the batch size, the discount factor, the
+same observation and the same cost. One iteration = ``ddpg_envs`` environment steps + one critic and
+one actor update (the unit in which "iterations to converge" is counted for every method).
+"""
+
+from __future__ import annotations
+
+import copy
+from typing import Any
+
+import torch
+
+from mixedrl.algorithms.agpi import _lr_factor
+from mixedrl.config import TrainConfig
+from mixedrl.networks import Actor, QCritic
+from mixedrl.tasks import Task
+
+__all__ = ["DDPG", "ReplayBuffer"]
+
+
+class ReplayBuffer:
+    """Fixed-capacity ring buffer of transitions ``(obs, action, cost, next_obs, terminal)``.
+
+    Parameters
+    ----------
+    capacity : int
+        Maximum number of transitions.
+    obs_dim, action_dim : int
+        Sizes.
+    """
+
+    def __init__(self, capacity: int, obs_dim: int, action_dim: int) -> None:
+        self.capacity = int(capacity)
+        self.obs = torch.zeros(capacity, obs_dim)
+        self.action = torch.zeros(capacity, action_dim)
+        self.cost = torch.zeros(capacity)
+        self.next_obs = torch.zeros(capacity, obs_dim)
+        self.terminal = torch.zeros(capacity)
+        self.pointer = 0
+        self.size = 0
+
+    def add(self, obs: torch.Tensor, action: torch.Tensor, cost: torch.Tensor, next_obs: torch.Tensor,
+            terminal: torch.Tensor) -> None:
+        """Append a batch of ``n`` transitions (shapes (n, obs_dim), (n, action_dim), (n,), (n, obs_dim), (n,))."""
+        n = obs.shape[0]
+        idx = (self.pointer + torch.arange(n)) % self.capacity
+        self.obs[idx] = obs
+        self.action[idx] = action
+        self.cost[idx] = cost
+        self.next_obs[idx] = next_obs
+        self.terminal[idx] = terminal
+        self.pointer = int((self.pointer + n) % self.capacity)
+        self.size = int(min(self.size + n, self.capacity))
+
+    def sample(self, n: int, generator: torch.Generator) -> tuple[torch.Tensor, ...]:
+        """Uniformly sample ``n`` stored transitions with ``generator``."""
+        if self.size == 0:
+            raise ValueError("n: cannot sample from an empty replay buffer")
+        idx = torch.randint(0, self.size, (n,), generator=generator)
+        return self.obs[idx], self.action[idx], self.cost[idx], self.next_obs[idx], self.terminal[idx]
+
+    def state_dict(self) -> dict[str, Any]:
+        """The stored transitions and the ring pointer (only the filled part)."""
+        n = self.size
+        return {"obs": self.obs[:n].clone(), "action": self.action[:n].clone(), "cost": self.cost[:n].clone(),
+                "next_obs": self.next_obs[:n].clone(), "terminal": self.terminal[:n].clone(),
+                "pointer": self.pointer, "size": self.size}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        """Restore :meth:`state_dict`."""
+        n = int(state["size"])
+        if n > self.capacity or state["obs"].shape[1:] != self.obs.shape[1:]:
+            raise ValueError("state: replay buffer shapes do not match")
+        for key in ("obs", "action", "cost", "next_obs", "terminal"):
+            getattr(self, key)[:n] = state[key]
+        self.pointer, self.size = int(state["pointer"]), n
+
+
+class DDPG:
+    """Deep deterministic policy gradient on the true environment (the paper's data-driven RL).
+
+    Parameters
+    ----------
+    task : Task
+        The true environment (``true_step``, ``cost``, ``observe``); ``f`` is used only inside
+        ``true_step`` to simulate the environment, never for learning.
+    config : TrainConfig
+        ``method == "ddpg"``; the ``ddpg_*`` fields configure buffer, warm-up, targets and exploration.
+
+    Raises
+    ------
+    ValueError
+        ``config.method`` is not ``"ddpg"``.
+    """
+
+    def __init__(self, task: Task, config: TrainConfig) -> None:
+        if config.method != "ddpg":
+            raise ValueError(f"config: method must be 'ddpg', got {config.method!r}")
+        self.task, self.config = task, config
+        self.generator = torch.Generator().manual_seed(config.seed)
+        g = self.generator
+        self.critic = QCritic(task.obs_dim, task.action_dim, config.hidden_sizes, config.activation, g,
+                              task.action_bound, task.obs_scale, task.value_scale, config.value_output)
+        self.actor = Actor(task.obs_dim, task.action_dim, config.hidden_sizes, config.activation, g,
+                           task.action_bound, task.obs_scale)
+        self.critic_target = copy.deepcopy(self.critic)
+        self.actor_target = copy.deepcopy(self.actor)
+        for p in list(self.critic_target.parameters()) + list(self.actor_target.parameters()):
+            p.requires_grad_(False)
+        self.critic_opt = torch.optim.Adam(self.critic.parameters(), lr=config.critic_lr)
+        self.actor_opt = torch.optim.Adam(self.actor.parameters(), lr=config.actor_lr)
+        self.buffer = ReplayBuffer(config.ddpg_buffer_size, task.obs_dim, task.action_dim)
+        self.states = task.sample_initial(config.ddpg_envs, g)
+        # desynchronised episode clocks, so the copies do not all reset at the same iteration
+        self.steps = torch.randint(0, config.horizon, (config.ddpg_envs,), generator=g)
+        self.k = 0
+        self.stopped = False
+
+    @property
+    def policy(self) -> torch.nn.Module:
+        return self.actor
+
+    def collect(self) -> float:
+        """One exploratory step of every environment copy into the buffer; returns the mean cost."""
+        task, cfg = self.task, self.config
+        s = self.states
+        with torch.no_grad():
+            obs = task.observe(s.float())
+            # u = pi(x) + N(0, sigma^2), clipped to the action bounds
+            noise = torch.randn(s.shape[0], task.action_dim, generator=self.generator) * (
+                cfg.ddpg_noise_std * task.action_bound)
+            u = torch.maximum(torch.minimum(self.actor(obs) + noise, task.action_bound), -task.action_bound)
+            s_next = task.true_step(s, u.double(), self.generator)
+            cost = task.cost(s_next, u.double()).float()
+            terminal = task.is_terminal(s_next)
+            next_obs = task.observe(torch.where(terminal[:, None], s, s_next).float())
+        ok = torch.isfinite(cost) & torch.isfinite(next_obs).all(dim=-1)
+        self.buffer.add(obs[ok], u[ok], cost[ok], next_obs[ok], terminal[ok].float())
+        self.steps += 1
+        done = terminal | (self.steps >= cfg.horizon)
+        if bool(done.any()):
+            s_next = s_next.clone()
+            s_next[done] = task.sample_initial(int(done.sum()), self.generator)
+            self.steps[done] = 0
+        self.states = s_next
+        return float(cost[ok].mean()) if bool(ok.any()) else float("nan")
+
+    def _soft_update(self, target: torch.nn.Module, source: torch.nn.Module) -> None:
+        tau = self.config.ddpg_tau
+        with torch.no_grad():
+            for pt, ps in zip(target.parameters(), source.parameters()):
+                # w' <- tau w + (1 - tau) w'
+                pt.mul_(1.0 - tau).add_(ps, alpha=tau)
+
+    def iteration(self) -> dict[str, float]:
+        """One DDPG iteration: environment steps, one critic update, one actor update, target updates."""
+        cfg, task = self.config, self.task
+        factor = _lr_factor(cfg, self.k)
+        for group in self.critic_opt.param_groups:
+            group["lr"] = cfg.critic_lr * factor
+        for group in self.actor_opt.param_groups:
+            group["lr"] = cfg.actor_lr * factor
+        mean_cost = self.collect()
+        while self.buffer.size < cfg.ddpg_warmup:
+            self.collect()
+        obs, act, cost, next_obs, terminal = self.buffer.sample(cfg.batch_size, self.generator)
+        scale = float(task.value_scale)
+        with torch.no_grad():
+            # y = l + gamma (1 - terminal) Q'(x', pi'(x'))
+            target = cost + task.gamma * (1.0 - terminal) * self.critic_target(next_obs, self.actor_target(next_obs))
+        q = self.critic(obs, act)
+        critic_loss = 0.5 * ((q - target) / scale).pow(2).mean()
+        self.critic_opt.zero_grad(set_to_none=True)
+        critic_loss.backward()
+        torch.nn.utils.clip_grad_norm_(self.critic.parameters(), cfg.grad_clip)
+        self.critic_opt.step()
+        for p in self.critic.parameters():
+            p.requires_grad_(False)
+        try:
+            # minimise Q(x, pi(x)): the cost-to-go of the deterministic policy
+            actor_loss = self.critic(obs, self.actor(obs)).mean() / scale
+            self.actor_opt.zero_grad(set_to_none=True)
+            actor_loss.backward()
+            torch.nn.utils.clip_grad_norm_(self.actor.parameters(), cfg.grad_clip)
+            self.actor_opt.step()
+        finally:
+            for p in self.critic.parameters():
+                p.requires_grad_(True)
+        self._soft_update(self.critic_target, self.critic)
+        self._soft_update(self.actor_target, self.actor)
+        self.k += 1
+        return {"train/critic_loss": float(critic_loss.detach()), "train/actor_loss": float(actor_loss.detach()),
+                "train/value_mean": float(q.detach().mean()), "train/env_cost": mean_cost,
+                "train/buffer_size": float(self.buffer.size)}
+
+    def evaluate(self, seeds: list[int]) -> dict[str, Any]:
+        """Evaluate the deterministic actor (no exploration noise) on the task."""
+        return self.task.evaluate(self.actor, seeds)
+
+    def state_dict(self) -> dict[str, Any]:
+        """Weights, targets, optimisers, generator, environment states, replay buffer, counter."""
+        return {"k": self.k, "critic": self.critic.state_dict(), "actor": self.actor.state_dict(),
+                "critic_target": self.critic_target.state_dict(), "actor_target": self.actor_target.state_dict(),
+                "critic_opt": self.critic_opt.state_dict(), "actor_opt": self.actor_opt.state_dict(),
+                "generator": self.generator.get_state(), "states": self.states.clone(),
+                "steps": self.steps.clone(), "buffer": self.buffer.state_dict()}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        """Restore :meth:`state_dict`.
+
+        Raises
+        ------
+        ValueError
+            Missing keys or mismatched shapes.
+        """
+        keys = {"k", "critic", "actor", "critic_target", "actor_target", "critic_opt", "actor_opt", "generator",
+                "states", "steps", "buffer"}
+        missing = keys - set(state)
+        if missing:
+            raise ValueError(f"state: missing keys {sorted(missing)}")
+        try:
+            for name in ("critic", "actor", "critic_target", "actor_target", "critic_opt", "actor_opt"):
+                getattr(self, name).load_state_dict(state[name])
+        except (RuntimeError, KeyError, ValueError) as exc:
+            raise ValueError(f"state: weights do not match the networks ({exc})") from None
+        self.generator.set_state(state["generator"])
+        self.states, self.steps = state["states"].clone(), state["steps"].clone()
+        self.buffer.load_state_dict(state["buffer"])
+        self.k = int(state["k"])

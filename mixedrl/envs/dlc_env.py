@@ -1,0 +1,209 @@
+"""Gymnasium face of the double lane change: ``mixedrl/DoubleLaneChange-v0``.
+
+The full description, under Gymnasium's usual headings, is on the docs page ``vehicle.rst`` and in
+the docstring of :class:`DoubleLaneChangeEnv`.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+from gymnasium import spaces
+
+from mixedrl._checks import as_vector, check_unknown_keys
+from mixedrl.envs.tracking import (
+    NOISE_INDEX,
+    STATE_DIM,
+    DoubleLaneChangeConfig,
+    DoubleLaneChangeModel,
+    _errors,
+    _observation,
+    _observe_cols,
+    _stage_cost,
+    make_config,
+)
+
+__all__ = ["DoubleLaneChangeEnv"]
+
+
+class DoubleLaneChangeEnv(gym.Env):
+    """Double lane change at 12 m/s with a random longitudinal disturbance (the paper's Section VI task).
+
+    **Description.** A front-steered car (eq. 53, Fiala tires, paper parameters) must follow the tanh
+    double-lane-change path ``Y_ref(X)`` while holding 12 m/s against a random longitudinal force
+    ``F_dis ~ N(261 N, 32 N^2)``. Discretised with forward Euler at ``T = 1/200 s``; the
+    deterministic part is exactly :meth:`DoubleLaneChangeModel.step` (the same ``f`` the planner uses).
+
+    **Action Space.** ``Box(-1, 1, (2,), float64)``, *normalised* (as Gymnasium's checker asks): the
+    physical input is ``u = [delta, a_x] = a * [delta_max, ax_max]``, front wheel angle ``delta`` [rad]
+    (default bound 0.4 rad, positive = left) and longitudinal acceleration command ``a_x`` [m/s^2]
+    (default bound 4 m/s^2). Actions outside ``[-1, 1]`` are *clipped* (the clipped input is applied and
+    charged; ``info["action_clipped"]`` says so). A NaN/inf action or a wrong shape raises
+    ``ValueError`` and leaves the state unchanged. (The torch model, the vector env and
+    :func:`~mixedrl.envs.evaluate_tracking` take the physical ``u``.)
+
+    **Observation Space.** ``Box(-f_max, f_max, (5 + n_preview,), float64)`` (any finite value):
+    ``[v_y [m/s], r [rad/s], v_x - 12 [m/s], e_phi [rad], e_y [m]]`` with
+    ``e_y = Y - Y_ref(X)``, ``e_phi = phi - psi_ref(X)``, followed by the optional preview
+    ``Y_ref(X + d_i) - Y_ref(X)`` [m] for each ``d_i`` in ``preview_distances`` (none by default).
+
+    **Rewards.** ``-l(s', u)`` with eq. (54), ``l = T (45 (v_x' - 12)^2 + 60 e_y'^2 + 800 delta^2 + a_x^2)``,
+    charged on the next state.
+
+    **Starting State.** ``X = 0`` on the reference at 12 m/s, with ``[v_y, r, v_x - 12, e_phi, e_y]``
+    uniform in ``+-reset_half_widths`` (default ``(0, 0, 0.1, 0.02, 0.1)``), drawn from
+    ``self.np_random``. ``reset(options={"state": s})`` starts from a given tracking state
+    ``s = [v_y, r, v_x, phi, Y, X]``.
+
+    **Episode End.** Terminated when ``|e_y| > max_lateral_error`` (3 m: the car left the road),
+    ``v_x < min_speed`` (1 m/s) or a state component is not finite; truncated after
+    ``round(course_length / (12 T))`` steps (2000 steps = 10 s = 120 m at 12 m/s).
+
+    **Arguments.** ``gym.make("mixedrl/DoubleLaneChange-v0", config=None, **overrides)``: any field of
+    :class:`~mixedrl.envs.tracking.DoubleLaneChangeConfig` (``disturbance``, ``reference`` and
+    ``params`` also as dicts); unknown keys raise ``ValueError``.
+
+    **Version History.** v0: initial version.
+
+    ``info`` (reset and step): ``lateral_error`` ``e_y`` [m], ``speed_error`` ``v_x - 12`` [m/s],
+    ``state`` (the tracking state, shape (6,)); step only: ``disturbance`` (true ``F_dis`` [N]),
+    ``xi`` (``F_dis T / m`` [m/s]), ``action`` (the applied, clipped action), ``action_clipped``.
+    """
+
+    metadata = {"render_modes": [], "render_fps": 200}
+
+    def __init__(self, config: DoubleLaneChangeConfig | dict[str, Any] | None = None,
+                 render_mode: str | None = None, **overrides: Any) -> None:
+        if render_mode is not None:
+            raise ValueError(f"render_mode: this environment does not render, got {render_mode!r}")
+        self.render_mode = None
+        self.config = make_config(config, **overrides)
+        self.model = DoubleLaneChangeModel(self.config)
+        cfg = self.config
+        self._dyn = self.model.dynamics
+        self._delta_max = cfg.delta_max
+        self._ax_max = cfg.ax_max
+        self._xi_scale = cfg.dt / cfg.params.m
+        self._f_std = cfg.disturbance.std
+        self.action_space = spaces.Box(low=-1.0, high=1.0, shape=(2,), dtype=np.float64)
+        big = np.finfo(np.float64).max  # "any finite value" (Gymnasium's checker rejects infinite bounds)
+        self.observation_space = spaces.Box(-big, big, shape=(self.model.obs_dim,), dtype=np.float64)
+        self._state: tuple[float, ...] | None = None
+        self._elapsed = 0
+
+    @property
+    def state(self) -> np.ndarray:
+        """Current tracking state ``[v_y, r, v_x, phi, Y, X]``, shape (6,) (a copy)."""
+        if self._state is None:
+            raise RuntimeError("state: call reset() first")
+        return np.array(self._state)
+
+    def _obs(self, s: tuple[float, ...]) -> np.ndarray:
+        return np.array(_observe_cols(self.config, *s), dtype=np.float64)
+
+    def _info(self, s: tuple[float, ...]) -> dict[str, Any]:
+        e_y, _ = _errors(self.config, s[3], s[4], s[5])
+        return {"lateral_error": e_y, "speed_error": s[2] - self.config.v_des, "state": np.array(s)}
+
+    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None
+              ) -> tuple[np.ndarray, dict[str, Any]]:
+        """Start a new episode (see the class docstring, *Starting State*).
+
+        Raises
+        ------
+        ValueError
+            Unknown option, or ``options["state"]`` not a finite vector of shape (6,).
+        """
+        super().reset(seed=seed)
+        options = {} if options is None else options
+        check_unknown_keys(options, {"state"}, "options")
+        cfg = self.config
+        if "state" in options:
+            s = tuple(float(v) for v in as_vector(options["state"], "options['state']", STATE_DIM))
+        else:
+            w = cfg.reset_half_widths
+            dev = self.np_random.uniform(-1.0, 1.0, size=5) * np.asarray(w)
+            ref = cfg.reference
+            X = 0.0
+            s = (float(dev[0]), float(dev[1]), cfg.v_des + float(dev[2]), ref.heading(X) + float(dev[3]),
+                 ref.lateral(X) + float(dev[4]), X)
+        self._state = s
+        self._elapsed = 0
+        return self._obs(s), self._info(s)
+
+    def step(self, action: Any) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
+        """One step of ``T`` seconds with the normalised action ``a``: ``u = clip(a, -1, 1) * bound``.
+
+        Raises
+        ------
+        ValueError
+            ``action`` not of shape (2,) or not finite (the state is left unchanged).
+        RuntimeError
+            If called before :meth:`reset`.
+        """
+        a = np.asarray(action, dtype=np.float64)
+        if a.shape != (2,):
+            raise ValueError(f"action: expected shape (2,), got {a.shape}")
+        a0, a1 = float(a[0]), float(a[1])
+        if not (math.isfinite(a0) and math.isfinite(a1)):
+            raise ValueError(f"action: contains NaN or inf ({a0!r}, {a1!r})")
+        clipped = not (-1.0 <= a0 <= 1.0 and -1.0 <= a1 <= 1.0)
+        a0 = -1.0 if a0 < -1.0 else (1.0 if a0 > 1.0 else a0)
+        a1 = -1.0 if a1 < -1.0 else (1.0 if a1 > 1.0 else a1)
+        return self._step_physical(a0 * self._delta_max, a1 * self._ax_max, clipped)
+
+    def step_physical(self, u: Any) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
+        """Same as :meth:`step`, with the physical input ``u = [delta, a_x]`` [rad, m/s^2].
+
+        ``u`` is clipped to ``[-delta_max, delta_max] x [-ax_max, ax_max]``.
+
+        Raises
+        ------
+        ValueError
+            ``u`` not of shape (2,) or not finite (the state is left unchanged).
+        RuntimeError
+            If called before :meth:`reset`.
+        """
+        a = np.asarray(u, dtype=np.float64)
+        if a.shape != (2,):
+            raise ValueError(f"u: expected shape (2,), got {a.shape}")
+        delta, ax = float(a[0]), float(a[1])
+        if not (math.isfinite(delta) and math.isfinite(ax)):
+            raise ValueError(f"u: contains NaN or inf ({delta!r}, {ax!r})")
+        dm, am = self._delta_max, self._ax_max
+        delta_c = -dm if delta < -dm else (dm if delta > dm else delta)
+        ax_c = -am if ax < -am else (am if ax > am else ax)
+        return self._step_physical(delta_c, ax_c, delta_c != delta or ax_c != ax)
+
+    def _step_physical(self, delta_c: float, ax_c: float, clipped: bool
+                       ) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
+        if self._state is None:
+            raise RuntimeError("step: call reset() before step()")
+        cfg = self.config
+        s = self._state
+        # F_dis ~ N(mean(X), variance) at the current state; xi = F_dis T / m  (eq. 54)
+        force = cfg.disturbance.mean_force(s[5], cfg.params.m, cfg.params.g) + self._f_std * float(
+            self.np_random.standard_normal())
+        xi = force * self._xi_scale
+        nxt = list(self._dyn.step_scalar(s, (delta_c, ax_c)))
+        nxt[NOISE_INDEX] += xi
+        s_next = tuple(nxt)
+        self._state = s_next
+        self._elapsed += 1
+        vy, r, vx, phi, Y, X = s_next
+        y_ref, psi_ref = cfg.reference.lateral_and_heading(X)
+        e_y = Y - y_ref
+        obs = np.array(_observation(cfg, vy, r, vx, phi - psi_ref, e_y, X, y_ref), dtype=np.float64)
+        reward = -_stage_cost(cfg, vx - cfg.v_des, e_y, delta_c, ax_c)
+        finite = all(math.isfinite(v) for v in s_next)
+        terminated = (not finite) or not (abs(e_y) <= cfg.max_lateral_error) or not (vx >= cfg.min_speed)
+        truncated = (not terminated) and self._elapsed >= cfg.max_steps
+        info = {
+            "lateral_error": e_y, "speed_error": vx - cfg.v_des, "state": np.array(s_next),
+            "disturbance": force, "xi": xi, "action": np.array((delta_c, ax_c)),
+            "action_clipped": clipped,
+        }
+        return obs, float(reward), bool(terminated), bool(truncated), info

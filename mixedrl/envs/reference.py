@@ -1,0 +1,166 @@
+"""The double-lane-change reference path ``Y_ref(X)``, ``psi_ref(X)`` (EQUATIONS.md, "Facts").
+
+The paper gives no reference path; the project uses the common tanh double lane change of the
+predictive-steering literature,
+
+.. math::
+
+    Y_{ref}(X) = \\frac{d_{y1}}{2}\\,(1 + \\tanh z_1) - \\frac{d_{y2}}{2}\\,(1 + \\tanh z_2), \\quad
+    z_i = \\frac{s}{l_i}\\,(X - X_i) - \\frac{s}{2}, \\quad
+    \\psi_{ref}(X) = \\arctan \\frac{dY_{ref}}{dX},
+
+with ``s = 2.4``, ``l_1 = 25``, ``l_2 = 21.95``, ``X_1 = 27.19``, ``X_2 = 56.46``, ``d_y1 = 4.05``,
+``d_y2 = 5.7`` (all lengths in metres). Every number is a field of :class:`DoubleLaneChangeReference`.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, fields
+from typing import Any
+
+import numpy as np
+import torch
+
+__all__ = ["DoubleLaneChangeReference"]
+
+
+class _MathOps:
+    tanh = staticmethod(math.tanh)
+    atan = staticmethod(math.atan)
+
+
+class _NumpyOps:
+    tanh = staticmethod(np.tanh)
+    atan = staticmethod(np.arctan)
+
+
+class _TorchOps:
+    tanh = staticmethod(torch.tanh)
+    atan = staticmethod(torch.atan)
+
+
+def _ops_for(X: Any) -> Any:
+    if isinstance(X, torch.Tensor):
+        return _TorchOps
+    if isinstance(X, np.ndarray):
+        return _NumpyOps
+    return _MathOps
+
+
+@dataclass(frozen=True)
+class DoubleLaneChangeReference:
+    """Tanh double-lane-change path in the road-fixed frame (``X`` forward, ``Y`` to the left).
+
+    Attributes
+    ----------
+    dy1 : float
+        Lateral offset of the first lane change [m] (to the left). Default 4.05.
+    dy2 : float
+        Lateral offset of the second lane change [m] (to the right). Default 5.7.
+    x1 : float
+        Start of the first transition [m]. Default 27.19.
+    x2 : float
+        Start of the second transition [m]. Default 56.46.
+    len1 : float
+        Length of the first transition [m]. Default 25.
+    len2 : float
+        Length of the second transition [m]. Default 21.95.
+    shape : float
+        Steepness ``s`` of the tanh transitions [-]. Default 2.4 (``z_i`` then runs from ``-s/2`` to
+        ``s/2`` over each transition).
+
+    Raises
+    ------
+    ValueError
+        If a field is not finite, or a length or ``shape`` is not positive.
+
+    Notes
+    -----
+    With the defaults the path ends at ``Y = dy1 - dy2 = -1.65 m`` (as in the literature); the largest
+    reference heading is about 0.30 rad (second transition).
+    """
+
+    dy1: float = 4.05
+    dy2: float = 5.7
+    x1: float = 27.19
+    x2: float = 56.46
+    len1: float = 25.0
+    len2: float = 21.95
+    shape: float = 2.4
+
+    def __post_init__(self) -> None:
+        for f in fields(self):
+            value = getattr(self, f.name)
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+                raise ValueError(f"{f.name}: expected a finite number, got {value!r}")
+            if f.name in ("len1", "len2", "shape") and value <= 0:
+                raise ValueError(f"{f.name}: expected a positive number, got {value!r}")
+            object.__setattr__(self, f.name, float(value))
+
+    def _tanh_terms(self, X: Any) -> tuple[Any, Any, Any]:
+        ops = _ops_for(X)
+        k1 = self.shape / self.len1
+        k2 = self.shape / self.len2
+        # z1 = 2.4/25 (X - 27.19) - 1.2 ;  z2 = 2.4/21.95 (X - 56.46) - 1.2
+        th1 = ops.tanh(k1 * (X - self.x1) - 0.5 * self.shape)
+        th2 = ops.tanh(k2 * (X - self.x2) - 0.5 * self.shape)
+        return ops, th1, th2
+
+    def lateral(self, X: Any) -> Any:
+        """Reference lateral position ``Y_ref(X)`` [m].
+
+        Parameters
+        ----------
+        X : float, numpy.ndarray or torch.Tensor, shape (...)
+            Longitudinal position [m].
+
+        Returns
+        -------
+        float, numpy.ndarray or torch.Tensor, shape (...)
+            ``Y_ref(X) = dy1/2 (1 + tanh z1) - dy2/2 (1 + tanh z2)``.
+        """
+        _, th1, th2 = self._tanh_terms(X)
+        # Y_ref = dy1/2 (1 + tanh z1) - dy2/2 (1 + tanh z2)
+        return 0.5 * self.dy1 * (1.0 + th1) - 0.5 * self.dy2 * (1.0 + th2)
+
+    def slope(self, X: Any) -> Any:
+        """Path slope ``dY_ref/dX`` [-] (analytic derivative of :meth:`lateral`).
+
+        Parameters
+        ----------
+        X : float, numpy.ndarray or torch.Tensor, shape (...)
+            Longitudinal position [m].
+
+        Returns
+        -------
+        float, numpy.ndarray or torch.Tensor, shape (...)
+            ``dy1/2 (s/l1)(1 - tanh^2 z1) - dy2/2 (s/l2)(1 - tanh^2 z2)``.
+        """
+        _, th1, th2 = self._tanh_terms(X)
+        return (0.5 * self.dy1 * self.shape / self.len1 * (1.0 - th1 * th1)
+                - 0.5 * self.dy2 * self.shape / self.len2 * (1.0 - th2 * th2))
+
+    def lateral_and_heading(self, X: Any) -> tuple[Any, Any]:
+        """``(Y_ref(X), psi_ref(X))`` from one evaluation of the tanh terms (same values as
+        :meth:`lateral` and :meth:`heading`); each of the shape of ``X``."""
+        ops, th1, th2 = self._tanh_terms(X)
+        lateral = 0.5 * self.dy1 * (1.0 + th1) - 0.5 * self.dy2 * (1.0 + th2)
+        slope = (0.5 * self.dy1 * self.shape / self.len1 * (1.0 - th1 * th1)
+                 - 0.5 * self.dy2 * self.shape / self.len2 * (1.0 - th2 * th2))
+        return lateral, ops.atan(slope)
+
+    def heading(self, X: Any) -> Any:
+        """Reference heading ``psi_ref(X) = atan(dY_ref/dX)`` [rad].
+
+        Parameters
+        ----------
+        X : float, numpy.ndarray or torch.Tensor, shape (...)
+            Longitudinal position [m].
+
+        Returns
+        -------
+        float, numpy.ndarray or torch.Tensor, shape (...)
+            Reference heading, same type and shape as ``X``.
+        """
+        return _ops_for(X).atan(self.slope(X))

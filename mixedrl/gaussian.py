@@ -1,0 +1,322 @@
+"""Gaussian utilities shared by the IBE and the theory checks: sampling, KL divergence, PSD solves.
+
+Every function here accepts *singular* covariances, because they are the normal case in this project
+(the vehicle disturbance acts on one of five state components, so the true noise covariance has rank 1
+and the designer's prior has diagonal entries of ``1e-20``; EQUATIONS.md point 5).
+
+Conventions
+-----------
+* A covariance ``C`` of shape ``(n, n)`` is symmetric positive semi-definite (PSD).
+* Its *numerical support* is the span of the eigenvectors whose eigenvalues are ``> rtol * lambda_max``
+  with ``rtol = SUPPORT_RTOL = 1e-13`` (about 450 machine epsilons). Eigenvalues below that floor are
+  rounding noise of a matrix that is singular in exact arithmetic. ``1e-13`` keeps the paper's
+  ``1e-20`` prior entries next to a ``(4T/m)^2 = 1.8e-10`` entry (ratio ``5.6e-11``) inside the support.
+* :func:`solve_psd` first rescales the matrix to unit diagonal (Jacobi equilibration), so its accuracy
+  depends on the condition number of the *scaled* matrix only; badly scaled but diagonal-dominant
+  matrices such as ``diag(1.8e-10, 1e-20, ...)`` are solved exactly.
+"""
+
+from __future__ import annotations
+
+import math
+
+from collections.abc import Callable
+
+import numpy as np
+import torch
+from scipy.linalg.lapack import dpotrf as _dpotrf
+from scipy.linalg.lapack import dpotrs as _dpotrs
+
+from mixedrl._checks import as_vector, check_covariance, check_positive_int
+
+__all__ = [
+    "SUPPORT_RTOL",
+    "CHOLESKY_PIVOT_FLOOR",
+    "solve_psd",
+    "psd_solver",
+    "pinv_psd",
+    "psd_factor",
+    "sample_gaussian",
+    "kl_divergence",
+]
+
+#: Relative eigenvalue floor that defines the numerical support (range) of a PSD matrix.
+SUPPORT_RTOL = 1e-13
+#: Smallest accepted squared Cholesky pivot of a unit-diagonal (Jacobi-scaled) matrix. Below it the
+#: matrix is treated as singular and :func:`solve_psd` falls back to the eigenvalue pseudo-inverse.
+CHOLESKY_PIVOT_FLOOR = 1e-13
+
+
+def _pinv_solve_scaled(s_scaled: np.ndarray, b_scaled: np.ndarray, rtol: float) -> np.ndarray:
+    """``S^+ b`` for a symmetric PSD ``S`` via ``eigh``, eigenvalues ``<= rtol * max`` dropped."""
+    lam, vec = np.linalg.eigh(s_scaled)
+    top = lam[-1] if lam.size else 0.0
+    keep = lam > rtol * top if top > 0 else np.zeros_like(lam, dtype=bool)
+    inv = np.zeros_like(lam)
+    inv[keep] = 1.0 / lam[keep]
+    if b_scaled.ndim == 1:
+        return vec @ (inv * (vec.T @ b_scaled))
+    return vec @ (inv[:, None] * (vec.T @ b_scaled))
+
+
+def psd_solver(s: np.ndarray, rtol: float = SUPPORT_RTOL) -> Callable[[np.ndarray], np.ndarray]:
+    """Factor a symmetric PSD ``S`` once and return ``b -> S^+ b`` (see :func:`solve_psd`).
+
+    Parameters
+    ----------
+    s : ndarray, shape (n, n)
+    rtol : float
+
+    Returns
+    -------
+    callable
+        Maps ``b`` of shape (n,) or (n, m) to ``S^{-1} b`` (``S^+ b`` when singular).
+    """
+    diag = s.diagonal()
+    if diag.min() > 0.0:
+        inv_d = 1.0 / np.sqrt(diag)
+        col = inv_d[:, None]
+        scaled = s * inv_d * col
+        chol, info = _dpotrf(scaled, 1, 0)
+        if info == 0 and chol.diagonal().min() ** 2 >= CHOLESKY_PIVOT_FLOOR:
+
+            def chol_solve(b: np.ndarray) -> np.ndarray:
+                if b.ndim == 1:
+                    return _dpotrs(chol, b * inv_d, 1)[0] * inv_d
+                return _dpotrs(chol, b * col, 1)[0] * col
+
+            return chol_solve
+
+        def pinv_solve(b: np.ndarray) -> np.ndarray:
+            if b.ndim == 1:
+                return _pinv_solve_scaled(scaled, b * inv_d, rtol) * inv_d
+            return _pinv_solve_scaled(scaled, b * col, rtol) * col
+
+        return pinv_solve
+    idx = np.flatnonzero(diag > 0.0)
+    sub = psd_solver(s[np.ix_(idx, idx)], rtol) if idx.size else None
+
+    def block_solve(b: np.ndarray) -> np.ndarray:
+        out = np.zeros(b.shape, dtype=np.float64)
+        if sub is not None:
+            out[idx] = sub(b[idx])
+        return out
+
+    return block_solve
+
+
+def solve_psd(s: np.ndarray, b: np.ndarray, rtol: float = SUPPORT_RTOL) -> np.ndarray:
+    """Solve ``S x = b`` for a symmetric PSD matrix ``S``; on a singular ``S`` use a generalised inverse.
+
+    .. math:: x = S^{g} b, \\qquad S^{g} = S^{-1} \\text{ when } S \\succ 0,
+        \\quad S^{g} = D (D S D)^{+} D \\text{ otherwise}.
+
+    Used for every ``(A + B)^{-1}`` of the covariance (Kalman) form of eqs. (15)-(17), e.g.
+    ``S = k K_M + K``.
+
+    Parameters
+    ----------
+    s : ndarray, shape (n, n)
+        Symmetric positive semi-definite matrix (not validated here: internal helper, callers pass
+        validated covariances).
+    b : ndarray, shape (n,) or (n, m)
+        Right-hand side(s).
+    rtol : float
+        Relative eigenvalue floor for the pseudo-inverse fall-back (default :data:`SUPPORT_RTOL`).
+
+    Returns
+    -------
+    ndarray, shape like ``b``
+
+    Notes
+    -----
+    Method: (1) rows/columns with an exactly zero diagonal are zero in a PSD matrix; they are removed
+    and the solution is 0 there (pseudo-inverse). (2) Jacobi equilibration ``D S D`` with
+    ``D = diag(S)^{-1/2}`` (unit diagonal), so accuracy depends on the condition number of the scaled
+    matrix only. (3) Cholesky (LAPACK ``dpotrf``/``dpotrs``), accepted when every squared pivot is
+    ``>= CHOLESKY_PIVOT_FLOOR`` (for a unit-diagonal matrix the squared pivots lie in ``(0, 1]`` and
+    bound the smallest eigenvalue from above). (4) Otherwise the eigenvalue pseudo-inverse of
+    ``D S D`` with floor ``rtol``. ``S^g = D (D S D)^+ D`` is a reflexive generalised inverse
+    (``S S^g S = S``); it differs from the Moore-Penrose ``S^+`` only by components in ``null(S)``. The
+    IBE always multiplies the result by ``K_M`` or ``K``, which vanish on ``null(S) = null(K_M) & null(K)``
+    for ``S = N K_M + K``, so the choice of generalised inverse does not matter there.
+    """
+    return psd_solver(s, rtol)(b)
+
+
+def pinv_psd(c: np.ndarray, rtol: float = SUPPORT_RTOL) -> np.ndarray:
+    """Moore-Penrose pseudo-inverse of a symmetric PSD matrix, eigenvalues ``<= rtol * max`` dropped.
+
+    Parameters
+    ----------
+    c : ndarray, shape (n, n)
+    rtol : float
+
+    Returns
+    -------
+    ndarray, shape (n, n), symmetric
+    """
+    lam, vec = np.linalg.eigh(c)
+    top = lam[-1] if lam.size else 0.0
+    keep = lam > rtol * top if top > 0 else np.zeros_like(lam, dtype=bool)
+    inv = np.zeros_like(lam)
+    inv[keep] = 1.0 / lam[keep]
+    out = (vec * inv) @ vec.T
+    return 0.5 * (out + out.T)
+
+
+def psd_factor(cov: np.ndarray) -> np.ndarray:
+    """Return ``A`` with ``A A^T = cov`` for a PSD ``cov`` (eigen-factor, works when singular).
+
+    Parameters
+    ----------
+    cov : ndarray, shape (n, n)
+
+    Returns
+    -------
+    ndarray, shape (n, n)
+
+    Notes
+    -----
+    ``A = V diag(sqrt(max(lambda, 0)))`` from ``eigh``; negative rounding eigenvalues are clipped to 0.
+    A Cholesky factor would fail on the rank-1 covariances of the vehicle task.
+    """
+    lam, vec = np.linalg.eigh(cov)
+    return vec * np.sqrt(np.clip(lam, 0.0, None))
+
+
+def sample_gaussian(
+    mean: np.ndarray,
+    cov: np.ndarray,
+    n: int,
+    generator: np.random.Generator | torch.Generator,
+) -> np.ndarray | torch.Tensor:
+    """Draw ``n`` samples of ``N(mean, cov)``, also for a singular ``cov``.
+
+    .. math:: \\hat\\xi = \\mu + A z, \\quad z \\sim N(0, I), \\quad A A^T = \\mathcal{K}
+
+    Parameters
+    ----------
+    mean : array_like, shape (d,)
+    cov : array_like, shape (d, d)
+        Symmetric PSD; may be singular.
+    n : int
+        Number of samples, ``>= 1``.
+    generator : numpy.random.Generator or torch.Generator
+        Source of every random number. A numpy generator gives an ndarray, a torch generator a
+        float64 tensor.
+
+    Returns
+    -------
+    ndarray or Tensor, shape (n, d)
+
+    Raises
+    ------
+    ValueError
+        ``mean``/``cov`` of wrong shape, non-finite, ``cov`` not symmetric PSD, ``n`` not a positive
+        integer, or ``generator`` of another type.
+
+    Notes
+    -----
+    The factor ``A`` is the eigen-factor of :func:`psd_factor`, so samples lie exactly in
+    ``mean + range(cov)`` (up to rounding), e.g. the four noise-free vehicle components equal the mean.
+    """
+    mean = as_vector(mean, "mean")
+    cov = check_covariance(cov, "cov", mean.shape[0])
+    n = check_positive_int(n, "n")
+    factor = psd_factor(cov)
+    if isinstance(generator, np.random.Generator):
+        z = generator.standard_normal((n, mean.shape[0]))
+        return mean + z @ factor.T
+    if isinstance(generator, torch.Generator):
+        z = torch.randn((n, mean.shape[0]), generator=generator, dtype=torch.float64)
+        return torch.as_tensor(mean) + z @ torch.as_tensor(factor).T
+    raise ValueError(f"generator: expected numpy.random.Generator or torch.Generator, got {type(generator).__name__}")
+
+
+def _support(cov: np.ndarray, rtol: float) -> tuple[np.ndarray, np.ndarray]:
+    lam, vec = np.linalg.eigh(cov)
+    top = lam[-1] if lam.size else 0.0
+    keep = lam > rtol * top if top > 0 else np.zeros_like(lam, dtype=bool)
+    return lam[keep], vec[:, keep]
+
+
+def kl_divergence(
+    mean0: np.ndarray,
+    cov0: np.ndarray,
+    mean1: np.ndarray,
+    cov1: np.ndarray,
+    rtol: float = SUPPORT_RTOL,
+) -> float:
+    """Kullback-Leibler divergence ``KL(N0 || N1)`` of two (possibly singular) Gaussians.
+
+    .. math::
+        D_{KL}(N_0 \\| N_1) = \\tfrac12\\left[\\operatorname{tr}(\\Sigma_1^{-1}\\Sigma_0)
+        + (\\mu_1-\\mu_0)^T\\Sigma_1^{-1}(\\mu_1-\\mu_0) - r
+        + \\ln\\det\\Sigma_1 - \\ln\\det\\Sigma_0\\right]
+
+    Used for the consistency statement of Theorem 4 (eq. (45)): ``KL(p(xi_k) || p(xi_{k+1})) -> 0``.
+
+    Parameters
+    ----------
+    mean0, mean1 : array_like, shape (d,)
+    cov0, cov1 : array_like, shape (d, d)
+        Symmetric PSD, possibly singular.
+    rtol : float
+        Relative eigenvalue floor that defines each support (default :data:`SUPPORT_RTOL`).
+
+    Returns
+    -------
+    float
+        ``>= 0``; ``math.inf`` when ``N0`` is not absolutely continuous with respect to ``N1``.
+
+    Raises
+    ------
+    ValueError
+        Wrong shapes, non-finite entries, covariance not symmetric PSD (message names the argument).
+
+    Notes
+    -----
+    A singular Gaussian lives on the affine support ``mu + range(Sigma)`` (numerical range: eigenvalues
+    ``> rtol * lambda_max``). ``KL(N0 || N1)`` is finite only when both supports coincide: equal rank
+    ``r``, ``range(Sigma0) = range(Sigma1)`` and ``mu0 - mu1`` in ``range(Sigma1)`` (components outside
+    the range smaller than ``sqrt(rtol) * (|mu0| + |mu1| + sqrt(lambda_max))``, i.e. rounding). Then the formula
+    above is evaluated in the eigenbasis ``U`` of the support of ``Sigma1`` (``Sigma -> U^T Sigma U``,
+    ``d -> r``). Otherwise the result is ``inf`` (including ``r = 0`` with different means).
+    For positive definite inputs this is the usual formula.
+    """
+    mean0 = as_vector(mean0, "mean0")
+    d = mean0.shape[0]
+    mean1 = as_vector(mean1, "mean1", d)
+    cov0 = check_covariance(cov0, "cov0", d)
+    cov1 = check_covariance(cov1, "cov1", d)
+    lam1, u1 = _support(cov1, rtol)
+    lam0, _ = _support(cov0, rtol)
+    r = lam1.shape[0]
+    delta = mean1 - mean0
+    mean_scale = float(np.max(np.abs(mean0)) + np.max(np.abs(mean1))) if d else 0.0
+    if lam0.shape[0] != r:
+        return math.inf
+    if r == 0:
+        return 0.0 if np.all(delta == 0.0) else math.inf
+    # Components of Sigma0 and of the mean difference outside range(Sigma1).
+    proj = u1 @ u1.T
+    off = cov0 - proj @ cov0 @ proj
+    top = max(float(lam1[-1]), float(np.max(np.abs(np.linalg.eigvalsh(cov0)))))
+    if np.max(np.abs(off)) > math.sqrt(rtol) * top:
+        return math.inf
+    off_mean = delta - proj @ delta
+    if np.max(np.abs(off_mean)) > math.sqrt(rtol) * (mean_scale + math.sqrt(top)):
+        return math.inf
+    s0 = u1.T @ cov0 @ u1  # (r, r)
+    s0 = 0.5 * (s0 + s0.T)
+    dr = u1.T @ delta
+    lam0_sub = np.linalg.eigvalsh(s0)
+    if lam0_sub[0] <= 0.0:
+        return math.inf
+    trace_term = float(np.sum(np.diagonal(s0) / lam1))
+    maha = float(np.sum(dr * dr / lam1))
+    logdet1 = float(np.sum(np.log(lam1)))
+    logdet0 = float(np.sum(np.log(lam0_sub)))
+    kl = 0.5 * (trace_term + maha - r + logdet1 - logdet0)
+    return max(kl, 0.0)

@@ -1,0 +1,215 @@
+"""Function approximators shared by every algorithm: the critic ``V(x; w)`` and actor ``pi(x; theta)``
+of eq. (48), DDPG's Q-critic, and exact linear-quadratic representations for validation.
+
+All networks are initialised from an explicit :class:`torch.Generator` (never torch's global random
+state), so the same seed gives the same weights.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Sequence
+
+import torch
+from torch import nn
+
+__all__ = ["MLP", "Critic", "Actor", "QCritic", "QuadraticCritic", "AffineActor", "init_uniform_"]
+
+_ACTIVATIONS = {"elu": nn.ELU, "tanh": nn.Tanh, "relu": nn.ReLU}
+
+
+def init_uniform_(module: nn.Module, generator: torch.Generator, last_scale: float = 1.0) -> nn.Module:
+    """Initialise every :class:`torch.nn.Linear` of ``module`` from ``generator``.
+
+    Weights and biases are drawn from ``U(-1/sqrt(fan_in), 1/sqrt(fan_in))`` (PyTorch's default
+    ranges), the last linear layer's range multiplied by ``last_scale``.
+
+    Parameters
+    ----------
+    module : torch.nn.Module
+        Module whose linear layers are initialised in place.
+    generator : torch.Generator
+        Source of every draw.
+    last_scale : float, optional
+        Factor on the range of the output layer (small values start the actor near zero output).
+
+    Returns
+    -------
+    torch.nn.Module
+        ``module`` itself.
+
+    Raises
+    ------
+    ValueError
+        If ``generator`` is not a :class:`torch.Generator`.
+    """
+    if not isinstance(generator, torch.Generator):
+        raise ValueError(f"generator: expected a torch.Generator, got {type(generator).__name__}")
+    linears = [m for m in module.modules() if isinstance(m, nn.Linear)]
+    with torch.no_grad():
+        for i, lin in enumerate(linears):
+            bound = 1.0 / math.sqrt(lin.in_features)
+            if i == len(linears) - 1:
+                bound *= last_scale
+            nn.init.uniform_(lin.weight, -bound, bound, generator=generator)
+            if lin.bias is not None:
+                nn.init.uniform_(lin.bias, -bound, bound, generator=generator)
+    return module
+
+
+class MLP(nn.Module):
+    """Multilayer perceptron ``in_dim -> hidden_sizes -> out_dim`` with a fixed input scaling.
+
+    Parameters
+    ----------
+    in_dim, out_dim : int
+        Input and output widths.
+    hidden_sizes : sequence of int
+        Hidden widths.
+    activation : {"elu", "tanh", "relu"}
+        Hidden activation.
+    input_scale : torch.Tensor, shape (in_dim,), optional
+        Inputs are divided by this (a fixed normalisation; default ones).
+    generator : torch.Generator
+        Initialisation source.
+    last_scale : float, optional
+        See :func:`init_uniform_`.
+    """
+
+    def __init__(self, in_dim: int, out_dim: int, hidden_sizes: Sequence[int], activation: str,
+                 generator: torch.Generator, input_scale: torch.Tensor | None = None,
+                 last_scale: float = 1.0) -> None:
+        super().__init__()
+        if activation not in _ACTIVATIONS:
+            raise ValueError(f"activation: expected one of {sorted(_ACTIVATIONS)}, got {activation!r}")
+        layers: list[nn.Module] = []
+        width = in_dim
+        for h in hidden_sizes:
+            layers += [nn.Linear(width, int(h)), _ACTIVATIONS[activation]()]
+            width = int(h)
+        layers.append(nn.Linear(width, out_dim))
+        self.body = nn.Sequential(*layers)
+        scale = torch.ones(in_dim) if input_scale is None else torch.as_tensor(input_scale, dtype=torch.float32)
+        if scale.shape != (in_dim,) or not bool((scale > 0).all()):
+            raise ValueError(f"input_scale: expected {in_dim} positive numbers, got {tuple(scale.shape)}")
+        self.register_buffer("input_scale", scale.clone())
+        init_uniform_(self, generator, last_scale)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """Evaluate on ``x`` of shape ``(..., in_dim)``; returns ``(..., out_dim)``."""
+        return self.body(x / self.input_scale)
+
+
+#: Output heads of the value networks: the MLP's output width and how it becomes a value.
+_OUT_WIDTH = {"linear": 1, "softplus": 1, "square": 8}
+
+
+def _check_output(output: str) -> None:
+    if output not in _OUT_WIDTH:
+        raise ValueError(f"output: expected one of {sorted(_OUT_WIDTH)}, got {output!r}")
+
+
+def _value_head(z: torch.Tensor, output: str) -> torch.Tensor:
+    """``linear``: ``z``; ``softplus``: ``softplus(z)``; ``square``: ``|z|^2 / 2`` (a sum of squares)."""
+    if output == "linear":
+        return z.squeeze(-1)
+    if output == "softplus":
+        return nn.functional.softplus(z.squeeze(-1))
+    return 0.5 * z.pow(2).sum(-1)
+
+
+class Critic(nn.Module):
+    """State-value critic ``V(x; w)`` of eq. (48): an :class:`MLP` with one output, times ``value_scale``.
+
+    ``forward(obs)`` maps observations ``(..., obs_dim)`` to values ``(...)``. The utility of eq. (2) is
+    ``>= 0``, so every value is ``>= 0``; the default heads respect that (a critic that cannot go
+    negative cannot be exploited by the actor where it has not been trained): ``output="softplus"``,
+    ``value_scale * softplus(MLP(obs))``, or ``output="square"``, ``value_scale * |MLP(obs)|^2 / 2`` with
+    an 8-dimensional MLP output (a sum of squares: near-quadratic around its minimum, like the LQ value);
+    ``"linear"`` is the plain MLP.
+    """
+
+    def __init__(self, obs_dim: int, hidden_sizes: Sequence[int], activation: str, generator: torch.Generator,
+                 obs_scale: torch.Tensor | None = None, value_scale: float = 1.0, output: str = "softplus") -> None:
+        super().__init__()
+        _check_output(output)
+        self.net = MLP(obs_dim, _OUT_WIDTH[output], hidden_sizes, activation, generator, obs_scale)
+        self.value_scale = float(value_scale)
+        self.output = output
+
+    def forward(self, obs: torch.Tensor) -> torch.Tensor:
+        return _value_head(self.net(obs), self.output) * self.value_scale
+
+
+class Actor(nn.Module):
+    """Deterministic actor ``u = pi(x; theta)`` of eq. (48), bounded by ``action_bound``.
+
+    ``u = action_bound * tanh(MLP(obs))``; the output layer starts small so the first policy is near 0.
+    """
+
+    def __init__(self, obs_dim: int, action_dim: int, hidden_sizes: Sequence[int], activation: str,
+                 generator: torch.Generator, action_bound: torch.Tensor, obs_scale: torch.Tensor | None = None
+                 ) -> None:
+        super().__init__()
+        self.net = MLP(obs_dim, action_dim, hidden_sizes, activation, generator, obs_scale, last_scale=0.1)
+        bound = torch.as_tensor(action_bound, dtype=torch.float32)
+        if bound.shape != (action_dim,) or not bool((bound > 0).all()):
+            raise ValueError(f"action_bound: expected {action_dim} positive numbers, got {tuple(bound.shape)}")
+        self.register_buffer("action_bound", bound.clone())
+
+    def forward(self, obs: torch.Tensor) -> torch.Tensor:
+        return self.action_bound * torch.tanh(self.net(obs))
+
+
+class QCritic(nn.Module):
+    """Action-value critic ``Q(x, u; w)`` for DDPG: the same MLP on ``[obs / obs_scale, u / bound]``, with the
+    same non-negative output as :class:`Critic`."""
+
+    def __init__(self, obs_dim: int, action_dim: int, hidden_sizes: Sequence[int], activation: str,
+                 generator: torch.Generator, action_bound: torch.Tensor, obs_scale: torch.Tensor | None = None,
+                 value_scale: float = 1.0, output: str = "softplus") -> None:
+        super().__init__()
+        _check_output(output)
+        obs_scale = torch.ones(obs_dim) if obs_scale is None else torch.as_tensor(obs_scale, dtype=torch.float32)
+        scale = torch.cat([obs_scale, torch.as_tensor(action_bound, dtype=torch.float32)])
+        self.net = MLP(obs_dim + action_dim, _OUT_WIDTH[output], hidden_sizes, activation, generator, scale)
+        self.value_scale = float(value_scale)
+        self.output = output
+
+    def forward(self, obs: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+        return _value_head(self.net(torch.cat([obs, action], dim=-1)), self.output) * self.value_scale
+
+
+class QuadraticCritic(nn.Module):
+    """Exact value class of the LQ case: ``V(x) = x^T P x + 2 p^T x + c`` with ``P = M M^T`` free.
+
+    Used to check Algorithm 2 against the DARE solution (the critic must reach ``x^T P x + 2 p^T x + c``).
+    """
+
+    def __init__(self, obs_dim: int, generator: torch.Generator) -> None:
+        super().__init__()
+        self.M = nn.Parameter(0.1 * torch.randn(obs_dim, obs_dim, generator=generator))
+        self.p = nn.Parameter(torch.zeros(obs_dim))
+        self.c = nn.Parameter(torch.zeros(()))
+
+    @property
+    def P(self) -> torch.Tensor:
+        """The quadratic term ``M M^T``, shape (n, n)."""
+        return self.M @ self.M.T
+
+    def forward(self, obs: torch.Tensor) -> torch.Tensor:
+        quad = torch.einsum("...i,ij,...j->...", obs, self.P, obs)
+        return quad + 2.0 * obs @ self.p + self.c
+
+
+class AffineActor(nn.Module):
+    """Exact policy class of the LQ case: ``u = -L x - l0`` (unbounded)."""
+
+    def __init__(self, obs_dim: int, action_dim: int, generator: torch.Generator) -> None:
+        super().__init__()
+        self.L = nn.Parameter(torch.zeros(action_dim, obs_dim))
+        self.l0 = nn.Parameter(torch.zeros(action_dim))
+        _ = generator  # deterministic zero start; the argument keeps the constructors uniform
+
+    def forward(self, obs: torch.Tensor) -> torch.Tensor:
+        return -(obs @ self.L.T) - self.l0

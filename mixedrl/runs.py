@@ -1,0 +1,408 @@
+"""Run directories, atomic checkpoints, metrics, and the training loop shared by every method.
+
+A run lives in one directory::
+
+    RUN_DIR/
+        config.json      the TrainConfig of the run (mixedrl.config)
+        checkpoint.pt    the latest checkpoint (written to a temporary file, then renamed: atomic)
+        metrics.jsonl    one JSON object per iteration (namespaced keys, see below)
+        metrics.csv      the same table as CSV, written when the run ends
+        results.json     final evaluation, convergence, wall time
+
+Metric keys (every row has ``iteration``):
+
+* ``train/critic_loss``, ``train/actor_objective`` (Algorithm 2) or ``train/actor_loss`` (DDPG),
+  ``train/value_mean``, ``train/value_change``, ``train/policy_change``;
+* ``mvc/held`` (1 if the MVC held on the batch after the inner loop), ``mvc/fraction_states``,
+  ``mvc/lhs_mean``, ``mvc/e_mean``, ``mvc/e_nonnegative``, ``mvc/inner_steps`` (Algorithm 2 only);
+* ``ibe/mean_<i>``, ``ibe/cov_<i><i>``, ``ibe/mean_error`` (max abs error of the mean against the true
+  noise), ``ibe/mean_rel_error``, ``ibe/count`` (Algorithm 2 only);
+* ``eval/cost``, ``eval/lateral_mae``, ``eval/speed_mae``, ... every ``eval_every`` iterations;
+* ``time/elapsed_s`` (wall time of the run so far, excluding evaluations).
+
+:func:`train` drives any trainer with the small interface of :class:`mixedrl.algorithms.agpi.AGPI`
+(``k``, ``iteration()``, ``evaluate(seeds)``, ``state_dict()``, ``load_state_dict()``, ``stopped``),
+checkpoints it, and writes the results. Resuming from the checkpoint continues with exactly the
+generator states, optimiser states, replay buffer, IBE state and counters of the interrupted run, so it
+ends with exactly the weights of an uninterrupted run.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import logging
+import math
+import os
+import tempfile
+import time
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+import torch
+
+from mixedrl.config import TrainConfig
+
+__all__ = [
+    "RunDirectory",
+    "save_checkpoint",
+    "load_checkpoint",
+    "atomic_write_text",
+    "iterations_to_converge",
+    "eval_seeds",
+    "train",
+    "make_trainer",
+    "CONVERGENCE_RTOL",
+]
+
+logger = logging.getLogger(__name__)
+
+_FORMAT = "mixedrl-checkpoint-v1"
+#: Relative tolerance of the convergence criterion (:func:`iterations_to_converge`).
+CONVERGENCE_RTOL = 0.10
+
+
+def _default_mode() -> int:
+    """``0o666`` minus the process umask: the mode ``open()`` would give a new file (mkstemp gives 0600)."""
+    mask = os.umask(0)
+    os.umask(mask)
+    return 0o666 & ~mask
+
+
+def atomic_write_text(path: str | Path, text: str) -> None:
+    """Write ``text`` to ``path`` atomically (temporary file in the same directory, fsync, rename)."""
+    path = Path(path)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "w") as fh:
+            fh.write(text)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.chmod(tmp, _default_mode())
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def save_checkpoint(path: str | Path, state: dict[str, Any]) -> None:
+    """Write ``state`` to ``path`` atomically: a temporary file in the same directory, then ``os.replace``.
+
+    A crash during the write leaves the previous checkpoint intact.
+    """
+    path = Path(path)
+    buffer = io.BytesIO()
+    torch.save({"format": _FORMAT, "state": state}, buffer)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            fh.write(buffer.getvalue())
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.chmod(tmp, _default_mode())
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def load_checkpoint(path: str | Path) -> dict[str, Any]:
+    """Read a checkpoint written by :func:`save_checkpoint`.
+
+    Raises
+    ------
+    ValueError
+        ``checkpoint: ...`` if the file is missing, truncated, corrupted or not a mixedrl checkpoint.
+
+    Notes
+    -----
+    The file is unpickled with ``weights_only=False`` (it holds numpy arrays and generator states):
+    load only checkpoints you wrote.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise ValueError(f"checkpoint: {path} does not exist")
+    try:
+        payload = torch.load(path, map_location="cpu", weights_only=False)
+    except Exception as exc:  # noqa: BLE001 - any unpickling failure means a corrupted file
+        raise ValueError(f"checkpoint: {path} is corrupted or truncated ({type(exc).__name__}: {exc})") from None
+    if not isinstance(payload, dict) or payload.get("format") != _FORMAT or "state" not in payload:
+        raise ValueError(f"checkpoint: {path} is not a {_FORMAT} file")
+    return payload["state"]
+
+
+class RunDirectory:
+    """The files of one run (see the module docstring).
+
+    Parameters
+    ----------
+    path : str or pathlib.Path
+        Directory; created if needed.
+    """
+
+    def __init__(self, path: str | Path) -> None:
+        self.path = Path(path)
+        self.path.mkdir(parents=True, exist_ok=True)
+
+    config_path = property(lambda self: self.path / "config.json")
+    checkpoint_path = property(lambda self: self.path / "checkpoint.pt")
+    metrics_path = property(lambda self: self.path / "metrics.jsonl")
+    csv_path = property(lambda self: self.path / "metrics.csv")
+    results_path = property(lambda self: self.path / "results.json")
+
+    def write_config(self, config: TrainConfig) -> None:
+        """Save the run's config as ``config.json``."""
+        atomic_write_text(self.config_path, json.dumps(config.to_dict(), indent=2, sort_keys=True) + "\n")
+
+    def read_config(self) -> TrainConfig:
+        """Load ``config.json`` (unknown keys are an error)."""
+        if not self.config_path.is_file():
+            raise ValueError(f"path: {self.path} has no config.json")
+        return TrainConfig.load(self.config_path)
+
+    def append_metrics(self, rows: list[dict[str, Any]]) -> None:
+        """Append rows to ``metrics.jsonl``."""
+        if not rows:
+            return
+        with open(self.metrics_path, "a") as fh:
+            for row in rows:
+                fh.write(json.dumps(row, allow_nan=True) + "\n")
+
+    def read_metrics(self) -> list[dict[str, Any]]:
+        """All rows of ``metrics.jsonl`` (an empty list if there is none)."""
+        if not self.metrics_path.is_file():
+            return []
+        rows = []
+        with open(self.metrics_path) as fh:
+            for line in fh:
+                line = line.strip()
+                if line:
+                    try:
+                        rows.append(json.loads(line))
+                    except json.JSONDecodeError:
+                        break  # a torn last line of an interrupted run
+        return rows
+
+    def truncate_metrics(self, k: int) -> None:
+        """Keep only the rows with ``iteration <= k`` (used when resuming from a checkpoint at ``k``)."""
+        rows = [r for r in self.read_metrics() if r["iteration"] <= k]
+        atomic_write_text(self.metrics_path, "".join(json.dumps(r) + "\n" for r in rows))
+
+    def write_csv(self) -> None:
+        """Write ``metrics.csv`` from ``metrics.jsonl`` (union of keys as columns)."""
+        rows = self.read_metrics()
+        keys: list[str] = []
+        for row in rows:
+            keys += [k for k in row if k not in keys]
+        out = io.StringIO()
+        writer = csv.DictWriter(out, fieldnames=keys)
+        writer.writeheader()
+        for row in rows:
+            writer.writerow(row)
+        atomic_write_text(self.csv_path, out.getvalue())
+
+    def write_results(self, results: dict[str, Any]) -> None:
+        """Write ``results.json`` atomically."""
+        atomic_write_text(self.results_path, json.dumps(results, indent=2, sort_keys=True) + "\n")
+
+    def read_results(self) -> dict[str, Any]:
+        """Read ``results.json``."""
+        return json.loads(self.results_path.read_text())
+
+
+def iterations_to_converge(iterations: list[int], costs: list[float], rtol: float = CONVERGENCE_RTOL) -> int:
+    """The convergence criterion applied identically to every method.
+
+    A run has converged at the first evaluated iteration ``k`` from which **every** later evaluation cost
+    stays within ``rtol`` (10%) of the run's final level, ``J_final`` = the median of its last three
+    evaluations:
+
+    .. math::
+
+        k^\\star = \\min\\{k_i : J(k_j) \\le (1 + \\mathrm{rtol})\\, J_{\\rm final}\\ \\forall j \\ge i\\}.
+
+    Parameters
+    ----------
+    iterations : list of int
+        Evaluated iterations, increasing.
+    costs : list of float
+        Evaluation cost at each (non-finite counts as not converged).
+    rtol : float
+        Relative tolerance.
+
+    Returns
+    -------
+    int
+        ``k*`` (the last evaluated iteration if the run never settles).
+
+    Raises
+    ------
+    ValueError
+        ``iterations`` empty or lengths differ.
+    """
+    if not iterations or len(iterations) != len(costs):
+        raise ValueError(f"iterations: expected equal non-empty lists, got {len(iterations)} and {len(costs)}")
+    final = float(np.median(costs[-3:]))
+    bound = (1.0 + rtol) * final if final >= 0 else (1.0 - rtol) * final
+    k_star = iterations[-1]
+    for i in range(len(costs) - 1, -1, -1):
+        if math.isfinite(costs[i]) and costs[i] <= bound:
+            k_star = iterations[i]
+        else:
+            break
+    return int(k_star)
+
+
+def eval_seeds(config: TrainConfig) -> list[int]:
+    """Noise seeds of the evaluation episodes: fixed per run, disjoint from the training seed stream."""
+    return [1_000_003 * (config.seed + 1) + i for i in range(config.eval_seeds)]
+
+
+def make_trainer(config: TrainConfig, task: Any = None) -> Any:
+    """Build the trainer of ``config.method`` (Algorithm 2 for mixed/model/oracle, DDPG for ddpg)."""
+    from mixedrl.algorithms.agpi import AGPI
+    from mixedrl.algorithms.ddpg import DDPG
+    from mixedrl.tasks import make_task
+
+    if task is None:
+        task = make_task("dlc", train_half_widths=config.train_half_widths) if config.task == "dlc" \
+            else make_task(config.task)
+    if config.method == "ddpg":
+        return DDPG(task, config)
+    return AGPI(task, config)
+
+
+def _scalar_eval(ev: dict[str, Any]) -> dict[str, float]:
+    return {f"eval/{k}": float(v) for k, v in ev.items() if isinstance(v, (int, float, np.floating))}
+
+
+def train(trainer: Any, run: RunDirectory | None = None, resume: bool = False, progress: bool = False,
+          stop_after: int | None = None, callback: Callable[[dict[str, Any]], None] | None = None
+          ) -> dict[str, Any]:
+    """Run ``trainer`` to its budget (or its stopping test), with checkpoints, metrics and results.
+
+    Parameters
+    ----------
+    trainer : AGPI or DDPG
+        A freshly built trainer (its config decides budget, evaluation and checkpoint periods).
+    run : RunDirectory, optional
+        Where to write config, checkpoints, metrics and results; ``None`` keeps everything in memory.
+    resume : bool
+        Continue from ``run``'s checkpoint (if there is one).
+    progress : bool
+        Show a tqdm progress bar.
+    stop_after : int, optional
+        Stop (after checkpointing) once ``trainer.k`` reaches this value: simulates an interruption.
+    callback : callable, optional
+        Called with every metrics row.
+
+    Returns
+    -------
+    dict
+        ``results``: final evaluation (``lateral_mae``, ``speed_mae``, ``cost`` ...), ``iterations``,
+        ``iterations_to_converge``, ``train_seconds``, ``final_ibe_mean`` ... (also written to
+        ``results.json``); plus the in-memory ``metrics`` rows under ``"metrics"`` when ``run`` is None.
+
+    Raises
+    ------
+    ValueError
+        ``resume`` with a corrupted checkpoint, or a config that differs from the saved one.
+    """
+    cfg: TrainConfig = trainer.config
+    torch.set_num_threads(cfg.num_threads)
+    memory_rows: list[dict[str, Any]] = []
+    elapsed = 0.0
+    if run is not None:
+        if resume and run.checkpoint_path.is_file():
+            saved = run.read_config()
+            if saved.to_dict() != cfg.to_dict():
+                raise ValueError(f"config: differs from the saved {run.config_path}; resume with the same config")
+            state = load_checkpoint(run.checkpoint_path)
+            trainer.load_state_dict(state["trainer"])
+            elapsed = float(state.get("elapsed", 0.0))
+            run.truncate_metrics(trainer.k)
+        else:
+            run.write_config(cfg)
+            if run.metrics_path.exists():
+                run.metrics_path.unlink()
+    seeds = eval_seeds(cfg)
+    pending: list[dict[str, Any]] = []
+
+    def checkpoint() -> None:
+        if run is not None:
+            run.append_metrics(pending)
+            save_checkpoint(run.checkpoint_path, {"trainer": trainer.state_dict(), "elapsed": elapsed})
+        memory_rows.extend(pending)
+        pending.clear()
+
+    bar = None
+    if progress:
+        from tqdm.auto import tqdm
+
+        bar = tqdm(total=cfg.iterations, initial=trainer.k, desc=f"{cfg.method} seed {cfg.seed}", leave=False)
+    try:
+        while trainer.k < cfg.iterations and not trainer.stopped:
+            t0 = time.perf_counter()
+            row = trainer.iteration()
+            elapsed += time.perf_counter() - t0
+            row = {"iteration": trainer.k, **row, "time/elapsed_s": elapsed}
+            if trainer.k % cfg.eval_every == 0 or trainer.k == cfg.iterations or trainer.stopped:
+                row.update(_scalar_eval(trainer.evaluate(seeds)))
+            pending.append(row)
+            if callback is not None:
+                callback(row)
+            if bar is not None:
+                bar.update(1)
+                if "eval/cost" in row:
+                    bar.set_postfix(cost=f"{row['eval/cost']:.4g}")
+            if trainer.k % cfg.checkpoint_every == 0:
+                checkpoint()
+            if stop_after is not None and trainer.k >= stop_after:
+                checkpoint()
+                return {"interrupted_at": trainer.k}
+    finally:
+        if bar is not None:
+            bar.close()
+    checkpoint()
+    rows = run.read_metrics() if run is not None else memory_rows
+    results = summarize(trainer, rows, elapsed, seeds)
+    if run is not None:
+        run.write_csv()
+        run.write_results(results)
+    else:
+        results["metrics"] = memory_rows
+    return results
+
+
+def summarize(trainer: Any, rows: list[dict[str, Any]], elapsed: float, seeds: list[int]) -> dict[str, Any]:
+    """Final evaluation and convergence figures of a finished run (the content of ``results.json``)."""
+    cfg: TrainConfig = trainer.config
+    final = trainer.evaluate(seeds)
+    evals = [(r["iteration"], r["eval/cost"]) for r in rows if "eval/cost" in r]
+    results: dict[str, Any] = {
+        "method": cfg.method,
+        "seed": cfg.seed,
+        "task": cfg.task,
+        "iterations": int(trainer.k),
+        "train_seconds": float(elapsed),
+        "final": {k: float(v) for k, v in final.items() if isinstance(v, (int, float, np.floating))},
+        "iterations_to_converge": iterations_to_converge([e[0] for e in evals], [e[1] for e in evals])
+        if evals else int(trainer.k),
+        "convergence_criterion": f"first evaluated iteration after which eval/cost stays <= "
+                                 f"(1 + {CONVERGENCE_RTOL}) x median of the last 3 evaluations",
+    }
+    for key in ("lateral_mae", "speed_mae", "cost"):
+        if key in final:
+            results[key] = float(final[key])
+    if hasattr(trainer, "noise"):
+        results["final_ibe_mean"] = np.asarray(trainer.noise.mean, dtype=float).tolist()
+        results["final_ibe_cov_diag"] = np.diag(np.asarray(trainer.noise.cov, dtype=float)).tolist()
+        mvc = [r["mvc/held"] for r in rows if "mvc/held" in r]
+        results["mvc_held_fraction"] = float(np.mean(mvc)) if mvc else None
+        inner = [r["mvc/inner_steps"] for r in rows if "mvc/inner_steps" in r]
+        results["mean_inner_steps"] = float(np.mean(inner)) if inner else None
+    return results

@@ -1,0 +1,334 @@
+"""The interface between the learning algorithms and a controlled system: :class:`Task`.
+
+Algorithm 2 (:mod:`mixedrl.algorithms.agpi`) and DDPG (:mod:`mixedrl.algorithms.ddpg`) see a system
+only through this small interface, so they run unchanged on the double lane change
+(:class:`DoubleLaneChangeTask`, Section V of the paper) and on any user system (:class:`LinearTask`, and
+the tutorial).
+
+The true system is eq. (1) with the noise entering through a fixed matrix ``E``:
+
+.. math::
+
+    s_{t+1} = f(s_t, u_t) + E\\, \\xi_t, \\qquad \\xi_t \\sim N(\\mu, K),
+
+where ``s`` is the simulator state (``state_dim``), ``xi`` the additive uncertainty of the paper
+(``noise_dim``; for the vehicle the five components of eq. 53) and ``E`` (``state_dim x noise_dim``) a
+selection matrix. The residual of eq. (10) is ``xi = E^T (s' - f(s, u))``. The policy and the critic see
+the observation ``observe(s)``; the utility is charged on the next state, ``l(s', u)`` (eq. 2).
+"""
+
+from __future__ import annotations
+
+import abc
+from typing import Any
+
+import numpy as np
+import torch
+
+from mixedrl._checks import as_vector, check_covariance
+from mixedrl.gaussian import sample_gaussian
+
+__all__ = ["Task", "LinearTask", "DoubleLaneChangeTask", "make_task"]
+
+
+class Task(abc.ABC):
+    """A controlled system with a known deterministic part ``f`` and additive Gaussian noise (eq. 1).
+
+    Subclasses set the attributes below in ``__init__`` and implement the abstract methods. Every
+    tensor method is batched over the first dimension and differentiable in torch.
+
+    Attributes
+    ----------
+    state_dim, obs_dim, action_dim, noise_dim : int
+        Sizes of ``s``, ``observe(s)``, ``u`` and ``xi``.
+    gamma : float
+        Discount factor of eq. (2).
+    noise_matrix : torch.Tensor, shape (state_dim, noise_dim)
+        ``E``: a 0/1 selection matrix, how ``xi`` enters the state.
+    prior_mean, prior_cov : numpy.ndarray, shapes (noise_dim,), (noise_dim, noise_dim)
+        The designer's prior ``mu_M``, ``K_M`` (eq. 8).
+    true_mean, true_cov : numpy.ndarray, shapes (noise_dim,), (noise_dim, noise_dim)
+        The true noise (used only by the true environment and by the oracle baseline).
+    action_bound : torch.Tensor, shape (action_dim,)
+        Symmetric bounds of the actor's output.
+    obs_scale : torch.Tensor, shape (obs_dim,)
+        Typical magnitude of each observation component (the networks divide by it).
+    value_scale : float
+        Typical magnitude of the value (the critic's output is multiplied by it).
+    """
+
+    state_dim: int
+    obs_dim: int
+    action_dim: int
+    noise_dim: int
+    gamma: float
+    noise_matrix: torch.Tensor
+    prior_mean: np.ndarray
+    prior_cov: np.ndarray
+    true_mean: np.ndarray
+    true_cov: np.ndarray
+    action_bound: torch.Tensor
+    obs_scale: torch.Tensor
+    value_scale: float = 1.0
+
+    @abc.abstractmethod
+    def f(self, s: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+        """Deterministic part of the dynamics; ``s`` (B, state_dim), ``u`` (B, action_dim) -> (B, state_dim)."""
+
+    @abc.abstractmethod
+    def observe(self, s: torch.Tensor) -> torch.Tensor:
+        """Observation of the policy and the critic; (B, state_dim) -> (B, obs_dim)."""
+
+    @abc.abstractmethod
+    def cost(self, s_next: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+        """Utility ``l(s', u)`` charged on the next state (eq. 2); returns (B,)."""
+
+    @abc.abstractmethod
+    def sample_initial(self, n: int, generator: torch.Generator) -> torch.Tensor:
+        """``n`` initial states of the training environments, float64, (n, state_dim)."""
+
+    def is_terminal(self, s: torch.Tensor) -> torch.Tensor:
+        """Boolean (B,): the episode of this copy ends (left the domain, course finished, not finite)."""
+        return ~torch.isfinite(s).all(dim=-1)
+
+    def true_step(self, s: torch.Tensor, u: torch.Tensor, generator: torch.Generator) -> torch.Tensor:
+        """One step of the *true* environment, eq. (1): ``f(s, u) + E xi``, ``xi ~ N(true_mean, true_cov)``.
+
+        Parameters
+        ----------
+        s : torch.Tensor, shape (B, state_dim)
+            States (float64).
+        u : torch.Tensor, shape (B, action_dim)
+            Actions.
+        generator : torch.Generator
+            Source of the noise.
+
+        Returns
+        -------
+        torch.Tensor, shape (B, state_dim)
+            Next states, dtype of ``s``.
+        """
+        xi = sample_gaussian(self.true_mean, self.true_cov, s.shape[0], generator).to(s.dtype)
+        return self.f(s, u.to(s.dtype)) + xi @ self.noise_matrix.to(s.dtype).T
+
+    def residuals(self, s: torch.Tensor, u: torch.Tensor, s_next: torch.Tensor) -> torch.Tensor:
+        """Eq. (10) in noise coordinates: ``xi = E^T (s' - f(s, u))``, (B, noise_dim)."""
+        with torch.no_grad():
+            return (s_next - self.f(s, u.to(s.dtype))) @ self.noise_matrix.to(s.dtype)
+
+    def evaluate(self, policy: torch.nn.Module, seeds: list[int]) -> dict[str, Any]:
+        """Drive evaluation episodes with ``policy`` (a module on observations, float32) under the true
+        noise, one noise realisation per seed; return scalar metrics, ``"cost"`` at least.
+
+        Raises
+        ------
+        NotImplementedError
+            The task defines no evaluation (subclasses implement it).
+        """
+        raise NotImplementedError(f"{type(self).__name__}.evaluate is not implemented")
+
+
+class LinearTask(Task):
+    """A small linear-quadratic system with mean-shifted noise: the generic test bed of Algorithm 2.
+
+    .. math::
+
+        s' = A s + B u + \\xi, \\quad \\xi \\sim N(\\mu, K), \\qquad l(s', u) = s'^\\top Q s' + u^\\top R u,
+
+    whose optimum is affine, ``u = -L s - l0``, with value ``s^T P s + 2 p^T s + c`` (EQUATIONS.md, last
+    section). The default is a sampled double integrator (``dt = 0.1``) with the disturbance on the
+    velocity, a prior mean of 0 and a true mean of 0.5.
+
+    Parameters
+    ----------
+    A, B, Q, R : array_like, optional
+        System and cost matrices, shapes (n, n), (n, m), (n, n), (m, m).
+    gamma : float, optional
+        Discount factor.
+    true_mean, true_cov, prior_mean, prior_cov : array_like, optional
+        True noise and the designer's prior (eq. 8), shapes (n,), (n, n).
+    init_box : float, optional
+        Initial states are uniform in ``[-init_box, init_box]^n``.
+    action_bound : float, optional
+        Bound of the MLP actor's output.
+
+    Raises
+    ------
+    ValueError
+        On inconsistent shapes or a covariance that is not symmetric PSD.
+    """
+
+    def __init__(self, A: Any = None, B: Any = None, Q: Any = None, R: Any = None, gamma: float = 0.9,
+                 true_mean: Any = None, true_cov: Any = None, prior_mean: Any = None, prior_cov: Any = None,
+                 init_box: float = 1.0, action_bound: float = 10.0) -> None:
+        dt = 0.1
+        A = np.array([[1.0, dt], [0.0, 1.0]]) if A is None else np.asarray(A, dtype=np.float64)
+        B = np.array([[0.5 * dt * dt], [dt]]) if B is None else np.asarray(B, dtype=np.float64)
+        n, m = B.shape
+        if A.shape != (n, n):
+            raise ValueError(f"A: expected shape ({n}, {n}), got {A.shape}")
+        Q = np.eye(n) if Q is None else np.asarray(Q, dtype=np.float64)
+        R = 0.1 * np.eye(m) if R is None else np.asarray(R, dtype=np.float64)
+        self.A, self.B, self.Q, self.R = A, B, check_covariance(Q, "Q", n), check_covariance(R, "R", m)
+        self.state_dim = self.obs_dim = self.noise_dim = n
+        self.action_dim = m
+        self.gamma = float(gamma)
+        self.true_mean = as_vector(np.r_[np.zeros(n - 1), 0.5] if true_mean is None else true_mean, "true_mean", n)
+        self.true_cov = check_covariance(np.diag(np.r_[np.zeros(n - 1), 0.01]) if true_cov is None else true_cov,
+                                         "true_cov", n)
+        self.prior_mean = as_vector(np.zeros(n) if prior_mean is None else prior_mean, "prior_mean", n)
+        self.prior_cov = check_covariance(0.01 * np.eye(n) if prior_cov is None else prior_cov, "prior_cov", n)
+        self.noise_matrix = torch.eye(n)
+        self.init_box = float(init_box)
+        self.action_bound = torch.full((m,), float(action_bound))
+        self.obs_scale = torch.ones(n)
+        self.value_scale = 1.0
+        self._At = {torch.float32: torch.tensor(A.T, dtype=torch.float32), torch.float64: torch.tensor(A.T)}
+        self._Bt = {torch.float32: torch.tensor(B.T, dtype=torch.float32), torch.float64: torch.tensor(B.T)}
+        self._Q = {torch.float32: torch.tensor(self.Q, dtype=torch.float32), torch.float64: torch.tensor(self.Q)}
+        self._R = {torch.float32: torch.tensor(self.R, dtype=torch.float32), torch.float64: torch.tensor(self.R)}
+
+    def f(self, s: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+        # x' = A x + B u (deterministic part)
+        return s @ self._At[s.dtype] + u @ self._Bt[s.dtype]
+
+    def observe(self, s: torch.Tensor) -> torch.Tensor:
+        return s
+
+    def cost(self, s_next: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+        # l(x', u) = x'^T Q x' + u^T R u  (next-state convention, eq. 2)
+        Q, R = self._Q[s_next.dtype], self._R[s_next.dtype]
+        return torch.einsum("bi,ij,bj->b", s_next, Q, s_next) + torch.einsum("bi,ij,bj->b", u, R, u)
+
+    def sample_initial(self, n: int, generator: torch.Generator) -> torch.Tensor:
+        return (2.0 * torch.rand(n, self.state_dim, generator=generator, dtype=torch.float64) - 1.0) * self.init_box
+
+    def is_terminal(self, s: torch.Tensor) -> torch.Tensor:
+        return ~torch.isfinite(s).all(dim=-1) | (s.abs() > 20.0 * self.init_box).any(dim=-1)
+
+    def evaluate(self, policy: torch.nn.Module, seeds: list[int]) -> dict[str, Any]:
+        """Discounted cost of 100-step rollouts from a fixed grid of starts, averaged over ``seeds``."""
+        costs = []
+        for seed in seeds:
+            gen = torch.Generator().manual_seed(int(seed))
+            s = self.sample_initial(64, gen)
+            total = torch.zeros(64, dtype=torch.float64)
+            with torch.no_grad():
+                for t in range(100):
+                    u = policy(s.float()).double()
+                    s_next = self.true_step(s, u, gen)
+                    total += self.gamma**t * self.cost(s_next, u)
+                    s = s_next
+            costs.append(float(total.mean()))
+        return {"cost": float(np.mean(costs))}
+
+
+def make_task(name: str, **kwargs: Any) -> Task:
+    """Build a task by name: ``"dlc"`` (:class:`DoubleLaneChangeTask`) or ``"linear"`` (:class:`LinearTask`).
+
+    Raises
+    ------
+    ValueError
+        ``name`` unknown.
+    """
+    if name == "linear":
+        return LinearTask(**kwargs)
+    if name == "dlc":
+        return DoubleLaneChangeTask(**kwargs)
+    raise ValueError(f"name: expected 'dlc' or 'linear', got {name!r}")
+
+
+class DoubleLaneChangeTask(Task):
+    """The double lane change of Section V as a :class:`Task` (an adapter on :mod:`mixedrl.envs`).
+
+    * state: the tracking state ``s = [v_y, r, v_x, phi, Y, X]`` of
+      :class:`~mixedrl.envs.DoubleLaneChangeModel`; ``f`` = its ``step`` (eq. 53, forward Euler);
+    * noise: the paper's five-component ``xi`` on ``x = [v_y, r, v_x, phi, y]`` (eq. 54), entering the
+      first five state components (``E = [I_5; 0]``); the true noise is ``F_dis T / m`` on ``v_x`` with
+      ``F_dis ~ N(261, 32)`` (drawn by the model's ``sample_force``, so a configured road grade is
+      honoured);
+    * prior (eq. 55): ``mu_M = 150 T/m`` and ``K_M = (4 T/m)^2`` on ``v_x``, ``1e-20`` on the other four
+      diagonal entries (EQUATIONS.md point 6: the paper's prior is read as acting on ``v_x``);
+    * observation: :meth:`~mixedrl.envs.DoubleLaneChangeModel.observe` (the paper's relative state
+      ``[v_y, r, v_x - 12, e_phi, e_y]`` by default); utility: eq. (54) on the next state;
+    * training states: :meth:`~mixedrl.envs.DoubleLaneChangeModel.reset_states` (anywhere on the
+      course); evaluation: :func:`mixedrl.envs.evaluate_tracking` (one full course from the reference
+      start, per seed).
+
+    Parameters
+    ----------
+    prior_force_mean : float, optional
+        The designer's prior mean force [N] (paper: 150).
+    prior_force_std : float, optional
+        Prior standard deviation ``sqrt(K_M)`` in force units [N] (paper: 4).
+    **config
+        Overrides of :class:`~mixedrl.envs.DoubleLaneChangeConfig` (e.g. ``disturbance``).
+    """
+
+    def __init__(self, prior_force_mean: float = 150.0, prior_force_std: float = 4.0, **config: Any) -> None:
+        from mixedrl.envs import DoubleLaneChangeModel
+
+        self.model = DoubleLaneChangeModel(config or None)
+        cfg = self.model.config
+        scale = cfg.dt / cfg.params.m  # T / m: force [N] -> xi [m/s]
+        self.state_dim, self.action_dim = self.model.state_dim, self.model.action_dim
+        self.obs_dim, self.noise_dim = self.model.obs_dim, 5
+        self.gamma = 0.99
+        vx = self.model.noise_index
+        self.noise_matrix = torch.zeros(self.state_dim, self.noise_dim)
+        self.noise_matrix[:5, :5] = torch.eye(5)
+        self.prior_mean = np.zeros(5)
+        self.prior_mean[vx] = prior_force_mean * scale
+        self.prior_cov = np.diag(np.full(5, 1e-20))
+        self.prior_cov[vx, vx] = (prior_force_std * scale) ** 2
+        self.true_mean = np.zeros(5)
+        self.true_mean[vx] = cfg.disturbance.mean * scale
+        self.true_cov = np.zeros((5, 5))
+        self.true_cov[vx, vx] = cfg.disturbance.variance * scale**2
+        self.action_bound = torch.tensor(self.model.action_bound, dtype=torch.float32)
+        scales = [0.3, 0.2, 0.5, 0.1, 0.5] + [2.0] * (self.obs_dim - 5)
+        self.obs_scale = torch.tensor(scales, dtype=torch.float32)
+        self.value_scale = 1.0
+
+    def f(self, s: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+        return self.model.step(s, u)
+
+    def observe(self, s: torch.Tensor) -> torch.Tensor:
+        return self.model.observe(s)
+
+    def cost(self, s_next: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+        return self.model.cost(s_next, u)
+
+    def sample_initial(self, n: int, generator: torch.Generator) -> torch.Tensor:
+        return self.model.reset_states(n, generator, dtype=torch.float64)
+
+    def is_terminal(self, s: torch.Tensor) -> torch.Tensor:
+        return self.model.is_terminated(s)
+
+    def true_step(self, s: torch.Tensor, u: torch.Tensor, generator: torch.Generator) -> torch.Tensor:
+        # s' = f(s, u) + xi e_vx,  xi = F_dis T / m  (eq. 54)
+        force = self.model.sample_force(s, generator)
+        return self.model.step(s, u.to(s.dtype)) + self.model.noise_vector(self.model.xi_from_force(force))
+
+    def evaluate(self, policy: torch.nn.Module, seeds: list[int], keep_trajectory: bool = False
+                 ) -> dict[str, Any]:
+        """Table I metrics averaged over one full course per seed (:func:`mixedrl.envs.evaluate_tracking`).
+
+        Returns ``lateral_mae`` [m], ``speed_mae`` [m/s], ``lateral_max``, ``speed_max``, ``cost`` (total
+        eq. 54 cost of the course), ``terminated`` (fraction of runs that left the road); with
+        ``keep_trajectory`` also ``trajectories`` (the :class:`~mixedrl.envs.TrackingResult` objects).
+        """
+        from mixedrl.envs import evaluate_tracking
+
+        runs = [evaluate_tracking(policy, self.model.config, seed=int(seed)) for seed in seeds]
+        out: dict[str, Any] = {
+            "lateral_mae": float(np.mean([r.mean_abs_lateral_error for r in runs])),
+            "speed_mae": float(np.mean([r.mean_abs_speed_error for r in runs])),
+            "lateral_max": float(np.mean([r.max_abs_lateral_error for r in runs])),
+            "speed_max": float(np.mean([r.max_abs_speed_error for r in runs])),
+            "cost": float(np.mean([r.total_cost for r in runs])),
+            "terminated": float(np.mean([r.terminated for r in runs])),
+        }
+        if keep_trajectory:
+            out["trajectories"] = runs
+        return out

@@ -1,0 +1,330 @@
+"""Tests of Algorithm 2 (mixedrl.algorithms.agpi): the equations piece by piece, then the whole loop on an
+LQ problem whose optimum is known (python-control's DARE plus the offset's linear system)."""
+
+from __future__ import annotations
+
+import control
+import numpy as np
+import pytest
+import torch
+
+from mixedrl.algorithms.agpi import (
+    AGPI,
+    actor_objective,
+    critic_loss,
+    expectation_nodes,
+    h_value,
+    make_noise_source,
+    mvc_check,
+)
+from mixedrl.config import TrainConfig
+from mixedrl.networks import QuadraticCritic
+from mixedrl.runs import train
+from mixedrl.tasks import LinearTask
+
+
+def lq_optimum(task: LinearTask, mu: np.ndarray) -> dict[str, np.ndarray]:
+    """Discounted LQ optimum with next-state cost and noise mean ``mu`` (EQUATIONS.md, last section).
+
+    ``S = Q + gamma P`` from the DARE on (sqrt(g) A, sqrt(g) B, Q, g R); ``L = (R + B'SB)^-1 B'SA``;
+    ``l0`` and ``p`` from the linear system obtained by matching the constant and linear terms.
+    """
+    A, B, Q, R, g = task.A, task.B, task.Q, task.R, task.gamma
+    S, _, _ = control.dare(np.sqrt(g) * A, np.sqrt(g) * B, Q, g * R, method="scipy")
+    P = (S - Q) / g
+    H = R + B.T @ S @ B
+    L = np.linalg.solve(H, B.T @ S @ A)
+    Acl = A - B @ L
+    n, m = B.shape
+    # H l0 - g B' p = B' S mu ;  (Acl' S B - L' R) l0 + (I - g Acl') p = Acl' S mu
+    M = np.block([[H, -g * B.T], [Acl.T @ S @ B - L.T @ R, np.eye(n) - g * Acl.T]])
+    sol = np.linalg.solve(M, np.r_[B.T @ S @ mu, Acl.T @ S @ mu])
+    return {"L": L, "l0": sol[:m], "P": P, "p": sol[m:], "S": S}
+
+
+# ------------------------------------------------------------------------------ expectation nodes
+@pytest.mark.parametrize("rank", [1, 2, 3])
+def test_sigma_points_match_mean_and_covariance(rng: np.random.Generator, rank: int) -> None:
+    n = 3
+    root = rng.standard_normal((n, rank))
+    cov = root @ root.T
+    mean = rng.standard_normal(n)
+    E = torch.tensor(rng.standard_normal((4, n)))
+    d, w = expectation_nodes(mean, cov, E, "sigma", dtype=torch.float64)
+    assert d.shape == (2 * rank, 4)
+    En = E.numpy()
+    m_hat = (w[:, None] * d).sum(0).numpy()
+    c_hat = ((d - torch.tensor(m_hat)).T * w) @ (d - torch.tensor(m_hat))
+    np.testing.assert_allclose(m_hat, En @ mean, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(c_hat.numpy(), En @ cov @ En.T, rtol=1e-10, atol=1e-12)
+
+
+def test_sigma_points_exact_for_cubic() -> None:
+    # E[x^3] for x ~ N(mu, s^2) is mu^3 + 3 mu s^2 (a degree-3 polynomial: the cubature rule is exact)
+    mu, s2 = 0.7, 0.3
+    d, w = expectation_nodes(np.array([mu]), np.array([[s2]]), torch.eye(1, dtype=torch.float64), "sigma",
+                             dtype=torch.float64)
+    assert float((w * d[:, 0] ** 3).sum()) == pytest.approx(mu**3 + 3 * mu * s2, rel=1e-12)
+
+
+def test_sigma_points_drop_negligible_directions_and_zero_cov() -> None:
+    cov = np.diag([1e-20, 3.6e-10, 1e-20])
+    d, _ = expectation_nodes(np.zeros(3), cov, torch.eye(3), "sigma")
+    assert d.shape[0] == 2  # the paper's 1e-20 entries are below RANK_RTOL: rank-1 rule
+    d0, w0 = expectation_nodes(np.ones(3), np.zeros((3, 3)), torch.eye(3), "sigma")
+    assert d0.shape[0] == 1 and float(w0[0]) == 1.0
+
+
+def test_samples_rule_statistics() -> None:
+    gen = torch.Generator().manual_seed(3)
+    d, w = expectation_nodes(np.array([1.0, -2.0]), np.diag([4.0, 0.0]), torch.eye(2, dtype=torch.float64),
+                             "samples", n_samples=20_000, generator=gen, dtype=torch.float64)
+    # sample mean of the first component: standard error 2 / sqrt(20000) = 0.0141; 5 sigma band
+    assert abs(float(d[:, 0].mean()) - 1.0) < 5 * 2.0 / np.sqrt(20_000)
+    assert torch.all(d[:, 1] == -2.0)
+    assert float(w.sum()) == pytest.approx(1.0)
+
+
+def test_expectation_nodes_rejects_bad_input() -> None:
+    with pytest.raises(ValueError, match="^mean"):
+        expectation_nodes(np.zeros(2), np.eye(3), torch.eye(2))
+    with pytest.raises(ValueError, match="^mean"):
+        expectation_nodes(np.array([np.nan, 0.0]), np.eye(2), torch.eye(2))
+    with pytest.raises(ValueError, match="^rule"):
+        expectation_nodes(np.zeros(2), np.eye(2), torch.eye(2), "gauss")
+    with pytest.raises(ValueError, match="^generator"):
+        expectation_nodes(np.zeros(2), np.eye(2), torch.eye(2), "samples")
+
+
+# ------------------------------------------------------------------------------ h, PEV, PIM against closed forms
+def _quadratic_critic(rng: np.random.Generator, n: int) -> QuadraticCritic:
+    critic = QuadraticCritic(n, torch.Generator().manual_seed(0)).double()
+    with torch.no_grad():
+        critic.M.copy_(torch.tensor(rng.standard_normal((n, n))))
+        critic.p.copy_(torch.tensor(rng.standard_normal(n)))
+        critic.c.fill_(0.3)
+    return critic
+
+
+def _h_closed_form(task: LinearTask, critic: QuadraticCritic, x: np.ndarray, u: np.ndarray, mu: np.ndarray,
+                   K: np.ndarray) -> np.ndarray:
+    # E{(z + xi)' Q (z + xi)} = z'Qz + tr(QK) with z = A x + B u + mu, same for the critic's quadratic
+    P, p, c = (t.detach().numpy() for t in (critic.P, critic.p, critic.c))
+    z = x @ task.A.T + u @ task.B.T + mu
+    cost = np.einsum("bi,ij,bj->b", z, task.Q, z) + np.trace(task.Q @ K) + np.einsum("bi,ij,bj->b", u, task.R, u)
+    value = np.einsum("bi,ij,bj->b", z, P, z) + np.trace(P @ K) + 2 * z @ p + c
+    return cost + task.gamma * value
+
+
+def test_h_value_equals_closed_form(rng: np.random.Generator) -> None:
+    task = LinearTask()
+    critic = _quadratic_critic(rng, 2)
+    mu, K = np.array([0.2, -0.4]), np.array([[0.3, 0.1], [0.1, 0.2]])
+    x, u = rng.standard_normal((16, 2)), rng.standard_normal((16, 1))
+    d, w = expectation_nodes(mu, K, task.noise_matrix, "sigma", dtype=torch.float64)
+    h = h_value(task, critic, torch.tensor(x), torch.tensor(u), d, w).detach().numpy()
+    np.testing.assert_allclose(h, _h_closed_form(task, critic, x, u, mu, K), rtol=1e-12)
+
+
+def test_critic_loss_gradient_is_the_semi_gradient(rng: np.random.Generator) -> None:
+    """Eq. (50): dJ/dw = mean_x (V(x) - E V_target) dV(x)/dw, with no gradient through the target."""
+    task = LinearTask()
+    critic = _quadratic_critic(rng, 2)
+    mu, K = np.array([0.0, 0.5]), np.diag([0.0, 0.01])
+    x, u = torch.tensor(rng.standard_normal((8, 2))), torch.tensor(rng.standard_normal((8, 1)))
+    d, w = expectation_nodes(mu, K, task.noise_matrix, "sigma", dtype=torch.float64)
+    loss = critic_loss(task, critic, x, u, d, w)
+    grads = torch.autograd.grad(loss, list(critic.parameters()))
+    target = torch.tensor(_h_closed_form(task, critic, x.numpy(), u.numpy(), mu, K))
+    value = critic(x)
+    manual = torch.autograd.grad((value * (value.detach() - target)).mean(), list(critic.parameters()))
+    for a, b in zip(grads, manual):
+        torch.testing.assert_close(a, b, rtol=1e-10, atol=1e-12)
+
+
+def test_actor_gradient_through_the_model_matches_closed_form(rng: np.random.Generator) -> None:
+    """Eq. (52) for a quadratic V and an affine actor: the gradient of J_actor w.r.t. l0 is
+    mean_x -(2 R u + 2 B'(S z + gamma p)), with S = Q + gamma P and z = A x + B u + mu."""
+    from mixedrl.networks import AffineActor
+
+    task = LinearTask()
+    critic = _quadratic_critic(rng, 2)
+    for prm in critic.parameters():
+        prm.requires_grad_(False)
+    actor = AffineActor(2, 1, torch.Generator()).double()
+    with torch.no_grad():
+        actor.L.copy_(torch.tensor([[0.5, 1.0]]))
+        actor.l0.fill_(0.1)
+    mu, K = np.array([0.0, 0.5]), np.diag([0.0, 0.01])
+    x = torch.tensor(rng.standard_normal((32, 2)))
+    d, w = expectation_nodes(mu, K, task.noise_matrix, "sigma", dtype=torch.float64)
+    obj = actor_objective(task, critic, actor, x, d, w)
+    (g_l0,) = torch.autograd.grad(obj, [actor.l0])
+    u = actor(x).detach().numpy()
+    P, p = critic.P.detach().numpy(), critic.p.detach().numpy()
+    S = task.Q + task.gamma * P
+    z = x.numpy() @ task.A.T + u @ task.B.T + mu
+    du = 2 * u @ task.R + 2 * (z @ S + task.gamma * p) @ task.B  # dh/du per state
+    np.testing.assert_allclose(g_l0.numpy(), -du.mean(0), rtol=1e-10)
+
+
+# ------------------------------------------------------------------------------ MVC
+def test_mvc_check_mean_and_all() -> None:
+    h_old = torch.tensor([1.0, 1.0, 1.0])
+    h_new_cur = torch.tensor([0.5, 0.9, 1.2])     # e = [0.5, 0.1, -0.2]
+    h_new_next = torch.tensor([0.6, 1.0, 1.1])    # lhs = [0.1, 0.1, -0.1]
+    res = mvc_check(h_new_next, h_new_cur, h_old, "all")
+    assert not res.held and res.fraction == pytest.approx(2 / 3)
+    assert res.e_nonnegative == pytest.approx(2 / 3)
+    res_mean = mvc_check(h_new_next, h_new_cur, h_old, "mean")
+    assert res_mean.held  # mean lhs 0.0333 <= mean e 0.1333
+    assert res_mean.lhs_mean == pytest.approx(0.1 / 3) and res_mean.e_mean == pytest.approx(0.4 / 3)
+    with pytest.raises(ValueError, match="^mode"):
+        mvc_check(h_new_next, h_new_cur, h_old, "median")
+    with pytest.raises(ValueError, match="^h_new_next"):
+        mvc_check(h_new_next[:2], h_new_cur, h_old)
+
+
+# ------------------------------------------------------------------------------ the noise sources
+def test_noise_sources_and_ibe_changes_the_model() -> None:
+    """One algorithm, three noise sources; and the IBE posterior is what PIM plans with (the GOPS bug:
+    an estimate computed and then overwritten would leave the planning model at the prior)."""
+    task = LinearTask()
+    assert np.allclose(make_noise_source("model", task).mean, task.prior_mean)
+    assert np.allclose(make_noise_source("oracle", task).mean, task.true_mean)
+    with pytest.raises(ValueError, match="^method"):
+        make_noise_source("ddpg", task)
+    ag = AGPI(task, TrainConfig(method="mixed", task="linear", batch_size=64, iterations=5))
+    prior_nodes, _ = ag._nodes(*ag.noise_moments())
+    ag.iteration()
+    post_nodes, post_w = ag._nodes(*ag.noise_moments())
+    mean_used = (post_w[:, None] * post_nodes).sum(0).numpy()
+    np.testing.assert_allclose(mean_used, ag.noise.mean, rtol=1e-6, atol=1e-7)
+    assert abs(mean_used[1] - task.true_mean[1]) < abs(float(prior_nodes.mean(0)[1]) - task.true_mean[1])
+
+
+def test_agpi_rejects_ddpg_and_bad_state() -> None:
+    task = LinearTask()
+    with pytest.raises(ValueError, match="^config"):
+        AGPI(task, TrainConfig(method="ddpg", task="linear"))
+    ag = AGPI(task, TrainConfig(method="model", task="linear", batch_size=8))
+    state = ag.state_dict()
+    del state["actor"]
+    with pytest.raises(ValueError, match="^state"):
+        ag.load_state_dict(state)
+
+
+def test_stopping_test_of_algorithm2() -> None:
+    """|V^{k+1} - V^k| <= eps and |pi^{k+1} - pi^k| <= eps for stop_patience iterations ends the run;
+    with eps = 0 the run uses its whole budget."""
+    task = LinearTask()
+    base = dict(method="model", task="linear", batch_size=16, iterations=50, eval_every=50)
+    loose = AGPI(task, TrainConfig(stop_epsilon=1e9, stop_patience=3, **base))
+    assert train(loose)["iterations"] == 3
+    tight = AGPI(task, TrainConfig(stop_epsilon=1e-12, stop_patience=3, **base))
+    assert train(tight)["iterations"] == 50
+
+
+def test_same_seed_identical_weights_different_seed_different() -> None:
+    task = LinearTask()
+
+    def weights(seed: int) -> list[torch.Tensor]:
+        ag = AGPI(task, TrainConfig(method="mixed", task="linear", seed=seed, batch_size=32, iterations=15))
+        for _ in range(15):
+            ag.iteration()
+        return [p.detach().clone() for p in list(ag.actor.parameters()) + list(ag.critic.parameters())]
+
+    a, b, c = weights(1), weights(1), weights(2)
+    assert all(torch.equal(x, y) for x, y in zip(a, b))
+    assert not all(torch.equal(x, y) for x, y in zip(a, c))
+
+
+# ------------------------------------------------------------------------------ the whole loop on LQ
+LQ_CONFIG = dict(task="linear", iterations=2500, batch_size=256, critic_lr=5e-2, actor_lr=2e-2, horizon=5,
+                 lr_decay_to=0.05, eval_every=2500)
+
+
+def _lq_run(method: str, seed: int = 0) -> AGPI:
+    task = LinearTask()
+    ag = AGPI(task, TrainConfig(method=method, seed=seed, **LQ_CONFIG), architecture="quadratic")
+    train(ag)
+    return ag
+
+
+def _rel(a: np.ndarray, b: np.ndarray) -> float:
+    return float(np.abs(np.asarray(a, dtype=float) - b).max() / np.abs(b).max())
+
+
+class _Affine(torch.nn.Module):
+    def __init__(self, L: np.ndarray, l0: np.ndarray) -> None:
+        super().__init__()
+        self.L, self.l0 = torch.tensor(L, dtype=torch.float32), torch.tensor(l0, dtype=torch.float32)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return -(x @ self.L.T) - self.l0
+
+
+def test_oracle_learns_the_lq_optimum() -> None:
+    """Algorithm 2 with the exact function classes and the true noise: the critic reaches
+    x'Px + 2p'x (+ c) of the DARE solution and the actor's offset l0 and cost reach the optimum.
+
+    Measured on seeds 0-2 (this config): P within 3.4-3.9%, p within 0.9-1.0%, l0 within 0.2-0.5%,
+    cost within 0.10-0.15% of the optimal policy's (same noise draws). The gain L converges slowly along
+    a flat direction of the cost (13-17% off after 2500 iterations) and is not asserted here.
+    """
+    ag = _lq_run("oracle")
+    opt = lq_optimum(ag.task, ag.task.true_mean)
+    assert _rel(ag.critic.P.detach().numpy(), opt["P"]) < 0.06
+    assert _rel(ag.critic.p.detach().numpy(), opt["p"]) < 0.03
+    assert _rel(ag.actor.l0.detach().numpy(), opt["l0"]) < 0.02
+    learned = ag.task.evaluate(_Affine(ag.actor.L.detach().numpy(), ag.actor.l0.detach().numpy()), [5, 6])["cost"]
+    optimal = ag.task.evaluate(_Affine(opt["L"], opt["l0"]), [5, 6])["cost"]
+    assert optimal <= learned < 1.01 * optimal
+
+
+@pytest.mark.regression
+def test_mixed_removes_the_bias_model_keeps_it() -> None:
+    """Model-driven RL converges to the offset its prior predicts (l0 = 0 here); mixed RL to the true one."""
+    mixed, model = _lq_run("mixed"), _lq_run("model")
+    task = mixed.task
+    opt_true, opt_prior = lq_optimum(task, task.true_mean), lq_optimum(task, task.prior_mean)
+    assert abs(mixed.noise.mean[1] - task.true_mean[1]) < 0.02 * task.true_mean[1]
+    # measured (seeds 0-2): mixed l0 within 0.4-0.5% of the true optimum, gain within 2.0-2.5%;
+    # model-driven RL's l0 within 1e-3 of the prior's optimum (0), its gain within 0.05%
+    assert _rel(mixed.actor.l0.detach().numpy(), opt_true["l0"]) < 0.02
+    assert _rel(mixed.actor.L.detach().numpy(), opt_true["L"]) < 0.05
+    assert float(np.abs(model.actor.l0.detach().numpy() - opt_prior["l0"]).max()) < 0.02 * abs(opt_true["l0"]).max()
+    assert _rel(model.actor.L.detach().numpy(), opt_prior["L"]) < 0.01
+
+
+# ------------------------------------------------------------------------------ seeded runs on the double lane change
+@pytest.mark.regression
+@pytest.mark.slow
+def test_dlc_ibe_moves_to_truth_and_mixed_beats_model_on_speed() -> None:
+    """Seeded runs with the reproduction's config (seed 0): the IBE mean of v_x's disturbance ends within
+    2% of 261 T/m (it starts at the prior, 150 T/m, 43% off), and the mixed-RL policy has a lower mean
+    absolute speed error on the course than the model-driven one."""
+    from mixedrl.runs import make_trainer
+
+    mixed, model = make_trainer(TrainConfig(method="mixed", seed=0)), make_trainer(TrainConfig(method="model", seed=0))
+    true_mean = mixed.task.true_mean[2]
+    assert abs(mixed.noise.mean[2] - true_mean) > 0.4 * true_mean
+    res_mixed, res_model = train(mixed), train(model)
+    assert abs(mixed.noise.mean[2] - true_mean) <= 0.02 * true_mean
+    assert abs(model.noise.mean[2] - true_mean) > 0.4 * true_mean  # the prior stays where it was
+    assert res_mixed["speed_mae"] < res_model["speed_mae"]
+
+
+@pytest.mark.parametrize("expectation,mvc_check", [("samples", "all"), ("sigma", "all")])
+def test_agpi_options_run(expectation: str, mvc_check: str) -> None:
+    """The reparameterised-sample expectation and the every-state MVC run and log finite metrics; an
+    iteration whose MVC still fails after the inner loop has run exactly j_max extra PIM steps."""
+    task = LinearTask()
+    cfg = TrainConfig(method="mixed", task="linear", batch_size=32, iterations=10, expectation=expectation,
+                      mvc_check=mvc_check, noise_samples=3)
+    ag = AGPI(task, cfg)
+    rows = [ag.iteration() for _ in range(10)]
+    assert all(np.isfinite(v) for r in rows for v in r.values())
+    assert all(0 <= r["mvc/inner_steps"] <= cfg.j_max for r in rows)
+    assert all(r["mvc/inner_steps"] == cfg.j_max for r in rows if r["mvc/held"] == 0.0)
+    assert all(r["mvc/held"] == 1.0 for r in rows if r["mvc/inner_steps"] < cfg.j_max)

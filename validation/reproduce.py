@@ -1,0 +1,529 @@
+"""Reproduction of the paper's Table I and Figs. 2-6 on the double lane change, as one readable script.
+
+Run it as ``mixedrl reproduce --seeds 5 --out DIR`` or ``python -m validation.reproduce --seeds 5 --out DIR``.
+
+What it does, top to bottom:
+
+1. For every method -- mixed RL (Algorithm 2 with the IBE), model-driven RL (Algorithm 2 on the prior,
+   eq. 55), DDPG (data only) and the oracle (Algorithm 2 with the true noise) -- and every seed, train
+   one run into ``DIR/runs/<method>_seed<S>/`` with **the same** :class:`mixedrl.config.TrainConfig`
+   (networks, optimiser, learning rates, batch, iteration budget); only ``method`` and ``seed`` differ.
+   Runs go to ``workers`` parallel processes (one torch thread each). ``--resume`` reuses finished runs
+   and resumes interrupted ones from their checkpoints.
+2. During the Algorithm-2 runs, every ``theory_every`` iterations a :class:`TheoryProbe` applies the
+   ``theory`` checks to the iteration just made, on its batch of states: value decrease (eqs. 29/42),
+   the pointwise MVC (eq. 38, with ``e_k >= 0`` of eq. 39), Lyapunov decrease (eq. 41) and the IBE
+   shift (eq. 45).
+3. Each final policy drives the full course (:func:`mixedrl.envs.evaluate_tracking`) with the run's
+   evaluation seeds; Table I reports the mean absolute lateral and speed errors, mean ± std over seeds,
+   beside the paper's numbers.
+4. ``DIR/results.json`` (per method a list of runs ``{"seed", "lateral_mae", "speed_mae",
+   "iterations_to_converge", "train_seconds"}`` and the means; the paper's values under ``"paper"``; the
+   theory summary; the targets and whether each was met) and ``DIR/figures/``: ``fig2_convergence``,
+   ``fig3_trajectory``, ``fig4_speed_error``, ``fig5_lateral_error``, ``fig6_ibe_effect`` (PNG).
+
+Convergence is measured the same way for every method: :func:`mixedrl.runs.iterations_to_converge`
+(the first evaluated iteration after which the evaluation cost stays within 10% of the run's final
+level). One iteration is one PEV + PIM step (Algorithm 2) or one critic + actor update (DDPG).
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+import logging
+import math
+import multiprocessing as mp
+import os
+import time
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+import torch
+
+from mixedrl.config import TrainConfig
+from mixedrl.runs import RunDirectory, atomic_write_text, eval_seeds, make_trainer, train
+
+__all__ = ["PAPER", "METHODS", "reproduce", "format_table", "run_config", "TheoryProbe", "make_figures", "main"]
+
+logger = logging.getLogger(__name__)
+
+#: Table I of the paper (and Section V's iteration counts). The oracle is ours (no paper value).
+PAPER: dict[str, dict[str, float]] = {
+    "mixed": {"lateral_mae": 0.151, "speed_mae": 0.021, "iterations_to_converge": 1e4},
+    "model": {"lateral_mae": 0.179, "speed_mae": 0.051, "iterations_to_converge": 1e4},
+    "ddpg": {"lateral_mae": 0.228, "speed_mae": 0.093, "iterations_to_converge": 4e4},
+}
+#: Order of the table rows.
+METHODS = ("mixed", "model", "ddpg", "oracle")
+#: Extra rows: DDPG with ``DDPG_LONG_FACTOR`` times the common budget, to measure where it converges.
+EXTRA = ("ddpg_long",)
+DDPG_LONG_FACTOR = 16
+#: The same in quick mode.
+QUICK_DDPG_LONG_FACTOR = 4
+LABELS = {"mixed": "Mixed RL", "model": "Model-driven RL", "ddpg": "Data-driven RL (DDPG)",
+          "oracle": "Oracle (true noise)", "ddpg_long": "DDPG, longer budget"}
+#: Quick mode (the test suite): iterations per run, evaluation period, at most this many seeds.
+QUICK = {"iterations": 600, "eval_every": 150, "eval_seeds": 1, "checkpoint_every": 300, "ddpg_warmup": 500}
+QUICK_MAX_SEEDS = 2
+
+
+def run_config(label: str, seed: int, quick: bool = False) -> TrainConfig:
+    """The config of one run: the shared defaults, with only ``method`` and ``seed`` changed.
+
+    ``label="ddpg_long"`` is DDPG with :data:`DDPG_LONG_FACTOR` times the budget (quick mode:
+    :data:`QUICK_DDPG_LONG_FACTOR`), evaluated every ``factor / 4`` times as rarely; same everything else.
+    """
+    method = "ddpg" if label == "ddpg_long" else label
+    config = TrainConfig(method=method, seed=seed)
+    if quick:
+        config = config.replace(**QUICK)
+    if label == "ddpg_long":
+        factor = QUICK_DDPG_LONG_FACTOR if quick else DDPG_LONG_FACTOR
+        config = config.replace(iterations=factor * config.iterations,
+                                checkpoint_every=factor * config.checkpoint_every,
+                                eval_every=max(1, factor // 4) * config.eval_every)
+    return config
+
+
+# ----------------------------------------------------------------------------------------------------
+# theory checks on the runs
+# ----------------------------------------------------------------------------------------------------
+class _StateNoise:
+    """A noise source lifted to the simulator state: mean ``E mu``, covariance ``E K E^T``."""
+
+    def __init__(self, mean: np.ndarray, cov: np.ndarray, E: np.ndarray) -> None:
+        self.mean = E @ mean
+        self.cov = E @ cov @ E.T
+
+
+class TheoryProbe:
+    """Wraps an :class:`~mixedrl.algorithms.agpi.AGPI` trainer; every ``every`` iterations, checks the
+    iteration just made with the ``theory`` package on its batch of states.
+
+    Metrics added to that iteration's row: ``theory/value_decrease`` (fraction of states with
+    ``V^{k+1}(x) <= V^k(x)``, eq. 29/42), ``theory/mvc_pointwise`` (fraction with eq. 38 pointwise),
+    ``theory/mvc_batch_mean`` (eq. 38 on the batch mean), ``theory/e_nonnegative`` (eq. 39),
+    ``theory/lyapunov`` (fraction with ``E V^k(x') <= V^k(x)`` under ``pi^{k+1}``, ``xi_hat_{k+1}``,
+    eq. 41), ``theory/ibe_kl`` (eq. 45).
+
+    Expectations use the ``theory`` package's default rule (sigma points), in float64 on the same
+    ``f``, ``l`` and networks.
+    """
+
+    def __init__(self, trainer: Any, every: int) -> None:
+        self.trainer = trainer
+        self.every = int(every)
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self.trainer, name)
+
+    def iteration(self) -> dict[str, float]:
+        import theory
+
+        tr = self.trainer
+        if tr.k % self.every != 0:
+            return tr.iteration()
+        critic_k, actor_k = copy.deepcopy(tr.critic), copy.deepcopy(tr.actor)
+        mean_k, cov_k = tr.noise_moments()
+        row = tr.iteration()
+        task = tr.task
+        E = task.noise_matrix.double().numpy()
+        noise_k = _StateNoise(mean_k, cov_k, E)
+        noise_k1 = _StateNoise(*tr.noise_moments(), E)
+        states = tr.last_batch.double().numpy()
+
+        def on_states(net: torch.nn.Module) -> Any:
+            """A network on observations as a numpy function of simulator states (value or policy)."""
+            def fn(x: np.ndarray) -> np.ndarray:
+                with torch.no_grad():
+                    return net(task.observe(torch.as_tensor(x)).float()).double().numpy()
+            return fn
+
+        def f(x: np.ndarray, u: np.ndarray) -> np.ndarray:
+            return task.f(torch.as_tensor(x), torch.as_tensor(u)).numpy()
+
+        def utility(x: np.ndarray, u: np.ndarray) -> np.ndarray:
+            return task.cost(torch.as_tensor(x), torch.as_tensor(u)).numpy()
+
+        # V^k is the critic after this iteration's PEV step (the value Algorithm 2 improves against)
+        vk = on_states(tr.critic)
+        vd = theory.value_decrease(on_states(critic_k), vk, states)
+        mv = theory.mvc(vk, on_states(actor_k), on_states(tr.actor), f, utility, task.gamma, noise_k, noise_k1,
+                        states)
+        ly = theory.lyapunov_decrease(vk, on_states(tr.actor), f, noise_k1, states)
+        kl = theory.ibe_shift(noise_k, noise_k1)
+        row.update({
+            "theory/value_decrease": vd.held_fraction,
+            "theory/mvc_pointwise": mv.held_fraction,
+            "theory/mvc_batch_mean": float(mv.extra["held_on_batch_mean"]),
+            "theory/e_nonnegative": float(mv.extra["e_nonnegative_fraction"]),
+            "theory/lyapunov": ly.held_fraction,
+            "theory/ibe_kl": float(kl.kl),
+        })
+        return row
+
+
+# ----------------------------------------------------------------------------------------------------
+# one run
+# ----------------------------------------------------------------------------------------------------
+def _trajectory(trainer: Any, seed: int) -> dict[str, np.ndarray]:
+    task = trainer.task
+    ev = task.evaluate(trainer.actor, [seed], keep_trajectory=True)
+    r = ev["trajectories"][0]
+    X = r.states[:, 5]
+    return {"time": r.time, "X": X, "Y": r.states[:, 4], "Y_ref": np.asarray(task.model.reference.lateral(X)),
+            "lateral_error": r.lateral_error, "speed_error": r.speed_error, "actions": r.actions}
+
+
+def run_one(job: dict[str, Any]) -> dict[str, Any]:
+    """Train (or reuse / resume) one run; returns its summary. Executed in a worker process."""
+    config = TrainConfig.from_dict(job["config"])
+    torch.set_num_threads(config.num_threads)
+    run = RunDirectory(job["path"])
+    if job["resume"] and run.results_path.is_file() and run.config_path.is_file() \
+            and run.read_config().to_dict() == config.to_dict() and (run.path / "trajectory.npz").is_file():
+        return {**run.read_results(), "label": job["label"]}
+    trainer = make_trainer(config)
+    if config.method != "ddpg":
+        trainer = TheoryProbe(trainer, job["theory_every"])
+    results = train(trainer, run, resume=job["resume"])
+    traj = _trajectory(trainer, eval_seeds(config)[0])
+    np.savez(run.path / "trajectory.npz", **traj)
+    results["label"] = job["label"]
+    run.write_results(results)
+    return results
+
+
+def _summary_of_run(res: dict[str, Any]) -> dict[str, Any]:
+    return {"seed": res["seed"], "lateral_mae": res["lateral_mae"], "speed_mae": res["speed_mae"],
+            "iterations_to_converge": res["iterations_to_converge"], "train_seconds": res["train_seconds"],
+            "cost": res.get("cost"), "left_road": res.get("final", {}).get("terminated")}
+
+
+def _mean_std(values: Sequence[float]) -> tuple[float, float]:
+    arr = np.asarray(values, dtype=float)
+    return float(arr.mean()), float(arr.std(ddof=1)) if arr.size > 1 else 0.0
+
+
+def _theory_summary(rows: list[dict[str, Any]]) -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    keys = ("theory/value_decrease", "theory/mvc_pointwise", "theory/mvc_batch_mean", "theory/e_nonnegative",
+            "theory/lyapunov", "theory/ibe_kl")
+    for key in keys:
+        vals = [r[key] for r in rows if key in r and math.isfinite(r[key])]
+        if vals:
+            out[key.split("/", 1)[1]] = float(np.mean(vals))
+    n_inf = sum(1 for r in rows if "theory/ibe_kl" in r and not math.isfinite(r["theory/ibe_kl"]))
+    if n_inf:
+        # KL(p_k || p_{k+1}) is infinite when the support of p_{k+1} is smaller than p_k's: the prior's
+        # 1e-20 variances on the four noise-free components collapse to 0 after the first data
+        out["ibe_kl_infinite_count"] = n_inf
+    held = [r["mvc/held"] for r in rows if "mvc/held" in r]
+    if held:
+        out["mvc_held_after_inner_loop"] = float(np.mean(held))
+        out["mean_inner_steps"] = float(np.mean([r["mvc/inner_steps"] for r in rows]))
+    kls = [r["theory/ibe_kl"] for r in rows if "theory/ibe_kl" in r]
+    if kls:
+        out["ibe_kl_first"], out["ibe_kl_last"] = _finite_or_str(kls[0]), _finite_or_str(kls[-1])
+    return out
+
+
+def _finite_or_str(x: float) -> float | str:
+    return float(x) if math.isfinite(x) else str(x)
+
+
+def reproduce(out: str | Path, seeds: int = 5, quick: bool = False, resume: bool = False, workers: int | None = None,
+              progress: bool = True) -> dict[str, Any]:
+    """Train every method over ``seeds`` seeds, write ``results.json`` and the figures; return the results.
+
+    Parameters
+    ----------
+    out : str or pathlib.Path
+        Output directory.
+    seeds : int
+        Number of seeds ``0 .. seeds-1`` per method (quick mode: at most 2).
+    quick : bool
+        Reduced budget (:data:`QUICK`) for the test suite.
+    resume : bool
+        Reuse finished runs, resume interrupted ones.
+    workers : int, optional
+        Parallel processes (default ``min(2, cpu_count)``).
+    progress : bool
+        tqdm progress bar over runs.
+
+    Returns
+    -------
+    dict
+        The content of ``results.json``.
+
+    Raises
+    ------
+    ValueError
+        ``seeds`` or ``workers`` not a positive integer.
+    """
+    if isinstance(seeds, bool) or not isinstance(seeds, int) or seeds < 1:
+        raise ValueError(f"seeds: expected a positive integer, got {seeds!r}")
+    if quick:
+        seeds = min(seeds, QUICK_MAX_SEEDS)
+    workers = workers if workers is not None else min(2, os.cpu_count() or 1)
+    if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
+        raise ValueError(f"workers: expected a positive integer, got {workers!r}")
+    out = Path(out)
+    (out / "runs").mkdir(parents=True, exist_ok=True)
+    theory_every = 50 if quick else 250
+    jobs = [{"config": run_config(m, s, quick).to_dict(), "path": str(out / "runs" / f"{m}_seed{s}"),
+             "resume": resume, "theory_every": theory_every, "label": m}
+            for m in EXTRA + METHODS for s in range(seeds)]  # the longest runs first
+    t0 = time.perf_counter()
+    bar = None
+    if progress:
+        from tqdm.auto import tqdm
+
+        bar = tqdm(total=len(jobs), desc="reproduce (runs)")
+    finished: list[dict[str, Any]] = []
+    if workers == 1:
+        for job in jobs:
+            finished.append(run_one(job))
+            if bar is not None:
+                bar.update(1)
+    else:
+        ctx = mp.get_context("spawn")
+        with ctx.Pool(workers) as pool:
+            for res in pool.imap_unordered(run_one, jobs):
+                finished.append(res)
+                if bar is not None:
+                    bar.update(1)
+    if bar is not None:
+        bar.close()
+    wall = time.perf_counter() - t0
+    previous = out / "results.json"
+    if resume and previous.is_file():
+        # the wall time of a resumed reproduction includes the interrupted invocation's
+        wall += float(json.loads(previous.read_text()).get("wall_seconds", 0.0))
+    results = aggregate(out, finished, wall, quick)
+    atomic_write_text(out / "results.json", json.dumps(results, indent=2, sort_keys=True) + "\n")
+    try:
+        make_figures(out, results)
+    except ImportError:  # pragma: no cover - matplotlib is an optional extra
+        logger.warning("matplotlib not installed: no figures")
+    return results
+
+
+def aggregate(out: Path, finished: list[dict[str, Any]], wall: float, quick: bool) -> dict[str, Any]:
+    """Group the runs by method, add means, the paper's values, the theory summary and the targets."""
+    results: dict[str, Any] = {"paper": PAPER, "quick": quick, "wall_seconds": wall,
+                               "convergence_criterion": finished[0]["convergence_criterion"] if finished else None}
+    for method in METHODS + EXTRA:
+        runs = sorted((r for r in finished if r["label"] == method), key=lambda r: r["seed"])
+        if not runs:
+            continue
+        entry: dict[str, Any] = {"runs": [_summary_of_run(r) for r in runs]}
+        for key in ("lateral_mae", "speed_mae", "iterations_to_converge", "train_seconds"):
+            entry[f"{key}_mean"], entry[f"{key}_std"] = _mean_std([r[key] for r in runs])
+        if method != "ddpg":
+            rows = []
+            for r in runs:
+                rows += RunDirectory(out / "runs" / f"{method}_seed{r['seed']}").read_metrics()
+            entry["theory"] = _theory_summary(rows)
+        if method == "mixed":
+            entry["final_ibe_mean"] = [r["final_ibe_mean"] for r in runs]
+        results[method] = entry
+    results["targets"] = check_targets(results)
+    return results
+
+
+def check_targets(results: dict[str, Any]) -> dict[str, Any]:
+    """Evaluate the issue's targets on the aggregated results (booleans and the measured figures)."""
+    t: dict[str, Any] = {}
+    mixed, model, ddpg, oracle = (results.get(m) for m in METHODS)
+    if not (mixed and model and ddpg and oracle):
+        return t
+    lm, sm = mixed["lateral_mae_mean"], mixed["speed_mae_mean"]
+    t["mixed_lateral_le_0.151"] = lm <= 0.151
+    t["mixed_speed_le_0.021"] = sm <= 0.021
+    t["mixed_within_10pct_of_oracle"] = (lm <= 1.1 * oracle["lateral_mae_mean"]
+                                         and sm <= 1.1 * oracle["speed_mae_mean"])
+    t["order_lateral_mixed_lt_model_lt_ddpg"] = lm < model["lateral_mae_mean"] < ddpg["lateral_mae_mean"]
+    t["order_speed_mixed_lt_model_lt_ddpg"] = sm < model["speed_mae_mean"] < ddpg["speed_mae_mean"]
+    t["speed_gap_vs_model"] = 1.0 - sm / model["speed_mae_mean"]
+    t["speed_gap_vs_ddpg"] = 1.0 - sm / ddpg["speed_mae_mean"]
+    t["speed_gap_vs_model_ge_0.58"] = t["speed_gap_vs_model"] >= 0.58
+    t["speed_gap_vs_ddpg_ge_0.77"] = t["speed_gap_vs_ddpg"] >= 0.77
+    t["mixed_converges_within_1e4"] = mixed["iterations_to_converge_mean"] <= 1e4
+    long = results.get("ddpg_long", ddpg)
+    t["ddpg_needs_2x_mixed"] = long["iterations_to_converge_mean"] >= 2 * mixed["iterations_to_converge_mean"]
+    vx = 2
+    true_mean = 261.0 * (1 / 200) / 1500.0
+    errs = [abs(m[vx] - true_mean) / true_mean for m in mixed.get("final_ibe_mean", [])]
+    t["ibe_mean_rel_error_max"] = float(max(errs)) if errs else None
+    t["ibe_mean_within_2pct"] = bool(errs) and max(errs) <= 0.02
+    t["mixed_train_seconds_mean"] = mixed["train_seconds_mean"]
+    t["mixed_run_le_180s"] = mixed["train_seconds_mean"] <= 180.0
+    t["reproduce_wall_le_1800s"] = results["wall_seconds"] <= 1800.0
+    return t
+
+
+def format_table(results: dict[str, Any]) -> str:
+    """Table I with the paper's numbers beside ours (mean ± std over seeds) as plain text."""
+    n = len(results["mixed"]["runs"]) if "mixed" in results else 0
+    lines = [f"Table I -- mean absolute tracking errors on the double lane change ({n} seeds, mean ± std)"
+             + ("  [QUICK: reduced budget]" if results.get("quick") else ""), ""]
+    head = f"{'method':<24}{'lateral [m] ours':>20}{'paper':>8}{'speed [m/s] ours':>22}{'paper':>8}" \
+           f"{'iters to converge':>20}{'paper':>8}{'train s':>9}"
+    lines += [head, "-" * len(head)]
+    for method in METHODS + EXTRA:
+        if method not in results:
+            continue
+        e, p = results[method], PAPER.get(method, {})
+
+        def paper(key: str, fmt: str) -> str:
+            return format(p[key], fmt) if key in p else "--"
+        lines.append(
+            f"{LABELS[method]:<24}"
+            f"{e['lateral_mae_mean']:>12.3f} ± {e['lateral_mae_std']:<5.3f}{paper('lateral_mae', '.3f'):>8}"
+            f"{e['speed_mae_mean']:>14.4f} ± {e['speed_mae_std']:<5.4f}{paper('speed_mae', '.3f'):>8}"
+            f"{e['iterations_to_converge_mean']:>12.0f} ± {e['iterations_to_converge_std']:<5.0f}"
+            f"{paper('iterations_to_converge', '.0e'):>8}{e['train_seconds_mean']:>9.1f}")
+    lines.append("")
+    lines.append(f"convergence: {results.get('convergence_criterion')}")
+    lines.append(f"wall time: {results['wall_seconds']:.1f} s")
+    if results.get("targets"):
+        lines.append("targets: " + ", ".join(f"{k}={_fmt(v)}" for k, v in results["targets"].items()))
+    for method in ("mixed", "model", "oracle"):
+        th = results.get(method, {}).get("theory")
+        if th:
+            lines.append(f"theory ({method}): " + ", ".join(f"{k}={_fmt(v)}" for k, v in th.items()))
+    return "\n".join(lines)
+
+
+def _fmt(v: Any) -> str:
+    if isinstance(v, bool):
+        return "yes" if v else "NO"
+    if isinstance(v, float):
+        return f"{v:.3g}"
+    return str(v)
+
+
+# ----------------------------------------------------------------------------------------------------
+# figures
+# ----------------------------------------------------------------------------------------------------
+def make_figures(out: str | Path, results: dict[str, Any]) -> list[Path]:
+    """Write Figs. 2-6 as PNG files under ``out/figures``; returns their paths."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    out = Path(out)
+    fig_dir = out / "figures"
+    fig_dir.mkdir(parents=True, exist_ok=True)
+    colors = {"mixed": "C0", "model": "C1", "ddpg": "C3", "oracle": "k"}
+    paths = []
+    methods = [m for m in METHODS if m in results]
+
+    def metrics(method: str, seed: int) -> list[dict[str, Any]]:
+        return RunDirectory(out / "runs" / f"{method}_seed{seed}").read_metrics()
+
+    # Fig. 2: convergence (evaluation cost of the course against iterations, mean and range over seeds)
+    fig, ax = plt.subplots(figsize=(6, 4))
+    colors["ddpg_long"] = "C3"
+    for m in methods + [e for e in EXTRA if e in results]:
+        curves = []
+        for r in results[m]["runs"]:
+            rows = [row for row in metrics(m, r["seed"]) if "eval/cost" in row]
+            curves.append(([row["iteration"] for row in rows], [row["eval/cost"] for row in rows]))
+        its = curves[0][0]
+        vals = np.array([c[1] for c in curves if len(c[1]) == len(its)])
+        style = "--" if m in EXTRA else "-"
+        ax.plot(its, vals.mean(axis=0), style, color=colors[m], label=LABELS[m])
+        ax.fill_between(its, vals.min(axis=0), vals.max(axis=0), color=colors[m], alpha=0.1)
+    ax.set_yscale("log")
+    ax.set_xscale("log")
+    ax.set_xlabel("iteration")
+    ax.set_ylabel("evaluation cost of the course (eq. 54)")
+    ax.set_title("Fig. 2: convergence")
+    ax.legend()
+    paths.append(_save(fig, fig_dir / "fig2_convergence.png"))
+
+    trajs = {m: np.load(out / "runs" / f"{m}_seed{results[m]['runs'][0]['seed']}" / "trajectory.npz")
+             for m in methods}
+    # Fig. 3: trajectory
+    fig, ax = plt.subplots(figsize=(7, 3))
+    first = trajs[methods[0]]
+    ax.plot(first["X"], first["Y_ref"], "k--", lw=1, label="reference")
+    for m in methods:
+        ax.plot(trajs[m]["X"], trajs[m]["Y"], color=colors[m], lw=1, label=LABELS[m])
+    ax.set_xlabel("X [m]")
+    ax.set_ylabel("Y [m]")
+    ax.set_title("Fig. 3: tracking (seed 0)")
+    ax.legend(fontsize=7)
+    paths.append(_save(fig, fig_dir / "fig3_trajectory.png"))
+    # Figs. 4 and 5: speed and lateral error
+    for key, name, ylabel in (("speed_error", "fig4_speed_error", "v_x - 12 [m/s]"),
+                              ("lateral_error", "fig5_lateral_error", "lateral error [m]")):
+        fig, ax = plt.subplots(figsize=(7, 3))
+        for m in methods:
+            ax.plot(trajs[m]["time"], trajs[m][key], color=colors[m], lw=1, label=LABELS[m])
+        ax.axhline(0.0, color="grey", lw=0.5)
+        ax.set_xlabel("t [s]")
+        ax.set_ylabel(ylabel)
+        ax.set_title(("Fig. 4: " if key == "speed_error" else "Fig. 5: ") + ylabel.split(" [")[0])
+        ax.legend(fontsize=7)
+        paths.append(_save(fig, fig_dir / f"{name}.png"))
+    # Fig. 6: IBE effect. Left: one residual at a time (seeded draws of the true noise), the posterior
+    # mean against the running sample mean and the single residuals -- the prior damps the first, noisy
+    # samples. Right: the posterior mean in the mixed runs (one batch of residuals per iteration).
+    if "mixed" in results:
+        from mixedrl.gaussian import sample_gaussian
+        from mixedrl.ibe import UnknownCovarianceIBE
+        from mixedrl.tasks import DoubleLaneChangeTask
+
+        task = DoubleLaneChangeTask()
+        force = 1500.0 * 200.0  # xi [m/s] -> F_dis [N] (m / T)
+        xi = sample_gaussian(task.true_mean, task.true_cov, 400, np.random.default_rng(0))
+        ibe = UnknownCovarianceIBE(task.prior_mean, task.prior_cov)
+        post = [ibe.update(x).mean[2] * force for x in xi]
+        n = np.arange(1, len(xi) + 1)
+        fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(10, 4))
+        ax1.plot(n, xi[:, 2] * force, ".", color="C2", ms=3, label="single residual")
+        ax1.plot(n, np.cumsum(xi[:, 2]) / n * force, color="C1", label="running sample mean")
+        ax1.plot(n, post, color="C0", label="IBE posterior mean (eq. 17)")
+        ax1.axhline(261.0, color="k", ls="--", lw=1, label="true mean 261 N")
+        ax1.axhline(150.0, color="C1", ls=":", lw=1, label="prior mean 150 N")
+        ax1.set_xscale("log")
+        ax1.set_xlabel("number of residuals")
+        ax1.set_ylabel("F_dis [N]")
+        ax1.legend(fontsize=7)
+        for r in results["mixed"]["runs"]:
+            rows = [row for row in metrics("mixed", r["seed"]) if "ibe/mean_2" in row]
+            ax2.plot([0] + [row["iteration"] for row in rows], [150.0] + [force * row["ibe/mean_2"] for row in rows],
+                     color="C0", lw=1)
+        ax2.axhline(261.0, color="k", ls="--", lw=1)
+        ax2.set_xscale("symlog", linthresh=1.0)
+        ax2.set_xlim(left=0.0)
+        ax2.set_xlabel("iteration (mixed RL runs, one batch of residuals each)")
+        ax2.set_ylabel("IBE posterior mean of F_dis [N]")
+        fig.suptitle("Fig. 6: effect of the IBE")
+        paths.append(_save(fig, fig_dir / "fig6_ibe_effect.png"))
+    plt.close("all")
+    return paths
+
+
+def _save(fig: Any, path: Path) -> Path:
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    return path
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """``python -m validation.reproduce``: same options as ``mixedrl reproduce``."""
+    from mixedrl.cli import main as cli_main
+
+    return cli_main(["reproduce", *(argv if argv is not None else [])])
+
+
+
+if __name__ == "__main__":  # pragma: no cover
+    raise SystemExit(main())
