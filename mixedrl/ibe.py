@@ -194,6 +194,7 @@ def _solve_eq17_stats(
     scatter: np.ndarray,
     max_iter: int,
     rtol: float,
+    prior_scale: float | None = None,
 ) -> tuple[np.ndarray, np.ndarray, int, bool]:
     """Fixed point of eq. (17) from ``(N, xbar, sum (xi - xbar)(xi - xbar)^T)``.
 
@@ -202,7 +203,7 @@ def _solve_eq17_stats(
     """
     c = scatter / count
     r = xbar - prior_mean
-    scale = _fp_scale(prior_mean, prior_cov, xbar, c)
+    scale = _fp_scale(prior_mean, prior_cov, xbar, c, prior_scale)
     solve = psd_solver(count * prior_cov + c)  # S_0 = N K_M + C, factored once per update
     a = solve(r)
     nkm = count * prior_cov
@@ -238,13 +239,17 @@ def _mean_cov_case2(prior_cov: np.ndarray, count: int, k_hat: np.ndarray) -> np.
     return _sym(prior_cov @ solve_psd(count * prior_cov + k_hat, k_hat))
 
 
-def _fp_scale(prior_mean: np.ndarray, prior_cov: np.ndarray, xbar: np.ndarray, c: np.ndarray) -> float:
-    scale = (
-        float(np.abs(xbar).max())
-        + float(np.abs(prior_mean).max())
-        + math.sqrt(max(float(c.diagonal().max()), 0.0))
-        + math.sqrt(float(prior_cov.diagonal().max()))
-    )
+def _prior_scale(prior_mean: np.ndarray, prior_cov: np.ndarray) -> float:
+    """The prior's part of the fixed-point tolerance scale (constant for an estimator)."""
+    return float(np.abs(prior_mean).max()) + math.sqrt(float(prior_cov.diagonal().max()))
+
+
+def _fp_scale(
+    prior_mean: np.ndarray, prior_cov: np.ndarray, xbar: np.ndarray, c: np.ndarray, prior_scale: float | None = None
+) -> float:
+    if prior_scale is None:
+        prior_scale = _prior_scale(prior_mean, prior_cov)
+    scale = float(np.abs(xbar).max()) + math.sqrt(max(float(c.diagonal().max()), 0.0)) + prior_scale
     return scale if scale > 0.0 else 1.0
 
 
@@ -420,7 +425,42 @@ def _check_state(state: Any, spec: dict[str, Any], kind: str) -> dict[str, Any]:
 # ----------------------------------------------------------------------------------------------------
 # Case 1
 # ----------------------------------------------------------------------------------------------------
-class _GaussianNoiseEstimate:
+class _ReadOnlyArray:
+    """Descriptor that stores a public array (``mean``, ``cov``, ...) as a read-only view.
+
+    Updates replace these arrays rather than writing into them, so handing out a read-only view is
+    free and guarantees that a caller who writes into ``est.mean`` gets an error instead of silently
+    changing the estimator's state. Only the named attributes pay for it (no ``__setattr__`` hook).
+    """
+
+    def __set_name__(self, owner: type, name: str) -> None:
+        self.key = "_ro_" + name
+
+    def __get__(self, obj: Any, objtype: type | None = None) -> Any:
+        if obj is None:
+            return self
+        try:
+            return obj.__dict__[self.key]
+        except KeyError:
+            raise AttributeError(self.key[4:]) from None
+
+    def __set__(self, obj: Any, value: Any) -> None:
+        if isinstance(value, np.ndarray):
+            value = value.view()
+            value.flags.writeable = False
+        obj.__dict__[self.key] = value
+
+
+class _ReadOnlyArrays:
+    """Base class giving the estimators read-only public arrays (see :class:`_ReadOnlyArray`)."""
+
+    mean = _ReadOnlyArray()
+    prior_mean = _ReadOnlyArray()
+    prior_cov = _ReadOnlyArray()
+    noise_cov = _ReadOnlyArray()
+
+
+class _GaussianNoiseEstimate(_ReadOnlyArrays):
     """Shared part of Cases 1 and 2: the mixed-model noise ``N(mean, cov)`` (eq. (20))."""
 
     mean: np.ndarray
@@ -494,6 +534,8 @@ class KnownCovarianceIBE(_GaussianNoiseEstimate):
     """
 
     _KIND = "KnownCovarianceIBE"
+
+    mean_cov = _ReadOnlyArray()
 
     def __init__(self, prior_mean: Any, prior_cov: Any, noise_cov: Any) -> None:
         self.prior_mean = as_vector(prior_mean, "prior_mean")
@@ -642,6 +684,9 @@ class UnknownCovarianceIBE(_GaussianNoiseEstimate):
     _KIND = "UnknownCovarianceIBE"
     _RECURSIONS = ("exact", "paper")
 
+    cov = _ReadOnlyArray()
+    _mean_cov = _ReadOnlyArray()
+
     def __init__(self, prior_mean: Any, prior_cov: Any, recursion: str = "exact", max_iter: int = FIXED_POINT_MAX_ITER) -> None:
         self.prior_mean = as_vector(prior_mean, "prior_mean")
         n = self.prior_mean.shape[0]
@@ -657,6 +702,7 @@ class UnknownCovarianceIBE(_GaussianNoiseEstimate):
         self.count = 0
         self.mean = self.prior_mean.copy()
         self.cov = self.prior_cov.copy()  # K_hat_0 = K_M (Algorithm 1)
+        self._prior_scale: float | None = None  # cached part of the fixed-point tolerance
         self._mean_cov: np.ndarray | None = self.prior_cov.copy()
         self.iterations = 0
         self.converged = True
@@ -722,8 +768,10 @@ class UnknownCovarianceIBE(_GaussianNoiseEstimate):
         if bscatter is not None:
             # (outer(delta, delta) is exactly symmetric, so single updates keep symmetry bitwise)
             scatter = _sym(scatter + bscatter)
+        if self._prior_scale is None:
+            self._prior_scale = _prior_scale(self.prior_mean, self.prior_cov)
         mean, cov, it, ok = _solve_eq17_stats(
-            self.prior_mean, self.prior_cov, count, data_mean, scatter, self.max_iter, FIXED_POINT_RTOL
+            self.prior_mean, self.prior_cov, count, data_mean, scatter, self.max_iter, FIXED_POINT_RTOL, self._prior_scale
         )
         if not ok:
             logger.warning("UnknownCovarianceIBE: eq. (17) fixed point not converged after %d iterations", it)
@@ -819,7 +867,7 @@ class UnknownCovarianceIBE(_GaussianNoiseEstimate):
 # ----------------------------------------------------------------------------------------------------
 # Case 3
 # ----------------------------------------------------------------------------------------------------
-class StateDependentIBE:
+class StateDependentIBE(_ReadOnlyArrays):
     """Implements eq. (19): Case 3 IBE with a state-dependent mean ``mu = phi(x, u; w)``.
 
     .. math::

@@ -491,3 +491,21 @@ def test_case3_deterministic():
         est.update(rng.standard_normal((20, 1)), rng.standard_normal((20, 1)), rng.standard_normal((20, 1)))
         outs.append(est.mean_at(np.array([0.2]), np.array([0.1])))
     np.testing.assert_array_equal(outs[0], outs[1])
+
+
+def test_public_arrays_are_read_only_so_callers_cannot_corrupt_the_estimator():
+    k_m = np.diag([1.0, 2.0])
+    for est in (
+        KnownCovarianceIBE(np.zeros(2), k_m, np.eye(2)),
+        UnknownCovarianceIBE(np.zeros(2), k_m),
+        UnknownCovarianceIBE(np.zeros(2), k_m, recursion="paper"),
+    ):
+        est.update(np.array([[1.0, -1.0], [2.0, 0.5], [0.3, 0.1]]))
+        before = (est.mean.copy(), est.cov.copy(), est.mean_cov.copy())
+        for arr in (est.mean, est.cov, est.mean_cov):
+            with pytest.raises(ValueError, match="read-only"):
+                arr[0] = 123.0
+        np.testing.assert_array_equal(est.mean, before[0])
+        np.testing.assert_array_equal(est.cov, before[1])
+        est.update(np.array([0.5, 0.5]))  # updates still work after the arrays were handed out
+        assert est.count == 4
