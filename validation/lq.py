@@ -825,31 +825,25 @@ def main(argv: list[str] | None = None) -> int:
     study = offset_error_study(prob, seeds=args.seeds, iterations=args.study_iterations, samples_per_iteration=args.study_samples)
     style = {"mixed": ("C0", "-", "o"), "model": ("C1", "--", "s"), "oracle": ("C2", ":", "^")}
 
-    fig, ax = plt.subplots(figsize=(6, 4))
-    for mth, res in runs.items():
-        err = [np.linalg.norm(r.gain - opt.gain) / np.linalg.norm(opt.gain) for r in res.history]
-        c, ls, mk = style[mth]
-        ax.semilogy(range(1, len(err) + 1), np.maximum(err, 1e-17), color=c, ls=ls, marker=mk, ms=3, label=mth)
-    ax.set_xlabel("iteration k (policy $\\pi^{k}$)")
-    ax.set_ylabel("$\\|L^k - L^*\\| / \\|L^*\\|$")
-    ax.set_title("Gain error (the noise never enters the gain)")
-    ax.legend()
-    fig.tight_layout()
-    fig.savefig(out / "lq_gain_error.png", dpi=120)
-    plt.close(fig)
-
-    fig, ax = plt.subplots(figsize=(6, 4))
-    for mth, res in runs.items():
-        err = [np.linalg.norm(r.offset - opt.offset) / np.linalg.norm(opt.offset) for r in res.history]
-        c, ls, mk = style[mth]
-        ax.semilogy(range(1, len(err) + 1), np.maximum(err, 1e-17), color=c, ls=ls, marker=mk, ms=3, label=mth)
-    ax.set_xlabel("iteration k (policy $\\pi^{k}$)")
-    ax.set_ylabel("$\\|l_0^k - l_0^*\\| / \\|l_0^*\\|$")
-    ax.set_title("Offset error: the prior's bias stays, the IBE removes it")
-    ax.legend()
-    fig.tight_layout()
-    fig.savefig(out / "lq_offset_error.png", dpi=120)
-    plt.close(fig)
+    panels = [  # (attribute of the history entry and of opt, y label, title, file)
+        ("gain", "$\\|L^k - L^*\\| / \\|L^*\\|$", "Gain error (the noise never enters the gain)", "lq_gain_error.png"),
+        ("offset", "$\\|l_0^k - l_0^*\\| / \\|l_0^*\\|$", "Offset error: the prior's bias stays, the IBE removes it",
+         "lq_offset_error.png"),
+    ]
+    for attr, ylabel, title, fname in panels:
+        fig, ax = plt.subplots(figsize=(6, 4))
+        ref = getattr(opt, attr)
+        for mth, res in runs.items():
+            err = [np.linalg.norm(getattr(r, attr) - ref) / np.linalg.norm(ref) for r in res.history]
+            c, ls, mk = style[mth]
+            ax.semilogy(range(1, len(err) + 1), np.maximum(err, 1e-17), color=c, ls=ls, marker=mk, ms=3, label=mth)
+        ax.set_xlabel("iteration k (policy $\\pi^{k}$)")
+        ax.set_ylabel(ylabel)
+        ax.set_title(title)
+        ax.legend()
+        fig.tight_layout()
+        fig.savefig(out / fname, dpi=120)
+        plt.close(fig)
 
     fig, ax = plt.subplots(figsize=(6, 4))
     ns, rms = study["samples"], study["rms"]

@@ -29,6 +29,21 @@ from mixedrl.envs.tracking import (
 __all__ = ["DoubleLaneChangeEnv"]
 
 
+def _pair(value: Any, name: str) -> tuple[float, float]:
+    """Validate a length-2 finite action as two floats (the cheap single-step path; raises ``ValueError``)."""
+    a = np.asarray(value, dtype=np.float64)
+    if a.shape != (2,):
+        raise ValueError(f"{name}: expected shape (2,), got {a.shape}")
+    a0, a1 = float(a[0]), float(a[1])
+    if not (math.isfinite(a0) and math.isfinite(a1)):
+        raise ValueError(f"{name}: contains NaN or inf ({a0!r}, {a1!r})")
+    return a0, a1
+
+
+def _clip(v: float, bound: float) -> float:
+    return -bound if v < -bound else (bound if v > bound else v)
+
+
 class DoubleLaneChangeEnv(gym.Env):
     """Double lane change at 12 m/s with a random longitudinal disturbance (the paper's Section VI task).
 
@@ -144,16 +159,9 @@ class DoubleLaneChangeEnv(gym.Env):
         RuntimeError
             If called before :meth:`reset`.
         """
-        a = np.asarray(action, dtype=np.float64)
-        if a.shape != (2,):
-            raise ValueError(f"action: expected shape (2,), got {a.shape}")
-        a0, a1 = float(a[0]), float(a[1])
-        if not (math.isfinite(a0) and math.isfinite(a1)):
-            raise ValueError(f"action: contains NaN or inf ({a0!r}, {a1!r})")
-        clipped = not (-1.0 <= a0 <= 1.0 and -1.0 <= a1 <= 1.0)
-        a0 = -1.0 if a0 < -1.0 else (1.0 if a0 > 1.0 else a0)
-        a1 = -1.0 if a1 < -1.0 else (1.0 if a1 > 1.0 else a1)
-        return self._step_physical(a0 * self._delta_max, a1 * self._ax_max, clipped)
+        a0, a1 = _pair(action, "action")
+        c0, c1 = _clip(a0, 1.0), _clip(a1, 1.0)
+        return self._step_physical(c0 * self._delta_max, c1 * self._ax_max, c0 != a0 or c1 != a1)
 
     def step_physical(self, u: Any) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
         """Same as :meth:`step`, with the physical input ``u = [delta, a_x]`` [rad, m/s^2].
@@ -167,15 +175,8 @@ class DoubleLaneChangeEnv(gym.Env):
         RuntimeError
             If called before :meth:`reset`.
         """
-        a = np.asarray(u, dtype=np.float64)
-        if a.shape != (2,):
-            raise ValueError(f"u: expected shape (2,), got {a.shape}")
-        delta, ax = float(a[0]), float(a[1])
-        if not (math.isfinite(delta) and math.isfinite(ax)):
-            raise ValueError(f"u: contains NaN or inf ({delta!r}, {ax!r})")
-        dm, am = self._delta_max, self._ax_max
-        delta_c = -dm if delta < -dm else (dm if delta > dm else delta)
-        ax_c = -am if ax < -am else (am if ax > am else ax)
+        delta, ax = _pair(u, "u")
+        delta_c, ax_c = _clip(delta, self._delta_max), _clip(ax, self._ax_max)
         return self._step_physical(delta_c, ax_c, delta_c != delta or ax_c != ax)
 
     def _step_physical(self, delta_c: float, ax_c: float, clipped: bool
