@@ -89,6 +89,9 @@ def run(job: dict[str, Any]) -> list[dict[str, float]]:
         row.update({f"ddelta_d{n}": jac[0, i] for i, n in enumerate(OBS_NAMES)})
         row.update({f"dax_d{n}": jac[1, i] for i, n in enumerate(OBS_NAMES)})
         rows.append(row)
+        # progress: one line per checkpoint (the two runs are in separate processes)
+        print(f"{job['method']:>6} {k:>5}/{job['iterations']}: lateral {row['lateral_mae']:.3f} m, "
+              f"speed {row['speed_mae']:.4f} m/s, J_train {row['J_train']:.3f}", flush=True)
 
     def callback(metrics: dict[str, Any]) -> None:
         if metrics["iteration"] % job["every"] == 0:
