@@ -107,6 +107,15 @@ class DoubleLaneChangeReference:
         th2 = ops.tanh(k2 * (X - self.x2) - 0.5 * self.shape)
         return ops, th1, th2
 
+    def _lateral_from(self, th1: Any, th2: Any) -> Any:
+        # Y_ref = dy1/2 (1 + tanh z1) - dy2/2 (1 + tanh z2)
+        return 0.5 * self.dy1 * (1.0 + th1) - 0.5 * self.dy2 * (1.0 + th2)
+
+    def _slope_from(self, th1: Any, th2: Any) -> Any:
+        # dY_ref/dX = dy1/2 (s/l1)(1 - tanh^2 z1) - dy2/2 (s/l2)(1 - tanh^2 z2)
+        return (0.5 * self.dy1 * self.shape / self.len1 * (1.0 - th1 * th1)
+                - 0.5 * self.dy2 * self.shape / self.len2 * (1.0 - th2 * th2))
+
     def lateral(self, X: Any) -> Any:
         """Reference lateral position ``Y_ref(X)`` [m].
 
@@ -121,8 +130,7 @@ class DoubleLaneChangeReference:
             ``Y_ref(X) = dy1/2 (1 + tanh z1) - dy2/2 (1 + tanh z2)``.
         """
         _, th1, th2 = self._tanh_terms(X)
-        # Y_ref = dy1/2 (1 + tanh z1) - dy2/2 (1 + tanh z2)
-        return 0.5 * self.dy1 * (1.0 + th1) - 0.5 * self.dy2 * (1.0 + th2)
+        return self._lateral_from(th1, th2)
 
     def slope(self, X: Any) -> Any:
         """Path slope ``dY_ref/dX`` [-] (analytic derivative of :meth:`lateral`).
@@ -138,17 +146,13 @@ class DoubleLaneChangeReference:
             ``dy1/2 (s/l1)(1 - tanh^2 z1) - dy2/2 (s/l2)(1 - tanh^2 z2)``.
         """
         _, th1, th2 = self._tanh_terms(X)
-        return (0.5 * self.dy1 * self.shape / self.len1 * (1.0 - th1 * th1)
-                - 0.5 * self.dy2 * self.shape / self.len2 * (1.0 - th2 * th2))
+        return self._slope_from(th1, th2)
 
     def lateral_and_heading(self, X: Any) -> tuple[Any, Any]:
         """``(Y_ref(X), psi_ref(X))`` from one evaluation of the tanh terms (same values as
         :meth:`lateral` and :meth:`heading`); each of the shape of ``X``."""
         ops, th1, th2 = self._tanh_terms(X)
-        lateral = 0.5 * self.dy1 * (1.0 + th1) - 0.5 * self.dy2 * (1.0 + th2)
-        slope = (0.5 * self.dy1 * self.shape / self.len1 * (1.0 - th1 * th1)
-                 - 0.5 * self.dy2 * self.shape / self.len2 * (1.0 - th2 * th2))
-        return lateral, ops.atan(slope)
+        return self._lateral_from(th1, th2), ops.atan(self._slope_from(th1, th2))
 
     def heading(self, X: Any) -> Any:
         """Reference heading ``psi_ref(X) = atan(dY_ref/dX)`` [rad].
