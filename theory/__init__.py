@@ -3,7 +3,9 @@
 * :func:`lyapunov_decrease` -- Theorem 1 / 3, eqs. (28) and (41);
 * :func:`value_decrease` -- Theorem 2 / 3, eqs. (29) and (42);
 * :func:`mvc` -- Theorem 3, the maximum variation condition eq. (38) with ``e_k`` of eq. (39);
-* :func:`ibe_shift` -- Theorem 4, the KL divergence of eq. (45).
+* :func:`ibe_shift` -- Theorem 4, the KL divergence of eq. (45);
+* :func:`gamma_condition` -- Theorem 1's condition on gamma, eq. (27) (:mod:`theory.premises`);
+* :func:`prior_full_rank` -- Lemma 2's full-rank premise on the prior (:mod:`theory.premises`).
 
 ``theory`` imports :mod:`mixedrl`; :mod:`mixedrl` never imports ``theory``. ``python -m theory lq``
 prints the checks per iteration on the shipped LQ example (:mod:`validation.lq`).
@@ -18,6 +20,7 @@ from theory.checks import (
     mvc,
     value_decrease,
 )
+from theory.premises import PriorRankReport, gamma_condition, prior_full_rank
 from theory.quadrature import GaussHermite, SigmaPoints, gaussian_expectation
 
 __all__ = [
@@ -31,4 +34,7 @@ __all__ = [
     "SigmaPoints",
     "GaussHermite",
     "gaussian_expectation",
+    "gamma_condition",
+    "prior_full_rank",
+    "PriorRankReport",
 ]
