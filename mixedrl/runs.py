@@ -4,7 +4,8 @@ A run lives in one directory::
 
     RUN_DIR/
         config.json      the TrainConfig of the run (mixedrl.config)
-        checkpoint.pt    the latest checkpoint (written to a temporary file, then renamed: atomic)
+        checkpoint.pt    the latest checkpoint (written to a temporary file, then renamed: atomic;
+                         plain data, read with torch.load(weights_only=True): safe to share)
         metrics.jsonl    one JSON object per iteration (namespaced keys, see below)
         metrics.csv      the same table as CSV, written when the run ends
         results.json     final evaluation, convergence, wall time
