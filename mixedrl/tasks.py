@@ -306,9 +306,8 @@ class DoubleLaneChangeTask(Task):
         return self.model.is_terminated(s)
 
     def true_step(self, s: torch.Tensor, u: torch.Tensor, generator: torch.Generator) -> torch.Tensor:
-        # s' = f(s, u) + xi e_vx,  xi = F_dis T / m  (eq. 54)
-        force = self.model.sample_force(s, generator)
-        return self.model.step(s, u.to(s.dtype)) + self.model.noise_vector(self.model.xi_from_force(force))
+        # s' = f(s, u) + xi e_vx,  xi = F_dis T / m  (eq. 54): the environments' one true step
+        return self.model.true_step(s, u.to(s.dtype), generator)
 
     def evaluate(self, policy: torch.nn.Module, seeds: list[int], keep_trajectory: bool = False
                  ) -> dict[str, Any]:

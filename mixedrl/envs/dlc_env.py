@@ -15,15 +15,14 @@ from gymnasium import spaces
 
 from mixedrl._checks import as_vector, check_unknown_keys
 from mixedrl.envs.tracking import (
-    NOISE_INDEX,
     STATE_DIM,
     DoubleLaneChangeConfig,
     DoubleLaneChangeModel,
-    _errors,
-    _observation,
-    _observe_cols,
-    _stage_cost,
     make_config,
+    observation_columns,
+    observation_from_errors,
+    stage_cost,
+    tracking_errors,
 )
 
 __all__ = ["DoubleLaneChangeEnv"]
@@ -50,7 +49,9 @@ class DoubleLaneChangeEnv(gym.Env):
     **Description.** A front-steered car (eq. 53, Fiala tires, paper parameters) must follow the tanh
     double-lane-change path ``Y_ref(X)`` while holding 12 m/s against a random longitudinal force
     ``F_dis ~ N(261 N, 32 N^2)``. Discretised with forward Euler at ``T = 1/200 s``; the
-    deterministic part is exactly :meth:`DoubleLaneChangeModel.step` (the same ``f`` the planner uses).
+    deterministic part is exactly :meth:`DoubleLaneChangeModel.step` (the same ``f`` the planner uses)
+    and one step is :meth:`DoubleLaneChangeModel.true_step` (the same function training and the vector
+    env call), with ``F_dis`` drawn from ``self.np_random``.
 
     **Action Space.** ``Box(-1, 1, (2,), float64)``, *normalised* (as Gymnasium's checker asks): the
     physical input is ``u = [delta, a_x] = a * [delta_max, ax_max]``, front wheel angle ``delta`` [rad]
@@ -98,11 +99,8 @@ class DoubleLaneChangeEnv(gym.Env):
         self.config = make_config(config, **overrides)
         self.model = DoubleLaneChangeModel(self.config)
         cfg = self.config
-        self._dyn = self.model.dynamics
         self._delta_max = cfg.delta_max
         self._ax_max = cfg.ax_max
-        self._xi_scale = cfg.dt / cfg.params.m
-        self._f_std = cfg.disturbance.std
         self.action_space = spaces.Box(low=-1.0, high=1.0, shape=(2,), dtype=np.float64)
         big = np.finfo(np.float64).max  # "any finite value" (Gymnasium's checker rejects infinite bounds)
         self.observation_space = spaces.Box(-big, big, shape=(self.model.obs_dim,), dtype=np.float64)
@@ -117,10 +115,10 @@ class DoubleLaneChangeEnv(gym.Env):
         return np.array(self._state)
 
     def _obs(self, s: tuple[float, ...]) -> np.ndarray:
-        return np.array(_observe_cols(self.config, *s), dtype=np.float64)
+        return np.array(observation_columns(self.config, *s), dtype=np.float64)
 
     def _info(self, s: tuple[float, ...]) -> dict[str, Any]:
-        e_y, _ = _errors(self.config, s[3], s[4], s[5])
+        e_y, _ = tracking_errors(self.config, s[3], s[4], s[5])
         return {"lateral_error": e_y, "speed_error": s[2] - self.config.v_des, "state": np.array(s)}
 
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None
@@ -184,21 +182,20 @@ class DoubleLaneChangeEnv(gym.Env):
         if self._state is None:
             raise RuntimeError("step: call reset() before step()")
         cfg = self.config
+        model = self.model
         s = self._state
-        # F_dis ~ N(mean(X), variance) at the current state; xi = F_dis T / m  (eq. 54)
-        force = cfg.disturbance.mean_force(s[5], cfg.params.m, cfg.params.g) + self._f_std * float(
-            self.np_random.standard_normal())
-        xi = force * self._xi_scale
-        nxt = list(self._dyn.step_scalar(s, (delta_c, ax_c)))
-        nxt[NOISE_INDEX] += xi
-        s_next = tuple(nxt)
+        # F_dis ~ N(mean(X), variance) at the current state, from Gymnasium's np_random; xi = F_dis T / m
+        force = model.sample_force(s, self.np_random)
+        xi = model.xi_from_force(force)
+        # s' = f(s, u) + xi e_vx   (eq. 54): the one true step, on Python floats
+        s_next = model.true_step(s, (delta_c, ax_c), force=force)
         self._state = s_next
         self._elapsed += 1
         vy, r, vx, phi, Y, X = s_next
         y_ref, psi_ref = cfg.reference.lateral_and_heading(X)
         e_y = Y - y_ref
-        obs = np.array(_observation(cfg, vy, r, vx, phi - psi_ref, e_y, X, y_ref), dtype=np.float64)
-        reward = -_stage_cost(cfg, vx - cfg.v_des, e_y, delta_c, ax_c)
+        obs = np.array(observation_from_errors(cfg, vy, r, vx, phi - psi_ref, e_y, X, y_ref), dtype=np.float64)
+        reward = -stage_cost(cfg, vx - cfg.v_des, e_y, delta_c, ax_c)
         finite = all(math.isfinite(v) for v in s_next)
         terminated = (not finite) or not (abs(e_y) <= cfg.max_lateral_error) or not (vx >= cfg.min_speed)
         truncated = (not terminated) and self._elapsed >= cfg.max_steps

@@ -138,6 +138,10 @@ def evaluate_tracking(policy: Callable[[np.ndarray], Any] | torch.nn.Module,
     -----
     The paper does not say over which time span Table I averages; here it is the whole course (or until
     termination, which ``TrackingResult.terminated`` reports).
+
+    Each step is the package's one true step, :meth:`~mixedrl.envs.DoubleLaneChangeModel.true_step`
+    (called by the Gymnasium env this function drives), with ``F_dis`` drawn from the env's
+    ``np_random`` seeded with ``seed``: the same transition as in training, on Python floats.
     """
     env = DoubleLaneChangeEnv(config)
     cfg = env.config

@@ -17,6 +17,19 @@ it enters only through the relative quantities that the paper calls ``y`` and ``
 which appear in the policy's observation and in the cost (eq. 54). The environment that makes data
 and the model that plans call the same :class:`~mixedrl.envs.vehicle.VehicleDynamics`; the only
 difference is the additive noise ``xi = F_dis T / m`` on ``v_x`` (index :data:`NOISE_INDEX`).
+
+One true step
+-------------
+The true environment, ``s' = f(s, u) + E xi`` (eq. 1 for this task), is written once:
+:meth:`DoubleLaneChangeModel.true_step`. Training (:meth:`mixedrl.tasks.DoubleLaneChangeTask.true_step`),
+:class:`DoubleLaneChangeVectorEnv`, the Gymnasium env (:mod:`mixedrl.envs.dlc_env`) and the Table I
+evaluation (:func:`~mixedrl.envs.evaluate_tracking`, which drives the Gymnasium env) all call it; each
+keeps its own random stream (see the method's Notes).
+
+The column functions :func:`tracking_errors`, :func:`observation_columns`,
+:func:`observation_from_errors` and :func:`stage_cost` compute the errors, the observation and the
+cost of eq. (54) on Python floats, numpy arrays or torch tensors; the model and the Gymnasium env share
+them.
 """
 
 from __future__ import annotations
@@ -42,6 +55,10 @@ __all__ = [
     "STATE_DIM",
     "ACTION_DIM",
     "make_config",
+    "observation_columns",
+    "observation_from_errors",
+    "stage_cost",
+    "tracking_errors",
 ]
 
 #: Index of the state component that the disturbance acts on (``v_x``; EQUATIONS.md, point 6).
@@ -289,36 +306,107 @@ def make_config(config: DoubleLaneChangeConfig | dict[str, Any] | None = None, *
 
 
 # ----------------------------------------------------------------------------------------------------
-# backend-generic helpers (floats, numpy, torch); the Gymnasium env calls them on floats
+# Column functions: the relative quantities, observation and cost of eq. (54) on one backend's columns.
+# Each works on Python floats (the Gymnasium environment's fast single step), numpy arrays and torch
+# tensors alike; :class:`DoubleLaneChangeModel` calls them on the columns of a batched state.
 # ----------------------------------------------------------------------------------------------------
-def _errors(cfg: DoubleLaneChangeConfig, phi: Any, Y: Any, X: Any) -> tuple[Any, Any]:
+def tracking_errors(cfg: DoubleLaneChangeConfig, phi: Any, Y: Any, X: Any) -> tuple[Any, Any]:
+    """Lateral and heading errors of a tracking state against the reference (module docstring).
+
+    .. math:: e_y = Y - Y_{ref}(X), \\qquad e_\\phi = \\phi - \\psi_{ref}(X)
+
+    Parameters
+    ----------
+    cfg : DoubleLaneChangeConfig
+        The task (its ``reference``).
+    phi, Y, X : float, numpy.ndarray or torch.Tensor, shape (...)
+        Yaw angle [rad], lateral and longitudinal position [m] (same backend).
+
+    Returns
+    -------
+    tuple
+        ``(e_y, e_phi)``, each of the type and shape of ``X``.
+    """
     y_ref, psi_ref = cfg.reference.lateral_and_heading(X)
     # e_y = Y - Y_ref(X) ;  e_phi = phi - psi_ref(X)
     return Y - y_ref, phi - psi_ref
 
 
-def _observation(cfg: DoubleLaneChangeConfig, vy: Any, r: Any, vx: Any, e_phi: Any, e_y: Any, X: Any,
-                 y_ref: Any) -> list[Any]:
+def observation_from_errors(cfg: DoubleLaneChangeConfig, vy: Any, r: Any, vx: Any, e_phi: Any, e_y: Any,
+                            X: Any, y_ref: Any) -> list[Any]:
+    """The observation's columns from already computed errors (see :meth:`DoubleLaneChangeModel.observe`).
+
+    .. math:: o = [v_y,\\ r,\\ v_x - v_{des},\\ e_\\phi,\\ e_y,\\
+                   Y_{ref}(X + d_1) - Y_{ref}(X), \\dots]
+
+    Parameters
+    ----------
+    cfg : DoubleLaneChangeConfig
+        The task (``v_des``, ``preview_distances``, ``reference``).
+    vy, r, vx, e_phi, e_y, X : float, numpy.ndarray or torch.Tensor, shape (...)
+        Components of the state and its errors (:func:`tracking_errors`).
+    y_ref : float, numpy.ndarray or torch.Tensor, shape (...)
+        ``Y_ref(X)`` (reused for the preview differences).
+
+    Returns
+    -------
+    list
+        ``5 + len(preview_distances)`` columns, each of shape (...).
+    """
     feats = [vy, r, vx - cfg.v_des, e_phi, e_y]
     for d in cfg.preview_distances:
         feats.append(cfg.reference.lateral(X + d) - y_ref)
     return feats
 
 
-def _observe_cols(cfg: DoubleLaneChangeConfig, vy: Any, r: Any, vx: Any, phi: Any, Y: Any, X: Any
-                  ) -> list[Any]:
+def observation_columns(cfg: DoubleLaneChangeConfig, vy: Any, r: Any, vx: Any, phi: Any, Y: Any, X: Any
+                        ) -> list[Any]:
+    """The observation's columns of the tracking state ``[v_y, r, v_x, phi, Y, X]`` (one column each).
+
+    Parameters
+    ----------
+    cfg : DoubleLaneChangeConfig
+        The task.
+    vy, r, vx, phi, Y, X : float, numpy.ndarray or torch.Tensor, shape (...)
+        The six components of the tracking state.
+
+    Returns
+    -------
+    list
+        As :func:`observation_from_errors`.
+    """
     y_ref, psi_ref = cfg.reference.lateral_and_heading(X)
-    return _observation(cfg, vy, r, vx, phi - psi_ref, Y - y_ref, X, y_ref)
+    return observation_from_errors(cfg, vy, r, vx, phi - psi_ref, Y - y_ref, X, y_ref)
 
 
-def _stage_cost(cfg: DoubleLaneChangeConfig, dv: Any, e_y: Any, delta: Any, ax: Any) -> Any:
+def stage_cost(cfg: DoubleLaneChangeConfig, dv: Any, e_y: Any, delta: Any, ax: Any) -> Any:
+    """Implements eq. (54)'s utility on columns (charged on the next state, eq. 2).
+
+    .. math:: l = T\\,\\big(q_v\\, \\Delta v^2 + q_y\\, e_y^2 + r_\\delta\\, \\delta^2 + r_a\\, a_x^2\\big)
+
+    with the paper's weights ``(45, 60, 800, 1)`` by default.
+
+    Parameters
+    ----------
+    cfg : DoubleLaneChangeConfig
+        The task (``dt`` and the weights).
+    dv, e_y : float, numpy.ndarray or torch.Tensor, shape (...)
+        Speed error ``v_x' - v_des`` [m/s] and lateral error ``e_y'`` [m] of the next state.
+    delta, ax : float, numpy.ndarray or torch.Tensor, shape (...)
+        The applied input.
+
+    Returns
+    -------
+    float, numpy.ndarray or torch.Tensor, shape (...)
+        The cost (>= 0).
+    """
     # l(x', u) = T (45 (v_x - 12)^2 + 60 y^2 + u^T diag(800, 1) u)   (eq. 54, charged on the next state)
     return cfg.dt * (cfg.q_speed * dv * dv + cfg.q_lateral * e_y * e_y
                      + cfg.r_steer * delta * delta + cfg.r_accel * ax * ax)
 
 
 def _cost_cols(cfg: DoubleLaneChangeConfig, vx: Any, Y: Any, X: Any, delta: Any, ax: Any) -> Any:
-    return _stage_cost(cfg, vx - cfg.v_des, Y - cfg.reference.lateral(X), delta, ax)
+    return stage_cost(cfg, vx - cfg.v_des, Y - cfg.reference.lateral(X), delta, ax)
 
 
 def _is_torch(x: Any) -> bool:
@@ -347,6 +435,12 @@ def _check_action(u: Any, like: Any, name: str = "u") -> Any:
     if u.ndim < 1 or u.shape[-1] != ACTION_DIM:
         raise ValueError(f"{name}: expected shape (..., {ACTION_DIM}), got {tuple(u.shape)}")
     return u
+
+
+def _check_numpy_generator(generator: Any) -> None:
+    if not isinstance(generator, np.random.Generator):
+        raise ValueError(f"generator: expected a numpy.random.Generator for a numpy state, got "
+                         f"{type(generator).__name__}")
 
 
 class DoubleLaneChangeModel:
@@ -442,7 +536,7 @@ class DoubleLaneChangeModel:
     def errors(self, s: Any) -> tuple[Any, Any]:
         """Lateral and heading errors ``(e_y, e_phi) = (Y - Y_ref(X), phi - psi_ref(X))``, each shape (...)."""
         s = _check_state(s)
-        return _errors(self.config, s[..., 3], s[..., 4], s[..., 5])
+        return tracking_errors(self.config, s[..., 3], s[..., 4], s[..., 5])
 
     def paper_state(self, s: Any) -> Any:
         """The paper's ``x = [v_y, r, v_x, phi, y]`` with ``phi``, ``y`` relative to the reference.
@@ -450,7 +544,7 @@ class DoubleLaneChangeModel:
         Returns ``[v_y, r, v_x, e_phi, e_y]``, shape (..., 5).
         """
         s = _check_state(s)
-        e_y, e_phi = _errors(self.config, s[..., 3], s[..., 4], s[..., 5])
+        e_y, e_phi = tracking_errors(self.config, s[..., 3], s[..., 4], s[..., 5])
         return _stack([s[..., 0], s[..., 1], s[..., 2], e_phi, e_y], s)
 
     def observe(self, s: Any) -> Any:
@@ -474,7 +568,7 @@ class DoubleLaneChangeModel:
             Wrong shape.
         """
         s = _check_state(s)
-        cols = _observe_cols(self.config, *(s[..., i] for i in range(STATE_DIM)))
+        cols = observation_columns(self.config, *(s[..., i] for i in range(STATE_DIM)))
         return _stack(cols, s)
 
     def cost(self, s_next: Any, u: Any) -> Any:
@@ -508,7 +602,7 @@ class DoubleLaneChangeModel:
         a component is not finite. Shape (...), bool."""
         s = _check_state(s)
         cfg = self.config
-        e_y, _ = _errors(cfg, s[..., 3], s[..., 4], s[..., 5])
+        e_y, _ = tracking_errors(cfg, s[..., 3], s[..., 4], s[..., 5])
         if _is_torch(s):
             finite = torch.isfinite(s).all(dim=-1)
             return ~finite | ~(e_y.abs() <= cfg.max_lateral_error) | ~(s[..., 2] >= cfg.min_speed)
@@ -542,13 +636,113 @@ class DoubleLaneChangeModel:
         cfg = self.config
         return cfg.disturbance.std * cfg.dt / cfg.params.m
 
-    def sample_force(self, s: torch.Tensor, generator: torch.Generator | None) -> torch.Tensor:
-        """Draw the true ``F_dis`` [N] for each state of a torch batch, shape (...)."""
-        s = _check_state(s)
+    def sample_force(self, s: Any, generator: torch.Generator | np.random.Generator | None) -> Any:
+        """Draw the true disturbance force ``F_dis`` [N] at each state (eq. 53; road grade honoured).
+
+        .. math:: F_{dis} = \\bar F(X) + \\sigma\\, z, \\qquad z \\sim N(0, 1), \\qquad
+                  \\bar F(X) = \\text{mean} - m g \\sin\\theta(X)
+
+        (:meth:`Disturbance.mean_force`; ``sigma`` = :attr:`Disturbance.std`), one standard normal per
+        state, drawn from ``generator``.
+
+        Parameters
+        ----------
+        s : torch.Tensor, numpy.ndarray or tuple of 6 floats
+            Tracking state(s), shape (..., 6); a tuple is one unbatched state (the Gymnasium env's path).
+        generator : torch.Generator, numpy.random.Generator or None
+            A :class:`torch.Generator` (or None: torch's global generator) for a torch state, a
+            :class:`numpy.random.Generator` for a numpy or tuple state.
+
+        Returns
+        -------
+        torch.Tensor, numpy.ndarray or float
+            ``F_dis``, shape (...) (a float for a tuple state).
+
+        Raises
+        ------
+        ValueError
+            Wrong shape, or a generator of the other backend.
+        """
         cfg = self.config
+        if isinstance(s, tuple):
+            _check_numpy_generator(generator)
+            if len(s) != STATE_DIM:
+                raise ValueError(f"s: expected {STATE_DIM} floats, got {len(s)}")
+            z = float(generator.standard_normal())
+            return cfg.disturbance.mean_force(s[5], cfg.params.m, cfg.params.g) + cfg.disturbance.std * z
+        s = _check_state(s)
         mean = cfg.disturbance.mean_force(s[..., 5], cfg.params.m, cfg.params.g)
-        noise = torch.randn(s.shape[:-1], generator=generator, dtype=s.dtype, device=s.device)
+        if _is_torch(s):
+            if generator is not None and not isinstance(generator, torch.Generator):
+                raise ValueError(f"generator: expected a torch.Generator for a torch state, got "
+                                 f"{type(generator).__name__}")
+            noise = torch.randn(s.shape[:-1], generator=generator, dtype=s.dtype, device=s.device)
+        else:
+            _check_numpy_generator(generator)
+            noise = generator.standard_normal(s.shape[:-1])
         return mean + cfg.disturbance.std * noise
+
+    def true_step(self, s: Any, u: Any, generator: torch.Generator | np.random.Generator | None = None, *,
+                  force: Any = None) -> Any:
+        """One step of the *true* environment: implements eq. (1) for the vehicle (eqs. 53-54).
+
+        .. math::
+
+            s_{t+1} = f(s_t, u_t) + E\\, \\xi_t, \\qquad \\xi_t = F_{dis,t}\\, T / m, \\qquad
+            F_{dis,t} \\sim N\\big(\\bar F(X_t), \\sigma^2\\big),
+
+        where ``f`` is :meth:`step`, ``E`` the unit vector of ``v_x`` (:meth:`noise_vector`) and the force
+        is drawn at the state *before* the step (:meth:`sample_force`, so a road grade is honoured).
+        This is the one true-environment step of the package: :meth:`mixedrl.tasks.DoubleLaneChangeTask.true_step`
+        (training), :class:`DoubleLaneChangeVectorEnv`, the Gymnasium env
+        :class:`~mixedrl.envs.dlc_env.DoubleLaneChangeEnv` and hence :func:`~mixedrl.envs.evaluate_tracking`
+        all call it.
+
+        Parameters
+        ----------
+        s : torch.Tensor, numpy.ndarray or tuple of 6 floats
+            Tracking state(s) ``[v_y, r, v_x, phi, Y, X]``, shape (..., 6); a tuple is one unbatched
+            state on Python floats (the Gymnasium env's fast path; ``u`` is then a pair of floats).
+        u : torch.Tensor, numpy.ndarray or tuple of 2 floats
+            Input ``[delta, a_x]``, shape (..., 2), same backend (and dtype) as ``s``; not clipped here.
+        generator : torch.Generator or numpy.random.Generator, optional
+            Source of the force when ``force`` is not given (see :meth:`sample_force`).
+        force : torch.Tensor, numpy.ndarray or float, shape (...), optional
+            An already drawn ``F_dis`` [N]; then ``generator`` is not used (and must be None).
+
+        Returns
+        -------
+        torch.Tensor, numpy.ndarray or tuple of 6 floats
+            The next state, of the type (and dtype) of ``s``.
+
+        Raises
+        ------
+        ValueError
+            Wrong shapes, mixed backends, both ``generator`` and ``force`` given.
+
+        Notes
+        -----
+        Why the draw can be passed in: each caller keeps its own random stream (training and the vector
+        env a :class:`torch.Generator`; the Gymnasium env Gymnasium's ``np_random``, which seeds the
+        evaluation episodes of Table I). A caller that reports the force (the environments' ``info``)
+        draws it with :meth:`sample_force` and passes ``force=``; the others pass the generator. Either
+        way the draws are made in the same order from the same generator as before this function
+        existed, so the published numbers are unchanged. The tuple path adds ``xi`` to ``v_x`` alone
+        (the other components of ``E xi`` are zero) and returns Python floats: it is the same formula,
+        evaluated with :mod:`math` (:meth:`VehicleDynamics.step_scalar`), for speed.
+        """
+        if force is None:
+            force = self.sample_force(s, generator)
+        elif generator is not None:
+            raise ValueError("generator: pass either a generator or an already drawn force, not both")
+        xi = self.xi_from_force(force)
+        if isinstance(s, tuple):
+            # s' = f(s, u) + xi e_vx   (eq. 54), on Python floats
+            nxt = list(self.dynamics.step_scalar(s, u))
+            nxt[NOISE_INDEX] += xi
+            return tuple(nxt)
+        # s' = f(s, u) + E xi,  E xi = xi e_vx   (eqs. 1, 54)
+        return self.step(s, u) + self.noise_vector(xi)
 
     def xi_from_force(self, force: Any) -> Any:
         """``xi = F_dis T / m`` (eq. 54) [m/s]."""
@@ -638,7 +832,7 @@ class DoubleLaneChangeVectorEnv:
     Notes
     -----
     ``step(u)`` clips ``u`` to the action box, applies ``s' = f(s, u) + xi e_vx`` with
-    ``xi = F_dis T / m`` drawn at the current state, returns the reward ``-l(s', u)`` (eq. 54),
+    ``xi = F_dis T / m`` drawn at the current state (:meth:`DoubleLaneChangeModel.true_step`), returns the reward ``-l(s', u)`` (eq. 54),
     ``terminated`` (:meth:`DoubleLaneChangeModel.is_terminated`) and ``truncated`` (time limit), and
     resets finished cars *in the same call* (their returned observation is the new start's; the
     pre-reset next state and observation are in ``info["next_state"]`` and ``info["final_obs"]``).
@@ -702,8 +896,8 @@ class DoubleLaneChangeVectorEnv:
         u = torch.maximum(torch.minimum(u, self._bound), -self._bound)
         force = model.sample_force(s, self.generator)
         xi = model.xi_from_force(force)
-        # s' = f(s, u) + xi e_vx   (eq. 54)
-        s_next = model.dynamics(s, u) + model.noise_vector(xi)
+        # s' = f(s, u) + xi e_vx   (eq. 54): the one true step
+        s_next = model.true_step(s, u, force=force)
         reward = -model.cost(s_next, u)
         self.elapsed += 1
         terminated = model.is_terminated(s_next)
