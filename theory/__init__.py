@@ -5,7 +5,7 @@
 * :func:`mvc` -- Theorem 3, the maximum variation condition eq. (38) with ``e_k`` of eq. (39);
 * :func:`ibe_shift` -- Theorem 4, the KL divergence of eq. (45).
 
-``theory`` imports :mod:`mixedrl`; :mod:`mixedrl` never imports ``theory``. ``python -m theory lq``
+``theory`` imports only :mod:`mixedrl`; :mod:`mixedrl` never imports ``theory``. ``python -m validation.theory_lq``
 prints the checks per iteration on the shipped LQ example (:mod:`validation.lq`).
 """
 
