@@ -39,7 +39,6 @@ import copy
 import dataclasses
 import json
 import math
-import typing
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, ClassVar, Union
@@ -97,17 +96,13 @@ def _jsonable(value: Any) -> Any:
     return value
 
 
-def _nested_type(cls: type, name: str) -> type | None:
-    """The dataclass type of field ``name`` of ``cls`` if that field is a nested configuration."""
-    hint = typing.get_type_hints(cls)[name]
-    return hint if dataclasses.is_dataclass(hint) else None
-
-
 def _build(cls: type, data: Any, where: str) -> Any:
     """Instantiate the configuration dataclass ``cls`` from a JSON-like dict, nested fields included.
 
     ``where`` is the dotted path of ``data`` in the run's configuration (``"task"``, ...); unknown keys are
-    reported with their full dotted name.
+    reported with their full dotted name. Nested fields are passed on as given: each class's
+    ``__post_init__`` builds its own nested configurations (with their dotted paths), after checking the
+    fields they depend on.
     """
     if isinstance(data, cls):
         return data
@@ -115,11 +110,7 @@ def _build(cls: type, data: Any, where: str) -> Any:
         raise ValueError(f"{where}: expected a dict (a JSON object), got {data!r}")
     allowed = {f.name for f in dataclasses.fields(cls) if f.init}
     check_unknown_keys({f"{where}.{k}": v for k, v in data.items()}, {f"{where}.{k}" for k in allowed}, "config")
-    kwargs = {}
-    for key, value in data.items():
-        sub = _nested_type(cls, key)
-        kwargs[key] = _build(sub, value, f"{where}.{key}") if sub is not None else value
-    return cls(**kwargs)
+    return cls(**data)
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -337,9 +328,10 @@ class LinearTaskConfig:
         self.prior_mean = tuple(as_vector(self.prior_mean, "task.prior_mean", n).tolist())
         self.prior_cov = _rows(check_covariance(as_matrix(self.prior_cov, "task.prior_cov", (n, n)),
                                                 "task.prior_cov", n))
-        self.disturbance = _build(GaussianNoiseConfig, self.disturbance, "task.disturbance")
-        if len(self.disturbance.mean) != n:
-            raise ValueError(f"task.disturbance.mean: expected shape ({n},), got ({len(self.disturbance.mean)},)")
+        dist = self.disturbance
+        mean = dist.get("mean", GaussianNoiseConfig.mean) if isinstance(dist, dict) else getattr(dist, "mean", None)
+        as_vector(mean, "task.disturbance.mean", n)  # the system's size decides which of mean / cov is wrong
+        self.disturbance = _build(GaussianNoiseConfig, dist, "task.disturbance")
         self.init_box = _number(self.init_box, "task.init_box", positive=True)
         self.action_bound = _number(self.action_bound, "task.action_bound", positive=True)
 
