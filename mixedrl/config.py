@@ -392,6 +392,7 @@ def apply_overrides(data: dict[str, Any], overrides: dict[str, Any]) -> dict[str
 
     Examples
     --------
+    >>> from mixedrl.config import apply_overrides
     >>> apply_overrides({"seed": 1, "task": "dlc"}, {"task.prior_force_mean": 300, "seed": 2})
     {'seed': 2, 'task': {'name': 'dlc', 'prior_force_mean': 300}}
     """
