@@ -45,7 +45,7 @@ from typing import Any, ClassVar, Union
 
 import numpy as np
 
-from mixedrl._checks import as_matrix, as_vector, check_covariance, check_unknown_keys
+from mixedrl._checks import as_matrix, as_vector, check_covariance, check_number, check_unknown_keys
 
 __all__ = [
     "TrainConfig",
@@ -68,17 +68,6 @@ METHODS = ("mixed", "model", "oracle", "ddpg")
 TASKS = ("dlc", "linear")
 #: Laws of the true disturbance a task configuration may name (the IBE itself assumes a Gaussian).
 DISTURBANCE_LAWS = ("gaussian",)
-
-
-def _number(value: Any, name: str, *, positive: bool = False, nonneg: bool = False) -> float:
-    """``value`` as a finite float (an int from JSON is accepted); ``ValueError`` naming ``name`` otherwise."""
-    if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)):
-        raise ValueError(f"{name}: expected a number, got {value!r}")
-    value = float(value)
-    if not math.isfinite(value) or (positive and value <= 0) or (nonneg and value < 0):
-        kind = "positive" if positive else ("non-negative" if nonneg else "finite")
-        raise ValueError(f"{name}: expected a {kind} number, got {value!r}")
-    return value
 
 
 def _law(value: Any, name: str) -> str:
@@ -121,6 +110,8 @@ class ForceDisturbanceConfig:
     """The true longitudinal disturbance force ``F_dis`` of the double lane change (eq. 53), in newtons.
 
     Its noise on ``v_x`` is ``xi = F_dis T / m`` (eq. 54). Dotted keys: ``task.disturbance.<field>``.
+    ``grade_amplitude`` [rad], ``grade_wavelength`` [m] and ``grade_phase`` [rad] describe an optional road
+    grade (:class:`mixedrl.envs.Disturbance`; amplitude 0, the default, is the paper's level road).
     """
 
     WHERE: ClassVar[str] = "task.disturbance"
@@ -129,25 +120,22 @@ class ForceDisturbanceConfig:
     """Distribution of ``F_dis``; one of :data:`DISTURBANCE_LAWS` (only ``"gaussian"`` today)."""
 
     mean: float = 261.0
-    """Mean force on a level road [N]. Paper: 261."""
+    """Mean force on a level road [N] (paper: 261)."""
 
     variance: float = 32.0
-    """Variance of ``F_dis`` [N^2]. Paper: 32 (``N(261, 32)``; EQUATIONS.md, point 7)."""
+    """Variance of ``F_dis`` [N^2] (paper: 32, ``N(261, 32)``; EQUATIONS.md, point 7)."""
 
+    # an optional road grade, a state-dependent mean (Case 3); amplitude 0 is the paper's level road. The
+    # three fields are passed on to mixedrl.envs.Disturbance, which documents the grade's formula.
     grade_amplitude: float = 0.0
-    """Amplitude of an optional road grade [rad] (a state-dependent mean, Case 3); 0 = the paper's road."""
-
     grade_wavelength: float = 40.0
-    """Wavelength of the grade along ``X`` [m]."""
-
     grade_phase: float = 0.0
-    """Phase of the grade [rad]."""
 
     def __post_init__(self) -> None:
         self.law = _law(self.law, f"{self.WHERE}.law")
         for f in dataclasses.fields(self):
             if f.name != "law":
-                setattr(self, f.name, _number(getattr(self, f.name), f"{self.WHERE}.{f.name}",
+                setattr(self, f.name, check_number(getattr(self, f.name), f"{self.WHERE}.{f.name}",
                                               nonneg=f.name == "variance", positive=f.name == "grade_wavelength"))
 
 
@@ -172,7 +160,7 @@ class CostWeights:
 
     def __post_init__(self) -> None:
         for f in dataclasses.fields(self):
-            setattr(self, f.name, _number(getattr(self, f.name), f"{self.WHERE}.{f.name}", nonneg=True))
+            setattr(self, f.name, check_number(getattr(self, f.name), f"{self.WHERE}.{f.name}", nonneg=True))
 
 
 @dataclass
@@ -217,22 +205,22 @@ class DoubleLaneChangeTaskConfig:
         if self.name != "dlc":
             raise ValueError(f"task.name: expected 'dlc' for DoubleLaneChangeTaskConfig, got {self.name!r}")
         self.gamma = _gamma(self.gamma)
-        self.prior_force_mean = _number(self.prior_force_mean, "task.prior_force_mean")
-        self.prior_force_std = _number(self.prior_force_std, "task.prior_force_std", positive=True)
+        self.prior_force_mean = check_number(self.prior_force_mean, "task.prior_force_mean")
+        self.prior_force_std = check_number(self.prior_force_std, "task.prior_force_std", positive=True)
         self.disturbance = _build(ForceDisturbanceConfig, self.disturbance, "task.disturbance")
         self.cost = _build(CostWeights, self.cost, "task.cost")
         if isinstance(self.preview_distances, (str, bytes)) or not isinstance(self.preview_distances, (list, tuple)):
             raise ValueError(f"task.preview_distances: expected a list of numbers, got {self.preview_distances!r}")
-        self.preview_distances = tuple(_number(d, "task.preview_distances", positive=True)
+        self.preview_distances = tuple(check_number(d, "task.preview_distances", positive=True)
                                        for d in self.preview_distances)
         widths = self.train_half_widths
         if isinstance(widths, (str, bytes)) or not isinstance(widths, (list, tuple)) or len(widths) != 5:
             raise ValueError(f"task.train_half_widths: expected 5 finite numbers >= 0, got {widths!r}")
-        self.train_half_widths = tuple(_number(w, "task.train_half_widths", nonneg=True) for w in widths)
+        self.train_half_widths = tuple(check_number(w, "task.train_half_widths", nonneg=True) for w in widths)
 
 
 def _gamma(value: Any) -> float:
-    gamma = _number(value, "task.gamma")
+    gamma = check_number(value, "task.gamma")
     if not 0.0 < gamma < 1.0:
         raise ValueError(f"task.gamma: expected a number in (0, 1), got {gamma!r}")
     return gamma
@@ -332,8 +320,8 @@ class LinearTaskConfig:
         mean = dist.get("mean", GaussianNoiseConfig.mean) if isinstance(dist, dict) else getattr(dist, "mean", None)
         as_vector(mean, "task.disturbance.mean", n)  # the system's size decides which of mean / cov is wrong
         self.disturbance = _build(GaussianNoiseConfig, dist, "task.disturbance")
-        self.init_box = _number(self.init_box, "task.init_box", positive=True)
-        self.action_bound = _number(self.action_bound, "task.action_bound", positive=True)
+        self.init_box = check_number(self.init_box, "task.init_box", positive=True)
+        self.action_bound = check_number(self.action_bound, "task.action_bound", positive=True)
 
 
 #: The configuration of a run's task: one of the two classes, selected by ``name``.
