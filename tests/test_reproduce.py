@@ -92,6 +92,16 @@ def test_mixed_beats_model_driven_when_the_prior_is_wrong() -> None:
     assert abs(trainers["model"].noise.mean[1] - truth) > 0.9  # model-driven RL keeps its prior
 
 
+def test_script_entry_point_reports_bad_input(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """``python -m validation.reproduce`` has the command's options and its one-line errors, without the CLI."""
+    from validation.reproduce import main
+
+    assert main(["--seeds", "0", "--out", str(tmp_path), "--no-progress"]) == 2
+    assert capsys.readouterr().err.startswith("python -m validation.reproduce: error: seeds:")
+    assert main(["--seeds", "1", "--workers", "0", "--out", str(tmp_path), "--no-progress"]) == 2
+    assert "workers:" in capsys.readouterr().err
+
+
 @pytest.mark.regression
 @pytest.mark.slow
 def test_reproduce_quick_end_to_end(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

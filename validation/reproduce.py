@@ -47,6 +47,7 @@ import os
 import sys
 import time
 from pathlib import Path
+from collections.abc import Callable
 from typing import Any, Sequence
 
 import numpy as np
@@ -563,7 +564,7 @@ def run_command(args: argparse.Namespace) -> int:
     return 0
 
 
-def register(subparsers: Any) -> Any:
+def register(subparsers: Any) -> Callable[[argparse.Namespace], int]:
     """Plug-in hook of ``mixedrl reproduce`` (entry point group ``mixedrl.commands``, see :mod:`mixedrl.cli`):
     add the ``reproduce`` sub-parser to ``subparsers`` and return its handler, :func:`run_command`."""
     add_arguments(subparsers.add_parser("reproduce", help="reproduce Table I and the figures of the paper"))
