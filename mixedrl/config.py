@@ -86,7 +86,7 @@ def _jsonable(value: Any) -> Any:
 
 
 def _build(cls: type, data: Any, where: str) -> Any:
-    """Instantiate the configuration dataclass ``cls`` from a JSON-like dict, nested fields included.
+    """Instantiate the configuration dataclass ``cls`` from a JSON-like dict (or return an instance as is).
 
     ``where`` is the dotted path of ``data`` in the run's configuration (``"task"``, ...); unknown keys are
     reported with their full dotted name. Nested fields are passed on as given: each class's
