@@ -25,6 +25,7 @@ __all__ = [
     "check_finite",
     "check_positive_int",
     "check_unknown_keys",
+    "check_number",
 ]
 
 SYMMETRY_RTOL = 1e-10
@@ -126,3 +127,21 @@ def check_unknown_keys(given: dict[str, Any], allowed: set[str] | frozenset[str]
     unknown = sorted(set(given) - set(allowed))
     if unknown:
         raise ValueError(f"{where}: unknown key(s) {unknown}; allowed: {sorted(allowed)}")
+
+
+def check_number(value: Any, name: str, *, positive: bool = False, nonneg: bool = False) -> float:
+    """Return ``value`` (an int or float, not a bool) as a finite float; ``positive`` / ``nonneg`` add ``> 0`` /
+    ``>= 0``.
+
+    Raises
+    ------
+    ValueError
+        ``value`` is not a number, not finite, or out of range; the message starts with ``name``.
+    """
+    if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)):
+        raise ValueError(f"{name}: expected a number, got {value!r}")
+    value = float(value)
+    if not np.isfinite(value) or (positive and value <= 0) or (nonneg and value < 0):
+        kind = "positive" if positive else ("non-negative" if nonneg else "finite")
+        raise ValueError(f"{name}: expected a {kind} number, got {value!r}")
+    return value

@@ -8,10 +8,31 @@
     mixedrl reproduce [--seeds 5] [--out DIR] [--quick] [--resume] [--workers W] [--no-progress]
 
 ``train`` writes a run directory (:mod:`mixedrl.runs`); ``--resume`` continues an interrupted run from
-its last checkpoint and ends with exactly the result of an uninterrupted run. ``evaluate`` drives the
-double lane change with a run's final policy. ``reproduce`` runs the four methods over several seeds and
-prints Table I with the paper's numbers beside ours (the reproduction script is
-:mod:`validation.reproduce`). This module is the only place of the package that prints.
+its last checkpoint and ends with exactly the result of an uninterrupted run. ``--config FILE.json``
+reads a (possibly partial, nested) :class:`~mixedrl.config.TrainConfig` dict, like a run's
+``config.json``; ``--set KEY=VALUE ...`` then overrides fields, with dotted keys for the nested task
+configuration (values are JSON, else strings)::
+
+    mixedrl train --method mixed --out runs/p300 --set task.prior_force_mean=300 task.disturbance.variance=64
+    mixedrl train --method model --out runs/lin --set task.name=linear "task.prior_mean=[0, 2]"
+
+(:func:`mixedrl.config.apply_overrides` applies them; an unknown key, at any level, is an error naming
+its dotted name.) ``evaluate`` drives a run's final policy on its task.
+
+**Command plug-ins.** Commands beyond ``train`` and ``evaluate`` are plug-ins, so that the core package
+imports neither ``validation`` nor ``theory``: ``reproduce`` (Table I and the figures of the paper's
+Section VI, :mod:`validation.reproduce`) is one. A plug-in is an entry point of the group
+:data:`COMMAND_GROUP` (``"mixedrl.commands"``) in a distribution's metadata, e.g. in ``pyproject.toml``::
+
+    [project.entry-points."mixedrl.commands"]
+    reproduce = "validation.reproduce:register"
+
+naming a function ``register(subparsers) -> handler``: it adds *one* sub-parser named like the entry
+point (``subparsers.add_parser(name, ...)``) and returns the handler, a callable taking the parsed
+``argparse.Namespace`` and returning the exit status. A ``ValueError`` raised by a handler is reported
+in one line with exit status 2, like the built-in commands' errors. A plug-in that fails to load is
+skipped with a warning (the other commands keep working). This module and the plug-ins' handlers are the
+only places that print.
 """
 
 from __future__ import annotations
@@ -20,16 +41,29 @@ import argparse
 import json
 import logging
 import sys
+from collections.abc import Callable
+from importlib.metadata import EntryPoint, entry_points
 from pathlib import Path
 from typing import Any, Sequence
 
-from mixedrl.config import METHODS, TrainConfig
+from mixedrl.config import METHODS, TrainConfig, apply_overrides
+from mixedrl.runs import RunDirectory, eval_seeds, load_checkpoint, make_trainer, train
 
-__all__ = ["main", "build_parser", "parse_overrides"]
+__all__ = ["main", "build_parser", "parse_overrides", "command_plugins", "COMMAND_GROUP", "Handler"]
+
+logger = logging.getLogger(__name__)
+
+#: Entry-point group of the command plug-ins (see the module docstring).
+COMMAND_GROUP = "mixedrl.commands"
+#: A command's handler: parsed arguments -> exit status.
+Handler = Callable[[argparse.Namespace], int]
 
 
 def parse_overrides(items: Sequence[str]) -> dict[str, Any]:
     """Turn ``["key=value", ...]`` into a dict; values are parsed as JSON when possible (else strings).
+
+    Keys are kept as given (dotted keys such as ``task.prior_force_mean`` address nested fields, see
+    :func:`mixedrl.config.apply_overrides`).
 
     Raises
     ------
@@ -48,39 +82,68 @@ def parse_overrides(items: Sequence[str]) -> dict[str, Any]:
     return out
 
 
+def command_plugins() -> list[EntryPoint]:
+    """The installed command plug-ins: entry points of the group :data:`COMMAND_GROUP`, sorted by name."""
+    return sorted(entry_points(group=COMMAND_GROUP), key=lambda ep: ep.name)
+
+
+def _add_plugins(sub: Any) -> None:
+    for ep in command_plugins():
+        if ep.name in sub.choices:
+            logger.warning("command plug-in %r (%s) ignored: the command exists", ep.name, ep.value)
+            continue
+        try:
+            handler = ep.load()(sub)
+        except Exception as exc:  # noqa: BLE001 - a broken plug-in must not break the other commands
+            logger.warning("command plug-in %r (%s) failed to load: %s: %s", ep.name, ep.value,
+                           type(exc).__name__, exc)
+            continue
+        if ep.name not in sub.choices or not callable(handler):
+            logger.warning("command plug-in %r (%s) ignored: register() must add the sub-parser %r and return "
+                           "its handler", ep.name, ep.value, ep.name)
+            continue
+        sub.choices[ep.name].set_defaults(handler=handler)
+
+
 def build_parser() -> argparse.ArgumentParser:
-    """The argument parser of ``mixedrl``."""
+    """The argument parser of ``mixedrl``: the built-in commands and the installed plug-ins.
+
+    Every sub-parser carries its handler as the default of ``handler``.
+    """
     parser = argparse.ArgumentParser(prog="mixedrl", description="Mixed RL with additive stochastic uncertainty.")
     parser.add_argument("-v", "--verbose", action="store_true", help="log at INFO level")
     sub = parser.add_subparsers(dest="command", required=True)
 
-    p = sub.add_parser("train", help="train one method with one seed into a run directory")
+    p = sub.add_parser("train", help="train one method with one seed into a run directory",
+                       formatter_class=argparse.RawDescriptionHelpFormatter,
+                       epilog="examples:\n"
+                              "  mixedrl train --method mixed --out runs/p300 --set task.prior_force_mean=300\n"
+                              "  mixedrl train --method mixed --out runs/x --config experiment.json "
+                              "--set task.gamma=0.98\n"
+                              "dotted keys address the nested task configuration (see mixedrl.config).")
     p.add_argument("--method", choices=METHODS, required=True)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", type=Path, required=True, help="run directory")
     p.add_argument("--iterations", type=int, default=None, help="budget (default: the config's)")
-    p.add_argument("--config", type=Path, default=None, help="JSON file with TrainConfig fields")
-    p.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE", help="override config fields")
+    p.add_argument("--config", type=Path, default=None,
+                   help="JSON file with TrainConfig fields, nested like a run's config.json")
+    p.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE",
+                   help="override config fields; dotted keys for nested ones (task.prior_force_mean=300, "
+                        "task.disturbance.mean=261); values are JSON, else strings")
     p.add_argument("--resume", action="store_true", help="continue from the run's checkpoint")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.set_defaults(handler=_train)
 
-    p = sub.add_parser("evaluate", help="evaluate a run's final policy on the double lane change")
+    p = sub.add_parser("evaluate", help="evaluate a run's final policy on its task")
     p.add_argument("run_dir", type=Path)
     p.add_argument("--seeds", type=int, default=None, help="number of noise seeds (default: the run's)")
+    p.set_defaults(handler=_evaluate)
 
-    p = sub.add_parser("reproduce", help="reproduce Table I and the figures of the paper")
-    p.add_argument("--seeds", type=int, default=5)
-    p.add_argument("--out", type=Path, default=Path("runs/reproduce"))
-    p.add_argument("--quick", action="store_true", help="reduced budget (<= 3 minutes), for the test suite")
-    p.add_argument("--resume", action="store_true", help="reuse finished runs and resume interrupted ones")
-    p.add_argument("--workers", type=int, default=None, help="parallel training processes (default: 2)")
-    p.add_argument("--no-progress", action="store_true", help="no progress bars")
+    _add_plugins(sub)
     return parser
 
 
 def _train(args: argparse.Namespace) -> int:
-    from mixedrl.runs import RunDirectory, make_trainer, train
-
     run = RunDirectory(args.out)
     if args.resume and run.config_path.is_file():
         config = run.read_config()
@@ -88,7 +151,7 @@ def _train(args: argparse.Namespace) -> int:
         base: dict[str, Any] = {}
         if args.config is not None:
             base = TrainConfig.load(args.config).to_dict()
-        base.update(parse_overrides(args.set))
+        base = apply_overrides(base, parse_overrides(args.set))
         base.update({"method": args.method, "seed": args.seed})
         if args.iterations is not None:
             base["iterations"] = args.iterations
@@ -102,8 +165,6 @@ def _train(args: argparse.Namespace) -> int:
 
 
 def _evaluate(args: argparse.Namespace) -> int:
-    from mixedrl.runs import RunDirectory, eval_seeds, load_checkpoint, make_trainer
-
     run = RunDirectory(args.run_dir)
     config = run.read_config()
     if args.seeds is not None:
@@ -116,17 +177,6 @@ def _evaluate(args: argparse.Namespace) -> int:
     return 0
 
 
-def _reproduce(args: argparse.Namespace) -> int:
-    # the reproduction is the readable script validation/reproduce.py; the command is its entry point
-    from validation.reproduce import format_table, reproduce
-
-    results = reproduce(args.out, seeds=args.seeds, quick=args.quick, resume=args.resume, workers=args.workers,
-                        progress=not args.no_progress)
-    print(format_table(results))
-    print(f"\nresults: {Path(args.out) / 'results.json'}   figures: {Path(args.out) / 'figures'}")
-    return 0
-
-
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``mixedrl`` command; returns the exit status.
 
@@ -134,9 +184,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     """
     args = build_parser().parse_args(argv)
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING, format="%(levelname)s %(message)s")
-    handlers = {"train": _train, "evaluate": _evaluate, "reproduce": _reproduce}
     try:
-        return handlers[args.command](args)
+        return int(args.handler(args))
     except ValueError as exc:
         print(f"mixedrl {args.command}: error: {exc}", file=sys.stderr)
         return 2

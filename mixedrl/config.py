@@ -1,9 +1,29 @@
-"""One typed, documented configuration object per training run.
+"""One typed, documented configuration object per training run, the experiment included.
 
 :class:`TrainConfig` holds every knob of a run of Algorithm 2 (``method`` = ``mixed``, ``model``,
-``oracle``) or of the DDPG baseline (``method = "ddpg"``). It is saved as ``config.json`` beside the
-run's results; loading a dictionary with a key that is not a field is an error (a misspelt option must
-never be silently ignored).
+``oracle``) or of the DDPG baseline (``method = "ddpg"``); its field ``task`` holds the *experiment*:
+which system, the designer's prior of the disturbance (eq. 8 / eq. 55), the true disturbance law, the
+discount factor and the cost weights (eq. 54), the observation's preview. It is saved as
+``config.json`` beside the run's results; loading a dictionary with a key that is not a field, at any
+level, is an error naming the dotted key (a misspelt option must never be silently ignored).
+
+The task configuration is one of two nested dataclasses, chosen by its ``name``:
+
+* :class:`DoubleLaneChangeTaskConfig` (``name = "dlc"``, the paper's Section VI), with the nested
+  :class:`ForceDisturbanceConfig` (``task.disturbance``) and :class:`CostWeights` (``task.cost``);
+* :class:`LinearTaskConfig` (``name = "linear"``, a small LQ system with a known optimum), with the
+  nested :class:`GaussianNoiseConfig` (``task.disturbance``).
+
+Dotted keys address nested fields, the same way on the command line, in :func:`apply_overrides` and in
+sweep specifications::
+
+    mixedrl train --method mixed --out runs/p300 --set task.prior_force_mean=300 task.disturbance.variance=64
+    mixedrl train --method model --out runs/lin --set task.name=\\"linear\\" task.prior_mean=[0,2]
+    mixedrl train --method mixed --out runs/mine --config experiment.json   # nested JSON, like config.json
+
+Old ``config.json`` files (``"task": "dlc"`` or ``"linear"`` as a string, ``train_half_widths`` at the
+top level) still load: the string selects that task's defaults and the top-level ``train_half_widths``
+moves to ``task.train_half_widths`` (it never had an effect on the linear task and is dropped there).
 
 The defaults are the settings used for the reproduction of Table I (``mixedrl reproduce``). Every method
 gets the *same* networks, optimiser, learning rates, batch of states and iteration budget; the
@@ -15,21 +35,374 @@ on mixed-RL runs of the double lane change (seeds 0-2) and then applied unchange
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import json
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar, Union
 
-from mixedrl._checks import check_unknown_keys
+import numpy as np
 
-__all__ = ["TrainConfig", "METHODS", "TASKS"]
+from mixedrl._checks import as_matrix, as_vector, check_covariance, check_number, check_unknown_keys
+
+__all__ = [
+    "TrainConfig",
+    "TaskConfig",
+    "DoubleLaneChangeTaskConfig",
+    "LinearTaskConfig",
+    "ForceDisturbanceConfig",
+    "GaussianNoiseConfig",
+    "CostWeights",
+    "task_config",
+    "apply_overrides",
+    "METHODS",
+    "TASKS",
+    "DISTURBANCE_LAWS",
+]
 
 #: The four methods of the reproduction (mixed RL, model-driven RL, oracle, DDPG).
 METHODS = ("mixed", "model", "oracle", "ddpg")
 #: Tasks a run can be trained on: the double lane change (paper) and a small linear system.
 TASKS = ("dlc", "linear")
+#: Laws of the true disturbance a task configuration may name (the IBE itself assumes a Gaussian).
+DISTURBANCE_LAWS = ("gaussian",)
+
+
+def _law(value: Any, name: str) -> str:
+    if value not in DISTURBANCE_LAWS:
+        raise ValueError(f"{name}: expected one of {DISTURBANCE_LAWS}, got {value!r}")
+    return str(value)
+
+
+def _jsonable(value: Any) -> Any:
+    """Dataclasses to dicts, tuples to lists, recursively (what ``json.dumps`` writes)."""
+    if dataclasses.is_dataclass(value) and not isinstance(value, type):
+        return {f.name: _jsonable(getattr(value, f.name)) for f in dataclasses.fields(value)}
+    if isinstance(value, (tuple, list)):
+        return [_jsonable(v) for v in value]
+    return value
+
+
+def _build(cls: type, data: Any, where: str) -> Any:
+    """Instantiate the configuration dataclass ``cls`` from a JSON-like dict (or return an instance as is).
+
+    ``where`` is the dotted path of ``data`` in the run's configuration (``"task"``, ...); unknown keys are
+    reported with their full dotted name. Nested fields are passed on as given: each class's
+    ``__post_init__`` builds its own nested configurations (with their dotted paths), after checking the
+    fields they depend on.
+    """
+    if isinstance(data, cls):
+        return data
+    if not isinstance(data, dict):
+        raise ValueError(f"{where}: expected a dict (a JSON object), got {data!r}")
+    allowed = {f.name for f in dataclasses.fields(cls) if f.init}
+    check_unknown_keys({f"{where}.{k}": v for k, v in data.items()}, {f"{where}.{k}" for k in allowed}, "config")
+    return cls(**data)
+
+
+# ----------------------------------------------------------------------------------------------------
+# the double lane change (Section VI of the paper)
+# ----------------------------------------------------------------------------------------------------
+@dataclass
+class ForceDisturbanceConfig:
+    """The true longitudinal disturbance force ``F_dis`` of the double lane change (eq. 53), in newtons.
+
+    Its noise on ``v_x`` is ``xi = F_dis T / m`` (eq. 54). Dotted keys: ``task.disturbance.<field>``.
+    ``grade_amplitude`` [rad], ``grade_wavelength`` [m] and ``grade_phase`` [rad] describe an optional road
+    grade (:class:`mixedrl.envs.Disturbance`; amplitude 0, the default, is the paper's level road).
+    """
+
+    WHERE: ClassVar[str] = "task.disturbance"
+
+    law: str = "gaussian"
+    """Distribution of ``F_dis``; one of :data:`DISTURBANCE_LAWS` (only ``"gaussian"`` today)."""
+
+    mean: float = 261.0
+    """Mean force on a level road [N] (paper: 261)."""
+
+    variance: float = 32.0
+    """Variance of ``F_dis`` [N^2] (paper: 32, ``N(261, 32)``; EQUATIONS.md, point 7)."""
+
+    # an optional road grade, a state-dependent mean (Case 3); amplitude 0 is the paper's level road. The
+    # three fields are passed on to mixedrl.envs.Disturbance, which documents the grade's formula.
+    grade_amplitude: float = 0.0
+    grade_wavelength: float = 40.0
+    grade_phase: float = 0.0
+
+    def __post_init__(self) -> None:
+        self.law = _law(self.law, f"{self.WHERE}.law")
+        for f in dataclasses.fields(self):
+            if f.name != "law":
+                setattr(self, f.name, check_number(getattr(self, f.name), f"{self.WHERE}.{f.name}",
+                                              nonneg=f.name == "variance", positive=f.name == "grade_wavelength"))
+
+
+@dataclass
+class CostWeights:
+    """Weights of the utility of eq. (54), ``T (q_speed (v_x - 12)^2 + q_lateral y^2 + u^T diag(r_steer,
+    r_accel) u)``, charged on the next state. Dotted keys: ``task.cost.<field>``."""
+
+    WHERE: ClassVar[str] = "task.cost"
+
+    q_speed: float = 45.0
+    """Weight of the squared speed error ``(v_x - 12)^2``. Paper: 45."""
+
+    q_lateral: float = 60.0
+    """Weight of the squared lateral error ``y^2``. Paper: 60."""
+
+    r_steer: float = 800.0
+    """Weight of the squared steering angle ``delta^2``. Paper: 800."""
+
+    r_accel: float = 1.0
+    """Weight of the squared acceleration ``a_x^2``. Paper: 1."""
+
+    def __post_init__(self) -> None:
+        for f in dataclasses.fields(self):
+            setattr(self, f.name, check_number(getattr(self, f.name), f"{self.WHERE}.{f.name}", nonneg=True))
+
+
+@dataclass
+class DoubleLaneChangeTaskConfig:
+    """The experiment of Section VI: the double lane change with a random longitudinal force.
+
+    Dotted keys: ``task.<field>``; the prior of eq. (55) is given in force units and acts on ``v_x``
+    (EQUATIONS.md, point 6): ``mu_M = prior_force_mean T / m``, ``K_M = (prior_force_std T / m)^2`` on
+    ``v_x``, ``1e-20`` on the other four components of ``xi``.
+    """
+
+    WHERE: ClassVar[str] = "task"
+
+    name: str = "dlc"
+    """Always ``"dlc"`` for this class (selects it when loading)."""
+
+    gamma: float = 0.99
+    """Discount factor of eq. (2), in (0, 1)."""
+
+    prior_force_mean: float = 150.0
+    """The designer's prior mean of ``F_dis`` [N] (eq. 55; paper: 150)."""
+
+    prior_force_std: float = 4.0
+    """The designer's prior standard deviation ``sqrt(K_M)`` in force units [N] (paper: 4)."""
+
+    disturbance: ForceDisturbanceConfig = field(default_factory=ForceDisturbanceConfig)
+    """The true disturbance law (used by the true environment and the oracle only)."""
+
+    cost: CostWeights = field(default_factory=CostWeights)
+    """Weights of the utility, eq. (54)."""
+
+    preview_distances: tuple[float, ...] = ()
+    """Look-ahead distances [m] of the reference preview appended to the observation (default none: the
+    paper's relative state ``[v_y, r, v_x - 12, e_phi, e_y]``); see
+    :class:`mixedrl.envs.DoubleLaneChangeConfig`."""
+
+    train_half_widths: tuple[float, ...] = (0.3, 0.2, 1.0, 0.1, 1.0)
+    """Half-widths of the uniform perturbation of ``[v_y, r, v_x - 12, e_phi, e_y]`` of the training start
+    states (anywhere on the course), see :meth:`mixedrl.envs.DoubleLaneChangeModel.reset_states`."""
+
+    def __post_init__(self) -> None:
+        if self.name != "dlc":
+            raise ValueError(f"task.name: expected 'dlc' for DoubleLaneChangeTaskConfig, got {self.name!r}")
+        self.gamma = _gamma(self.gamma)
+        self.prior_force_mean = check_number(self.prior_force_mean, "task.prior_force_mean")
+        self.prior_force_std = check_number(self.prior_force_std, "task.prior_force_std", positive=True)
+        self.disturbance = _build(ForceDisturbanceConfig, self.disturbance, "task.disturbance")
+        self.cost = _build(CostWeights, self.cost, "task.cost")
+        if isinstance(self.preview_distances, (str, bytes)) or not isinstance(self.preview_distances, (list, tuple)):
+            raise ValueError(f"task.preview_distances: expected a list of numbers, got {self.preview_distances!r}")
+        self.preview_distances = tuple(check_number(d, "task.preview_distances", positive=True)
+                                       for d in self.preview_distances)
+        widths = self.train_half_widths
+        if isinstance(widths, (str, bytes)) or not isinstance(widths, (list, tuple)) or len(widths) != 5:
+            raise ValueError(f"task.train_half_widths: expected 5 finite numbers >= 0, got {widths!r}")
+        self.train_half_widths = tuple(check_number(w, "task.train_half_widths", nonneg=True) for w in widths)
+
+
+def _gamma(value: Any) -> float:
+    gamma = check_number(value, "task.gamma")
+    if not 0.0 < gamma < 1.0:
+        raise ValueError(f"task.gamma: expected a number in (0, 1), got {gamma!r}")
+    return gamma
+
+
+# ----------------------------------------------------------------------------------------------------
+# the linear test bed
+# ----------------------------------------------------------------------------------------------------
+@dataclass
+class GaussianNoiseConfig:
+    """The true additive noise ``xi ~ N(mean, cov)`` of the linear task, in state coordinates.
+
+    Dotted keys: ``task.disturbance.<field>``.
+    """
+
+    WHERE: ClassVar[str] = "task.disturbance"
+
+    law: str = "gaussian"
+    """Distribution of ``xi``; one of :data:`DISTURBANCE_LAWS` (only ``"gaussian"`` today)."""
+
+    mean: tuple[float, ...] = (0.0, 0.5)
+    """Mean ``mu`` of ``xi``, shape (n,)."""
+
+    cov: tuple[tuple[float, ...], ...] = ((0.0, 0.0), (0.0, 0.01))
+    """Covariance ``K`` of ``xi`` (symmetric PSD), shape (n, n)."""
+
+    def __post_init__(self) -> None:
+        self.law = _law(self.law, f"{self.WHERE}.law")
+        self.mean = tuple(as_vector(self.mean, f"{self.WHERE}.mean").tolist())
+        cov = as_matrix(self.cov, f"{self.WHERE}.cov", (len(self.mean), len(self.mean)))
+        self.cov = _rows(check_covariance(cov, f"{self.WHERE}.cov", len(self.mean)))
+
+
+def _rows(matrix: np.ndarray) -> tuple[tuple[float, ...], ...]:
+    return tuple(tuple(float(v) for v in row) for row in np.asarray(matrix))
+
+
+@dataclass
+class LinearTaskConfig:
+    """The linear test bed :class:`mixedrl.tasks.LinearTask`: ``s' = A s + B u + xi``, utility
+    ``s'^T Q s' + u^T R u`` (a sampled double integrator, ``dt = 0.1``, the noise on the velocity, by
+    default). Dotted keys: ``task.<field>``; ``n`` = ``A``'s size, ``m`` = ``B``'s columns.
+    """
+
+    WHERE: ClassVar[str] = "task"
+
+    name: str = "linear"
+    """Always ``"linear"`` for this class (selects it when loading)."""
+
+    gamma: float = 0.9
+    """Discount factor of eq. (2), in (0, 1)."""
+
+    A: tuple[tuple[float, ...], ...] = ((1.0, 0.1), (0.0, 1.0))
+    """System matrix, shape (n, n)."""
+
+    B: tuple[tuple[float, ...], ...] = ((0.5 * 0.1 * 0.1,), (0.1,))
+    """Input matrix, shape (n, m)."""
+
+    Q: tuple[tuple[float, ...], ...] = ((1.0, 0.0), (0.0, 1.0))
+    """State weight of the utility (symmetric PSD), shape (n, n)."""
+
+    R: tuple[tuple[float, ...], ...] = ((0.1,),)
+    """Input weight of the utility (symmetric PSD), shape (m, m)."""
+
+    prior_mean: tuple[float, ...] = (0.0, 0.0)
+    """The designer's prior mean ``mu_M`` of ``xi`` (eq. 8), shape (n,)."""
+
+    prior_cov: tuple[tuple[float, ...], ...] = ((0.01, 0.0), (0.0, 0.01))
+    """The designer's prior covariance ``K_M`` (symmetric PSD), shape (n, n)."""
+
+    disturbance: GaussianNoiseConfig = field(default_factory=GaussianNoiseConfig)
+    """The true noise law (used by the true environment and the oracle only)."""
+
+    init_box: float = 1.0
+    """Initial states are uniform in ``[-init_box, init_box]^n``."""
+
+    action_bound: float = 10.0
+    """Bound of the MLP actor's output."""
+
+    def __post_init__(self) -> None:
+        if self.name != "linear":
+            raise ValueError(f"task.name: expected 'linear' for LinearTaskConfig, got {self.name!r}")
+        self.gamma = _gamma(self.gamma)
+        A = as_matrix(self.A, "task.A")
+        n = A.shape[0]
+        if A.shape != (n, n):
+            raise ValueError(f"task.A: expected a square matrix, got shape {A.shape}")
+        B = as_matrix(self.B, "task.B", (n, None))
+        m = B.shape[1]
+        self.A, self.B = _rows(A), _rows(B)
+        self.Q = _rows(check_covariance(as_matrix(self.Q, "task.Q", (n, n)), "task.Q", n))
+        self.R = _rows(check_covariance(as_matrix(self.R, "task.R", (m, m)), "task.R", m))
+        self.prior_mean = tuple(as_vector(self.prior_mean, "task.prior_mean", n).tolist())
+        self.prior_cov = _rows(check_covariance(as_matrix(self.prior_cov, "task.prior_cov", (n, n)),
+                                                "task.prior_cov", n))
+        dist = self.disturbance
+        mean = dist.get("mean", GaussianNoiseConfig.mean) if isinstance(dist, dict) else getattr(dist, "mean", None)
+        as_vector(mean, "task.disturbance.mean", n)  # the system's size decides which of mean / cov is wrong
+        self.disturbance = _build(GaussianNoiseConfig, dist, "task.disturbance")
+        self.init_box = check_number(self.init_box, "task.init_box", positive=True)
+        self.action_bound = check_number(self.action_bound, "task.action_bound", positive=True)
+
+
+#: The configuration of a run's task: one of the two classes, selected by ``name``.
+TaskConfig = Union[DoubleLaneChangeTaskConfig, LinearTaskConfig]
+_TASK_CLASSES: dict[str, type] = {"dlc": DoubleLaneChangeTaskConfig, "linear": LinearTaskConfig}
+
+
+def task_config(value: Any = "dlc") -> TaskConfig:
+    """Build a task configuration from its name, a JSON-like dict (``name`` selects the class, default
+    ``"dlc"``; missing fields take that task's defaults) or a configuration object (returned as is).
+
+    Raises
+    ------
+    ValueError
+        Unknown task name (``task.name``), unknown key (``config: unknown key(s) ['task.<key>']``, e.g. a
+        double-lane-change field given to the linear task) or an invalid value (message starts with the
+        dotted field name).
+    """
+    if isinstance(value, (DoubleLaneChangeTaskConfig, LinearTaskConfig)):
+        return value
+    if isinstance(value, str):
+        value = {"name": value}
+    if not isinstance(value, dict):
+        raise ValueError(f"task: expected a task name {TASKS} or a dict, got {value!r}")
+    name = value.get("name", "dlc")
+    if name not in _TASK_CLASSES:
+        raise ValueError(f"task.name: expected one of {TASKS}, got {name!r}")
+    return _build(_TASK_CLASSES[name], {**value, "name": name}, "task")
+
+
+def apply_overrides(data: dict[str, Any], overrides: dict[str, Any]) -> dict[str, Any]:
+    """Return a copy of the config dict ``data`` with dotted-key ``overrides`` applied.
+
+    ``{"task.prior_force_mean": 300}`` sets ``data["task"]["prior_force_mean"]``; a plain key replaces a
+    top-level value. Intermediate levels are created as dicts when missing; a string ``task`` (the old
+    form, ``"dlc"``) is first expanded to ``{"name": "dlc"}``. Keys are not checked here: building the
+    config (:meth:`TrainConfig.from_dict`) reports unknown ones with their dotted name.
+
+    Parameters
+    ----------
+    data : dict
+        A config dict (``TrainConfig.to_dict()``, a parsed ``config.json``, or a partial dict).
+    overrides : dict
+        Dotted keys to values (JSON-like).
+
+    Returns
+    -------
+    dict
+        A new dict; ``data`` is not modified.
+
+    Raises
+    ------
+    ValueError
+        An empty key segment (``"task..gamma"``) or a dotted key that descends into a value that is not a
+        dict (``"seed.x"``), naming the key.
+
+    Examples
+    --------
+    >>> from mixedrl.config import apply_overrides
+    >>> apply_overrides({"seed": 1, "task": "dlc"}, {"task.prior_force_mean": 300, "seed": 2})
+    {'seed': 2, 'task': {'name': 'dlc', 'prior_force_mean': 300}}
+    """
+    if not isinstance(data, dict):
+        raise ValueError(f"data: expected a dict, got {type(data).__name__}")
+    out = copy.deepcopy(data)
+    for key, value in overrides.items():
+        parts = str(key).split(".")
+        if any(not p for p in parts):
+            raise ValueError(f"{key}: empty segment in a dotted key")
+        node = out
+        for i, part in enumerate(parts[:-1]):
+            child = node.get(part)
+            if child is None:
+                child = node[part] = {}
+            elif isinstance(child, str) and part == "task" and i == 0:
+                child = node[part] = {"name": child}
+            elif not isinstance(child, dict):
+                raise ValueError(f"{key}: {'.'.join(parts[:i + 1])} is {child!r}, not a nested configuration")
+            node = child
+        node[parts[-1]] = copy.deepcopy(value)
+    return out
 
 
 @dataclass
@@ -43,9 +416,11 @@ class TrainConfig:
     """Which algorithm: ``"mixed"`` (Algorithm 2, IBE posterior), ``"model"`` (Algorithm 2 on the prior
     model of eq. 55, IBE off), ``"oracle"`` (Algorithm 2 with the true noise) or ``"ddpg"``."""
 
-    task: str = "dlc"
-    """``"dlc"``: the double lane change of Section V; ``"linear"``: a 2-state linear system with a
-    quadratic cost (known LQ optimum), used by the tests and the tutorial."""
+    task: TaskConfig = field(default_factory=DoubleLaneChangeTaskConfig)
+    """The experiment: :class:`DoubleLaneChangeTaskConfig` (``name = "dlc"``, the double lane change of
+    Section VI) or :class:`LinearTaskConfig` (``name = "linear"``, a 2-state linear system with a
+    quadratic cost and a known LQ optimum, used by the tests and the tutorial). The constructor also
+    accepts a task name or a nested dict (see :func:`task_config`)."""
 
     seed: int = 0
     """Seed of every generator of the run (network initialisation, initial states, noise, exploration,
@@ -60,11 +435,6 @@ class TrainConfig:
 
     horizon: int = 60
     """Steps after which a training copy of the environment is reset to a fresh initial state."""
-
-    train_half_widths: tuple[float, ...] = (0.3, 0.2, 1.0, 0.1, 1.0)
-    """Double lane change only: half-widths of the uniform perturbation of ``[v_y, r, v_x - 12, e_phi,
-    e_y]`` of the training start states (anywhere on the course), see
-    :class:`mixedrl.envs.DoubleLaneChangeConfig`."""
 
     hidden_sizes: tuple[int, ...] = (64, 64)
     """Hidden layer widths of the actor and the critic (the same for every method)."""
@@ -144,7 +514,7 @@ class TrainConfig:
 
     def __post_init__(self) -> None:
         self.hidden_sizes = tuple(int(h) for h in self.hidden_sizes)
-        self.train_half_widths = tuple(float(w) for w in self.train_half_widths)
+        self.task = task_config(self.task)
         self.validate()
 
     def validate(self) -> None:
@@ -157,8 +527,8 @@ class TrainConfig:
         """
         if self.method not in METHODS:
             raise ValueError(f"method: expected one of {METHODS}, got {self.method!r}")
-        if self.task not in TASKS:
-            raise ValueError(f"task: expected one of {TASKS}, got {self.task!r}")
+        if not isinstance(self.task, (DoubleLaneChangeTaskConfig, LinearTaskConfig)):
+            raise ValueError(f"task: expected a task configuration, got {self.task!r}")
         if self.expectation not in ("sigma", "samples"):
             raise ValueError(f"expectation: expected 'sigma' or 'samples', got {self.expectation!r}")
         if self.mvc_check not in ("mean", "all"):
@@ -179,8 +549,6 @@ class TrainConfig:
                 raise ValueError(f"{name}: expected a positive integer, got {value!r}")
         if isinstance(self.ddpg_warmup, bool) or not isinstance(self.ddpg_warmup, int) or self.ddpg_warmup < 0:
             raise ValueError(f"ddpg_warmup: expected a non-negative integer, got {self.ddpg_warmup!r}")
-        if len(self.train_half_widths) != 5 or any(not (w >= 0 and math.isfinite(w)) for w in self.train_half_widths):
-            raise ValueError(f"train_half_widths: expected 5 finite numbers >= 0, got {self.train_half_widths!r}")
         if not self.hidden_sizes or any(h < 1 for h in self.hidden_sizes):
             raise ValueError(f"hidden_sizes: expected positive widths, got {self.hidden_sizes!r}")
         for name in ("critic_lr", "actor_lr", "grad_clip", "ddpg_noise_std"):
@@ -196,34 +564,50 @@ class TrainConfig:
 
     # ------------------------------------------------------------------ serialisation
     def to_dict(self) -> dict[str, Any]:
-        """Return the fields as a JSON-compatible dictionary (tuples become lists; ``inf`` a string)."""
-        out = dataclasses.asdict(self)
-        out["hidden_sizes"] = list(self.hidden_sizes)
-        out["train_half_widths"] = list(self.train_half_widths)
+        """Return the fields as a JSON-compatible dictionary, the task configuration as a nested dict
+        (tuples become lists; ``inf`` a string)."""
+        out = _jsonable(self)
         if math.isinf(out["grad_clip"]):
             out["grad_clip"] = "inf"
         return out
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> "TrainConfig":
-        """Build a config from a dictionary.
+        """Build a config from a dictionary (the content of ``config.json``), nested ``task`` included.
+
+        The old form is accepted: ``"task": "dlc"`` (a name: that task's defaults) and a top-level
+        ``train_half_widths`` (moved to ``task.train_half_widths``; dropped for the linear task, on
+        which it never had an effect).
 
         Raises
         ------
         ValueError
-            ``data`` has a key that is not a field (message starts with ``config``), or a field is invalid.
+            ``data`` has a key that is not a field, at any level (``config: unknown key(s)
+            ['task.prior_mena']``), or a field is invalid (the message starts with its dotted name).
         """
         if not isinstance(data, dict):
             raise ValueError(f"config: expected a dict, got {type(data).__name__}")
-        check_unknown_keys(data, {f.name for f in dataclasses.fields(cls)}, "config")
         data = dict(data)
+        if "train_half_widths" in data:  # the old top-level field
+            widths = data.pop("train_half_widths")
+            task = data.get("task", "dlc")
+            task = {"name": task} if isinstance(task, str) else dict(task) if isinstance(task, dict) else task
+            if isinstance(task, dict) and task.get("name", "dlc") == "dlc":
+                if "train_half_widths" in task and list(task["train_half_widths"]) != list(widths):
+                    raise ValueError("train_half_widths: given both at the top level (old form) and as "
+                                     "task.train_half_widths, with different values")
+                task["train_half_widths"] = widths
+            data["task"] = task
+        check_unknown_keys(data, {f.name for f in dataclasses.fields(cls)}, "config")
         if data.get("grad_clip") == "inf":
             data["grad_clip"] = math.inf
         return cls(**data)
 
     def replace(self, **changes: Any) -> "TrainConfig":
-        """Return a copy with ``changes`` applied (unknown keys are an error)."""
-        return TrainConfig.from_dict({**self.to_dict(), **changes})
+        """Return a copy with ``changes`` applied; keys may be dotted (``**{"task.gamma": 0.95}``, see
+        :func:`apply_overrides`); unknown keys are an error."""
+        changes = {k: _jsonable(v) for k, v in changes.items()}
+        return TrainConfig.from_dict(apply_overrides(self.to_dict(), changes))
 
     def save(self, path: str | Path) -> None:
         """Write the config as JSON to ``path``."""

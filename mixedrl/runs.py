@@ -49,7 +49,10 @@ from typing import Any, Callable
 import numpy as np
 import torch
 
+from mixedrl.algorithms.agpi import AGPI
+from mixedrl.algorithms.ddpg import DDPG
 from mixedrl.config import TrainConfig
+from mixedrl.tasks import Task, task_from_config
 
 __all__ = [
     "RunDirectory",
@@ -488,15 +491,13 @@ def eval_seeds(config: TrainConfig) -> list[int]:
     return [1_000_003 * (config.seed + 1) + i for i in range(config.eval_seeds)]
 
 
-def make_trainer(config: TrainConfig, task: Any = None) -> Any:
-    """Build the trainer of ``config.method`` (Algorithm 2 for mixed/model/oracle, DDPG for ddpg)."""
-    from mixedrl.algorithms.agpi import AGPI
-    from mixedrl.algorithms.ddpg import DDPG
-    from mixedrl.tasks import make_task
+def make_trainer(config: TrainConfig, task: Task | None = None) -> AGPI | DDPG:
+    """Build the trainer of ``config.method`` (Algorithm 2 for mixed/model/oracle, DDPG for ddpg).
 
+    The task is built from ``config.task`` (:func:`mixedrl.tasks.task_from_config`) unless ``task`` is given.
+    """
     if task is None:
-        task = make_task("dlc", train_half_widths=config.train_half_widths) if config.task == "dlc" \
-            else make_task(config.task)
+        task = task_from_config(config.task)
     if config.method == "ddpg":
         return DDPG(task, config)
     return AGPI(task, config)
@@ -612,7 +613,7 @@ def summarize(trainer: Any, rows: list[dict[str, Any]], elapsed: float, seeds: l
     results: dict[str, Any] = {
         "method": cfg.method,
         "seed": cfg.seed,
-        "task": cfg.task,
+        "task": cfg.task.name,
         "iterations": int(trainer.k),
         "train_seconds": float(elapsed),
         "final": {k: float(v) for k, v in final.items() if isinstance(v, (int, float, np.floating))},

@@ -2,8 +2,9 @@
 
 Algorithm 2 (:mod:`mixedrl.algorithms.agpi`) and DDPG (:mod:`mixedrl.algorithms.ddpg`) see a system
 only through this small interface, so they run unchanged on the double lane change
-(:class:`DoubleLaneChangeTask`, Section V of the paper) and on any user system (:class:`LinearTask`, and
-the tutorial).
+(:class:`DoubleLaneChangeTask`, Section VI of the paper) and on any user system (:class:`LinearTask`, and
+the tutorial). :func:`task_from_config` builds either from the run's task configuration
+(:class:`mixedrl.config.DoubleLaneChangeTaskConfig`, :class:`mixedrl.config.LinearTaskConfig`).
 
 The true system is eq. (1) with the noise entering through a fixed matrix ``E``:
 
@@ -26,9 +27,11 @@ import numpy as np
 import torch
 
 from mixedrl._checks import as_vector, check_covariance
+from mixedrl.config import DoubleLaneChangeTaskConfig, LinearTaskConfig, TaskConfig, task_config
+from mixedrl.envs import DoubleLaneChangeModel, evaluate_tracking
 from mixedrl.gaussian import sample_gaussian
 
-__all__ = ["Task", "LinearTask", "DoubleLaneChangeTask", "make_task"]
+__all__ = ["Task", "LinearTask", "DoubleLaneChangeTask", "make_task", "task_from_config"]
 
 
 class Task(abc.ABC):
@@ -188,6 +191,23 @@ class LinearTask(Task):
         self._Q = {torch.float32: torch.tensor(self.Q, dtype=torch.float32), torch.float64: torch.tensor(self.Q)}
         self._R = {torch.float32: torch.tensor(self.R, dtype=torch.float32), torch.float64: torch.tensor(self.R)}
 
+    @classmethod
+    def from_config(cls, config: LinearTaskConfig) -> "LinearTask":
+        """Build the task of a :class:`mixedrl.config.LinearTaskConfig` (``task.*`` of a run's config).
+
+        Raises
+        ------
+        ValueError
+            ``task.disturbance.law`` is not ``"gaussian"`` (the only law this task simulates).
+        """
+        law = config.disturbance.law
+        if law != "gaussian":
+            raise ValueError(f"task.disturbance.law: the linear task simulates only 'gaussian', got {law!r}")
+        return cls(A=config.A, B=config.B, Q=config.Q, R=config.R, gamma=config.gamma,
+                   true_mean=config.disturbance.mean, true_cov=config.disturbance.cov,
+                   prior_mean=config.prior_mean, prior_cov=config.prior_cov, init_box=config.init_box,
+                   action_bound=config.action_bound)
+
     def f(self, s: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
         # x' = A x + B u (deterministic part)
         return s @ self._At[s.dtype] + u @ self._Bt[s.dtype]
@@ -224,7 +244,8 @@ class LinearTask(Task):
 
 
 def make_task(name: str, **kwargs: Any) -> Task:
-    """Build a task by name: ``"dlc"`` (:class:`DoubleLaneChangeTask`) or ``"linear"`` (:class:`LinearTask`).
+    """Build a task by name: ``"dlc"`` (:class:`DoubleLaneChangeTask`) or ``"linear"`` (:class:`LinearTask`),
+    with constructor arguments ``kwargs``.
 
     Raises
     ------
@@ -238,22 +259,50 @@ def make_task(name: str, **kwargs: Any) -> Task:
     raise ValueError(f"name: expected 'dlc' or 'linear', got {name!r}")
 
 
+def task_from_config(config: TaskConfig | dict[str, Any] | str) -> Task:
+    """Build the task of a run's task configuration (``TrainConfig.task``).
+
+    Parameters
+    ----------
+    config : DoubleLaneChangeTaskConfig, LinearTaskConfig, dict or str
+        The configuration, or anything :func:`mixedrl.config.task_config` accepts (a name, a nested dict).
+
+    Returns
+    -------
+    Task
+        :class:`DoubleLaneChangeTask` or :class:`LinearTask`.
+
+    Raises
+    ------
+    ValueError
+        An invalid configuration (the message starts with the dotted field name).
+    """
+    config = task_config(config)
+    if isinstance(config, DoubleLaneChangeTaskConfig):
+        return DoubleLaneChangeTask.from_config(config)
+    return LinearTask.from_config(config)
+
+
 class DoubleLaneChangeTask(Task):
-    """The double lane change of Section V as a :class:`Task` (an adapter on :mod:`mixedrl.envs`).
+    """The double lane change of Section VI as a :class:`Task` (an adapter on :mod:`mixedrl.envs`).
 
     * state: the tracking state ``s = [v_y, r, v_x, phi, Y, X]`` of
       :class:`~mixedrl.envs.DoubleLaneChangeModel`; ``f`` = its ``step`` (eq. 53, forward Euler);
     * noise: the paper's five-component ``xi`` on ``x = [v_y, r, v_x, phi, y]`` (eq. 54), entering the
-      first five state components (``E = [I_5; 0]``); the true noise is ``F_dis T / m`` on ``v_x`` with
-      ``F_dis ~ N(261, 32)`` (drawn by the model's ``sample_force``, so a configured road grade is
-      honoured);
+      first five state components (``E = [I_5; 0]``); the true noise is ``F_dis T / m`` on ``v_x``
+      (component :attr:`noise_index`; ``T / m`` is :attr:`force_scale`) with ``F_dis ~ N(261, 32)`` by
+      default (drawn by the model's ``sample_force``, so a configured road grade is honoured);
     * prior (eq. 55): ``mu_M = 150 T/m`` and ``K_M = (4 T/m)^2`` on ``v_x``, ``1e-20`` on the other four
       diagonal entries (EQUATIONS.md point 6: the paper's prior is read as acting on ``v_x``);
     * observation: :meth:`~mixedrl.envs.DoubleLaneChangeModel.observe` (the paper's relative state
-      ``[v_y, r, v_x - 12, e_phi, e_y]`` by default); utility: eq. (54) on the next state;
+      ``[v_y, r, v_x - 12, e_phi, e_y]`` by default); utility: eq. (54) on the next state, discount
+      :attr:`gamma` (0.99 by default);
     * training states: :meth:`~mixedrl.envs.DoubleLaneChangeModel.reset_states` (anywhere on the
       course); evaluation: :func:`mixedrl.envs.evaluate_tracking` (one full course from the reference
       start, per seed).
+
+    :meth:`from_config` builds it from a :class:`mixedrl.config.DoubleLaneChangeTaskConfig` (the run's
+    ``task.*`` settings).
 
     Parameters
     ----------
@@ -261,20 +310,42 @@ class DoubleLaneChangeTask(Task):
         The designer's prior mean force [N] (paper: 150).
     prior_force_std : float, optional
         Prior standard deviation ``sqrt(K_M)`` in force units [N] (paper: 4).
+    gamma : float, optional
+        Discount factor of eq. (2) (default 0.99).
     **config
-        Overrides of :class:`~mixedrl.envs.DoubleLaneChangeConfig` (e.g. ``disturbance``).
+        Overrides of :class:`~mixedrl.envs.DoubleLaneChangeConfig` (e.g. ``disturbance``, ``q_speed``,
+        ``preview_distances``, ``train_half_widths``).
+
+    Attributes
+    ----------
+    noise_index : int
+        Component of ``xi`` (and of the state) the disturbance acts on: ``v_x`` (2).
+    force_scale : float
+        ``T / m`` [s/kg]: ``xi = force_scale * F_dis`` (eq. 54); see :meth:`force_to_xi`,
+        :meth:`xi_to_force`.
+
+    Raises
+    ------
+    ValueError
+        ``prior_force_std`` not positive, ``gamma`` not in (0, 1), or an invalid environment override.
     """
 
-    def __init__(self, prior_force_mean: float = 150.0, prior_force_std: float = 4.0, **config: Any) -> None:
-        from mixedrl.envs import DoubleLaneChangeModel
-
+    def __init__(self, prior_force_mean: float = 150.0, prior_force_std: float = 4.0, gamma: float = 0.99,
+                 **config: Any) -> None:
+        if not (0.0 < gamma < 1.0):
+            raise ValueError(f"gamma: expected a number in (0, 1), got {gamma!r}")
+        if not (prior_force_std > 0.0 and np.isfinite(prior_force_std)):
+            raise ValueError(f"prior_force_std: expected a positive number, got {prior_force_std!r}")
+        if not np.isfinite(prior_force_mean):
+            raise ValueError(f"prior_force_mean: expected a finite number, got {prior_force_mean!r}")
         self.model = DoubleLaneChangeModel(config or None)
         cfg = self.model.config
         scale = cfg.dt / cfg.params.m  # T / m: force [N] -> xi [m/s]
+        self.force_scale = scale
         self.state_dim, self.action_dim = self.model.state_dim, self.model.action_dim
         self.obs_dim, self.noise_dim = self.model.obs_dim, 5
-        self.gamma = 0.99
-        vx = self.model.noise_index
+        self.gamma = float(gamma)
+        vx = self.noise_index = self.model.noise_index
         self.noise_matrix = torch.zeros(self.state_dim, self.noise_dim)
         self.noise_matrix[:5, :5] = torch.eye(5)
         self.prior_mean = np.zeros(5)
@@ -289,6 +360,36 @@ class DoubleLaneChangeTask(Task):
         scales = [0.3, 0.2, 0.5, 0.1, 0.5] + [2.0] * (self.obs_dim - 5)
         self.obs_scale = torch.tensor(scales, dtype=torch.float32)
         self.value_scale = 1.0
+
+    @classmethod
+    def from_config(cls, config: DoubleLaneChangeTaskConfig) -> "DoubleLaneChangeTask":
+        """Build the task of a :class:`mixedrl.config.DoubleLaneChangeTaskConfig` (``task.*`` of a run's config).
+
+        Raises
+        ------
+        ValueError
+            ``task.disturbance.law`` is not ``"gaussian"`` (the only law the vehicle model draws).
+        """
+        dist = config.disturbance
+        if dist.law != "gaussian":
+            raise ValueError(f"task.disturbance.law: the double lane change simulates only 'gaussian', "
+                             f"got {dist.law!r}")
+        cost = config.cost
+        return cls(prior_force_mean=config.prior_force_mean, prior_force_std=config.prior_force_std,
+                   gamma=config.gamma,
+                   disturbance={"mean": dist.mean, "variance": dist.variance,
+                                "grade_amplitude": dist.grade_amplitude, "grade_wavelength": dist.grade_wavelength,
+                                "grade_phase": dist.grade_phase},
+                   q_speed=cost.q_speed, q_lateral=cost.q_lateral, r_steer=cost.r_steer, r_accel=cost.r_accel,
+                   preview_distances=config.preview_distances, train_half_widths=config.train_half_widths)
+
+    def force_to_xi(self, force: Any) -> Any:
+        """``xi = F_dis T / m`` [m/s] of a force [N] (eq. 54); floats, arrays or tensors."""
+        return force * self.force_scale
+
+    def xi_to_force(self, xi: Any) -> Any:
+        """The force [N] whose noise on ``v_x`` is ``xi`` [m/s]: ``F_dis = xi m / T``."""
+        return xi / self.force_scale
 
     def f(self, s: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
         return self.model.step(s, u)
@@ -317,8 +418,6 @@ class DoubleLaneChangeTask(Task):
         eq. 54 cost of the course), ``terminated`` (fraction of runs that left the road); with
         ``keep_trajectory`` also ``trajectories`` (the :class:`~mixedrl.envs.TrackingResult` objects).
         """
-        from mixedrl.envs import evaluate_tracking
-
         runs = [evaluate_tracking(policy, self.model.config, seed=int(seed)) for seed in seeds]
         out: dict[str, Any] = {
             "lateral_mae": float(np.mean([r.mean_abs_lateral_error for r in runs])),

@@ -1,5 +1,7 @@
-"""Tests of the Table I reproduction (validation/reproduce.py) and of seeded short runs on the double lane
-change: the IBE moves to the truth, mixed RL beats model-driven RL on speed error."""
+"""Tests of the Table I reproduction (validation/reproduce.py): the targets and the table on known numbers,
+the experiment's constants read from the task configuration, mixed RL beating model-driven RL when the
+prior is wrong (on the linear task, the reproduction's own configuration path), and -- in the
+regression tier -- the quick reproduction end to end."""
 
 from __future__ import annotations
 
@@ -8,8 +10,14 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 
+from mixedrl.config import TrainConfig
+from mixedrl.runs import make_trainer, train
+from mixedrl.tasks import task_from_config
 from validation.reproduce import METHODS, PAPER, check_targets, format_table
+
+T_OVER_M = (1 / 200) / 1500  # the paper's T / m: xi [m/s] per newton
 
 
 def _fake_results() -> dict:
@@ -22,7 +30,7 @@ def _fake_results() -> dict:
     res = {"paper": PAPER, "quick": False, "wall_seconds": 100.0, "convergence_criterion": "c",
            "mixed": entry(0.10, 0.010, 3000), "model": entry(0.12, 0.030, 3000), "ddpg": entry(0.20, 0.04, 7000),
            "oracle": entry(0.10, 0.0095, 3000)}
-    res["mixed"]["final_ibe_mean"] = [[0, 0, 261.0 * 0.005 / 1500 * 1.01, 0, 0]]
+    res["mixed"]["final_ibe_mean"] = [[0, 0, 261.0 * T_OVER_M * 1.01, 0, 0]]
     return res
 
 
@@ -47,12 +55,61 @@ def test_targets_and_table_on_known_numbers() -> None:
     assert all(label in table for label in ("Mixed RL", "Model-driven RL", "DDPG", "Oracle"))
 
 
+def test_targets_take_the_truth_from_the_task_configuration() -> None:
+    """The IBE target compares with the configured disturbance, not a constant: the same estimate (261 N
+    + 1%) meets it for the paper's 261 N and fails it for a configured 300 N; a run on another component
+    than v_x would not count."""
+    res = _fake_results()
+    assert check_targets(res)["ibe_mean_within_2pct"]
+    res["task"] = TrainConfig(task={"disturbance": {"mean": 300.0}}).to_dict()["task"]
+    t = check_targets(res)
+    assert not t["ibe_mean_within_2pct"]
+    assert t["ibe_mean_rel_error_max"] == pytest.approx(1 - 261.0 * 1.01 / 300.0, rel=1e-9)
+    res["mixed"]["final_ibe_mean"] = [[0, 0, 0, 300.0 * T_OVER_M, 0]]  # right value, wrong component
+    assert not check_targets(res)["ibe_mean_within_2pct"]
+
+
+def test_mixed_beats_model_driven_when_the_prior_is_wrong() -> None:
+    """The paper's claim on the linear task, through the reproduction's path (``TrainConfig`` ->
+    ``make_trainer`` -> ``train``; MLP actor and critic): the prior mean of the velocity noise is -0.5, the
+    truth +0.5. After 100 iterations (seed 0) mixed RL's evaluation cost is at least 40% below
+    model-driven RL's, and its IBE mean is within 5% of the truth.
+
+    Measured (seeds 0-2, 100 iterations): mixed 31.2-36.1, model 79.4-88.3, oracle 31.9-39.1; at 200
+    iterations mixed 28.2-30.7, model 90.4-108.1, oracle 27.2-30.6 (ratio mixed / model 0.28-0.45).
+    """
+    torch.set_num_threads(1)
+    cost = {}
+    trainers = {}
+    for method in ("mixed", "model"):
+        cfg = TrainConfig(method=method, seed=0, task={"name": "linear", "prior_mean": [0.0, -0.5]}, iterations=100,
+                          batch_size=64, horizon=20, eval_every=100, eval_seeds=2, checkpoint_every=100)
+        trainers[method] = make_trainer(cfg)
+        cost[method] = train(trainers[method])["cost"]
+    assert cost["mixed"] <= 0.6 * cost["model"], cost
+    truth = trainers["mixed"].task.true_mean[1]
+    assert abs(trainers["mixed"].noise.mean[1] - truth) <= 0.05 * abs(truth)
+    assert abs(trainers["model"].noise.mean[1] - truth) > 0.9  # model-driven RL keeps its prior
+
+
+def test_script_entry_point_reports_bad_input(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """``python -m validation.reproduce`` has the command's options and its one-line errors, without the CLI."""
+    from validation.reproduce import main
+
+    assert main(["--seeds", "0", "--out", str(tmp_path), "--no-progress"]) == 2
+    assert capsys.readouterr().err.startswith("python -m validation.reproduce: error: seeds:")
+    assert main(["--seeds", "1", "--workers", "0", "--out", str(tmp_path), "--no-progress"]) == 2
+    assert "workers:" in capsys.readouterr().err
+
+
 @pytest.mark.regression
 @pytest.mark.slow
 def test_reproduce_quick_end_to_end(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    """``mixedrl reproduce --quick``: every method and seed trained, results.json with the documented
-    schema, the five figures, the table with the paper's numbers, the theory summary; the IBE mean of
-    every mixed run ends within 2% of the true disturbance mean."""
+    """``mixedrl reproduce --quick`` (the command plug-in): every method and seed trained, the table with
+    the paper's numbers, the figures under the paper's numbers (Figs. 3-7); on the quick budget mixed RL
+    has a lower mean speed error than model-driven RL, the IBE mean of every mixed run ends within 2% of
+    the configured true disturbance, model-driven RL's estimate stays at the prior, and the theory probe
+    reports the MVC as held after the inner loop in most iterations."""
     from mixedrl.cli import main
 
     out = tmp_path / "repro"
@@ -60,21 +117,16 @@ def test_reproduce_quick_end_to_end(tmp_path: Path, capsys: pytest.CaptureFixtur
     printed = capsys.readouterr().out
     assert "0.151" in printed and "Mixed RL" in printed
     res = json.loads((out / "results.json").read_text())
-    assert res["paper"]["mixed"]["speed_mae"] == 0.021
     for method in METHODS:
-        runs = res[method]["runs"]
-        assert [r["seed"] for r in runs] == [0, 1]
-        for r in runs:
-            assert set(r) >= {"seed", "lateral_mae", "speed_mae", "iterations_to_converge", "train_seconds"}
-            assert np.isfinite(r["lateral_mae"]) and np.isfinite(r["speed_mae"])
-        assert res[method]["lateral_mae_mean"] == pytest.approx(np.mean([r["lateral_mae"] for r in runs]))
-        assert res[method]["speed_mae_mean"] == pytest.approx(np.mean([r["speed_mae"] for r in runs]))
-    for method in ("mixed", "model", "oracle"):
-        th = res[method]["theory"]
-        assert 0.0 <= th["value_decrease"] <= 1.0 and 0.0 <= th["mvc_pointwise"] <= 1.0
-    true_mean = 261.0 * (1 / 200) / 1500
+        assert [r["seed"] for r in res[method]["runs"]] == [0, 1]
+    assert res["mixed"]["speed_mae_mean"] < res["model"]["speed_mae_mean"]
+    task = task_from_config(res["task"])
+    vx, true_mean = task.noise_index, task.true_mean[task.noise_index]
+    assert true_mean == pytest.approx(261.0 * T_OVER_M, rel=1e-12)
     for mean in res["mixed"]["final_ibe_mean"]:
-        assert abs(mean[2] - true_mean) <= 0.02 * true_mean
-    for name in ("fig2_convergence", "fig3_trajectory", "fig4_speed_error", "fig5_lateral_error",
-                 "fig6_ibe_effect"):
+        assert abs(mean[vx] - true_mean) <= 0.02 * true_mean
+    assert res["targets"]["ibe_mean_within_2pct"]
+    assert res["mixed"]["theory"]["mvc_held_after_inner_loop"] >= 0.5
+    for name in ("fig3_ibe_effect", "fig4_convergence", "fig5_trajectory", "fig6_speed_error",
+                 "fig7_lateral_error"):
         assert (out / "figures" / f"{name}.png").stat().st_size > 1000

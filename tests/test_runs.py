@@ -43,7 +43,7 @@ def test_config_round_trip_and_unknown_keys(tmp_path: Path) -> None:
 @pytest.mark.parametrize("field,value", [("method", "ppo"), ("iterations", 0), ("batch_size", -1),
                                           ("critic_lr", float("nan")), ("mvc_check", "some"), ("seed", -2),
                                           ("ddpg_tau", 1.5), ("expectation", "exact"), ("hidden_sizes", ()),
-                                          ("train_half_widths", (1.0, 2.0))])
+                                          ("task", "cartpole")])
 def test_config_rejects_bad_values(field: str, value: object) -> None:
     with pytest.raises(ValueError, match=f"^{field}"):
         TrainConfig(**{field: value})

@@ -7,7 +7,7 @@
 * :func:`gamma_condition` -- Theorem 1's condition on gamma, eq. (27) (:mod:`theory.premises`);
 * :func:`prior_full_rank` -- Lemma 2's full-rank premise on the prior (:mod:`theory.premises`).
 
-``theory`` imports :mod:`mixedrl`; :mod:`mixedrl` never imports ``theory``. ``python -m theory lq``
+``theory`` imports only :mod:`mixedrl`; :mod:`mixedrl` never imports ``theory``. ``python -m validation.theory_lq``
 prints the checks per iteration on the shipped LQ example (:mod:`validation.lq`).
 """
 

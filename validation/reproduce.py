@@ -1,6 +1,9 @@
-"""Reproduction of the paper's Table I and Figs. 2-6 on the double lane change, as one readable script.
+"""Reproduction of the paper's Table I and Figs. 3-7 (Section VI's experiment, the double lane change; Fig. 3,
+the effect of the IBE, belongs to Section IV) as one readable script.
 
 Run it as ``mixedrl reproduce --seeds 5 --out DIR`` or ``python -m validation.reproduce --seeds 5 --out DIR``.
+The ``mixedrl reproduce`` command is a plug-in of :mod:`mixedrl.cli` (entry point ``reproduce`` of the group
+``mixedrl.commands``, :func:`register`): the core package does not import this script.
 
 What it does, top to bottom:
 
@@ -19,8 +22,13 @@ What it does, top to bottom:
    beside the paper's numbers.
 4. ``DIR/results.json`` (per method a list of runs ``{"seed", "lateral_mae", "speed_mae",
    "iterations_to_converge", "train_seconds"}`` and the means; the paper's values under ``"paper"``; the
-   theory summary; the targets and whether each was met) and ``DIR/figures/``: ``fig2_convergence``,
-   ``fig3_trajectory``, ``fig4_speed_error``, ``fig5_lateral_error``, ``fig6_ibe_effect`` (PNG).
+   theory summary; the targets and whether each was met; the task configuration under ``"task"``) and
+   ``DIR/figures/``, numbered as the paper's figures: ``fig3_ibe_effect``, ``fig4_convergence``,
+   ``fig5_trajectory``, ``fig6_speed_error``, ``fig7_lateral_error`` (PNG).
+
+The experiment's constants (true disturbance, prior, the component ``v_x`` it acts on, the force scale
+``T / m``) are read from the task configuration (:class:`mixedrl.config.DoubleLaneChangeTaskConfig`) and
+the task built from it, never repeated here.
 
 Convergence is measured the same way for every method: :func:`mixedrl.runs.iterations_to_converge`
 (the first evaluated iteration after which the evaluation cost stays within 10% of the run's final
@@ -29,27 +37,36 @@ level). One iteration is one PEV + PIM step (Algorithm 2) or one critic + actor 
 
 from __future__ import annotations
 
+import argparse
 import copy
 import json
 import logging
 import math
 import multiprocessing as mp
 import os
+import sys
 import time
 from pathlib import Path
+from collections.abc import Callable
 from typing import Any, Sequence
 
 import numpy as np
 import torch
+from tqdm.auto import tqdm
 
-from mixedrl.config import TrainConfig
+import theory
+from mixedrl.config import DoubleLaneChangeTaskConfig, TrainConfig, task_config
+from mixedrl.gaussian import sample_gaussian
+from mixedrl.ibe import UnknownCovarianceIBE
 from mixedrl.runs import RunDirectory, atomic_write_text, eval_seeds, make_trainer, train
+from mixedrl.tasks import DoubleLaneChangeTask, task_from_config
 
-__all__ = ["PAPER", "METHODS", "reproduce", "format_table", "run_config", "TheoryProbe", "make_figures", "main"]
+__all__ = ["PAPER", "METHODS", "reproduce", "format_table", "run_config", "TheoryProbe", "make_figures", "main",
+           "register", "add_arguments", "run_command"]
 
 logger = logging.getLogger(__name__)
 
-#: Table I of the paper (and Section V's iteration counts). The oracle is ours (no paper value).
+#: Table I of the paper (and Section VI's iteration counts). The oracle is ours (no paper value).
 PAPER: dict[str, dict[str, float]] = {
     "mixed": {"lateral_mae": 0.151, "speed_mae": 0.021, "iterations_to_converge": 1e4},
     "model": {"lateral_mae": 0.179, "speed_mae": 0.051, "iterations_to_converge": 1e4},
@@ -120,8 +137,6 @@ class TheoryProbe:
         return getattr(self.trainer, name)
 
     def iteration(self) -> dict[str, float]:
-        import theory
-
         tr = self.trainer
         if tr.k % self.every != 0:
             return tr.iteration()
@@ -279,8 +294,6 @@ def reproduce(out: str | Path, seeds: int = 5, quick: bool = False, resume: bool
     t0 = time.perf_counter()
     bar = None
     if progress:
-        from tqdm.auto import tqdm
-
         bar = tqdm(total=len(jobs), desc="reproduce (runs)")
     finished: list[dict[str, Any]] = []
     if workers == 1:
@@ -302,7 +315,7 @@ def reproduce(out: str | Path, seeds: int = 5, quick: bool = False, resume: bool
     if resume and previous.is_file():
         # the wall time of a resumed reproduction includes the interrupted invocation's
         wall += float(json.loads(previous.read_text()).get("wall_seconds", 0.0))
-    results = aggregate(out, finished, wall, quick)
+    results = aggregate(out, finished, wall, quick, task=jobs[0]["config"]["task"])
     atomic_write_text(out / "results.json", json.dumps(results, indent=2, sort_keys=True) + "\n")
     try:
         make_figures(out, results)
@@ -311,9 +324,15 @@ def reproduce(out: str | Path, seeds: int = 5, quick: bool = False, resume: bool
     return results
 
 
-def aggregate(out: Path, finished: list[dict[str, Any]], wall: float, quick: bool) -> dict[str, Any]:
-    """Group the runs by method, add means, the paper's values, the theory summary and the targets."""
+def aggregate(out: Path, finished: list[dict[str, Any]], wall: float, quick: bool,
+              task: dict[str, Any] | None = None) -> dict[str, Any]:
+    """Group the runs by method, add means, the paper's values, the theory summary and the targets.
+
+    ``task`` is the runs' task configuration as a dict (default: the double lane change's defaults).
+    """
+    task = task_config(task if task is not None else "dlc")
     results: dict[str, Any] = {"paper": PAPER, "quick": quick, "wall_seconds": wall,
+                               "task": TrainConfig(task=task).to_dict()["task"],
                                "convergence_criterion": finished[0]["convergence_criterion"] if finished else None}
     for method in METHODS + EXTRA:
         runs = sorted((r for r in finished if r["label"] == method), key=lambda r: r["seed"])
@@ -332,6 +351,16 @@ def aggregate(out: Path, finished: list[dict[str, Any]], wall: float, quick: boo
         results[method] = entry
     results["targets"] = check_targets(results)
     return results
+
+
+def _dlc_task(results: dict[str, Any]) -> tuple[DoubleLaneChangeTaskConfig, DoubleLaneChangeTask]:
+    """The task configuration of the results (``results["task"]``, default the paper's) and its task."""
+    config = task_config(results.get("task", "dlc"))
+    if not isinstance(config, DoubleLaneChangeTaskConfig):
+        raise ValueError(f"task: the reproduction is on the double lane change, got {config.name!r}")
+    task = task_from_config(config)
+    assert isinstance(task, DoubleLaneChangeTask)
+    return config, task
 
 
 def check_targets(results: dict[str, Any]) -> dict[str, Any]:
@@ -354,8 +383,9 @@ def check_targets(results: dict[str, Any]) -> dict[str, Any]:
     t["mixed_converges_within_1e4"] = mixed["iterations_to_converge_mean"] <= 1e4
     long = results.get("ddpg_long", ddpg)
     t["ddpg_needs_2x_mixed"] = long["iterations_to_converge_mean"] >= 2 * mixed["iterations_to_converge_mean"]
-    vx = 2
-    true_mean = 261.0 * (1 / 200) / 1500.0
+    _, task = _dlc_task(results)
+    vx = task.noise_index
+    true_mean = float(task.true_mean[vx])  # F_dis mean T / m
     errs = [abs(m[vx] - true_mean) / true_mean for m in mixed.get("final_ibe_mean", [])]
     t["ibe_mean_rel_error_max"] = float(max(errs)) if errs else None
     t["ibe_mean_within_2pct"] = bool(errs) and max(errs) <= 0.02
@@ -410,7 +440,7 @@ def _fmt(v: Any) -> str:
 # figures
 # ----------------------------------------------------------------------------------------------------
 def make_figures(out: str | Path, results: dict[str, Any]) -> list[Path]:
-    """Write Figs. 2-6 as PNG files under ``out/figures``; returns their paths."""
+    """Write Figs. 3-7 of the paper (numbered as there) as PNG files under ``out/figures``; returns their paths."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -426,7 +456,7 @@ def make_figures(out: str | Path, results: dict[str, Any]) -> list[Path]:
     def metrics(method: str, seed: int) -> list[dict[str, Any]]:
         return RunDirectory(out / "runs" / f"{method}_seed{seed}").read_metrics()
 
-    # Fig. 2: convergence (evaluation cost of the course against iterations, mean and range over seeds)
+    # Fig. 4: convergence (evaluation cost of the course against iterations, mean and range over seeds)
     fig, ax = plt.subplots(figsize=(6, 4))
     colors["ddpg_long"] = "C3"
     for m in methods + [e for e in EXTRA if e in results]:
@@ -443,13 +473,13 @@ def make_figures(out: str | Path, results: dict[str, Any]) -> list[Path]:
     ax.set_xscale("log")
     ax.set_xlabel("iteration")
     ax.set_ylabel("evaluation cost of the course (eq. 54)")
-    ax.set_title("Fig. 2: convergence")
+    ax.set_title("Fig. 4: convergence")
     ax.legend()
-    paths.append(_save(fig, fig_dir / "fig2_convergence.png"))
+    paths.append(_save(fig, fig_dir / "fig4_convergence.png"))
 
     trajs = {m: np.load(out / "runs" / f"{m}_seed{results[m]['runs'][0]['seed']}" / "trajectory.npz")
              for m in methods}
-    # Fig. 3: trajectory
+    # Fig. 5: trajectory
     fig, ax = plt.subplots(figsize=(7, 3))
     first = trajs[methods[0]]
     ax.plot(first["X"], first["Y_ref"], "k--", lw=1, label="reference")
@@ -457,56 +487,54 @@ def make_figures(out: str | Path, results: dict[str, Any]) -> list[Path]:
         ax.plot(trajs[m]["X"], trajs[m]["Y"], color=colors[m], lw=1, label=LABELS[m])
     ax.set_xlabel("X [m]")
     ax.set_ylabel("Y [m]")
-    ax.set_title("Fig. 3: tracking (seed 0)")
+    ax.set_title("Fig. 5: tracking (seed 0)")
     ax.legend(fontsize=7)
-    paths.append(_save(fig, fig_dir / "fig3_trajectory.png"))
-    # Figs. 4 and 5: speed and lateral error
-    for key, name, ylabel in (("speed_error", "fig4_speed_error", "v_x - 12 [m/s]"),
-                              ("lateral_error", "fig5_lateral_error", "lateral error [m]")):
+    paths.append(_save(fig, fig_dir / "fig5_trajectory.png"))
+    # Figs. 6 and 7: speed and lateral error
+    for key, name, ylabel in (("speed_error", "fig6_speed_error", "v_x - 12 [m/s]"),
+                              ("lateral_error", "fig7_lateral_error", "lateral error [m]")):
         fig, ax = plt.subplots(figsize=(7, 3))
         for m in methods:
             ax.plot(trajs[m]["time"], trajs[m][key], color=colors[m], lw=1, label=LABELS[m])
         ax.axhline(0.0, color="grey", lw=0.5)
         ax.set_xlabel("t [s]")
         ax.set_ylabel(ylabel)
-        ax.set_title(("Fig. 4: " if key == "speed_error" else "Fig. 5: ") + ylabel.split(" [")[0])
+        ax.set_title(("Fig. 6: " if key == "speed_error" else "Fig. 7: ") + ylabel.split(" [")[0])
         ax.legend(fontsize=7)
         paths.append(_save(fig, fig_dir / f"{name}.png"))
-    # Fig. 6: IBE effect. Left: one residual at a time (seeded draws of the true noise), the posterior
+    # Fig. 3: IBE effect. Left: one residual at a time (seeded draws of the true noise), the posterior
     # mean against the running sample mean and the single residuals -- the prior damps the first, noisy
     # samples. Right: the posterior mean in the mixed runs (one batch of residuals per iteration).
     if "mixed" in results:
-        from mixedrl.gaussian import sample_gaussian
-        from mixedrl.ibe import UnknownCovarianceIBE
-        from mixedrl.tasks import DoubleLaneChangeTask
-
-        task = DoubleLaneChangeTask()
-        force = 1500.0 * 200.0  # xi [m/s] -> F_dis [N] (m / T)
+        task_cfg, task = _dlc_task(results)
+        vx, force = task.noise_index, task.xi_to_force  # xi [m/s] -> F_dis [N] (m / T)
+        true_force, prior_force = task_cfg.disturbance.mean, task_cfg.prior_force_mean
         xi = sample_gaussian(task.true_mean, task.true_cov, 400, np.random.default_rng(0))
         ibe = UnknownCovarianceIBE(task.prior_mean, task.prior_cov)
-        post = [ibe.update(x).mean[2] * force for x in xi]
+        post = [force(ibe.update(x).mean[vx]) for x in xi]
         n = np.arange(1, len(xi) + 1)
         fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(10, 4))
-        ax1.plot(n, xi[:, 2] * force, ".", color="C2", ms=3, label="single residual")
-        ax1.plot(n, np.cumsum(xi[:, 2]) / n * force, color="C1", label="running sample mean")
+        ax1.plot(n, force(xi[:, vx]), ".", color="C2", ms=3, label="single residual")
+        ax1.plot(n, force(np.cumsum(xi[:, vx]) / n), color="C1", label="running sample mean")
         ax1.plot(n, post, color="C0", label="IBE posterior mean (eq. 17)")
-        ax1.axhline(261.0, color="k", ls="--", lw=1, label="true mean 261 N")
-        ax1.axhline(150.0, color="C1", ls=":", lw=1, label="prior mean 150 N")
+        ax1.axhline(true_force, color="k", ls="--", lw=1, label=f"true mean {true_force:g} N")
+        ax1.axhline(prior_force, color="C1", ls=":", lw=1, label=f"prior mean {prior_force:g} N")
         ax1.set_xscale("log")
         ax1.set_xlabel("number of residuals")
         ax1.set_ylabel("F_dis [N]")
         ax1.legend(fontsize=7)
         for r in results["mixed"]["runs"]:
-            rows = [row for row in metrics("mixed", r["seed"]) if "ibe/mean_2" in row]
-            ax2.plot([0] + [row["iteration"] for row in rows], [150.0] + [force * row["ibe/mean_2"] for row in rows],
+            rows = [row for row in metrics("mixed", r["seed"]) if f"ibe/mean_{vx}" in row]
+            ax2.plot([0] + [row["iteration"] for row in rows],
+                     [prior_force] + [force(row[f"ibe/mean_{vx}"]) for row in rows],
                      color="C0", lw=1)
-        ax2.axhline(261.0, color="k", ls="--", lw=1)
+        ax2.axhline(true_force, color="k", ls="--", lw=1)
         ax2.set_xscale("symlog", linthresh=1.0)
         ax2.set_xlim(left=0.0)
         ax2.set_xlabel("iteration (mixed RL runs, one batch of residuals each)")
         ax2.set_ylabel("IBE posterior mean of F_dis [N]")
-        fig.suptitle("Fig. 6: effect of the IBE")
-        paths.append(_save(fig, fig_dir / "fig6_ibe_effect.png"))
+        fig.suptitle("Fig. 3: effect of the IBE")
+        paths.append(_save(fig, fig_dir / "fig3_ibe_effect.png"))
     plt.close("all")
     return paths
 
@@ -517,12 +545,46 @@ def _save(fig: Any, path: Path) -> Path:
     return path
 
 
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """The options of the reproduction (shared by ``mixedrl reproduce`` and ``python -m validation.reproduce``)."""
+    parser.add_argument("--seeds", type=int, default=5)
+    parser.add_argument("--out", type=Path, default=Path("runs/reproduce"))
+    parser.add_argument("--quick", action="store_true", help="reduced budget (<= 3 minutes), for the test suite")
+    parser.add_argument("--resume", action="store_true", help="reuse finished runs and resume interrupted ones")
+    parser.add_argument("--workers", type=int, default=None, help="parallel training processes (default: 2)")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bars")
+
+
+def run_command(args: argparse.Namespace) -> int:
+    """Handler of the command: run :func:`reproduce`, print Table I and where the files are; exit status 0."""
+    results = reproduce(args.out, seeds=args.seeds, quick=args.quick, resume=args.resume, workers=args.workers,
+                        progress=not args.no_progress)
+    print(format_table(results))
+    print(f"\nresults: {Path(args.out) / 'results.json'}   figures: {Path(args.out) / 'figures'}")
+    return 0
+
+
+def register(subparsers: Any) -> Callable[[argparse.Namespace], int]:
+    """Plug-in hook of ``mixedrl reproduce`` (entry point group ``mixedrl.commands``, see :mod:`mixedrl.cli`):
+    add the ``reproduce`` sub-parser to ``subparsers`` and return its handler, :func:`run_command`."""
+    add_arguments(subparsers.add_parser("reproduce", help="reproduce Table I and the figures of the paper"))
+    return run_command
+
+
 def main(argv: Sequence[str] | None = None) -> int:
-    """``python -m validation.reproduce``: same options as ``mixedrl reproduce``."""
-    from mixedrl.cli import main as cli_main
+    """``python -m validation.reproduce``: same options as ``mixedrl reproduce``.
 
-    return cli_main(["reproduce", *(argv if argv is not None else [])])
-
+    Errors in the user's input (``ValueError``) are reported in one line with exit status 2.
+    """
+    parser = argparse.ArgumentParser(prog="python -m validation.reproduce", description=__doc__.split("\n")[0])
+    add_arguments(parser)
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(message)s")
+    try:
+        return run_command(args)
+    except ValueError as exc:
+        print(f"python -m validation.reproduce: error: {exc}", file=sys.stderr)
+        return 2
 
 
 if __name__ == "__main__":  # pragma: no cover

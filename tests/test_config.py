@@ -1,0 +1,133 @@
+"""Tests of the run configuration (mixedrl.config): the nested task configuration, dotted overrides,
+the old config.json form, and errors naming the dotted key."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import pytest
+
+from mixedrl.config import (
+    DISTURBANCE_LAWS,
+    DoubleLaneChangeTaskConfig,
+    LinearTaskConfig,
+    TrainConfig,
+    apply_overrides,
+    task_config,
+)
+
+#: A config.json written by the code before the task configuration existed (commit 231ea19), verbatim.
+OLD_CONFIG = {
+    "activation": "elu", "actor_lr": 0.0003, "batch_size": 512, "checkpoint_every": 500, "critic_lr": 0.003,
+    "ddpg_buffer_size": 200000, "ddpg_envs": 16, "ddpg_noise_std": 0.2, "ddpg_tau": 0.005, "ddpg_warmup": 2000,
+    "eval_every": 100, "eval_seeds": 2, "expectation": "sigma", "grad_clip": 10.0, "hidden_sizes": [64, 64],
+    "horizon": 60, "ibe_recursion": "exact", "iterations": 1500, "j_max": 5, "lr_decay_to": 0.01,
+    "method": "mixed", "mvc_check": "mean", "noise_samples": 4, "num_threads": 1, "seed": 3,
+    "stop_epsilon": 0.0, "stop_patience": 100, "task": "dlc", "train_half_widths": [0.3, 0.2, 1.0, 0.1, 1.0],
+    "value_output": "square"}
+
+
+def test_defaults_are_the_papers_experiment() -> None:
+    """Section VI's numbers: prior 150 N / 4 N, truth N(261, 32), gamma 0.99, eq. 54's weights."""
+    task = TrainConfig().task
+    assert isinstance(task, DoubleLaneChangeTaskConfig)
+    assert (task.name, task.gamma, task.prior_force_mean, task.prior_force_std) == ("dlc", 0.99, 150.0, 4.0)
+    d = task.disturbance
+    assert (d.law, d.mean, d.variance, d.grade_amplitude) == ("gaussian", 261.0, 32.0, 0.0)
+    c = task.cost
+    assert (c.q_speed, c.q_lateral, c.r_steer, c.r_accel) == (45.0, 60.0, 800.0, 1.0)
+    assert task.preview_distances == () and task.train_half_widths == (0.3, 0.2, 1.0, 0.1, 1.0)
+    assert "gaussian" in DISTURBANCE_LAWS
+
+
+def test_config_json_holds_the_whole_task_and_round_trips(tmp_path: Path) -> None:
+    cfg = TrainConfig(task={"prior_force_mean": 300, "disturbance": {"variance": 64}, "preview_distances": [5.0]})
+    path = tmp_path / "config.json"
+    cfg.save(path)
+    saved = json.loads(path.read_text())
+    assert saved["task"] == {
+        "name": "dlc", "gamma": 0.99, "prior_force_mean": 300.0, "prior_force_std": 4.0,
+        "disturbance": {"law": "gaussian", "mean": 261.0, "variance": 64.0, "grade_amplitude": 0.0,
+                        "grade_wavelength": 40.0, "grade_phase": 0.0},
+        "cost": {"q_speed": 45.0, "q_lateral": 60.0, "r_steer": 800.0, "r_accel": 1.0},
+        "preview_distances": [5.0], "train_half_widths": [0.3, 0.2, 1.0, 0.1, 1.0]}
+    assert "train_half_widths" not in saved  # only under task now
+    assert TrainConfig.load(path) == cfg
+    lin = TrainConfig(task={"name": "linear", "prior_mean": [0, -1]})
+    assert TrainConfig.from_dict(json.loads(json.dumps(lin.to_dict()))) == lin
+    assert lin.to_dict()["task"]["disturbance"] == {"law": "gaussian", "mean": [0.0, 0.5],
+                                                    "cov": [[0.0, 0.0], [0.0, 0.01]]}
+
+
+def test_old_config_json_loads() -> None:
+    cfg = TrainConfig.from_dict(OLD_CONFIG)
+    assert cfg == TrainConfig(seed=3)
+    moved = TrainConfig.from_dict({**OLD_CONFIG, "train_half_widths": [1, 1, 1, 1, 1]})
+    assert moved.task.train_half_widths == (1.0, 1.0, 1.0, 1.0, 1.0)
+    old_linear = TrainConfig.from_dict({**OLD_CONFIG, "task": "linear"})
+    assert old_linear.task == LinearTaskConfig()  # train_half_widths never acted on the linear task
+    assert TrainConfig(task="linear").task == LinearTaskConfig()
+    with pytest.raises(ValueError, match="^train_half_widths"):
+        TrainConfig.from_dict({"train_half_widths": [1, 1, 1, 1, 1], "task": {"train_half_widths": [2, 2, 2, 2, 2]}})
+
+
+@pytest.mark.parametrize("data,key", [
+    ({"task": {"prior_mena": 1}}, "task.prior_mena"),
+    ({"task": {"disturbance": {"meen": 1}}}, "task.disturbance.meen"),
+    ({"task": {"cost": {"q_sped": 1}}}, "task.cost.q_sped"),
+    ({"task": {"name": "linear", "prior_force_mean": 1}}, "task.prior_force_mean"),  # a dlc field on linear
+    ({"task": {"name": "linear", "disturbance": {"variance": 1}}}, "task.disturbance.variance"),
+    ({"batchsize": 3}, "batchsize"),
+])
+def test_unknown_keys_at_any_level_name_the_dotted_key(data: dict, key: str) -> None:
+    with pytest.raises(ValueError, match=rf"^config: unknown key\(s\) \['{key}'\]"):
+        TrainConfig.from_dict(data)
+
+
+@pytest.mark.parametrize("task,field", [
+    ({"gamma": 1.0}, "task.gamma"), ({"gamma": 0}, "task.gamma"),
+    ({"prior_force_std": 0}, "task.prior_force_std"), ({"prior_force_mean": math.nan}, "task.prior_force_mean"),
+    ({"prior_force_mean": "150"}, "task.prior_force_mean"),
+    ({"disturbance": {"variance": -1}}, "task.disturbance.variance"),
+    ({"disturbance": {"law": "student_t"}}, "task.disturbance.law"),
+    ({"disturbance": 3}, "task.disturbance"),
+    ({"cost": {"q_speed": math.inf}}, "task.cost.q_speed"), ({"cost": {"r_steer": -1}}, "task.cost.r_steer"),
+    ({"preview_distances": [-1.0]}, "task.preview_distances"), ({"preview_distances": 5}, "task.preview_distances"),
+    ({"train_half_widths": [1, 2]}, "task.train_half_widths"), ({"name": "cartpole"}, "task.name"),
+    ({"name": "linear", "prior_cov": [[1, 2], [2, 1]]}, "task.prior_cov"),  # indefinite
+    ({"name": "linear", "prior_mean": [0, 0, 0]}, "task.prior_mean"),
+    ({"name": "linear", "A": [[1, 0]]}, "task.A"),
+    ({"name": "linear", "disturbance": {"mean": [0.5]}}, "task.disturbance.mean"),
+    ({"name": "linear", "disturbance": {"cov": [[0, 0], [1, 0]]}}, "task.disturbance.cov"),  # not symmetric
+    ({"name": "linear", "R": [[-1]]}, "task.R"),
+])
+def test_bad_task_values_name_the_field(task: dict, field: str) -> None:
+    with pytest.raises(ValueError, match=f"^{field.replace('.', '[.]')}"):
+        TrainConfig(task=task)
+
+
+def test_apply_overrides_dotted_keys() -> None:
+    data = {"seed": 1, "task": "dlc"}
+    out = apply_overrides(data, {"task.prior_force_mean": 300, "task.disturbance.mean": 100, "seed": 2})
+    assert out == {"seed": 2, "task": {"name": "dlc", "prior_force_mean": 300, "disturbance": {"mean": 100}}}
+    assert data == {"seed": 1, "task": "dlc"}  # the input is not modified
+    full = TrainConfig().to_dict()
+    cfg = TrainConfig.from_dict(apply_overrides(full, {"task.cost.q_lateral": 7, "task.gamma": 0.95}))
+    assert (cfg.task.cost.q_lateral, cfg.task.gamma, cfg.task.cost.q_speed) == (7.0, 0.95, 45.0)
+    assert full["task"]["cost"]["q_lateral"] == 60.0
+    with pytest.raises(ValueError, match="^seed.x"):
+        apply_overrides(full, {"seed.x": 1})
+    with pytest.raises(ValueError, match="^task..gamma"):
+        apply_overrides(full, {"task..gamma": 1})
+    with pytest.raises(ValueError, match=r"^config: unknown key\(s\) \['task.disturbance.meen'\]"):
+        TrainConfig.from_dict(apply_overrides(full, {"task.disturbance.meen": 1}))
+
+
+def test_replace_accepts_dotted_keys_and_task_objects() -> None:
+    cfg = TrainConfig().replace(**{"task.prior_force_mean": 200.0}, seed=4)
+    assert (cfg.task.prior_force_mean, cfg.seed, cfg.task.prior_force_std) == (200.0, 4, 4.0)
+    lin = cfg.replace(task=task_config("linear"))
+    assert lin.task == LinearTaskConfig()
+    assert cfg.replace(task="linear") == lin
