@@ -114,9 +114,12 @@ def test_discounted_lqr_is_validation_lq_optimum() -> None:
 
 
 def test_straight_lqr_compensates_the_mean_force() -> None:
-    """On the straight at the equilibrium the LQR's a_x cancels the mean force exactly: -F/m."""
+    """Undiscounted, on the straight at the equilibrium, the LQR's a_x cancels the mean force exactly: -F/m.
+
+    (Discounted, it does not: gamma < 1 makes a lasting speed error cheaper than the input that removes it.)
+    """
     for mean, force in (("true", 261.0), ("prior", 150.0), ("zero", 0.0), (42.0, 42.0)):
-        lqr = nmpc.straight_lqr(gamma=0.99, force=mean)
+        lqr = nmpc.straight_lqr(gamma=1.0, force=mean)
         u = lqr.act(np.zeros(5))
         assert lqr.force == force
         np.testing.assert_allclose(u, [0.0, -force / 1500.0], atol=1e-9)
@@ -125,10 +128,10 @@ def test_straight_lqr_compensates_the_mean_force() -> None:
 def test_nmpc_holds_12_mps_on_a_straight_road() -> None:
     """No disturbance, straight reference: the NMPC keeps 12 m/s and the lane (and steers nothing)."""
     cfg = make_config(None, reference={"dy1": 0.0, "dy2": 0.0}, disturbance={"mean": 0.0, "variance": 0.0},
-                      course_length=12.0)
-    ctrl = nmpc.VehicleNMPC(cfg, horizon=0.5, gamma=0.99, force="true")
+                      course_length=3.6)
+    ctrl = nmpc.VehicleNMPC(cfg, horizon=0.3, gamma=0.99, force="true")
     result, timing = nmpc.drive(ctrl, cfg, seed=0)
-    assert result.n_steps == 200 and not result.terminated and timing["solves"] == 200
+    assert result.n_steps == 60 and not result.terminated and timing["solves"] == 60
     assert np.max(np.abs(result.speed_error)) < 1e-8
     assert np.max(np.abs(result.lateral_error)) < 1e-8
     # and from 0.5 m/s below it comes back: the speed error shrinks monotonically
@@ -136,17 +139,18 @@ def test_nmpc_holds_12_mps_on_a_straight_road() -> None:
     mpc.reset()
     s = np.array([0.0, 0.0, 11.5, 0.0, 0.0, 0.0])
     speeds = [s[2]]
-    for k in range(200):
+    for k in range(60):
         u = mpc.solve(s, step=k).u[0]
         s = np.array(ctrl.model.step(s, u)).ravel()
         speeds.append(s[2])
     errors = np.abs(np.array(speeds) - 12.0)
-    assert np.all(np.diff(errors) <= 1e-12) and errors[-1] < 0.05
+    assert np.all(np.diff(errors) <= 1e-12) and errors[-1] < 0.5 * errors[0]
 
 
 def test_solver_failure_names_step_and_status() -> None:
     prob = _linear_problem()
-    mpc = _linear_horizon(prob, 50, ipopt_options={"max_iter": 1})
+    # bounds make it more than one Newton step (a bound-free QP is solved in one IPOPT iteration)
+    mpc = _linear_horizon(prob, 50, u_min=[-0.01], u_max=[0.01], ipopt_options={"max_iter": 1})
     with pytest.raises(nmpc.NMPCSolveError, match=r"step 7: IPOPT failed with status 'Maximum_Iterations_Exceeded'"):
         mpc.solve(np.array([1.0, -0.5]), step=7)
     # on the vehicle, inside a course: the exception reaches the caller, no input is applied
@@ -157,13 +161,13 @@ def test_solver_failure_names_step_and_status() -> None:
 
 
 def test_reduced_nmpc_on_a_piece_of_the_course_beats_the_lqr() -> None:
-    """The first 45 m (into the first lane change), 0.5 s horizon, re-solved every 5 steps."""
-    cfg = make_config(None, course_length=45.0)
-    ctrl = nmpc.VehicleNMPC(cfg, horizon=0.5, gamma=1.0, force="true", period=5)
+    """The first 36 m (into the first lane change), 0.5 s horizon, re-solved every 10 steps."""
+    cfg = make_config(None, course_length=36.0)
+    ctrl = nmpc.VehicleNMPC(cfg, horizon=0.5, gamma=1.0, force="true", period=10)
     res_nmpc, timing = nmpc.drive(ctrl, cfg, seed=0)
     res_lqr, _ = nmpc.drive(nmpc.straight_lqr(cfg, gamma=1.0), cfg, seed=0)
     assert res_nmpc.n_steps == cfg.max_steps and not res_nmpc.terminated
-    assert timing["solves"] == math.ceil(cfg.max_steps / 5)
+    assert timing["solves"] == math.ceil(cfg.max_steps / 10)
     # preview pays: the NMPC leaves the lane less and costs less than the LQR on the same noise
     assert res_nmpc.mean_abs_lateral_error < 0.5 * res_lqr.mean_abs_lateral_error
     assert res_nmpc.total_cost < res_lqr.total_cost
@@ -198,7 +202,7 @@ def test_bad_arguments_name_the_argument(kwargs: dict, name: str) -> None:
 
 
 def test_run_reference_lqr_keys() -> None:
-    out = nmpc.run_reference("lqr", gamma=1.0, disturbance_mean=0.0, seeds=(0, 1))
+    out = nmpc.run_reference("lqr", gamma=1.0, disturbance_mean=0.0, seeds=(0, 1), config={"course_length": 24.0})
     for key in ("lateral_mae", "speed_mae", "cost", "solve_ms_mean", "solve_ms_max"):
         assert math.isfinite(out[key])
     assert out["force_N"] == 0.0 and len(out["per_seed"]) == 2

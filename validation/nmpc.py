@@ -979,7 +979,7 @@ def run_reference(controller: str, *, gamma: float = 0.99, horizon: float = 2.0,
     else:
         ctrl = CourseOptimum(cfg, force=force)
     per_seed, runs = [], []
-    bar = tqdm(total=cfg.max_steps * len(seeds), desc=f"{controller} gamma={gamma:g}", unit="step",
+    bar = tqdm(total=cfg.max_steps * len(seeds), desc=f"{controller} gamma={1.0 if controller == 'optimum' else gamma:g}", unit="step",
                disable=not progress, leave=False)
     try:
         for seed in seeds:
