@@ -207,3 +207,16 @@ def test_run_reference_lqr_keys() -> None:
         assert math.isfinite(out[key])
     assert out["force_N"] == 0.0 and len(out["per_seed"]) == 2
     assert out["cost"] == pytest.approx(np.mean([r["cost"] for r in out["per_seed"]]))
+
+
+@pytest.mark.parametrize("mean, force", [("true", 261.0), (-80.0, -80.0)])
+def test_prediction_carries_the_chosen_mean(mean: object, force: float) -> None:
+    """The NMPC predicts with f(s, u) + (F T / m) e_vx for the chosen F, and nothing else."""
+    ctrl = nmpc.VehicleNMPC(horizon=0.05, gamma=0.99, force=mean)
+    model = DoubleLaneChangeModel()
+    s0 = np.array([0.1, 0.02, 11.8, 0.05, 0.2, 3.0])
+    sol = ctrl.core.solve(s0)
+    xi = np.zeros(6)
+    xi[2] = force * model.config.dt / model.config.params.m
+    for k in range(ctrl.horizon_steps):
+        np.testing.assert_allclose(sol.x[k + 1] - model.step(sol.x[k], sol.u[k]), xi, atol=1e-9)
