@@ -130,3 +130,14 @@ def test_reproduce_quick_end_to_end(tmp_path: Path, capsys: pytest.CaptureFixtur
     for name in ("fig3_ibe_effect", "fig4_convergence", "fig5_trajectory", "fig6_speed_error",
                  "fig7_lateral_error"):
         assert (out / "figures" / f"{name}.png").stat().st_size > 1000
+
+
+def test_format_references_block_and_bad_rows() -> None:
+    from validation.reproduce import format_references
+
+    row = {"method": "NMPC 2 s, gamma=0.99, true mean", "lateral_mae": 0.0492, "speed_mae": 0.00558,
+           "cost": 13.13, "solve_ms_mean": 41.0, "solve_ms_max": 180.0, "seeds": [0, 1, 2]}
+    text = format_references([row])
+    assert "NMPC 2 s, gamma=0.99, true mean" in text and "13.13" in text and "0.049" in text
+    with pytest.raises(ValueError, match="rows: row 0 lacks \\['cost'\\]"):
+        format_references([{k: v for k, v in row.items() if k != "cost"}])

@@ -61,7 +61,7 @@ from mixedrl.ibe import UnknownCovarianceIBE
 from mixedrl.runs import RunDirectory, atomic_write_text, eval_seeds, make_trainer, train
 from mixedrl.tasks import DoubleLaneChangeTask, task_from_config
 
-__all__ = ["PAPER", "METHODS", "reproduce", "format_table", "run_config", "TheoryProbe", "make_figures", "main",
+__all__ = ["PAPER", "METHODS", "reproduce", "format_table", "format_references", "run_config", "TheoryProbe", "make_figures", "main",
            "register", "add_arguments", "run_command"]
 
 logger = logging.getLogger(__name__)
@@ -425,6 +425,40 @@ def format_table(results: dict[str, Any]) -> str:
         th = results.get(method, {}).get("theory")
         if th:
             lines.append(f"theory ({method}): " + ", ".join(f"{k}={_fmt(v)}" for k, v in th.items()))
+    return "\n".join(lines)
+
+
+def format_references(rows: Sequence[dict[str, Any]]) -> str:
+    """The block "references, not learned" of Table I, from the rows of :func:`validation.nmpc.reference_rows`.
+
+    Parameters
+    ----------
+    rows : sequence of dict
+        Each with ``method``, ``lateral_mae``, ``speed_mae``, ``cost``, ``solve_ms_mean``, ``solve_ms_max``
+        and ``seeds`` (as written by ``scripts/references.py`` into ``references.json``).
+
+    Returns
+    -------
+    str
+        The block as plain text: lateral and speed error, undiscounted course cost and the online time per
+        control step (mean and max over the course, mean over seeds).
+
+    Raises
+    ------
+    ValueError
+        A row lacks one of the keys above.
+    """
+    keys = ("method", "lateral_mae", "speed_mae", "cost", "solve_ms_mean", "solve_ms_max", "seeds")
+    head = f"{'reference (not learned)':<34}{'lateral [m]':>12}{'speed [m/s]':>13}{'course cost':>13}" \
+           f"{'online ms mean':>16}{'max':>9}{'seeds':>7}"
+    lines = [head, "-" * len(head)]
+    for i, row in enumerate(rows):
+        missing = [k for k in keys if k not in row]
+        if missing:
+            raise ValueError(f"rows: row {i} lacks {missing}")
+        lines.append(f"{str(row['method']):<34}{row['lateral_mae']:>12.3f}{row['speed_mae']:>13.4f}"
+                     f"{row['cost']:>13.2f}{row['solve_ms_mean']:>16.3g}{row['solve_ms_max']:>9.3g}"
+                     f"{len(row['seeds']):>7d}")
     return "\n".join(lines)
 
 
