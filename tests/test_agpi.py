@@ -195,9 +195,9 @@ def test_noise_sources_and_ibe_changes_the_model() -> None:
     with pytest.raises(ValueError, match="^method"):
         make_noise_source("ddpg", task)
     ag = AGPI(task, TrainConfig(method="mixed", task="linear", batch_size=64, iterations=5))
-    prior_nodes, _ = ag._nodes(*ag.noise_moments())
+    prior_nodes, _ = ag.nodes(*ag.noise_moments())
     ag.iteration()
-    post_nodes, post_w = ag._nodes(*ag.noise_moments())
+    post_nodes, post_w = ag.nodes(*ag.noise_moments())
     mean_used = (post_w[:, None] * post_nodes).sum(0).numpy()
     np.testing.assert_allclose(mean_used, ag.noise.mean, rtol=1e-6, atol=1e-7)
     assert abs(mean_used[1] - task.true_mean[1]) < abs(float(prior_nodes.mean(0)[1]) - task.true_mean[1])

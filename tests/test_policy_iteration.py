@@ -8,13 +8,18 @@ from scipy import stats
 
 from mixedrl.algorithms.policy_iteration import ibe_step, pev_step, pim_step, policy_iteration
 from mixedrl.ibe import UnknownCovarianceIBE
-from mixedrl.noise import GaussianNoise, MixedModel
-from mixedrl.quadratic import AffinePolicy, ExactPEV, ExactPIM
+from mixedrl.noise import GaussianNoise
+from mixedrl.pev import ExactPEV
+from mixedrl.pim import ExactPIM
+from mixedrl.quadratic import AffinePolicy
 from validation.lq import default_initial_gain, example_problem, optimal_solution
 
 
 class Recorder:
     """A noise source that logs every call, to test the order of the three steps."""
+
+    learns = True
+    state_dependent = False
 
     def __init__(self, log: list) -> None:
         self.log = log
@@ -146,19 +151,3 @@ def test_gaussian_noise_state_dict_roundtrip_and_rejection():
         with pytest.raises(ValueError):
             other.load_state_dict(bad)
         assert np.array_equal(other.mean, [1.0]) and np.array_equal(other.cov, [[2.0]])
-
-
-def test_mixed_model_reads_current_noise():
-    prob = example_problem()
-    ibe = UnknownCovarianceIBE(prob.prior_mean, prob.prior_cov)
-    model = MixedModel(prob.dynamics, ibe)
-    x, u = np.zeros((1, 2)), np.zeros((1, 1))
-    before = model.mean_next(x, u)
-    assert np.allclose(before[0], prob.prior_mean)
-    ibe.update(np.tile(prob.noise_mean, (1000, 1)) + 1e-3)
-    after = model.mean_next(x, u)
-    assert np.allclose(after[0], ibe.mean) and not np.allclose(after, before)
-    s = model.sample_next(np.zeros((5, 2)), np.zeros((5, 1)), np.random.default_rng(0))
-    assert s.shape == (5, 2)
-    with pytest.raises(ValueError, match="^f"):
-        MixedModel(3, ibe)

@@ -18,7 +18,7 @@ from theory.checks import (
     mvc,
     value_decrease,
 )
-from theory.quadrature import GaussHermite, SigmaPoints, gaussian_expectation
+from mixedrl.expectation import GaussHermite, SigmaPoints, gaussian_expectation
 
 __all__ = [
     "lyapunov_decrease",
