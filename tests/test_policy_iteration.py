@@ -8,7 +8,7 @@ from scipy import stats
 
 from mixedrl.algorithms.policy_iteration import ibe_step, pev_step, pim_step, policy_iteration
 from mixedrl.ibe import UnknownCovarianceIBE
-from mixedrl.noise import GaussianNoise
+from mixedrl.noise import GaussianNoise, make_noise_source
 from mixedrl.pev import ExactPEV
 from mixedrl.pim import ExactPIM
 from mixedrl.quadratic import AffinePolicy
@@ -151,3 +151,33 @@ def test_gaussian_noise_state_dict_roundtrip_and_rejection():
         with pytest.raises(ValueError):
             other.load_state_dict(bad)
         assert np.array_equal(other.mean, [1.0]) and np.array_equal(other.cov, [[2.0]])
+
+
+def test_algorithm1_plans_with_the_ibe_updated_by_this_iterations_data():
+    """Every PEV and PIM of iteration k uses the IBE after the k-th batch (Algorithm 1's IBE step)."""
+    prob = example_problem()
+    f, cost, g = prob.dynamics, prob.cost, prob.gamma
+    rng = np.random.default_rng(4)
+    truth = GaussianNoise(prob.noise_mean, prob.noise_cov)
+    batches = [truth.sample(200, rng) for _ in range(3)]
+    seen: dict[str, list[np.ndarray]] = {"pev": [], "pim": []}
+
+    def evaluate(policy, noise):
+        seen["pev"].append(noise.mean.copy())
+        return ExactPEV(f, cost, g)(policy, noise)
+
+    def improve(value, noise):
+        seen["pim"].append(noise.mean.copy())
+        return ExactPIM(f, cost, g)(value, noise)
+
+    ibe = make_noise_source("mixed", prob)
+    out = policy_iteration(ibe, evaluate, improve, AffinePolicy(default_initial_gain(prob), np.zeros(1)), 3,
+                           collect=lambda p, k: batches[k])
+    reference = make_noise_source("mixed", prob)
+    for k, batch in enumerate(batches):
+        reference.update(batch)
+        assert np.array_equal(seen["pev"][k], reference.mean)
+        assert np.array_equal(seen["pim"][k], reference.mean)
+        assert np.array_equal(out.history[k].noise_mean, reference.mean)
+    assert ibe.count == 600
+    assert np.max(np.abs(seen["pev"][0] - prob.prior_mean)) > 0.01  # prior 0.02, truth 0.05
