@@ -131,8 +131,8 @@ def quadrature_nodes(mean: np.ndarray, cov: np.ndarray, rule: Rule | None = None
 
     Parameters
     ----------
-    mean : numpy.ndarray, shape (n,) or (B, n)
-        ``mu``; a batch of means (one per state, Case 3 of the IBE) gives per-state nodes.
+    mean : numpy.ndarray
+        ``mu``, shape (n,) or (B, n); a batch of means (one per state, Case 3 of the IBE) gives per-state nodes.
     cov : numpy.ndarray, shape (n, n)
         Symmetric PSD, possibly singular.
     rule : SigmaPoints or GaussHermite, optional
@@ -140,9 +140,10 @@ def quadrature_nodes(mean: np.ndarray, cov: np.ndarray, rule: Rule | None = None
 
     Returns
     -------
-    nodes : numpy.ndarray, shape (P, n) or (P, B, n)
-    weights : numpy.ndarray, shape (P,)
-        Summing to 1.
+    nodes : numpy.ndarray
+        Shape (P, n), or (P, B, n) for a batch of means.
+    weights : numpy.ndarray
+        Shape (P,), summing to 1.
 
     Notes
     -----
@@ -185,8 +186,8 @@ def expectation_nodes(mean: np.ndarray, cov: np.ndarray, noise_matrix: torch.Ten
 
     Parameters
     ----------
-    mean : numpy.ndarray, shape (noise_dim,) or (B, noise_dim)
-        ``mu_hat``; one row per state for a state-dependent mean (Case 3): per-state offsets.
+    mean : numpy.ndarray
+        ``mu_hat``, shape (noise_dim,) or (B, noise_dim); one row per state for a state-dependent mean (Case 3): per-state offsets.
     cov : numpy.ndarray, shape (noise_dim, noise_dim)
         ``K_hat``, symmetric positive semi-definite (may be singular).
     noise_matrix : torch.Tensor, shape (state_dim, noise_dim)
@@ -266,9 +267,10 @@ def expect(g: Callable[..., Any], centers: Any, offsets: Any, weights: Any, extr
         Batched: ``g(x)`` (M, n) -> (M,), or ``g(x, e)`` when ``extra`` is given.
     centers : array or Tensor, shape (B, n)
         The deterministic parts ``f(x, u)``.
-    offsets : array or Tensor, shape (P, n) or (P, B, n)
-        Nodes ``d_i`` (per state for a state-dependent noise).
-    weights : array or Tensor, shape (P,)
+    offsets : array or Tensor
+        Nodes ``d_i``, shape (P, n), or (P, B, n) per state for a state-dependent noise.
+    weights : array or Tensor
+        Shape (P,).
     extra : array or Tensor, shape (B, m), optional
         Per-row extra argument (the action ``u`` of ``l(x', u)``), repeated for every node.
 
@@ -315,8 +317,8 @@ def gaussian_expectation(
     ----------
     g : callable
         Batched function: ``g(x)`` with x (M, n) -> (M,), or ``g(x, e)`` when ``extra`` is given.
-    centers : array_like, shape (N, n) or (n,)
-        The deterministic parts ``f(x, u)``.
+    centers : array_like
+        The deterministic parts ``f(x, u)``, shape (N, n) or (n,).
     mean : array_like, shape (n,)
     cov : array_like, shape (n, n)
         Symmetric PSD, possibly singular.

@@ -5,6 +5,6 @@ one expectation module that Algorithm 2 uses too; this module keeps the old impo
 (``theory.quadrature.SigmaPoints`` etc.). See ``docs/expectation.rst``.
 """
 
-from mixedrl.expectation import GaussHermite, SigmaPoints, gaussian_expectation
+from mixedrl.expectation import GaussHermite, SigmaPoints, gaussian_expectation  # noqa: F401
 
-__all__ = ["SigmaPoints", "GaussHermite", "gaussian_expectation"]
+__all__: list[str] = []  # re-exports only; documented in mixedrl.expectation

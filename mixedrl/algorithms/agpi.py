@@ -153,13 +153,16 @@ class AGPI:
 
         Parameters
         ----------
-        mean : numpy.ndarray, shape (noise_dim,) or (B, noise_dim)
+        mean : numpy.ndarray
+            Shape (noise_dim,), or (B, noise_dim) per state.
         cov : numpy.ndarray, shape (noise_dim, noise_dim)
 
         Returns
         -------
-        offsets : torch.Tensor, shape (P, state_dim) or (P, B, state_dim)
-        weights : torch.Tensor, shape (P,)
+        offsets : torch.Tensor
+            Shape (P, state_dim), or (P, B, state_dim) per state.
+        weights : torch.Tensor
+            Shape (P,).
         """
         return expectation_nodes(mean, cov, self.task.noise_matrix, self.config.expectation,
                                  self.config.noise_samples, self.generator)
@@ -176,8 +179,9 @@ class AGPI:
 
         Returns
         -------
-        mean : numpy.ndarray, shape (noise_dim,), or (B, noise_dim) for a state-dependent source
-            ``mu_hat_k``, or ``phi(x, pi^k(x); w_hat_k)`` per state (Case 3).
+        mean : numpy.ndarray
+            Shape (noise_dim,), or (B, noise_dim) for a state-dependent source: ``mu_hat_k``, or
+            ``phi(x, pi^k(x); w_hat_k)`` per state (Case 3).
         cov : numpy.ndarray, shape (noise_dim, noise_dim)
             ``K_hat_k``.
 

@@ -36,12 +36,9 @@ from mixedrl.pev import pev_step
 from mixedrl.pim import pim_step
 
 __all__ = [
-    "NoiseSource",
     "Iteration",
     "PolicyIterationResult",
     "ibe_step",
-    "pev_step",
-    "pim_step",
     "policy_iteration",
 ]
 
