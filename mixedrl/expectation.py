@@ -187,7 +187,8 @@ def expectation_nodes(mean: np.ndarray, cov: np.ndarray, noise_matrix: torch.Ten
     Parameters
     ----------
     mean : numpy.ndarray
-        ``mu_hat``, shape (noise_dim,) or (B, noise_dim); one row per state for a state-dependent mean (Case 3): per-state offsets.
+        ``mu_hat``, shape (noise_dim,) or (B, noise_dim); one row per state for a state-dependent mean
+        (Case 3) gives per-state offsets.
     cov : numpy.ndarray, shape (noise_dim, noise_dim)
         ``K_hat``, symmetric positive semi-definite (may be singular).
     noise_matrix : torch.Tensor, shape (state_dim, noise_dim)
