@@ -60,7 +60,7 @@ def test_iteration_parts(benchmark, part: str) -> None:
     """The steps of one mixed-RL iteration, separately (same batch, same noise quadrature)."""
     trainer = _trainer("mixed")
     s, residuals = trainer.collect()
-    offsets, weights = trainer._nodes(*trainer.noise_moments())
+    offsets, weights = trainer.nodes(*trainer.noise_moments())
     obs = trainer.task.observe(s)
 
     def mvc() -> None:

@@ -45,7 +45,7 @@ from typing import Any, ClassVar, Union
 
 import numpy as np
 
-from mixedrl._checks import as_matrix, as_vector, check_covariance, check_number, check_unknown_keys
+from mixedrl.checks import as_matrix, as_vector, check_covariance, check_number, check_unknown_keys
 
 __all__ = [
     "TrainConfig",

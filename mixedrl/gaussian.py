@@ -8,9 +8,9 @@ Conventions
 -----------
 * A covariance ``C`` of shape ``(n, n)`` is symmetric positive semi-definite (PSD).
 * Its *numerical support* is the span of the eigenvectors whose eigenvalues are ``> rtol * lambda_max``
-  with ``rtol = SUPPORT_RTOL = 1e-13`` (about 450 machine epsilons). Eigenvalues below that floor are
-  rounding noise of a matrix that is singular in exact arithmetic. ``1e-13`` keeps the paper's
-  ``1e-20`` prior entries next to a ``(4T/m)^2 = 1.8e-10`` entry (ratio ``5.6e-11``) inside the support.
+  with ``rtol = SUPPORT_RTOL`` (:data:`mixedrl.expectation.SUPPORT_RTOL`, the project's one cut-off,
+  :func:`mixedrl.expectation.support`). The paper's ``1e-20`` prior entries next to a
+  ``(4T/m)^2 = 1.8e-10`` entry (ratio ``5.6e-11``) lie outside it: the vehicle prior has rank 1.
 * :func:`solve_psd` first rescales the matrix to unit diagonal (Jacobi equilibration), so its accuracy
   depends on the condition number of the *scaled* matrix only; badly scaled but diagonal-dominant
   matrices such as ``diag(1.8e-10, 1e-20, ...)`` are solved exactly.
@@ -27,7 +27,8 @@ import torch
 from scipy.linalg.lapack import dpotrf as _dpotrf
 from scipy.linalg.lapack import dpotrs as _dpotrs
 
-from mixedrl._checks import as_vector, check_covariance, check_positive_int
+from mixedrl.checks import as_vector, check_covariance, check_positive_int
+from mixedrl.expectation import SUPPORT_RTOL, support
 
 __all__ = [
     "SUPPORT_RTOL",
@@ -40,20 +41,15 @@ __all__ = [
     "kl_divergence",
 ]
 
-#: Relative eigenvalue floor that defines the numerical support (range) of a PSD matrix.
-SUPPORT_RTOL = 1e-13
 #: Smallest accepted squared Cholesky pivot of a unit-diagonal (Jacobi-scaled) matrix. Below it the
 #: matrix is treated as singular and :func:`solve_psd` falls back to the eigenvalue pseudo-inverse.
 CHOLESKY_PIVOT_FLOOR = 1e-13
 
 
 def _pinv_solve_scaled(s_scaled: np.ndarray, b_scaled: np.ndarray, rtol: float) -> np.ndarray:
-    """``S^+ b`` for a symmetric PSD ``S`` via ``eigh``, eigenvalues ``<= rtol * max`` dropped."""
-    lam, vec = np.linalg.eigh(s_scaled)
-    top = lam[-1] if lam.size else 0.0
-    keep = lam > rtol * top if top > 0 else np.zeros_like(lam, dtype=bool)
-    inv = np.zeros_like(lam)
-    inv[keep] = 1.0 / lam[keep]
+    """``S^+ b`` for a symmetric PSD ``S`` on its support (:func:`mixedrl.expectation.support`)."""
+    lam, vec = support(s_scaled, rtol)
+    inv = 1.0 / lam
     if b_scaled.ndim == 1:
         return vec @ (inv * (vec.T @ b_scaled))
     return vec @ (inv[:, None] * (vec.T @ b_scaled))
@@ -156,12 +152,8 @@ def pinv_psd(c: np.ndarray, rtol: float = SUPPORT_RTOL) -> np.ndarray:
     -------
     ndarray, shape (n, n), symmetric
     """
-    lam, vec = np.linalg.eigh(c)
-    top = lam[-1] if lam.size else 0.0
-    keep = lam > rtol * top if top > 0 else np.zeros_like(lam, dtype=bool)
-    inv = np.zeros_like(lam)
-    inv[keep] = 1.0 / lam[keep]
-    out = (vec * inv) @ vec.T
+    lam, vec = support(c, rtol)
+    out = (vec * (1.0 / lam)) @ vec.T
     return 0.5 * (out + out.T)
 
 
@@ -234,13 +226,6 @@ def sample_gaussian(
     raise ValueError(f"generator: expected numpy.random.Generator or torch.Generator, got {type(generator).__name__}")
 
 
-def _support(cov: np.ndarray, rtol: float) -> tuple[np.ndarray, np.ndarray]:
-    lam, vec = np.linalg.eigh(cov)
-    top = lam[-1] if lam.size else 0.0
-    keep = lam > rtol * top if top > 0 else np.zeros_like(lam, dtype=bool)
-    return lam[keep], vec[:, keep]
-
-
 def kl_divergence(
     mean0: np.ndarray,
     cov0: np.ndarray,
@@ -290,8 +275,8 @@ def kl_divergence(
     mean1 = as_vector(mean1, "mean1", d)
     cov0 = check_covariance(cov0, "cov0", d)
     cov1 = check_covariance(cov1, "cov1", d)
-    lam1, u1 = _support(cov1, rtol)
-    lam0, _ = _support(cov0, rtol)
+    lam1, u1 = support(cov1, rtol)
+    lam0, _ = support(cov0, rtol)
     r = lam1.shape[0]
     delta = mean1 - mean0
     mean_scale = float(np.max(np.abs(mean0)) + np.max(np.abs(mean1))) if d else 0.0

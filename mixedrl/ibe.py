@@ -24,7 +24,7 @@ Jacobi-equilibrated and Cholesky-factored; if it is numerically singular (square
 matrix ``< 1e-13``) the eigenvalue pseudo-inverse is used (:func:`mixedrl.gaussian.solve_psd`), which
 keeps the prior exactly in directions where both ``K_M`` and ``K`` vanish. Only the literal eq. (18)
 (``recursion="paper"``) needs ``K_hat^{-1}`` and ``K_M^{-1}``; it uses pseudo-inverses
-(:func:`mixedrl.gaussian.pinv_psd`, relative floor ``1e-13``).
+(:func:`mixedrl.gaussian.pinv_psd`, on the support of :func:`mixedrl.expectation.support`).
 """
 
 from __future__ import annotations
@@ -37,7 +37,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from mixedrl._checks import (
+from mixedrl.checks import (
     as_batch,
     as_vector,
     check_covariance,
@@ -45,6 +45,7 @@ from mixedrl._checks import (
     check_positive_int,
     check_unknown_keys,
 )
+from mixedrl.expectation import support
 from mixedrl.gaussian import CHOLESKY_PIVOT_FLOOR, pinv_psd, psd_solver, sample_gaussian, solve_psd
 
 __all__ = [
@@ -463,6 +464,11 @@ class _ReadOnlyArrays:
 class _GaussianNoiseEstimate(_ReadOnlyArrays):
     """Shared part of Cases 1 and 2: the mixed-model noise ``N(mean, cov)`` (eq. (20))."""
 
+    #: A learning source (:class:`mixedrl.noise.NoiseSource`): the algorithms call ``update``.
+    learns = True
+    #: One mean for every state (Cases 1 and 2).
+    state_dependent = False
+
     mean: np.ndarray
     cov: np.ndarray
     mean_cov: np.ndarray
@@ -676,8 +682,8 @@ class UnknownCovarianceIBE(_GaussianNoiseEstimate):
     * ``"paper"`` is eq. (18) literally, initialised as Algorithm 1 (``mu_hat_0 = mu_M``,
       ``K_hat_0 = K_M``, ``Psi_0 = K_M^{-1}``; EQUATIONS.md point 4: this uses the prior covariance of
       the mean as a noise covariance). After one sample ``K_hat_1`` has rank 1, so ``K_hat_{k-1}^{-1}``
-      and ``K_M^{-1}`` are **pseudo-inverses** (eigenvalues below ``1e-13`` times the largest are
-      dropped, i.e. directions without observed spread carry no data precision), and ``Psi_k`` is
+      and ``K_M^{-1}`` are **pseudo-inverses** (eigenvalues below ``SUPPORT_RTOL`` times the largest are
+      dropped, :data:`mixedrl.expectation.SUPPORT_RTOL`; i.e. directions without observed spread carry no data precision), and ``Psi_k`` is
       solved with :func:`mixedrl.gaussian.solve_psd`. Batches are processed one residual at a time.
     """
 
@@ -904,7 +910,7 @@ class StateDependentIBE(_ReadOnlyArrays):
 
     Notes
     -----
-    * ``K^{+}`` is the pseudo-inverse (eigenvalues ``<= 1e-13 lambda_max`` dropped): directions without
+    * ``K^{+}`` is the pseudo-inverse on the support of ``K`` (:func:`mixedrl.expectation.support`): directions without
       noise do not enter the likelihood, so ``phi`` there is set by the prior on ``w`` alone. The paper
       gives no treatment; a full-rank ``K`` is the intended use.
     * Every update refits on all data seen so far (warm-started from the current ``w``). The fit is
@@ -913,6 +919,10 @@ class StateDependentIBE(_ReadOnlyArrays):
     """
 
     _KIND = "StateDependentIBE"
+    #: A learning source (:class:`mixedrl.noise.StateDependentNoiseSource`).
+    learns = True
+    #: The mean is ``mean_at(x, u)``: Algorithm 2 plans with per-state nodes.
+    state_dependent = True
 
     def __init__(
         self,
@@ -934,10 +944,9 @@ class StateDependentIBE(_ReadOnlyArrays):
         self.max_iter = check_positive_int(max_iter, "max_iter")
         self.phi = phi.double()
         self._prior_w = [p.detach().clone() for p in self.phi.parameters()]
-        lam, vec = np.linalg.eigh(self.noise_cov)
-        keep = lam > 1e-13 * lam[-1] if lam[-1] > 0 else np.zeros_like(lam, dtype=bool)
+        lam, vec = support(self.noise_cov)
         # whitening W with W W^T = K^+ : r^T K^+ r = |r W|^2
-        self._whiten = torch.as_tensor(vec[:, keep] / np.sqrt(lam[keep]))
+        self._whiten = torch.as_tensor(vec / np.sqrt(lam))
         self.count = 0
         self._x = torch.zeros((0, self.state_dim), dtype=torch.float64)
         self._u = torch.zeros((0, self.action_dim), dtype=torch.float64)
@@ -1128,13 +1137,12 @@ class StateDependentIBE(_ReadOnlyArrays):
         noise_cov = check_covariance(st["noise_cov"], "state_dict: noise_cov", n)
         if st["prior_std"] <= 0 or st["max_iter"] < 1:
             raise ValueError("state_dict: prior_std must be > 0 and max_iter >= 1")
-        lam, vec = np.linalg.eigh(noise_cov)
-        keep = lam > 1e-13 * lam[-1] if lam[-1] > 0 else np.zeros_like(lam, dtype=bool)
+        lam, vec = support(noise_cov)
         with torch.no_grad():
             for i, p in enumerate(self.phi.parameters()):
                 p.copy_(torch.as_tensor(st[f"params.{i}"]))
         self._prior_w = [torch.as_tensor(st[f"prior_params.{i}"]).clone() for i in range(len(shapes))]
         self.noise_cov, self.prior_std, self.max_iter, self.count = noise_cov, st["prior_std"], st["max_iter"], st["count"]
-        self._whiten = torch.as_tensor(vec[:, keep] / np.sqrt(lam[keep]))
+        self._whiten = torch.as_tensor(vec / np.sqrt(lam))
         self._x, self._u, self._xi = (torch.as_tensor(st[k]).clone() for k in ("x", "u", "xi"))
         return self

@@ -1,10 +1,10 @@
-"""Exact representations for linear dynamics: quadratic values, affine policies, exact PEV and PIM.
+"""Exact representations for linear dynamics: quadratic values, affine policies, the Lyapunov solver.
 
 For ``x' = A x + B u + xi`` with ``xi ~ N(mu_hat, K_hat)`` (the mixed model, eq. 20) and the utility
 charged on the **next** state (eq. 2), ``l(x', u) = x'^T Q x' + u^T R u``, the value of an affine
 policy ``u = -L x - l0`` is exactly quadratic, ``V(x) = x^T P x + 2 p^T x + c``, and the PEV (eq. 21)
-and PIM (eq. 22) steps of Algorithm 1 have closed forms. This module computes them; the derivation
-is in ``docs/lq.rst``.
+and PIM (eq. 22) steps of Algorithm 1 have closed forms: they live in :mod:`mixedrl.pev` and
+:mod:`mixedrl.pim`, on the types of this module; the derivation is in ``docs/lq.rst``.
 
 Every expectation over ``xi`` is taken exactly with the identity, for a symmetric ``M``,
 
@@ -20,20 +20,16 @@ from typing import Any
 import numpy as np
 import scipy.linalg
 
-from mixedrl._checks import as_batch, as_matrix, as_vector, check_covariance
+from mixedrl.checks import as_batch, as_matrix, as_vector, check_covariance
 
 __all__ = [
     "LinearDynamics",
     "QuadraticCost",
     "QuadraticValue",
     "AffinePolicy",
-    "evaluate_policy",
-    "improve_policy",
-    "ExactPEV",
-    "ExactPIM",
     "lyapunov_solve",
-    "bellman_backup",
     "is_nonnegative",
+    "check_problem",
 ]
 
 #: Largest state dimension for which the discrete Lyapunov equation is solved by the Kronecker
@@ -224,225 +220,6 @@ def lyapunov_solve(a: np.ndarray, w: np.ndarray) -> np.ndarray:
     return 0.5 * (X + X.T)
 
 
-def _check_model(dynamics: LinearDynamics, cost: QuadraticCost, gamma: float) -> float:
-    if cost.Q.shape[0] != dynamics.n or cost.R.shape[0] != dynamics.m:
-        raise ValueError(
-            f"cost: Q {cost.Q.shape} / R {cost.R.shape} do not match n={dynamics.n}, m={dynamics.m}"
-        )
-    g = float(gamma)
-    if not (0.0 < g < 1.0):
-        raise ValueError(f"gamma: must lie in (0, 1), got {gamma!r}")
-    return g
-
-
-def evaluate_policy(
-    dynamics: LinearDynamics,
-    cost: QuadraticCost,
-    gamma: float,
-    policy: AffinePolicy,
-    noise_mean: Any,
-    noise_cov: Any,
-) -> QuadraticValue:
-    """Implements eq. (21): exact PEV of an affine policy under the mixed model ``N(mu_hat, K_hat)``.
-
-    .. math::
-        V^k(x) = \\mathbb{E}_{\\hat\\xi_k}\\{ l(x', \\pi^k(x)) + \\gamma V^k(x') \\},\\quad
-        x' = A x + B \\pi^k(x) + \\hat\\xi_k,\\ \\hat\\xi_k \\sim N(\\hat\\mu_k, \\hat K_k).
-
-    With ``A_c = A - B L``, ``d = mu_hat - B l0``, ``S = Q + gamma P`` and ``V = x^T P x + 2 p^T x + c``,
-    matching the quadratic, linear and constant terms gives
-
-    .. math::
-        P &= \\gamma A_c^T P A_c + A_c^T Q A_c + L^T R L \\\\
-        (I - \\gamma A_c^T)\\, p &= A_c^T S d + L^T R\\, l_0 \\\\
-        (1 - \\gamma)\\, c &= d^T S d + \\operatorname{tr}(S \\hat K) + l_0^T R\\, l_0 + 2 \\gamma\\, p^T d .
-
-    Parameters
-    ----------
-    dynamics : LinearDynamics
-        ``f(x, u) = A x + B u``, A (n, n), B (n, m).
-    cost : QuadraticCost
-        Q (n, n), R (m, m); utility on the next state (eq. 2).
-    gamma : float
-        Discount factor in (0, 1).
-    policy : AffinePolicy
-        L (m, n), l0 (m,).
-    noise_mean : ndarray, shape (n,)
-        ``mu_hat_k``.
-    noise_cov : ndarray, shape (n, n)
-        ``K_hat_k`` (symmetric PSD).
-
-    Returns
-    -------
-    QuadraticValue
-        ``V^k`` with P (n, n), p (n,), c.
-
-    Raises
-    ------
-    ValueError
-        Shapes do not match, gamma not in (0, 1), the covariance is not symmetric PSD, or the policy is
-        not stabilising for the discounted problem (spectral radius of ``sqrt(gamma) A_c`` >= 1, so
-        eq. 21 has no finite solution).
-
-    Notes
-    -----
-    The expectation over ``xi_hat`` is exact (no sampling): ``E V(x') = V(E x') + tr(P K_hat)``.
-    The quadratic term is a discrete Lyapunov equation in ``sqrt(gamma) A_c`` solved by
-    :func:`lyapunov_solve`; the linear term is a linear system with matrix ``I - gamma A_c^T``,
-    non-singular because ``rho(gamma A_c) < sqrt(gamma) < 1``.
-    """
-    g = _check_model(dynamics, cost, gamma)
-    n, m = dynamics.n, dynamics.m
-    if policy.L.shape != (m, n):
-        raise ValueError(f"policy: gain shape {policy.L.shape} does not match (m, n) = ({m}, {n})")
-    mu = as_vector(noise_mean, "noise_mean", n)
-    K = check_covariance(noise_cov, "noise_cov", n)
-    A, B, Q, R = dynamics.A, dynamics.B, cost.Q, cost.R
-    L, l0 = policy.L, policy.l0
-    Ac = A - B @ L
-    rho = float(np.max(np.abs(np.linalg.eigvals(np.sqrt(g) * Ac))))
-    if rho >= 1.0:
-        raise ValueError(
-            f"policy: not stabilising for the discounted problem (spectral radius of sqrt(gamma)(A - B L) = {rho:.6g} >= 1)"
-        )
-    # P = gamma A_c^T P A_c + A_c^T Q A_c + L^T R L   (quadratic terms of eq. 21)
-    P = lyapunov_solve(np.sqrt(g) * Ac, Ac.T @ Q @ Ac + L.T @ R @ L)
-    S = Q + g * P
-    d = mu - B @ l0
-    # (I - gamma A_c^T) p = A_c^T S d + L^T R l0   (linear terms of eq. 21)
-    p = np.linalg.solve(np.eye(n) - g * Ac.T, Ac.T @ S @ d + L.T @ R @ l0)
-    # (1 - gamma) c = d^T S d + tr(S K) + l0^T R l0 + 2 gamma p^T d   (constant terms of eq. 21)
-    c = (d @ S @ d + float(np.sum(S * K)) + l0 @ R @ l0 + 2.0 * g * p @ d) / (1.0 - g)
-    return QuadraticValue(P, p, c)
-
-
-def improve_policy(
-    dynamics: LinearDynamics,
-    cost: QuadraticCost,
-    gamma: float,
-    value: QuadraticValue,
-    noise_mean: Any,
-) -> AffinePolicy:
-    """Implements eq. (22): exact PIM, the closed-form minimiser under the mixed model.
-
-    .. math::
-        \\pi^{k+1}(x) = \\arg\\min_u \\mathbb{E}_{\\hat\\xi_k}\\{ l(x', u) + \\gamma V^k(x') \\}
-        = -L x - l_0,\\quad
-        L = (R + B^T S B)^{-1} B^T S A,\\quad
-        l_0 = (R + B^T S B)^{-1} B^T (S \\hat\\mu_k + \\gamma p),
-
-    with ``S = Q + gamma P`` from ``V^k = x^T P x + 2 p^T x + c``.
-
-    Parameters
-    ----------
-    dynamics : LinearDynamics
-        A (n, n), B (n, m).
-    cost : QuadraticCost
-        Q (n, n), R (m, m).
-    gamma : float
-        Discount factor in (0, 1).
-    value : QuadraticValue
-        ``V^k``: P (n, n), p (n,), c.
-    noise_mean : ndarray, shape (n,)
-        ``mu_hat_k``.
-
-    Returns
-    -------
-    AffinePolicy
-        ``pi^{k+1}``: L (m, n), l0 (m,).
-
-    Raises
-    ------
-    ValueError
-        Shapes do not match, gamma not in (0, 1), or ``R + B^T S B`` is not positive definite (the
-        objective is then not strictly convex in ``u``).
-
-    Notes
-    -----
-    The objective is ``u^T (R + B^T S B) u + 2 u^T B^T (S (A x + mu_hat) + gamma p) + const`` plus the
-    term ``tr(S K_hat)``, which does not depend on ``u``: the noise covariance does not enter PIM.
-    """
-    g = _check_model(dynamics, cost, gamma)
-    n = dynamics.n
-    if value.P.shape != (n, n):
-        raise ValueError(f"value: P shape {value.P.shape} does not match n = {n}")
-    mu = as_vector(noise_mean, "noise_mean", n)
-    A, B, Q, R = dynamics.A, dynamics.B, cost.Q, cost.R
-    S = Q + g * value.P
-    H = R + B.T @ S @ B
-    try:
-        chol = scipy.linalg.cho_factor(0.5 * (H + H.T))
-    except np.linalg.LinAlgError:
-        raise ValueError("value: R + B^T (Q + gamma P) B is not positive definite") from None
-    # L = (R + B^T S B)^-1 B^T S A
-    L = scipy.linalg.cho_solve(chol, B.T @ S @ A)
-    # l0 = (R + B^T S B)^-1 B^T (S mu_hat + gamma p)
-    l0 = scipy.linalg.cho_solve(chol, B.T @ (S @ mu + g * value.p))
-    return AffinePolicy(L, l0)
-
-
-def bellman_backup(
-    dynamics: LinearDynamics,
-    cost: QuadraticCost,
-    gamma: float,
-    policy: AffinePolicy,
-    value: QuadraticValue,
-    noise_mean: Any,
-    noise_cov: Any,
-) -> QuadraticValue:
-    """Implements eq. (31): one PEV sweep ``V_1(x) = E_xi{ l(x', pi(x)) + gamma V(x') }``, exactly.
-
-    .. math::
-        (T^{\\pi} V)(x) = \\mathbb{E}_{\\hat\\xi}\\{ l(x', \\pi(x)) + \\gamma V(x') \\}
-        = h(x, \\pi(x), \\hat\\xi)\\quad\\text{(eq. 37)}
-
-    With ``S = Q + gamma P``, ``A_c = A - B L``, ``d = mu - B l0`` the result is
-    ``P_1 = A_c^T S A_c + L^T R L``, ``p_1 = A_c^T (S d + gamma p) + L^T R l0``,
-    ``c_1 = d^T S d + tr(S K) + l0^T R l0 + 2 gamma p^T d + gamma c``.
-
-    Parameters
-    ----------
-    dynamics : LinearDynamics
-    cost : QuadraticCost
-    gamma : float
-    policy : AffinePolicy
-        L (m, n), l0 (m,).
-    value : QuadraticValue
-        P (n, n), p (n,), c.
-    noise_mean : ndarray, shape (n,)
-    noise_cov : ndarray, shape (n, n)
-
-    Returns
-    -------
-    QuadraticValue
-
-    Raises
-    ------
-    ValueError
-        Shapes do not match, gamma outside (0, 1), covariance not symmetric PSD.
-
-    Notes
-    -----
-    The fixed point of this map is :func:`evaluate_policy`; the theory tests use it to check the MVC
-    (eq. 38) and value decrease (eq. 29) for *all* x at once (:func:`is_nonnegative`).
-    """
-    g = _check_model(dynamics, cost, gamma)
-    n, m = dynamics.n, dynamics.m
-    if policy.L.shape != (m, n) or value.P.shape != (n, n):
-        raise ValueError("policy: shapes of policy/value do not match the dynamics")
-    mu = as_vector(noise_mean, "noise_mean", n)
-    K = check_covariance(noise_cov, "noise_cov", n)
-    A, B, Q, R = dynamics.A, dynamics.B, cost.Q, cost.R
-    L, l0 = policy.L, policy.l0
-    Ac = A - B @ L
-    S = Q + g * value.P
-    d = mu - B @ l0
-    P1 = Ac.T @ S @ Ac + L.T @ R @ L
-    p1 = Ac.T @ (S @ d + g * value.p) + L.T @ R @ l0
-    c1 = d @ S @ d + float(np.sum(S * K)) + l0 @ R @ l0 + 2.0 * g * value.p @ d + g * value.c
-    return QuadraticValue(P1, p1, c1)
-
-
 def is_nonnegative(value: QuadraticValue, rtol: float = 1e-9) -> bool:
     """Return whether ``V(x) = x^T P x + 2 p^T x + c >= 0`` for **every** x.
 
@@ -454,30 +231,33 @@ def is_nonnegative(value: QuadraticValue, rtol: float = 1e-9) -> bool:
     return bool(eig[0] >= -rtol * max(1.0, float(np.max(np.abs(eig)))))
 
 
-@dataclass(frozen=True)
-class ExactPEV:
-    """PEV step (eq. 21) bound to a linear-quadratic problem: ``pev(policy, noise) -> QuadraticValue``.
+def check_problem(dynamics: LinearDynamics, cost: QuadraticCost, gamma: float) -> float:
+    """Validate a linear-quadratic problem for the exact PEV and PIM; return ``gamma`` as a float.
 
-    ``noise`` is any object with ``.mean`` (n,) and ``.cov`` (n, n).
+    Parameters
+    ----------
+    dynamics : LinearDynamics
+        A (n, n), B (n, m).
+    cost : QuadraticCost
+        Q (n, n), R (m, m).
+    gamma : float
+        Discount factor.
+
+    Returns
+    -------
+    float
+        ``gamma``.
+
+    Raises
+    ------
+    ValueError
+        ``Q``/``R`` do not match ``(n, m)``, or ``gamma`` not in (0, 1).
     """
-
-    dynamics: LinearDynamics
-    cost: QuadraticCost
-    gamma: float
-
-    def __call__(self, policy: AffinePolicy, noise: Any) -> QuadraticValue:
-        """Return ``V^k`` of ``policy`` under ``N(noise.mean, noise.cov)`` (see :func:`evaluate_policy`)."""
-        return evaluate_policy(self.dynamics, self.cost, self.gamma, policy, noise.mean, noise.cov)
-
-
-@dataclass(frozen=True)
-class ExactPIM:
-    """PIM step (eq. 22) bound to a linear-quadratic problem: ``pim(value, noise) -> AffinePolicy``."""
-
-    dynamics: LinearDynamics
-    cost: QuadraticCost
-    gamma: float
-
-    def __call__(self, value: QuadraticValue, noise: Any) -> AffinePolicy:
-        """Return ``pi^{k+1}`` greedy w.r.t. ``value`` under ``N(noise.mean, .)`` (see :func:`improve_policy`)."""
-        return improve_policy(self.dynamics, self.cost, self.gamma, value, noise.mean)
+    if cost.Q.shape[0] != dynamics.n or cost.R.shape[0] != dynamics.m:
+        raise ValueError(
+            f"cost: Q {cost.Q.shape} / R {cost.R.shape} do not match n={dynamics.n}, m={dynamics.m}"
+        )
+    g = float(gamma)
+    if not (0.0 < g < 1.0):
+        raise ValueError(f"gamma: must lie in (0, 1), got {gamma!r}")
+    return g

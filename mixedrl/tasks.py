@@ -26,7 +26,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from mixedrl._checks import as_vector, check_covariance
+from mixedrl.checks import as_vector, check_covariance
 from mixedrl.config import DoubleLaneChangeTaskConfig, LinearTaskConfig, TaskConfig, task_config
 from mixedrl.envs import DoubleLaneChangeModel, evaluate_tracking
 from mixedrl.gaussian import sample_gaussian

@@ -12,7 +12,7 @@ together). An edge ``a -> b`` links two modules of these packages; ``from pkg im
 ``__init__`` is not an edge. Cycles are the strongly connected components with more than one module
 (or a self-import), among modules and among the three packages (``theory -> validation -> theory`` is a
 cycle of packages even when no module imports itself back). A *private import* is ``from m import _name`` with ``m`` one of the project's modules,
-in another module (names of modules, such as ``mixedrl._checks``, are not private names).
+in another module (names of modules, such as ``mixedrl.checks``, are not private names).
 
 The same functions back ``tests/test_imports.py``.
 """
@@ -79,8 +79,11 @@ def imports(root: Path = ROOT) -> tuple[dict[str, set[str]], list[tuple[str, str
                     t = full if full in mods else target(source)
                     if t and t != mod:
                         edges[mod].add(t)
-                    if (alias.name.startswith("_") and not alias.name.startswith("__") and full not in mods
-                            and target(source) is not None and target(source) != mod):
+                    private_name = alias.name.startswith("_") and not alias.name.startswith("__") and full not in mods
+                    # a private module (a dotted component starting with "_") imported from another module
+                    private_module = any(p.startswith("_") and not p.startswith("__") for p in full.split("."))
+                    if ((private_name or private_module) and target(source) is not None
+                            and target(source) != mod):
                         private.append((mod, source, alias.name))
     return edges, private
 

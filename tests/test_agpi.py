@@ -3,6 +3,8 @@ LQ problem whose optimum is known (python-control's DARE plus the offset's linea
 
 from __future__ import annotations
 
+import copy
+
 import control
 import numpy as np
 import pytest
@@ -20,6 +22,7 @@ from mixedrl.algorithms.agpi import (
 from mixedrl.config import TrainConfig
 from mixedrl.networks import QuadraticCritic
 from mixedrl.runs import train
+from mixedrl.schedule import set_learning_rates
 from mixedrl.tasks import LinearTask
 
 
@@ -195,9 +198,9 @@ def test_noise_sources_and_ibe_changes_the_model() -> None:
     with pytest.raises(ValueError, match="^method"):
         make_noise_source("ddpg", task)
     ag = AGPI(task, TrainConfig(method="mixed", task="linear", batch_size=64, iterations=5))
-    prior_nodes, _ = ag._nodes(*ag.noise_moments())
+    prior_nodes, _ = ag.nodes(*ag.noise_moments())
     ag.iteration()
-    post_nodes, post_w = ag._nodes(*ag.noise_moments())
+    post_nodes, post_w = ag.nodes(*ag.noise_moments())
     mean_used = (post_w[:, None] * post_nodes).sum(0).numpy()
     np.testing.assert_allclose(mean_used, ag.noise.mean, rtol=1e-6, atol=1e-7)
     assert abs(mean_used[1] - task.true_mean[1]) < abs(float(prior_nodes.mean(0)[1]) - task.true_mean[1])
@@ -338,3 +341,97 @@ def test_agpi_options_run(expectation: str, mvc_check: str) -> None:
     assert all(0 <= r["mvc/inner_steps"] <= cfg.j_max for r in rows)
     assert all(r["mvc/inner_steps"] == cfg.j_max for r in rows if r["mvc/held"] == 0.0)
     assert all(r["mvc/held"] == 1.0 for r in rows if r["mvc/inner_steps"] < cfg.j_max)
+
+
+# ------------------------------------------------------------------------------ what iteration() plans with
+def _params(module: torch.nn.Module) -> list[torch.Tensor]:
+    return [p.detach().clone() for p in module.parameters()]
+
+
+def test_iteration_plans_with_the_current_ibe_posterior() -> None:
+    """The GOPS-MAC bug (an estimate computed, then replaced by the prior before planning) is caught on
+    what ``iteration()`` itself does: every PEV/PIM call plans with the nodes of the IBE's current
+    posterior, and the critic after the iteration is the one a PEV step under the posterior gives --
+    not the one under the prior -- while the IBE still updates and reports."""
+    task = LinearTask(prior_mean=[0.0, -1.0])  # prior far from the true mean (0, 0.5)
+    cfg = TrainConfig(method="mixed", task="linear", batch_size=32, iterations=10, seed=3)
+    ag = AGPI(task, cfg)
+    ag.iteration()  # the IBE has seen data: its posterior is not the prior any more
+    posterior = ag.noise_moments()
+    assert abs(posterior[0][1] - task.prior_mean[1]) > 0.5
+    twins = {}
+    for name in ("posterior", "prior"):
+        twins[name] = AGPI(task, cfg)
+        twins[name].load_state_dict(copy.deepcopy(ag.state_dict()))  # Adam's state is shared otherwise
+    calls: list[tuple[str, torch.Tensor]] = []
+    for step in ("pev", "pim"):
+        original = getattr(ag, step)
+
+        def spy(s, offsets, weights, original=original, step=step):  # noqa: ANN001
+            calls.append((step, offsets.clone()))
+            return original(s, offsets, weights)
+
+        setattr(ag, step, spy)
+    count_before = ag.noise.count
+    metrics = ag.iteration()
+    # the planning nodes of every step are those of the posterior at the start of the iteration
+    expected, _ = ag.nodes(*posterior)
+    assert [c[0] for c in calls][:2] == ["pev", "pim"]
+    for _, offsets in calls:
+        torch.testing.assert_close(offsets, expected, rtol=0, atol=0)
+    # the critic moved as one PEV step under the posterior moves it, not as under the prior
+    for name, moments in (("posterior", posterior), ("prior", (task.prior_mean, task.prior_cov))):
+        tw = twins[name]
+        set_learning_rates(cfg, tw.k, tw.critic_opt, tw.actor_opt)
+        s, _ = tw.collect()
+        tw.pev(s, *tw.nodes(*moments))
+    after = _params(ag.critic)
+    assert all(torch.equal(a, b) for a, b in zip(after, _params(twins["posterior"].critic)))
+    gap = max(float((a - b).abs().max()) for a, b in zip(after, _params(twins["prior"].critic)))
+    assert gap > 1e-4
+    # ... and the IBE itself updated and reports its posterior
+    assert ag.noise.count == count_before + cfg.batch_size
+    assert metrics["ibe/mean_1"] == pytest.approx(float(ag.noise.mean[1]))
+
+
+class JumpingNoise:
+    """A learning source whose update moves the mean far away: the MVC (eq. 38) then fails."""
+
+    learns = True
+    state_dependent = False
+
+    def __init__(self) -> None:
+        self.mean, self.cov, self.count = np.zeros(2), 0.01 * np.eye(2), 0
+
+    def update(self, xi: np.ndarray) -> None:
+        self.mean = self.mean + np.array([0.0, 3.0])
+        self.count += xi.shape[0]
+
+    def state_dict(self) -> dict:
+        return {"mean": self.mean.copy(), "count": self.count}
+
+    def load_state_dict(self, state: dict) -> None:
+        self.mean, self.count = state["mean"].copy(), state["count"]
+
+
+def test_inner_loop_takes_extra_pim_steps_while_the_mvc_fails() -> None:
+    """Eq. (38) fails (the noise jumps by 3 in velocity): the inner loop must take PIM steps until
+    j = j_max, each a real step of the actor under xi_hat_k."""
+    task = LinearTask()
+    cfg = TrainConfig(method="mixed", task="linear", batch_size=32, iterations=10, j_max=3, mvc_check="all")
+    ag = AGPI(task, cfg, noise_source=JumpingNoise())
+    calls: list[torch.Tensor] = []
+    original = ag.pim
+
+    def spy(s, offsets, weights):  # noqa: ANN001
+        calls.append(offsets.clone())
+        return original(s, offsets, weights)
+
+    ag.pim = spy
+    for _ in range(2):
+        calls.clear()
+        metrics = ag.iteration()
+        assert metrics["mvc/held"] == 0.0
+        assert metrics["mvc/inner_steps"] == cfg.j_max
+        assert len(calls) == 1 + cfg.j_max  # one PIM step, then j_max extra ones
+        assert all(torch.equal(c, calls[0]) for c in calls)  # all under xi_hat_k

@@ -1,4 +1,4 @@
-"""Tests of the shared input validation (mixedrl._checks)."""
+"""Tests of the shared input validation (mixedrl.checks)."""
 
 import numpy as np
 import pytest

@@ -46,7 +46,5 @@ def test_core_imports_neither_theory_nor_validation() -> None:
     assert ("theory", "validation") not in edges  # theory imports only mixedrl
 
 
-@pytest.mark.xfail(strict=False, reason="ddpg imports agpi's _lr_factor and dlc_env four tracking helpers; other "
-                                        "helpers of issue 9 remove them (make strict after merging)")
 def test_no_private_name_imported_across_modules() -> None:
     assert PRIVATE == [], "\n".join(f"{m}: from {s} import {n}" for m, s, n in PRIVATE)

@@ -12,14 +12,9 @@ import numpy as np
 import pytest
 import scipy.linalg
 
-from mixedrl.quadratic import (
-    AffinePolicy,
-    QuadraticValue,
-    bellman_backup,
-    evaluate_policy,
-    improve_policy,
-    is_nonnegative,
-)
+from mixedrl.pev import bellman_backup, evaluate_policy
+from mixedrl.pim import improve_policy
+from mixedrl.quadratic import AffinePolicy, QuadraticValue, is_nonnegative
 from theory.quadrature import gaussian_expectation
 from validation.lq import (
     LQProblem,

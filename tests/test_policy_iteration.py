@@ -8,13 +8,18 @@ from scipy import stats
 
 from mixedrl.algorithms.policy_iteration import ibe_step, pev_step, pim_step, policy_iteration
 from mixedrl.ibe import UnknownCovarianceIBE
-from mixedrl.noise import GaussianNoise, MixedModel
-from mixedrl.quadratic import AffinePolicy, ExactPEV, ExactPIM
+from mixedrl.noise import GaussianNoise, make_noise_source
+from mixedrl.pev import ExactPEV
+from mixedrl.pim import ExactPIM
+from mixedrl.quadratic import AffinePolicy
 from validation.lq import default_initial_gain, example_problem, optimal_solution
 
 
 class Recorder:
     """A noise source that logs every call, to test the order of the three steps."""
+
+    learns = True
+    state_dependent = False
 
     def __init__(self, log: list) -> None:
         self.log = log
@@ -148,17 +153,31 @@ def test_gaussian_noise_state_dict_roundtrip_and_rejection():
         assert np.array_equal(other.mean, [1.0]) and np.array_equal(other.cov, [[2.0]])
 
 
-def test_mixed_model_reads_current_noise():
+def test_algorithm1_plans_with_the_ibe_updated_by_this_iterations_data():
+    """Every PEV and PIM of iteration k uses the IBE after the k-th batch (Algorithm 1's IBE step)."""
     prob = example_problem()
-    ibe = UnknownCovarianceIBE(prob.prior_mean, prob.prior_cov)
-    model = MixedModel(prob.dynamics, ibe)
-    x, u = np.zeros((1, 2)), np.zeros((1, 1))
-    before = model.mean_next(x, u)
-    assert np.allclose(before[0], prob.prior_mean)
-    ibe.update(np.tile(prob.noise_mean, (1000, 1)) + 1e-3)
-    after = model.mean_next(x, u)
-    assert np.allclose(after[0], ibe.mean) and not np.allclose(after, before)
-    s = model.sample_next(np.zeros((5, 2)), np.zeros((5, 1)), np.random.default_rng(0))
-    assert s.shape == (5, 2)
-    with pytest.raises(ValueError, match="^f"):
-        MixedModel(3, ibe)
+    f, cost, g = prob.dynamics, prob.cost, prob.gamma
+    rng = np.random.default_rng(4)
+    truth = GaussianNoise(prob.noise_mean, prob.noise_cov)
+    batches = [truth.sample(200, rng) for _ in range(3)]
+    seen: dict[str, list[np.ndarray]] = {"pev": [], "pim": []}
+
+    def evaluate(policy, noise):
+        seen["pev"].append(noise.mean.copy())
+        return ExactPEV(f, cost, g)(policy, noise)
+
+    def improve(value, noise):
+        seen["pim"].append(noise.mean.copy())
+        return ExactPIM(f, cost, g)(value, noise)
+
+    ibe = make_noise_source("mixed", prob)
+    out = policy_iteration(ibe, evaluate, improve, AffinePolicy(default_initial_gain(prob), np.zeros(1)), 3,
+                           collect=lambda p, k: batches[k])
+    reference = make_noise_source("mixed", prob)
+    for k, batch in enumerate(batches):
+        reference.update(batch)
+        assert np.array_equal(seen["pev"][k], reference.mean)
+        assert np.array_equal(seen["pim"][k], reference.mean)
+        assert np.array_equal(out.history[k].noise_mean, reference.mean)
+    assert ibe.count == 600
+    assert np.max(np.abs(seen["pev"][0] - prob.prior_mean)) > 0.01  # prior 0.02, truth 0.05

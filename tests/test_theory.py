@@ -25,7 +25,8 @@ from hypothesis import HealthCheck, assume, given, settings
 from hypothesis import strategies as st
 
 from mixedrl.noise import GaussianNoise
-from mixedrl.quadratic import AffinePolicy, QuadraticValue, bellman_backup, is_nonnegative
+from mixedrl.pev import bellman_backup
+from mixedrl.quadratic import AffinePolicy, QuadraticValue, is_nonnegative
 from theory import GaussHermite, SigmaPoints, gaussian_expectation, ibe_shift, lyapunov_decrease, mvc, value_decrease
 from validation.lq import (
     LQProblem,

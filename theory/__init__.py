@@ -20,8 +20,8 @@ from theory.checks import (
     mvc,
     value_decrease,
 )
+from mixedrl.expectation import GaussHermite, SigmaPoints, gaussian_expectation
 from theory.premises import PriorRankReport, gamma_condition, prior_full_rank
-from theory.quadrature import GaussHermite, SigmaPoints, gaussian_expectation
 
 __all__ = [
     "lyapunov_decrease",

@@ -8,9 +8,10 @@ Interfaces (all batched, numpy):
 * utility ``l(x', u)``: (N, n), (N, m) -> (N,) (charged on the next state, eq. 2);
 * noise: any object with ``.mean`` (n,) and ``.cov`` (n, n) (an IBE, a :class:`mixedrl.noise.GaussianNoise`).
 
-Expectations over ``xi_hat ~ N(mean, cov)`` use :func:`theory.quadrature.gaussian_expectation` with a
-stated rule: :class:`theory.quadrature.SigmaPoints` by default, exact for polynomials of degree <= 3
-(so exact for quadratic values and utilities); :class:`theory.quadrature.GaussHermite` otherwise.
+Expectations over ``xi_hat ~ N(mean, cov)`` use the nodes of :mod:`mixedrl.expectation` (the same
+module, support cut-off and ``h`` of eq. 37 as Algorithm 2) with a stated rule:
+:class:`~mixedrl.expectation.SigmaPoints` by default, exact for polynomials of degree <= 3 (so exact for
+quadratic values and utilities); :class:`~mixedrl.expectation.GaussHermite` otherwise.
 
 A check evaluates a *margin* at every given state, positive when the inequality holds with room, and
 counts the inequality as held where ``margin >= -tol``, with the rounding tolerance
@@ -25,9 +26,9 @@ from typing import Any, Callable
 
 import numpy as np
 
-from mixedrl._checks import as_batch
+from mixedrl.checks import as_batch, as_vector, check_covariance
+from mixedrl.expectation import GaussHermite, SigmaPoints, gaussian_expectation, h, quadrature_nodes
 from mixedrl.gaussian import kl_divergence
-from theory.quadrature import GaussHermite, SigmaPoints, gaussian_expectation
 
 __all__ = [
     "DEFAULT_RTOL",
@@ -208,15 +209,14 @@ def expected_cost_to_go(
     """
     x = _states(states)
     u = np.asarray(actions, dtype=np.float64).reshape(x.shape[0], -1)
-    centers = np.asarray(f(x, u), dtype=np.float64)
-    if centers.shape != x.shape:
-        raise ValueError(f"f: expected output shape {x.shape}, got {centers.shape}")
-    g = float(gamma)
+    mean = as_vector(noise.mean, "noise.mean", x.shape[1])
+    cov = check_covariance(noise.cov, "noise.cov", x.shape[1])
+    nodes, weights = quadrature_nodes(mean, cov, rule)
 
-    def integrand(xn: np.ndarray, un: np.ndarray) -> np.ndarray:
-        return np.asarray(utility(xn, un), dtype=np.float64) + g * np.asarray(value(xn), dtype=np.float64)
+    def as_float(fn: Callable[..., Any]) -> Callable[..., np.ndarray]:
+        return lambda *args: np.asarray(fn(*args), dtype=np.float64)
 
-    return gaussian_expectation(integrand, centers, noise.mean, noise.cov, rule, extra=u)
+    return h(as_float(f), as_float(utility), as_float(value), float(gamma), x, u, nodes, weights)
 
 
 def lyapunov_decrease(

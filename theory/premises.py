@@ -25,7 +25,7 @@ from typing import Any, Callable
 import numpy as np
 
 from theory.checks import DEFAULT_RTOL, CheckReport
-from theory.quadrature import GaussHermite, SigmaPoints, gaussian_expectation
+from mixedrl.expectation import GaussHermite, SigmaPoints, gaussian_expectation
 
 __all__ = [
     "PRIOR_RANK_RTOL",

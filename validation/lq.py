@@ -41,18 +41,13 @@ from typing import Any
 import control
 import numpy as np
 
-from mixedrl._checks import as_matrix, as_vector, check_covariance, check_positive_int
+from mixedrl.checks import as_matrix, as_vector, check_covariance, check_positive_int
 from mixedrl.algorithms.policy_iteration import Iteration, policy_iteration
-from mixedrl.ibe import KnownCovarianceIBE, UnknownCovarianceIBE, residuals
-from mixedrl.noise import GaussianNoise
-from mixedrl.quadratic import (
-    AffinePolicy,
-    ExactPEV,
-    ExactPIM,
-    LinearDynamics,
-    QuadraticCost,
-    QuadraticValue,
-)
+from mixedrl.ibe import residuals
+from mixedrl.noise import GaussianNoise, make_noise_source
+from mixedrl.pev import ExactPEV
+from mixedrl.pim import ExactPIM
+from mixedrl.quadratic import AffinePolicy, LinearDynamics, QuadraticCost, QuadraticValue
 from theory import ibe_shift, lyapunov_decrease, mvc, value_decrease
 
 __all__ = [
@@ -138,6 +133,16 @@ class LQProblem:
     noise_cov: np.ndarray
     prior_mean: np.ndarray
     prior_cov: np.ndarray
+
+    @property
+    def true_mean(self) -> np.ndarray:
+        """``noise_mean`` (the name :func:`mixedrl.noise.make_noise_source` reads)."""
+        return self.noise_mean
+
+    @property
+    def true_cov(self) -> np.ndarray:
+        """``noise_cov`` (the name :func:`mixedrl.noise.make_noise_source` reads)."""
+        return self.noise_cov
 
     def __post_init__(self) -> None:
         A = as_matrix(self.A, "A")
@@ -483,19 +488,6 @@ class _Collector:
         return residuals(self.f, xs, us, xn)
 
 
-def _make_noise(problem: LQProblem, method: str, ibe: str) -> Any:
-    if method == "oracle":
-        return GaussianNoise(problem.noise_mean, problem.noise_cov)
-    if method == "model":
-        # eq. (55): the prior model N(mu_M, K_M)
-        return GaussianNoise(problem.prior_mean, problem.prior_cov)
-    if ibe == "unknown":
-        return UnknownCovarianceIBE(problem.prior_mean, problem.prior_cov, recursion="exact")
-    if ibe == "paper":
-        return UnknownCovarianceIBE(problem.prior_mean, problem.prior_cov, recursion="paper")
-    return KnownCovarianceIBE(problem.prior_mean, problem.prior_cov, problem.noise_cov)
-
-
 def run_algorithm1(
     problem: LQProblem,
     method: str = "mixed",
@@ -588,7 +580,8 @@ def run_algorithm1(
     if rho >= 1.0:
         raise ValueError(f"initial_gain: not stabilising, spectral radius of sqrt(gamma)(A - B L0) is {rho:.6g} >= 1")
 
-    noise = _make_noise(problem, method, ibe)
+    noise = make_noise_source(method, problem, recursion="paper" if ibe == "paper" else "exact",
+                              covariance="known" if ibe == "known" else "unknown")
     f, cost = problem.dynamics, problem.cost
     collect = None
     if method == "mixed":

@@ -5,43 +5,53 @@ One outer iteration ``k`` of :class:`AGPI` (see :meth:`AGPI.iteration`) is
 1. **data**: the ``batch_size`` copies of the *true* environment take one step under the current policy
    ``pi^k``; their states are the batch ``x`` of this iteration and their transitions give residuals
    ``xi^D`` (eq. 10);
-2. **PEV** (eqs. 49-50): one semi-gradient step of the critic ``V(x; w)`` under ``xi_hat_k``;
-3. **PIM** (eqs. 51-52): one gradient step of the actor ``pi(x; theta)`` under ``xi_hat_k``, gradients
-   through the model ``f``;
+2. **PEV** (eqs. 49-50, :func:`mixedrl.pev.critic_step`): one semi-gradient step of the critic
+   ``V(x; w)`` under ``xi_hat_k``;
+3. **PIM** (eqs. 51-52, :func:`mixedrl.pim.actor_step`): one gradient step of the actor
+   ``pi(x; theta)`` under ``xi_hat_k``, gradients through the model ``f``;
 4. **IBE** (eq. 20): the noise source absorbs the residuals: ``xi_hat_k -> xi_hat_{k+1}``;
-5. **MVC loop** (eqs. 37-39): while the maximum variation condition fails on the batch, one more PIM step
-   (``j <- j + 1``), until it holds or ``j = j_max``;
+5. **MVC loop** (eqs. 37-39, :func:`mixedrl.pim.mvc_check`): while the maximum variation condition
+   fails on the batch, one more PIM step (``j <- j + 1``), until it holds or ``j = j_max``;
 6. the stopping test ``|V^{k+1} - V^k| <= eps`` and ``|pi^{k+1} - pi^k| <= eps``.
 
 The noise source is the only difference between mixed RL (an IBE posterior), model-driven RL (the fixed
 prior, eq. 55) and the oracle (the fixed true noise): one algorithm, three noise sources
-(:func:`make_noise_source`).
+(:func:`mixedrl.noise.make_noise_source`). A state-dependent source (Case 3,
+:class:`mixedrl.ibe.StateDependentIBE`) is planned with per-state nodes.
 
 Expectations over ``xi_hat ~ N(mu_hat, K_hat)`` use **sigma points** by default
-(:func:`expectation_nodes`, ``rule="sigma"``): the ``2r`` spherical-cubature points
-``mu_hat +- sqrt(r lambda_i) v_i`` in the range of ``K_hat`` (rank ``r``), equal weights; exact for
+(:func:`mixedrl.expectation.expectation_nodes`, ``rule="sigma"``): the ``2r`` spherical-cubature points
+``mu_hat +- sqrt(r lambda_i) v_i`` in the support of ``K_hat`` (rank ``r``), equal weights; exact for
 polynomials of degree <= 3 in ``xi``, deterministic, and as cheap as it gets for the vehicle's rank-1
 noise (2 points). Reparameterised samples (``rule="samples"``) are available. Because the noise is
-additive, ``f(x, u)`` is computed once per state and only ``l`` and ``V`` are evaluated at the nodes.
+additive, ``f(x, u)`` is computed once per state and only ``l`` and ``V`` are evaluated at the nodes
+(``h`` of eq. 37, :func:`mixedrl.expectation.h_value`).
+
+The steps live in their own modules (:mod:`mixedrl.pev`, :mod:`mixedrl.pim`, :mod:`mixedrl.expectation`,
+:mod:`mixedrl.noise`); the names ``critic_loss``, ``actor_objective``, ``h_value``, ``expectation_nodes``,
+``mvc_check``, ``MVCResult`` and ``make_noise_source`` are re-exported here for the old import path.
 """
 
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 import torch
 
 from mixedrl.config import TrainConfig
-from mixedrl.ibe import UnknownCovarianceIBE
-from mixedrl.noise import GaussianNoise
+from mixedrl.expectation import expectation_nodes, h_value
 from mixedrl.networks import Actor, AffineActor, Critic, QuadraticCritic
+from mixedrl.noise import make_noise_source
+from mixedrl.pev import critic_loss, critic_step
+from mixedrl.pim import MVCResult, actor_objective, actor_step, mvc_check
+from mixedrl.schedule import set_learning_rates
 from mixedrl.tasks import Task
 
 __all__ = [
     "AGPI",
+    "build_networks",
     "expectation_nodes",
     "critic_loss",
     "actor_objective",
@@ -52,359 +62,6 @@ __all__ = [
 ]
 
 logger = logging.getLogger(__name__)
-
-
-# ----------------------------------------------------------------------------------------------------
-# noise sources: IBE posterior (mixed), prior (model, eq. 55), truth (oracle)
-# ----------------------------------------------------------------------------------------------------
-def make_noise_source(method: str, task: Task, recursion: str = "exact") -> Any:
-    """The noise distribution Algorithm 2 plans with, by method.
-
-    Parameters
-    ----------
-    method : {"mixed", "model", "oracle"}
-        ``"mixed"``: :class:`mixedrl.ibe.UnknownCovarianceIBE` started at the prior ``(mu_M, K_M)``
-        (Algorithm 2's initialisation, Case 2 of the IBE: mean and covariance unknown);
-        ``"model"``: the prior ``N(mu_M, K_M)`` held fixed (eq. 55); ``"oracle"``: the true ``N(mu, K)``.
-    task : Task
-        Supplies ``prior_mean``, ``prior_cov``, ``true_mean``, ``true_cov``.
-    recursion : {"exact", "paper"}
-        Recursion of the IBE (mixed only).
-
-    Returns
-    -------
-    object
-        With ``.mean`` (noise_dim,), ``.cov`` (noise_dim, noise_dim), ``.update(xi)``, ``.count``,
-        ``state_dict()`` and ``load_state_dict()``; the fixed sources
-        (:class:`mixedrl.noise.GaussianNoise`) have no ``update``.
-
-    Raises
-    ------
-    ValueError
-        ``method`` unknown.
-    """
-    if method == "mixed":
-        return UnknownCovarianceIBE(task.prior_mean, task.prior_cov, recursion=recursion)
-    if method == "model":
-        return GaussianNoise(task.prior_mean, task.prior_cov)
-    if method == "oracle":
-        return GaussianNoise(task.true_mean, task.true_cov)
-    raise ValueError(f"method: expected 'mixed', 'model' or 'oracle', got {method!r}")
-
-
-# ----------------------------------------------------------------------------------------------------
-# the expectation over xi_hat
-# ----------------------------------------------------------------------------------------------------
-#: Eigenvalues of ``K_hat`` below this fraction of the largest are treated as 0 by the sigma points.
-RANK_RTOL = 1e-6
-
-
-def expectation_nodes(mean: np.ndarray, cov: np.ndarray, noise_matrix: torch.Tensor, rule: str = "sigma",
-                      n_samples: int = 4, generator: torch.Generator | None = None,
-                      dtype: torch.dtype = torch.float32) -> tuple[torch.Tensor, torch.Tensor]:
-    """Nodes and weights of the expectation over ``xi_hat ~ N(mu_hat, K_hat)`` in eqs. (49) and (51).
-
-    Implements the integral of eq. (51),
-
-    .. math::
-
-        \\mathbb{E}_{\\hat\\xi}\\, g(f(x, u) + E \\hat\\xi) \\approx \\sum_i w_i\\, g(f(x, u) + d_i),
-        \\qquad d_i = E\\, \\hat\\xi_i,
-
-    with the spherical-cubature sigma points (``rule="sigma"``)
-
-    .. math::
-
-        \\hat\\xi_{\\pm i} = \\hat\\mu \\pm \\sqrt{r \\lambda_i}\\, v_i, \\quad w = \\frac{1}{2r},
-        \\qquad \\hat K = \\sum_{i=1}^r \\lambda_i v_i v_i^\\top,
-
-    or ``n_samples`` reparameterised draws ``mu_hat + K_hat^{1/2} eps`` (``rule="samples"``, weights
-    ``1/n``).
-
-    Parameters
-    ----------
-    mean : numpy.ndarray, shape (noise_dim,)
-        ``mu_hat``.
-    cov : numpy.ndarray, shape (noise_dim, noise_dim)
-        ``K_hat``, symmetric positive semi-definite (may be singular).
-    noise_matrix : torch.Tensor, shape (state_dim, noise_dim)
-        ``E``, how the noise enters the state.
-    rule : {"sigma", "samples"}
-        Quadrature rule.
-    n_samples : int
-        Number of draws for ``rule="samples"``.
-    generator : torch.Generator, optional
-        Required for ``rule="samples"``.
-    dtype : torch.dtype
-        Dtype of the returned tensors.
-
-    Returns
-    -------
-    offsets : torch.Tensor
-        ``d_i = E xi_hat_i``, shape ``(P, state_dim)``.
-    weights : torch.Tensor
-        Quadrature weights summing to 1, shape ``(P,)``.
-
-    Raises
-    ------
-    ValueError
-        Shapes inconsistent, non-finite input, unknown ``rule``, or ``rule="samples"`` without generator.
-
-    Notes
-    -----
-    The sigma rule integrates every polynomial of degree <= 3 in ``xi`` exactly; here ``l`` is quadratic
-    in ``x'`` so the cost term is exact and only the critic's higher-order terms are approximated.
-    Directions with ``lambda_i < 1e-6 lambda_max`` are dropped (the vehicle prior's ``1e-20`` entries):
-    the error this makes is at most ``sum(dropped lambda) * max|Hessian| / 2``. If ``K_hat = 0`` the rule
-    reduces to the single point ``mu_hat``.
-    """
-    mean = np.asarray(mean, dtype=np.float64)
-    cov = np.asarray(cov, dtype=np.float64)
-    n = mean.shape[0] if mean.ndim == 1 else -1
-    if mean.ndim != 1 or cov.shape != (n, n) or noise_matrix.shape[-1] != n:
-        raise ValueError(f"mean: shapes mean {mean.shape}, cov {cov.shape}, noise_matrix "
-                         f"{tuple(noise_matrix.shape)} are inconsistent")
-    if not (np.isfinite(mean).all() and np.isfinite(cov).all()):
-        raise ValueError("mean: mean or cov contains NaN or inf")
-    lam, vec = np.linalg.eigh(0.5 * (cov + cov.T))
-    lam = np.clip(lam, 0.0, None)
-    if rule == "sigma":
-        keep = lam > RANK_RTOL * lam.max() if lam.max() > 0 else np.zeros_like(lam, dtype=bool)
-        r = int(keep.sum())
-        if r == 0:
-            xi = mean[None, :]
-        else:
-            # xi_{+-i} = mu_hat +- sqrt(r lambda_i) v_i
-            spread = (vec[:, keep] * np.sqrt(r * lam[keep])).T
-            xi = np.concatenate([mean + spread, mean - spread], axis=0)
-        xi_t = torch.as_tensor(xi, dtype=torch.float64)
-    elif rule == "samples":
-        if generator is None:
-            raise ValueError("generator: required for rule='samples'")
-        eps = torch.randn(n_samples, n, generator=generator, dtype=torch.float64)
-        root = torch.as_tensor(vec * np.sqrt(lam), dtype=torch.float64)
-        # xi = mu_hat + K_hat^{1/2} eps   (reparameterisation)
-        xi_t = torch.as_tensor(mean) + eps @ root.T
-    else:
-        raise ValueError(f"rule: expected 'sigma' or 'samples', got {rule!r}")
-    offsets = (xi_t @ noise_matrix.to(torch.float64).T).to(dtype)
-    weights = torch.full((offsets.shape[0],), 1.0 / offsets.shape[0], dtype=dtype)
-    return offsets, weights
-
-
-def _next_state_terms(task: Task, critic: torch.nn.Module, s: torch.Tensor, u: torch.Tensor,
-                      offsets: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
-    """``sum_i w_i [l(f(s,u) + d_i, u) + gamma V(f(s,u) + d_i)]`` per state, shape (B,)."""
-    s_mean = task.f(s, u)  # f(x, u), once per state: the noise is additive
-    P = offsets.shape[0]
-    s_next = (s_mean.unsqueeze(0) + offsets[:, None, :]).reshape(P * s.shape[0], -1)
-    u_rep = u.unsqueeze(0).expand(P, *u.shape).reshape(P * u.shape[0], -1)
-    # l(x', u) + gamma V(x'), x' = f(x, u) + xi_hat
-    target = task.cost(s_next, u_rep) + task.gamma * critic(task.observe(s_next))
-    return weights @ target.reshape(P, s.shape[0])
-
-
-def h_value(task: Task, critic: torch.nn.Module, s: torch.Tensor, u: torch.Tensor, offsets: torch.Tensor,
-            weights: torch.Tensor) -> torch.Tensor:
-    """Implements eq. (37): the expected cumulative cost of action ``u`` under a noise distribution.
-
-    .. math::
-
-        h(x, u, \\hat\\xi) = \\mathbb{E}_{\\hat\\xi}\\{ l(x', u) + \\gamma V^k(x') \\},
-        \\qquad x' = f(x, u) + \\hat\\xi.
-
-    Parameters
-    ----------
-    task : Task
-        The model ``f``, the utility ``l``, ``gamma``.
-    critic : torch.nn.Module
-        ``V^k``, maps observations (N, obs_dim) to (N,).
-    s : torch.Tensor, shape (B, state_dim)
-        States ``x``.
-    u : torch.Tensor, shape (B, action_dim)
-        Actions.
-    offsets, weights : torch.Tensor
-        Quadrature of the noise distribution (:func:`expectation_nodes`), shapes ``(P, state_dim)`` and
-        ``(P,)``.
-
-    Returns
-    -------
-    torch.Tensor, shape (B,)
-        ``h`` per state (differentiable in ``u`` and in the critic's weights).
-
-    Raises
-    ------
-    ValueError
-        If the batch sizes of ``s`` and ``u`` differ.
-    """
-    if s.shape[0] != u.shape[0]:
-        raise ValueError(f"u: batch size {u.shape[0]} differs from s's {s.shape[0]}")
-    return _next_state_terms(task, critic, s, u, offsets, weights)
-
-
-def critic_loss(task: Task, critic: torch.nn.Module, s: torch.Tensor, u: torch.Tensor, offsets: torch.Tensor,
-                weights: torch.Tensor) -> torch.Tensor:
-    """Implements eqs. (49)-(50): the PEV loss whose gradient is the critic's semi-gradient.
-
-    .. math::
-
-        J_{\\rm critic} = \\mathbb{E}_{\\hat\\xi}\\Big\\{\\tfrac12 \\big(l(x', u_\\theta)
-            + \\gamma V^k(x'; w) - V^k(x; w)\\big)^2\\Big\\},
-        \\qquad
-        \\frac{\\partial J_{\\rm critic}}{\\partial w}
-            = \\big(V^k(x; w) - \\mathbb{E}\\,V_{\\rm target}\\big)\\,\\frac{\\partial V^k(x; w)}{\\partial w}.
-
-    Parameters
-    ----------
-    task : Task
-        Model and utility.
-    critic : torch.nn.Module
-        ``V(x; w)``.
-    s : torch.Tensor, shape (B, state_dim)
-        Batch of states.
-    u : torch.Tensor, shape (B, action_dim)
-        ``u_theta = pi(x; theta)`` (detached: PEV does not move the actor).
-    offsets, weights : torch.Tensor
-        Quadrature of ``xi_hat_k`` (:func:`expectation_nodes`), shapes ``(P, state_dim)`` and ``(P,)``.
-
-    Returns
-    -------
-    torch.Tensor, shape ()
-        ``mean_x 1/2 (V(x; w) - E V_target)^2``; its gradient in ``w`` is the semi-gradient of eq. (50),
-        averaged over the batch.
-
-    Raises
-    ------
-    ValueError
-        If the batch sizes of ``s`` and ``u`` differ.
-
-    Notes
-    -----
-    *Semi-gradient*: ``V_target`` is computed without gradient (``torch.no_grad``), as eq. (50) says.
-    The expectation is moved inside the square: ``E{(T - V)^2}/2`` and ``(E T - V)^2/2`` differ by the
-    variance of ``T``, which does not depend on ``w`` through the semi-gradient, so both give the same
-    gradient. The loss is divided by ``value_scale^2`` so that its size does not depend on the units of
-    the cost.
-    """
-    if s.shape[0] != u.shape[0]:
-        raise ValueError(f"u: batch size {u.shape[0]} differs from s's {s.shape[0]}")
-    with torch.no_grad():
-        # V_target = l(x', u_theta) + gamma V^k(x'),  x' = f(x, u_theta) + xi_hat
-        target = _next_state_terms(task, critic, s, u, offsets, weights)
-    value = critic(task.observe(s))
-    scale = float(getattr(task, "value_scale", 1.0))
-    return 0.5 * ((value - target) / scale).pow(2).mean()
-
-
-def actor_objective(task: Task, critic: torch.nn.Module, actor: torch.nn.Module, s: torch.Tensor,
-                    offsets: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
-    """Implements eqs. (51)-(52): the PIM objective, differentiated through the model ``f``.
-
-    .. math::
-
-        J_{\\rm actor} = \\mathbb{E}_{\\hat\\xi}\\{ l(x', u_\\theta) + \\gamma V^k(x') \\},
-        \\qquad x' \\sim N(f(x, u_\\theta) + \\hat\\mu, \\hat K), \\qquad u_\\theta = \\pi(x; \\theta).
-
-    Parameters
-    ----------
-    task : Task
-        Model ``f`` (differentiable), utility, ``gamma``.
-    critic : torch.nn.Module
-        ``V^k`` (its weights are not updated by this objective).
-    actor : torch.nn.Module
-        ``pi(x; theta)``.
-    s : torch.Tensor, shape (B, state_dim)
-        Batch of states.
-    offsets, weights : torch.Tensor
-        Quadrature of ``xi_hat_k``, shapes ``(P, state_dim)`` and ``(P,)``.
-
-    Returns
-    -------
-    torch.Tensor, shape ()
-        Batch mean of ``h(x, pi(x; theta), xi_hat_k)``, divided by ``value_scale``.
-
-    Notes
-    -----
-    Eq. (52) writes the gradient as a score-function term plus a pathwise term. With the
-    reparameterisation ``x' = f(x, u_theta) + xi_hat`` (``xi_hat`` independent of ``theta``) both are the
-    single pathwise gradient that autograd computes here, ``E{(dl/dx' + gamma dV/dx') df/du + dl/du}
-    du/dtheta``.
-    """
-    u = actor(task.observe(s))
-    scale = float(getattr(task, "value_scale", 1.0))
-    return _next_state_terms(task, critic, s, u, offsets, weights).mean() / scale
-
-
-@dataclass
-class MVCResult:
-    """Outcome of the MVC check (eqs. 38-39) on a batch.
-
-    Attributes
-    ----------
-    held : bool
-        Whether the condition held in the configured sense (batch mean or every state).
-    fraction : float
-        Fraction of states where it held pointwise.
-    lhs_mean : float
-        Batch mean of ``h(x, u^{k+1}, xi_{k+1}) - h(x, u^{k+1}, xi_k)`` (the effect of the IBE update).
-    e_mean : float
-        Batch mean of ``e_k(x) = h(x, u^k, xi_k) - h(x, u^{k+1}, xi_k)`` (the PIM improvement).
-    e_nonnegative : float
-        Fraction of states with ``e_k(x) >= 0``.
-    """
-
-    held: bool
-    fraction: float
-    lhs_mean: float
-    e_mean: float
-    e_nonnegative: float
-
-
-def mvc_check(h_new_next: torch.Tensor, h_new_cur: torch.Tensor, h_old_cur: torch.Tensor, mode: str = "mean"
-              ) -> MVCResult:
-    """Implements eqs. (38)-(39): the maximum variation condition on a batch of states.
-
-    .. math::
-
-        h(x, u^{k+1}, \\hat\\xi_{k+1}) - h(x, u^{k+1}, \\hat\\xi_k) \\le e_k(x),
-        \\qquad e_k(x) = h(x, u^k, \\hat\\xi_k) - h(x, u^{k+1}, \\hat\\xi_k).
-
-    Parameters
-    ----------
-    h_new_next : torch.Tensor, shape (B,)
-        ``h(x, u^{k+1}, xi_hat_{k+1})``.
-    h_new_cur : torch.Tensor, shape (B,)
-        ``h(x, u^{k+1}, xi_hat_k)``.
-    h_old_cur : torch.Tensor, shape (B,)
-        ``h(x, u^k, xi_hat_k)``.
-    mode : {"mean", "all"}
-        ``"mean"``: the inequality between batch means; ``"all"``: at every state (EQUATIONS.md point 12).
-
-    Returns
-    -------
-    MVCResult
-
-    Raises
-    ------
-    ValueError
-        Shapes differ, or ``mode`` unknown.
-    """
-    if not (h_new_next.shape == h_new_cur.shape == h_old_cur.shape) or h_new_next.ndim != 1:
-        raise ValueError(f"h_new_next: expected three (B,) tensors, got {tuple(h_new_next.shape)}, "
-                         f"{tuple(h_new_cur.shape)}, {tuple(h_old_cur.shape)}")
-    # lhs = h(x, u^{k+1}, xi_{k+1}) - h(x, u^{k+1}, xi_k)
-    lhs = (h_new_next - h_new_cur).double()
-    # e_k(x) = h(x, u^k, xi_k) - h(x, u^{k+1}, xi_k)
-    e = (h_old_cur - h_new_cur).double()
-    pointwise = lhs <= e
-    if mode == "mean":
-        held = bool(lhs.mean() <= e.mean())
-    elif mode == "all":
-        held = bool(pointwise.all())
-    else:
-        raise ValueError(f"mode: expected 'mean' or 'all', got {mode!r}")
-    return MVCResult(held=held, fraction=float(pointwise.double().mean()), lhs_mean=float(lhs.mean()),
-                     e_mean=float(e.mean()), e_nonnegative=float((e >= 0).double().mean()))
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -429,12 +86,6 @@ def build_networks(task: Task, config: TrainConfig, generator: torch.Generator, 
     return critic, actor
 
 
-def _lr_factor(config: TrainConfig, k: int) -> float:
-    """Linear decay from 1 to ``lr_decay_to`` over the budget."""
-    frac = min(1.0, k / max(1, config.iterations - 1))
-    return 1.0 - (1.0 - config.lr_decay_to) * frac
-
-
 class AGPI:
     """Algorithm 2 (mixed RL with parameterised value and policy, AGPI with the MVC inner loop).
 
@@ -446,8 +97,10 @@ class AGPI:
         ``method`` in ``{"mixed", "model", "oracle"}`` selects the noise source.
     architecture : {"mlp", "quadratic"}, optional
         Function classes (see :func:`build_networks`).
-    noise_source : object, optional
-        Overrides :func:`make_noise_source` (anything with the IBE's face).
+    noise_source : NoiseSource or StateDependentNoiseSource, optional
+        Overrides :func:`mixedrl.noise.make_noise_source` (any object of the protocols of
+        :mod:`mixedrl.noise`: ``learns``, ``state_dependent``, ``mean`` or ``mean_at``, ``cov``,
+        ``update``, ``state_dict``/``load_state_dict``).
 
     Raises
     ------
@@ -462,7 +115,8 @@ class AGPI:
     iteration ``k`` use ``xi_hat_k``, the MVC compares ``xi_hat_k`` with ``xi_hat_{k+1}``). The
     transitions feeding the IBE are collected under ``pi^k`` at the start of the iteration.
     The extra PIM steps of the inner loop use ``xi_hat_k`` (the distribution eq. 39 measures the
-    improvement with).
+    improvement with). With a state-dependent source (Case 3) the nodes are per state, centred at
+    ``phi(x, pi^k(x))`` (:meth:`planning_moments`).
     """
 
     def __init__(self, task: Task, config: TrainConfig, architecture: str = "mlp", noise_source: Any = None
@@ -485,6 +139,8 @@ class AGPI:
         self.stop_count = 0
         self.stopped = False
         self.last_batch: torch.Tensor | None = None
+        #: States and actions (float64) of the last finite residuals, for a state-dependent IBE.
+        self.transitions: tuple[torch.Tensor, torch.Tensor] | None = None
 
     # -------------------------------------------------------------------------------------- helpers
     @property
@@ -492,19 +148,54 @@ class AGPI:
         """The actor ``pi(x; theta)`` as a module on observations."""
         return self.actor
 
-    def _nodes(self, mean: np.ndarray, cov: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
+    def nodes(self, mean: np.ndarray, cov: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
+        """Quadrature of ``N(mean, cov)`` with this run's rule (:func:`mixedrl.expectation.expectation_nodes`).
+
+        Parameters
+        ----------
+        mean : numpy.ndarray
+            Shape (noise_dim,), or (B, noise_dim) per state.
+        cov : numpy.ndarray, shape (noise_dim, noise_dim)
+
+        Returns
+        -------
+        offsets : torch.Tensor
+            Shape (P, state_dim), or (P, B, state_dim) per state.
+        weights : torch.Tensor
+            Shape (P,).
+        """
         return expectation_nodes(mean, cov, self.task.noise_matrix, self.config.expectation,
                                  self.config.noise_samples, self.generator)
 
-    def _set_lr(self) -> None:
-        factor = _lr_factor(self.config, self.k)
-        for group in self.critic_opt.param_groups:
-            group["lr"] = self.config.critic_lr * factor
-        for group in self.actor_opt.param_groups:
-            group["lr"] = self.config.actor_lr * factor
+    def planning_moments(self, s: torch.Tensor, u: torch.Tensor) -> tuple[np.ndarray, np.ndarray]:
+        """The moments of ``xi_hat_k`` that PEV and PIM plan with on the batch ``s``, copies.
 
-    def _clip(self, module: torch.nn.Module) -> float:
-        return float(torch.nn.utils.clip_grad_norm_(module.parameters(), self.config.grad_clip))
+        Parameters
+        ----------
+        s : torch.Tensor, shape (B, state_dim)
+            The batch.
+        u : torch.Tensor, shape (B, action_dim)
+            ``pi^k(s)``; used only by a state-dependent source.
+
+        Returns
+        -------
+        mean : numpy.ndarray
+            Shape (noise_dim,), or (B, noise_dim) for a state-dependent source: ``mu_hat_k``, or
+            ``phi(x, pi^k(x); w_hat_k)`` per state (Case 3).
+        cov : numpy.ndarray, shape (noise_dim, noise_dim)
+            ``K_hat_k``.
+
+        Notes
+        -----
+        For Case 3 the mean is evaluated at ``(x, pi^k(x))`` and held fixed during the iteration's PEV,
+        PIM and MVC steps, as ``xi_hat_k`` is for Cases 1 and 2: PIM does not differentiate through
+        ``phi``.
+        """
+        if self.noise.state_dependent:
+            mean = self.noise.mean_at(s.double(), u.double()).numpy()
+        else:
+            mean = self.noise.mean
+        return np.array(mean, dtype=np.float64), np.array(self.noise.cov, dtype=np.float64)
 
     # -------------------------------------------------------------------------------------- the steps
     def collect(self) -> tuple[torch.Tensor, torch.Tensor]:
@@ -515,7 +206,8 @@ class AGPI:
         states : torch.Tensor, shape (B, state_dim)
             The batch ``x`` of this iteration (float32), the states before the step.
         residuals : torch.Tensor, shape (M, noise_dim)
-            Finite residuals ``xi^D`` of eq. (10) (float64).
+            Finite residuals ``xi^D`` of eq. (10) (float64); their states and actions are kept in
+            :attr:`transitions` (for a state-dependent IBE).
         """
         task = self.task
         s = self.states
@@ -523,7 +215,9 @@ class AGPI:
             u = self.actor(task.observe(s.float())).double()
             s_next = task.true_step(s, u, self.generator)
             xi = task.residuals(s, u, s_next)
-        xi = xi[torch.isfinite(xi).all(dim=-1)]
+        finite = torch.isfinite(xi).all(dim=-1)
+        xi = xi[finite]
+        self.transitions = (s[finite], u[finite])
         self.steps += 1
         done = task.is_terminal(s_next) | (self.steps >= self.config.horizon)
         if bool(done.any()):
@@ -544,27 +238,16 @@ class AGPI:
         s : torch.Tensor, shape (B, state_dim)
             The batch of states (float32).
         offsets, weights : torch.Tensor
-            Quadrature of ``xi_hat_k``, shapes ``(P, state_dim)`` and ``(P,)``.
+            Quadrature of ``xi_hat_k``, shapes ``(P, state_dim)`` (or ``(P, B, state_dim)``) and ``(P,)``.
 
         Returns
         -------
         float
-            The critic loss before the step.
-
-        Notes
-        -----
-        The step is Adam's (learning rate ``alpha = critic_lr``, decayed linearly), with the gradient norm
-        clipped at ``grad_clip``; the paper writes plain gradient descent.
+            The critic loss before the step (:func:`mixedrl.pev.critic_step`: Adam, learning rate
+            ``critic_lr`` decayed linearly, gradient norm clipped at ``grad_clip``).
         """
-        with torch.no_grad():
-            u = self.actor(self.task.observe(s))
-        loss = critic_loss(self.task, self.critic, s, u, offsets, weights)
-        self.critic_opt.zero_grad(set_to_none=True)
-        loss.backward()
-        self._clip(self.critic)
-        # w^{k+1} = w^k - alpha dJ_critic/dw   (Adam)
-        self.critic_opt.step()
-        return float(loss.detach())
+        return critic_step(self.task, self.critic, self.actor, self.critic_opt, s, offsets, weights,
+                           self.config.grad_clip)
 
     def pim(self, s: torch.Tensor, offsets: torch.Tensor, weights: torch.Tensor) -> float:
         """Implements eqs. (51)-(52): PIM, one gradient step of the actor under ``xi_hat_k``.
@@ -576,31 +259,16 @@ class AGPI:
         s : torch.Tensor, shape (B, state_dim)
             The batch of states (float32).
         offsets, weights : torch.Tensor
-            Quadrature of ``xi_hat_k``, shapes ``(P, state_dim)`` and ``(P,)``.
+            Quadrature of ``xi_hat_k``, shapes ``(P, state_dim)`` (or ``(P, B, state_dim)``) and ``(P,)``.
 
         Returns
         -------
         float
-            The actor objective before the step.
-
-        Notes
-        -----
-        Adam (``beta = actor_lr``, decayed linearly) with gradient clipping, as for the critic. The
-        critic's weights are frozen during the step (``requires_grad=False``), so only ``theta`` moves.
+            The actor objective before the step (:func:`mixedrl.pim.actor_step`: Adam, ``actor_lr``
+            decayed linearly, gradient clipping, critic frozen).
         """
-        for p in self.critic.parameters():
-            p.requires_grad_(False)
-        try:
-            obj = actor_objective(self.task, self.critic, self.actor, s, offsets, weights)
-            self.actor_opt.zero_grad(set_to_none=True)
-            obj.backward()
-            self._clip(self.actor)
-            # theta^{k+1} = theta^k - beta dJ_actor/dtheta   (Adam)
-            self.actor_opt.step()
-        finally:
-            for p in self.critic.parameters():
-                p.requires_grad_(True)
-        return float(obj.detach())
+        return actor_step(self.task, self.critic, self.actor, self.actor_opt, s, offsets, weights,
+                          self.config.grad_clip)
 
     def ibe(self, residuals: torch.Tensor) -> None:
         """Implements eq. (20): the IBE update ``[mu_k, K_k] = IBE(mu_{k-1}, K_{k-1}, xi^D_k)`` (eq. 13).
@@ -612,10 +280,58 @@ class AGPI:
 
         Notes
         -----
-        The fixed sources (model-driven RL, oracle) have no ``update``: for them this is a no-op.
+        A fixed source (model-driven RL, oracle: ``learns = False``) is left as it is. A state-dependent
+        source (Case 3, eq. 19) gets the transitions' states and actions too (:attr:`transitions`).
         """
-        if residuals.shape[0] > 0 and hasattr(self.noise, "update"):
+        if residuals.shape[0] == 0 or not self.noise.learns:
+            return
+        if self.noise.state_dependent:
+            x, u = self.transitions
+            self.noise.update(x.numpy(), u.numpy(), residuals.numpy())
+        else:
             self.noise.update(residuals.numpy())
+
+    def mvc_loop(self, s: torch.Tensor, u_old: torch.Tensor, nodes_k: tuple[torch.Tensor, torch.Tensor],
+                 nodes_next: tuple[torch.Tensor, torch.Tensor]) -> tuple[MVCResult, int, torch.Tensor]:
+        """Implements the AGPI inner loop: PIM steps under ``xi_hat_k`` until the MVC (eq. 38) holds.
+
+        .. math::
+            h(x, u^{k+1}, \\hat\\xi_{k+1}) - h(x, u^{k+1}, \\hat\\xi_k) \\le e_k(x)
+            = h(x, u^k, \\hat\\xi_k) - h(x, u^{k+1}, \\hat\\xi_k)
+
+        Parameters
+        ----------
+        s : torch.Tensor, shape (B, state_dim)
+            The batch.
+        u_old : torch.Tensor, shape (B, action_dim)
+            ``u^k = pi^k(x)``.
+        nodes_k, nodes_next : tuple of torch.Tensor
+            Quadratures (offsets, weights) of ``xi_hat_k`` and ``xi_hat_{k+1}``.
+
+        Returns
+        -------
+        mvc : MVCResult
+            The last check (it held, or ``j = j_max``).
+        j : int
+            Number of extra PIM steps taken.
+        u_new : torch.Tensor, shape (B, action_dim)
+            ``u^{k+1} = pi^{k+1}(x)`` after them.
+        """
+        task, cfg = self.task, self.config
+        obs = task.observe(s)
+        with torch.no_grad():
+            h_old_cur = h_value(task, self.critic, s, u_old, *nodes_k)
+        j = 0
+        while True:
+            with torch.no_grad():
+                u_new = self.actor(obs)
+                h_new_cur = h_value(task, self.critic, s, u_new, *nodes_k)
+                h_new_next = h_value(task, self.critic, s, u_new, *nodes_next)
+            mvc = mvc_check(h_new_next, h_new_cur, h_old_cur, cfg.mvc_check)
+            if mvc.held or j >= cfg.j_max:
+                return mvc, j, u_new
+            self.pim(s, *nodes_k)
+            j += 1
 
     def iteration(self) -> dict[str, float]:
         """Implements Algorithm 2, one outer iteration ``k``: data, PEV, PIM, IBE, MVC loop, stopping test.
@@ -627,39 +343,27 @@ class AGPI:
 
         Notes
         -----
-        See the class Notes for the order of the steps and :func:`mvc_check` for the batch form of the MVC.
+        See the class Notes for the order of the steps and :func:`mixedrl.pim.mvc_check` for the batch
+        form of the MVC.
         """
         cfg, task = self.config, self.task
-        self._set_lr()
+        set_learning_rates(cfg, self.k, self.critic_opt, self.actor_opt)
         s, residuals = self.collect()
-        mean_k, cov_k = np.array(self.noise.mean, dtype=np.float64), np.array(self.noise.cov, dtype=np.float64)
-        offsets_k, weights_k = self._nodes(mean_k, cov_k)
         obs = task.observe(s)
         with torch.no_grad():
             v_before = self.critic(obs)
             u_old = self.actor(obs)
+        # xi_hat_k: the current IBE posterior (the prior only before any data)
+        nodes_k = self.nodes(*self.planning_moments(s, u_old))
         # PEV with xi_hat_k
-        critic_loss_value = self.pev(s, offsets_k, weights_k)
+        critic_loss_value = self.pev(s, *nodes_k)
         # PIM with xi_hat_k
-        actor_obj = self.pim(s, offsets_k, weights_k)
+        actor_obj = self.pim(s, *nodes_k)
         # IBE: xi_hat_k -> xi_hat_{k+1}
         self.ibe(residuals)
-        offsets_next, weights_next = self._nodes(np.array(self.noise.mean, dtype=np.float64),
-                                                 np.array(self.noise.cov, dtype=np.float64))
+        nodes_next = self.nodes(*self.planning_moments(s, u_old))
         # AGPI inner loop: repeat PIM until the MVC holds or j = j_max
-        with torch.no_grad():
-            h_old_cur = h_value(task, self.critic, s, u_old, offsets_k, weights_k)
-        j = 0
-        while True:
-            with torch.no_grad():
-                u_new = self.actor(obs)
-                h_new_cur = h_value(task, self.critic, s, u_new, offsets_k, weights_k)
-                h_new_next = h_value(task, self.critic, s, u_new, offsets_next, weights_next)
-            mvc = mvc_check(h_new_next, h_new_cur, h_old_cur, cfg.mvc_check)
-            if mvc.held or j >= cfg.j_max:
-                break
-            self.pim(s, offsets_k, weights_k)
-            j += 1
+        mvc, j, u_new = self.mvc_loop(s, u_old, nodes_k, nodes_next)
         # stopping test: |V^{k+1} - V^k| <= eps and |pi^{k+1} - pi^k| <= eps on the batch
         with torch.no_grad():
             dv = float((self.critic(obs) - v_before).abs().mean() / (v_before.abs().mean() + 1e-12))
@@ -670,6 +374,7 @@ class AGPI:
             self.stop_count = 0
         self.stopped = cfg.stop_epsilon > 0 and self.stop_count >= cfg.stop_patience
         self.k += 1
+        self.last_batch = s
         metrics = {
             "train/critic_loss": critic_loss_value,
             "train/actor_objective": actor_obj,
@@ -688,21 +393,30 @@ class AGPI:
             batch_mean = residuals.mean(dim=0).numpy()
             for key in [k for k in metrics if k.startswith("ibe/mean_") and k[9:].isdigit()]:
                 metrics[f"ibe/batch_mean_{key[9:]}"] = float(batch_mean[int(key[9:])])
-        self.last_batch = s
         return metrics
 
     def noise_moments(self) -> tuple[np.ndarray, np.ndarray]:
-        """Copies of the current ``(mu_hat, K_hat)``, shapes (noise_dim,), (noise_dim, noise_dim)."""
+        """Copies of the current ``(mu_hat, K_hat)``, shapes (noise_dim,), (noise_dim, noise_dim).
+
+        For a state-dependent source the mean is the average of ``phi(x, pi(x))`` over the last batch
+        (the current environment states before the first iteration).
+        """
+        if self.noise.state_dependent:
+            s = self.last_batch if self.last_batch is not None else self.states.float()
+            with torch.no_grad():
+                u = self.actor(self.task.observe(s))
+            mean, cov = self.planning_moments(s, u)
+            return mean.mean(axis=0), cov
         return np.array(self.noise.mean, dtype=np.float64), np.array(self.noise.cov, dtype=np.float64)
 
     def actor_bound_tensor(self) -> torch.Tensor:
+        """The actor's action bound (ones if it has none), shape (action_dim,)."""
         bound = getattr(self.actor, "action_bound", None)
         return bound if bound is not None else torch.ones(self.task.action_dim)
 
     def noise_metrics(self) -> dict[str, float]:
         """IBE mean and covariance (components of the noise subspace), and errors against the truth."""
-        mean = np.asarray(self.noise.mean, dtype=np.float64)
-        cov = np.asarray(self.noise.cov, dtype=np.float64)
+        mean, cov = self.noise_moments()
         out: dict[str, float] = {}
         for i in range(mean.shape[0]):
             if self.task.true_cov[i, i] > 0 or self.task.prior_cov[i, i] > 1e-12 or self.task.true_mean[i] != 0:

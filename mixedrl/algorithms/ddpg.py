@@ -16,9 +16,9 @@ from typing import Any
 
 import torch
 
-from mixedrl.algorithms.agpi import _lr_factor
 from mixedrl.config import TrainConfig
 from mixedrl.networks import Actor, QCritic
+from mixedrl.schedule import set_learning_rates
 from mixedrl.tasks import Task
 
 __all__ = ["DDPG", "ReplayBuffer"]
@@ -161,11 +161,7 @@ class DDPG:
     def iteration(self) -> dict[str, float]:
         """One DDPG iteration: environment steps, one critic update, one actor update, target updates."""
         cfg, task = self.config, self.task
-        factor = _lr_factor(cfg, self.k)
-        for group in self.critic_opt.param_groups:
-            group["lr"] = cfg.critic_lr * factor
-        for group in self.actor_opt.param_groups:
-            group["lr"] = cfg.actor_lr * factor
+        set_learning_rates(cfg, self.k, self.critic_opt, self.actor_opt)
         mean_cost = self.collect()
         while self.buffer.size < cfg.ddpg_warmup:
             self.collect()

@@ -11,8 +11,10 @@
 
 The value and policy representations are pluggable: PEV is any callable ``evaluate(policy, noise) ->
 value`` and PIM any callable ``improve(value, noise) -> policy`` (exact ones for linear dynamics are
-:class:`mixedrl.quadratic.ExactPEV` / :class:`mixedrl.quadratic.ExactPIM`). The noise source is
-pluggable too, and is the only difference between the three methods:
+:class:`mixedrl.pev.ExactPEV` / :class:`mixedrl.pim.ExactPIM`; the steps :func:`mixedrl.pev.pev_step`
+and :func:`mixedrl.pim.pim_step` are re-exported here). The noise source
+(:class:`mixedrl.noise.NoiseSource`, made by :func:`mixedrl.noise.make_noise_source`) is pluggable too,
+and is the only difference between the three methods:
 
 * mixed RL: an IBE object (:mod:`mixedrl.ibe`) and a ``collect(policy, k)`` callable that returns the
   residuals (eq. 10) of fresh transitions of the true system under ``pi^k``;
@@ -24,35 +26,23 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass, field
-from typing import Any, Callable, Protocol
+from typing import Any, Callable
 
 import numpy as np
 
-from mixedrl._checks import check_positive_int
+from mixedrl.checks import check_positive_int
+from mixedrl.noise import NoiseSource
+from mixedrl.pev import pev_step
+from mixedrl.pim import pim_step
 
 __all__ = [
-    "NoiseSource",
     "Iteration",
     "PolicyIterationResult",
     "ibe_step",
-    "pev_step",
-    "pim_step",
     "policy_iteration",
 ]
 
 logger = logging.getLogger(__name__)
-
-
-class NoiseSource(Protocol):
-    """What the loop needs from a noise source: the moments of ``xi_hat_k`` (eq. 20)."""
-
-    @property
-    def mean(self) -> np.ndarray:  # (n,)
-        ...
-
-    @property
-    def cov(self) -> np.ndarray:  # (n, n)
-        ...
 
 
 @dataclass(frozen=True)
@@ -103,8 +93,8 @@ def ibe_step(noise: Any, residuals: np.ndarray | None) -> None:
 
     Parameters
     ----------
-    noise : object
-        The noise source. When ``residuals`` is given it must have ``update(residuals)`` (an IBE).
+    noise : NoiseSource
+        The noise source. When ``residuals`` is given it must learn (``learns = True``: an IBE).
     residuals : ndarray, shape (N, n), or None
         ``xi^D_j = x_{j+1} - f(x_j, u_j)`` (eq. 10) of the transitions collected at this iteration;
         ``None`` for a fixed noise source (model-driven RL, oracle): the step is then the identity.
@@ -112,73 +102,18 @@ def ibe_step(noise: Any, residuals: np.ndarray | None) -> None:
     Raises
     ------
     ValueError
-        ``residuals`` are given but ``noise`` cannot be updated (no ``update`` method); errors of the
-        IBE's own input checks propagate unchanged (they leave the IBE state unchanged).
+        ``residuals`` are given but ``noise`` does not learn (``learns`` false or missing); errors of
+        the IBE's own input checks propagate unchanged (they leave the IBE state unchanged).
     """
     if residuals is None:
         return
-    update = getattr(noise, "update", None)
-    if update is None:
-        raise ValueError("noise: residuals were collected but this noise source has no update() (not an IBE)")
-    update(residuals)
-
-
-def pev_step(evaluate: Callable[[Any, Any], Any], policy: Any, noise: Any) -> Any:
-    """Implements eq. (21): policy evaluation of ``pi^k`` under the mixed model ``N(mu_hat_k, K_hat_k)``.
-
-    .. math:: V^k(x) = \\mathbb{E}_{\\hat\\xi_k}\\{ l(x', \\pi^k(x)) + \\gamma V^k(x') \\}
-
-    Parameters
-    ----------
-    evaluate : callable
-        ``evaluate(policy, noise) -> value``, e.g. :class:`mixedrl.quadratic.ExactPEV`.
-    policy : object
-        ``pi^k``.
-    noise : object
-        Noise source with ``.mean`` (n,) and ``.cov`` (n, n).
-
-    Returns
-    -------
-    object
-        ``V^k``.
-
-    Raises
-    ------
-    ValueError
-        Propagated from ``evaluate`` (e.g. a policy that does not stabilise the discounted problem).
-    """
-    return evaluate(policy, noise)
-
-
-def pim_step(improve: Callable[[Any, Any], Any], value: Any, noise: Any) -> Any:
-    """Implements eq. (22): policy improvement under the mixed model.
-
-    .. math:: \\pi^{k+1}(x) = \\arg\\min_u \\mathbb{E}_{\\hat\\xi_k}\\{ l(x', u) + \\gamma V^k(x') \\}
-
-    Parameters
-    ----------
-    improve : callable
-        ``improve(value, noise) -> policy``, e.g. :class:`mixedrl.quadratic.ExactPIM`.
-    value : object
-        ``V^k``.
-    noise : object
-        Noise source with ``.mean`` (n,) and ``.cov`` (n, n).
-
-    Returns
-    -------
-    object
-        ``pi^{k+1}``.
-
-    Raises
-    ------
-    ValueError
-        Propagated from ``improve``.
-    """
-    return improve(value, noise)
+    if not getattr(noise, "learns", False):
+        raise ValueError("noise: residuals were collected but this noise source does not learn (not an IBE)")
+    noise.update(residuals)
 
 
 def policy_iteration(
-    noise: Any,
+    noise: NoiseSource,
     evaluate: Callable[[Any, Any], Any],
     improve: Callable[[Any, Any], Any],
     initial_policy: Any,

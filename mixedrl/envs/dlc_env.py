@@ -13,7 +13,7 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
-from mixedrl._checks import as_vector, check_unknown_keys
+from mixedrl.checks import as_vector, check_unknown_keys
 from mixedrl.envs.tracking import (
     STATE_DIM,
     DoubleLaneChangeConfig,

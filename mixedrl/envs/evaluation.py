@@ -8,7 +8,7 @@ from typing import Any, Callable
 import numpy as np
 import torch
 
-from mixedrl._checks import as_vector, check_positive_int
+from mixedrl.checks import as_vector, check_positive_int
 from mixedrl.envs.dlc_env import DoubleLaneChangeEnv
 from mixedrl.envs.tracking import DoubleLaneChangeConfig
 

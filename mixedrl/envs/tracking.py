@@ -42,7 +42,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from mixedrl._checks import check_positive_int, check_unknown_keys
+from mixedrl.checks import check_positive_int, check_unknown_keys
 from mixedrl.envs.reference import DoubleLaneChangeReference
 from mixedrl.envs.vehicle import VX_INDEX, VehicleDynamics, VehicleParams
 

@@ -27,7 +27,7 @@ from typing import Any, Callable, overload
 import numpy as np
 import torch
 
-from mixedrl._checks import check_finite
+from mixedrl.checks import check_finite
 
 __all__ = [
     "VehicleParams",

@@ -1,0 +1,446 @@
+"""Expectations over the mixed model's noise, ``E g(c + xi)``, ``xi ~ N(mu, K)``: one module for all.
+
+Algorithm 2 (eqs. 49 and 51), the exact checks of :mod:`theory` and the PSD linear algebra of
+:mod:`mixedrl.gaussian` all need the same three things, defined here once:
+
+* the **numerical support** of a covariance (:data:`SUPPORT_RTOL`, :func:`support`): the eigenpairs
+  ``(lambda_i, v_i)`` with ``lambda_i > SUPPORT_RTOL * lambda_max``; the rest is treated as 0;
+* the **nodes** of a quadrature rule on that support (:func:`quadrature_nodes` in numpy,
+  :func:`expectation_nodes` in torch): the ``2r`` spherical-cubature sigma points
+  (:class:`SigmaPoints`, exact for polynomials of degree <= 3) or the tensor Gauss-Hermite rule
+  (:class:`GaussHermite`, exact to degree ``2q - 1`` per coordinate);
+* ``h(x, u, xi)`` of **eq. (37)** (:func:`h`), for numpy arrays and torch tensors alike, with its
+  task-level form :func:`h_value` used by PEV, PIM and the MVC of Algorithm 2.
+
+Because the noise is additive, ``f(x, u)`` is computed once per state and only the integrand is
+evaluated at the nodes: ``E g(f(x, u) + xi) ~= sum_i w_i g(f(x, u) + d_i)``. See ``docs/expectation.rst``
+for the choice of the cut-off and the error bound for dropped directions.
+"""
+
+from __future__ import annotations
+
+import itertools
+from dataclasses import dataclass
+from typing import Any, Callable, Protocol
+
+import numpy as np
+import torch
+
+from mixedrl.checks import as_batch, as_vector, check_covariance, check_positive_int
+
+__all__ = [
+    "SUPPORT_RTOL",
+    "support",
+    "SigmaPoints",
+    "GaussHermite",
+    "quadrature_nodes",
+    "expectation_nodes",
+    "expect",
+    "gaussian_expectation",
+    "h",
+    "h_value",
+]
+
+#: Relative eigenvalue floor that defines the numerical support (range, rank) of a PSD matrix:
+#: eigenvalues ``<= SUPPORT_RTOL * lambda_max`` count as 0. The one cut-off of the project (quadrature,
+#: pseudo-inverses, KL supports); ``1e-6`` puts the vehicle prior's ``1e-20`` entries (next to
+#: ``(4T/m)^2 = 1.8e-10``, ratio ``5.6e-11``) outside the support: the vehicle noise has rank 1.
+SUPPORT_RTOL = 1e-6
+
+
+def support(cov: np.ndarray, rtol: float = SUPPORT_RTOL) -> tuple[np.ndarray, np.ndarray]:
+    """Return the eigenpairs of a symmetric PSD matrix on its numerical support.
+
+    .. math:: \\mathcal{K} \\approx \\sum_{i=1}^{r} \\lambda_i v_i v_i^\\top,
+        \\qquad \\lambda_i > \\mathrm{rtol}\\,\\lambda_{\\max}
+
+    Parameters
+    ----------
+    cov : numpy.ndarray, shape (n, n)
+        Symmetric positive semi-definite (not validated here: callers pass validated or symmetrised
+        matrices; ``eigh`` reads one triangle).
+    rtol : float
+        Relative eigenvalue floor (default :data:`SUPPORT_RTOL`).
+
+    Returns
+    -------
+    eigvals : numpy.ndarray, shape (r,)
+        The kept eigenvalues, ascending, all ``> 0``.
+    eigvecs : numpy.ndarray, shape (n, r)
+        Their orthonormal eigenvectors (columns).
+
+    Notes
+    -----
+    ``r = 0`` when ``lambda_max <= 0`` (a zero matrix).
+    """
+    lam, vec = np.linalg.eigh(cov)
+    top = lam[-1] if lam.size else 0.0
+    keep = lam > rtol * top if top > 0 else np.zeros_like(lam, dtype=bool)
+    return lam[keep], vec[:, keep]
+
+
+@dataclass(frozen=True)
+class SigmaPoints:
+    """Spherical-cubature rule: ``2r`` nodes ``+- sqrt(r) e_i``, weights ``1/(2r)``; exact to degree 3."""
+
+    def nodes(self, r: int) -> tuple[np.ndarray, np.ndarray]:
+        """Return nodes (2r, r) and weights (2r,) for ``N(0, I_r)``."""
+        eye = np.sqrt(r) * np.eye(r)
+        return np.vstack([eye, -eye]), np.full(2 * r, 1.0 / (2 * r))
+
+
+@dataclass(frozen=True)
+class GaussHermite:
+    """Tensor-product Gauss-Hermite rule of ``order`` points per dimension; exact to degree ``2 order - 1``.
+
+    Parameters
+    ----------
+    order : int
+        Points per dimension (``>= 1``). The rule has ``order ** r`` nodes.
+    """
+
+    order: int = 5
+
+    def __post_init__(self) -> None:
+        check_positive_int(self.order, "order")
+
+    def nodes(self, r: int) -> tuple[np.ndarray, np.ndarray]:
+        """Return nodes (order^r, r) and weights (order^r,) for ``N(0, I_r)``."""
+        x, w = np.polynomial.hermite_e.hermegauss(self.order)
+        w = w / np.sqrt(2.0 * np.pi)
+        grid = np.array(list(itertools.product(x, repeat=r)), dtype=np.float64).reshape(-1, r)
+        wgrid = np.array([np.prod(c) for c in itertools.product(w, repeat=r)], dtype=np.float64)
+        return grid, wgrid
+
+
+Rule = SigmaPoints | GaussHermite
+
+
+def quadrature_nodes(mean: np.ndarray, cov: np.ndarray, rule: Rule | None = None
+                     ) -> tuple[np.ndarray, np.ndarray]:
+    """Nodes ``xi_i`` and weights ``w_i`` of ``E g(xi) ~= sum_i w_i g(xi_i)``, ``xi ~ N(mean, cov)``.
+
+    Implements the quadrature of eqs. (37), (49) and (51) on the support of ``cov``
+    (:func:`support`, rank ``r``):
+
+    .. math::
+
+        \\hat\\xi_{\\pm i} = \\hat\\mu \\pm \\sqrt{r \\lambda_i}\\, v_i,\\quad w = \\frac{1}{2r}
+        \\quad\\text{(sigma points)},\\qquad
+        \\hat\\xi_j = \\hat\\mu + V \\Lambda^{1/2} z_j \\quad\\text{(Gauss-Hermite)}.
+
+    Parameters
+    ----------
+    mean : numpy.ndarray
+        ``mu``, shape (n,) or (B, n); a batch of means (one per state, Case 3 of the IBE) gives per-state nodes.
+    cov : numpy.ndarray, shape (n, n)
+        Symmetric PSD, possibly singular.
+    rule : SigmaPoints or GaussHermite, optional
+        Default :class:`SigmaPoints`.
+
+    Returns
+    -------
+    nodes : numpy.ndarray
+        Shape (P, n), or (P, B, n) for a batch of means.
+    weights : numpy.ndarray
+        Shape (P,), summing to 1.
+
+    Notes
+    -----
+    If ``r = 0`` (``cov = 0``) the rule is the single node ``mean``.
+    """
+    rule = SigmaPoints() if rule is None else rule
+    lam, vec = support(cov)
+    r = lam.shape[0]
+    centre = mean[None]
+    if r == 0:
+        return centre.copy(), np.ones(1)
+    if isinstance(rule, SigmaPoints):
+        # xi_{+-i} = mu_hat +- sqrt(r lambda_i) v_i
+        spread = (vec * np.sqrt(r * lam)).T
+        if mean.ndim == 2:
+            spread = spread[:, None, :]
+        return np.concatenate([centre + spread, centre - spread], axis=0), np.full(2 * r, 1.0 / (2 * r))
+    z, w = rule.nodes(r)
+    # xi_j = mu_hat + V Lambda^{1/2} z_j
+    spread = z @ (vec * np.sqrt(lam)).T
+    if mean.ndim == 2:
+        spread = spread[:, None, :]
+    return centre + spread, w
+
+
+def expectation_nodes(mean: np.ndarray, cov: np.ndarray, noise_matrix: torch.Tensor,
+                      rule: str | Rule = "sigma", n_samples: int = 4, generator: torch.Generator | None = None,
+                      dtype: torch.dtype = torch.float32) -> tuple[torch.Tensor, torch.Tensor]:
+    """Nodes and weights of the expectation over ``xi_hat ~ N(mu_hat, K_hat)`` in eqs. (49) and (51).
+
+    Implements the integral of eq. (51),
+
+    .. math::
+
+        \\mathbb{E}_{\\hat\\xi}\\, g(f(x, u) + E \\hat\\xi) \\approx \\sum_i w_i\\, g(f(x, u) + d_i),
+        \\qquad d_i = E\\, \\hat\\xi_i,
+
+    with the nodes ``xi_hat_i`` of :func:`quadrature_nodes` (``rule="sigma"`` or a rule object), or
+    ``n_samples`` reparameterised draws ``mu_hat + K_hat^{1/2} eps`` (``rule="samples"``, weights ``1/n``).
+
+    Parameters
+    ----------
+    mean : numpy.ndarray
+        ``mu_hat``, shape (noise_dim,) or (B, noise_dim); one row per state for a state-dependent mean
+        (Case 3) gives per-state offsets.
+    cov : numpy.ndarray, shape (noise_dim, noise_dim)
+        ``K_hat``, symmetric positive semi-definite (may be singular).
+    noise_matrix : torch.Tensor, shape (state_dim, noise_dim)
+        ``E``, how the noise enters the state.
+    rule : {"sigma", "samples"} or SigmaPoints or GaussHermite
+        Quadrature rule.
+    n_samples : int
+        Number of draws for ``rule="samples"``.
+    generator : torch.Generator, optional
+        Required for ``rule="samples"``.
+    dtype : torch.dtype
+        Dtype of the returned tensors.
+
+    Returns
+    -------
+    offsets : torch.Tensor
+        ``d_i = E xi_hat_i``, shape ``(P, state_dim)``, or ``(P, B, state_dim)`` for a batch of means.
+    weights : torch.Tensor
+        Quadrature weights summing to 1, shape ``(P,)``.
+
+    Raises
+    ------
+    ValueError
+        Shapes inconsistent, non-finite input, unknown ``rule``, ``rule="samples"`` without generator or
+        with a batch of means.
+
+    Notes
+    -----
+    The sigma rule integrates every polynomial of degree <= 3 in ``xi`` exactly; here ``l`` is quadratic
+    in ``x'`` so the cost term is exact and only the critic's higher-order terms are approximated.
+    Directions with ``lambda_i <= SUPPORT_RTOL lambda_max`` are dropped (the vehicle prior's ``1e-20``
+    entries): the error this makes is at most ``sum(dropped lambda) * max|Hessian| / 2``. If
+    ``K_hat = 0`` the rule reduces to the single point ``mu_hat``.
+    """
+    mean = np.asarray(mean, dtype=np.float64)
+    cov = np.asarray(cov, dtype=np.float64)
+    n = mean.shape[-1] if mean.ndim in (1, 2) else -1
+    if mean.ndim not in (1, 2) or cov.shape != (n, n) or noise_matrix.shape[-1] != n:
+        raise ValueError(f"mean: shapes mean {mean.shape}, cov {cov.shape}, noise_matrix "
+                         f"{tuple(noise_matrix.shape)} are inconsistent")
+    if not (np.isfinite(mean).all() and np.isfinite(cov).all()):
+        raise ValueError("mean: mean or cov contains NaN or inf")
+    cov = 0.5 * (cov + cov.T)
+    if rule == "sigma" or isinstance(rule, (SigmaPoints, GaussHermite)):
+        xi, w = quadrature_nodes(mean, cov, SigmaPoints() if rule == "sigma" else rule)
+        xi_t = torch.as_tensor(xi, dtype=torch.float64)
+    elif rule == "samples":
+        if generator is None:
+            raise ValueError("generator: required for rule='samples'")
+        if mean.ndim != 1:
+            raise ValueError("mean: rule='samples' takes one mean of shape (noise_dim,)")
+        lam, vec = np.linalg.eigh(cov)
+        lam = np.clip(lam, 0.0, None)
+        w = None
+        eps = torch.randn(n_samples, n, generator=generator, dtype=torch.float64)
+        root = torch.as_tensor(vec * np.sqrt(lam), dtype=torch.float64)
+        # xi = mu_hat + K_hat^{1/2} eps   (reparameterisation)
+        xi_t = torch.as_tensor(mean) + eps @ root.T
+    else:
+        raise ValueError(f"rule: expected 'sigma', 'samples' or a quadrature rule, got {rule!r}")
+    offsets = (xi_t @ noise_matrix.to(torch.float64).T).to(dtype)
+    if isinstance(rule, GaussHermite):
+        weights = torch.as_tensor(w, dtype=dtype)
+    else:
+        weights = torch.full((offsets.shape[0],), 1.0 / offsets.shape[0], dtype=dtype)
+    return offsets, weights
+
+
+def expect(g: Callable[..., Any], centers: Any, offsets: Any, weights: Any, extra: Any = None) -> Any:
+    """``sum_i w_i g(c_b + d_i)`` for every row ``c_b`` of ``centers``; numpy arrays or torch tensors.
+
+    .. math:: \\mathbb{E}\\, g(c + \\xi) \\approx \\sum_i w_i\\, g(c + d_i)
+
+    Parameters
+    ----------
+    g : callable
+        Batched: ``g(x)`` (M, n) -> (M,), or ``g(x, e)`` when ``extra`` is given.
+    centers : array or Tensor, shape (B, n)
+        The deterministic parts ``f(x, u)``.
+    offsets : array or Tensor
+        Nodes ``d_i``, shape (P, n), or (P, B, n) per state for a state-dependent noise.
+    weights : array or Tensor
+        Shape (P,).
+    extra : array or Tensor, shape (B, m), optional
+        Per-row extra argument (the action ``u`` of ``l(x', u)``), repeated for every node.
+
+    Returns
+    -------
+    array or Tensor, shape (B,)
+
+    Raises
+    ------
+    ValueError
+        ``g`` returns the wrong shape, or ``extra`` has another number of rows than ``centers``.
+    """
+    P, B = offsets.shape[0], centers.shape[0]
+    step = offsets if offsets.ndim == 3 else offsets[:, None, :]
+    points = (centers[None] + step).reshape(P * B, -1)
+    if extra is None:
+        values = g(points)
+    else:
+        if extra.shape[0] != B:
+            raise ValueError(f"extra: {extra.shape[0]} rows, but centers has {B}")
+        if isinstance(extra, torch.Tensor):
+            rep = extra.unsqueeze(0).expand(P, *extra.shape).reshape(P * B, -1)
+        else:
+            rep = np.broadcast_to(extra[None], (P, *extra.shape)).reshape(P * B, -1)
+        values = g(points, rep)
+    if tuple(values.shape) != (P * B,):
+        raise ValueError(f"g: expected output shape ({P * B},), got {tuple(values.shape)}")
+    return weights @ values.reshape(P, B)
+
+
+def gaussian_expectation(
+    g: Callable[..., np.ndarray],
+    centers: Any,
+    mean: Any,
+    cov: Any,
+    rule: Rule | None = None,
+    extra: Any = None,
+) -> np.ndarray:
+    """Return ``E g(c_i + xi)`` for each row ``c_i`` of ``centers``, ``xi ~ N(mean, cov)``, by quadrature.
+
+    .. math:: \\mathbb{E}\\, g(c + \\xi) \\approx \\sum_j w_j\\, g(c + \\hat\\xi_j)
+
+    Parameters
+    ----------
+    g : callable
+        Batched function: ``g(x)`` with x (M, n) -> (M,), or ``g(x, e)`` when ``extra`` is given.
+    centers : array_like
+        The deterministic parts ``f(x, u)``, shape (N, n) or (n,).
+    mean : array_like, shape (n,)
+    cov : array_like, shape (n, n)
+        Symmetric PSD, possibly singular.
+    rule : SigmaPoints or GaussHermite, optional
+        Default :class:`SigmaPoints` (exact for polynomials of degree <= 3).
+    extra : array_like, shape (N, m), optional
+        Per-row extra argument (e.g. the action ``u`` of ``l(x', u)``), repeated for every node.
+
+    Returns
+    -------
+    ndarray, shape (N,)
+
+    Raises
+    ------
+    ValueError
+        Shapes do not match, non-finite input, ``cov`` not symmetric PSD, or ``g`` returns the wrong shape.
+    """
+    c = as_batch(centers, "centers", np.shape(centers)[-1])
+    n = c.shape[1]
+    mu = as_vector(mean, "mean", n)
+    K = check_covariance(cov, "cov", n)
+    xi, w = quadrature_nodes(mu, K, rule)
+    e = None if extra is None else np.asarray(extra, dtype=np.float64).reshape(c.shape[0], -1)
+
+    def values(x: np.ndarray, *rest: np.ndarray) -> np.ndarray:
+        return np.asarray(g(x, *rest), dtype=np.float64)
+
+    return expect(values, c, xi, w, e)
+
+
+def h(f: Callable[[Any, Any], Any], cost: Callable[[Any, Any], Any], value: Callable[[Any], Any], gamma: float,
+      x: Any, u: Any, offsets: Any, weights: Any) -> Any:
+    """Implements eq. (37): the expected cumulative cost of action ``u`` under a noise distribution.
+
+    .. math::
+
+        h(x, u, \\hat\\xi) = \\mathbb{E}_{\\hat\\xi}\\{ l(x', u) + \\gamma V^k(x') \\},
+        \\qquad x' = f(x, u) + \\hat\\xi,
+
+    the utility charged on the **next** state (eq. 2). Works on numpy arrays and on torch tensors
+    (differentiable in ``u`` and in ``V``'s parameters).
+
+    Parameters
+    ----------
+    f : callable
+        ``f(x, u)``: (B, n), (B, m) -> (B, n).
+    cost : callable
+        ``l(x', u)``: (M, n), (M, m) -> (M,).
+    value : callable
+        ``V^k``: (M, n) -> (M,).
+    gamma : float
+    x : array or Tensor, shape (B, n)
+    u : array or Tensor, shape (B, m)
+    offsets, weights : array or Tensor
+        Quadrature of the noise: shapes ``(P, n)`` (or ``(P, B, n)``, per state) and ``(P,)``
+        (:func:`quadrature_nodes`, :func:`expectation_nodes`).
+
+    Returns
+    -------
+    array or Tensor, shape (B,)
+
+    Raises
+    ------
+    ValueError
+        The batch sizes of ``x`` and ``u`` differ, or ``f``/``cost``/``value`` return wrong shapes.
+    """
+    if x.shape[0] != u.shape[0]:
+        raise ValueError(f"u: batch size {u.shape[0]} differs from x's {x.shape[0]}")
+    # f(x, u), once per state: the noise is additive
+    centers = f(x, u)
+    if tuple(centers.shape) != tuple(x.shape):
+        raise ValueError(f"f: expected output shape {tuple(x.shape)}, got {tuple(centers.shape)}")
+
+    def target(x_next: Any, u_rep: Any) -> Any:
+        # l(x', u) + gamma V(x'),  x' = f(x, u) + xi_hat
+        return cost(x_next, u_rep) + gamma * value(x_next)
+
+    return expect(target, centers, offsets, weights, u)
+
+
+class _ModelTask(Protocol):
+    gamma: float
+
+    def f(self, s: torch.Tensor, u: torch.Tensor) -> torch.Tensor: ...
+
+    def cost(self, s_next: torch.Tensor, u: torch.Tensor) -> torch.Tensor: ...
+
+    def observe(self, s: torch.Tensor) -> torch.Tensor: ...
+
+
+def h_value(task: _ModelTask, critic: torch.nn.Module, s: torch.Tensor, u: torch.Tensor, offsets: torch.Tensor,
+            weights: torch.Tensor) -> torch.Tensor:
+    """Implements eq. (37) for a task and a critic on observations: :func:`h` with ``V = critic o observe``.
+
+    .. math::
+
+        h(x, u, \\hat\\xi) = \\mathbb{E}_{\\hat\\xi}\\{ l(x', u) + \\gamma V^k(x') \\},
+        \\qquad x' = f(x, u) + \\hat\\xi.
+
+    Parameters
+    ----------
+    task : Task
+        The model ``f``, the utility ``l``, ``gamma``, ``observe``.
+    critic : torch.nn.Module
+        ``V^k``, maps observations (N, obs_dim) to (N,).
+    s : torch.Tensor, shape (B, state_dim)
+        States ``x``.
+    u : torch.Tensor, shape (B, action_dim)
+        Actions.
+    offsets, weights : torch.Tensor
+        Quadrature of the noise distribution (:func:`expectation_nodes`), shapes ``(P, state_dim)`` (or
+        ``(P, B, state_dim)``) and ``(P,)``.
+
+    Returns
+    -------
+    torch.Tensor, shape (B,)
+        ``h`` per state (differentiable in ``u`` and in the critic's weights).
+
+    Raises
+    ------
+    ValueError
+        If the batch sizes of ``s`` and ``u`` differ.
+    """
+    return h(task.f, task.cost, lambda z: critic(task.observe(z)), task.gamma, s, u, offsets, weights)

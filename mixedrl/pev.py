@@ -1,0 +1,317 @@
+"""Policy evaluation (PEV): eq. (21) exactly on quadratic values, eqs. (49)-(50) with a parameterised critic.
+
+* **Exact** (Algorithm 1 on linear dynamics, :mod:`mixedrl.quadratic` types): :func:`evaluate_policy`
+  solves eq. (21) for an affine policy, :func:`bellman_backup` is one sweep of it (eq. 31),
+  :class:`ExactPEV` binds a problem, and :func:`pev_step` is Algorithm 1's PEV step for any
+  representation.
+* **Parameterised** (Algorithm 2): :func:`critic_loss` is the loss of eq. (49) whose gradient is the
+  semi-gradient of eq. (50); :func:`critic_step` takes one optimiser step on it.
+
+Both charge the utility on the **next** state (eq. 2) and take the expectation over the mixed model's
+noise ``xi_hat_k`` (exactly for quadratics, by the quadrature of :mod:`mixedrl.expectation` otherwise).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Callable
+
+import numpy as np
+import torch
+
+from mixedrl.checks import as_vector, check_covariance
+from mixedrl.expectation import h_value
+from mixedrl.quadratic import AffinePolicy, LinearDynamics, QuadraticCost, QuadraticValue, check_problem, lyapunov_solve
+
+__all__ = ["evaluate_policy", "bellman_backup", "ExactPEV", "pev_step", "critic_loss", "critic_step"]
+
+
+# ----------------------------------------------------------------------------------------------------
+# exact PEV on quadratic values (eq. 21)
+# ----------------------------------------------------------------------------------------------------
+def evaluate_policy(
+    dynamics: LinearDynamics,
+    cost: QuadraticCost,
+    gamma: float,
+    policy: AffinePolicy,
+    noise_mean: Any,
+    noise_cov: Any,
+) -> QuadraticValue:
+    """Implements eq. (21): exact PEV of an affine policy under the mixed model ``N(mu_hat, K_hat)``.
+
+    .. math::
+        V^k(x) = \\mathbb{E}_{\\hat\\xi_k}\\{ l(x', \\pi^k(x)) + \\gamma V^k(x') \\},\\quad
+        x' = A x + B \\pi^k(x) + \\hat\\xi_k,\\ \\hat\\xi_k \\sim N(\\hat\\mu_k, \\hat K_k).
+
+    With ``A_c = A - B L``, ``d = mu_hat - B l0``, ``S = Q + gamma P`` and ``V = x^T P x + 2 p^T x + c``,
+    matching the quadratic, linear and constant terms gives
+
+    .. math::
+        P &= \\gamma A_c^T P A_c + A_c^T Q A_c + L^T R L \\\\
+        (I - \\gamma A_c^T)\\, p &= A_c^T S d + L^T R\\, l_0 \\\\
+        (1 - \\gamma)\\, c &= d^T S d + \\operatorname{tr}(S \\hat K) + l_0^T R\\, l_0 + 2 \\gamma\\, p^T d .
+
+    Parameters
+    ----------
+    dynamics : LinearDynamics
+        ``f(x, u) = A x + B u``, A (n, n), B (n, m).
+    cost : QuadraticCost
+        Q (n, n), R (m, m); utility on the next state (eq. 2).
+    gamma : float
+        Discount factor in (0, 1).
+    policy : AffinePolicy
+        L (m, n), l0 (m,).
+    noise_mean : ndarray, shape (n,)
+        ``mu_hat_k``.
+    noise_cov : ndarray, shape (n, n)
+        ``K_hat_k`` (symmetric PSD).
+
+    Returns
+    -------
+    QuadraticValue
+        ``V^k`` with P (n, n), p (n,), c.
+
+    Raises
+    ------
+    ValueError
+        Shapes do not match, gamma not in (0, 1), the covariance is not symmetric PSD, or the policy is
+        not stabilising for the discounted problem (spectral radius of ``sqrt(gamma) A_c`` >= 1, so
+        eq. 21 has no finite solution).
+
+    Notes
+    -----
+    The expectation over ``xi_hat`` is exact (no sampling): ``E V(x') = V(E x') + tr(P K_hat)``.
+    The quadratic term is a discrete Lyapunov equation in ``sqrt(gamma) A_c`` solved by
+    :func:`lyapunov_solve`; the linear term is a linear system with matrix ``I - gamma A_c^T``,
+    non-singular because ``rho(gamma A_c) < sqrt(gamma) < 1``.
+    """
+    g = check_problem(dynamics, cost, gamma)
+    n, m = dynamics.n, dynamics.m
+    if policy.L.shape != (m, n):
+        raise ValueError(f"policy: gain shape {policy.L.shape} does not match (m, n) = ({m}, {n})")
+    mu = as_vector(noise_mean, "noise_mean", n)
+    K = check_covariance(noise_cov, "noise_cov", n)
+    A, B, Q, R = dynamics.A, dynamics.B, cost.Q, cost.R
+    L, l0 = policy.L, policy.l0
+    Ac = A - B @ L
+    rho = float(np.max(np.abs(np.linalg.eigvals(np.sqrt(g) * Ac))))
+    if rho >= 1.0:
+        raise ValueError(
+            f"policy: not stabilising for the discounted problem (spectral radius of sqrt(gamma)(A - B L) = {rho:.6g} >= 1)"
+        )
+    # P = gamma A_c^T P A_c + A_c^T Q A_c + L^T R L   (quadratic terms of eq. 21)
+    P = lyapunov_solve(np.sqrt(g) * Ac, Ac.T @ Q @ Ac + L.T @ R @ L)
+    S = Q + g * P
+    d = mu - B @ l0
+    # (I - gamma A_c^T) p = A_c^T S d + L^T R l0   (linear terms of eq. 21)
+    p = np.linalg.solve(np.eye(n) - g * Ac.T, Ac.T @ S @ d + L.T @ R @ l0)
+    # (1 - gamma) c = d^T S d + tr(S K) + l0^T R l0 + 2 gamma p^T d   (constant terms of eq. 21)
+    c = (d @ S @ d + float(np.sum(S * K)) + l0 @ R @ l0 + 2.0 * g * p @ d) / (1.0 - g)
+    return QuadraticValue(P, p, c)
+
+
+def bellman_backup(
+    dynamics: LinearDynamics,
+    cost: QuadraticCost,
+    gamma: float,
+    policy: AffinePolicy,
+    value: QuadraticValue,
+    noise_mean: Any,
+    noise_cov: Any,
+) -> QuadraticValue:
+    """Implements eq. (31): one PEV sweep ``V_1(x) = E_xi{ l(x', pi(x)) + gamma V(x') }``, exactly.
+
+    .. math::
+        (T^{\\pi} V)(x) = \\mathbb{E}_{\\hat\\xi}\\{ l(x', \\pi(x)) + \\gamma V(x') \\}
+        = h(x, \\pi(x), \\hat\\xi)\\quad\\text{(eq. 37)}
+
+    With ``S = Q + gamma P``, ``A_c = A - B L``, ``d = mu - B l0`` the result is
+    ``P_1 = A_c^T S A_c + L^T R L``, ``p_1 = A_c^T (S d + gamma p) + L^T R l0``,
+    ``c_1 = d^T S d + tr(S K) + l0^T R l0 + 2 gamma p^T d + gamma c``.
+
+    Parameters
+    ----------
+    dynamics : LinearDynamics
+    cost : QuadraticCost
+    gamma : float
+    policy : AffinePolicy
+        L (m, n), l0 (m,).
+    value : QuadraticValue
+        P (n, n), p (n,), c.
+    noise_mean : ndarray, shape (n,)
+    noise_cov : ndarray, shape (n, n)
+
+    Returns
+    -------
+    QuadraticValue
+
+    Raises
+    ------
+    ValueError
+        Shapes do not match, gamma outside (0, 1), covariance not symmetric PSD.
+
+    Notes
+    -----
+    The fixed point of this map is :func:`evaluate_policy`; the theory tests use it to check the MVC
+    (eq. 38) and value decrease (eq. 29) for *all* x at once (:func:`is_nonnegative`).
+    """
+    g = check_problem(dynamics, cost, gamma)
+    n, m = dynamics.n, dynamics.m
+    if policy.L.shape != (m, n) or value.P.shape != (n, n):
+        raise ValueError("policy: shapes of policy/value do not match the dynamics")
+    mu = as_vector(noise_mean, "noise_mean", n)
+    K = check_covariance(noise_cov, "noise_cov", n)
+    A, B, Q, R = dynamics.A, dynamics.B, cost.Q, cost.R
+    L, l0 = policy.L, policy.l0
+    Ac = A - B @ L
+    S = Q + g * value.P
+    d = mu - B @ l0
+    P1 = Ac.T @ S @ Ac + L.T @ R @ L
+    p1 = Ac.T @ (S @ d + g * value.p) + L.T @ R @ l0
+    c1 = d @ S @ d + float(np.sum(S * K)) + l0 @ R @ l0 + 2.0 * g * value.p @ d + g * value.c
+    return QuadraticValue(P1, p1, c1)
+
+
+@dataclass(frozen=True)
+class ExactPEV:
+    """PEV step (eq. 21) bound to a linear-quadratic problem: ``pev(policy, noise) -> QuadraticValue``.
+
+    ``noise`` is any object with ``.mean`` (n,) and ``.cov`` (n, n).
+    """
+
+    dynamics: LinearDynamics
+    cost: QuadraticCost
+    gamma: float
+
+    def __call__(self, policy: AffinePolicy, noise: Any) -> QuadraticValue:
+        """Return ``V^k`` of ``policy`` under ``N(noise.mean, noise.cov)`` (see :func:`evaluate_policy`)."""
+        return evaluate_policy(self.dynamics, self.cost, self.gamma, policy, noise.mean, noise.cov)
+
+
+def pev_step(evaluate: Callable[[Any, Any], Any], policy: Any, noise: Any) -> Any:
+    """Implements eq. (21): policy evaluation of ``pi^k`` under the mixed model ``N(mu_hat_k, K_hat_k)``.
+
+    .. math:: V^k(x) = \\mathbb{E}_{\\hat\\xi_k}\\{ l(x', \\pi^k(x)) + \\gamma V^k(x') \\}
+
+    Parameters
+    ----------
+    evaluate : callable
+        ``evaluate(policy, noise) -> value``, e.g. :class:`ExactPEV`.
+    policy : object
+        ``pi^k``.
+    noise : object
+        Noise source with ``.mean`` (n,) and ``.cov`` (n, n).
+
+    Returns
+    -------
+    object
+        ``V^k``.
+
+    Raises
+    ------
+    ValueError
+        Propagated from ``evaluate`` (e.g. a policy that does not stabilise the discounted problem).
+    """
+    return evaluate(policy, noise)
+
+
+# ----------------------------------------------------------------------------------------------------
+# parameterised PEV (eqs. 49-50)
+# ----------------------------------------------------------------------------------------------------
+def critic_loss(task: Any, critic: torch.nn.Module, s: torch.Tensor, u: torch.Tensor, offsets: torch.Tensor,
+                weights: torch.Tensor) -> torch.Tensor:
+    """Implements eqs. (49)-(50): the PEV loss whose gradient is the critic's semi-gradient.
+
+    .. math::
+
+        J_{\\rm critic} = \\mathbb{E}_{\\hat\\xi}\\Big\\{\\tfrac12 \\big(l(x', u_\\theta)
+            + \\gamma V^k(x'; w) - V^k(x; w)\\big)^2\\Big\\},
+        \\qquad
+        \\frac{\\partial J_{\\rm critic}}{\\partial w}
+            = \\big(V^k(x; w) - \\mathbb{E}\\,V_{\\rm target}\\big)\\,\\frac{\\partial V^k(x; w)}{\\partial w}.
+
+    Parameters
+    ----------
+    task : Task
+        Model and utility.
+    critic : torch.nn.Module
+        ``V(x; w)``.
+    s : torch.Tensor, shape (B, state_dim)
+        Batch of states.
+    u : torch.Tensor, shape (B, action_dim)
+        ``u_theta = pi(x; theta)`` (detached: PEV does not move the actor).
+    offsets, weights : torch.Tensor
+        Quadrature of ``xi_hat_k`` (:func:`mixedrl.expectation.expectation_nodes`), shapes
+        ``(P, state_dim)`` (or ``(P, B, state_dim)``, per state) and ``(P,)``.
+
+    Returns
+    -------
+    torch.Tensor, shape ()
+        ``mean_x 1/2 (V(x; w) - E V_target)^2``; its gradient in ``w`` is the semi-gradient of eq. (50),
+        averaged over the batch.
+
+    Raises
+    ------
+    ValueError
+        If the batch sizes of ``s`` and ``u`` differ.
+
+    Notes
+    -----
+    *Semi-gradient*: ``V_target`` is computed without gradient (``torch.no_grad``), as eq. (50) says.
+    The expectation is moved inside the square: ``E{(T - V)^2}/2`` and ``(E T - V)^2/2`` differ by the
+    variance of ``T``, which does not depend on ``w`` through the semi-gradient, so both give the same
+    gradient. The loss is divided by ``value_scale^2`` so that its size does not depend on the units of
+    the cost.
+    """
+    if s.shape[0] != u.shape[0]:
+        raise ValueError(f"u: batch size {u.shape[0]} differs from s's {s.shape[0]}")
+    with torch.no_grad():
+        # V_target = l(x', u_theta) + gamma V^k(x'),  x' = f(x, u_theta) + xi_hat   (h of eq. 37)
+        target = h_value(task, critic, s, u, offsets, weights)
+    value = critic(task.observe(s))
+    scale = float(getattr(task, "value_scale", 1.0))
+    return 0.5 * ((value - target) / scale).pow(2).mean()
+
+
+def critic_step(task: Any, critic: torch.nn.Module, actor: torch.nn.Module, optimizer: torch.optim.Optimizer,
+                s: torch.Tensor, offsets: torch.Tensor, weights: torch.Tensor, grad_clip: float) -> float:
+    """Implements eqs. (49)-(50): PEV, one semi-gradient step of the critic under ``xi_hat_k``.
+
+    .. math:: w^{k+1} = w^k - \\alpha\\, \\partial J_{\\rm critic} / \\partial w
+
+    Parameters
+    ----------
+    task : Task
+        Model and utility.
+    critic : torch.nn.Module
+        ``V(x; w)``, updated in place.
+    actor : torch.nn.Module
+        ``pi(x; theta)`` (not moved: ``u_theta`` is computed without gradient).
+    optimizer : torch.optim.Optimizer
+        Over the critic's parameters (learning rate ``alpha``).
+    s : torch.Tensor, shape (B, state_dim)
+        The batch of states (float32).
+    offsets, weights : torch.Tensor
+        Quadrature of ``xi_hat_k``, shapes ``(P, state_dim)`` (or ``(P, B, state_dim)``) and ``(P,)``.
+    grad_clip : float
+        Largest gradient norm.
+
+    Returns
+    -------
+    float
+        The critic loss before the step.
+
+    Notes
+    -----
+    The step is Adam's in :class:`mixedrl.algorithms.agpi.AGPI` (learning rate decayed linearly), with
+    the gradient norm clipped at ``grad_clip``; the paper writes plain gradient descent.
+    """
+    with torch.no_grad():
+        u = actor(task.observe(s))
+    loss = critic_loss(task, critic, s, u, offsets, weights)
+    optimizer.zero_grad(set_to_none=True)
+    loss.backward()
+    torch.nn.utils.clip_grad_norm_(critic.parameters(), grad_clip)
+    # w^{k+1} = w^k - alpha dJ_critic/dw   (Adam)
+    optimizer.step()
+    return float(loss.detach())

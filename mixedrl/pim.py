@@ -1,0 +1,302 @@
+"""Policy improvement (PIM): eq. (22) exactly on quadratic values, eqs. (51)-(52) with a parameterised
+actor, and beside it the maximum variation condition (MVC, eqs. 37-39) that decides whether Algorithm 2
+takes another PIM step.
+
+* **Exact** (Algorithm 1 on linear dynamics): :func:`improve_policy` is the closed-form minimiser of
+  eq. (22), :class:`ExactPIM` binds a problem, :func:`pim_step` is Algorithm 1's PIM step.
+* **Parameterised** (Algorithm 2): :func:`actor_objective` is eq. (51) (gradient eq. 52 through the
+  model), :func:`actor_step` one optimiser step on it.
+* **MVC**: :func:`mvc_check` evaluates eqs. (38)-(39) on a batch from values of ``h`` (eq. 37,
+  :func:`mixedrl.expectation.h_value`); :class:`MVCResult` is its outcome.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Callable
+
+import numpy as np
+import scipy.linalg
+import torch
+
+from mixedrl.checks import as_vector
+from mixedrl.expectation import h_value
+from mixedrl.quadratic import AffinePolicy, LinearDynamics, QuadraticCost, QuadraticValue, check_problem
+
+__all__ = ["improve_policy", "ExactPIM", "pim_step", "actor_objective", "actor_step", "MVCResult", "mvc_check"]
+
+
+# ----------------------------------------------------------------------------------------------------
+# exact PIM on quadratic values (eq. 22)
+# ----------------------------------------------------------------------------------------------------
+def improve_policy(
+    dynamics: LinearDynamics,
+    cost: QuadraticCost,
+    gamma: float,
+    value: QuadraticValue,
+    noise_mean: Any,
+) -> AffinePolicy:
+    """Implements eq. (22): exact PIM, the closed-form minimiser under the mixed model.
+
+    .. math::
+        \\pi^{k+1}(x) = \\arg\\min_u \\mathbb{E}_{\\hat\\xi_k}\\{ l(x', u) + \\gamma V^k(x') \\}
+        = -L x - l_0,\\quad
+        L = (R + B^T S B)^{-1} B^T S A,\\quad
+        l_0 = (R + B^T S B)^{-1} B^T (S \\hat\\mu_k + \\gamma p),
+
+    with ``S = Q + gamma P`` from ``V^k = x^T P x + 2 p^T x + c``.
+
+    Parameters
+    ----------
+    dynamics : LinearDynamics
+        A (n, n), B (n, m).
+    cost : QuadraticCost
+        Q (n, n), R (m, m).
+    gamma : float
+        Discount factor in (0, 1).
+    value : QuadraticValue
+        ``V^k``: P (n, n), p (n,), c.
+    noise_mean : ndarray, shape (n,)
+        ``mu_hat_k``.
+
+    Returns
+    -------
+    AffinePolicy
+        ``pi^{k+1}``: L (m, n), l0 (m,).
+
+    Raises
+    ------
+    ValueError
+        Shapes do not match, gamma not in (0, 1), or ``R + B^T S B`` is not positive definite (the
+        objective is then not strictly convex in ``u``).
+
+    Notes
+    -----
+    The objective is ``u^T (R + B^T S B) u + 2 u^T B^T (S (A x + mu_hat) + gamma p) + const`` plus the
+    term ``tr(S K_hat)``, which does not depend on ``u``: the noise covariance does not enter PIM.
+    """
+    g = check_problem(dynamics, cost, gamma)
+    n = dynamics.n
+    if value.P.shape != (n, n):
+        raise ValueError(f"value: P shape {value.P.shape} does not match n = {n}")
+    mu = as_vector(noise_mean, "noise_mean", n)
+    A, B, Q, R = dynamics.A, dynamics.B, cost.Q, cost.R
+    S = Q + g * value.P
+    H = R + B.T @ S @ B
+    try:
+        chol = scipy.linalg.cho_factor(0.5 * (H + H.T))
+    except np.linalg.LinAlgError:
+        raise ValueError("value: R + B^T (Q + gamma P) B is not positive definite") from None
+    # L = (R + B^T S B)^-1 B^T S A
+    L = scipy.linalg.cho_solve(chol, B.T @ S @ A)
+    # l0 = (R + B^T S B)^-1 B^T (S mu_hat + gamma p)
+    l0 = scipy.linalg.cho_solve(chol, B.T @ (S @ mu + g * value.p))
+    return AffinePolicy(L, l0)
+
+
+@dataclass(frozen=True)
+class ExactPIM:
+    """PIM step (eq. 22) bound to a linear-quadratic problem: ``pim(value, noise) -> AffinePolicy``."""
+
+    dynamics: LinearDynamics
+    cost: QuadraticCost
+    gamma: float
+
+    def __call__(self, value: QuadraticValue, noise: Any) -> AffinePolicy:
+        """Return ``pi^{k+1}`` greedy w.r.t. ``value`` under ``N(noise.mean, .)`` (see :func:`improve_policy`)."""
+        return improve_policy(self.dynamics, self.cost, self.gamma, value, noise.mean)
+
+
+def pim_step(improve: Callable[[Any, Any], Any], value: Any, noise: Any) -> Any:
+    """Implements eq. (22): policy improvement under the mixed model.
+
+    .. math:: \\pi^{k+1}(x) = \\arg\\min_u \\mathbb{E}_{\\hat\\xi_k}\\{ l(x', u) + \\gamma V^k(x') \\}
+
+    Parameters
+    ----------
+    improve : callable
+        ``improve(value, noise) -> policy``, e.g. :class:`ExactPIM`.
+    value : object
+        ``V^k``.
+    noise : object
+        Noise source with ``.mean`` (n,) and ``.cov`` (n, n).
+
+    Returns
+    -------
+    object
+        ``pi^{k+1}``.
+
+    Raises
+    ------
+    ValueError
+        Propagated from ``improve``.
+    """
+    return improve(value, noise)
+
+
+# ----------------------------------------------------------------------------------------------------
+# parameterised PIM (eqs. 51-52)
+# ----------------------------------------------------------------------------------------------------
+def actor_objective(task: Any, critic: torch.nn.Module, actor: torch.nn.Module, s: torch.Tensor,
+                    offsets: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
+    """Implements eqs. (51)-(52): the PIM objective, differentiated through the model ``f``.
+
+    .. math::
+
+        J_{\\rm actor} = \\mathbb{E}_{\\hat\\xi}\\{ l(x', u_\\theta) + \\gamma V^k(x') \\},
+        \\qquad x' \\sim N(f(x, u_\\theta) + \\hat\\mu, \\hat K), \\qquad u_\\theta = \\pi(x; \\theta).
+
+    Parameters
+    ----------
+    task : Task
+        Model ``f`` (differentiable), utility, ``gamma``.
+    critic : torch.nn.Module
+        ``V^k`` (its weights are not updated by this objective).
+    actor : torch.nn.Module
+        ``pi(x; theta)``.
+    s : torch.Tensor, shape (B, state_dim)
+        Batch of states.
+    offsets, weights : torch.Tensor
+        Quadrature of ``xi_hat_k``, shapes ``(P, state_dim)`` and ``(P,)``.
+
+    Returns
+    -------
+    torch.Tensor, shape ()
+        Batch mean of ``h(x, pi(x; theta), xi_hat_k)``, divided by ``value_scale``.
+
+    Notes
+    -----
+    Eq. (52) writes the gradient as a score-function term plus a pathwise term. With the
+    reparameterisation ``x' = f(x, u_theta) + xi_hat`` (``xi_hat`` independent of ``theta``) both are the
+    single pathwise gradient that autograd computes here, ``E{(dl/dx' + gamma dV/dx') df/du + dl/du}
+    du/dtheta``.
+    """
+    u = actor(task.observe(s))
+    scale = float(getattr(task, "value_scale", 1.0))
+    # J_actor = mean_x h(x, pi(x; theta), xi_hat_k)   (eq. 37)
+    return h_value(task, critic, s, u, offsets, weights).mean() / scale
+
+
+def actor_step(task: Any, critic: torch.nn.Module, actor: torch.nn.Module, optimizer: torch.optim.Optimizer,
+               s: torch.Tensor, offsets: torch.Tensor, weights: torch.Tensor, grad_clip: float) -> float:
+    """Implements eqs. (51)-(52): PIM, one gradient step of the actor under ``xi_hat_k``.
+
+    .. math:: \\theta^{k+1} = \\theta^k - \\beta\\, \\partial J_{\\rm actor} / \\partial \\theta
+
+    Parameters
+    ----------
+    task : Task
+        Model ``f`` (differentiable), utility, ``gamma``.
+    critic : torch.nn.Module
+        ``V^k`` (frozen during the step).
+    actor : torch.nn.Module
+        ``pi(x; theta)``, updated in place.
+    optimizer : torch.optim.Optimizer
+        Over the actor's parameters (learning rate ``beta``).
+    s : torch.Tensor, shape (B, state_dim)
+        The batch of states (float32).
+    offsets, weights : torch.Tensor
+        Quadrature of ``xi_hat_k``, shapes ``(P, state_dim)`` (or ``(P, B, state_dim)``) and ``(P,)``.
+    grad_clip : float
+        Largest gradient norm.
+
+    Returns
+    -------
+    float
+        The actor objective before the step.
+
+    Notes
+    -----
+    Adam in :class:`mixedrl.algorithms.agpi.AGPI` (decayed linearly) with gradient clipping. The
+    critic's weights are frozen during the step (``requires_grad=False``), so only ``theta`` moves.
+    """
+    for p in critic.parameters():
+        p.requires_grad_(False)
+    try:
+        obj = actor_objective(task, critic, actor, s, offsets, weights)
+        optimizer.zero_grad(set_to_none=True)
+        obj.backward()
+        torch.nn.utils.clip_grad_norm_(actor.parameters(), grad_clip)
+        # theta^{k+1} = theta^k - beta dJ_actor/dtheta   (Adam)
+        optimizer.step()
+    finally:
+        for p in critic.parameters():
+            p.requires_grad_(True)
+    return float(obj.detach())
+
+
+# ----------------------------------------------------------------------------------------------------
+# the maximum variation condition (eqs. 37-39)
+# ----------------------------------------------------------------------------------------------------
+
+
+@dataclass
+class MVCResult:
+    """Outcome of the MVC check (eqs. 38-39) on a batch.
+
+    Attributes
+    ----------
+    held : bool
+        Whether the condition held in the configured sense (batch mean or every state).
+    fraction : float
+        Fraction of states where it held pointwise.
+    lhs_mean : float
+        Batch mean of ``h(x, u^{k+1}, xi_{k+1}) - h(x, u^{k+1}, xi_k)`` (the effect of the IBE update).
+    e_mean : float
+        Batch mean of ``e_k(x) = h(x, u^k, xi_k) - h(x, u^{k+1}, xi_k)`` (the PIM improvement).
+    e_nonnegative : float
+        Fraction of states with ``e_k(x) >= 0``.
+    """
+
+    held: bool
+    fraction: float
+    lhs_mean: float
+    e_mean: float
+    e_nonnegative: float
+
+
+def mvc_check(h_new_next: torch.Tensor, h_new_cur: torch.Tensor, h_old_cur: torch.Tensor, mode: str = "mean"
+              ) -> MVCResult:
+    """Implements eqs. (38)-(39): the maximum variation condition on a batch of states.
+
+    .. math::
+
+        h(x, u^{k+1}, \\hat\\xi_{k+1}) - h(x, u^{k+1}, \\hat\\xi_k) \\le e_k(x),
+        \\qquad e_k(x) = h(x, u^k, \\hat\\xi_k) - h(x, u^{k+1}, \\hat\\xi_k).
+
+    Parameters
+    ----------
+    h_new_next : torch.Tensor, shape (B,)
+        ``h(x, u^{k+1}, xi_hat_{k+1})``.
+    h_new_cur : torch.Tensor, shape (B,)
+        ``h(x, u^{k+1}, xi_hat_k)``.
+    h_old_cur : torch.Tensor, shape (B,)
+        ``h(x, u^k, xi_hat_k)``.
+    mode : {"mean", "all"}
+        ``"mean"``: the inequality between batch means; ``"all"``: at every state (EQUATIONS.md point 12).
+
+    Returns
+    -------
+    MVCResult
+
+    Raises
+    ------
+    ValueError
+        Shapes differ, or ``mode`` unknown.
+    """
+    if not (h_new_next.shape == h_new_cur.shape == h_old_cur.shape) or h_new_next.ndim != 1:
+        raise ValueError(f"h_new_next: expected three (B,) tensors, got {tuple(h_new_next.shape)}, "
+                         f"{tuple(h_new_cur.shape)}, {tuple(h_old_cur.shape)}")
+    # lhs = h(x, u^{k+1}, xi_{k+1}) - h(x, u^{k+1}, xi_k)
+    lhs = (h_new_next - h_new_cur).double()
+    # e_k(x) = h(x, u^k, xi_k) - h(x, u^{k+1}, xi_k)
+    e = (h_old_cur - h_new_cur).double()
+    pointwise = lhs <= e
+    if mode == "mean":
+        held = bool(lhs.mean() <= e.mean())
+    elif mode == "all":
+        held = bool(pointwise.all())
+    else:
+        raise ValueError(f"mode: expected 'mean' or 'all', got {mode!r}")
+    return MVCResult(held=held, fraction=float(pointwise.double().mean()), lhs_mean=float(lhs.mean()),
+                     e_mean=float(e.mean()), e_nonnegative=float((e >= 0).double().mean()))

@@ -1,0 +1,81 @@
+"""PEV (mixedrl.pev): eq. (21) exactly on quadratic values, against a rollout that charges the cost on the
+next state (eq. 2); the critic loss of eqs. (49)-(50) against its target written out by hand."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from mixedrl.expectation import expectation_nodes
+from mixedrl.pev import ExactPEV, bellman_backup, critic_loss, critic_step, evaluate_policy, pev_step
+from mixedrl.quadratic import AffinePolicy, LinearDynamics, QuadraticCost
+from mixedrl.tasks import LinearTask
+
+
+def rollout_value(A, B, Q, R, g, L, l0, mu, K, x0, steps=700):
+    """sum_t gamma^t E l(x_{t+1}, u_t), l(x', u) = x'^T Q x' + u^T R u, by propagating mean and covariance."""
+    m, S = x0.copy(), np.zeros_like(A)
+    total = 0.0
+    for t in range(steps):
+        u_mean = -L @ m - l0
+        cov_u = L @ S @ L.T
+        m_next = A @ m + B @ u_mean + mu
+        S_next = (A - B @ L) @ S @ (A - B @ L).T + K
+        # E l(x_{t+1}, u_t): charged on the NEXT state (eq. 2)
+        total += g**t * (m_next @ Q @ m_next + np.trace(Q @ S_next) + u_mean @ R @ u_mean + np.trace(R @ cov_u))
+        m, S = m_next, S_next
+    return total
+
+
+def test_exact_pev_equals_the_discounted_next_state_cost() -> None:
+    A = np.array([[1.0, 0.1], [0.0, 1.0]])
+    B = np.array([[0.005], [0.1]])
+    Q, R, g = np.diag([1.0, 0.5]), np.array([[0.1]]), 0.9
+    L, l0 = np.array([[2.0, 3.0]]), np.array([0.4])
+    mu, K = np.array([0.05, -0.3]), np.array([[0.02, 0.005], [0.005, 0.01]])
+    V = evaluate_policy(LinearDynamics(A, B), QuadraticCost(Q, R), g, AffinePolicy(L, l0), mu, K)
+    for x0 in (np.array([1.0, -2.0]), np.array([0.0, 0.0]), np.array([-3.0, 0.5])):
+        assert float(V(x0[None])[0]) == pytest.approx(rollout_value(A, B, Q, R, g, L, l0, mu, K, x0), rel=1e-10)
+    # the fixed point of one exact sweep (eq. 31) is the PEV solution
+    T = bellman_backup(LinearDynamics(A, B), QuadraticCost(Q, R), g, AffinePolicy(L, l0), V, mu, K)
+    assert T.distance(V) < 1e-10
+    pev = ExactPEV(LinearDynamics(A, B), QuadraticCost(Q, R), g)
+
+    class Noise:
+        mean, cov = mu, K
+
+    assert pev_step(pev, AffinePolicy(L, l0), Noise()).distance(V) == 0.0
+
+
+def test_critic_loss_target_is_the_next_state_cost() -> None:
+    """With V = 0 the critic's target is E l(x', u): the loss is mean (E l(x', u))^2 / 2, x' = f(x, u) + xi."""
+    task = LinearTask()
+    critic = torch.nn.Linear(2, 1, dtype=torch.float64)
+    torch.nn.init.zeros_(critic.weight)
+    torch.nn.init.zeros_(critic.bias)
+    V = lambda z: critic(z)[:, 0]  # noqa: E731
+    s = torch.tensor([[1.0, -0.5], [0.2, 0.8], [-1.0, 0.0]], dtype=torch.float64)
+    u = torch.tensor([[0.5], [-0.2], [1.0]], dtype=torch.float64)
+    mu = np.array([0.0, 0.5])
+    d, w = expectation_nodes(mu, np.zeros((2, 2)), task.noise_matrix, "sigma", dtype=torch.float64)
+    x_next = task.f(s, u) + torch.tensor(mu)
+    target = task.cost(x_next, u)
+    loss = critic_loss(task, V, s, u, d, w)
+    assert float(loss.detach()) == pytest.approx(float(0.5 * (target**2).mean()), rel=1e-14)
+
+
+def test_critic_step_moves_the_critic_only() -> None:
+    task = LinearTask()
+    critic = torch.nn.Linear(2, 1)
+    actor = torch.nn.Linear(2, 1)
+    V = torch.nn.Sequential(critic, torch.nn.Flatten(0))
+    opt = torch.optim.SGD(V.parameters(), lr=0.01)
+    s = torch.randn(8, 2, generator=torch.Generator().manual_seed(0))
+    d, w = expectation_nodes(np.array([0.0, 0.5]), 0.01 * np.eye(2), task.noise_matrix)
+    actor_before = [p.clone() for p in actor.parameters()]
+    critic_before = [p.clone() for p in critic.parameters()]
+    loss = critic_step(task, V, actor, opt, s, d, w, grad_clip=10.0)
+    assert np.isfinite(loss)
+    assert all(torch.equal(a, b) for a, b in zip(actor_before, actor.parameters()))
+    assert not all(torch.equal(a, b) for a, b in zip(critic_before, critic.parameters()))

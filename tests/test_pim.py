@@ -1,0 +1,52 @@
+"""PIM (mixedrl.pim): eq. (22) exactly against a numerical minimiser of h (eq. 37, cost on the next state),
+the actor objective of eq. (51) by hand, and the MVC beside it."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import scipy.optimize
+import torch
+
+from mixedrl.expectation import expectation_nodes
+from mixedrl.pev import evaluate_policy
+from mixedrl.pim import ExactPIM, actor_objective, improve_policy, pim_step
+from mixedrl.quadratic import AffinePolicy, LinearDynamics, QuadraticCost
+from mixedrl.tasks import LinearTask
+
+
+def test_exact_pim_minimises_h_with_the_next_state_cost() -> None:
+    A = np.array([[1.0, 0.1], [0.0, 1.0]])
+    B = np.array([[0.005], [0.1]])
+    Q, R, g = np.diag([1.0, 0.5]), np.array([[0.1]]), 0.9
+    mu, K = np.array([0.05, -0.3]), 0.01 * np.eye(2)
+    f, cost = LinearDynamics(A, B), QuadraticCost(Q, R)
+    V = evaluate_policy(f, cost, g, AffinePolicy(np.array([[2.0, 3.0]]), np.array([0.4])), mu, K)
+    pi = improve_policy(f, cost, g, V, mu)
+    for x in (np.array([1.0, -2.0]), np.array([0.3, 0.7])):
+
+        def h(u: np.ndarray) -> float:
+            # h(x, u) = l(x', u) + gamma V(x') at x' = A x + B u + mu (+ tr terms independent of u)
+            xn = A @ x + B @ u + mu
+            return float(xn @ Q @ xn + u @ R @ u + g * V(xn[None])[0])
+
+        best = scipy.optimize.minimize(h, np.zeros(1), method="BFGS", options={"gtol": 1e-12}).x
+        np.testing.assert_allclose(pi(x[None])[0], best, rtol=1e-6, atol=1e-8)
+
+    class Noise:
+        mean, cov = mu, K
+
+    assert pim_step(ExactPIM(f, cost, g), V, Noise()).distance(pi) == 0.0
+
+
+def test_actor_objective_is_the_mean_next_state_cost_for_a_zero_critic() -> None:
+    task = LinearTask()
+    actor = torch.nn.Linear(2, 1, dtype=torch.float64)
+    s = torch.tensor([[1.0, -0.5], [0.2, 0.8]], dtype=torch.float64)
+    mu = np.array([0.1, 0.5])
+    d, w = expectation_nodes(mu, np.zeros((2, 2)), task.noise_matrix, "sigma", dtype=torch.float64)
+    zero = lambda z: torch.zeros(z.shape[0], dtype=torch.float64)  # noqa: E731
+    u = actor(s)
+    expected = task.cost(task.f(s, u) + torch.tensor(mu), u).mean()
+    obj = actor_objective(task, zero, actor, s, d, w).detach()
+    assert float(obj) == pytest.approx(float(expected.detach()), rel=1e-14)
