@@ -337,23 +337,25 @@ def expand(spec: SweepSpec) -> list[SweepRun]:
         TrainConfig.from_dict(apply_dotted(defaults, spec.base))
     except ValueError as exc:
         raise ValueError(f"base: {exc}") from None
-    runs: list[SweepRun] = []
-    names: dict[str, dict[str, Any]] = {}
     keys = list(spec.grid)
-    for values in itertools.product(*(spec.grid[k] for k in keys)):
-        point = dict(zip(keys, values))
-        for method in spec.methods:
-            for seed in spec.seeds:
-                name = run_name(point, method, seed)
-                overrides = {**spec.base, **point, "method": method, "seed": seed}
-                try:
-                    config = TrainConfig.from_dict(apply_dotted(defaults, overrides))
-                except (ValueError, TypeError) as exc:
-                    raise ValueError(f"{name}: {exc}") from None
-                if name in names:
-                    raise ValueError(f"grid: the points {names[name]} and {point} give the same run name {name!r}")
-                names[name] = point
-                runs.append(SweepRun(name=name, point=point, config=config))
+    combos = [(dict(zip(keys, values)), method, seed)
+              for values in itertools.product(*(spec.grid[k] for k in keys))
+              for method in spec.methods for seed in spec.seeds]
+    names: dict[str, dict[str, Any]] = {}
+    for point, method, seed in combos:  # every name first: a clash is reported before any config error
+        name = run_name(point, method, seed)
+        if name in names:
+            raise ValueError(f"grid: the points {names[name]} and {point} give the same run name {name!r}")
+        names[name] = point
+    runs: list[SweepRun] = []
+    for point, method, seed in combos:
+        name = run_name(point, method, seed)
+        overrides = {**spec.base, **point, "method": method, "seed": seed}
+        try:
+            config = TrainConfig.from_dict(apply_dotted(defaults, overrides))
+        except (ValueError, TypeError) as exc:
+            raise ValueError(f"{name}: {exc}") from None
+        runs.append(SweepRun(name=name, point=point, config=config))
     return runs
 
 
