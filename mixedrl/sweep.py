@@ -335,7 +335,7 @@ def expand(spec: SweepSpec) -> list[SweepRun]:
     defaults = TrainConfig().to_dict()
     try:
         TrainConfig.from_dict(apply_dotted(defaults, spec.base))
-    except ValueError as exc:
+    except (ValueError, TypeError) as exc:
         raise ValueError(f"base: {exc}") from None
     keys = list(spec.grid)
     combos = [(dict(zip(keys, values)), method, seed)
