@@ -442,13 +442,12 @@ def summarize(records: list[dict[str, Any]]) -> list[dict[str, Any]]:
 
 
 def _csv_text(rows: list[dict[str, Any]]) -> str:
-    keys: list[str] = []
-    for row in rows:
-        keys += [k for k in row if k not in keys]
+    """CSV of dict rows; the columns are the union of their keys, in order of appearance."""
+    keys = list(dict.fromkeys(key for row in rows for key in row))
     out = io.StringIO()
-    writer = csv.DictWriter(out, fieldnames=keys)
-    writer.writeheader()
-    writer.writerows(rows)
+    writer = csv.writer(out)
+    writer.writerow(keys)
+    writer.writerows([row.get(key) for key in keys] for row in rows)
     return out.getvalue()
 
 
