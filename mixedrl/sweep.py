@@ -137,6 +137,7 @@ def apply_dotted(data: dict[str, Any], overrides: dict[str, Any]) -> dict[str, A
 
     Examples
     --------
+    >>> from mixedrl.sweep import apply_dotted
     >>> apply_dotted({"a": {"b": 1, "c": 2}, "d": 3}, {"a.b": 10, "e.f": 4})
     {'a': {'b': 10, 'c': 2}, 'd': 3, 'e': {'f': 4}}
     """

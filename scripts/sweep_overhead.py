@@ -12,11 +12,14 @@ reproduction's config with ``iterations`` cut) are trained twice into fresh dire
 2. **Ray**: :func:`mixedrl.sweep.run_sweep` on a local cluster of ``--workers`` CPUs, one task per run.
    ``ray.init`` (starting the local cluster) is timed separately: it is paid once per sweep.
 
+With ``--repeats R`` the two are alternated R times (so a change of the machine's load hits both) and the
+walls summed.
+
 Both walls include starting the workers (process spawn and imports). The script prints runs per minute of
 each, the overhead ratio ``wall_ray / wall_pool - 1`` (with and without ``ray.init``), the load average
 before and after, and checks that both engines gave bit-identical results (same final evaluation).
 
-Usage: ``python scripts/sweep_overhead.py [--runs 8] [--iterations 150] [--workers 2] [--out DIR]``
+Usage: ``python scripts/sweep_overhead.py [--runs 8] [--iterations 150] [--workers 2] [--repeats 1] [--out DIR]``
 (needs the extra ``sweep``; about 2 x (runs / workers) x the time of one run).
 """
 
@@ -81,34 +84,45 @@ def main() -> None:
     parser.add_argument("--runs", type=int, default=8)
     parser.add_argument("--iterations", type=int, default=150)
     parser.add_argument("--workers", type=int, default=os.cpu_count() or 1)
+    parser.add_argument("--repeats", type=int, default=1, help="alternate pool and Ray this many times")
     parser.add_argument("--out", type=Path, default=None, help="where the runs go (default: a temporary dir)")
     args = parser.parse_args()
     out = args.out or Path(tempfile.mkdtemp(prefix="sweep_overhead_"))
     text = spec_text(args.runs, args.iterations)
-    n = len(expand(parse_spec(text)))
-    load0 = os.getloadavg()
-    wall_pool = time_pool(text, out / "pool", args.workers)
-    t_init, wall_ray = time_ray(text, out / "ray", args.workers)
-    load1 = os.getloadavg()
     names = [r.name for r in expand(parse_spec(text))]
-    same = all(RunDirectory(out / "pool" / "runs" / m).read_results()["final"]
-               == RunDirectory(out / "ray" / "runs" / m).read_results()["final"] for m in names)
+    n = len(names)
+    load0 = os.getloadavg()
+    pool_s, init_s, ray_s = [], [], []
+    for rep in range(args.repeats):  # alternating, so a change of the machine's load hits both engines
+        pool_s.append(time_pool(text, out / f"pool{rep}", args.workers))
+        t_init, t_ray = time_ray(text, out / f"ray{rep}", args.workers)
+        init_s.append(t_init)
+        ray_s.append(t_ray)
+    load1 = os.getloadavg()
+    same = all(RunDirectory(out / "pool0" / "runs" / m).read_results()["final"]
+               == RunDirectory(out / f"ray{rep}" / "runs" / m).read_results()["final"]
+               for m in names for rep in range(args.repeats))
+    wall_pool, wall_ray, t_init = sum(pool_s), sum(ray_s), sum(init_s)
+    total = n * args.repeats
     report = {
-        "runs": n, "iterations": args.iterations, "workers": args.workers, "cpu_count": os.cpu_count(),
-        "load_before": [round(x, 2) for x in load0], "load_after": [round(x, 2) for x in load1],
-        "pool_seconds": round(wall_pool, 2), "pool_runs_per_minute": round(60 * n / wall_pool, 3),
-        "ray_init_seconds": round(t_init, 2), "ray_seconds": round(wall_ray, 2),
-        "ray_runs_per_minute": round(60 * n / wall_ray, 3),
-        "ray_runs_per_minute_with_init": round(60 * n / (wall_ray + t_init), 3),
+        "runs": n, "repeats": args.repeats, "iterations": args.iterations, "workers": args.workers,
+        "cpu_count": os.cpu_count(), "load_before": [round(x, 2) for x in load0],
+        "load_after": [round(x, 2) for x in load1],
+        "pool_seconds": [round(x, 2) for x in pool_s], "ray_seconds": [round(x, 2) for x in ray_s],
+        "ray_init_seconds": [round(x, 2) for x in init_s],
+        "pool_runs_per_minute": round(60 * total / wall_pool, 3),
+        "ray_runs_per_minute": round(60 * total / wall_ray, 3),
+        "ray_runs_per_minute_with_init": round(60 * total / (wall_ray + t_init), 3),
         "overhead_ratio": round(wall_ray / wall_pool - 1, 4),
         "overhead_ratio_with_init": round((wall_ray + t_init) / wall_pool - 1, 4),
         "identical_results": same,
     }
-    print(f"{n} runs of {args.iterations} iterations, {args.workers} workers, load {load0[0]:.2f} -> {load1[0]:.2f}")
+    print(f"{n} runs x {args.repeats} of {args.iterations} iterations, {args.workers} workers, "
+          f"load {load0[0]:.2f} -> {load1[0]:.2f}")
     print(f"{'engine':<26}{'wall [s]':>10}{'runs/min':>10}")
-    print(f"{'process pool (reproduce)':<26}{wall_pool:>10.1f}{60 * n / wall_pool:>10.2f}")
-    print(f"{'Ray (sweep)':<26}{wall_ray:>10.1f}{60 * n / wall_ray:>10.2f}")
-    print(f"{'Ray incl. ray.init':<26}{wall_ray + t_init:>10.1f}{60 * n / (wall_ray + t_init):>10.2f}")
+    for label, wall in (("process pool (reproduce)", wall_pool), ("Ray (sweep)", wall_ray),
+                        ("Ray incl. ray.init", wall_ray + t_init)):
+        print(f"{label:<26}{wall:>10.1f}{60 * total / wall:>10.2f}")
     print(f"overhead of Ray: {100 * report['overhead_ratio']:+.1f}% "
           f"({100 * report['overhead_ratio_with_init']:+.1f}% with ray.init); identical results: {same}")
     print(json.dumps(report))
