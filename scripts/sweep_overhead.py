@@ -16,7 +16,8 @@ With ``--repeats R`` the two are alternated R times (so a change of the machine'
 walls summed.
 
 Both walls include starting the workers (process spawn and imports). The script prints runs per minute of
-each, the overhead ratio ``wall_ray / wall_pool - 1`` (with and without ``ray.init``), the load average
+each, the time outside the runs (wall minus the summed time inside the runs over the workers: the engine's
+start-up and hand-over, robust to a change of load that slows the runs themselves), the overhead ratio ``wall_ray / wall_pool - 1`` (with and without ``ray.init``), the load average
 before and after, and checks that both engines gave bit-identical results (same final evaluation).
 
 Usage: ``python scripts/sweep_overhead.py [--runs 8] [--iterations 150] [--workers 2] [--repeats 1] [--out DIR]``
@@ -79,6 +80,13 @@ def time_ray(spec_toml: str, out: Path, workers: int) -> tuple[float, float]:
     return t_init, t_sweep
 
 
+def run_seconds(out: Path) -> float:
+    """Sum over the runs in ``out/runs`` of the time inside the run (``config.json`` written at its start,
+    ``results.json`` at its end): the work, without the engine's start-up and hand-over."""
+    return sum(os.stat(d / "results.json").st_mtime - os.stat(d / "config.json").st_mtime
+               for d in sorted((out / "runs").iterdir()))
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n", 1)[0])
     parser.add_argument("--runs", type=int, default=8)
@@ -92,12 +100,14 @@ def main() -> None:
     names = [r.name for r in expand(parse_spec(text))]
     n = len(names)
     load0 = os.getloadavg()
-    pool_s, init_s, ray_s = [], [], []
+    pool_s, init_s, ray_s, outside = [], [], [], {"pool": 0.0, "ray": 0.0}
     for rep in range(args.repeats):  # alternating, so a change of the machine's load hits both engines
         pool_s.append(time_pool(text, out / f"pool{rep}", args.workers))
+        outside["pool"] += pool_s[-1] - run_seconds(out / f"pool{rep}") / args.workers
         t_init, t_ray = time_ray(text, out / f"ray{rep}", args.workers)
         init_s.append(t_init)
         ray_s.append(t_ray)
+        outside["ray"] += ray_s[-1] - run_seconds(out / f"ray{rep}") / args.workers
     load1 = os.getloadavg()
     same = all(RunDirectory(out / "pool0" / "runs" / m).read_results()["final"]
                == RunDirectory(out / f"ray{rep}" / "runs" / m).read_results()["final"]
@@ -115,6 +125,7 @@ def main() -> None:
         "ray_runs_per_minute_with_init": round(60 * total / (wall_ray + t_init), 3),
         "overhead_ratio": round(wall_ray / wall_pool - 1, 4),
         "overhead_ratio_with_init": round((wall_ray + t_init) / wall_pool - 1, 4),
+        "outside_runs_seconds": {k: round(v, 2) for k, v in outside.items()},
         "identical_results": same,
     }
     print(f"{n} runs x {args.repeats} of {args.iterations} iterations, {args.workers} workers, "
@@ -123,6 +134,8 @@ def main() -> None:
     for label, wall in (("process pool (reproduce)", wall_pool), ("Ray (sweep)", wall_ray),
                         ("Ray incl. ray.init", wall_ray + t_init)):
         print(f"{label:<26}{wall:>10.1f}{60 * total / wall:>10.2f}")
+    print(f"time outside the runs (wall - run time / workers): pool {outside['pool']:.1f} s, "
+          f"Ray {outside['ray']:.1f} s (+ ray.init {t_init:.1f} s)")
     print(f"overhead of Ray: {100 * report['overhead_ratio']:+.1f}% "
           f"({100 * report['overhead_ratio_with_init']:+.1f}% with ray.init); identical results: {same}")
     print(json.dumps(report))
