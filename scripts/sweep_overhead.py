@@ -16,9 +16,10 @@ With ``--repeats R`` the two are alternated R times (so a change of the machine'
 walls summed.
 
 Both walls include starting the workers (process spawn and imports). The script prints runs per minute of
-each, the time outside the runs (wall minus the summed time inside the runs over the workers: the engine's
-start-up and hand-over, robust to a change of load that slows the runs themselves), the overhead ratio ``wall_ray / wall_pool - 1`` (with and without ``ray.init``), the load average
-before and after, and checks that both engines gave bit-identical results (same final evaluation).
+each; the time outside the runs (wall minus the summed time inside the runs over the workers: the
+engines' start-up and hand-over, robust to a change of load that slows the runs themselves); the overhead
+ratio ``wall_ray / wall_pool - 1`` (with and without ``ray.init``); the load average before and after; and
+checks that both engines gave bit-identical results (same final evaluation).
 
 Usage: ``python scripts/sweep_overhead.py [--runs 8] [--iterations 150] [--workers 2] [--repeats 1] [--out DIR]``
 (needs the extra ``sweep``; about 2 x (runs / workers) x the time of one run).
