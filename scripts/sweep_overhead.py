@@ -12,8 +12,8 @@ reproduction's config with ``iterations`` cut) are trained twice into fresh dire
 2. **Ray**: :func:`mixedrl.sweep.run_sweep` on a local cluster of ``--workers`` CPUs, one task per run.
    ``ray.init`` (starting the local cluster) is timed separately: it is paid once per sweep.
 
-With ``--repeats R`` the two are alternated R times (so a change of the machine's load hits both) and the
-walls summed.
+With ``--repeats R`` the two run R times each in the order pool, Ray, Ray, pool, pool, Ray, ... (so a steady
+drift of the machine's load hits both alike) and the walls are summed.
 
 Both walls include starting the workers (process spawn and imports). The script prints runs per minute of
 each; the time outside the runs (wall minus the summed time inside the runs over the workers: the
@@ -102,13 +102,17 @@ def main() -> None:
     n = len(names)
     load0 = os.getloadavg()
     pool_s, init_s, ray_s, outside = [], [], [], {"pool": 0.0, "ray": 0.0}
-    for rep in range(args.repeats):  # alternating, so a change of the machine's load hits both engines
-        pool_s.append(time_pool(text, out / f"pool{rep}", args.workers))
-        outside["pool"] += pool_s[-1] - run_seconds(out / f"pool{rep}") / args.workers
-        t_init, t_ray = time_ray(text, out / f"ray{rep}", args.workers)
-        init_s.append(t_init)
-        ray_s.append(t_ray)
-        outside["ray"] += ray_s[-1] - run_seconds(out / f"ray{rep}") / args.workers
+    for rep in range(args.repeats):
+        # pool, Ray, then Ray, pool, ...: a steady drift of the machine's load hits both engines alike
+        for engine in ("pool", "ray") if rep % 2 == 0 else ("ray", "pool"):
+            if engine == "pool":
+                pool_s.append(time_pool(text, out / f"pool{rep}", args.workers))
+                outside["pool"] += pool_s[-1] - run_seconds(out / f"pool{rep}") / args.workers
+            else:
+                t_init, t_ray = time_ray(text, out / f"ray{rep}", args.workers)
+                init_s.append(t_init)
+                ray_s.append(t_ray)
+                outside["ray"] += ray_s[-1] - run_seconds(out / f"ray{rep}") / args.workers
     load1 = os.getloadavg()
     same = all(RunDirectory(out / "pool0" / "runs" / m).read_results()["final"]
                == RunDirectory(out / f"ray{rep}" / "runs" / m).read_results()["final"]
