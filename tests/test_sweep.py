@@ -23,6 +23,7 @@ from mixedrl.sweep import (
     flatten_table,
     load_spec,
     main,
+    make_figure,
     parse_spec,
     run_name,
     run_sweep,
@@ -206,6 +207,31 @@ def test_summarize_means_and_sample_std_over_seeds() -> None:
     assert rows[0]["speed_mae_mean"] == 1.0
 
 
+def test_make_figure_plots_cost_against_the_first_grid_key(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    matplotlib = pytest.importorskip("matplotlib")
+    import matplotlib.axes
+
+    plotted: list[tuple] = []
+    original = matplotlib.axes.Axes.errorbar
+
+    def record(self, x, y, yerr=None, **kw):  # type: ignore[no-untyped-def]
+        plotted.append((kw.get("label"), list(x), list(y), list(yerr)))
+        return original(self, x, y, yerr=yerr, **kw)
+
+    monkeypatch.setattr(matplotlib.axes.Axes, "errorbar", record)
+    summary = [{"point": {"a": a, "b": b}, "method": m, "cost_mean": 10.0 * a + len(b) + (m == "model"),
+                "cost_std": 0.5} for a in (1, 2) for b in ("x", "yy") for m in ("mixed", "model")]
+    path = make_figure(tmp_path, summary, {"a": [1, 2], "b": ["x", "yy"]})
+    assert path == tmp_path / "figures" / "cost_vs_a.png" and path.read_bytes()[:4] == b"\x89PNG"
+    # one line per method, against a, with b held at its first value "x"
+    assert plotted == [("mixed", [1.0, 2.0], [11.0, 21.0], [0.5, 0.5]), ("model", [1.0, 2.0], [12.0, 22.0], [0.5, 0.5])]
+    plotted.clear()
+    path = make_figure(tmp_path, summary, {"b": ["x", "yy"], "a": [1, 2]})  # categorical axis, a held at 1
+    assert path == tmp_path / "figures" / "cost_vs_b.png" and path.is_file()
+    assert plotted[0] == ("mixed", [0.0, 1.0], [11.0, 12.0], [0.5, 0.5])
+    assert make_figure(tmp_path, [], {}) is None
+
+
 # ----------------------------------------------------------------------------------------------------
 # sweeps on a local Ray cluster
 # ----------------------------------------------------------------------------------------------------
@@ -256,6 +282,7 @@ def test_sweep_on_local_ray_equals_train_alone_and_resumes(local_ray, tmp_path: 
         assert rec["results"]["lateral_mae"] is None  # the linear task has no course
         assert rec["results"]["true_transitions"] == results.get("true_transitions")
     assert (full / "spec.toml").read_text() == SPEC
+    assert (full / "figures" / "cost_vs_critic_lr.png").is_file()
     with open(full / "sweep.csv") as fh:
         rows = list(csv.DictReader(fh))
     assert [r["name"] for r in rows] == [r.name for r in runs] and float(rows[1]["cost"]) == \
