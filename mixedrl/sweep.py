@@ -464,8 +464,8 @@ def _write_outputs(out: Path, spec: SweepSpec, records: list[dict[str, Any]], ex
         row["error"] = rec["error"]
         flat.append(row)
     atomic_write_text(out / "sweep.csv", _csv_text(flat))
-    atomic_write_text(out / "sweep_summary.csv",
-                      _csv_text([{**row["point"], **{k: v for k, v in row.items() if k != "point"}} for row in summary]))
+    table = [{**row["point"], **{k: v for k, v in row.items() if k != "point"}} for row in summary]
+    atomic_write_text(out / "sweep_summary.csv", _csv_text(table))
 
 
 def make_figure(out: str | Path, summary: list[dict[str, Any]], grid: dict[str, Sequence[Any]]) -> Path | None:
