@@ -5,6 +5,7 @@
     mixedrl train --method {mixed,model,ddpg,oracle} --seed S --out DIR [--iterations N]
                   [--config FILE.json] [--set key=value ...] [--resume] [--no-progress]
     mixedrl evaluate RUN_DIR [--seeds N]
+    mixedrl sweep SPEC.toml --out DIR [--address ADDR] [--num-cpus N] [--resume] [--no-progress]
     mixedrl reproduce [--seeds 5] [--out DIR] [--quick] [--resume] [--workers W] [--no-progress]
 
 ``train`` writes a run directory (:mod:`mixedrl.runs`); ``--resume`` continues an interrupted run from
@@ -17,9 +18,10 @@ configuration (values are JSON, else strings)::
     mixedrl train --method model --out runs/lin --set task.name=linear "task.prior_mean=[0, 2]"
 
 (:func:`mixedrl.config.apply_overrides` applies them; an unknown key, at any level, is an error naming
-its dotted name.) ``evaluate`` drives a run's final policy on its task.
+its dotted name.) ``evaluate`` drives a run's final policy on its task. ``sweep`` runs a grid of
+configurations x methods x seeds on Ray (:mod:`mixedrl.sweep`, the optional extra ``sweep``).
 
-**Command plug-ins.** Commands beyond ``train`` and ``evaluate`` are plug-ins, so that the core package
+**Command plug-ins.** Commands beyond ``train``, ``evaluate`` and ``sweep`` are plug-ins, so that the core package
 imports neither ``validation`` nor ``theory``: ``reproduce`` (Table I and the figures of the paper's
 Section VI, :mod:`validation.reproduce`) is one. A plug-in is an entry point of the group
 :data:`COMMAND_GROUP` (``"mixedrl.commands"``) in a distribution's metadata, e.g. in ``pyproject.toml``::
@@ -48,6 +50,8 @@ from typing import Any, Sequence
 
 from mixedrl.config import METHODS, TrainConfig, apply_overrides
 from mixedrl.runs import RunDirectory, eval_seeds, load_checkpoint, make_trainer, train
+from mixedrl.sweep import add_parser as add_sweep_parser
+from mixedrl.sweep import run as run_sweep
 
 __all__ = ["main", "build_parser", "parse_overrides", "command_plugins", "COMMAND_GROUP", "Handler"]
 
@@ -138,6 +142,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("run_dir", type=Path)
     p.add_argument("--seeds", type=int, default=None, help="number of noise seeds (default: the run's)")
     p.set_defaults(handler=_evaluate)
+
+    add_sweep_parser(sub)  # mixedrl sweep SPEC --out DIR (mixedrl.sweep; Ray is imported only when it runs)
+    sub.choices["sweep"].set_defaults(handler=run_sweep)
 
     _add_plugins(sub)
     return parser

@@ -1,0 +1,675 @@
+"""Sweeps: a grid of ordinary training runs (config fields x methods x seeds), executed on Ray.
+
+::
+
+    mixedrl sweep SPEC.toml --out DIR [--address ADDR] [--num-cpus N] [--resume] [--no-progress]
+    python -m mixedrl.sweep SPEC.toml --out DIR ...          (the same, without the plug-in registry)
+
+A spec is a small TOML file::
+
+    methods = ["mixed", "model"]          # TrainConfig.method of the runs
+    seeds = [0, 1, 2]                     # TrainConfig.seed of the runs
+
+    [base]                                # TrainConfig fields shared by every run
+    iterations = 600
+    eval_seeds = 1                        # dotted keys (task.prior_force_mean = 150) reach nested fields
+
+    [grid]                                # config field -> list of values: the cartesian product
+    critic_lr = [1e-3, 3e-3]
+    batch_size = [256, 512]
+
+It expands to ``len(grid product) x len(methods) x len(seeds)`` runs. Every run is an ordinary run
+directory (:class:`mixedrl.runs.RunDirectory`) under ``DIR/runs/``, trained by
+:func:`mixedrl.runs.make_trainer` and :func:`mixedrl.runs.train`, the code path of ``mixedrl train``: a run
+of a sweep ends with exactly the weights and metrics of the same config trained alone.
+
+Before anything starts, the spec is checked (TOML syntax, top-level keys, non-empty lists without
+duplicates) and the :class:`~mixedrl.config.TrainConfig` of **every** run is built; any error names the
+offending key and nothing is started or written.
+
+The runs execute on `Ray <https://docs.ray.io>`_ (the optional extra ``sweep``), one Ray task per run
+(``num_cpus=1``; each run sets its own ``torch.set_num_threads(config.num_threads)``); results are
+gathered with ``ray.wait`` as they finish. By default :func:`ray.init` starts a local cluster on this
+machine; ``--address`` joins an existing cluster (``DIR`` must then be a path every node sees, e.g. a
+shared file system). A failed run is recorded with its error and does not stop the others.
+
+Outputs in ``DIR``:
+
+* ``spec.toml``: a copy of the spec;
+* ``runs/<name>/``: one run directory per run, ``<name>`` made of the grid values, method and seed
+  (:func:`run_name`);
+* ``sweep.json``: ``runs`` (per run its ``name``, ``point`` (grid values), full ``config``
+  (``TrainConfig.to_dict()``), ``results`` (``lateral_mae``, ``speed_mae``, ``cost``, ``true_transitions``,
+  ``train_seconds``, ``run_dir``) and ``error``), and ``summary``: mean and standard deviation over seeds
+  per grid point and method; rewritten atomically after every finished run;
+* ``sweep.csv`` (one row per run) and ``sweep_summary.csv`` (the summary);
+* ``figures/cost_vs_<first grid key>.png`` when matplotlib is installed.
+
+``--resume`` skips runs whose ``results.json`` exists and resumes interrupted runs from their
+checkpoints (``train(..., resume=True)``), so a resumed sweep ends with the results of an uninterrupted
+one.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import dataclasses
+import io
+import itertools
+import json
+import logging
+import os
+import re
+import sys
+import time
+import tomllib
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+
+from mixedrl.config import TrainConfig, apply_overrides
+from mixedrl.runs import RunDirectory, atomic_write_bytes, atomic_write_text, make_trainer, train
+
+__all__ = [
+    "SPEC_KEYS",
+    "RESULT_KEYS",
+    "INSTALL_HINT",
+    "SweepSpec",
+    "SweepRun",
+    "apply_dotted",
+    "flatten_table",
+    "parse_spec",
+    "load_spec",
+    "expand",
+    "run_name",
+    "run_point",
+    "run_sweep",
+    "summarize",
+    "make_figure",
+    "add_parser",
+    "run",
+    "main",
+]
+
+logger = logging.getLogger(__name__)
+
+#: Top-level keys a spec may have (``methods`` and ``seeds`` are required).
+SPEC_KEYS = ("methods", "seeds", "base", "grid")
+#: The figures of each run copied into ``sweep.json`` (``None`` when a run does not report one).
+RESULT_KEYS = ("lateral_mae", "speed_mae", "cost", "true_transitions", "train_seconds")
+#: What to install when Ray is missing.
+INSTALL_HINT = 'pip install -c constraints.txt "mixedrl[sweep]"'
+#: Fields a spec sets through ``methods`` and ``seeds``, never through ``[base]`` or ``[grid]``.
+_RESERVED = {"method": "methods", "seed": "seeds"}
+#: Longest run name before it is shortened with a hash.
+_MAX_NAME = 160
+
+
+# ----------------------------------------------------------------------------------------------------
+# the spec
+# ----------------------------------------------------------------------------------------------------
+#: Dotted-key overrides of a config dict: :func:`mixedrl.config.apply_overrides` (one implementation for
+#: ``mixedrl train --set`` and the sweep's ``[base]`` / ``[grid]`` keys).
+apply_dotted = apply_overrides
+
+
+def flatten_table(table: dict[str, Any], prefix: str = "") -> dict[str, Any]:
+    """Flatten nested TOML tables into dotted keys: ``{"a": {"b": 1}}`` -> ``{"a.b": 1}``.
+
+    TOML turns ``a.b = 1`` into a nested table; a quoted ``"a.b" = 1`` stays one key. Both end up as
+    ``"a.b"``. Lists and scalars are leaves.
+    """
+    out: dict[str, Any] = {}
+    for key, value in table.items():
+        name = f"{prefix}{key}"
+        if isinstance(value, dict):
+            out.update(flatten_table(value, prefix=f"{name}."))
+        else:
+            out[name] = value
+    return out
+
+
+@dataclasses.dataclass(frozen=True)
+class SweepSpec:
+    """A parsed, checked sweep spec (see the module docstring).
+
+    Attributes
+    ----------
+    methods : tuple of str
+        ``TrainConfig.method`` of the runs.
+    seeds : tuple of int
+        ``TrainConfig.seed`` of the runs.
+    base : dict
+        Dotted key -> value shared by every run.
+    grid : dict
+        Dotted key -> tuple of values; the runs cover their cartesian product (in the spec's key order).
+    text : str
+        The spec's TOML text (copied to ``DIR/spec.toml``).
+    """
+
+    methods: tuple[str, ...]
+    seeds: tuple[int, ...]
+    base: dict[str, Any]
+    grid: dict[str, tuple[Any, ...]]
+    text: str = ""
+
+
+@dataclasses.dataclass(frozen=True)
+class SweepRun:
+    """One run of a sweep: its directory name, its grid values and its full config."""
+
+    name: str
+    point: dict[str, Any]
+    config: TrainConfig
+
+
+def _check_list(value: Any, key: str) -> list[Any]:
+    if not isinstance(value, list):
+        raise ValueError(f"{key}: expected a list of values, got {type(value).__name__} {value!r}")
+    if not value:
+        raise ValueError(f"{key}: empty list (a sweep over nothing)")
+    seen: list[Any] = []
+    for v in value:
+        if any(v == s and type(v) is type(s) for s in seen):
+            raise ValueError(f"{key}: duplicate value {v!r}")
+        seen.append(v)
+    return value
+
+
+def parse_spec(text: str, source: str = "spec") -> SweepSpec:
+    """Parse and check the TOML text of a sweep spec, and build the config of every run.
+
+    Parameters
+    ----------
+    text : str
+        TOML with ``methods``, ``seeds``, and optionally ``[base]`` and ``[grid]``.
+    source : str
+        Name used in error messages (the file's path).
+
+    Returns
+    -------
+    SweepSpec
+
+    Raises
+    ------
+    ValueError
+        Invalid TOML (``spec: ...``), an unknown top-level key (``spec: unknown key(s) ...``), a missing,
+        empty, non-list or duplicated ``methods`` / ``seeds`` / grid list (message starts with the key,
+        e.g. ``grid.critic_lr: ...``), ``method`` or ``seed`` set in ``[base]`` / ``[grid]``, a field
+        both in ``[base]`` and ``[grid]``, or a run whose config :meth:`TrainConfig.from_dict` rejects
+        (unknown or invalid field; message starts with the run's name).
+    """
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise ValueError(f"spec: {source} is not valid TOML ({exc})") from None
+    unknown = sorted(set(data) - set(SPEC_KEYS))
+    if unknown:
+        raise ValueError(f"spec: unknown key(s) {unknown} in {source}; allowed: {list(SPEC_KEYS)}")
+    for key in ("methods", "seeds"):
+        if key not in data:
+            raise ValueError(f"{key}: missing from {source} (a list is required)")
+    methods = _check_list(data["methods"], "methods")
+    seeds = _check_list(data["seeds"], "seeds")
+    tables: dict[str, dict[str, Any]] = {}
+    for key in ("base", "grid"):
+        table = data.get(key, {})
+        if not isinstance(table, dict):
+            raise ValueError(f"{key}: expected a table [{key}], got {type(table).__name__}")
+        tables[key] = flatten_table(table)
+        for field, via in _RESERVED.items():
+            if field in tables[key]:
+                raise ValueError(f"{key}.{field}: set by the spec's {via!r} list, not in [{key}]")
+    grid = {key: tuple(_check_list(values, f"grid.{key}")) for key, values in tables["grid"].items()}
+    for key in grid:
+        if key in tables["base"]:
+            raise ValueError(f"grid.{key}: also set in [base]; set it in one place")
+    spec = SweepSpec(methods=tuple(methods), seeds=tuple(seeds), base=tables["base"], grid=grid, text=text)
+    expand(spec)  # builds (and so validates) the config of every run before anything starts
+    return spec
+
+
+def load_spec(path: str | Path) -> SweepSpec:
+    """Read a spec file and :func:`parse_spec` it.
+
+    Raises
+    ------
+    ValueError
+        The file does not exist or is not UTF-8 (``spec: ...``), or :func:`parse_spec` rejects it.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise ValueError(f"spec: {path} does not exist")
+    try:
+        text = path.read_text(encoding="utf-8")
+    except UnicodeDecodeError as exc:
+        raise ValueError(f"spec: {path} is not UTF-8 text ({exc})") from None
+    return parse_spec(text, source=str(path))
+
+
+def _format_value(value: Any) -> str:
+    if isinstance(value, str):
+        text = value
+    elif isinstance(value, (list, tuple)):
+        text = "x".join(_format_value(v) for v in value)
+    elif isinstance(value, dict):
+        text = "_".join(f"{k}-{_format_value(v)}" for k, v in value.items())
+    else:
+        text = json.dumps(value)
+    return re.sub(r"[^A-Za-z0-9.+\-]", "_", text)
+
+
+def run_name(point: dict[str, Any], method: str, seed: int) -> str:
+    """The directory name of one run: ``key=value`` of each grid value, then ``<method>_seed<S>``, joined by
+    ``__`` (e.g. ``critic_lr=0.001__batch_size=256__mixed_seed0``).
+
+    Characters other than letters, digits, ``.``, ``+`` and ``-`` in a value become ``_``; a name longer than
+    160 characters is cut and ends with a hash of the full name, so it stays unique and deterministic.
+    """
+    parts = [f"{key}={_format_value(value)}" for key, value in point.items()] + [f"{method}_seed{seed}"]
+    name = "__".join(parts)
+    if len(name) > _MAX_NAME:
+        import hashlib
+
+        digest = hashlib.sha256(name.encode()).hexdigest()[:12]
+        name = f"{name[:_MAX_NAME - 14]}__{digest}"
+    return name
+
+
+def expand(spec: SweepSpec) -> list[SweepRun]:
+    """Every run of ``spec``: grid points (cartesian product, spec order) x methods x seeds.
+
+    Returns
+    -------
+    list of SweepRun
+        In a fixed order (the order of ``sweep.json``).
+
+    Raises
+    ------
+    ValueError
+        A run's config is invalid (message starts with ``base`` or the run's name, then the field), or two
+        runs get the same directory name.
+    """
+    defaults = TrainConfig().to_dict()
+    try:
+        TrainConfig.from_dict(apply_dotted(defaults, spec.base))
+    except (ValueError, TypeError) as exc:
+        raise ValueError(f"base: {exc}") from None
+    keys = list(spec.grid)
+    combos = [(dict(zip(keys, values)), method, seed)
+              for values in itertools.product(*(spec.grid[k] for k in keys))
+              for method in spec.methods for seed in spec.seeds]
+    names: dict[str, dict[str, Any]] = {}
+    for point, method, seed in combos:  # every name first: a clash is reported before any config error
+        name = run_name(point, method, seed)
+        if name in names:
+            raise ValueError(f"grid: the points {names[name]} and {point} give the same run name {name!r}")
+        names[name] = point
+    runs: list[SweepRun] = []
+    for point, method, seed in combos:
+        name = run_name(point, method, seed)
+        overrides = {**spec.base, **point, "method": method, "seed": seed}
+        try:
+            config = TrainConfig.from_dict(apply_dotted(defaults, overrides))
+        except (ValueError, TypeError) as exc:
+            raise ValueError(f"{name}: {exc}") from None
+        runs.append(SweepRun(name=name, point=point, config=config))
+    return runs
+
+
+# ----------------------------------------------------------------------------------------------------
+# one run (executed in a Ray worker)
+# ----------------------------------------------------------------------------------------------------
+def run_point(config: dict[str, Any], path: str, resume: bool = False) -> dict[str, Any]:
+    """Train one run of a sweep into ``path``; the body of its Ray task.
+
+    Exactly ``mixedrl train``: :func:`mixedrl.runs.make_trainer` then :func:`mixedrl.runs.train` (which
+    sets ``torch.set_num_threads(config.num_threads)``).
+
+    Parameters
+    ----------
+    config : dict
+        ``TrainConfig.to_dict()`` of the run.
+    path : str
+        The run directory.
+    resume : bool
+        If the run has ``results.json``, return it without training; else continue from its checkpoint.
+
+    Returns
+    -------
+    dict
+        The run's results (the content of ``results.json``).
+
+    Raises
+    ------
+    ValueError
+        ``resume`` and the run directory holds a different config.
+    """
+    cfg = TrainConfig.from_dict(config)
+    run_dir = RunDirectory(path)
+    if resume and run_dir.results_path.is_file():
+        if run_dir.read_config().to_dict() != cfg.to_dict():
+            raise ValueError(f"config: differs from the saved {run_dir.config_path}; resume with the same spec")
+        return run_dir.read_results()
+    return train(make_trainer(cfg), run_dir, resume=resume)
+
+
+# ----------------------------------------------------------------------------------------------------
+# the sweep
+# ----------------------------------------------------------------------------------------------------
+def _mean_std(values: list[float]) -> tuple[float | None, float | None]:
+    if not values:
+        return None, None
+    arr = np.asarray(values, dtype=float)
+    return float(arr.mean()), float(arr.std(ddof=1)) if arr.size > 1 else 0.0
+
+
+def summarize(records: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """Aggregate the runs over seeds: per grid point and method, mean and std of each figure.
+
+    Parameters
+    ----------
+    records : list of dict
+        The ``runs`` of ``sweep.json``.
+
+    Returns
+    -------
+    list of dict
+        One row per (grid point, method), in sweep order: ``point``, ``method``, ``runs`` (finished),
+        ``failed``, and ``<figure>_mean`` / ``<figure>_std`` for every figure of :data:`RESULT_KEYS`
+        (sample std, ``ddof=1``; 0 for one seed; ``None`` when no run reports the figure).
+    """
+    groups: dict[str, dict[str, Any]] = {}
+    for rec in records:
+        key = json.dumps([rec["point"], rec["config"]["method"]], sort_keys=True)
+        group = groups.setdefault(key, {"point": rec["point"], "method": rec["config"]["method"], "done": [],
+                                        "failed": 0})
+        if rec["error"] is not None:
+            group["failed"] += 1
+        elif rec["results"] is not None:
+            group["done"].append(rec["results"])
+    rows = []
+    for group in groups.values():
+        row: dict[str, Any] = {"point": group["point"], "method": group["method"], "runs": len(group["done"]),
+                               "failed": group["failed"]}
+        for fig in RESULT_KEYS:
+            values = [r[fig] for r in group["done"] if isinstance(r.get(fig), (int, float))]
+            row[f"{fig}_mean"], row[f"{fig}_std"] = _mean_std(values)
+        rows.append(row)
+    return rows
+
+
+def _csv_text(rows: list[dict[str, Any]]) -> str:
+    """CSV of dict rows; the columns are the union of their keys, in order of appearance."""
+    keys = list(dict.fromkeys(key for row in rows for key in row))
+    out = io.StringIO()
+    writer = csv.writer(out)
+    writer.writerow(keys)
+    writer.writerows([row.get(key) for key in keys] for row in rows)
+    return out.getvalue()
+
+
+def _write_outputs(out: Path, spec: SweepSpec, records: list[dict[str, Any]], extra: dict[str, Any]) -> None:
+    summary = summarize(records)
+    doc = {"methods": list(spec.methods), "seeds": list(spec.seeds), "base": spec.base,
+           "grid": {k: list(v) for k, v in spec.grid.items()}, **extra, "runs": records, "summary": summary}
+    atomic_write_text(out / "sweep.json", json.dumps(doc, indent=2, allow_nan=True) + "\n")
+    flat = []
+    for rec in records:
+        row = {"name": rec["name"], **rec["point"], "method": rec["config"]["method"], "seed": rec["config"]["seed"]}
+        row.update(rec["results"] or {k: None for k in (*RESULT_KEYS, "run_dir")})
+        row["error"] = rec["error"]
+        flat.append(row)
+    atomic_write_text(out / "sweep.csv", _csv_text(flat))
+    table = [{**row["point"], **{k: v for k, v in row.items() if k != "point"}} for row in summary]
+    atomic_write_text(out / "sweep_summary.csv", _csv_text(table))
+
+
+def make_figure(out: str | Path, summary: list[dict[str, Any]], grid: dict[str, Sequence[Any]]) -> Path | None:
+    """Plot the course cost against the first grid key, one line per method (mean ± std over seeds).
+
+    Other grid keys are held at their first value. Numeric values go on a numeric axis, others on
+    categories.
+
+    Parameters
+    ----------
+    out : str or pathlib.Path
+        The sweep directory; the figure goes to ``out/figures/cost_vs_<key>.png``.
+    summary : list of dict
+        :func:`summarize`'s rows.
+    grid : dict
+        The spec's grid.
+
+    Returns
+    -------
+    pathlib.Path or None
+        The figure's path; ``None`` without a grid or without matplotlib.
+    """
+    if not grid:
+        return None
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        logger.info("matplotlib not installed: no sweep figure")
+        return None
+    key = next(iter(grid))
+    values = list(grid[key])
+    others = {k: v[0] for k, v in grid.items() if k != key}
+    numeric = all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in values)
+    xs = values if numeric else list(range(len(values)))
+    fig, ax = plt.subplots(figsize=(5.5, 3.8))
+    methods = list(dict.fromkeys(row["method"] for row in summary))
+    for method in methods:
+        pts = []
+        for x, v in zip(xs, values):
+            target = {**others, key: v}
+            for row in summary:
+                if row["method"] == method and row["point"] == target and row["cost_mean"] is not None:
+                    pts.append((x, row["cost_mean"], row["cost_std"] or 0.0))
+        if pts:
+            arr = np.asarray(pts, dtype=float)
+            ax.errorbar(arr[:, 0], arr[:, 1], yerr=arr[:, 2], marker="o", capsize=3, label=method)
+    if not numeric:
+        ax.set_xticks(xs, [str(v) for v in values])
+    ax.set_xlabel(key + ("" if not others else f"  ({', '.join(f'{k}={v}' for k, v in others.items())})"))
+    ax.set_ylabel("course cost (mean ± std over seeds)")
+    ax.legend()
+    fig.tight_layout()
+    path = Path(out) / "figures" / f"cost_vs_{_format_value(key)}.png"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    buffer = io.BytesIO()
+    fig.savefig(buffer, format="png", dpi=120)
+    plt.close(fig)
+    atomic_write_bytes(path, buffer.getvalue())
+    return path
+
+
+def _record(sweep_run: SweepRun, results: dict[str, Any] | None, error: str | None) -> dict[str, Any]:
+    figures = None
+    if results is not None:
+        figures = {k: results.get(k) for k in RESULT_KEYS}
+        figures["run_dir"] = str(Path("runs") / sweep_run.name)
+    return {"name": sweep_run.name, "point": sweep_run.point, "config": sweep_run.config.to_dict(),
+            "results": figures, "error": error}
+
+
+def _error_text(exc: BaseException) -> str:
+    cause = getattr(exc, "cause", None)  # ray.exceptions.RayTaskError wraps the run's own exception
+    err = cause if isinstance(cause, BaseException) else exc
+    return f"{type(err).__name__}: {err}"
+
+
+def run_sweep(spec: SweepSpec, out: str | Path, address: str | None = None, num_cpus: int | None = None,
+              resume: bool = False, progress: bool = True) -> dict[str, Any]:
+    """Run every run of ``spec`` on Ray and write the sweep's outputs into ``out``.
+
+    Parameters
+    ----------
+    spec : SweepSpec
+        From :func:`load_spec` / :func:`parse_spec`.
+    out : str or pathlib.Path
+        The sweep directory (on a shared file system when ``address`` names a multi-node cluster).
+    address : str, optional
+        Address of an existing Ray cluster (``"auto"``, ``"HOST:6379"``, ``"ray://HOST:10001"``); ``None``
+        starts a local cluster (unless Ray is already initialised in this process, which is then used).
+    num_cpus : int, optional
+        CPUs of the local cluster (default ``os.cpu_count()``); ignored when joining a cluster.
+    resume : bool
+        Skip finished runs, resume interrupted ones from their checkpoints.
+    progress : bool
+        tqdm progress bar over runs.
+
+    Returns
+    -------
+    dict
+        The content of ``sweep.json``; ``failed`` counts the runs that raised.
+
+    Raises
+    ------
+    ImportError
+        Ray is not installed (the message names the extra to install).
+    ValueError
+        ``out`` already holds a sweep and ``resume`` is false, ``resume`` with a different spec in
+        ``out/spec.toml``, or ``num_cpus`` not a positive integer. Nothing is started.
+    """
+    out = Path(out).resolve()
+    runs = expand(spec)
+    if num_cpus is not None and (isinstance(num_cpus, bool) or not isinstance(num_cpus, int) or num_cpus < 1):
+        raise ValueError(f"num_cpus: expected a positive integer, got {num_cpus!r}")
+    saved_spec = out / "spec.toml"
+    if resume and saved_spec.is_file():
+        saved = parse_spec(saved_spec.read_text(encoding="utf-8"), str(saved_spec))
+        if dataclasses.replace(saved, text="") != dataclasses.replace(spec, text=""):
+            raise ValueError(f"spec: differs from the sweep's {saved_spec}; resume with the same spec or use a new "
+                             f"--out")
+    elif not resume and (saved_spec.is_file() or (out / "runs").is_dir() and any((out / "runs").iterdir())):
+        raise ValueError(f"out: {out} already holds a sweep; pass --resume to continue it, or choose a new --out")
+    try:
+        import ray
+    except ImportError:
+        raise ImportError(f"mixedrl sweep needs Ray: {INSTALL_HINT}") from None
+
+    started = False
+    if not ray.is_initialized():
+        if address is None:
+            ray.init(num_cpus=num_cpus or os.cpu_count() or 1, include_dashboard=False, log_to_driver=False)
+        else:
+            ray.init(address=address, log_to_driver=False)
+        started = True
+    try:
+        (out / "runs").mkdir(parents=True, exist_ok=True)
+        atomic_write_text(saved_spec, spec.text)
+        t0 = time.perf_counter()
+        task = ray.remote(num_cpus=1)(run_point)
+        refs = {task.remote(r.config.to_dict(), str(out / "runs" / r.name), resume): i for i, r in enumerate(runs)}
+        records: list[dict[str, Any] | None] = [None] * len(runs)
+        extra = {"ray_version": ray.__version__, "address": address}
+
+        def current() -> list[dict[str, Any]]:
+            return [rec if rec is not None else _record(r, None, None) for rec, r in zip(records, runs)]
+
+        bar = None
+        if progress:
+            from tqdm.auto import tqdm
+
+            bar = tqdm(total=len(runs), desc="sweep (runs)")
+        pending = list(refs)
+        failed = 0
+        try:
+            while pending:
+                done, pending = ray.wait(pending, num_returns=1)
+                i = refs[done[0]]
+                try:
+                    results, error = ray.get(done[0]), None
+                except Exception as exc:  # noqa: BLE001 - one failed run must not stop the others
+                    results, error = None, _error_text(exc)
+                    failed += 1
+                    logger.error("run %s failed: %s", runs[i].name, error)
+                records[i] = _record(runs[i], results, error)
+                _write_outputs(out, spec, current(), {**extra, "failed": failed, "finished": False,
+                                                       "wall_seconds": time.perf_counter() - t0})
+                if bar is not None:
+                    bar.update(1)
+                    if failed:
+                        bar.set_postfix(failed=failed)
+        finally:
+            if bar is not None:
+                bar.close()
+        doc_extra = {**extra, "failed": failed, "finished": True, "wall_seconds": time.perf_counter() - t0}
+        _write_outputs(out, spec, current(), doc_extra)
+    finally:
+        if started:
+            ray.shutdown()
+    doc = json.loads((out / "sweep.json").read_text())
+    make_figure(out, doc["summary"], spec.grid)
+    return doc
+
+
+# ----------------------------------------------------------------------------------------------------
+# command line
+# ----------------------------------------------------------------------------------------------------
+def _add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("spec", type=Path, help="sweep spec (TOML: methods, seeds, [base], [grid])")
+    p.add_argument("--out", type=Path, required=True, help="sweep directory (shared by every node of a cluster)")
+    p.add_argument("--address", default=None,
+                   help="join an existing Ray cluster (e.g. 'auto' or HOST:6379); default: start a local one")
+    p.add_argument("--num-cpus", type=int, default=None, help="CPUs of the local cluster (default: all)")
+    p.add_argument("--resume", action="store_true", help="skip finished runs, resume interrupted ones")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def add_parser(subparsers: Any) -> None:
+    """Add the ``sweep`` sub-command to ``mixedrl``'s sub-parsers (``argparse`` ``add_subparsers()``)."""
+    p = subparsers.add_parser("sweep", help="run a grid of training runs (config x methods x seeds) on Ray",
+                              description=__doc__.split("\n", 1)[0])
+    _add_arguments(p)
+
+
+def run(args: argparse.Namespace) -> int:
+    """Handler of ``mixedrl sweep``: run the sweep and print its summary table.
+
+    Returns
+    -------
+    int
+        0 if every run finished, 1 if some failed (their errors are in ``sweep.json``), 2 for an invalid
+        spec or arguments, or without Ray (the message says which extra to install).
+    """
+    try:
+        spec = load_spec(args.spec)
+        doc = run_sweep(spec, args.out, address=args.address, num_cpus=args.num_cpus, resume=args.resume,
+                        progress=not args.no_progress)
+    except ImportError as exc:
+        print(f"mixedrl sweep: error: {exc}", file=sys.stderr)
+        return 2
+    except ValueError as exc:
+        print(f"mixedrl sweep: error: {exc}", file=sys.stderr)
+        return 2
+    for row in doc["summary"]:
+        point = ", ".join(f"{k}={v}" for k, v in row["point"].items())
+        cost = "n/a" if row["cost_mean"] is None else f"{row['cost_mean']:.6g} ± {row['cost_std']:.3g}"
+        print(f"{point + '  ' if point else ''}{row['method']:<7} runs {row['runs']}  failed {row['failed']}  "
+              f"cost {cost}")
+    print(f"\nsweep: {Path(args.out) / 'sweep.json'}   table: {Path(args.out) / 'sweep_summary.csv'}")
+    if doc["failed"]:
+        print(f"mixedrl sweep: {doc['failed']} run(s) failed; see 'error' in sweep.json", file=sys.stderr)
+        return 1
+    return 0
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """``python -m mixedrl.sweep SPEC --out DIR ...``: the ``sweep`` command without the ``mixedrl`` front."""
+    parser = argparse.ArgumentParser(prog="mixedrl sweep", description=__doc__.split("\n", 1)[0])
+    parser.add_argument("-v", "--verbose", action="store_true", help="log at INFO level")
+    _add_arguments(parser)
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING, format="%(levelname)s %(message)s")
+    return run(args)
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

@@ -1,0 +1,344 @@
+"""Tests of mixedrl.sweep: the spec, its validation, the dotted-key applier, and (marked ``sweep``) sweeps on a
+local Ray cluster."""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import shutil
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+
+from mixedrl.config import TrainConfig
+from mixedrl.runs import RunDirectory, load_checkpoint, make_trainer, train
+from mixedrl.sweep import (
+    INSTALL_HINT,
+    add_parser,
+    apply_dotted,
+    expand,
+    flatten_table,
+    load_spec,
+    main,
+    make_figure,
+    parse_spec,
+    run_name,
+    run_sweep,
+    summarize,
+)
+
+BASE = """
+[base]
+task = "linear"
+iterations = 20
+batch_size = 32
+eval_every = 10
+checkpoint_every = 10
+eval_seeds = 1
+"""
+SPEC = 'methods = ["mixed"]\nseeds = [0]\n' + BASE + "\n[grid]\ncritic_lr = [1e-3, 3e-3]\n"
+
+
+# ----------------------------------------------------------------------------------------------------
+# the dotted-key applier
+# ----------------------------------------------------------------------------------------------------
+def test_apply_dotted_sets_nested_fields_and_leaves_its_input_unchanged() -> None:
+    data = {"a": {"b": {"c": 1, "d": 2}}, "e": [1, 2]}
+    out = apply_dotted(data, {"a.b.c": 10, "e": [3], "x.y": 5, "top": "v"})
+    assert out == {"a": {"b": {"c": 10, "d": 2}}, "e": [3], "x": {"y": 5}, "top": "v"}
+    assert data == {"a": {"b": {"c": 1, "d": 2}}, "e": [1, 2]}
+    value = [1, 2]
+    out = apply_dotted({}, {"l": value})
+    value.append(3)
+    assert out == {"l": [1, 2]}  # values are copied, not shared
+
+
+@pytest.mark.parametrize("key, message", [("e.f", "^e.f: e is 3, not a nested configuration"), ("a..b", "^a..b: empty segment"),
+                                          (".a", "^.a: empty segment"), ("a.", "^a.: empty segment")])
+def test_apply_dotted_rejects_bad_keys(key: str, message: str) -> None:
+    data = {"a": {"b": 1}, "e": 3}
+    with pytest.raises(ValueError, match=message):
+        apply_dotted(data, {key: 1})
+    assert data == {"a": {"b": 1}, "e": 3}
+
+
+def test_flatten_table() -> None:
+    assert flatten_table({"a": {"b": 1, "c": {"d": [1, 2]}}, "e": 2, "f.g": 3}) == {
+        "a.b": 1, "a.c.d": [1, 2], "e": 2, "f.g": 3}
+
+
+# ----------------------------------------------------------------------------------------------------
+# the spec
+# ----------------------------------------------------------------------------------------------------
+def test_parse_spec_expands_grid_methods_and_seeds_in_order() -> None:
+    spec = parse_spec('methods = ["mixed", "model"]\nseeds = [0, 3]\n' + BASE +
+                      '\n[grid]\ncritic_lr = [1e-3, 3e-3]\n"horizon" = [16]\n')
+    runs = expand(spec)
+    assert len(runs) == 2 * 1 * 2 * 2
+    assert [r.name for r in runs[:4]] == [
+        "critic_lr=0.001__horizon=16__mixed_seed0", "critic_lr=0.001__horizon=16__mixed_seed3",
+        "critic_lr=0.001__horizon=16__model_seed0", "critic_lr=0.001__horizon=16__model_seed3"]
+    last = runs[-1]
+    assert last.point == {"critic_lr": 3e-3, "horizon": 16}
+    assert last.config == TrainConfig(method="model", seed=3, task="linear", iterations=20, batch_size=32,
+                                      eval_every=10, checkpoint_every=10, eval_seeds=1, critic_lr=3e-3,
+                                      horizon=16)
+    assert spec == parse_spec(spec.text)  # deterministic
+    assert len({r.name for r in runs}) == len(runs)
+
+
+def test_spec_without_grid() -> None:
+    spec = parse_spec('methods = ["oracle"]\nseeds = [1]\n[base]\ntask = "linear"\n')
+    (only,) = expand(spec)
+    assert only.name == "oracle_seed1" and only.point == {}
+    assert only.config == TrainConfig(method="oracle", seed=1, task="linear")
+
+
+@pytest.mark.parametrize("text, message", [
+    ('methods = ["mixed"\nseeds = [0]', r"^spec: .* is not valid TOML"),
+    ('methods = ["mixed"]\nseeds = [0]\nseed = 1', r"^spec: unknown key\(s\) \['seed'\]"),
+    ('seeds = [0]', r"^methods: missing"),
+    ('methods = ["mixed"]', r"^seeds: missing"),
+    ('methods = []\nseeds = [0]', r"^methods: empty list"),
+    ('methods = "mixed"\nseeds = [0]', r"^methods: expected a list of values, got str"),
+    ('methods = ["mixed", "mixed"]\nseeds = [0]', r"^methods: duplicate value 'mixed'"),
+    ('methods = ["mixed"]\nseeds = [0]\n[grid]\ncritic_lr = 1e-3', r"^grid.critic_lr: expected a list of values"),
+    ('methods = ["mixed"]\nseeds = [0]\n[grid]\ncritic_lr = []', r"^grid.critic_lr: empty list"),
+    ('methods = ["mixed"]\nseeds = [0]\n[grid]\ncritic_lr = [1e-3, 1e-3]', r"^grid.critic_lr: duplicate"),
+    ('methods = ["mixed"]\nseeds = [0]\n[grid]\nseed = [1, 2]', r"^grid.seed: set by the spec's 'seeds'"),
+    ('methods = ["mixed"]\nseeds = [0]\n[base]\nmethod = "model"', r"^base.method: set by the spec's 'methods'"),
+    ('methods = ["mixed"]\nseeds = [0]\n[base]\nbatch_size = 8\n[grid]\nbatch_size = [16]',
+     r"^grid.batch_size: also set in \[base\]"),
+    ('methods = ["mixed"]\nseeds = [0]\nbase = 3', r"^base: expected a table"),
+    ('methods = ["mixed"]\nseeds = [0]\n[base]\nbatchsize = 8', r"^base: config: unknown key\(s\) \['batchsize'\]"),
+    ('methods = ["mixed"]\nseeds = [0]\n[base]\ntask.nothing = 8', r"^base: .*task"),
+    ('methods = ["mixed"]\nseeds = [0]\n[grid]\ncriticlr = [1e-3]',
+     r"^criticlr=0.001__mixed_seed0: config: unknown key\(s\) \['criticlr'\]"),
+    ('methods = ["mixed"]\nseeds = [0]\n[grid]\nbatch_size = [16, 0]', r"^batch_size=0__mixed_seed0: batch_size"),
+    ('methods = ["ppo"]\nseeds = [0]', r"^ppo_seed0: method: expected one of"),
+    ('methods = ["mixed"]\nseeds = [-1]', r"^mixed_seed-1: seed: expected a non-negative integer"),
+    ('methods = ["mixed"]\nseeds = [0]\n[grid]\ntask = ["a b", "a/b"]', r"same run name"),
+])
+def test_invalid_specs_are_rejected_naming_the_key(text: str, message: str) -> None:
+    with pytest.raises(ValueError, match=message):
+        parse_spec(text)
+
+
+def test_load_spec_errors(tmp_path: Path) -> None:
+    with pytest.raises(ValueError, match="^spec: .* does not exist"):
+        load_spec(tmp_path / "missing.toml")
+    bad = tmp_path / "bad.toml"
+    bad.write_bytes(b"methods = [\"mixed\"]\nseeds = [0]\n# \xff\xfe\n")
+    with pytest.raises(ValueError, match="^spec: .* (not UTF-8|not valid TOML)"):
+        load_spec(bad)
+    good = tmp_path / "good.toml"
+    good.write_text(SPEC)
+    assert load_spec(good) == parse_spec(SPEC)
+
+
+def test_run_name_is_deterministic_safe_and_bounded() -> None:
+    assert run_name({}, "mixed", 2) == "mixed_seed2"
+    assert run_name({"hidden_sizes": [64, 32], "task": "a/b c"}, "ddpg", 0) == \
+        "hidden_sizes=64x32__task=a_b_c__ddpg_seed0"
+    long = {f"key{i}": 1.5 for i in range(40)}
+    name = run_name(long, "mixed", 0)
+    assert len(name) <= 160 and name == run_name(dict(long), "mixed", 0)
+    assert name != run_name({**long, "key39": 2.5}, "mixed", 0)
+
+
+def test_invalid_spec_starts_nothing(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    spec = tmp_path / "spec.toml"
+    spec.write_text(SPEC.replace("critic_lr = [1e-3, 3e-3]", "critic_lr = [1e-3, -1.0]"))
+    out = tmp_path / "out"
+    assert main([str(spec), "--out", str(out), "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert "critic_lr=-1.0__mixed_seed0: critic_lr: expected a positive number" in err
+    assert "Traceback" not in err and not out.exists()
+
+
+def test_without_ray_the_command_names_the_extra(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                                  capsys: pytest.CaptureFixture[str]) -> None:
+    monkeypatch.setitem(sys.modules, "ray", None)  # makes ``import ray`` raise ImportError
+    spec = tmp_path / "spec.toml"
+    spec.write_text(SPEC)
+    assert main([str(spec), "--out", str(tmp_path / "out"), "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert INSTALL_HINT in err and "mixedrl[sweep]" in err and "Traceback" not in err
+    assert not (tmp_path / "out").exists()
+
+
+def test_existing_sweep_needs_resume(tmp_path: Path) -> None:
+    (tmp_path / "out").mkdir()
+    (tmp_path / "out" / "spec.toml").write_text(SPEC)
+    with pytest.raises(ValueError, match="^out: .* already holds a sweep; pass --resume"):
+        run_sweep(parse_spec(SPEC), tmp_path / "out", progress=False)
+    other = parse_spec(SPEC.replace("seeds = [0]", "seeds = [1]"))
+    with pytest.raises(ValueError, match="^spec: differs from the sweep's"):
+        run_sweep(other, tmp_path / "out", resume=True, progress=False)
+
+
+def test_add_parser_and_num_cpus() -> None:
+    parser = argparse.ArgumentParser(prog="mixedrl")
+    add_parser(parser.add_subparsers(dest="command"))
+    args = parser.parse_args(["sweep", "s.toml", "--out", "d", "--address", "auto", "--resume"])
+    assert (args.command, args.spec, args.out, args.address, args.resume, args.no_progress, args.num_cpus) == \
+        ("sweep", Path("s.toml"), Path("d"), "auto", True, False, None)
+    with pytest.raises(SystemExit):
+        parser.parse_args(["sweep", "s.toml"])  # --out is required
+    with pytest.raises(ValueError, match="^num_cpus"):
+        run_sweep(parse_spec(SPEC), "unused", num_cpus=0)
+
+
+def test_summarize_means_and_sample_std_over_seeds() -> None:
+    def rec(point: dict, method: str, cost: float | None, error: str | None = None) -> dict:
+        results = None if error else {"cost": cost, "lateral_mae": None, "speed_mae": 1.0, "true_transitions": None,
+                                      "train_seconds": 2.0, "run_dir": "x"}
+        return {"point": point, "config": {"method": method}, "results": results, "error": error}
+
+    rows = summarize([rec({"a": 1}, "mixed", 1.0), rec({"a": 1}, "mixed", 3.0), rec({"a": 1}, "model", 5.0),
+                      rec({"a": 1}, "mixed", None, error="boom"), rec({"a": 2}, "mixed", 4.0)])
+    assert [(r["point"], r["method"], r["runs"], r["failed"]) for r in rows] == [
+        ({"a": 1}, "mixed", 2, 1), ({"a": 1}, "model", 1, 0), ({"a": 2}, "mixed", 1, 0)]
+    assert rows[0]["cost_mean"] == 2.0 and rows[0]["cost_std"] == pytest.approx(2 ** 0.5)
+    assert rows[1]["cost_std"] == 0.0 and rows[0]["lateral_mae_mean"] is None
+    assert rows[0]["speed_mae_mean"] == 1.0
+
+
+def test_make_figure_plots_cost_against_the_first_grid_key(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    matplotlib = pytest.importorskip("matplotlib")
+    import matplotlib.axes
+
+    plotted: list[tuple] = []
+    original = matplotlib.axes.Axes.errorbar
+
+    def record(self, x, y, yerr=None, **kw):  # type: ignore[no-untyped-def]
+        plotted.append((kw.get("label"), list(x), list(y), list(yerr)))
+        return original(self, x, y, yerr=yerr, **kw)
+
+    monkeypatch.setattr(matplotlib.axes.Axes, "errorbar", record)
+    summary = [{"point": {"a": a, "b": b}, "method": m, "cost_mean": 10.0 * a + len(b) + (m == "model"),
+                "cost_std": 0.5} for a in (1, 2) for b in ("x", "yy") for m in ("mixed", "model")]
+    path = make_figure(tmp_path, summary, {"a": [1, 2], "b": ["x", "yy"]})
+    assert path == tmp_path / "figures" / "cost_vs_a.png" and path.read_bytes()[:4] == b"\x89PNG"
+    # one line per method, against a, with b held at its first value "x"
+    assert plotted == [("mixed", [1.0, 2.0], [11.0, 21.0], [0.5, 0.5]), ("model", [1.0, 2.0], [12.0, 22.0], [0.5, 0.5])]
+    plotted.clear()
+    path = make_figure(tmp_path, summary, {"b": ["x", "yy"], "a": [1, 2]})  # categorical axis, a held at 1
+    assert path == tmp_path / "figures" / "cost_vs_b.png" and path.is_file()
+    assert plotted[0] == ("mixed", [0.0, 1.0], [11.0, 12.0], [0.5, 0.5])
+    assert make_figure(tmp_path, [], {}) is None
+
+
+# ----------------------------------------------------------------------------------------------------
+# sweeps on a local Ray cluster
+# ----------------------------------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def local_ray():
+    """One local Ray cluster for the module (starting one takes ~10 s); run_sweep reuses it."""
+    ray = pytest.importorskip("ray", reason="Ray is not installed (extra 'sweep')")
+    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
+    yield ray
+    ray.shutdown()
+
+
+def _weights(run: Path) -> dict[str, torch.Tensor]:
+    state = load_checkpoint(Path(run) / "checkpoint.pt")["trainer"]
+    return {f"{net}.{k}": v for net in ("actor", "critic") for k, v in state[net].items()}
+
+
+def _same_weights(a: Path, b: Path) -> bool:
+    wa, wb = _weights(a), _weights(b)
+    return wa.keys() == wb.keys() and all(torch.equal(wa[k], wb[k]) for k in wa)
+
+
+def _without_time(rows: list[dict]) -> list[dict]:
+    return [{k: v for k, v in r.items() if not k.startswith("time/")} for r in rows]
+
+
+@pytest.mark.sweep
+def test_sweep_on_local_ray_equals_train_alone_and_resumes(local_ray, tmp_path: Path) -> None:
+    from mixedrl.cli import main as cli_main
+
+    spec_path = tmp_path / "spec.toml"
+    spec_path.write_text(SPEC)
+    full = tmp_path / "full"
+    assert main([str(spec_path), "--out", str(full), "--no-progress"]) == 0
+
+    # sweep.json: each run's full config and its figures; the CSVs and the spec copy
+    doc = json.loads((full / "sweep.json").read_text())
+    runs = expand(load_spec(spec_path))
+    assert [r["name"] for r in doc["runs"]] == [r.name for r in runs] == \
+        ["critic_lr=0.001__mixed_seed0", "critic_lr=0.003__mixed_seed0"]
+    assert doc["failed"] == 0 and doc["finished"] is True
+    for rec, sweep_run in zip(doc["runs"], runs):
+        assert rec["config"] == sweep_run.config.to_dict() and rec["error"] is None
+        results = RunDirectory(full / rec["results"]["run_dir"]).read_results()
+        assert rec["results"]["run_dir"] == f"runs/{sweep_run.name}"
+        for key in ("cost", "train_seconds"):
+            assert rec["results"][key] == results[key]
+        assert rec["results"]["lateral_mae"] is None  # the linear task has no course
+        assert rec["results"]["true_transitions"] == results.get("true_transitions")
+    assert (full / "spec.toml").read_text() == SPEC
+    assert (full / "figures" / "cost_vs_critic_lr.png").is_file()
+    with open(full / "sweep.csv") as fh:
+        rows = list(csv.DictReader(fh))
+    assert [r["name"] for r in rows] == [r.name for r in runs] and float(rows[1]["cost"]) == \
+        doc["runs"][1]["results"]["cost"]
+    with open(full / "sweep_summary.csv") as fh:
+        summary = list(csv.DictReader(fh))
+    assert [(s["critic_lr"], s["method"], s["runs"]) for s in summary] == [("0.001", "mixed", "1"),
+                                                                           ("0.003", "mixed", "1")]
+
+    # a run of the sweep is exactly the same config trained alone with ``mixedrl train``
+    first = runs[0]
+    alone = tmp_path / "alone"
+    (tmp_path / "config.json").write_text(json.dumps(first.config.to_dict()))
+    assert cli_main(["train", "--method", "mixed", "--seed", "0", "--out", str(alone), "--config",
+                     str(tmp_path / "config.json"), "--no-progress"]) == 0
+    swept = full / "runs" / first.name
+    assert _same_weights(swept, alone)
+    assert RunDirectory(swept).read_results()["final"] == RunDirectory(alone).read_results()["final"]
+    assert _without_time(RunDirectory(swept).read_metrics()) == _without_time(RunDirectory(alone).read_metrics())
+
+    # resume: the first run interrupted after 10 of 20 iterations, the second finished
+    resumed = tmp_path / "resumed"
+    train(make_trainer(first.config), RunDirectory(resumed / "runs" / first.name), stop_after=10)
+    partial = RunDirectory(resumed / "runs" / first.name).read_metrics()
+    assert [r["iteration"] for r in partial] == list(range(1, 11))
+    shutil.copytree(full / "runs" / runs[1].name, resumed / "runs" / runs[1].name)
+    finished_results = resumed / "runs" / runs[1].name / "results.json"
+    stamp = finished_results.stat().st_mtime_ns
+    doc2 = run_sweep(load_spec(spec_path), resumed, resume=True, progress=False)
+    assert finished_results.stat().st_mtime_ns == stamp  # skipped, not retrained
+    rows2 = RunDirectory(resumed / "runs" / first.name).read_metrics()
+    assert rows2[:10] == partial  # continued from the checkpoint (a restart would rewrite the times)
+    assert _same_weights(resumed / "runs" / first.name, swept)
+    for a, b in zip(doc2["runs"], doc["runs"]):
+        assert {k: v for k, v in a["results"].items() if k != "train_seconds"} == \
+            {k: v for k, v in b["results"].items() if k != "train_seconds"}
+        assert a["config"] == b["config"]
+    assert doc2["failed"] == 0
+
+
+@pytest.mark.sweep
+def test_a_failed_run_is_recorded_and_does_not_stop_the_others(local_ray, tmp_path: Path,
+                                                               capsys: pytest.CaptureFixture[str]) -> None:
+    spec_path = tmp_path / "spec.toml"
+    spec_path.write_text(SPEC)
+    out = tmp_path / "out"
+    runs = expand(load_spec(spec_path))
+    # run 1's directory holds a finished run of another config: resuming it is an error
+    bad = RunDirectory(out / "runs" / runs[0].name)
+    bad.write_config(runs[0].config.replace(critic_lr=0.5))
+    bad.write_results({"cost": 1.0})
+    assert main([str(spec_path), "--out", str(out), "--resume", "--no-progress"]) == 1
+    assert "1 run(s) failed" in capsys.readouterr().err
+    doc = json.loads((out / "sweep.json").read_text())
+    assert doc["failed"] == 1
+    assert doc["runs"][0]["results"] is None and doc["runs"][0]["error"].startswith("ValueError: config: differs")
+    assert doc["runs"][1]["error"] is None and doc["runs"][1]["results"]["cost"] == \
+        RunDirectory(out / "runs" / runs[1].name).read_results()["cost"]
+    assert [(s["runs"], s["failed"]) for s in doc["summary"]] == [(0, 1), (1, 0)]
