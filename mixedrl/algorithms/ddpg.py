@@ -1,4 +1,4 @@
-"""The data-driven baseline of Section V: DDPG (Lillicrap et al. 2015) on true-environment transitions.
+"""The data-driven baseline of Section VI: DDPG (Lillicrap et al. 2015) on true-environment transitions.
 
 DDPG never calls the model ``f`` for planning: it learns ``Q(x, u; w)`` and ``pi(x; theta)`` only from
 transitions ``(x, u, l, x')`` of the true environment (:meth:`mixedrl.tasks.Task.true_step`), stored in
