@@ -34,7 +34,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--workers", type=int, default=None)
     args = parser.parse_args(argv)
 
-    results = reproduce(args.out, seeds=args.seeds, resume=args.resume, workers=args.workers, progress=True)
+    ref_dir = args.references.parent if args.references.is_file() else None
+    results = reproduce(args.out, seeds=args.seeds, resume=args.resume, workers=args.workers, progress=True,
+                        references=ref_dir)
     table = format_table(results)
     if args.references.is_file():
         table += "\n\n" + format_references(json.loads(args.references.read_text()))

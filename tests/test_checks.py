@@ -4,14 +4,14 @@ import numpy as np
 import pytest
 import torch
 
-from mixedrl import _checks
+from mixedrl import checks
 
 
 def test_as_vector_rejects_wrong_shape_and_names_argument():
     with pytest.raises(ValueError, match=r"^prior_mean: expected shape \(3,\)"):
-        _checks.as_vector(np.zeros(4), "prior_mean", 3)
+        checks.as_vector(np.zeros(4), "prior_mean", 3)
     with pytest.raises(ValueError, match="^prior_mean: expected shape"):
-        _checks.as_vector(np.zeros((3, 1)), "prior_mean", 3)
+        checks.as_vector(np.zeros((3, 1)), "prior_mean", 3)
 
 
 @pytest.mark.parametrize("bad", [np.nan, np.inf, -np.inf])
@@ -19,14 +19,14 @@ def test_non_finite_is_rejected(bad):
     v = np.zeros(3)
     v[1] = bad
     with pytest.raises(ValueError, match="^xi: contains NaN or inf"):
-        _checks.as_batch(v, "xi", 3)
+        checks.as_batch(v, "xi", 3)
     with pytest.raises(ValueError, match="^t: contains NaN or inf"):
-        _checks.check_finite(torch.tensor(v), "t")
+        checks.check_finite(torch.tensor(v), "t")
 
 
 def test_as_batch_promotes_single_sample_and_copies():
     v = np.arange(3.0)
-    out = _checks.as_batch(v, "xi", 3)
+    out = checks.as_batch(v, "xi", 3)
     assert out.shape == (1, 3)
     out[0, 0] = 99.0
     assert v[0] == 0.0  # the caller's array is never modified
@@ -34,19 +34,19 @@ def test_as_batch_promotes_single_sample_and_copies():
 
 def test_covariance_accepts_tiny_diagonal_and_rejects_indefinite():
     tiny = np.diag([1.8e-10, 1e-20, 1e-20, 1e-20, 1e-20])  # the paper's vehicle prior K_M
-    assert np.array_equal(_checks.check_covariance(tiny, "prior_cov", 5), tiny)
+    assert np.array_equal(checks.check_covariance(tiny, "prior_cov", 5), tiny)
     with pytest.raises(ValueError, match="^noise_cov: covariance is not positive semi-definite"):
-        _checks.check_covariance(np.array([[1.0, 2.0], [2.0, 1.0]]), "noise_cov", 2)
+        checks.check_covariance(np.array([[1.0, 2.0], [2.0, 1.0]]), "noise_cov", 2)
     with pytest.raises(ValueError, match="^noise_cov: covariance is not symmetric"):
-        _checks.check_covariance(np.array([[1.0, 0.5], [0.0, 1.0]]), "noise_cov", 2)
+        checks.check_covariance(np.array([[1.0, 0.5], [0.0, 1.0]]), "noise_cov", 2)
     with pytest.raises(ValueError, match=r"^noise_cov: expected shape \(2, 2\)"):
-        _checks.check_covariance(np.eye(3), "noise_cov", 2)
+        checks.check_covariance(np.eye(3), "noise_cov", 2)
 
 
 def test_unknown_keys_and_positive_int():
     with pytest.raises(ValueError, match=r"config: unknown key\(s\) \['lr_actr'\]"):
-        _checks.check_unknown_keys({"lr_actor": 1, "lr_actr": 2}, {"lr_actor"}, "config")
-    assert _checks.check_positive_int(3, "n") == 3
+        checks.check_unknown_keys({"lr_actor": 1, "lr_actr": 2}, {"lr_actor"}, "config")
+    assert checks.check_positive_int(3, "n") == 3
     for bad in (0, -1, 2.0, True):
         with pytest.raises(ValueError, match="^n: expected a positive integer"):
-            _checks.check_positive_int(bad, "n")
+            checks.check_positive_int(bad, "n")

@@ -59,6 +59,7 @@ from mixedrl.config import DoubleLaneChangeTaskConfig, TrainConfig, task_config
 from mixedrl.gaussian import sample_gaussian
 from mixedrl.ibe import UnknownCovarianceIBE
 from mixedrl.runs import RunDirectory, atomic_write_text, eval_seeds, make_trainer, train
+from validation.nmpc import REFERENCE_SETTINGS
 from mixedrl.tasks import DoubleLaneChangeTask, task_from_config
 
 __all__ = ["PAPER", "METHODS", "reproduce", "format_table", "format_references", "run_config", "TheoryProbe", "make_figures", "main",
@@ -250,7 +251,7 @@ def _finite_or_str(x: float) -> float | str:
 
 
 def reproduce(out: str | Path, seeds: int = 5, quick: bool = False, resume: bool = False, workers: int | None = None,
-              progress: bool = True) -> dict[str, Any]:
+              progress: bool = True, references: str | Path | None = None) -> dict[str, Any]:
     """Train every method over ``seeds`` seeds, write ``results.json`` and the figures; return the results.
 
     Parameters
@@ -267,6 +268,10 @@ def reproduce(out: str | Path, seeds: int = 5, quick: bool = False, resume: bool
         Parallel processes (default ``min(2, cpu_count)``).
     progress : bool
         tqdm progress bar over runs.
+    references : str or pathlib.Path, optional
+        A directory written by ``scripts/references.py`` (``references.json`` and ``trajectories.npz``,
+        shipped in ``docs/_static/references``): the trajectory and error figures overlay the reference
+        controllers' seed-0 courses (measured, not re-run here).
 
     Returns
     -------
@@ -318,7 +323,7 @@ def reproduce(out: str | Path, seeds: int = 5, quick: bool = False, resume: bool
     results = aggregate(out, finished, wall, quick, task=jobs[0]["config"]["task"])
     atomic_write_text(out / "results.json", json.dumps(results, indent=2, sort_keys=True) + "\n")
     try:
-        make_figures(out, results)
+        make_figures(out, results, references=references)
     except ImportError:  # pragma: no cover - matplotlib is an optional extra
         logger.warning("matplotlib not installed: no figures")
     return results
@@ -473,8 +478,34 @@ def _fmt(v: Any) -> str:
 # ----------------------------------------------------------------------------------------------------
 # figures
 # ----------------------------------------------------------------------------------------------------
-def make_figures(out: str | Path, results: dict[str, Any]) -> list[Path]:
-    """Write Figs. 3-7 of the paper (numbered as there) as PNG files under ``out/figures``; returns their paths."""
+#: The reference controllers overlaid on Figs. 5-7 (``method`` of ``references.json``) and their line styles.
+REFERENCE_OVERLAY = {"whole-course optimum": ":", "NMPC 2 s, gamma=0.99, true mean": "-.", "LQR, gamma=0.99, true mean": "--"}
+
+
+def _reference_courses(references: str | Path | None) -> list[tuple[str, str, dict[str, np.ndarray]]]:
+    """``(label, line style, {"X", "ey", "ev"})`` of the overlaid references' seed-0 courses (none if no dir)."""
+    if references is None:
+        return []
+    ref_dir = Path(references)
+    rows = json.loads((ref_dir / "references.json").read_text())
+    courses = np.load(ref_dir / "trajectories.npz")
+    # the arrays are keyed by the index of the setting in validation.nmpc.REFERENCE_SETTINGS
+    index = {label: i for i, (label, _) in enumerate(REFERENCE_SETTINGS)}
+    out = []
+    for row in rows:
+        i = index.get(row["method"])
+        if row["method"] in REFERENCE_OVERLAY and i is not None and f"X_{i}" in courses:
+            out.append((row["method"], REFERENCE_OVERLAY[row["method"]],
+                        {k: courses[f"{k}_{i}"] for k in ("X", "ey", "ev")}))
+    return out
+
+
+def make_figures(out: str | Path, results: dict[str, Any], references: str | Path | None = None) -> list[Path]:
+    """Write Figs. 3-7 of the paper (numbered as there) as PNG files under ``out/figures``; returns their paths.
+
+    With ``references`` (see :func:`reproduce`), Figs. 5-7 overlay the reference controllers of
+    :data:`REFERENCE_OVERLAY` in grey ("references, not learned").
+    """
     import matplotlib
 
     matplotlib.use("Agg")
@@ -521,6 +552,11 @@ def make_figures(out: str | Path, results: dict[str, Any]) -> list[Path]:
         ax.plot(trajs[m]["X"], trajs[m]["Y"], color=colors[m], lw=1, label=LABELS[m])
     ax.set_xlabel("X [m]")
     ax.set_ylabel("Y [m]")
+    refs = _reference_courses(references)
+    dt = float(np.median(np.diff(first["time"])))
+    for label, style, c in refs:
+        ax.plot(c["X"], np.interp(c["X"], first["X"], first["Y_ref"]) + c["ey"], style, color="grey", lw=1,
+                label=f"{label} (reference)")
     ax.set_title("Fig. 5: tracking (seed 0)")
     ax.legend(fontsize=7)
     paths.append(_save(fig, fig_dir / "fig5_trajectory.png"))
@@ -530,6 +566,9 @@ def make_figures(out: str | Path, results: dict[str, Any]) -> list[Path]:
         fig, ax = plt.subplots(figsize=(7, 3))
         for m in methods:
             ax.plot(trajs[m]["time"], trajs[m][key], color=colors[m], lw=1, label=LABELS[m])
+        for label, style, c in refs:
+            ax.plot(dt * np.arange(len(c["X"])), c["ev" if key == "speed_error" else "ey"], style, color="grey",
+                    lw=1, label=f"{label} (reference)")
         ax.axhline(0.0, color="grey", lw=0.5)
         ax.set_xlabel("t [s]")
         ax.set_ylabel(ylabel)
@@ -587,12 +626,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--resume", action="store_true", help="reuse finished runs and resume interrupted ones")
     parser.add_argument("--workers", type=int, default=None, help="parallel training processes (default: 2)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")
+    parser.add_argument("--references", type=Path, default=None,
+                        help="directory of measured references (docs/_static/references) to overlay on Figs. 5-7")
 
 
 def run_command(args: argparse.Namespace) -> int:
     """Handler of the command: run :func:`reproduce`, print Table I and where the files are; exit status 0."""
     results = reproduce(args.out, seeds=args.seeds, quick=args.quick, resume=args.resume, workers=args.workers,
-                        progress=not args.no_progress)
+                        progress=not args.no_progress, references=args.references)
     print(format_table(results))
     print(f"\nresults: {Path(args.out) / 'results.json'}   figures: {Path(args.out) / 'figures'}")
     return 0
