@@ -42,7 +42,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from mixedrl.checks import check_positive_int, check_unknown_keys
+from mixedrl.checks import check_number, check_positive_int, check_unknown_keys
 from mixedrl.envs.reference import DoubleLaneChangeReference
 from mixedrl.envs.vehicle import VX_INDEX, VehicleDynamics, VehicleParams
 
@@ -67,16 +67,6 @@ NOISE_INDEX = VX_INDEX
 STATE_DIM = 6
 #: Dimension of the input ``u = [delta, a_x]``.
 ACTION_DIM = 2
-
-
-def _finite(value: Any, name: str, positive: bool = False, nonneg: bool = False) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float, np.floating, np.integer)):
-        raise ValueError(f"{name}: expected a number, got {value!r}")
-    value = float(value)
-    if not math.isfinite(value) or (positive and value <= 0) or (nonneg and value < 0):
-        kind = "positive" if positive else ("non-negative" if nonneg else "finite")
-        raise ValueError(f"{name}: expected a {kind} number, got {value!r}")
-    return value
 
 
 @dataclass(frozen=True)
@@ -117,7 +107,7 @@ class Disturbance:
 
     def __post_init__(self) -> None:
         for f in dataclasses.fields(self):
-            object.__setattr__(self, f.name, _finite(
+            object.__setattr__(self, f.name, check_number(
                 getattr(self, f.name), f.name, positive=f.name == "grade_wavelength",
                 nonneg=f.name == "variance"))
 
@@ -229,13 +219,13 @@ class DoubleLaneChangeConfig:
         if self.scheme not in ("euler", "rk4"):
             raise ValueError(f"scheme: expected 'euler' or 'rk4', got {self.scheme!r}")
         for name in ("dt", "v_des", "course_length", "delta_max", "ax_max", "max_lateral_error"):
-            object.__setattr__(self, name, _finite(getattr(self, name), name, positive=True))
+            object.__setattr__(self, name, check_number(getattr(self, name), name, positive=True))
         for name in ("min_speed", "q_speed", "q_lateral", "r_steer", "r_accel"):
-            object.__setattr__(self, name, _finite(getattr(self, name), name, nonneg=True))
-        preview = tuple(_finite(d, "preview_distances", positive=True) for d in self.preview_distances)
+            object.__setattr__(self, name, check_number(getattr(self, name), name, nonneg=True))
+        preview = tuple(check_number(d, "preview_distances", positive=True) for d in self.preview_distances)
         object.__setattr__(self, "preview_distances", preview)
         for name in ("reset_half_widths", "train_half_widths"):
-            widths = tuple(_finite(w, name, nonneg=True) for w in getattr(self, name))
+            widths = tuple(check_number(w, name, nonneg=True) for w in getattr(self, name))
             if len(widths) != 5:
                 raise ValueError(f"{name}: expected 5 half-widths [v_y, r, v_x, e_phi, e_y], got {len(widths)}")
             object.__setattr__(self, name, widths)
