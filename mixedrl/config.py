@@ -66,6 +66,35 @@ class TrainConfig:
     e_y]`` of the training start states (anywhere on the course), see
     :class:`mixedrl.envs.DoubleLaneChangeConfig`."""
 
+    state_source: str = "true"
+    """Where Algorithm 2's PEV/PIM states come from: ``"true"`` = the ``batch_size`` copies of the true
+    environment, one true step per copy per iteration (the reproduction's setting); ``"model"`` = rollouts
+    of the planning model ``f + xi_hat`` under the method's noise source
+    (:class:`mixedrl.algorithms.model_data.ModelStateSampler`), the true environment only feeding the IBE
+    (``true_envs``, ``true_steps``, ``true_every``)."""
+
+    model_course_fraction: float = 0.5
+    """``state_source="model"``: fraction of the batch's rollouts that drive the course from its start
+    (the rest restart from the wide training distribution every ``horizon`` steps)."""
+
+    model_course_horizon: int = 2000
+    """``state_source="model"``: steps after which a course rollout (and a true-data copy) restarts at the
+    course start (2000 = the whole double lane change)."""
+
+    model_box: float = 4.0
+    """``state_source="model"``: a rollout restarts when a component of its observation exceeds
+    ``model_box`` times the task's ``obs_scale`` (``math.inf`` disables it)."""
+
+    true_envs: int = 1
+    """``state_source="model"``, mixed RL: true-environment copies driven at each collection."""
+
+    true_steps: int = 1
+    """``state_source="model"``, mixed RL: consecutive steps each true copy drives per collection."""
+
+    true_every: int = 1
+    """``state_source="model"``, mixed RL: iterations between collections (true transitions per iteration:
+    ``true_envs * true_steps / true_every``; model-driven RL and the oracle collect none)."""
+
     hidden_sizes: tuple[int, ...] = (64, 64)
     """Hidden layer widths of the actor and the critic (the same for every method)."""
 
@@ -167,13 +196,19 @@ class TrainConfig:
             raise ValueError(f"activation: expected 'elu', 'tanh' or 'relu', got {self.activation!r}")
         if self.value_output not in ("softplus", "square", "linear"):
             raise ValueError(f"value_output: expected 'softplus', 'square' or 'linear', got {self.value_output!r}")
+        if self.state_source not in ("true", "model"):
+            raise ValueError(f"state_source: expected 'true' or 'model', got {self.state_source!r}")
+        if not 0.0 <= float(self.model_course_fraction) <= 1.0:
+            raise ValueError(f"model_course_fraction: expected a number in [0, 1], got {self.model_course_fraction!r}")
+        if not float(self.model_box) > 0:
+            raise ValueError(f"model_box: expected a positive number, got {self.model_box!r}")
         if self.ibe_recursion not in ("exact", "paper"):
             raise ValueError(f"ibe_recursion: expected 'exact' or 'paper', got {self.ibe_recursion!r}")
         if isinstance(self.seed, bool) or not isinstance(self.seed, int) or self.seed < 0:
             raise ValueError(f"seed: expected a non-negative integer, got {self.seed!r}")
         for name in ("iterations", "batch_size", "horizon", "noise_samples", "j_max", "stop_patience",
                      "eval_every", "eval_seeds", "checkpoint_every", "num_threads", "ddpg_envs",
-                     "ddpg_buffer_size"):
+                     "ddpg_buffer_size", "model_course_horizon", "true_envs", "true_steps", "true_every"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
                 raise ValueError(f"{name}: expected a positive integer, got {value!r}")
@@ -200,8 +235,9 @@ class TrainConfig:
         out = dataclasses.asdict(self)
         out["hidden_sizes"] = list(self.hidden_sizes)
         out["train_half_widths"] = list(self.train_half_widths)
-        if math.isinf(out["grad_clip"]):
-            out["grad_clip"] = "inf"
+        for name in ("grad_clip", "model_box"):
+            if math.isinf(out[name]):
+                out[name] = "inf"
         return out
 
     @classmethod
@@ -217,8 +253,9 @@ class TrainConfig:
             raise ValueError(f"config: expected a dict, got {type(data).__name__}")
         check_unknown_keys(data, {f.name for f in dataclasses.fields(cls)}, "config")
         data = dict(data)
-        if data.get("grad_clip") == "inf":
-            data["grad_clip"] = math.inf
+        for name in ("grad_clip", "model_box"):
+            if data.get(name) == "inf":
+                data[name] = math.inf
         return cls(**data)
 
     def replace(self, **changes: Any) -> "TrainConfig":

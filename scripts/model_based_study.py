@@ -1,0 +1,174 @@
+"""Algorithm 2 planning on the model: training-state designs, budgets, seeds, true transitions (issue 10).
+
+Each job trains one run (``mixedrl.runs.make_trainer`` / ``train``, ``num_threads=1``) with the
+reproduction's config plus ``--set`` overrides, and writes one JSON file
+
+    docs/_static/model_based/runs/<tag>/<method>_s<seed>_n<iterations>.json
+
+with the final course evaluation (the run's own evaluation seeds; the course is used for reporting only,
+never to pick a checkpoint or a setting inside a run), the number of true-environment transitions, the
+evaluations along the run, and training diagnostics per evaluation (critic loss, batch value mean and
+max, batch error statistics, MVC inner steps). Existing files are skipped, so a sweep can be stopped and
+restarted. ``summary`` collects every file into ``summary.csv`` / ``summary.json`` (mean, std, worst seed
+per tag, method and budget).
+
+Usage::
+
+    PYTHONPATH=. python scripts/model_based_study.py sweep --tag T --methods mixed,model,oracle \\
+        --seeds 0-4 --budgets 1500,4000 --jobs 2 --set state_source=model model_box=4
+    PYTHONPATH=. python scripts/model_based_study.py summary
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import math
+import time
+from multiprocessing import Pool
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from mixedrl.config import TrainConfig
+from mixedrl.runs import atomic_write_text, make_trainer, train
+
+OUT = Path("docs/_static/model_based")
+
+
+def parse_value(text: str) -> Any:
+    """``"4"`` -> 4, ``"0.5"`` -> 0.5, ``"inf"`` -> inf, ``"a,b"`` -> list, else the string."""
+    if "," in text:
+        return [parse_value(x) for x in text.split(",") if x]
+    for cast in (int, float):
+        try:
+            return cast(text)
+        except ValueError:
+            pass
+    return text
+
+
+def job_path(tag: str, method: str, seed: int, iterations: int) -> Path:
+    return OUT / "runs" / tag / f"{method}_s{seed}_n{iterations}.json"
+
+
+def run_job(job: dict[str, Any]) -> str:
+    path = job_path(job["tag"], job["method"], job["seed"], job["iterations"])
+    if path.exists():
+        return f"skip {path}"
+    torch.set_num_threads(1)
+    overrides = dict(job["set"])
+    cfg = TrainConfig().replace(method=job["method"], seed=job["seed"], iterations=job["iterations"],
+                                eval_every=max(100, job["iterations"] // 10),
+                                checkpoint_every=job["iterations"], num_threads=1, **overrides)
+    trainer = make_trainer(cfg)
+    diag: list[dict[str, float]] = []
+    window: list[dict[str, float]] = []
+
+    def callback(row: dict[str, Any]) -> None:
+        window.append({k: row[k] for k in ("train/critic_loss", "train/value_mean", "mvc/inner_steps")})
+        if "eval/cost" in row:
+            s = trainer.last_batch
+            obs = trainer.task.observe(s) if s is not None else None
+            with torch.no_grad():
+                v = trainer.critic(obs) if obs is not None else torch.zeros(1)
+            diag.append({
+                "iteration": int(row["iteration"]), "cost": row["eval/cost"], "lateral_mae": row["eval/lateral_mae"],
+                "speed_mae": row["eval/speed_mae"], "terminated": row["eval/terminated"],
+                "true_transitions": row["data/true_transitions"],
+                "critic_loss_mean": float(np.mean([w["train/critic_loss"] for w in window])),
+                "critic_loss_max": float(np.max([w["train/critic_loss"] for w in window])),
+                "value_mean": float(v.mean()), "value_max": float(v.max()),
+                "batch_abs_ey": float(obs[:, 4].abs().mean()) if obs is not None else math.nan,
+                "batch_abs_dv": float(obs[:, 2].abs().mean()) if obs is not None else math.nan,
+                "inner_steps": float(np.mean([w["mvc/inner_steps"] for w in window])),
+                "ibe_mean_vx": float(np.asarray(trainer.noise.mean)[2]),
+            })
+            window.clear()
+
+    t0 = time.perf_counter()
+    res = train(trainer, None, callback=callback)
+    out = {"tag": job["tag"], "method": job["method"], "seed": job["seed"], "iterations": job["iterations"],
+           "set": job["set"], "wall_s": time.perf_counter() - t0, "train_seconds": res["train_seconds"],
+           "lateral_mae": res["lateral_mae"], "speed_mae": res["speed_mae"], "cost": res["cost"],
+           "terminated": res["final"]["terminated"], "true_transitions": res["true_transitions"],
+           "final_ibe_mean_vx": res["final_ibe_mean"][2], "evals": diag}
+    path.parent.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(path, json.dumps(out, indent=1) + "\n")
+    return (f"{job['tag']} {job['method']} s{job['seed']} n{job['iterations']}: lateral {out['lateral_mae']:.3f} m, "
+            f"speed {out['speed_mae']:.4f} m/s, cost {out['cost']:.1f}, true {out['true_transitions']}, "
+            f"{out['wall_s']:.0f} s")
+
+
+def seeds_of(text: str) -> list[int]:
+    if "-" in text:
+        a, b = text.split("-")
+        return list(range(int(a), int(b) + 1))
+    return [int(x) for x in text.split(",")]
+
+
+def sweep(args: argparse.Namespace) -> None:
+    overrides = {}
+    for item in args.set or []:
+        key, value = item.split("=", 1)
+        overrides[key] = parse_value(value)
+    jobs = [{"tag": args.tag, "method": m, "seed": s, "iterations": n, "set": overrides}
+            for n in [int(b) for b in args.budgets.split(",")]
+            for s in seeds_of(args.seeds) for m in args.methods.split(",")]
+    jobs = [j for j in jobs if not job_path(j["tag"], j["method"], j["seed"], j["iterations"]).exists()]
+    with Pool(args.jobs) as pool:
+        for line in pool.imap(run_job, jobs, chunksize=1):
+            print(line, flush=True)
+
+
+def summary(_: argparse.Namespace) -> None:
+    runs = [json.loads(p.read_text()) for p in sorted((OUT / "runs").glob("*/*.json"))]
+    groups: dict[tuple[str, str, int], list[dict[str, Any]]] = {}
+    for r in runs:
+        groups.setdefault((r["tag"], r["method"], r["iterations"]), []).append(r)
+    rows = []
+    for (tag, method, n), rs in sorted(groups.items()):
+        rs = sorted(rs, key=lambda r: r["seed"])
+        lat = np.array([r["lateral_mae"] for r in rs])
+        spd = np.array([r["speed_mae"] for r in rs])
+        cost = np.array([r["cost"] for r in rs])
+        rows.append({"tag": tag, "method": method, "iterations": n, "seeds": " ".join(str(r["seed"]) for r in rs),
+                     "cost_mean": cost.mean(), "cost_max": cost.max(), "lateral_mean": lat.mean(),
+                     "lateral_std": lat.std(), "lateral_max": lat.max(), "speed_mean": spd.mean(),
+                     "speed_std": spd.std(), "speed_max": spd.max(),
+                     "true_transitions": int(np.mean([r["true_transitions"] for r in rs])),
+                     "per_seed_lateral": " ".join(f"{x:.3f}" for x in lat),
+                     "per_seed_speed": " ".join(f"{x:.4f}" for x in spd),
+                     "per_seed_cost": " ".join(f"{x:.1f}" for x in cost)})
+    OUT.mkdir(parents=True, exist_ok=True)
+    with open(OUT / "summary.csv", "w", newline="") as fh:
+        writer = csv.DictWriter(fh, fieldnames=list(rows[0]))
+        writer.writeheader()
+        writer.writerows(rows)
+    atomic_write_text(OUT / "summary.json", json.dumps(rows, indent=1) + "\n")
+    for r in rows:
+        print(f"{r['tag']:>14} {r['method']:>6} n={r['iterations']:>5} seeds[{r['seeds']}] cost {r['cost_mean']:6.1f} "
+              f"(max {r['cost_max']:6.1f}) lat {r['lateral_mean']:.3f}±{r['lateral_std']:.3f} "
+              f"spd {r['speed_mean']:.4f}±{r['speed_std']:.4f} true {r['true_transitions']} | {r['per_seed_lateral']}")
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    sub = parser.add_subparsers(dest="cmd", required=True)
+    p = sub.add_parser("sweep")
+    p.add_argument("--tag", required=True)
+    p.add_argument("--methods", default="mixed")
+    p.add_argument("--seeds", default="0-4")
+    p.add_argument("--budgets", default="1500")
+    p.add_argument("--jobs", type=int, default=2)
+    p.add_argument("--set", nargs="*")
+    sub.add_parser("summary")
+    args = parser.parse_args(argv)
+    {"sweep": sweep, "summary": summary}[args.cmd](args)
+
+
+if __name__ == "__main__":
+    main()
