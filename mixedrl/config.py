@@ -77,6 +77,11 @@ class TrainConfig:
     """``state_source="model"``: fraction of the batch's rollouts that drive the course from its start
     (the rest restart from the wide training distribution every ``horizon`` steps)."""
 
+    model_course_start: int = 0
+    """``state_source="model"``: iteration from which the course rollouts start from the course start;
+    before it they restart from the wide distribution like the others (a schedule: the course is driven
+    only by a policy that has first learnt to stay near the reference)."""
+
     model_course_horizon: int = 2000
     """``state_source="model"``: steps after which a course rollout (and a true-data copy) restarts at the
     course start (2000 = the whole double lane change)."""
@@ -200,6 +205,9 @@ class TrainConfig:
             raise ValueError(f"state_source: expected 'true' or 'model', got {self.state_source!r}")
         if not 0.0 <= float(self.model_course_fraction) <= 1.0:
             raise ValueError(f"model_course_fraction: expected a number in [0, 1], got {self.model_course_fraction!r}")
+        if isinstance(self.model_course_start, bool) or not isinstance(self.model_course_start, int) \
+                or self.model_course_start < 0:
+            raise ValueError(f"model_course_start: expected a non-negative integer, got {self.model_course_start!r}")
         if not float(self.model_box) > 0:
             raise ValueError(f"model_box: expected a positive number, got {self.model_box!r}")
         if self.ibe_recursion not in ("exact", "paper"):

@@ -51,6 +51,14 @@ def parse_value(text: str) -> Any:
     return text
 
 
+def policy_at_origin(actor: torch.nn.Module) -> dict[str, list[float]]:
+    """The policy's action ``pi(0)`` and its Jacobian ``d pi / d obs`` at the origin (on the reference, 12 m/s)."""
+    jac = torch.autograd.functional.jacobian(lambda o: actor(o[None])[0], torch.zeros(5))
+    with torch.no_grad():
+        u0 = actor(torch.zeros(1, 5))[0]
+    return {"u0": u0.tolist(), "gain": jac.tolist()}
+
+
 def job_path(tag: str, method: str, seed: int, iterations: int) -> Path:
     return OUT / "runs" / tag / f"{method}_s{seed}_n{iterations}.json"
 
@@ -62,7 +70,7 @@ def run_job(job: dict[str, Any]) -> str:
     torch.set_num_threads(1)
     overrides = dict(job["set"])
     cfg = TrainConfig().replace(method=job["method"], seed=job["seed"], iterations=job["iterations"],
-                                eval_every=max(100, job["iterations"] // 10),
+                                eval_every=max(100, job["iterations"] // 5),
                                 checkpoint_every=job["iterations"], num_threads=1, **overrides)
     trainer = make_trainer(cfg)
     diag: list[dict[str, float]] = []
@@ -84,6 +92,10 @@ def run_job(job: dict[str, Any]) -> str:
                 "value_mean": float(v.mean()), "value_max": float(v.max()),
                 "batch_abs_ey": float(obs[:, 4].abs().mean()) if obs is not None else math.nan,
                 "batch_abs_dv": float(obs[:, 2].abs().mean()) if obs is not None else math.nan,
+                "batch_max_ey": float(obs[:, 4].abs().max()) if obs is not None else math.nan,
+                "batch_max_dv": float(obs[:, 2].abs().max()) if obs is not None else math.nan,
+                "batch_outside_box4": float((obs.abs() > 4 * trainer.task.obs_scale).any(-1).float().mean())
+                if obs is not None else math.nan,
                 "inner_steps": float(np.mean([w["mvc/inner_steps"] for w in window])),
                 "ibe_mean_vx": float(np.asarray(trainer.noise.mean)[2]),
             })
@@ -95,7 +107,8 @@ def run_job(job: dict[str, Any]) -> str:
            "set": job["set"], "wall_s": time.perf_counter() - t0, "train_seconds": res["train_seconds"],
            "lateral_mae": res["lateral_mae"], "speed_mae": res["speed_mae"], "cost": res["cost"],
            "terminated": res["final"]["terminated"], "true_transitions": res["true_transitions"],
-           "final_ibe_mean_vx": res["final_ibe_mean"][2], "evals": diag}
+           "final_ibe_mean_vx": res["final_ibe_mean"][2], "evals": diag,
+           **policy_at_origin(trainer.actor)}
     path.parent.mkdir(parents=True, exist_ok=True)
     atomic_write_text(path, json.dumps(out, indent=1) + "\n")
     return (f"{job['tag']} {job['method']} s{job['seed']} n{job['iterations']}: lateral {out['lateral_mae']:.3f} m, "
@@ -155,6 +168,33 @@ def summary(_: argparse.Namespace) -> None:
               f"spd {r['speed_mean']:.4f}±{r['speed_std']:.4f} true {r['true_transitions']} | {r['per_seed_lateral']}")
 
 
+def reference(_: argparse.Namespace) -> None:
+    """LQR of the linearised model (no preview, the policy class's linear member) for several discounts:
+    gains and course errors on the evaluation seeds of seeds 0-4 (``mixedrl.runs.eval_seeds``)."""
+    import sys
+
+    from mixedrl.envs import DoubleLaneChangeModel, evaluate_tracking
+    from mixedrl.runs import eval_seeds
+
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    from vehicle_figures import lqr_gain
+
+    model = DoubleLaneChangeModel()
+    seeds = [s for seed in range(5) for s in eval_seeds(TrainConfig(seed=seed))]
+    rows = []
+    for gamma in (0.99, 0.995, 0.998, 0.999, 1.0):
+        K = lqr_gain(model, gamma)
+        res = [evaluate_tracking(lambda o: -K @ o[:5], seed=s) for s in seeds]
+        rows.append({"gamma": gamma, "gain": (-K).tolist(),
+                     "lateral_mae": float(np.mean([r.mean_abs_lateral_error for r in res])),
+                     "speed_mae": float(np.mean([r.mean_abs_speed_error for r in res])),
+                     "cost": float(np.mean([r.total_cost for r in res]))})
+        print(f"gamma {gamma}: lateral {rows[-1]['lateral_mae']:.3f} m, speed {rows[-1]['speed_mae']:.4f} m/s, "
+              f"cost {rows[-1]['cost']:.1f}, steering gains {np.round(-K[0], 3)}")
+    OUT.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(OUT / "lqr_reference.json", json.dumps(rows, indent=1) + "\n")
+
+
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     sub = parser.add_subparsers(dest="cmd", required=True)
@@ -166,8 +206,9 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--jobs", type=int, default=2)
     p.add_argument("--set", nargs="*")
     sub.add_parser("summary")
+    sub.add_parser("reference")
     args = parser.parse_args(argv)
-    {"sweep": sweep, "summary": summary}[args.cmd](args)
+    {"sweep": sweep, "summary": summary, "reference": reference}[args.cmd](args)
 
 
 if __name__ == "__main__":

@@ -63,7 +63,8 @@ class ModelStateSampler:
     task : Task
         Model ``f``, ``observe``, ``noise_matrix``, start distributions, the true environment.
     config : TrainConfig
-        ``batch_size``, ``horizon``, ``model_course_fraction``, ``model_course_horizon``, ``model_box``,
+        ``batch_size``, ``horizon``, ``model_course_fraction``, ``model_course_start``,
+        ``model_course_horizon``, ``model_box``,
         ``true_envs``, ``true_steps``, ``true_every``.
     generator : torch.Generator
         The run's generator (every draw of the sampler comes from it, so a run is reproducible and
@@ -91,12 +92,14 @@ class ModelStateSampler:
         self.true_steps = torch.zeros(config.true_envs, dtype=torch.long)
         self.true_transitions = 0
         self.restarts = 0
+        self.k = 0
         self.box = float(config.model_box) * task.obs_scale.to(torch.float64)
 
     # ------------------------------------------------------------------------------------ rollouts
     def _restart(self, done: torch.Tensor) -> None:
         """Restart the copies flagged in ``done``: course copies at the course start, wide ones wide."""
-        course, wide = done & self.course, done & ~self.course
+        course = done & self.course if self.k >= self.config.model_course_start else torch.zeros_like(done)
+        wide = done & ~course
         if bool(course.any()):
             self.states[course] = course_starts(self.task, int(course.sum()), self.generator)
         if bool(wide.any()):
@@ -134,7 +137,8 @@ class ModelStateSampler:
             # x' = f(x, pi(x)) + E xi_hat
             s_next = task.f(s, u) + xi @ task.noise_matrix.to(s.dtype).T
         self.steps += 1
-        done = task.is_terminal(s_next) | self._outside(s_next) | (self.steps >= self.horizons)
+        horizons = self.horizons if self.k >= self.config.model_course_start else self.config.horizon
+        done = task.is_terminal(s_next) | self._outside(s_next) | (self.steps >= horizons)
         self.states = s_next.clone()
         if bool(done.any()):
             self._restart(done)
@@ -190,6 +194,7 @@ class ModelStateSampler:
         """
         mean = np.array(noise.mean, dtype=np.float64)
         cov = np.array(noise.cov, dtype=np.float64)
+        self.k = k
         s = self.model_step(actor, mean, cov)
         if hasattr(noise, "update") and k % self.config.true_every == 0:
             return s, self.true_drive(actor)
