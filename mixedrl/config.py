@@ -73,11 +73,11 @@ class TrainConfig:
     (:class:`mixedrl.algorithms.model_data.ModelStateSampler`), the true environment only feeding the IBE
     (``true_envs``, ``true_steps``, ``true_every``)."""
 
-    model_course_fraction: float = 0.5
+    model_course_fraction: float = 0.75
     """``state_source="model"``: fraction of the batch's rollouts that drive the course from its start
     (the rest restart from the wide training distribution every ``horizon`` steps)."""
 
-    model_course_start: int = 0
+    model_course_start: int = 500
     """``state_source="model"``: iteration from which the course rollouts start from the course start;
     before it they restart from the wide distribution like the others (a schedule: the course is driven
     only by a policy that has first learnt to stay near the reference)."""
@@ -86,17 +86,17 @@ class TrainConfig:
     """``state_source="model"``: steps after which a course rollout (and a true-data copy) restarts at the
     course start (2000 = the whole double lane change)."""
 
-    model_box: float = 4.0
+    model_box: float = 3.0
     """``state_source="model"``: a rollout restarts when a component of its observation exceeds
     ``model_box`` times the task's ``obs_scale`` (``math.inf`` disables it)."""
 
     true_envs: int = 1
     """``state_source="model"``, mixed RL: true-environment copies driven at each collection."""
 
-    true_steps: int = 1
+    true_steps: int = 20
     """``state_source="model"``, mixed RL: consecutive steps each true copy drives per collection."""
 
-    true_every: int = 1
+    true_every: int = 10
     """``state_source="model"``, mixed RL: iterations between collections (true transitions per iteration:
     ``true_envs * true_steps / true_every``; model-driven RL and the oracle collect none)."""
 

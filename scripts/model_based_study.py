@@ -195,6 +195,41 @@ def reference(_: argparse.Namespace) -> None:
     atomic_write_text(OUT / "lqr_reference.json", json.dumps(rows, indent=1) + "\n")
 
 
+def objective(_: argparse.Namespace) -> None:
+    """Which linear feedback does Algorithm 2's objective prefer? The discounted cost (gamma = 0.99, 800
+    steps, true noise) of the LQR gains of several discounts, from (a) the wide training distribution and
+    (b) the states the car visits on the course (every 10th state of a course driven by the gamma = 1 LQR)."""
+    import sys
+
+    from mixedrl.envs import evaluate_tracking
+    from mixedrl.tasks import DoubleLaneChangeTask
+
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    from vehicle_figures import lqr_gain
+
+    task = DoubleLaneChangeTask()
+    bound = task.action_bound.double()
+    ref = evaluate_tracking(lambda o: -lqr_gain(task.model, 1.0) @ o[:5], seed=7)
+    course = torch.as_tensor(ref.states[::10], dtype=torch.float64)
+    wide = task.sample_initial(1024, torch.Generator().manual_seed(12345))
+    rows = []
+    for gamma in (0.99, 0.995, 0.998, 1.0):
+        K = torch.as_tensor(lqr_gain(task.model, gamma))
+        row: dict[str, Any] = {"lqr_gamma": gamma}
+        for name, starts in (("wide", wide), ("course", course)):
+            gen = torch.Generator().manual_seed(999)
+            s, total = starts.clone(), torch.zeros(starts.shape[0], dtype=torch.float64)
+            for t in range(800):
+                u = torch.maximum(torch.minimum(-task.observe(s) @ K.T, bound), -bound)
+                s = task.true_step(s, u, gen)
+                total += task.gamma**t * task.cost(s, u)
+            row[f"J_{name}"] = float(total.mean())
+        rows.append(row)
+        print(f"LQR(gamma={gamma}): J_0.99 from wide starts {row['J_wide']:.4f}, from course states {row['J_course']:.4f}")
+    OUT.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(OUT / "objective_of_lqr_gains.json", json.dumps(rows, indent=1) + "\n")
+
+
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     sub = parser.add_subparsers(dest="cmd", required=True)
@@ -207,8 +242,9 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--set", nargs="*")
     sub.add_parser("summary")
     sub.add_parser("reference")
+    sub.add_parser("objective")
     args = parser.parse_args(argv)
-    {"sweep": sweep, "summary": summary, "reference": reference}[args.cmd](args)
+    {"sweep": sweep, "summary": summary, "reference": reference, "objective": objective}[args.cmd](args)
 
 
 if __name__ == "__main__":

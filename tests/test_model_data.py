@@ -17,7 +17,7 @@ from mixedrl.runs import RunDirectory, make_trainer, train
 from mixedrl.tasks import LinearTask
 
 FAST = dict(task="linear", iterations=40, batch_size=32, eval_every=20, checkpoint_every=10, eval_seeds=1,
-            state_source="model", model_course_horizon=30, true_envs=2, true_steps=3, true_every=4)
+            state_source="model", model_course_horizon=30, model_course_start=5, true_envs=2, true_steps=3, true_every=4)
 
 
 def _forbid_true_steps(monkeypatch: pytest.MonkeyPatch, task: object) -> None:
@@ -70,7 +70,8 @@ def test_default_source_counts_one_true_step_per_copy() -> None:
 def test_rollouts_use_the_planning_noise_not_the_true_one() -> None:
     # linear task: prior mean 0, true mean 0.5 on the velocity; the rollout increments must carry the prior's
     task = LinearTask(prior_cov=1e-4 * np.eye(2))
-    cfg = TrainConfig(method="model", task="linear", batch_size=2048, state_source="model", model_box=float("inf"))
+    cfg = TrainConfig(method="model", task="linear", batch_size=2048, state_source="model", model_box=float("inf"),
+                      model_course_start=0)
     gen = torch.Generator().manual_seed(0)
     sampler = ModelStateSampler(task, cfg, gen)
     actor = torch.nn.Linear(2, 1)
@@ -88,7 +89,7 @@ def test_rollouts_use_the_planning_noise_not_the_true_one() -> None:
 def test_rollouts_restart_outside_the_box_and_at_the_horizon() -> None:
     task = LinearTask()
     cfg = TrainConfig(method="model", task="linear", batch_size=64, state_source="model", model_box=2.0,
-                      model_course_fraction=0.25, horizon=5, model_course_horizon=7)
+                      model_course_fraction=0.25, horizon=5, model_course_horizon=7, model_course_start=0)
     sampler = ModelStateSampler(task, cfg, torch.Generator().manual_seed(1))
     assert int(sampler.course.sum()) == 16
     assert sampler.horizons.tolist() == [7] * 16 + [5] * 48
@@ -145,3 +146,22 @@ def test_load_state_dict_rejects_a_checkpoint_without_sampler() -> None:
     with pytest.raises(ValueError, match="^state"):
         fresh.load_state_dict(state)
     assert torch.equal(fresh.sampler.states, before)
+
+
+def test_course_rollouts_start_at_the_course_start_from_model_course_start() -> None:
+    from mixedrl.noise import GaussianNoise
+    from mixedrl.tasks import make_task
+
+    task = make_task("dlc")
+    cfg = TrainConfig(batch_size=64, state_source="model", model_course_fraction=1.0, model_course_start=2,
+                      horizon=1, model_course_horizon=1)
+    sampler = ModelStateSampler(task, cfg, torch.Generator().manual_seed(0))
+    actor = torch.nn.Linear(5, 2)
+    torch.nn.init.zeros_(actor.weight)
+    torch.nn.init.zeros_(actor.bias)
+    noise = GaussianNoise(task.prior_mean, task.prior_cov)
+    sampler.collect(actor, noise, 1)  # before model_course_start: every copy restarts anywhere on the course
+    assert float(sampler.states[:, 5].max()) > 30.0
+    sampler.collect(actor, noise, 2)  # from it on: at the course start, X = 0
+    assert float(sampler.states[:, 5].abs().max()) == 0.0
+    assert sampler.true_transitions == 0  # a fixed noise source collects no true data
