@@ -86,6 +86,14 @@ class TrainConfig:
     """``state_source="model"``: steps after which a course rollout (and a true-data copy) restarts at the
     course start (2000 = the whole double lane change)."""
 
+    model_kick_prob: float = 0.0
+    """``state_source="model"``: probability per step that a course rollout is kicked: a uniform random
+    offset of ``model_kick_scale * obs_scale_i`` on each noise component is added to its state, and the
+    policy has to recover (exploration in state space around the course)."""
+
+    model_kick_scale: float = 1.0
+    """``state_source="model"``: size of a kick, in units of the task's ``obs_scale``."""
+
     model_box: float = 3.0
     """``state_source="model"``: a rollout restarts when a component of its observation exceeds
     ``model_box`` times the task's ``obs_scale`` (``math.inf`` disables it)."""
@@ -208,6 +216,10 @@ class TrainConfig:
         if isinstance(self.model_course_start, bool) or not isinstance(self.model_course_start, int) \
                 or self.model_course_start < 0:
             raise ValueError(f"model_course_start: expected a non-negative integer, got {self.model_course_start!r}")
+        if not 0.0 <= float(self.model_kick_prob) <= 1.0:
+            raise ValueError(f"model_kick_prob: expected a number in [0, 1], got {self.model_kick_prob!r}")
+        if not (float(self.model_kick_scale) >= 0 and math.isfinite(self.model_kick_scale)):
+            raise ValueError(f"model_kick_scale: expected a finite number >= 0, got {self.model_kick_scale!r}")
         if not float(self.model_box) > 0:
             raise ValueError(f"model_box: expected a positive number, got {self.model_box!r}")
         if self.ibe_recursion not in ("exact", "paper"):

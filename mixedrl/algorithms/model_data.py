@@ -19,6 +19,9 @@ drawn; applied identically to every method):
 * *course* copies (a fraction ``model_course_fraction`` of the batch) drive the course from its start
   (the task's episode start) for ``model_course_horizon`` steps, so the batch holds the states the
   current policy visits on the job it is evaluated on;
+* the course copies are *kicked* (``model_kick_prob`` per step): a random offset of the size of the
+  task's ``obs_scale`` is added to the state and the policy has to recover, so the batch spreads around
+  the course trajectory in every direction instead of lying on it;
 * *wide* copies restart from the task's wide training distribution (``sample_initial``) every
   ``horizon`` steps, as the true-environment batch does, so large errors stay covered.
 
@@ -142,7 +145,19 @@ class ModelStateSampler:
         self.states = s_next.clone()
         if bool(done.any()):
             self._restart(done)
+        if self.config.model_kick_prob > 0:
+            self._kick(~done & self.course)
         return s.float()
+
+    def _kick(self, eligible: torch.Tensor) -> None:
+        """Add a uniform offset ``model_kick_scale * obs_scale * U(-1, 1)`` (through ``E``) to the eligible
+        copies, each with probability ``model_kick_prob``."""
+        cfg, task = self.config, self.task
+        n = self.states.shape[0]
+        hit = eligible & (torch.rand(n, generator=self.generator, dtype=torch.float64) < cfg.model_kick_prob)
+        width = cfg.model_kick_scale * task.obs_scale.to(torch.float64)[: task.noise_dim]
+        offset = width * (2.0 * torch.rand(n, task.noise_dim, generator=self.generator, dtype=torch.float64) - 1.0)
+        self.states[hit] += (offset @ task.noise_matrix.to(torch.float64).T)[hit]
 
     # ------------------------------------------------------------------------------------ true data
     def true_drive(self, actor: torch.nn.Module) -> torch.Tensor:
