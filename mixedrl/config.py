@@ -86,7 +86,7 @@ class TrainConfig:
     """``state_source="model"``: steps after which a course rollout (and a true-data copy) restarts at the
     course start (2000 = the whole double lane change)."""
 
-    model_kick_prob: float = 0.0
+    model_kick_prob: float = 0.01
     """``state_source="model"``: probability per step that a course rollout is kicked: a uniform random
     offset of ``model_kick_scale * obs_scale_i`` on each noise component is added to its state, and the
     policy has to recover (exploration in state space around the course)."""

@@ -71,7 +71,7 @@ def test_rollouts_use_the_planning_noise_not_the_true_one() -> None:
     # linear task: prior mean 0, true mean 0.5 on the velocity; the rollout increments must carry the prior's
     task = LinearTask(prior_cov=1e-4 * np.eye(2))
     cfg = TrainConfig(method="model", task="linear", batch_size=2048, state_source="model", model_box=float("inf"),
-                      model_course_start=0)
+                      model_course_start=0, model_kick_prob=0.0)
     gen = torch.Generator().manual_seed(0)
     sampler = ModelStateSampler(task, cfg, gen)
     actor = torch.nn.Linear(2, 1)
@@ -165,3 +165,19 @@ def test_course_rollouts_start_at_the_course_start_from_model_course_start() -> 
     sampler.collect(actor, noise, 2)  # from it on: at the course start, X = 0
     assert float(sampler.states[:, 5].abs().max()) == 0.0
     assert sampler.true_transitions == 0  # a fixed noise source collects no true data
+
+
+def test_kicks_move_only_course_copies_by_at_most_the_kick_size() -> None:
+    task = LinearTask()
+    cfg = TrainConfig(method="model", task="linear", batch_size=40, state_source="model", model_box=float("inf"),
+                      model_course_fraction=0.5, model_course_start=0, model_kick_prob=1.0, model_kick_scale=0.3,
+                      horizon=1000, model_course_horizon=1000)
+    kicked = ModelStateSampler(task, cfg, torch.Generator().manual_seed(2))
+    plain = ModelStateSampler(task, cfg.replace(model_kick_prob=0.0), torch.Generator().manual_seed(2))
+    actor = torch.nn.Linear(2, 1)
+    zero = np.zeros((2, 2))
+    kicked.model_step(actor, task.prior_mean, zero)
+    plain.model_step(actor, task.prior_mean, zero)
+    diff = (kicked.states - plain.states).abs()
+    assert bool((diff[20:] == 0).all())  # wide copies are never kicked
+    assert bool((diff[:20] > 0).all()) and float(diff.max()) <= 0.3  # every course copy, within the size
