@@ -38,6 +38,21 @@ from mixedrl.runs import atomic_write_text, make_trainer, train
 
 OUT = Path("docs/_static/model_based")
 
+_MODEL = {"state_source": "model", "true_envs": 1, "true_steps": 20, "true_every": 10, "model_course_horizon": 2000,
+          "model_kick_scale": 1.0}
+#: The designs of docs/model_based.rst, every model_* field explicit (so a design does not change when a
+#: default does). ``sweep --tag T`` uses DESIGNS[T] (plus ``--set``); other tags need ``--set``.
+DESIGNS: dict[str, dict[str, Any]] = {
+    "A": {**_MODEL, "model_course_fraction": 0.5, "model_course_start": 0, "model_box": 4.0, "model_kick_prob": 0.0},
+    "C": {**_MODEL, "model_course_fraction": 0.0, "model_course_start": 0, "model_box": math.inf,
+          "model_kick_prob": 0.0},
+    "D": {**_MODEL, "model_course_fraction": 0.75, "model_course_start": 500, "model_box": 3.0, "model_kick_prob": 0.0},
+    "E": {**_MODEL, "model_course_fraction": 0.95, "model_course_start": 500, "model_box": 3.0, "model_kick_prob": 0.0},
+    "F": {**_MODEL, "model_course_fraction": 0.9, "model_course_start": 500, "model_box": 3.0, "model_kick_prob": 0.01},
+    "G": {**_MODEL, "model_course_fraction": 0.75, "model_course_start": 500, "model_box": 3.0,
+          "model_kick_prob": 0.01},
+}
+
 
 def parse_value(text: str) -> Any:
     """``"4"`` -> 4, ``"0.5"`` -> 0.5, ``"inf"`` -> inf, ``"a,b"`` -> list, else the string."""
@@ -104,7 +119,7 @@ def run_job(job: dict[str, Any]) -> str:
     t0 = time.perf_counter()
     res = train(trainer, None, callback=callback)
     out = {"tag": job["tag"], "method": job["method"], "seed": job["seed"], "iterations": job["iterations"],
-           "set": job["set"], "wall_s": time.perf_counter() - t0, "train_seconds": res["train_seconds"],
+           "set": job["set"], "config": cfg.to_dict(), "wall_s": time.perf_counter() - t0, "train_seconds": res["train_seconds"],
            "lateral_mae": res["lateral_mae"], "speed_mae": res["speed_mae"], "cost": res["cost"],
            "terminated": res["final"]["terminated"], "true_transitions": res["true_transitions"],
            "final_ibe_mean_vx": res["final_ibe_mean"][2], "evals": diag,
@@ -124,7 +139,7 @@ def seeds_of(text: str) -> list[int]:
 
 
 def sweep(args: argparse.Namespace) -> None:
-    overrides = {}
+    overrides = dict(DESIGNS.get(args.tag, {}))
     for item in args.set or []:
         key, value = item.split("=", 1)
         overrides[key] = parse_value(value)
