@@ -3,7 +3,7 @@
 Each job trains one run (``mixedrl.runs.make_trainer`` / ``train``, ``num_threads=1``) with the
 reproduction's config plus ``--set`` overrides, and writes one JSON file
 
-    docs/_static/model_based/runs/<tag>/<method>_s<seed>_n<iterations>.json
+    docs/_static/model_based/per_run/<tag>/<method>_s<seed>_n<iterations>.json
 
 with the final course evaluation (the run's own evaluation seeds; the course is used for reporting only,
 never to pick a checkpoint or a setting inside a run), the number of true-environment transitions, the
@@ -75,7 +75,7 @@ def policy_at_origin(actor: torch.nn.Module) -> dict[str, list[float]]:
 
 
 def job_path(tag: str, method: str, seed: int, iterations: int) -> Path:
-    return OUT / "runs" / tag / f"{method}_s{seed}_n{iterations}.json"
+    return OUT / "per_run" / tag / f"{method}_s{seed}_n{iterations}.json"
 
 
 def run_job(job: dict[str, Any]) -> str:
@@ -153,7 +153,7 @@ def sweep(args: argparse.Namespace) -> None:
 
 
 def summary(_: argparse.Namespace) -> None:
-    runs = [json.loads(p.read_text()) for p in sorted((OUT / "runs").glob("*/*.json"))]
+    runs = [json.loads(p.read_text()) for p in sorted((OUT / "per_run").glob("*/*.json"))]
     groups: dict[tuple[str, str, int], list[dict[str, Any]]] = {}
     for r in runs:
         groups.setdefault((r["tag"], r["method"], r["iterations"]), []).append(r)
