@@ -436,6 +436,48 @@ class TrainConfig:
     horizon: int = 60
     """Steps after which a training copy of the environment is reset to a fresh initial state."""
 
+    state_source: str = "true"
+    """Where Algorithm 2's PEV/PIM states come from: ``"true"`` = the ``batch_size`` copies of the true
+    environment, one true step per copy per iteration (the reproduction's setting); ``"model"`` = rollouts
+    of the planning model ``f + xi_hat`` under the method's noise source
+    (:class:`mixedrl.algorithms.model_data.ModelStateSampler`), the true environment only feeding the IBE
+    (``true_envs``, ``true_steps``, ``true_every``)."""
+
+    model_course_fraction: float = 0.75
+    """``state_source="model"``: fraction of the batch's rollouts that drive the course from its start
+    (the rest restart from the wide training distribution every ``horizon`` steps)."""
+
+    model_course_start: int = 500
+    """``state_source="model"``: iteration from which the course rollouts start from the course start;
+    before it they restart from the wide distribution like the others (a schedule: the course is driven
+    only by a policy that has first learnt to stay near the reference)."""
+
+    model_course_horizon: int = 2000
+    """``state_source="model"``: steps after which a course rollout (and a true-data copy) restarts at the
+    course start (2000 = the whole double lane change)."""
+
+    model_kick_prob: float = 0.01
+    """``state_source="model"``: probability per step that a course rollout is kicked: a uniform random
+    offset of ``model_kick_scale * obs_scale_i`` on each noise component is added to its state, and the
+    policy has to recover (exploration in state space around the course)."""
+
+    model_kick_scale: float = 1.0
+    """``state_source="model"``: size of a kick, in units of the task's ``obs_scale``."""
+
+    model_box: float = 3.0
+    """``state_source="model"``: a rollout restarts when a component of its observation exceeds
+    ``model_box`` times the task's ``obs_scale`` (``math.inf`` disables it)."""
+
+    true_envs: int = 1
+    """``state_source="model"``, mixed RL: true-environment copies driven at each collection."""
+
+    true_steps: int = 20
+    """``state_source="model"``, mixed RL: consecutive steps each true copy drives per collection."""
+
+    true_every: int = 10
+    """``state_source="model"``, mixed RL: iterations between collections (true transitions per iteration:
+    ``true_envs * true_steps / true_every``; model-driven RL and the oracle collect none)."""
+
     hidden_sizes: tuple[int, ...] = (64, 64)
     """Hidden layer widths of the actor and the critic (the same for every method)."""
 
@@ -537,13 +579,26 @@ class TrainConfig:
             raise ValueError(f"activation: expected 'elu', 'tanh' or 'relu', got {self.activation!r}")
         if self.value_output not in ("softplus", "square", "linear"):
             raise ValueError(f"value_output: expected 'softplus', 'square' or 'linear', got {self.value_output!r}")
+        if self.state_source not in ("true", "model"):
+            raise ValueError(f"state_source: expected 'true' or 'model', got {self.state_source!r}")
+        if not 0.0 <= float(self.model_course_fraction) <= 1.0:
+            raise ValueError(f"model_course_fraction: expected a number in [0, 1], got {self.model_course_fraction!r}")
+        if isinstance(self.model_course_start, bool) or not isinstance(self.model_course_start, int) \
+                or self.model_course_start < 0:
+            raise ValueError(f"model_course_start: expected a non-negative integer, got {self.model_course_start!r}")
+        if not 0.0 <= float(self.model_kick_prob) <= 1.0:
+            raise ValueError(f"model_kick_prob: expected a number in [0, 1], got {self.model_kick_prob!r}")
+        if not (float(self.model_kick_scale) >= 0 and math.isfinite(self.model_kick_scale)):
+            raise ValueError(f"model_kick_scale: expected a finite number >= 0, got {self.model_kick_scale!r}")
+        if not float(self.model_box) > 0:
+            raise ValueError(f"model_box: expected a positive number, got {self.model_box!r}")
         if self.ibe_recursion not in ("exact", "paper"):
             raise ValueError(f"ibe_recursion: expected 'exact' or 'paper', got {self.ibe_recursion!r}")
         if isinstance(self.seed, bool) or not isinstance(self.seed, int) or self.seed < 0:
             raise ValueError(f"seed: expected a non-negative integer, got {self.seed!r}")
         for name in ("iterations", "batch_size", "horizon", "noise_samples", "j_max", "stop_patience",
                      "eval_every", "eval_seeds", "checkpoint_every", "num_threads", "ddpg_envs",
-                     "ddpg_buffer_size"):
+                     "ddpg_buffer_size", "model_course_horizon", "true_envs", "true_steps", "true_every"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
                 raise ValueError(f"{name}: expected a positive integer, got {value!r}")
@@ -567,8 +622,9 @@ class TrainConfig:
         """Return the fields as a JSON-compatible dictionary, the task configuration as a nested dict
         (tuples become lists; ``inf`` a string)."""
         out = _jsonable(self)
-        if math.isinf(out["grad_clip"]):
-            out["grad_clip"] = "inf"
+        for name in ("grad_clip", "model_box"):
+            if math.isinf(out[name]):
+                out[name] = "inf"
         return out
 
     @classmethod
@@ -599,8 +655,9 @@ class TrainConfig:
                 task["train_half_widths"] = widths
             data["task"] = task
         check_unknown_keys(data, {f.name for f in dataclasses.fields(cls)}, "config")
-        if data.get("grad_clip") == "inf":
-            data["grad_clip"] = math.inf
+        for name in ("grad_clip", "model_box"):
+            if data.get(name) == "inf":
+                data[name] = math.inf
         return cls(**data)
 
     def replace(self, **changes: Any) -> "TrainConfig":

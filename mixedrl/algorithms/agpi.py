@@ -41,6 +41,7 @@ import numpy as np
 import torch
 
 from mixedrl.config import TrainConfig
+from mixedrl.algorithms.model_data import ModelStateSampler
 from mixedrl.expectation import expectation_nodes, h_value
 from mixedrl.networks import Actor, AffineActor, Critic, QuadraticCritic
 from mixedrl.noise import make_noise_source
@@ -141,6 +142,8 @@ class AGPI:
         self.last_batch: torch.Tensor | None = None
         #: States and actions (float64) of the last finite residuals, for a state-dependent IBE.
         self.transitions: tuple[torch.Tensor, torch.Tensor] | None = None
+        # state_source="model": the batch comes from rollouts of the planning model (model_data.py)
+        self.sampler = ModelStateSampler(task, config, self.generator) if config.state_source == "model" else None
 
     # -------------------------------------------------------------------------------------- helpers
     @property
@@ -201,6 +204,9 @@ class AGPI:
     def collect(self) -> tuple[torch.Tensor, torch.Tensor]:
         """Step the true environment copies once under ``pi^k``; return (states, residuals).
 
+        With ``state_source="model"`` the batch is a step of the planning-model rollouts instead and the
+        residuals come from the true drives of :class:`~mixedrl.algorithms.model_data.ModelStateSampler`.
+
         Returns
         -------
         states : torch.Tensor, shape (B, state_dim)
@@ -209,6 +215,8 @@ class AGPI:
             Finite residuals ``xi^D`` of eq. (10) (float64); their states and actions are kept in
             :attr:`transitions` (for a state-dependent IBE).
         """
+        if self.sampler is not None:
+            return self.sampler.collect(self.actor, self.noise, self.k)
         task = self.task
         s = self.states
         with torch.no_grad():
@@ -227,6 +235,11 @@ class AGPI:
             self.steps[done] = 0
         self.states = s_next
         return s.float(), xi
+
+    @property
+    def true_transitions(self) -> int:
+        """True-environment transitions used so far (``batch_size`` per iteration for ``state_source="true"``)."""
+        return self.sampler.true_transitions if self.sampler is not None else self.k * self.config.batch_size
 
     def pev(self, s: torch.Tensor, offsets: torch.Tensor, weights: torch.Tensor) -> float:
         """Implements eqs. (49)-(50): PEV, one semi-gradient step of the critic under ``xi_hat_k``.
@@ -388,6 +401,7 @@ class AGPI:
             "mvc/e_nonnegative": mvc.e_nonnegative,
             "mvc/inner_steps": float(j),
         }
+        metrics["data/true_transitions"] = float(self.true_transitions)
         metrics.update(self.noise_metrics())
         if residuals.shape[0] > 0:
             batch_mean = residuals.mean(dim=0).numpy()
@@ -448,6 +462,7 @@ class AGPI:
             "noise": self.noise.state_dict(),
             "stop_count": self.stop_count,
             "stopped": self.stopped,
+            **({"sampler": self.sampler.state_dict()} if self.sampler is not None else {}),
         }
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
@@ -460,11 +475,15 @@ class AGPI:
         """
         missing = {"k", "critic", "actor", "critic_opt", "actor_opt", "generator", "states", "steps", "noise",
                    "stop_count", "stopped"} - set(state)
+        if self.sampler is not None and "sampler" not in state:
+            missing.add("sampler")
         if missing:
             raise ValueError(f"state: missing keys {sorted(missing)}")
         if tuple(state["states"].shape) != tuple(self.states.shape):
             raise ValueError(f"state: states have shape {tuple(state['states'].shape)}, expected "
                              f"{tuple(self.states.shape)}")
+        if self.sampler is not None:
+            self.sampler.load_state_dict(state["sampler"])
         try:
             self.critic.load_state_dict(state["critic"])
             self.actor.load_state_dict(state["actor"])

@@ -1,0 +1,243 @@
+"""Where Algorithm 2's PEV/PIM states come from when it plans on the model: :class:`ModelStateSampler`.
+
+With ``TrainConfig.state_source = "model"`` the batch ``x`` of eqs. (49)-(52) is made of states of
+``batch_size`` rollouts of the *planning* model
+
+.. math::
+
+    x_{t+1} = f(x_t, \\pi^k(x_t)) + E\\, \\hat\\xi_t, \\qquad \\hat\\xi_t \\sim N(\\hat\\mu_k, \\hat K_k),
+
+driven by the current policy, with ``N(mu_hat_k, K_hat_k)`` the method's noise source (the IBE posterior
+for mixed RL, the prior for model-driven RL, the true law for the oracle). The true environment is used
+only to collect the residuals ``xi^D`` (eq. 10) that the IBE consumes, at the rate the config sets
+(``true_envs`` copies driven ``true_steps`` steps every ``true_every`` iterations); a fixed noise source
+(model-driven, oracle) consumes no data, so those runs use **zero** true transitions.
+
+The rollouts are of two kinds (a departure from the paper, which does not say how its states were
+drawn; applied identically to every method):
+
+* *course* copies (a fraction ``model_course_fraction`` of the batch) drive the course from its start
+  (the task's episode start) for ``model_course_horizon`` steps, so the batch holds the states the
+  current policy visits on the job it is evaluated on;
+* the course copies are *kicked* (``model_kick_prob`` per step): a random offset of the size of the
+  task's ``obs_scale`` is added to the state and the policy has to recover, so the batch spreads around
+  the course trajectory in every direction instead of lying on it;
+* *wide* copies restart from the task's wide training distribution (``sample_initial``) every
+  ``horizon`` steps, as the true-environment batch does, so large errors stay covered.
+
+A rollout also restarts when it leaves the box ``|observe(x)_i| <= model_box * obs_scale_i``: outside it
+the critic would be trained on states far from anything the policy has to handle (see
+docs/model_based.rst).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+import torch
+
+from mixedrl.config import TrainConfig
+from mixedrl.gaussian import sample_gaussian
+from mixedrl.tasks import Task
+
+__all__ = ["ModelStateSampler", "course_starts"]
+
+
+def course_starts(task: Task, n: int, generator: torch.Generator) -> torch.Tensor:
+    """``n`` episode start states of ``task``, float64, shape (n, state_dim).
+
+    The double lane change starts at the beginning of the course (``task.model.initial_states``, a small
+    perturbation of the reference at ``X = 0``); a task without a course starts from its training
+    distribution (``sample_initial``).
+    """
+    model = getattr(task, "model", None)
+    if model is not None and hasattr(model, "initial_states"):
+        return model.initial_states(n, generator, dtype=torch.float64)
+    return task.sample_initial(n, generator)
+
+
+class ModelStateSampler:
+    """Rollouts of the planning model that supply Algorithm 2's batch, and the true-data collector.
+
+    Parameters
+    ----------
+    task : Task
+        Model ``f``, ``observe``, ``noise_matrix``, start distributions, the true environment.
+    config : TrainConfig
+        ``batch_size``, ``horizon``, ``model_course_fraction``, ``model_course_start``,
+        ``model_course_horizon``, ``model_box``,
+        ``true_envs``, ``true_steps``, ``true_every``.
+    generator : torch.Generator
+        The run's generator (every draw of the sampler comes from it, so a run is reproducible and
+        resumable).
+
+    Attributes
+    ----------
+    states : torch.Tensor, shape (batch_size, state_dim)
+        Current model-rollout states (float64).
+    true_transitions : int
+        True-environment transitions used so far.
+    """
+
+    def __init__(self, task: Task, config: TrainConfig, generator: torch.Generator) -> None:
+        self.task, self.config, self.generator = task, config, generator
+        B = config.batch_size
+        n_course = int(round(config.model_course_fraction * B))
+        #: True for the copies that drive the course from its start.
+        self.course = torch.arange(B) < n_course
+        self.horizons = torch.where(self.course, config.model_course_horizon, config.horizon)
+        # start anywhere in the wide distribution, with desynchronised clocks
+        self.states = task.sample_initial(B, generator)
+        self.steps = (torch.rand(B, generator=generator, dtype=torch.float64) * self.horizons).long()
+        self.true_states = course_starts(task, config.true_envs, generator)
+        self.true_steps = torch.zeros(config.true_envs, dtype=torch.long)
+        self.true_transitions = 0
+        self.restarts = 0
+        self.k = 0
+        self.box = float(config.model_box) * task.obs_scale.to(torch.float64)
+
+    # ------------------------------------------------------------------------------------ rollouts
+    def _restart(self, done: torch.Tensor) -> None:
+        """Restart the copies flagged in ``done``: course copies at the course start, wide ones wide."""
+        course = done & self.course if self.k >= self.config.model_course_start else torch.zeros_like(done)
+        wide = done & ~course
+        if bool(course.any()):
+            self.states[course] = course_starts(self.task, int(course.sum()), self.generator)
+        if bool(wide.any()):
+            self.states[wide] = self.task.sample_initial(int(wide.sum()), self.generator)
+        self.steps[done] = 0
+        self.restarts += int(done.sum())
+
+    def _outside(self, s: torch.Tensor) -> torch.Tensor:
+        if math.isinf(self.config.model_box):
+            return torch.zeros(s.shape[0], dtype=torch.bool)
+        obs = self.task.observe(s)
+        return (obs.abs() > self.box[: obs.shape[-1]]).any(dim=-1)
+
+    def model_step(self, actor: torch.nn.Module, mean: np.ndarray, cov: np.ndarray) -> torch.Tensor:
+        """Return the current batch and advance every rollout one step of the planning model.
+
+        .. math:: x_{t+1} = f(x_t, \\pi(x_t)) + E \\hat\\xi_t, \\qquad \\hat\\xi_t \\sim N(\\hat\\mu, \\hat K)
+
+        Parameters
+        ----------
+        actor : torch.nn.Module
+            The current policy ``pi^k`` (on observations, float32).
+        mean, cov : numpy.ndarray, shapes (noise_dim,), (noise_dim, noise_dim)
+            The planning noise ``(mu_hat_k, K_hat_k)``.
+
+        Returns
+        -------
+        torch.Tensor, shape (batch_size, state_dim)
+            The batch ``x`` (float32): the states before the step.
+        """
+        task, s = self.task, self.states
+        with torch.no_grad():
+            u = actor(task.observe(s.float())).double()
+            xi = sample_gaussian(mean, cov, s.shape[0], self.generator).to(s.dtype)
+            # x' = f(x, pi(x)) + E xi_hat
+            s_next = task.f(s, u) + xi @ task.noise_matrix.to(s.dtype).T
+        self.steps += 1
+        horizons = self.horizons if self.k >= self.config.model_course_start else self.config.horizon
+        done = task.is_terminal(s_next) | self._outside(s_next) | (self.steps >= horizons)
+        self.states = s_next.clone()
+        if bool(done.any()):
+            self._restart(done)
+        if self.config.model_kick_prob > 0:
+            self._kick(~done & self.course)
+        return s.float()
+
+    def _kick(self, eligible: torch.Tensor) -> None:
+        """Add a uniform offset ``model_kick_scale * obs_scale * U(-1, 1)`` (through ``E``) to the eligible
+        copies, each with probability ``model_kick_prob``."""
+        cfg, task = self.config, self.task
+        n = self.states.shape[0]
+        hit = eligible & (torch.rand(n, generator=self.generator, dtype=torch.float64) < cfg.model_kick_prob)
+        width = cfg.model_kick_scale * task.obs_scale.to(torch.float64)[: task.noise_dim]
+        offset = width * (2.0 * torch.rand(n, task.noise_dim, generator=self.generator, dtype=torch.float64) - 1.0)
+        self.states[hit] += (offset @ task.noise_matrix.to(torch.float64).T)[hit]
+
+    # ------------------------------------------------------------------------------------ true data
+    def true_drive(self, actor: torch.nn.Module) -> torch.Tensor:
+        """Drive the ``true_envs`` true copies ``true_steps`` steps under ``actor``; return the residuals.
+
+        Returns
+        -------
+        torch.Tensor, shape (M, noise_dim)
+            Finite residuals ``xi^D = E^T (s' - f(s, u))`` of eq. (10), float64. Every step counts
+            ``true_envs`` transitions in :attr:`true_transitions`.
+        """
+        task, cfg = self.task, self.config
+        out = []
+        for _ in range(cfg.true_steps):
+            s = self.true_states
+            with torch.no_grad():
+                u = actor(task.observe(s.float())).double()
+                s_next = task.true_step(s, u, self.generator)
+                out.append(task.residuals(s, u, s_next))
+            self.true_transitions += s.shape[0]
+            self.true_steps += 1
+            done = task.is_terminal(s_next) | (self.true_steps >= cfg.model_course_horizon)
+            s_next = s_next.clone()
+            if bool(done.any()):
+                s_next[done] = course_starts(task, int(done.sum()), self.generator)
+                self.true_steps[done] = 0
+            self.true_states = s_next
+        xi = torch.cat(out, dim=0)
+        return xi[torch.isfinite(xi).all(dim=-1)]
+
+    def collect(self, actor: torch.nn.Module, noise: Any, k: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """One iteration's data: the model batch, and true residuals if the noise source learns.
+
+        Parameters
+        ----------
+        actor : torch.nn.Module
+            ``pi^k``.
+        noise : object
+            The noise source (``.mean``, ``.cov``; an ``update`` method if it learns from data).
+        k : int
+            The iteration; true data is collected when ``k % true_every == 0``.
+
+        Returns
+        -------
+        states : torch.Tensor, shape (batch_size, state_dim)
+            The batch (float32).
+        residuals : torch.Tensor, shape (M, noise_dim)
+            Residuals for the IBE (``M = 0`` for a fixed noise source or between collections).
+        """
+        mean = np.array(noise.mean, dtype=np.float64)
+        cov = np.array(noise.cov, dtype=np.float64)
+        self.k = k
+        s = self.model_step(actor, mean, cov)
+        if hasattr(noise, "update") and k % self.config.true_every == 0:
+            return s, self.true_drive(actor)
+        return s, torch.zeros(0, self.task.noise_dim, dtype=torch.float64)
+
+    # ------------------------------------------------------------------------------------ checkpoints
+    def state_dict(self) -> dict[str, Any]:
+        """Rollout states and clocks, true-copy states and clocks, counters."""
+        return {"states": self.states.clone(), "steps": self.steps.clone(), "true_states": self.true_states.clone(),
+                "true_steps": self.true_steps.clone(), "true_transitions": self.true_transitions,
+                "restarts": self.restarts}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        """Restore :meth:`state_dict`.
+
+        Raises
+        ------
+        ValueError
+            A key is missing or a tensor has the wrong shape (message starts with ``state``).
+        """
+        missing = {"states", "steps", "true_states", "true_steps", "true_transitions", "restarts"} - set(state)
+        if missing:
+            raise ValueError(f"state: sampler is missing keys {sorted(missing)}")
+        for key in ("states", "steps", "true_states", "true_steps"):
+            if tuple(state[key].shape) != tuple(getattr(self, key).shape):
+                raise ValueError(f"state: sampler {key} has shape {tuple(state[key].shape)}, expected "
+                                 f"{tuple(getattr(self, key).shape)}")
+        for key in ("states", "steps", "true_states", "true_steps"):
+            setattr(self, key, state[key].clone())
+        self.true_transitions = int(state["true_transitions"])
+        self.restarts = int(state["restarts"])

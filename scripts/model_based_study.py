@@ -1,0 +1,266 @@
+"""Algorithm 2 planning on the model: training-state designs, budgets, seeds, true transitions (issue 10).
+
+Each job trains one run (``mixedrl.runs.make_trainer`` / ``train``, ``num_threads=1``) with the
+reproduction's config plus ``--set`` overrides, and writes one JSON file
+
+    docs/_static/model_based/per_run/<tag>/<method>_s<seed>_n<iterations>.json
+
+with the final course evaluation (the run's own evaluation seeds; the course is used for reporting only,
+never to pick a checkpoint or a setting inside a run), the number of true-environment transitions, the
+evaluations along the run, and training diagnostics per evaluation (critic loss, batch value mean and
+max, batch error statistics, MVC inner steps). Existing files are skipped, so a sweep can be stopped and
+restarted. ``summary`` collects every file into ``summary.csv`` / ``summary.json`` (mean, std, worst seed
+per tag, method and budget).
+
+Usage::
+
+    PYTHONPATH=. python scripts/model_based_study.py sweep --tag T --methods mixed,model,oracle \\
+        --seeds 0-4 --budgets 1500,4000 --jobs 2 --set state_source=model model_box=4
+    PYTHONPATH=. python scripts/model_based_study.py summary
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import math
+import time
+from multiprocessing import Pool
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from mixedrl.config import TrainConfig
+from mixedrl.runs import atomic_write_text, make_trainer, train
+
+OUT = Path("docs/_static/model_based")
+
+_MODEL = {"state_source": "model", "true_envs": 1, "true_steps": 20, "true_every": 10, "model_course_horizon": 2000,
+          "model_kick_scale": 1.0}
+#: The designs of docs/model_based.rst, every model_* field explicit (so a design does not change when a
+#: default does). ``sweep --tag T`` uses DESIGNS[T] (plus ``--set``); other tags need ``--set``.
+DESIGNS: dict[str, dict[str, Any]] = {
+    "A": {**_MODEL, "model_course_fraction": 0.5, "model_course_start": 0, "model_box": 4.0, "model_kick_prob": 0.0},
+    "C": {**_MODEL, "model_course_fraction": 0.0, "model_course_start": 0, "model_box": math.inf,
+          "model_kick_prob": 0.0},
+    "D": {**_MODEL, "model_course_fraction": 0.75, "model_course_start": 500, "model_box": 3.0, "model_kick_prob": 0.0},
+    "E": {**_MODEL, "model_course_fraction": 0.95, "model_course_start": 500, "model_box": 3.0, "model_kick_prob": 0.0},
+    "F": {**_MODEL, "model_course_fraction": 0.9, "model_course_start": 500, "model_box": 3.0, "model_kick_prob": 0.01},
+    "G": {**_MODEL, "model_course_fraction": 0.75, "model_course_start": 500, "model_box": 3.0,
+          "model_kick_prob": 0.01},
+}
+
+
+def parse_value(text: str) -> Any:
+    """``"4"`` -> 4, ``"0.5"`` -> 0.5, ``"inf"`` -> inf, ``"a,b"`` -> list, else the string."""
+    if "," in text:
+        return [parse_value(x) for x in text.split(",") if x]
+    for cast in (int, float):
+        try:
+            return cast(text)
+        except ValueError:
+            pass
+    return text
+
+
+def policy_at_origin(actor: torch.nn.Module) -> dict[str, list[float]]:
+    """The policy's action ``pi(0)`` and its Jacobian ``d pi / d obs`` at the origin (on the reference, 12 m/s)."""
+    jac = torch.autograd.functional.jacobian(lambda o: actor(o[None])[0], torch.zeros(5))
+    with torch.no_grad():
+        u0 = actor(torch.zeros(1, 5))[0]
+    return {"u0": u0.tolist(), "gain": jac.tolist()}
+
+
+def job_path(tag: str, method: str, seed: int, iterations: int) -> Path:
+    return OUT / "per_run" / tag / f"{method}_s{seed}_n{iterations}.json"
+
+
+def run_job(job: dict[str, Any]) -> str:
+    path = job_path(job["tag"], job["method"], job["seed"], job["iterations"])
+    if path.exists():
+        return f"skip {path}"
+    torch.set_num_threads(1)
+    overrides = dict(job["set"])
+    cfg = TrainConfig().replace(method=job["method"], seed=job["seed"], iterations=job["iterations"],
+                                eval_every=max(100, job["iterations"] // 5),
+                                checkpoint_every=job["iterations"], num_threads=1, **overrides)
+    trainer = make_trainer(cfg)
+    diag: list[dict[str, float]] = []
+    window: list[dict[str, float]] = []
+
+    def callback(row: dict[str, Any]) -> None:
+        window.append({k: row[k] for k in ("train/critic_loss", "train/value_mean", "mvc/inner_steps")})
+        if "eval/cost" in row:
+            s = trainer.last_batch
+            obs = trainer.task.observe(s) if s is not None else None
+            with torch.no_grad():
+                v = trainer.critic(obs) if obs is not None else torch.zeros(1)
+            diag.append({
+                "iteration": int(row["iteration"]), "cost": row["eval/cost"], "lateral_mae": row["eval/lateral_mae"],
+                "speed_mae": row["eval/speed_mae"], "terminated": row["eval/terminated"],
+                "true_transitions": row["data/true_transitions"],
+                "critic_loss_mean": float(np.mean([w["train/critic_loss"] for w in window])),
+                "critic_loss_max": float(np.max([w["train/critic_loss"] for w in window])),
+                "value_mean": float(v.mean()), "value_max": float(v.max()),
+                "batch_abs_ey": float(obs[:, 4].abs().mean()) if obs is not None else math.nan,
+                "batch_abs_dv": float(obs[:, 2].abs().mean()) if obs is not None else math.nan,
+                "batch_max_ey": float(obs[:, 4].abs().max()) if obs is not None else math.nan,
+                "batch_max_dv": float(obs[:, 2].abs().max()) if obs is not None else math.nan,
+                "batch_outside_box4": float((obs.abs() > 4 * trainer.task.obs_scale).any(-1).float().mean())
+                if obs is not None else math.nan,
+                "inner_steps": float(np.mean([w["mvc/inner_steps"] for w in window])),
+                "ibe_mean_vx": float(np.asarray(trainer.noise.mean)[2]),
+            })
+            window.clear()
+
+    t0 = time.perf_counter()
+    res = train(trainer, None, callback=callback)
+    out = {"tag": job["tag"], "method": job["method"], "seed": job["seed"], "iterations": job["iterations"],
+           "set": job["set"], "config": cfg.to_dict(), "wall_s": time.perf_counter() - t0, "train_seconds": res["train_seconds"],
+           "lateral_mae": res["lateral_mae"], "speed_mae": res["speed_mae"], "cost": res["cost"],
+           "terminated": res["final"]["terminated"], "true_transitions": res["true_transitions"],
+           "final_ibe_mean_vx": res["final_ibe_mean"][2], "evals": diag,
+           **policy_at_origin(trainer.actor)}
+    path.parent.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(path, json.dumps(out, indent=1) + "\n")
+    return (f"{job['tag']} {job['method']} s{job['seed']} n{job['iterations']}: lateral {out['lateral_mae']:.3f} m, "
+            f"speed {out['speed_mae']:.4f} m/s, cost {out['cost']:.1f}, true {out['true_transitions']}, "
+            f"{out['wall_s']:.0f} s")
+
+
+def seeds_of(text: str) -> list[int]:
+    if "-" in text:
+        a, b = text.split("-")
+        return list(range(int(a), int(b) + 1))
+    return [int(x) for x in text.split(",")]
+
+
+def sweep(args: argparse.Namespace) -> None:
+    overrides = dict(DESIGNS.get(args.tag, {}))
+    for item in args.set or []:
+        key, value = item.split("=", 1)
+        overrides[key] = parse_value(value)
+    jobs = [{"tag": args.tag, "method": m, "seed": s, "iterations": n, "set": overrides}
+            for n in [int(b) for b in args.budgets.split(",")]
+            for s in seeds_of(args.seeds) for m in args.methods.split(",")]
+    jobs = [j for j in jobs if not job_path(j["tag"], j["method"], j["seed"], j["iterations"]).exists()]
+    with Pool(args.jobs) as pool:
+        for line in pool.imap(run_job, jobs, chunksize=1):
+            print(line, flush=True)
+
+
+def summary(_: argparse.Namespace) -> None:
+    runs = [json.loads(p.read_text()) for p in sorted((OUT / "per_run").glob("*/*.json"))]
+    groups: dict[tuple[str, str, int], list[dict[str, Any]]] = {}
+    for r in runs:
+        groups.setdefault((r["tag"], r["method"], r["iterations"]), []).append(r)
+    rows = []
+    for (tag, method, n), rs in sorted(groups.items()):
+        rs = sorted(rs, key=lambda r: r["seed"])
+        lat = np.array([r["lateral_mae"] for r in rs])
+        spd = np.array([r["speed_mae"] for r in rs])
+        cost = np.array([r["cost"] for r in rs])
+        rows.append({"tag": tag, "method": method, "iterations": n, "seeds": " ".join(str(r["seed"]) for r in rs),
+                     "cost_mean": cost.mean(), "cost_max": cost.max(), "lateral_mean": lat.mean(),
+                     "lateral_std": lat.std(), "lateral_max": lat.max(), "speed_mean": spd.mean(),
+                     "speed_std": spd.std(), "speed_max": spd.max(),
+                     "true_transitions": int(np.mean([r["true_transitions"] for r in rs])),
+                     "per_seed_lateral": " ".join(f"{x:.3f}" for x in lat),
+                     "per_seed_speed": " ".join(f"{x:.4f}" for x in spd),
+                     "per_seed_cost": " ".join(f"{x:.1f}" for x in cost)})
+    OUT.mkdir(parents=True, exist_ok=True)
+    with open(OUT / "summary.csv", "w", newline="") as fh:
+        writer = csv.DictWriter(fh, fieldnames=list(rows[0]))
+        writer.writeheader()
+        writer.writerows(rows)
+    atomic_write_text(OUT / "summary.json", json.dumps(rows, indent=1) + "\n")
+    for r in rows:
+        print(f"{r['tag']:>14} {r['method']:>6} n={r['iterations']:>5} seeds[{r['seeds']}] cost {r['cost_mean']:6.1f} "
+              f"(max {r['cost_max']:6.1f}) lat {r['lateral_mean']:.3f}±{r['lateral_std']:.3f} "
+              f"spd {r['speed_mean']:.4f}±{r['speed_std']:.4f} true {r['true_transitions']} | {r['per_seed_lateral']}")
+
+
+def reference(_: argparse.Namespace) -> None:
+    """LQR of the linearised model (no preview, the policy class's linear member) for several discounts:
+    gains and course errors on the evaluation seeds of seeds 0-4 (``mixedrl.runs.eval_seeds``)."""
+    import sys
+
+    from mixedrl.envs import DoubleLaneChangeModel, evaluate_tracking
+    from mixedrl.runs import eval_seeds
+
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    from vehicle_figures import lqr_gain
+
+    model = DoubleLaneChangeModel()
+    seeds = [s for seed in range(5) for s in eval_seeds(TrainConfig(seed=seed))]
+    rows = []
+    for gamma in (0.99, 0.995, 0.998, 0.999, 1.0):
+        K = lqr_gain(model, gamma)
+        res = [evaluate_tracking(lambda o: -K @ o[:5], seed=s) for s in seeds]
+        rows.append({"gamma": gamma, "gain": (-K).tolist(),
+                     "lateral_mae": float(np.mean([r.mean_abs_lateral_error for r in res])),
+                     "speed_mae": float(np.mean([r.mean_abs_speed_error for r in res])),
+                     "cost": float(np.mean([r.total_cost for r in res]))})
+        print(f"gamma {gamma}: lateral {rows[-1]['lateral_mae']:.3f} m, speed {rows[-1]['speed_mae']:.4f} m/s, "
+              f"cost {rows[-1]['cost']:.1f}, steering gains {np.round(-K[0], 3)}")
+    OUT.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(OUT / "lqr_reference.json", json.dumps(rows, indent=1) + "\n")
+
+
+def objective(_: argparse.Namespace) -> None:
+    """Which linear feedback does Algorithm 2's objective prefer? The discounted cost (gamma = 0.99, 800
+    steps, true noise) of the LQR gains of several discounts, from (a) the wide training distribution and
+    (b) the states the car visits on the course (every 10th state of a course driven by the gamma = 1 LQR)."""
+    import sys
+
+    from mixedrl.envs import evaluate_tracking
+    from mixedrl.tasks import DoubleLaneChangeTask
+
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    from vehicle_figures import lqr_gain
+
+    task = DoubleLaneChangeTask()
+    bound = task.action_bound.double()
+    ref = evaluate_tracking(lambda o: -lqr_gain(task.model, 1.0) @ o[:5], seed=7)
+    course = torch.as_tensor(ref.states[::10], dtype=torch.float64)
+    wide = task.sample_initial(1024, torch.Generator().manual_seed(12345))
+    rows = []
+    for gamma in (0.99, 0.995, 0.998, 1.0):
+        K = torch.as_tensor(lqr_gain(task.model, gamma))
+        row: dict[str, Any] = {"lqr_gamma": gamma}
+        for name, starts in (("wide", wide), ("course", course)):
+            gen = torch.Generator().manual_seed(999)
+            s, total = starts.clone(), torch.zeros(starts.shape[0], dtype=torch.float64)
+            for t in range(800):
+                u = torch.maximum(torch.minimum(-task.observe(s) @ K.T, bound), -bound)
+                s = task.true_step(s, u, gen)
+                total += task.gamma**t * task.cost(s, u)
+            row[f"J_{name}"] = float(total.mean())
+        rows.append(row)
+        print(f"LQR(gamma={gamma}): J_0.99 from wide starts {row['J_wide']:.4f}, from course states {row['J_course']:.4f}")
+    OUT.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(OUT / "objective_of_lqr_gains.json", json.dumps(rows, indent=1) + "\n")
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    sub = parser.add_subparsers(dest="cmd", required=True)
+    p = sub.add_parser("sweep")
+    p.add_argument("--tag", required=True)
+    p.add_argument("--methods", default="mixed")
+    p.add_argument("--seeds", default="0-4")
+    p.add_argument("--budgets", default="1500")
+    p.add_argument("--jobs", type=int, default=2)
+    p.add_argument("--set", nargs="*")
+    sub.add_parser("summary")
+    sub.add_parser("reference")
+    sub.add_parser("objective")
+    args = parser.parse_args(argv)
+    {"sweep": sweep, "summary": summary, "reference": reference, "objective": objective}[args.cmd](args)
+
+
+if __name__ == "__main__":
+    main()

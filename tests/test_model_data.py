@@ -1,0 +1,183 @@
+"""Tests of Algorithm 2 planning on model rollouts (mixedrl.algorithms.model_data, state_source="model"):
+the batch comes from the planning model under the method's noise, the true environment only feeds the IBE
+at the configured rate, model-driven RL uses zero true transitions, resume == uninterrupted."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from mixedrl.algorithms.agpi import AGPI
+from mixedrl.algorithms.model_data import ModelStateSampler
+from mixedrl.config import TrainConfig
+from mixedrl.runs import RunDirectory, make_trainer, train
+from mixedrl.tasks import LinearTask
+
+FAST = dict(task="linear", iterations=40, batch_size=32, eval_every=20, checkpoint_every=10, eval_seeds=1,
+            state_source="model", model_course_horizon=30, model_course_start=5, true_envs=2, true_steps=3, true_every=4)
+
+
+def _forbid_true_steps(monkeypatch: pytest.MonkeyPatch, task: object) -> None:
+    def boom(*args: object, **kwargs: object) -> None:
+        raise AssertionError("the true environment was stepped")
+
+    monkeypatch.setattr(task, "true_step", boom)
+
+
+@pytest.mark.parametrize("task_name", ["linear", "dlc"])
+def test_model_driven_uses_zero_true_transitions(monkeypatch: pytest.MonkeyPatch, task_name: str) -> None:
+    cfg = TrainConfig(method="model", **{**FAST, "task": task_name, "iterations": 12})
+    trainer = make_trainer(cfg)
+    _forbid_true_steps(monkeypatch, trainer.task)
+    rows = [trainer.iteration() for _ in range(12)]
+    assert trainer.true_transitions == 0
+    assert all(r["data/true_transitions"] == 0 for r in rows)
+    assert trainer.noise.mean is not None and not hasattr(trainer.noise, "update")
+
+
+def test_oracle_uses_zero_true_transitions(monkeypatch: pytest.MonkeyPatch) -> None:
+    trainer = make_trainer(TrainConfig(method="oracle", **FAST))
+    _forbid_true_steps(monkeypatch, trainer.task)
+    for _ in range(9):
+        trainer.iteration()
+    assert trainer.true_transitions == 0
+
+
+def test_mixed_true_transitions_follow_the_configured_rate() -> None:
+    trainer = make_trainer(TrainConfig(method="mixed", **FAST))
+    counts = []
+    for _ in range(10):
+        counts.append(trainer.iteration()["data/true_transitions"])
+    # collections at k = 0, 4, 8 (true_every = 4), each 2 copies x 3 steps
+    assert counts == [6, 6, 6, 6, 12, 12, 12, 12, 18, 18]
+    assert trainer.true_transitions == 18
+    # every true residual went to the IBE, and nothing else did
+    assert trainer.noise.count == 18
+
+
+def test_default_source_counts_one_true_step_per_copy() -> None:
+    cfg = TrainConfig(method="mixed", task="linear", batch_size=16, iterations=5)
+    trainer = make_trainer(cfg)
+    assert trainer.sampler is None
+    for _ in range(5):
+        trainer.iteration()
+    assert trainer.true_transitions == 5 * 16 == trainer.noise.count
+
+
+def test_rollouts_use_the_planning_noise_not_the_true_one() -> None:
+    # linear task: prior mean 0, true mean 0.5 on the velocity; the rollout increments must carry the prior's
+    task = LinearTask(prior_cov=1e-4 * np.eye(2))
+    cfg = TrainConfig(method="model", task="linear", batch_size=2048, state_source="model", model_box=float("inf"),
+                      model_course_start=0, model_kick_prob=0.0)
+    gen = torch.Generator().manual_seed(0)
+    sampler = ModelStateSampler(task, cfg, gen)
+    actor = torch.nn.Linear(2, 1)
+    torch.nn.init.zeros_(actor.weight)
+    torch.nn.init.zeros_(actor.bias)
+    before = sampler.states.clone()
+    alive = sampler.steps + 1 < sampler.horizons  # copies that will not restart at this step
+    sampler.model_step(actor, task.prior_mean, task.prior_cov)
+    xi = (sampler.states - task.f(before, torch.zeros(2048, 1, dtype=torch.float64)))[alive]
+    assert abs(float(xi[:, 1].mean()) - 0.0) < 0.01  # prior mean (true mean 0.5 would be far outside)
+    assert abs(float(xi[:, 1].std()) - 0.01) < 0.002
+    sampler.model_step(actor, task.true_mean, task.true_cov)
+
+
+def test_rollouts_restart_outside_the_box_and_at_the_horizon() -> None:
+    task = LinearTask()
+    cfg = TrainConfig(method="model", task="linear", batch_size=64, state_source="model", model_box=2.0,
+                      model_course_fraction=0.25, horizon=5, model_course_horizon=7, model_course_start=0)
+    sampler = ModelStateSampler(task, cfg, torch.Generator().manual_seed(1))
+    assert int(sampler.course.sum()) == 16
+    assert sampler.horizons.tolist() == [7] * 16 + [5] * 48
+    unstable = torch.nn.Linear(2, 1)  # pushes the state out of the box quickly
+    with torch.no_grad():
+        unstable.weight.copy_(torch.tensor([[50.0, 50.0]]))
+        unstable.bias.zero_()
+    for _ in range(20):
+        sampler.model_step(unstable, task.prior_mean, task.prior_cov)
+        assert bool((sampler.states.abs() <= 2.0).all())  # every state in the box (obs_scale = 1)
+        assert bool((sampler.steps < sampler.horizons).all())
+    assert sampler.restarts > 64
+
+
+def test_state_source_is_validated() -> None:
+    with pytest.raises(ValueError, match="^state_source"):
+        TrainConfig(state_source="replay")
+    with pytest.raises(ValueError, match="^model_course_fraction"):
+        TrainConfig(model_course_fraction=1.5)
+    with pytest.raises(ValueError, match="^model_box"):
+        TrainConfig(model_box=float("nan"))
+    with pytest.raises(ValueError, match="^true_every"):
+        TrainConfig(true_every=0)
+    assert TrainConfig.from_dict(TrainConfig(model_box=float("inf")).to_dict()).model_box == float("inf")
+
+
+@pytest.mark.parametrize("method,task", [("mixed", "linear"), ("model", "linear"), ("mixed", "dlc")])
+def test_resume_equals_uninterrupted_on_the_model_path(tmp_path: Path, method: str, task: str) -> None:
+    cfg = TrainConfig(method=method, **{**FAST, "task": task})
+    full = make_trainer(cfg)
+    train(full, RunDirectory(tmp_path / "full"))
+    first = make_trainer(cfg)
+    assert train(first, RunDirectory(tmp_path / "cut"), stop_after=17) == {"interrupted_at": 17}
+    resumed = make_trainer(cfg)
+    train(resumed, RunDirectory(tmp_path / "cut"), resume=True)
+    for name in ("actor", "critic"):
+        for a, b in zip(full.state_dict()[name].values(), resumed.state_dict()[name].values()):
+            assert torch.equal(a, b)
+    assert torch.equal(full.sampler.states, resumed.sampler.states)
+    assert full.true_transitions == resumed.true_transitions
+    strip = [{k: v for k, v in r.items() if not k.startswith("time/")} for r in RunDirectory(tmp_path / "full").read_metrics()]
+    assert strip == [{k: v for k, v in r.items() if not k.startswith("time/")}
+                     for r in RunDirectory(tmp_path / "cut").read_metrics()]
+
+
+def test_load_state_dict_rejects_a_checkpoint_without_sampler() -> None:
+    cfg = TrainConfig(method="mixed", **FAST)
+    trainer: AGPI = make_trainer(cfg)
+    trainer.iteration()
+    state = trainer.state_dict()
+    del state["sampler"]
+    fresh = make_trainer(cfg)
+    before = fresh.sampler.states.clone()
+    with pytest.raises(ValueError, match="^state"):
+        fresh.load_state_dict(state)
+    assert torch.equal(fresh.sampler.states, before)
+
+
+def test_course_rollouts_start_at_the_course_start_from_model_course_start() -> None:
+    from mixedrl.noise import GaussianNoise
+    from mixedrl.tasks import make_task
+
+    task = make_task("dlc")
+    cfg = TrainConfig(batch_size=64, state_source="model", model_course_fraction=1.0, model_course_start=2,
+                      horizon=1, model_course_horizon=1)
+    sampler = ModelStateSampler(task, cfg, torch.Generator().manual_seed(0))
+    actor = torch.nn.Linear(5, 2)
+    torch.nn.init.zeros_(actor.weight)
+    torch.nn.init.zeros_(actor.bias)
+    noise = GaussianNoise(task.prior_mean, task.prior_cov)
+    sampler.collect(actor, noise, 1)  # before model_course_start: every copy restarts anywhere on the course
+    assert float(sampler.states[:, 5].max()) > 30.0
+    sampler.collect(actor, noise, 2)  # from it on: at the course start, X = 0
+    assert float(sampler.states[:, 5].abs().max()) == 0.0
+    assert sampler.true_transitions == 0  # a fixed noise source collects no true data
+
+
+def test_kicks_move_only_course_copies_by_at_most_the_kick_size() -> None:
+    task = LinearTask()
+    cfg = TrainConfig(method="model", task="linear", batch_size=40, state_source="model", model_box=float("inf"),
+                      model_course_fraction=0.5, model_course_start=0, model_kick_prob=1.0, model_kick_scale=0.3,
+                      horizon=1000, model_course_horizon=1000)
+    kicked = ModelStateSampler(task, cfg, torch.Generator().manual_seed(2))
+    plain = ModelStateSampler(task, cfg.replace(model_kick_prob=0.0), torch.Generator().manual_seed(2))
+    actor = torch.nn.Linear(2, 1)
+    zero = np.zeros((2, 2))
+    kicked.model_step(actor, task.prior_mean, zero)
+    plain.model_step(actor, task.prior_mean, zero)
+    diff = (kicked.states - plain.states).abs()
+    assert bool((diff[20:] == 0).all())  # wide copies are never kicked
+    assert bool((diff[:20] > 0).all()) and float(diff.max()) <= 0.3  # every course copy, within the size
