@@ -166,7 +166,7 @@ def _train(args: argparse.Namespace) -> int:
     trainer = make_trainer(config)
     results = train(trainer, run, resume=args.resume, progress=not args.no_progress)
     print(json.dumps({k: results[k] for k in ("method", "seed", "iterations", "lateral_mae", "speed_mae", "cost",
-                                              "iterations_to_converge", "train_seconds") if k in results},
+                                              "iterations_to_converge", "train_seconds", "true_transitions") if k in results},
                      indent=2))
     return 0
 

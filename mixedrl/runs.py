@@ -626,7 +626,8 @@ def summarize(trainer: Any, rows: list[dict[str, Any]], elapsed: float, seeds: l
         if key in final:
             results[key] = float(final[key])
     if hasattr(trainer, "true_transitions"):
-        results["true_transitions"] = int(trainer.true_transitions)
+        count = trainer.true_transitions
+        results["true_transitions"] = None if count is None else int(count)
     if hasattr(trainer, "noise"):
         results["final_ibe_mean"] = np.asarray(trainer.noise.mean, dtype=float).tolist()
         results["final_ibe_cov_diag"] = np.diag(np.asarray(trainer.noise.cov, dtype=float)).tolist()

@@ -101,3 +101,24 @@ def test_ddpg_improves_on_the_linear_task() -> None:
     initial = agent.evaluate([11, 12])["cost"]
     res = train(agent)
     assert res["final"]["cost"] < 0.5 * initial
+
+
+def test_true_transitions_are_counted_steps_of_the_true_environment() -> None:
+    """``true_transitions`` counts every row the true environment stepped (warm-up included), per call."""
+
+    class StepCounter(LinearTask):
+        rows = 0
+
+        def true_step(self, s: torch.Tensor, u: torch.Tensor, generator: torch.Generator) -> torch.Tensor:
+            StepCounter.rows += s.shape[0]
+            return super().true_step(s, u, generator)
+
+    task = StepCounter()
+    agent = DDPG(task, TrainConfig(**CFG))
+    for _ in range(5):  # training iterations only (the evaluation drives the true environment too)
+        metrics = agent.iteration()
+    assert StepCounter.rows == CFG["ddpg_warmup"] + 4 * CFG["ddpg_envs"]  # warm-up, then one step per copy
+    assert agent.true_transitions == StepCounter.rows == metrics["data/true_transitions"]
+    twin = DDPG(LinearTask(), TrainConfig(**CFG))
+    twin.load_state_dict(agent.state_dict())
+    assert twin.true_transitions == agent.true_transitions

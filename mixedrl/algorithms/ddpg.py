@@ -121,6 +121,9 @@ class DDPG:
         self.steps = torch.randint(0, config.horizon, (config.ddpg_envs,), generator=g)
         self.k = 0
         self.stopped = False
+        #: True-environment transitions taken so far (warm-up and exploration included), counted in :meth:`collect`
+        #: (``None`` after loading a checkpoint that predates the counter).
+        self.true_transitions: int | None = 0
 
     @property
     def policy(self) -> torch.nn.Module:
@@ -137,6 +140,8 @@ class DDPG:
                 cfg.ddpg_noise_std * task.action_bound)
             u = torch.maximum(torch.minimum(self.actor(obs) + noise, task.action_bound), -task.action_bound)
             s_next = task.true_step(s, u.double(), self.generator)
+            if self.true_transitions is not None:
+                self.true_transitions += s.shape[0]
             cost = task.cost(s_next, u.double()).float()
             terminal = task.is_terminal(s_next)
             next_obs = task.observe(torch.where(terminal[:, None], s, s_next).float())
@@ -193,7 +198,7 @@ class DDPG:
         self.k += 1
         return {"train/critic_loss": float(critic_loss.detach()), "train/actor_loss": float(actor_loss.detach()),
                 "train/value_mean": float(q.detach().mean()), "train/env_cost": mean_cost,
-                "train/buffer_size": float(self.buffer.size)}
+                "train/buffer_size": float(self.buffer.size), "data/true_transitions": float(self.true_transitions if self.true_transitions is not None else "nan")}
 
     def evaluate(self, seeds: list[int]) -> dict[str, Any]:
         """Evaluate the deterministic actor (no exploration noise) on the task."""
@@ -205,7 +210,8 @@ class DDPG:
                 "critic_target": self.critic_target.state_dict(), "actor_target": self.actor_target.state_dict(),
                 "critic_opt": self.critic_opt.state_dict(), "actor_opt": self.actor_opt.state_dict(),
                 "generator": self.generator.get_state(), "states": self.states.clone(),
-                "steps": self.steps.clone(), "buffer": self.buffer.state_dict()}
+                "steps": self.steps.clone(), "buffer": self.buffer.state_dict(),
+                "true_transitions": self.true_transitions}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         """Restore :meth:`state_dict`.
@@ -229,3 +235,6 @@ class DDPG:
         self.states, self.steps = state["states"].clone(), state["steps"].clone()
         self.buffer.load_state_dict(state["buffer"])
         self.k = int(state["k"])
+        # a checkpoint written before the counter existed did not record it: unknown (None), not guessed
+        count = state.get("true_transitions")
+        self.true_transitions = None if count is None else int(count)
