@@ -21,7 +21,7 @@ import json
 from pathlib import Path
 
 from mixedrl.runs import atomic_write_bytes, atomic_write_text
-from validation.reproduce import format_references, format_table, reproduce
+from validation.reproduce import format_references, format_table, make_figures, reproduce
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -32,11 +32,18 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--references", type=Path, default=Path("docs/_static/references/references.json"))
     parser.add_argument("--resume", action="store_true", help="reuse finished runs of --out")
     parser.add_argument("--workers", type=int, default=None)
+    parser.add_argument("--figures-only", action="store_true",
+                        help="redraw the figures of the finished reproduction in --out (its results.json) and ship "
+                             "them with its table; trains nothing")
     args = parser.parse_args(argv)
 
     ref_dir = args.references.parent if args.references.is_file() else None
-    results = reproduce(args.out, seeds=args.seeds, resume=args.resume, workers=args.workers, progress=True,
-                        references=ref_dir)
+    if args.figures_only:
+        results = json.loads((args.out / "results.json").read_text())
+        make_figures(args.out, results, references=ref_dir)
+    else:
+        results = reproduce(args.out, seeds=args.seeds, resume=args.resume, workers=args.workers, progress=True,
+                            references=ref_dir)
     table = format_table(results)
     if args.references.is_file():
         table += "\n\n" + format_references(json.loads(args.references.read_text()))
