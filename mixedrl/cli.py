@@ -51,7 +51,7 @@ from typing import Any, Sequence
 from mixedrl.config import METHODS, TrainConfig, apply_overrides
 from mixedrl.runs import RunDirectory, eval_seeds, load_checkpoint, make_trainer, train
 from mixedrl.sweep import add_parser as add_sweep_parser
-from mixedrl.sweep import run as run_sweep
+from mixedrl.sweep import format_summary, load_spec, run_sweep
 
 __all__ = ["main", "build_parser", "parse_overrides", "command_plugins", "COMMAND_GROUP", "Handler"]
 
@@ -144,10 +144,26 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(handler=_evaluate)
 
     add_sweep_parser(sub)  # mixedrl sweep SPEC --out DIR (mixedrl.sweep; Ray is imported only when it runs)
-    sub.choices["sweep"].set_defaults(handler=run_sweep)
+    sub.choices["sweep"].set_defaults(handler=_sweep)
 
     _add_plugins(sub)
     return parser
+
+
+def _sweep(args: argparse.Namespace) -> int:
+    """``mixedrl sweep``: 0 if every run finished, 1 if some failed (errors in ``sweep.json``), 2 for an invalid
+    spec or arguments, or without Ray (the message says which extra to install)."""
+    try:
+        doc = run_sweep(load_spec(args.spec), args.out, address=args.address, num_cpus=args.num_cpus,
+                        resume=args.resume, progress=not args.no_progress)
+    except (ImportError, ValueError) as exc:
+        print(f"mixedrl sweep: error: {exc}", file=sys.stderr)
+        return 2
+    print(format_summary(doc, args.out))
+    if doc["failed"]:
+        print(f"mixedrl sweep: {doc['failed']} run(s) failed; see 'error' in sweep.json", file=sys.stderr)
+        return 1
+    return 0
 
 
 def _train(args: argparse.Namespace) -> int:

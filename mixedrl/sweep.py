@@ -3,7 +3,6 @@
 ::
 
     mixedrl sweep SPEC.toml --out DIR [--address ADDR] [--num-cpus N] [--resume] [--no-progress]
-    python -m mixedrl.sweep SPEC.toml --out DIR ...          (the same, without the plug-in registry)
 
 A spec is a small TOML file::
 
@@ -61,7 +60,6 @@ import json
 import logging
 import os
 import re
-import sys
 import time
 import tomllib
 from pathlib import Path
@@ -89,8 +87,8 @@ __all__ = [
     "summarize",
     "make_figure",
     "add_parser",
-    "run",
-    "main",
+    "add_arguments",
+    "format_summary",
 ]
 
 logger = logging.getLogger(__name__)
@@ -613,7 +611,9 @@ def run_sweep(spec: SweepSpec, out: str | Path, address: str | None = None, num_
 # ----------------------------------------------------------------------------------------------------
 # command line
 # ----------------------------------------------------------------------------------------------------
-def _add_arguments(p: argparse.ArgumentParser) -> None:
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    """The options of ``mixedrl sweep`` (positional ``spec``, ``--out``, ``--address``, ``--num-cpus``, ``--resume``,
+    ``--no-progress``)."""
     p.add_argument("spec", type=Path, help="sweep spec (TOML: methods, seeds, [base], [grid])")
     p.add_argument("--out", type=Path, required=True, help="sweep directory (shared by every node of a cluster)")
     p.add_argument("--address", default=None,
@@ -627,49 +627,30 @@ def add_parser(subparsers: Any) -> None:
     """Add the ``sweep`` sub-command to ``mixedrl``'s sub-parsers (``argparse`` ``add_subparsers()``)."""
     p = subparsers.add_parser("sweep", help="run a grid of training runs (config x methods x seeds) on Ray",
                               description=__doc__.split("\n", 1)[0])
-    _add_arguments(p)
+    add_arguments(p)
 
 
-def run(args: argparse.Namespace) -> int:
-    """Handler of ``mixedrl sweep``: run the sweep and print its summary table.
+def format_summary(doc: dict[str, Any], out: str | Path) -> str:
+    """The summary of a finished sweep as text: one line per grid point x method (runs, failures, course cost
+    mean ± std over seeds), then where ``sweep.json`` and the summary CSV are.
+
+    Parameters
+    ----------
+    doc : dict
+        The content of ``sweep.json`` (as returned by :func:`run_sweep`).
+    out : str or pathlib.Path
+        The sweep directory.
 
     Returns
     -------
-    int
-        0 if every run finished, 1 if some failed (their errors are in ``sweep.json``), 2 for an invalid
-        spec or arguments, or without Ray (the message says which extra to install).
+    str
+        The text printed by ``mixedrl sweep``.
     """
-    try:
-        spec = load_spec(args.spec)
-        doc = run_sweep(spec, args.out, address=args.address, num_cpus=args.num_cpus, resume=args.resume,
-                        progress=not args.no_progress)
-    except ImportError as exc:
-        print(f"mixedrl sweep: error: {exc}", file=sys.stderr)
-        return 2
-    except ValueError as exc:
-        print(f"mixedrl sweep: error: {exc}", file=sys.stderr)
-        return 2
+    lines = []
     for row in doc["summary"]:
         point = ", ".join(f"{k}={v}" for k, v in row["point"].items())
         cost = "n/a" if row["cost_mean"] is None else f"{row['cost_mean']:.6g} ± {row['cost_std']:.3g}"
-        print(f"{point + '  ' if point else ''}{row['method']:<7} runs {row['runs']}  failed {row['failed']}  "
-              f"cost {cost}")
-    print(f"\nsweep: {Path(args.out) / 'sweep.json'}   table: {Path(args.out) / 'sweep_summary.csv'}")
-    if doc["failed"]:
-        print(f"mixedrl sweep: {doc['failed']} run(s) failed; see 'error' in sweep.json", file=sys.stderr)
-        return 1
-    return 0
-
-
-def main(argv: Sequence[str] | None = None) -> int:
-    """``python -m mixedrl.sweep SPEC --out DIR ...``: the ``sweep`` command without the ``mixedrl`` front."""
-    parser = argparse.ArgumentParser(prog="mixedrl sweep", description=__doc__.split("\n", 1)[0])
-    parser.add_argument("-v", "--verbose", action="store_true", help="log at INFO level")
-    _add_arguments(parser)
-    args = parser.parse_args(argv)
-    logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING, format="%(levelname)s %(message)s")
-    return run(args)
-
-
-if __name__ == "__main__":  # pragma: no cover
-    sys.exit(main())
+        lines.append(f"{point + '  ' if point else ''}{row['method']:<7} runs {row['runs']}  failed {row['failed']}  "
+                     f"cost {cost}")
+    lines.append(f"\nsweep: {Path(out) / 'sweep.json'}   table: {Path(out) / 'sweep_summary.csv'}")
+    return "\n".join(lines)

@@ -22,13 +22,18 @@ from mixedrl.sweep import (
     expand,
     flatten_table,
     load_spec,
-    main,
     make_figure,
     parse_spec,
     run_name,
     run_sweep,
     summarize,
 )
+from mixedrl.cli import main as cli_main
+
+
+def main(argv: list[str]) -> int:
+    """``mixedrl sweep ARGV`` through the command line (the handler lives in :mod:`mixedrl.cli`)."""
+    return cli_main(["sweep", *argv])
 
 BASE = """
 [base]
@@ -260,7 +265,6 @@ def _without_time(rows: list[dict]) -> list[dict]:
 
 @pytest.mark.sweep
 def test_sweep_on_local_ray_equals_train_alone_and_resumes(local_ray, tmp_path: Path) -> None:
-    from mixedrl.cli import main as cli_main
 
     spec_path = tmp_path / "spec.toml"
     spec_path.write_text(SPEC)
