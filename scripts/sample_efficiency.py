@@ -1,0 +1,198 @@
+"""Sample-efficiency study: mixedrl's methods against SB3's TD3 and SAC in true transitions and wall time.
+
+Three subcommands (run from the repository root with ``PYTHONPATH=.`` or the package installed)::
+
+    # the peers (extra 'peers'): docs/_static/sample_efficiency/peers/<algo>_s<seed>.json
+    python scripts/sample_efficiency.py peers --algos td3,sac --seeds 0-4 --transitions 100000 --jobs 2
+    # mixedrl's methods: docs/_static/sample_efficiency/ours/<method>_s<seed>.json
+    python scripts/sample_efficiency.py ours --methods mixed,model,oracle,ddpg --seeds 0-4 \\
+        --iterations 1500 --jobs 2 --set state_source=model
+    # table (summary.csv, summary.json) and figures (curves_transitions.png, curves_wall.png)
+    python scripts/sample_efficiency.py summary
+
+Every run is one process of a ``multiprocessing`` pool (``--jobs``) with ``torch.set_num_threads(1)``.
+A run whose JSON file exists is skipped, provided it was made with the same settings (otherwise the
+script stops before training anything: remove the file or choose another ``--out``). ``--out`` (default
+``docs/_static/sample_efficiency``) is the root of everything. See ``docs/sample_efficiency.rst`` and
+:mod:`validation.sample_efficiency`, :mod:`validation.peers`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+from multiprocessing import Pool
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from mixedrl.cli import parse_overrides
+from mixedrl.runs import eval_seeds as run_eval_seeds
+from mixedrl.config import TrainConfig
+from validation.peers import ALGOS, train_peer
+from validation.sample_efficiency import (
+    OURS,
+    choose_eval_every,
+    load_runs,
+    ours_config,
+    plot_curves,
+    summarize,
+    train_ours,
+    write_summary,
+)
+
+OUT = Path("docs/_static/sample_efficiency")
+
+
+def seeds_of(text: str) -> list[int]:
+    """``"0-4"`` -> [0, 1, 2, 3, 4]; ``"0,2"`` -> [0, 2]."""
+    if "-" in text:
+        a, b = text.split("-")
+        return list(range(int(a), int(b) + 1))
+    return [int(x) for x in text.split(",") if x]
+
+
+def names_of(text: str, allowed: tuple[str, ...], what: str) -> list[str]:
+    names = [x for x in text.split(",") if x]
+    bad = [x for x in names if x not in allowed]
+    if bad or not names:
+        raise SystemExit(f"--{what}: expected names from {allowed}, got {text!r}")
+    return names
+
+
+def _init_worker() -> None:
+    torch.set_num_threads(1)
+    logging.basicConfig(level=logging.WARNING, format="%(message)s")
+
+
+def _peer_job(job: dict[str, Any]) -> str:
+    res = train_peer(job["algo"], seed=job["seed"], transitions=job["transitions"], eval_every=job["eval_every"],
+                     eval_seeds=job["eval_seeds"], out=job["path"], progress=job["progress"])
+    last = res["rows"][-1]
+    return (f"{job['algo']} s{job['seed']}: {res['true_transitions']} true transitions, {res['train_seconds']:.0f} s, "
+            f"lateral {last['lateral_mae']:.4f} m, speed {last['speed_mae']:.4f} m/s, cost {last['cost']:.2f}")
+
+
+def _ours_job(job: dict[str, Any]) -> str:
+    rec = train_ours(job["method"], job["seed"], job["iterations"], job["overrides"], out=job["path"])
+    last = rec["rows"][-1]
+    return (f"{job['method']} s{job['seed']}: {rec['true_transitions']} true transitions, "
+            f"{rec['train_seconds']:.0f} s, lateral {last['lateral_mae']:.4f} m, speed {last['speed_mae']:.4f} m/s, "
+            f"cost {last['cost']:.2f}")
+
+
+def _run(jobs: list[dict[str, Any]], worker: Any, n_jobs: int) -> None:
+    if not jobs:
+        print("nothing to run (every file exists)")
+        return
+    with Pool(min(n_jobs, len(jobs)), initializer=_init_worker) as pool:
+        for line in pool.imap_unordered(worker, jobs, chunksize=1):
+            print(line, flush=True)
+
+
+def _stale(path: Path, expected: dict[str, Any]) -> str | None:
+    """None if ``path`` holds a run with the ``expected`` config entries, else what differs."""
+    config = json.loads(path.read_text()).get("config", {})
+    diff = sorted(k for k, v in expected.items() if config.get(k) != v)
+    return None if not diff else f"{path} was made with other settings ({', '.join(diff)})"
+
+
+def peers(args: argparse.Namespace) -> None:
+    out = Path(args.out) / "peers"
+    eval_every = args.eval_every or choose_eval_every(args.transitions)
+    jobs, stale = [], []
+    for algo in names_of(args.algos, ALGOS, "algos"):
+        for seed in seeds_of(args.seeds):
+            path = out / f"{algo}_s{seed}.json"
+            if path.exists():
+                expected = {"transitions": args.transitions, "eval_every": eval_every, "kwargs": {},
+                            "eval_seeds": run_eval_seeds(TrainConfig(seed=seed, eval_seeds=args.eval_seeds))}
+                problem = _stale(path, expected)
+                if problem:
+                    stale.append(problem)
+                continue
+            jobs.append({"algo": algo, "seed": seed, "transitions": args.transitions, "eval_every": eval_every,
+                         "eval_seeds": args.eval_seeds, "path": str(path), "progress": args.jobs == 1})
+    if stale:
+        raise SystemExit("\n".join(stale) + "\nremove these files or choose another --out")
+    _run(jobs, _peer_job, args.jobs)
+
+
+def ours(args: argparse.Namespace) -> None:
+    out = Path(args.out) / "ours"
+    overrides = parse_overrides(args.set)
+    jobs, stale = [], []
+    for method in names_of(args.methods, OURS, "methods"):
+        for seed in seeds_of(args.seeds):
+            path = out / f"{method}_s{seed}.json"
+            config = ours_config(method, seed, args.iterations, overrides)  # validates the overrides now
+            if path.exists():
+                problem = _stale(path, config.to_dict())
+                if problem:
+                    stale.append(problem)
+                continue
+            jobs.append({"method": method, "seed": seed, "iterations": args.iterations, "overrides": overrides,
+                         "path": str(path)})
+    if stale:
+        raise SystemExit("\n".join(stale) + "\nremove these files or choose another --out")
+    _run(jobs, _ours_job, args.jobs)
+
+
+def summary(args: argparse.Namespace) -> None:
+    root = Path(args.out)
+    paths = sorted((root / "ours").glob("*.json")) + sorted((root / "peers").glob("*.json"))
+    if not paths:
+        raise SystemExit(f"no run files under {root}/ours or {root}/peers")
+    runs = load_runs(paths)
+    table = summarize(runs)
+    csv_path, json_path = write_summary(table, root)
+    plot_curves(runs, "true_transitions", root / "curves_transitions.png")
+    plot_curves(runs, "wall_seconds", root / "curves_wall.png")
+    for e in table:
+        std = {k: ("" if e[f"{k}_std"] is None else f" ± {e[f'{k}_std']:.4f}") for k in ("lateral", "speed", "cost")}
+        print(f"{e['method']:>6} seeds {e['seeds']}: lateral {e['lateral_mean']:.4f}{std['lateral']} m, "
+              f"speed {e['speed_mean']:.4f}{std['speed']} m/s, cost {e['cost_mean']:.2f}{std['cost']}; "
+              f"true transitions {e['true_transitions']}; threshold reached by {e['reached']}/{len(e['seeds'])} "
+              f"at {e['accuracy_transitions']}; own final at {e['own_final_transitions']}, "
+              f"settled at {e['settled_transitions']}")
+    print(f"wrote {csv_path}, {json_path}, {root / 'curves_transitions.png'}, {root / 'curves_wall.png'}")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    sub = parser.add_subparsers(dest="cmd", required=True)
+    p = sub.add_parser("peers", help="train SB3's TD3/SAC (extra 'peers')")
+    p.add_argument("--algos", default="td3,sac")
+    p.add_argument("--seeds", default="0-4")
+    p.add_argument("--transitions", type=int, default=100_000)
+    p.add_argument("--eval-every", type=int, default=None, help="default: about 12 evaluations per run")
+    p.add_argument("--eval-seeds", type=int, default=2)
+    p.add_argument("--jobs", type=int, default=2)
+    p.add_argument("--out", default=str(OUT))
+    p = sub.add_parser("ours", help="train mixedrl's methods")
+    p.add_argument("--methods", default=",".join(OURS))
+    p.add_argument("--seeds", default="0-4")
+    p.add_argument("--iterations", type=int, default=1500)
+    p.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE",
+                   help="TrainConfig overrides (dotted task keys allowed); eval_every defaults to about 12 "
+                        "evaluations per run")
+    p.add_argument("--jobs", type=int, default=2)
+    p.add_argument("--out", default=str(OUT))
+    p = sub.add_parser("summary", help="table and figures from the run files")
+    p.add_argument("--out", default=str(OUT))
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    if getattr(args, "jobs", 1) < 1:
+        raise SystemExit("--jobs: expected a positive integer")
+    {"peers": peers, "ours": ours, "summary": summary}[args.cmd](args)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,229 @@
+"""Tests of validation.sample_efficiency (thresholds, table, figures, rows of our runs) and of the study script's
+summary, on synthetic rows; one tiny real run of mixedrl's trainer for the rows."""
+
+from __future__ import annotations
+
+import csv
+import importlib.util
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+
+from mixedrl.runs import iterations_to_converge
+from validation.sample_efficiency import (
+    THRESHOLD_LATERAL,
+    THRESHOLD_SPEED,
+    check_rows,
+    choose_eval_every,
+    load_runs,
+    ours_config,
+    plot_curves,
+    reach_accuracy,
+    reach_own_final,
+    rows_from_metrics,
+    settled,
+    summarize,
+    train_ours,
+    write_summary,
+)
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def row(n: int, lat: float, spd: float, cost: float, wall: float | None = None) -> dict:
+    return {"true_transitions": n, "wall_seconds": float(n) / 100 if wall is None else wall, "lateral_mae": lat,
+            "speed_mae": spd, "cost": cost}
+
+
+def test_accuracy_needs_both_thresholds_at_the_same_evaluation() -> None:
+    rows = [row(100, 0.10, 0.05, 90.0),   # lateral met, speed not
+            row(200, 0.20, 0.01, 80.0),   # speed met, lateral not
+            row(300, 0.151, 0.021, 70.0),  # both, on the boundary (<=)
+            row(400, 0.10, 0.01, 60.0)]
+    assert reach_accuracy(rows) is rows[2]
+    assert reach_accuracy(rows[:2]) is None
+    assert reach_accuracy(rows, lateral=0.1, speed=0.01) is rows[3]
+
+
+def test_own_final_is_the_first_evaluation_within_ten_percent_of_the_last() -> None:
+    rows = [row(1, 1, 1, 300.0), row(2, 1, 1, 112.0), row(3, 1, 1, 110.0), row(4, 1, 1, 150.0),
+            row(5, 1, 1, 100.0)]
+    assert reach_own_final(rows) is rows[2]  # 110 <= 100 + 10; 112 is not
+    assert reach_own_final(rows, rtol=0.5) is rows[2 - 1]
+    assert reach_own_final([row(1, 1, 1, math.inf)]) is None
+
+
+def test_settled_uses_the_runs_convergence_criterion() -> None:
+    costs = [300.0, 100.0, 200.0, 105.0, 100.0, 98.0]
+    rows = [row(10 * (i + 1), 1, 1, c) for i, c in enumerate(costs)]
+    assert settled(rows) is rows[3]  # the dip at index 1 does not count: 200 follows
+    assert settled(rows)["true_transitions"] == iterations_to_converge([r["true_transitions"] for r in rows], costs)
+
+
+@given(st.integers(min_value=1, max_value=200_000))
+def test_about_twelve_evaluations(iterations: int) -> None:
+    every = choose_eval_every(iterations)
+    points = iterations // every + (iterations % every != 0)  # the run also evaluates at its last iteration
+    assert points <= 12
+    assert points >= (10 if iterations >= 60 else min(iterations, 6))
+
+
+def test_choose_eval_every_rejects_bad_input() -> None:
+    with pytest.raises(ValueError, match="iterations"):
+        choose_eval_every(0)
+    with pytest.raises(ValueError, match="points"):
+        choose_eval_every(10, points=0)
+
+
+@pytest.mark.parametrize("rows, match", [
+    ([], "non-empty"),
+    ([{"true_transitions": 1}], "missing"),
+    ([row(1, 1, 1, 1), row(0, 1, 1, 1)], "decrease"),
+    ([row(1, 1, 1, 1, wall=2.0), row(2, 1, 1, 1, wall=1.0)], "decrease"),
+    ([{**row(1, 1, 1, 1), "cost": "x"}], "cost"),
+])
+def test_check_rows(rows: list, match: str) -> None:
+    with pytest.raises(ValueError, match=match):
+        check_rows(rows)
+
+
+def runs_fixture() -> list[dict]:
+    rng = np.random.default_rng(7)
+    runs = []
+    for method, transitions in (("mixed", [20, 40, 60]), ("model", [0, 0, 0]), ("sac", [1000, 2000, 3000])):
+        for seed in (0, 1, 2):
+            lat = rng.uniform(0.1, 0.3, 3)
+            spd = rng.uniform(0.01, 0.05, 3)
+            cost = rng.uniform(30, 90, 3)
+            runs.append({"method": method, "seed": seed,
+                         "rows": [row(n, lat[i], spd[i], cost[i], wall=1.0 + i + seed) for i, n in enumerate(transitions)]})
+    return runs
+
+
+def test_summary_statistics_per_method() -> None:
+    runs = runs_fixture()
+    table = summarize(runs)
+    assert [e["method"] for e in table] == ["mixed", "model", "sac"]
+    for entry in table:
+        rs = [r for r in runs if r["method"] == entry["method"]]
+        finals = [r["rows"][-1] for r in rs]
+        for name, key in (("lateral", "lateral_mae"), ("speed", "speed_mae"), ("cost", "cost")):
+            values = [f[key] for f in finals]
+            assert entry[f"{name}_mean"] == pytest.approx(sum(values) / 3, rel=1e-12)
+            mean = sum(values) / 3
+            assert entry[f"{name}_std"] == pytest.approx(math.sqrt(sum((v - mean) ** 2 for v in values) / 2), rel=1e-12)
+        assert entry["seeds"] == [0, 1, 2]
+        assert entry["true_transitions"] == [f["true_transitions"] for f in finals]
+        for r, n, w in zip(rs, entry["accuracy_transitions"], entry["accuracy_wall_seconds"]):
+            hit = [x for x in r["rows"] if x["lateral_mae"] <= THRESHOLD_LATERAL and x["speed_mae"] <= THRESHOLD_SPEED]
+            assert (n, w) == ((hit[0]["true_transitions"], hit[0]["wall_seconds"]) if hit else (None, None))
+        assert entry["reached"] == sum(n is not None for n in entry["accuracy_transitions"])
+    assert summarize(runs[:1])[0]["lateral_std"] is None  # one seed: no spread
+
+
+def test_write_summary_csv_and_json(tmp_path: Path) -> None:
+    table = summarize(runs_fixture())
+    csv_path, json_path = write_summary(table, tmp_path / "out")
+    assert json.loads(json_path.read_text()) == json.loads(json.dumps(table))
+    with open(csv_path, newline="") as fh:
+        lines = list(csv.DictReader(fh))
+    assert [x["method"] for x in lines] == ["mixed", "model", "sac"]
+    for line, entry in zip(lines, table):
+        assert line["seeds"] == "0 1 2"
+        assert float(line["cost_mean"]) == pytest.approx(entry["cost_mean"], rel=1e-3)
+        cells = line["accuracy_transitions"].split(" ")
+        assert cells == ["never" if v is None else str(v) for v in entry["accuracy_transitions"]]
+
+
+def test_figure_draws_zero_transition_methods_as_horizontal_lines(tmp_path: Path) -> None:
+    runs = runs_fixture()
+    fig = plot_curves(runs, "true_transitions", tmp_path / "t.png")
+    assert (tmp_path / "t.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    ax_cost = fig.axes[0]
+    assert ax_cost.get_xscale() == "log"
+    lines = [ln for ln in ax_cost.get_lines() if "0 true transitions" in str(ln.get_label())]
+    assert len(lines) == 1 and "model" in lines[0].get_label()
+    level = np.mean([r["rows"][-1]["cost"] for r in runs if r["method"] == "model"])
+    assert np.all(np.asarray(lines[0].get_ydata(), dtype=float) == level)
+    # the mixed mean curve: the mean over seeds at each evaluation
+    mixed = [ln for ln in ax_cost.get_lines() if str(ln.get_label()).startswith("mixed RL (mean")]
+    expected = np.mean([[x["cost"] for x in r["rows"]] for r in runs if r["method"] == "mixed"], axis=0)
+    np.testing.assert_allclose(mixed[0].get_ydata(), expected, rtol=1e-12)
+    # against wall time the model-driven runs are curves (their wall time is not zero)
+    fig_w = plot_curves(runs, "wall_seconds")
+    assert not [ln for ln in fig_w.axes[0].get_lines() if "0 true transitions" in str(ln.get_label())]
+    with pytest.raises(ValueError, match="x"):
+        plot_curves(runs, "iteration")
+
+
+def test_load_runs_rejects_duplicates_and_bad_files(tmp_path: Path) -> None:
+    a = tmp_path / "a.json"
+    a.write_text(json.dumps(runs_fixture()[0]))
+    b = tmp_path / "b.json"
+    b.write_text(json.dumps(runs_fixture()[0]))
+    assert len(load_runs([a])) == 1
+    with pytest.raises(ValueError, match="two runs"):
+        load_runs([a, b])
+    b.write_text(json.dumps({"method": "x"}))
+    with pytest.raises(ValueError, match="run record"):
+        load_runs([b])
+
+
+def test_ours_config_and_overrides() -> None:
+    cfg = ours_config("model", 2, 1500, {"state_source": "model", "task.gamma": 0.98})
+    assert (cfg.method, cfg.seed, cfg.iterations, cfg.eval_every, cfg.num_threads) == ("model", 2, 1500, 125, 1)
+    assert cfg.state_source == "model" and cfg.task.gamma == 0.98
+    assert ours_config("ddpg", 0, 1500, {"eval_every": 50}).eval_every == 50
+    with pytest.raises(ValueError, match="method"):
+        ours_config("td3", 0, 10)
+    with pytest.raises(ValueError, match="unknown"):
+        ours_config("mixed", 0, 10, {"not_a_field": 1})
+
+
+def test_rows_of_a_real_run_are_its_evaluations(tmp_path: Path) -> None:
+    """A tiny mixed RL run on the model path: rows = the evaluation metrics rows, transitions as counted."""
+    rec = train_ours("mixed", 0, 12, {"state_source": "model", "batch_size": 16, "eval_seeds": 1},
+                     out=tmp_path / "r.json")
+    assert json.loads((tmp_path / "r.json").read_text()) == json.loads(json.dumps(rec))
+    assert [r["iteration"] for r in rec["rows"]] == list(range(1, 13))  # eval_every = round(12 / 12) = 1
+    assert rec["rows"][-1]["true_transitions"] == rec["true_transitions"] > 0
+    assert rec["rows"][-1]["cost"] == rec["final"]["cost"]
+
+
+def test_rows_from_metrics_mapping() -> None:
+    metrics = [{"iteration": 1, "data/true_transitions": 16.0, "time/elapsed_s": 0.5},
+               {"iteration": 2, "data/true_transitions": 32.0, "time/elapsed_s": 1.0, "eval/cost": 9.0,
+                "eval/lateral_mae": 0.2, "eval/speed_mae": 0.03}]
+    assert rows_from_metrics(metrics) == [{"iteration": 2, "true_transitions": 32, "wall_seconds": 1.0,
+                                           "lateral_mae": 0.2, "speed_mae": 0.03, "cost": 9.0}]
+    del metrics[1]["time/elapsed_s"]
+    with pytest.raises(ValueError, match="elapsed"):
+        rows_from_metrics(metrics)
+
+
+def load_script():
+    spec = importlib.util.spec_from_file_location("sample_efficiency_script", ROOT / "scripts" / "sample_efficiency.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_script_summary_and_skips(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    script = load_script()
+    for run in runs_fixture():
+        kind = "peers" if run["method"] == "sac" else "ours"
+        (tmp_path / kind).mkdir(exist_ok=True)
+        (tmp_path / kind / f"{run['method']}_s{run['seed']}.json").write_text(json.dumps(run))
+    assert script.main(["summary", "--out", str(tmp_path)]) == 0
+    for name in ("summary.csv", "summary.json", "curves_transitions.png", "curves_wall.png"):
+        assert (tmp_path / name).stat().st_size > 0
+    assert [e["method"] for e in json.loads((tmp_path / "summary.json").read_text())] == ["mixed", "model", "sac"]
+    # an existing run file made with other settings stops the study before anything is trained
+    with pytest.raises(SystemExit, match="other settings"):
+        script.main(["ours", "--methods", "mixed", "--seeds", "0", "--iterations", "12", "--out", str(tmp_path)])
+    assert script.seeds_of("0-3") == [0, 1, 2, 3] and script.seeds_of("1,4") == [1, 4]
