@@ -320,6 +320,12 @@ def train_peer(algo: str, *, seed: int = 0, transitions: int = 100_000, eval_eve
         ``kwargs`` not a dict with string keys.
     ImportError
         Stable-Baselines3 is not installed (install the extra ``peers``).
+
+    Notes
+    -----
+    Side effects of SB3's seeding and of the study's thread rule: the process's global Python, numpy and
+    torch random states are seeded from ``seed`` (SB3's ``set_random_seed``) and torch runs one thread
+    (``torch.set_num_threads(1)``, as every mixedrl run of the study).
     """
     if algo not in ALGOS:
         raise ValueError(f"algo: expected one of {ALGOS}, got {algo!r}")
@@ -427,8 +433,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--no-progress", action="store_true")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
-    result = train_peer(args.algo, seed=args.seed, transitions=args.transitions, eval_every=args.eval_every,
-                        eval_seeds=args.eval_seeds, out=args.out, progress=not args.no_progress)
+    try:
+        result = train_peer(args.algo, seed=args.seed, transitions=args.transitions, eval_every=args.eval_every,
+                            eval_seeds=args.eval_seeds, out=args.out, progress=not args.no_progress)
+    except ValueError as exc:
+        parser.error(str(exc))
     last = result["rows"][-1]
     logger.info("wrote %s: %d true transitions, %.0f s; lateral %.4f m, speed %.4f m/s, cost %.2f", args.out,
                 result["true_transitions"], result["train_seconds"], last["lateral_mae"], last["speed_mae"],
