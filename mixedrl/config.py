@@ -496,7 +496,13 @@ class TrainConfig:
 
     lr_decay_to: float = 0.01
     """Learning rates decay linearly from their value to ``lr_decay_to`` times it over the budget
-    (1.0 = constant)."""
+    (1.0 = constant), or over ``lr_decay_iterations`` iterations if that is set."""
+
+    lr_decay_iterations: int = 0
+    """Length of the learning-rate decay in iterations; after it the rates stay at ``lr_decay_to`` times
+    their start. 0 = the budget (``iterations``); a budget shorter than the length decays over the budget.
+    A fixed length makes a longer budget the same run followed by iterations at the final rates, instead
+    of a slower decay (see :func:`mixedrl.schedule.lr_factor`)."""
 
     grad_clip: float = 10.0
     """Clip of the global gradient norm of each update (``math.inf`` disables it)."""
@@ -602,8 +608,10 @@ class TrainConfig:
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
                 raise ValueError(f"{name}: expected a positive integer, got {value!r}")
-        if isinstance(self.ddpg_warmup, bool) or not isinstance(self.ddpg_warmup, int) or self.ddpg_warmup < 0:
-            raise ValueError(f"ddpg_warmup: expected a non-negative integer, got {self.ddpg_warmup!r}")
+        for name in ("ddpg_warmup", "lr_decay_iterations"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+                raise ValueError(f"{name}: expected a non-negative integer, got {value!r}")
         if not self.hidden_sizes or any(h < 1 for h in self.hidden_sizes):
             raise ValueError(f"hidden_sizes: expected positive widths, got {self.hidden_sizes!r}")
         for name in ("critic_lr", "actor_lr", "grad_clip", "ddpg_noise_std"):

@@ -12,13 +12,15 @@ __all__ = ["lr_factor", "set_learning_rates"]
 def lr_factor(config: TrainConfig, k: int) -> float:
     """Return the factor of the learning rates at iteration ``k``: linear from 1 to ``lr_decay_to``.
 
-    .. math:: \\alpha_k = \\alpha_0 \\Big(1 - (1 - \\rho) \\min\\big(1, \\tfrac{k}{K - 1}\\big)\\Big),
-        \\qquad \\rho = \\texttt{lr\\_decay\\_to},\\ K = \\texttt{iterations}
+    .. math:: \\alpha_k = \\alpha_0 \\Big(1 - (1 - \\rho) \\min\\big(1, \\tfrac{k}{L - 1}\\big)\\Big),
+        \\qquad \\rho = \\texttt{lr\\_decay\\_to},\\
+        L = \\min(\\texttt{lr\\_decay\\_iterations}, \\texttt{iterations})
+        \\text{ (or } \\texttt{iterations} \\text{ if the former is 0)}
 
     Parameters
     ----------
     config : TrainConfig
-        Supplies ``iterations`` and ``lr_decay_to``.
+        Supplies ``iterations``, ``lr_decay_iterations`` and ``lr_decay_to``.
     k : int
         Iteration index (``>= 0``).
 
@@ -29,9 +31,13 @@ def lr_factor(config: TrainConfig, k: int) -> float:
 
     Notes
     -----
-    Not in the paper (eqs. 50 and 52 use fixed step sizes); a decay makes the last iterates settle.
+    Not in the paper (eqs. 50 and 52 use fixed step sizes); a decay makes the last iterates settle. With
+    ``lr_decay_iterations = L`` a budget ``K >= L`` is the ``L``-iteration run followed by ``K - L``
+    iterations at the final rates (its first ``L`` iterates are those of the ``L``-iteration run); a
+    budget below ``L`` decays over the budget, so every run ends at the final rates.
     """
-    frac = min(1.0, k / max(1, config.iterations - 1))
+    length = min(config.lr_decay_iterations, config.iterations) if config.lr_decay_iterations else config.iterations
+    frac = min(1.0, k / max(1, length - 1))
     return 1.0 - (1.0 - config.lr_decay_to) * frac
 
 

@@ -215,7 +215,8 @@ def run_one(job: dict[str, Any]) -> dict[str, Any]:
 def _summary_of_run(res: dict[str, Any]) -> dict[str, Any]:
     return {"seed": res["seed"], "lateral_mae": res["lateral_mae"], "speed_mae": res["speed_mae"],
             "iterations_to_converge": res["iterations_to_converge"], "train_seconds": res["train_seconds"],
-            "cost": res.get("cost"), "left_road": res.get("final", {}).get("terminated")}
+            "cost": res.get("cost"), "left_road": res.get("final", {}).get("terminated"),
+            "true_transitions": res.get("true_transitions")}
 
 
 def _mean_std(values: Sequence[float]) -> tuple[float, float]:
