@@ -417,7 +417,7 @@ class DoubleLaneChangeTask(Task):
                    q_speed=cost.q_speed, q_lateral=cost.q_lateral, r_steer=cost.r_steer, r_accel=cost.r_accel,
                    preview_distances=config.preview_distances, train_half_widths=config.train_half_widths)
 
-    #: Harmonics of the Case-3 Fourier basis along the course (:meth:`mean_features`).
+    # harmonics of the Case-3 Fourier basis along the course (documented under Attributes)
     mean_harmonics: int = 8
 
     def true_mean_at(self, s: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
