@@ -66,8 +66,11 @@ __all__ = [
 METHODS = ("mixed", "model", "oracle", "ddpg")
 #: Tasks a run can be trained on: the double lane change (paper) and a small linear system.
 TASKS = ("dlc", "linear")
-#: Laws of the true disturbance a task configuration may name (the IBE itself assumes a Gaussian).
-DISTURBANCE_LAWS = ("gaussian",)
+#: Laws of the true disturbance a task configuration may name (the IBE itself assumes a Gaussian):
+#: ``"gaussian"`` (the paper's), ``"student_t"`` (heavy tails, ``dof`` degrees of freedom) and ``"bumps"`` (a
+#: symmetric two-point law), all with the configured mean and variance (:class:`ForceDisturbanceConfig`).
+#: The double lane change simulates all three; the linear task only ``"gaussian"``.
+DISTURBANCE_LAWS = ("gaussian", "student_t", "bumps")
 
 
 def _law(value: Any, name: str) -> str:
@@ -112,18 +115,35 @@ class ForceDisturbanceConfig:
     Its noise on ``v_x`` is ``xi = F_dis T / m`` (eq. 54). Dotted keys: ``task.disturbance.<field>``.
     ``grade_amplitude`` [rad], ``grade_wavelength`` [m] and ``grade_phase`` [rad] describe an optional road
     grade (:class:`mixedrl.envs.Disturbance`; amplitude 0, the default, is the paper's level road).
+
+    Every law has mean ``mean`` (minus the grade's ``m g sin(theta(X))``) and variance ``variance``:
+    ``F_dis = mean + sqrt(variance) z`` with the law's standardised draw ``z``:
+
+    * ``law = "gaussian"`` (default, the paper's ``N(261, 32)``): ``z ~ N(0, 1)``;
+    * ``law = "student_t"``: ``F_dis`` is Student-t with ``dof`` degrees of freedom, rescaled to the
+      variance: scale ``sqrt(variance (dof - 2) / dof)`` (``dof > 2``; heavy tails);
+    * ``law = "bumps"``: ``F_dis = mean - sqrt(variance)`` or ``mean + sqrt(variance)`` with probability 1/2
+      each (a symmetric two-point law).
+
+    Ten times the paper's variance is just ``variance = 320``. The planners model the noise as a
+    Gaussian whatever the law (the oracle plans with ``N(mean, variance)``); see
+    :class:`mixedrl.envs.Disturbance` for how each law is drawn.
     """
 
     WHERE: ClassVar[str] = "task.disturbance"
 
     law: str = "gaussian"
-    """Distribution of ``F_dis``; one of :data:`DISTURBANCE_LAWS` (only ``"gaussian"`` today)."""
+    """Distribution of ``F_dis``; one of :data:`DISTURBANCE_LAWS`: ``"gaussian"``, ``"student_t"``,
+    ``"bumps"`` (same mean and variance for all three)."""
 
     mean: float = 261.0
     """Mean force on a level road [N] (paper: 261)."""
 
     variance: float = 32.0
     """Variance of ``F_dis`` [N^2] (paper: 32, ``N(261, 32)``; EQUATIONS.md, point 7)."""
+
+    dof: float = 3.0
+    """Degrees of freedom of the ``"student_t"`` law (> 2: a finite variance); ignored by the others."""
 
     # an optional road grade, a state-dependent mean (Case 3); amplitude 0 is the paper's level road. The
     # three fields are passed on to mixedrl.envs.Disturbance, which documents the grade's formula.
@@ -137,6 +157,9 @@ class ForceDisturbanceConfig:
             if f.name != "law":
                 setattr(self, f.name, check_number(getattr(self, f.name), f"{self.WHERE}.{f.name}",
                                               nonneg=f.name == "variance", positive=f.name == "grade_wavelength"))
+        if not self.dof > 2.0:
+            raise ValueError(f"{self.WHERE}.dof: expected a number > 2 (the Student-t variance is finite only "
+                             f"then), got {self.dof!r}")
 
 
 @dataclass
@@ -239,7 +262,8 @@ class GaussianNoiseConfig:
     WHERE: ClassVar[str] = "task.disturbance"
 
     law: str = "gaussian"
-    """Distribution of ``xi``; one of :data:`DISTURBANCE_LAWS` (only ``"gaussian"`` today)."""
+    """Distribution of ``xi``; one of :data:`DISTURBANCE_LAWS` (the linear task simulates only
+    ``"gaussian"``)."""
 
     mean: tuple[float, ...] = (0.0, 0.5)
     """Mean ``mu`` of ``xi``, shape (n,)."""
@@ -533,6 +557,14 @@ class TrainConfig:
     ibe_recursion: str = "exact"
     """Recursion of the Case-2 IBE (``"exact"`` = eq. 17 recursively, ``"paper"`` = eq. 18)."""
 
+    ibe_case: int = 2
+    """Which IBE mixed RL plans with (:func:`mixedrl.noise.make_noise_source`): ``2`` = Case 2, mean and
+    covariance unknown (eqs. 17-18, the reproduction's); ``1`` = Case 1, covariance known (the true
+    ``K``, eq. 16); ``3`` = Case 3, a state-dependent mean ``phi(x, u) = W^T g(x, u)`` on the task's
+    features (for the vehicle a Fourier series along the course, for a road grade), covariance known
+    (eq. 19, :class:`mixedrl.ibe.LinearFeatureIBE`). Only ``method = "mixed"`` reads it; ``ibe_recursion``
+    must be ``"exact"`` unless it is 2."""
+
     eval_every: int = 100
     """Evaluate the policy on the full double lane change every ``eval_every`` iterations."""
 
@@ -600,6 +632,10 @@ class TrainConfig:
             raise ValueError(f"model_box: expected a positive number, got {self.model_box!r}")
         if self.ibe_recursion not in ("exact", "paper"):
             raise ValueError(f"ibe_recursion: expected 'exact' or 'paper', got {self.ibe_recursion!r}")
+        if isinstance(self.ibe_case, bool) or not isinstance(self.ibe_case, int) or self.ibe_case not in (1, 2, 3):
+            raise ValueError(f"ibe_case: expected 1, 2 or 3 (the IBE's Case), got {self.ibe_case!r}")
+        if self.ibe_case != 2 and self.ibe_recursion != "exact":
+            raise ValueError(f"ibe_recursion: 'paper' is eq. (18), a Case 2 recursion; ibe_case is {self.ibe_case}")
         if isinstance(self.seed, bool) or not isinstance(self.seed, int) or self.seed < 0:
             raise ValueError(f"seed: expected a non-negative integer, got {self.seed!r}")
         for name in ("iterations", "batch_size", "horizon", "noise_samples", "j_max", "stop_patience",

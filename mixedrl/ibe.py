@@ -6,7 +6,8 @@ designer's prior with them:
 
 * Case 1, :class:`KnownCovarianceIBE` and :func:`map_mean_known_cov`: ``K`` known, eqs. (14)-(16).
 * Case 2, :class:`UnknownCovarianceIBE` and :func:`map_mean_cov`: ``mu`` and ``K`` unknown, eqs. (17)-(18).
-* Case 3, :class:`StateDependentIBE`: state-dependent mean ``mu = phi(x, u; w)``, eq. (19).
+* Case 3, :class:`StateDependentIBE`: state-dependent mean ``mu = phi(x, u; w)``, eq. (19);
+  :class:`LinearFeatureIBE`: the same for a ``phi`` linear in ``w`` (fixed features), solved in closed form.
 
 How inverses are computed
 -------------------------
@@ -55,6 +56,7 @@ __all__ = [
     "KnownCovarianceIBE",
     "UnknownCovarianceIBE",
     "StateDependentIBE",
+    "LinearFeatureIBE",
 ]
 
 logger = logging.getLogger(__name__)
@@ -1145,4 +1147,232 @@ class StateDependentIBE(_ReadOnlyArrays):
         self.noise_cov, self.prior_std, self.max_iter, self.count = noise_cov, st["prior_std"], st["max_iter"], st["count"]
         self._whiten = torch.as_tensor(vec / np.sqrt(lam))
         self._x, self._u, self._xi = (torch.as_tensor(st[k]).clone() for k in ("x", "u", "xi"))
+        return self
+
+
+class LinearFeatureIBE(_ReadOnlyArrays):
+    """Implements eq. (19) in closed form: Case 3 IBE with a mean linear in its parameters.
+
+    .. math::
+        \\phi(x, u; W) = W^T g(x, u), \\qquad
+        \\mathcal{L}(W) = \\frac12\\sum_{j=1}^N \\big(\\xi_j - W^T g_j\\big)^T \\mathcal{K}^{+}
+        \\big(\\xi_j - W^T g_j\\big) + \\frac{1}{2\\sigma_w^2}\\lVert W - W_0\\rVert_F^2 + C
+
+    with fixed features ``g(x, u)`` (``p`` of them) and weights ``W`` (``p x n``). ``L`` is quadratic in
+    ``W``, so its minimiser (the posterior mode, and mean, of eq. 19) is exact: with
+    ``K^+ = sum_i v_i v_i^T / lambda_i`` on the support of ``K``, ``G = sum_j g_j g_j^T`` and
+    ``S = sum_j g_j xi_j^T``,
+
+    .. math::
+        \\big(G + \\tfrac{\\lambda_i}{\\sigma_w^2} I\\big)\\, W v_i = S v_i + \\tfrac{\\lambda_i}{\\sigma_w^2} W_0 v_i
+        \\quad \\text{(each support direction } v_i\\text{)}, \\qquad W v = W_0 v \\ \\text{(} v \\perp
+        \\text{support)}.
+
+    The state is the sufficient statistics ``(N, G, S)`` (``O(p^2)`` memory), so an update costs the same
+    at the first and at the millionth residual; :class:`StateDependentIBE` (any ``phi``, refit by L-BFGS
+    on every residual kept so far) is the general form.
+
+    Parameters
+    ----------
+    features : callable
+        ``g(x, u)``: float64 tensors ``(B, n_x)``, ``(B, n_u)`` -> a float64 tensor ``(B, p)``. Fixed
+        (it holds no learned state; it is not saved by :meth:`state_dict`).
+    prior_weights : array_like, shape (p, n)
+        ``W_0``, the prior mean of the weights.
+    noise_cov : array_like, shape (n, n)
+        The known noise covariance ``K`` (symmetric PSD, may be singular).
+    state_dim, action_dim : int
+        ``n_x``, ``n_u``.
+    prior_std : float
+        ``sigma_w > 0``: prior ``vec(W) ~ N(vec(W_0), sigma_w^2 I)``.
+
+    Attributes
+    ----------
+    count : int
+        Number of residuals seen.
+
+    Raises
+    ------
+    ValueError
+        Bad covariance or prior weights, non-positive ``prior_std``/dimensions, ``features`` not callable
+        or returning a wrong shape.
+
+    Notes
+    -----
+    As for :class:`StateDependentIBE`, ``K`` is known (the paper leaves Case 3's covariance unspecified)
+    and directions outside its support carry no likelihood: there ``W`` stays at the prior. Any split of
+    the data into batches gives the same ``W`` up to the rounding of ``G`` and ``S``. The solve is a
+    Cholesky factorisation of the SPD ``p x p`` matrix ``G + (lambda_i / sigma_w^2) I``.
+    """
+
+    _KIND = "LinearFeatureIBE"
+    #: A learning source (:class:`mixedrl.noise.StateDependentNoiseSource`).
+    learns = True
+    #: The mean is ``mean_at(x, u)``: Algorithm 2 plans with per-state nodes.
+    state_dependent = True
+
+    prior_weights = _ReadOnlyArray()
+    weights = _ReadOnlyArray()
+    gram = _ReadOnlyArray()
+    cross = _ReadOnlyArray()
+
+    def __init__(self, features: Callable[[torch.Tensor, torch.Tensor], torch.Tensor], prior_weights: Any,
+                 noise_cov: Any, state_dim: int, action_dim: int, prior_std: float = 1.0) -> None:
+        if not callable(features):
+            raise ValueError(f"features: expected a callable g(x, u), got {type(features).__name__}")
+        self.features = features
+        self.state_dim = check_positive_int(state_dim, "state_dim")
+        self.action_dim = check_positive_int(action_dim, "action_dim")
+        w0 = np.array(prior_weights, dtype=np.float64)
+        if w0.ndim != 2:
+            raise ValueError(f"prior_weights: expected a (p, n) matrix, got shape {w0.shape}")
+        check_finite(w0, "prior_weights")
+        self.noise_cov = check_covariance(noise_cov, "noise_cov", w0.shape[1])
+        if isinstance(prior_std, bool) or not isinstance(prior_std, (int, float)) \
+                or not (math.isfinite(prior_std) and prior_std > 0):
+            raise ValueError(f"prior_std: expected a finite positive float, got {prior_std!r}")
+        self.prior_std = float(prior_std)
+        with torch.no_grad():
+            g = features(torch.zeros((1, self.state_dim), dtype=torch.float64),
+                         torch.zeros((1, self.action_dim), dtype=torch.float64))
+        if tuple(g.shape) != (1, w0.shape[0]):
+            raise ValueError(f"features: returned shape {tuple(g.shape)} for one input, expected (1, {w0.shape[0]}) "
+                             f"(one feature per row of prior_weights)")
+        self.prior_weights = w0
+        self.count = 0
+        self.gram = np.zeros((w0.shape[0], w0.shape[0]))
+        self.cross = np.zeros(w0.shape)
+        self.weights = w0.copy()
+        self._support = support(self.noise_cov)
+
+    @property
+    def dim(self) -> int:
+        """Dimension ``n`` of the noise."""
+        return self.noise_cov.shape[0]
+
+    @property
+    def num_features(self) -> int:
+        """Number ``p`` of features."""
+        return self.prior_weights.shape[0]
+
+    @property
+    def cov(self) -> np.ndarray:
+        """Noise covariance ``K`` of the mixed model, shape (n, n)."""
+        return self.noise_cov
+
+    def _solve(self, gram: np.ndarray, cross: np.ndarray) -> np.ndarray:
+        lam, vec = self._support
+        w0 = self.prior_weights
+        weights = w0.copy()
+        eye = np.eye(self.num_features)
+        for lam_i, v in zip(lam, vec.T):
+            ridge = lam_i / self.prior_std**2
+            # (G + lambda_i / sigma_w^2 I) W v_i = S v_i + lambda_i / sigma_w^2 W_0 v_i
+            chol = np.linalg.cholesky(gram + ridge * eye)
+            rhs = cross @ v + ridge * (w0 @ v)
+            wv = np.linalg.solve(chol.T, np.linalg.solve(chol, rhs))
+            # replace the v_i-component of W (the prior's W_0 v_i) by the solution
+            weights += np.outer(wv - w0 @ v, v)
+        return weights
+
+    def _features(self, x: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+        with torch.no_grad():
+            g = self.features(x, u)
+        if tuple(g.shape) != (x.shape[0], self.num_features):
+            raise ValueError(f"features: returned shape {tuple(g.shape)}, expected ({x.shape[0]}, {self.num_features})")
+        return g.to(torch.float64)
+
+    def update(self, x: Any, u: Any, xi: Any) -> LinearFeatureIBE:
+        """Add transitions ``(x, u, xi)`` and re-solve eq. (19) exactly; returns ``self``.
+
+        Parameters
+        ----------
+        x : array_like, shape (N, n_x) or (n_x,)
+        u : array_like, shape (N, n_u) or (n_u,)
+        xi : array_like, shape (N, n) or (n,)
+            Residuals (eq. (10)) of those transitions.
+
+        Raises
+        ------
+        ValueError
+            Wrong shapes, NaN/inf in the data or in the features; the estimator is then unchanged.
+        """
+        xb = torch.as_tensor(as_batch(x, "x", self.state_dim))
+        ub = torch.as_tensor(as_batch(u, "u", self.action_dim))
+        xib = as_batch(xi, "xi", self.dim)
+        if ub.shape[0] != xb.shape[0] or xib.shape[0] != xb.shape[0]:
+            raise ValueError(f"xi: x, u and xi need the same number of rows, got {xb.shape[0]}, {ub.shape[0]}, "
+                             f"{xib.shape[0]}")
+        if xb.shape[0] == 0:
+            return self
+        g = self._features(xb, ub).numpy()
+        check_finite(g, "features(x, u)")
+        # G = sum_j g_j g_j^T ;  S = sum_j g_j xi_j^T
+        gram, cross = self.gram + g.T @ g, self.cross + g.T @ xib
+        weights = self._solve(gram, cross)
+        self.gram, self.cross, self.weights, self.count = gram, cross, weights, self.count + xb.shape[0]
+        return self
+
+    def mean_at(self, x: Any, u: Any) -> np.ndarray | torch.Tensor:
+        """The posterior mean ``phi(x, u; W_hat) = W_hat^T g(x, u)`` (the prior's ``W_0`` before any data).
+
+        Parameters
+        ----------
+        x : array_like or Tensor, shape (B, n_x) or (n_x,)
+        u : array_like or Tensor, shape (B, n_u) or (n_u,)
+
+        Returns
+        -------
+        ndarray or Tensor, shape (B, n) or (n,)
+            A float64 tensor if ``x`` is a tensor, else an ndarray.
+
+        Raises
+        ------
+        ValueError
+            Wrong shapes or NaN/inf.
+        """
+        single = np.ndim(x) == 1
+        xb = torch.as_tensor(as_batch(x.detach() if isinstance(x, torch.Tensor) else x, "x", self.state_dim))
+        ub = torch.as_tensor(as_batch(u.detach() if isinstance(u, torch.Tensor) else u, "u", self.action_dim))
+        if ub.shape[0] != xb.shape[0]:
+            raise ValueError(f"u: {ub.shape[0]} rows, but x has {xb.shape[0]}")
+        out = self._features(xb, ub) @ torch.tensor(self.weights)
+        if single:
+            out = out[0]
+        return out if isinstance(x, torch.Tensor) else out.numpy()
+
+    def state_dict(self) -> dict[str, Any]:
+        """Return a copy of the full state: prior, covariance, sufficient statistics (not the features)."""
+        return {
+            "kind": self._KIND,
+            "noise_cov": self.noise_cov.copy(),
+            "prior_std": self.prior_std,
+            "prior_weights": self.prior_weights.copy(),
+            "count": self.count,
+            "gram": self.gram.copy(),
+            "cross": self.cross.copy(),
+        }
+
+    def load_state_dict(self, state: dict[str, Any]) -> LinearFeatureIBE:
+        """Restore a state from :meth:`state_dict` (same features); validate everything first.
+
+        Raises
+        ------
+        ValueError
+            Not a dict, unknown/missing keys, other kind, wrong shapes, NaN/inf, bad covariance or
+            ``prior_std``. The estimator is then left unchanged.
+        """
+        p, n = self.prior_weights.shape
+        spec = {"kind": "str", "noise_cov": (n, n), "prior_std": "float", "prior_weights": (p, n), "count": "int",
+                "gram": (p, p), "cross": (p, n)}
+        st = _check_state(state, spec, self._KIND)
+        noise_cov = check_covariance(st["noise_cov"], "state_dict: noise_cov", n)
+        if st["prior_std"] <= 0:
+            raise ValueError("state_dict: prior_std must be > 0")
+        check_covariance(st["gram"], "state_dict: gram", p)
+        new = LinearFeatureIBE(self.features, st["prior_weights"], noise_cov, self.state_dim, self.action_dim,
+                               st["prior_std"])
+        new.gram, new.cross, new.count = st["gram"], st["cross"], st["count"]
+        new.weights = new._solve(new.gram, new.cross)
+        self.__dict__.update(new.__dict__)
         return self

@@ -629,8 +629,10 @@ def summarize(trainer: Any, rows: list[dict[str, Any]], elapsed: float, seeds: l
         count = trainer.true_transitions
         results["true_transitions"] = None if count is None else int(count)
     if hasattr(trainer, "noise"):
-        results["final_ibe_mean"] = np.asarray(trainer.noise.mean, dtype=float).tolist()
-        results["final_ibe_cov_diag"] = np.diag(np.asarray(trainer.noise.cov, dtype=float)).tolist()
+        # the planning noise at the end (for a state-dependent source its mean over the last batch)
+        mean, cov = trainer.noise_moments()
+        results["final_ibe_mean"] = np.asarray(mean, dtype=float).tolist()
+        results["final_ibe_cov_diag"] = np.diag(np.asarray(cov, dtype=float)).tolist()
         mvc = [r["mvc/held"] for r in rows if "mvc/held" in r]
         results["mvc_held_fraction"] = float(np.mean(mvc)) if mvc else None
         inner = [r["mvc/inner_steps"] for r in rows if "mvc/inner_steps" in r]

@@ -21,6 +21,7 @@ the observation ``observe(s)``; the utility is charged on the next state, ``l(s'
 from __future__ import annotations
 
 import abc
+import math
 from typing import Any
 
 import numpy as np
@@ -58,6 +59,8 @@ class Task(abc.ABC):
         Typical magnitude of each observation component (the networks divide by it).
     value_scale : float
         Typical magnitude of the value (the critic's output is multiplied by it).
+    true_mean_varies : bool
+        Whether the true noise mean depends on the state (:meth:`true_mean_at`); ``False`` by default.
     """
 
     state_dim: int
@@ -73,6 +76,7 @@ class Task(abc.ABC):
     action_bound: torch.Tensor
     obs_scale: torch.Tensor
     value_scale: float = 1.0
+    true_mean_varies: bool = False
 
     @abc.abstractmethod
     def f(self, s: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
@@ -113,6 +117,23 @@ class Task(abc.ABC):
         """
         xi = sample_gaussian(self.true_mean, self.true_cov, s.shape[0], generator).to(s.dtype)
         return self.f(s, u.to(s.dtype)) + xi @ self.noise_matrix.to(s.dtype).T
+
+    def true_mean_at(self, s: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+        """The true noise mean at each state, (B, noise_dim) float64: ``true_mean`` on every row here
+        (subclasses whose mean depends on the state override it and set ``true_mean_varies``)."""
+        return torch.as_tensor(self.true_mean, dtype=torch.float64).expand(s.shape[0], -1).clone()
+
+    def mean_features(self, s: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+        """Features ``g(x, u)`` of the Case-3 mean ``phi = W^T g`` (eq. 19, :class:`mixedrl.ibe.LinearFeatureIBE`),
+        (B, p) float64, the first column the constant 1.
+
+        Raises
+        ------
+        NotImplementedError
+            The task defines no features (subclasses implement them).
+        """
+        raise NotImplementedError(f"{type(self).__name__}.mean_features is not implemented (Case 3 of the IBE "
+                                  f"needs it)")
 
     def residuals(self, s: torch.Tensor, u: torch.Tensor, s_next: torch.Tensor) -> torch.Tensor:
         """Eq. (10) in noise coordinates: ``xi = E^T (s' - f(s, u))``, (B, noise_dim)."""
@@ -226,6 +247,11 @@ class LinearTask(Task):
     def is_terminal(self, s: torch.Tensor) -> torch.Tensor:
         return ~torch.isfinite(s).all(dim=-1) | (s.abs() > 20.0 * self.init_box).any(dim=-1)
 
+    def mean_features(self, s: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+        """Case-3 features ``g(x, u) = [1, x]`` (a mean affine in the state), (B, 1 + n) float64."""
+        s = s.to(torch.float64)
+        return torch.cat([torch.ones(s.shape[0], 1, dtype=torch.float64), s], dim=1)
+
     def evaluate(self, policy: torch.nn.Module, seeds: list[int]) -> dict[str, Any]:
         """Discounted cost of 100-step rollouts from a fixed grid of starts, averaged over ``seeds``."""
         costs = []
@@ -291,7 +317,8 @@ class DoubleLaneChangeTask(Task):
     * noise: the paper's five-component ``xi`` on ``x = [v_y, r, v_x, phi, y]`` (eq. 54), entering the
       first five state components (``E = [I_5; 0]``); the true noise is ``F_dis T / m`` on ``v_x``
       (component :attr:`noise_index`; ``T / m`` is :attr:`force_scale`) with ``F_dis ~ N(261, 32)`` by
-      default (drawn by the model's ``sample_force``, so a configured road grade is honoured);
+      default (drawn by the model's ``sample_force``, so a configured road grade and law -- Gaussian,
+      Student-t or two-point, :class:`mixedrl.config.ForceDisturbanceConfig` -- are honoured);
     * prior (eq. 55): ``mu_M = 150 T/m`` and ``K_M = (4 T/m)^2`` on ``v_x``, ``1e-20`` on the other four
       diagonal entries (EQUATIONS.md point 6: the paper's prior is read as acting on ``v_x``);
     * observation: :meth:`~mixedrl.envs.DoubleLaneChangeModel.observe` (the paper's relative state
@@ -323,6 +350,11 @@ class DoubleLaneChangeTask(Task):
     force_scale : float
         ``T / m`` [s/kg]: ``xi = force_scale * F_dis`` (eq. 54); see :meth:`force_to_xi`,
         :meth:`xi_to_force`.
+    true_mean_varies : bool
+        ``True`` on a road grade (``grade_amplitude != 0``): the true mean is :meth:`true_mean_at`.
+    mean_harmonics : int
+        Harmonics ``H`` of the Fourier series along the course that Case 3 of the IBE fits
+        (:meth:`mean_features`; 8).
 
     Raises
     ------
@@ -356,6 +388,7 @@ class DoubleLaneChangeTask(Task):
         self.true_mean[vx] = cfg.disturbance.mean * scale
         self.true_cov = np.zeros((5, 5))
         self.true_cov[vx, vx] = cfg.disturbance.variance * scale**2
+        self.true_mean_varies = cfg.disturbance.grade_amplitude != 0.0
         self.action_bound = torch.tensor(self.model.action_bound, dtype=torch.float32)
         scales = [0.3, 0.2, 0.5, 0.1, 0.5] + [2.0] * (self.obs_dim - 5)
         self.obs_scale = torch.tensor(scales, dtype=torch.float32)
@@ -365,23 +398,49 @@ class DoubleLaneChangeTask(Task):
     def from_config(cls, config: DoubleLaneChangeTaskConfig) -> "DoubleLaneChangeTask":
         """Build the task of a :class:`mixedrl.config.DoubleLaneChangeTaskConfig` (``task.*`` of a run's config).
 
+        Every law of :data:`mixedrl.config.DISTURBANCE_LAWS` is simulated (``task.disturbance.law``,
+        ``task.disturbance.dof``); the task's ``true_mean`` / ``true_cov`` are the law's mean and variance
+        (the same for every law), so the oracle plans with the Gaussian of the true moments.
+
         Raises
         ------
         ValueError
-            ``task.disturbance.law`` is not ``"gaussian"`` (the only law the vehicle model draws).
+            An invalid field (the message starts with its dotted name).
         """
         dist = config.disturbance
-        if dist.law != "gaussian":
-            raise ValueError(f"task.disturbance.law: the double lane change simulates only 'gaussian', "
-                             f"got {dist.law!r}")
         cost = config.cost
         return cls(prior_force_mean=config.prior_force_mean, prior_force_std=config.prior_force_std,
                    gamma=config.gamma,
-                   disturbance={"mean": dist.mean, "variance": dist.variance,
+                   disturbance={"law": dist.law, "mean": dist.mean, "variance": dist.variance, "dof": dist.dof,
                                 "grade_amplitude": dist.grade_amplitude, "grade_wavelength": dist.grade_wavelength,
                                 "grade_phase": dist.grade_phase},
                    q_speed=cost.q_speed, q_lateral=cost.q_lateral, r_steer=cost.r_steer, r_accel=cost.r_accel,
                    preview_distances=config.preview_distances, train_half_widths=config.train_half_widths)
+
+    # harmonics of the Case-3 Fourier basis along the course (documented under Attributes)
+    mean_harmonics: int = 8
+
+    def true_mean_at(self, s: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+        """The true noise mean at each state (B, 5) float64: ``(mean - m g sin(theta(X))) T / m`` on ``v_x``
+        (:meth:`mixedrl.envs.DoubleLaneChangeModel.xi_mean`), 0 elsewhere."""
+        out = torch.zeros(s.shape[0], self.noise_dim, dtype=torch.float64)
+        out[:, self.noise_index] = torch.as_tensor(self.model.xi_mean(s.to(torch.float64)), dtype=torch.float64)
+        return out
+
+    def mean_features(self, s: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+        """Case-3 features (eq. 19): a Fourier series of the position ``X`` along the course, (B, 1 + 2H).
+
+        .. math:: g(x, u) = \\big[1,\\ \\sin(2\\pi k X / L),\\ \\cos(2\\pi k X / L)\\big]_{k = 1..H}
+
+        with ``L`` the course length (120 m) and ``H`` = :attr:`mean_harmonics` (8: wavelengths down to
+        15 m). A road grade's mean force ``mean - m g sin(theta(X))`` is represented exactly when its
+        wavelength is ``L / k`` for some ``k <= H`` (up to the ``sin(theta)`` nonlinearity, third order
+        in the grade), approximately otherwise.
+        """
+        X = s[:, 5].to(torch.float64)
+        k = torch.arange(1, self.mean_harmonics + 1, dtype=torch.float64)
+        angle = (2.0 * math.pi / self.model.config.course_length) * X[:, None] * k
+        return torch.cat([torch.ones(s.shape[0], 1, dtype=torch.float64), torch.sin(angle), torch.cos(angle)], dim=1)
 
     def force_to_xi(self, force: Any) -> Any:
         """``xi = F_dis T / m`` [m/s] of a force [N] (eq. 54); floats, arrays or tensors."""

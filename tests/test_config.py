@@ -49,7 +49,7 @@ def test_config_json_holds_the_whole_task_and_round_trips(tmp_path: Path) -> Non
     saved = json.loads(path.read_text())
     assert saved["task"] == {
         "name": "dlc", "gamma": 0.99, "prior_force_mean": 300.0, "prior_force_std": 4.0,
-        "disturbance": {"law": "gaussian", "mean": 261.0, "variance": 64.0, "grade_amplitude": 0.0,
+        "disturbance": {"law": "gaussian", "mean": 261.0, "variance": 64.0, "dof": 3.0, "grade_amplitude": 0.0,
                         "grade_wavelength": 40.0, "grade_phase": 0.0},
         "cost": {"q_speed": 45.0, "q_lateral": 60.0, "r_steer": 800.0, "r_accel": 1.0},
         "preview_distances": [5.0], "train_half_widths": [0.3, 0.2, 1.0, 0.1, 1.0]}
@@ -91,7 +91,10 @@ def test_unknown_keys_at_any_level_name_the_dotted_key(data: dict, key: str) -> 
     ({"prior_force_std": 0}, "task.prior_force_std"), ({"prior_force_mean": math.nan}, "task.prior_force_mean"),
     ({"prior_force_mean": "150"}, "task.prior_force_mean"),
     ({"disturbance": {"variance": -1}}, "task.disturbance.variance"),
-    ({"disturbance": {"law": "student_t"}}, "task.disturbance.law"),
+    ({"disturbance": {"law": "cauchy"}}, "task.disturbance.law"),
+    ({"disturbance": {"law": "student_t", "dof": 2.0}}, "task.disturbance.dof"),
+    ({"disturbance": {"dof": math.inf}}, "task.disturbance.dof"),
+    ({"name": "linear", "disturbance": {"law": "cauchy"}}, "task.disturbance.law"),
     ({"disturbance": 3}, "task.disturbance"),
     ({"cost": {"q_speed": math.inf}}, "task.cost.q_speed"), ({"cost": {"r_steer": -1}}, "task.cost.r_steer"),
     ({"preview_distances": [-1.0]}, "task.preview_distances"), ({"preview_distances": 5}, "task.preview_distances"),

@@ -2,7 +2,8 @@
 
 References are independent of the code under test: the literal information form of eqs. (15)/(17)
 with ``np.linalg.inv`` on well-conditioned cases, filterpy's KalmanFilter, the literal eq. (18)
-transcribed here, and the closed-form ridge solution for a linear Case 3 model.
+transcribed here, and the closed-form ridge solution for a linear Case 3 model (``np.kron`` normal
+equations), which also checks :class:`LinearFeatureIBE` (and it against :class:`StateDependentIBE`).
 """
 
 import copy
@@ -16,6 +17,7 @@ from hypothesis import strategies as st
 
 from mixedrl.ibe import (
     KnownCovarianceIBE,
+    LinearFeatureIBE,
     StateDependentIBE,
     UnknownCovarianceIBE,
     map_mean_cov,
@@ -509,3 +511,121 @@ def test_public_arrays_are_read_only_so_callers_cannot_corrupt_the_estimator():
         np.testing.assert_array_equal(est.cov, before[1])
         est.update(np.array([0.5, 0.5]))  # updates still work after the arrays were handed out
         assert est.count == 4
+
+
+# ----------------------------------------------------------------------------------------------------
+# Case 3 in closed form: LinearFeatureIBE
+# ----------------------------------------------------------------------------------------------------
+def _affine_features(x: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+    """g(x, u) = [1, x, u]."""
+    return torch.cat([torch.ones(x.shape[0], 1, dtype=torch.float64), x, u], dim=-1)
+
+
+def _kron_map(design, xi, k_plus, w0, sigma_w):
+    """Minimiser of eq. (19) for phi = W^T g, from the literal normal equations in vec form (row-major
+    vec(W), W of shape (p, n)): (G kron K^+ + I / sigma^2) vec(W) = vec(S K^+) + vec(W_0) / sigma^2."""
+    p, n = w0.shape
+    lhs = np.kron(design.T @ design, k_plus) + np.eye(p * n) / sigma_w**2
+    rhs = (design.T @ xi @ k_plus).reshape(-1) + w0.reshape(-1) / sigma_w**2
+    return np.linalg.solve(lhs, rhs).reshape(p, n)
+
+
+def _case3_data(seed, n_s=300, n_x=3, n_u=1, n=2):
+    rng = np.random.default_rng(seed)
+    x, u = rng.standard_normal((n_s, n_x)), rng.standard_normal((n_s, n_u))
+    w_true = rng.standard_normal((1 + n_x + n_u, n))
+    b = rng.standard_normal((n, n))
+    k = b @ b.T / n + 0.3 * np.eye(n)
+    design = np.hstack([np.ones((n_s, 1)), x, u])
+    xi = design @ w_true + rng.multivariate_normal(np.zeros(n), k, n_s)
+    return x, u, xi, design, k, rng.standard_normal((1 + n_x + n_u, n))
+
+
+def test_linear_feature_ibe_equals_the_normal_equations_full_rank():
+    x, u, xi, design, k, w0 = _case3_data(0)
+    est = LinearFeatureIBE(_affine_features, w0, k, 3, 1, prior_std=0.7)
+    assert est.learns and est.state_dependent and est.num_features == 5
+    np.testing.assert_allclose(est.mean_at(x[:4], u[:4]), design[:4] @ w0, rtol=1e-14)  # the prior before data
+    est.update(x[:100], u[:100], xi[:100]).update(x[100:], u[100:], xi[100:])
+    w_ref = _kron_map(design, xi, np.linalg.inv(k), w0, 0.7)
+    np.testing.assert_allclose(est.weights, w_ref, rtol=1e-10, atol=1e-12)
+    np.testing.assert_allclose(est.mean_at(x[:7], u[:7]), design[:7] @ w_ref, rtol=1e-10, atol=1e-12)
+    got = est.mean_at(torch.as_tensor(x[:7]), torch.as_tensor(u[:7]))
+    assert isinstance(got, torch.Tensor) and got.dtype == torch.float64
+    assert est.count == 300
+
+
+def test_linear_feature_ibe_rank_deficient_k_keeps_the_prior_off_the_support():
+    """The vehicle's K has rank 1: only the support of K carries likelihood (K^+), W v = W_0 v elsewhere."""
+    x, u, xi, design, _, w0 = _case3_data(1, n=3)
+    k = np.diag([0.0, 0.5, 0.0])
+    k[0, 0] = 1e-30  # numerically zero: outside the support
+    est = LinearFeatureIBE(_affine_features, w0, k, 3, 1, prior_std=2.0)
+    est.update(x, u, xi)
+    k_plus = np.diag([0.0, 2.0, 0.0])
+    np.testing.assert_allclose(est.weights, _kron_map(design, xi, k_plus, w0, 2.0), rtol=1e-10, atol=1e-12)
+    np.testing.assert_array_equal(est.weights[:, [0, 2]], w0[:, [0, 2]])
+
+
+def test_linear_feature_ibe_with_a_constant_feature_is_case_1():
+    """g = [1]: phi is a constant mean with prior N(mu_M, sigma_w^2 I), i.e. Case 1 (eq. 16) with
+    K_M = sigma_w^2 I: the two estimators must agree."""
+    mu_m, _, k_true, xi = vehicle_case(500, seed=3)
+    sigma = 4 * S
+    est = LinearFeatureIBE(lambda x, u: torch.ones(x.shape[0], 1, dtype=torch.float64), mu_m[None, :], k_true, 6, 2,
+                           prior_std=sigma)
+    case1 = KnownCovarianceIBE(mu_m, sigma**2 * np.eye(5), k_true)
+    for chunk in np.array_split(xi, 4):
+        est.update(np.zeros((len(chunk), 6)), np.zeros((len(chunk), 2)), chunk)
+        case1.update(chunk)
+        np.testing.assert_allclose(est.mean_at(np.zeros(6), np.zeros(2)), case1.mean, rtol=1e-12, atol=1e-18)
+
+
+def test_linear_feature_ibe_equals_state_dependent_ibe_with_the_same_linear_phi():
+    """Both minimise eq. (19); L-BFGS (StateDependentIBE) converges to the closed form."""
+    torch.manual_seed(4)
+    x, u, xi, design, k, _ = _case3_data(4, n_s=200)
+    phi = Linear(3, 1, 2)
+    w0 = torch.cat([phi.lin.bias.detach()[None, :], phi.lin.weight.detach().T]).double().numpy()  # rows: 1, x, u
+    general = StateDependentIBE(phi, k, 3, 1, prior_std=1.5, max_iter=500)
+    closed = LinearFeatureIBE(_affine_features, w0, k, 3, 1, prior_std=1.5)
+    general.update(x, u, xi)
+    closed.update(x, u, xi)
+    np.testing.assert_allclose(closed.mean_at(x[:10], u[:10]), general.mean_at(x[:10], u[:10]), rtol=1e-6, atol=1e-8)
+
+
+def test_linear_feature_ibe_batches_state_dict_and_bad_input():
+    x, u, xi, _, k, w0 = _case3_data(5)
+    one = LinearFeatureIBE(_affine_features, w0, k, 3, 1).update(x, u, xi)
+    many = LinearFeatureIBE(_affine_features, w0, k, 3, 1)
+    for i in range(0, 300, 7):
+        many.update(x[i:i + 7], u[i:i + 7], xi[i:i + 7])
+    np.testing.assert_allclose(many.weights, one.weights, rtol=1e-11, atol=1e-13)
+    before = copy.deepcopy(one.state_dict())
+    with pytest.raises(ValueError, match="^xi"):
+        one.update(x[:3], u[:3], np.full((3, 2), np.nan))
+    with pytest.raises(ValueError, match="^xi: x, u and xi"):
+        one.update(x[:3], u[:4], xi[:3])
+    with pytest.raises(ValueError, match="^features"):
+        LinearFeatureIBE(lambda a, b: torch.ones(a.shape[0], 2, dtype=torch.float64), w0, k, 3, 1).update(x, u, xi)
+    after = one.state_dict()
+    assert after["count"] == before["count"] == 300
+    for key in ("gram", "cross", "prior_weights", "noise_cov"):
+        np.testing.assert_array_equal(after[key], before[key])
+    other = LinearFeatureIBE(_affine_features, np.zeros_like(w0), np.eye(2), 3, 1, prior_std=9.0)
+    other.load_state_dict(copy.deepcopy(before))
+    np.testing.assert_array_equal(other.weights, one.weights)
+    bad = copy.deepcopy(before)
+    bad["gram"] = np.zeros((4, 4))
+    with pytest.raises(ValueError, match="^state_dict"):
+        other.load_state_dict(bad)
+    np.testing.assert_array_equal(other.weights, one.weights)
+    with pytest.raises(ValueError):
+        one.weights[0, 0] = 1.0  # read-only: a caller cannot corrupt the estimate
+    for kwargs, name in (({"prior_std": 0.0}, "prior_std"), ({"state_dim": 0}, "state_dim"),
+                         ({"features": 3}, "features"), ({"prior_weights": np.zeros(5)}, "prior_weights"),
+                         ({"noise_cov": np.eye(3)}, "noise_cov")):
+        args = {"features": _affine_features, "prior_weights": w0, "noise_cov": k, "state_dim": 3, "action_dim": 1,
+                **kwargs}
+        with pytest.raises(ValueError, match=f"^{name}"):
+            LinearFeatureIBE(**args)

@@ -7,6 +7,7 @@ import json
 import math
 import os
 from pathlib import Path
+from typing import Any
 
 import pytest
 import torch
@@ -129,10 +130,16 @@ def test_run_directory_files(tmp_path: Path, method: str) -> None:
     assert json.loads((tmp_path / "results.json").read_text())["iterations"] == res["iterations"] == 40
 
 
-@pytest.mark.parametrize("method,task", [("mixed", "linear"), ("model", "linear"), ("ddpg", "linear"),
-                                         ("mixed", "dlc"), ("ddpg", "dlc")])
-def test_resume_equals_uninterrupted(tmp_path: Path, method: str, task: str) -> None:
-    cfg = TrainConfig(method=method, **{**FAST, "task": task})
+GRADE = {"disturbance": {"grade_amplitude": 0.02}}
+
+
+@pytest.mark.parametrize("method,task,extra", [("mixed", "linear", {}), ("model", "linear", {}), ("ddpg", "linear", {}),
+                                               ("mixed", "dlc", {}), ("ddpg", "dlc", {}),
+                                               ("mixed", "linear", {"ibe_case": 3}),
+                                               ("mixed", GRADE, {"ibe_case": 3, "batch_size": 16}),
+                                               ("oracle", GRADE, {"batch_size": 16})])
+def test_resume_equals_uninterrupted(tmp_path: Path, method: str, task: Any, extra: dict) -> None:
+    cfg = TrainConfig(method=method, **{**FAST, "task": task, **extra})
     full = make_trainer(cfg)
     train(full, RunDirectory(tmp_path / "full"))
     first = make_trainer(cfg)

@@ -95,7 +95,8 @@ class AGPI:
     task : Task
         The system (model ``f``, utility, true environment, prior).
     config : TrainConfig
-        ``method`` in ``{"mixed", "model", "oracle"}`` selects the noise source.
+        ``method`` in ``{"mixed", "model", "oracle"}`` selects the noise source (``ibe_case`` the IBE's
+        Case for mixed RL).
     architecture : {"mlp", "quadratic"}, optional
         Function classes (see :func:`build_networks`).
     noise_source : NoiseSource or StateDependentNoiseSource, optional
@@ -131,8 +132,10 @@ class AGPI:
         self.critic, self.actor = build_networks(task, config, self.generator, architecture)
         self.critic_opt = torch.optim.Adam(self.critic.parameters(), lr=config.critic_lr)
         self.actor_opt = torch.optim.Adam(self.actor.parameters(), lr=config.actor_lr)
+        # Case 1 / 2 / 3 of the IBE (config.ibe_case; mixed RL only)
         self.noise = noise_source if noise_source is not None else make_noise_source(
-            config.method, task, config.ibe_recursion)
+            config.method, task, config.ibe_recursion, covariance="unknown" if config.ibe_case == 2 else "known",
+            state_dependent=config.ibe_case == 3)
         self.k = 0
         self.states = task.sample_initial(config.batch_size, self.generator)
         # desynchronised episode clocks, so the copies do not all reset at the same iteration
@@ -216,7 +219,9 @@ class AGPI:
             :attr:`transitions` (for a state-dependent IBE).
         """
         if self.sampler is not None:
-            return self.sampler.collect(self.actor, self.noise, self.k)
+            s, xi = self.sampler.collect(self.actor, self.noise, self.k)
+            self.transitions = self.sampler.transitions
+            return s, xi
         task = self.task
         s = self.states
         with torch.no_grad():

@@ -8,7 +8,9 @@ With ``TrainConfig.state_source = "model"`` the batch ``x`` of eqs. (49)-(52) is
     x_{t+1} = f(x_t, \\pi^k(x_t)) + E\\, \\hat\\xi_t, \\qquad \\hat\\xi_t \\sim N(\\hat\\mu_k, \\hat K_k),
 
 driven by the current policy, with ``N(mu_hat_k, K_hat_k)`` the method's noise source (the IBE posterior
-for mixed RL, the prior for model-driven RL, the true law for the oracle). The true environment is used
+for mixed RL, the prior for model-driven RL, the true law for the oracle; for a state-dependent source,
+Case 3 of the IBE or the oracle on a road grade, the mean ``mu_hat_k(x_t, pi^k(x_t))`` of each rollout's
+state). The true environment is used
 only to collect the residuals ``xi^D`` (eq. 10) that the IBE consumes, at the rate the config sets
 (``true_envs`` copies driven ``true_steps`` steps every ``true_every`` iterations); a fixed noise source
 (model-driven, oracle) consumes no data, so those runs use **zero** true transitions.
@@ -79,6 +81,9 @@ class ModelStateSampler:
         Current model-rollout states (float64).
     true_transitions : int
         True-environment transitions used so far.
+    transitions : tuple of torch.Tensor or None
+        States and actions (float64) of the residuals of the last :meth:`true_drive` (for a
+        state-dependent IBE, Case 3).
     """
 
     def __init__(self, task: Task, config: TrainConfig, generator: torch.Generator) -> None:
@@ -94,6 +99,7 @@ class ModelStateSampler:
         self.true_states = course_starts(task, config.true_envs, generator)
         self.true_steps = torch.zeros(config.true_envs, dtype=torch.long)
         self.true_transitions = 0
+        self.transitions: tuple[torch.Tensor, torch.Tensor] | None = None
         self.restarts = 0
         self.k = 0
         self.box = float(config.model_box) * task.obs_scale.to(torch.float64)
@@ -116,7 +122,7 @@ class ModelStateSampler:
         obs = self.task.observe(s)
         return (obs.abs() > self.box[: obs.shape[-1]]).any(dim=-1)
 
-    def model_step(self, actor: torch.nn.Module, mean: np.ndarray, cov: np.ndarray) -> torch.Tensor:
+    def model_step(self, actor: torch.nn.Module, mean: np.ndarray | Any, cov: np.ndarray) -> torch.Tensor:
         """Return the current batch and advance every rollout one step of the planning model.
 
         .. math:: x_{t+1} = f(x_t, \\pi(x_t)) + E \\hat\\xi_t, \\qquad \\hat\\xi_t \\sim N(\\hat\\mu, \\hat K)
@@ -125,8 +131,11 @@ class ModelStateSampler:
         ----------
         actor : torch.nn.Module
             The current policy ``pi^k`` (on observations, float32).
-        mean, cov : numpy.ndarray, shapes (noise_dim,), (noise_dim, noise_dim)
-            The planning noise ``(mu_hat_k, K_hat_k)``.
+        mean : numpy.ndarray, shape (noise_dim,), or callable
+            The planning mean ``mu_hat_k``, or a state-dependent one ``mean(x, u)`` (float64 tensors
+            ``(B, state_dim)``, ``(B, action_dim)`` -> ``(B, noise_dim)``).
+        cov : numpy.ndarray, shape (noise_dim, noise_dim)
+            The planning covariance ``K_hat_k``.
 
         Returns
         -------
@@ -136,7 +145,11 @@ class ModelStateSampler:
         task, s = self.task, self.states
         with torch.no_grad():
             u = actor(task.observe(s.float())).double()
-            xi = sample_gaussian(mean, cov, s.shape[0], self.generator).to(s.dtype)
+            if callable(mean):  # xi_hat = mu_hat(x, u) + K_hat^(1/2) z
+                xi = (sample_gaussian(np.zeros(cov.shape[0]), cov, s.shape[0], self.generator)
+                      + mean(s.double(), u)).to(s.dtype)
+            else:
+                xi = sample_gaussian(mean, cov, s.shape[0], self.generator).to(s.dtype)
             # x' = f(x, pi(x)) + E xi_hat
             s_next = task.f(s, u) + xi @ task.noise_matrix.to(s.dtype).T
         self.steps += 1
@@ -170,13 +183,15 @@ class ModelStateSampler:
             ``true_envs`` transitions in :attr:`true_transitions`.
         """
         task, cfg = self.task, self.config
-        out = []
+        out, states, actions = [], [], []
         for _ in range(cfg.true_steps):
             s = self.true_states
             with torch.no_grad():
                 u = actor(task.observe(s.float())).double()
                 s_next = task.true_step(s, u, self.generator)
                 out.append(task.residuals(s, u, s_next))
+            states.append(s)
+            actions.append(u)
             self.true_transitions += s.shape[0]
             self.true_steps += 1
             done = task.is_terminal(s_next) | (self.true_steps >= cfg.model_course_horizon)
@@ -186,7 +201,9 @@ class ModelStateSampler:
                 self.true_steps[done] = 0
             self.true_states = s_next
         xi = torch.cat(out, dim=0)
-        return xi[torch.isfinite(xi).all(dim=-1)]
+        finite = torch.isfinite(xi).all(dim=-1)
+        self.transitions = (torch.cat(states, dim=0)[finite], torch.cat(actions, dim=0)[finite])
+        return xi[finite]
 
     def collect(self, actor: torch.nn.Module, noise: Any, k: int) -> tuple[torch.Tensor, torch.Tensor]:
         """One iteration's data: the model batch, and true residuals if the noise source learns.
@@ -196,7 +213,8 @@ class ModelStateSampler:
         actor : torch.nn.Module
             ``pi^k``.
         noise : object
-            The noise source (``.mean``, ``.cov``; an ``update`` method if it learns from data).
+            The noise source (``.mean`` or, if ``state_dependent``, ``.mean_at(x, u)``; ``.cov``; an
+            ``update`` method if it learns from data).
         k : int
             The iteration; true data is collected when ``k % true_every == 0``.
 
@@ -207,7 +225,10 @@ class ModelStateSampler:
         residuals : torch.Tensor, shape (M, noise_dim)
             Residuals for the IBE (``M = 0`` for a fixed noise source or between collections).
         """
-        mean = np.array(noise.mean, dtype=np.float64)
+        if getattr(noise, "state_dependent", False):
+            mean = noise.mean_at
+        else:
+            mean = np.array(noise.mean, dtype=np.float64)
         cov = np.array(noise.cov, dtype=np.float64)
         self.k = k
         s = self.model_step(actor, mean, cov)

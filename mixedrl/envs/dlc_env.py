@@ -51,7 +51,10 @@ class DoubleLaneChangeEnv(gym.Env):
     ``F_dis ~ N(261 N, 32 N^2)``. Discretised with forward Euler at ``T = 1/200 s``; the
     deterministic part is exactly :meth:`DoubleLaneChangeModel.step` (the same ``f`` the planner uses)
     and one step is :meth:`DoubleLaneChangeModel.true_step` (the same function training and the vector
-    env call), with ``F_dis`` drawn from ``self.np_random``.
+    env call), with ``F_dis`` drawn from ``self.np_random``. ``disturbance={"law": ...}`` selects the
+    law of ``F_dis`` with the same mean and variance: ``"gaussian"`` (default), ``"student_t"`` (``dof``
+    degrees of freedom, rescaled to the variance) or ``"bumps"`` (mean -+ standard deviation, probability
+    1/2 each); see :class:`~mixedrl.envs.tracking.Disturbance`.
 
     **Action Space.** ``Box(-1, 1, (2,), float64)``, *normalised* (as Gymnasium's checker asks): the
     physical input is ``u = [delta, a_x] = a * [delta_max, ax_max]``, front wheel angle ``delta`` [rad]
@@ -184,7 +187,8 @@ class DoubleLaneChangeEnv(gym.Env):
         cfg = self.config
         model = self.model
         s = self._state
-        # F_dis ~ N(mean(X), variance) at the current state, from Gymnasium's np_random; xi = F_dis T / m
+        # F_dis = mean(X) + std z (z: the law's standardised draw) at the current state, from Gymnasium's
+        # np_random; xi = F_dis T / m
         force = model.sample_force(s, self.np_random)
         xi = model.xi_from_force(force)
         # s' = f(s, u) + xi e_vx   (eq. 54): the one true step, on Python floats
