@@ -60,6 +60,7 @@ __all__ = [
     "METHODS",
     "TASKS",
     "DISTURBANCE_LAWS",
+    "BATCH_WEIGHTINGS",
 ]
 
 #: The four methods of the reproduction (mixed RL, model-driven RL, oracle, DDPG).
@@ -71,6 +72,8 @@ TASKS = ("dlc", "linear")
 #: symmetric two-point law), all with the configured mean and variance (:class:`ForceDisturbanceConfig`).
 #: The double lane change simulates all three; the linear task only ``"gaussian"``.
 DISTURBANCE_LAWS = ("gaussian", "student_t", "bumps")
+#: How Algorithm 2 weights the states of its batch (``TrainConfig.batch_weighting``).
+BATCH_WEIGHTINGS = ("uniform", "relative")
 
 
 def _law(value: Any, name: str) -> str:
@@ -460,12 +463,13 @@ class TrainConfig:
     horizon: int = 60
     """Steps after which a training copy of the environment is reset to a fresh initial state."""
 
-    state_source: str = "true"
-    """Where Algorithm 2's PEV/PIM states come from: ``"true"`` = the ``batch_size`` copies of the true
-    environment, one true step per copy per iteration (the reproduction's setting); ``"model"`` = rollouts
-    of the planning model ``f + xi_hat`` under the method's noise source
+    state_source: str = "model"
+    """Where Algorithm 2's PEV/PIM states come from: ``"model"`` (the default and the reproduction's
+    setting) = rollouts of the planning model ``f + xi_hat`` under the method's noise source
     (:class:`mixedrl.algorithms.model_data.ModelStateSampler`), the true environment only feeding the IBE
-    (``true_envs``, ``true_steps``, ``true_every``)."""
+    (``true_envs``, ``true_steps``, ``true_every``); ``"true"`` = the ``batch_size`` copies of the true
+    environment, one true step per copy per iteration (the setting of the earlier reproduction: 512
+    true transitions per iteration)."""
 
     model_course_fraction: float = 0.75
     """``state_source="model"``: fraction of the batch's rollouts that drive the course from its start
@@ -502,6 +506,17 @@ class TrainConfig:
     """``state_source="model"``, mixed RL: iterations between collections (true transitions per iteration:
     ``true_envs * true_steps / true_every``; model-driven RL and the oracle collect none)."""
 
+    batch_weighting: str = "relative"
+    """How the states of Algorithm 2's batch are weighted in PEV and PIM (eqs. 50 and 52): ``"uniform"``
+    = the plain batch mean (the paper's text); ``"relative"`` = each state by its relative error: PEV
+    squares the relative TD error ``(V - V_target) / (|V_target| + c)`` and PIM weights state ``x`` by
+    ``1 / (V(x) + c)`` (batch mean 1), ``c = batch_weight_offset``, so that states near the reference,
+    of small value, are not outweighed by the far ones (:func:`mixedrl.pev.critic_loss`,
+    :func:`mixedrl.pim.actor_objective`; docs/model_based.rst)."""
+
+    batch_weight_offset: float = 1.0
+    """``c`` of ``batch_weighting = "relative"``, in the units of the value (the cost)."""
+
     hidden_sizes: tuple[int, ...] = (64, 64)
     """Hidden layer widths of the actor and the critic (the same for every method)."""
 
@@ -522,7 +537,7 @@ class TrainConfig:
     """Learning rates decay linearly from their value to ``lr_decay_to`` times it over the budget
     (1.0 = constant), or over ``lr_decay_iterations`` iterations if that is set."""
 
-    lr_decay_iterations: int = 0
+    lr_decay_iterations: int = 1500
     """Length of the learning-rate decay in iterations; after it the rates stay at ``lr_decay_to`` times
     their start. 0 = the budget (``iterations``); a budget shorter than the length decays over the budget.
     A fixed length makes a longer budget the same run followed by iterations at the final rates, instead
@@ -630,6 +645,11 @@ class TrainConfig:
             raise ValueError(f"model_kick_scale: expected a finite number >= 0, got {self.model_kick_scale!r}")
         if not float(self.model_box) > 0:
             raise ValueError(f"model_box: expected a positive number, got {self.model_box!r}")
+        if self.batch_weighting not in BATCH_WEIGHTINGS:
+            raise ValueError(f"batch_weighting: expected one of {BATCH_WEIGHTINGS}, got {self.batch_weighting!r}")
+        if not (float(self.batch_weight_offset) > 0 and math.isfinite(self.batch_weight_offset)):
+            raise ValueError(f"batch_weight_offset: expected a finite positive number, got "
+                             f"{self.batch_weight_offset!r}")
         if self.ibe_recursion not in ("exact", "paper"):
             raise ValueError(f"ibe_recursion: expected 'exact' or 'paper', got {self.ibe_recursion!r}")
         if isinstance(self.ibe_case, bool) or not isinstance(self.ibe_case, int) or self.ibe_case not in (1, 2, 3):

@@ -219,7 +219,7 @@ def pev_step(evaluate: Callable[[Any, Any], Any], policy: Any, noise: Any) -> An
 # parameterised PEV (eqs. 49-50)
 # ----------------------------------------------------------------------------------------------------
 def critic_loss(task: Any, critic: torch.nn.Module, s: torch.Tensor, u: torch.Tensor, offsets: torch.Tensor,
-                weights: torch.Tensor) -> torch.Tensor:
+                weights: torch.Tensor, relative_offset: float | None = None) -> torch.Tensor:
     """Implements eqs. (49)-(50): the PEV loss whose gradient is the critic's semi-gradient.
 
     .. math::
@@ -243,12 +243,18 @@ def critic_loss(task: Any, critic: torch.nn.Module, s: torch.Tensor, u: torch.Te
     offsets, weights : torch.Tensor
         Quadrature of ``xi_hat_k`` (:func:`mixedrl.expectation.expectation_nodes`), shapes
         ``(P, state_dim)`` (or ``(P, B, state_dim)``, per state) and ``(P,)``.
+    relative_offset : float or None, optional
+        ``None`` (the paper's batch mean): the squared TD error of every state counts alike. A number
+        ``c > 0``: the *relative* TD error ``(V - E V_target) / (|E V_target| + c)`` is squared instead,
+        so that states of small value (near the reference) are fitted as precisely, in relative terms,
+        as states of large value (``TrainConfig.batch_weighting = "relative"``).
 
     Returns
     -------
     torch.Tensor, shape ()
-        ``mean_x 1/2 (V(x; w) - E V_target)^2``; its gradient in ``w`` is the semi-gradient of eq. (50),
-        averaged over the batch.
+        ``mean_x 1/2 (V(x; w) - E V_target)^2`` (or its relative form); its gradient in ``w`` is the
+        semi-gradient of eq. (50), averaged over the batch (per state weighted by
+        ``1 / (|E V_target| + c)^2`` in the relative form).
 
     Raises
     ------
@@ -269,12 +275,16 @@ def critic_loss(task: Any, critic: torch.nn.Module, s: torch.Tensor, u: torch.Te
         # V_target = l(x', u_theta) + gamma V^k(x'),  x' = f(x, u_theta) + xi_hat   (h of eq. 37)
         target = h_value(task, critic, s, u, offsets, weights)
     value = critic(task.observe(s))
+    if relative_offset is not None:
+        # relative TD error: a per-state weight 1 / (|E V_target| + c)^2 of the squared error
+        return 0.5 * ((value - target) / (target.abs() + relative_offset)).pow(2).mean()
     scale = float(getattr(task, "value_scale", 1.0))
     return 0.5 * ((value - target) / scale).pow(2).mean()
 
 
 def critic_step(task: Any, critic: torch.nn.Module, actor: torch.nn.Module, optimizer: torch.optim.Optimizer,
-                s: torch.Tensor, offsets: torch.Tensor, weights: torch.Tensor, grad_clip: float) -> float:
+                s: torch.Tensor, offsets: torch.Tensor, weights: torch.Tensor, grad_clip: float,
+                relative_offset: float | None = None) -> float:
     """Implements eqs. (49)-(50): PEV, one semi-gradient step of the critic under ``xi_hat_k``.
 
     .. math:: w^{k+1} = w^k - \\alpha\\, \\partial J_{\\rm critic} / \\partial w
@@ -295,6 +305,8 @@ def critic_step(task: Any, critic: torch.nn.Module, actor: torch.nn.Module, opti
         Quadrature of ``xi_hat_k``, shapes ``(P, state_dim)`` (or ``(P, B, state_dim)``) and ``(P,)``.
     grad_clip : float
         Largest gradient norm.
+    relative_offset : float or None, optional
+        See :func:`critic_loss`.
 
     Returns
     -------
@@ -308,7 +320,7 @@ def critic_step(task: Any, critic: torch.nn.Module, actor: torch.nn.Module, opti
     """
     with torch.no_grad():
         u = actor(task.observe(s))
-    loss = critic_loss(task, critic, s, u, offsets, weights)
+    loss = critic_loss(task, critic, s, u, offsets, weights, relative_offset)
     optimizer.zero_grad(set_to_none=True)
     loss.backward()
     torch.nn.utils.clip_grad_norm_(critic.parameters(), grad_clip)

@@ -138,7 +138,8 @@ def pim_step(improve: Callable[[Any, Any], Any], value: Any, noise: Any) -> Any:
 # parameterised PIM (eqs. 51-52)
 # ----------------------------------------------------------------------------------------------------
 def actor_objective(task: Any, critic: torch.nn.Module, actor: torch.nn.Module, s: torch.Tensor,
-                    offsets: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
+                    offsets: torch.Tensor, weights: torch.Tensor, relative_offset: float | None = None
+                    ) -> torch.Tensor:
     """Implements eqs. (51)-(52): the PIM objective, differentiated through the model ``f``.
 
     .. math::
@@ -158,11 +159,19 @@ def actor_objective(task: Any, critic: torch.nn.Module, actor: torch.nn.Module, 
         Batch of states.
     offsets, weights : torch.Tensor
         Quadrature of ``xi_hat_k``, shapes ``(P, state_dim)`` and ``(P,)``.
+    relative_offset : float or None, optional
+        ``None`` (the paper's batch mean): every state counts alike. A number ``c > 0``: state ``x``
+        is weighted by ``rho(x) = 1 / (V^k(x) + c)`` (normalised to batch mean 1, no gradient), so that
+        each state's *relative* improvement counts alike and states near the reference (small ``V``)
+        are not outweighed by far ones (``TrainConfig.batch_weighting = "relative"``). A positive
+        weight per state does not move the minimiser of ``h`` at any state: it changes which states
+        the batch gradient favours, as another state distribution of the batch would.
 
     Returns
     -------
     torch.Tensor, shape ()
-        Batch mean of ``h(x, pi(x; theta), xi_hat_k)``, divided by ``value_scale``.
+        Batch mean of ``h(x, pi(x; theta), xi_hat_k)`` (weighted by ``rho`` in the relative form),
+        divided by ``value_scale``.
 
     Notes
     -----
@@ -171,14 +180,23 @@ def actor_objective(task: Any, critic: torch.nn.Module, actor: torch.nn.Module, 
     single pathwise gradient that autograd computes here, ``E{(dl/dx' + gamma dV/dx') df/du + dl/du}
     du/dtheta``.
     """
-    u = actor(task.observe(s))
+    obs = task.observe(s)
+    u = actor(obs)
     scale = float(getattr(task, "value_scale", 1.0))
     # J_actor = mean_x h(x, pi(x; theta), xi_hat_k)   (eq. 37)
-    return h_value(task, critic, s, u, offsets, weights).mean() / scale
+    h = h_value(task, critic, s, u, offsets, weights)
+    if relative_offset is None:
+        return h.mean() / scale
+    with torch.no_grad():
+        # rho(x) = 1 / (V^k(x) + c), normalised to batch mean 1
+        rho = 1.0 / (critic(obs).reshape(h.shape) + relative_offset)
+        rho = rho / rho.mean()
+    return (rho * h).mean() / scale
 
 
 def actor_step(task: Any, critic: torch.nn.Module, actor: torch.nn.Module, optimizer: torch.optim.Optimizer,
-               s: torch.Tensor, offsets: torch.Tensor, weights: torch.Tensor, grad_clip: float) -> float:
+               s: torch.Tensor, offsets: torch.Tensor, weights: torch.Tensor, grad_clip: float,
+               relative_offset: float | None = None) -> float:
     """Implements eqs. (51)-(52): PIM, one gradient step of the actor under ``xi_hat_k``.
 
     .. math:: \\theta^{k+1} = \\theta^k - \\beta\\, \\partial J_{\\rm actor} / \\partial \\theta
@@ -199,6 +217,8 @@ def actor_step(task: Any, critic: torch.nn.Module, actor: torch.nn.Module, optim
         Quadrature of ``xi_hat_k``, shapes ``(P, state_dim)`` (or ``(P, B, state_dim)``) and ``(P,)``.
     grad_clip : float
         Largest gradient norm.
+    relative_offset : float or None, optional
+        See :func:`actor_objective`.
 
     Returns
     -------
@@ -213,7 +233,7 @@ def actor_step(task: Any, critic: torch.nn.Module, actor: torch.nn.Module, optim
     for p in critic.parameters():
         p.requires_grad_(False)
     try:
-        obj = actor_objective(task, critic, actor, s, offsets, weights)
+        obj = actor_objective(task, critic, actor, s, offsets, weights, relative_offset)
         optimizer.zero_grad(set_to_none=True)
         obj.backward()
         torch.nn.utils.clip_grad_norm_(actor.parameters(), grad_clip)

@@ -39,7 +39,7 @@ from mixedrl.runs import atomic_write_text, make_trainer, train
 OUT = Path("docs/_static/model_based")
 
 _MODEL = {"state_source": "model", "true_envs": 1, "true_steps": 20, "true_every": 10, "model_course_horizon": 2000,
-          "model_kick_scale": 1.0}
+          "model_kick_scale": 1.0, "batch_weighting": "uniform", "lr_decay_iterations": 0}
 #: The designs of docs/model_based.rst, every model_* field explicit (so a design does not change when a
 #: default does). ``sweep --tag T`` uses DESIGNS[T] (plus ``--set``); other tags need ``--set``.
 DESIGNS: dict[str, dict[str, Any]] = {
@@ -52,6 +52,16 @@ DESIGNS: dict[str, dict[str, Any]] = {
     "G": {**_MODEL, "model_course_fraction": 0.75, "model_course_start": 500, "model_box": 3.0,
           "model_kick_prob": 0.01},
 }
+#: G with a fixed-length learning-rate decay (1500 iterations, then the final rates).
+DESIGNS["H"] = {**DESIGNS["G"], "lr_decay_iterations": 1500}
+#: H with a 3.3x larger actor learning rate.
+DESIGNS["I"] = {**DESIGNS["H"], "actor_lr": 1e-3}
+#: G with the decay over 3000 iterations.
+DESIGNS["J"] = {**DESIGNS["G"], "lr_decay_iterations": 3000}
+#: H with a batch of 1024 states.
+DESIGNS["K"] = {**DESIGNS["H"], "batch_size": 1024}
+#: H with relative batch weighting in PEV and PIM: the shipped defaults.
+DESIGNS["M"] = {**DESIGNS["H"], "batch_weighting": "relative", "batch_weight_offset": 1.0}
 
 
 def parse_value(text: str) -> Any:

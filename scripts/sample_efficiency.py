@@ -1,12 +1,15 @@
 """Sample-efficiency study: mixedrl's methods against SB3's TD3 and SAC in true transitions and wall time.
 
-Three subcommands (run from the repository root with ``PYTHONPATH=.`` or the package installed)::
+Four subcommands (run from the repository root with ``PYTHONPATH=.`` or the package installed)::
 
     # the peers (extra 'peers'): docs/_static/sample_efficiency/peers/<algo>_s<seed>.json
     python scripts/sample_efficiency.py peers --algos td3,sac --seeds 0-4 --transitions 100000 --jobs 2
     # mixedrl's methods: docs/_static/sample_efficiency/ours/<method>_s<seed>.json
     python scripts/sample_efficiency.py ours --methods mixed,model,oracle,ddpg --seeds 0-4 \\
-        --iterations 1500 --jobs 2 --set state_source=model
+        --iterations 1500 --jobs 2
+    # or record the runs of a reproduction instead of training them again (mixed, model, oracle, and
+    # DDPG's longer runs as 'ddpg'); the shipped study does this with runs/reproduce/runs
+    python scripts/sample_efficiency.py from-reproduction runs/reproduce/runs
     # table (summary.csv, summary.json) and figures (curves_transitions.png, curves_wall.png)
     python scripts/sample_efficiency.py summary
 
@@ -30,6 +33,7 @@ from typing import Any
 import torch
 
 from mixedrl.cli import parse_overrides
+from mixedrl.runs import atomic_write_text
 from mixedrl.runs import eval_seeds as run_eval_seeds
 from mixedrl.config import TrainConfig
 from validation.peers import ALGOS, train_peer
@@ -39,6 +43,7 @@ from validation.sample_efficiency import (
     load_runs,
     ours_config,
     plot_curves,
+    records_from_reproduction,
     summarize,
     train_ours,
     write_summary,
@@ -141,6 +146,15 @@ def ours(args: argparse.Namespace) -> None:
     _run(jobs, _ours_job, args.jobs)
 
 
+def from_reproduction(args: argparse.Namespace) -> None:
+    out = Path(args.out) / "ours"
+    out.mkdir(parents=True, exist_ok=True)
+    for record in records_from_reproduction(args.runs):
+        path = out / f"{record['method']}_s{record['seed']}.json"
+        atomic_write_text(path, json.dumps(record, indent=1) + "\n")
+        print(f"wrote {path} ({len(record['rows'])} evaluations, {record['true_transitions']} true transitions)")
+
+
 def summary(args: argparse.Namespace) -> None:
     root = Path(args.out)
     paths = sorted((root / "ours").glob("*.json")) + sorted((root / "peers").glob("*.json"))
@@ -181,6 +195,10 @@ def build_parser() -> argparse.ArgumentParser:
                         "evaluations per run")
     p.add_argument("--jobs", type=int, default=2)
     p.add_argument("--out", default=str(OUT))
+    p = sub.add_parser("from-reproduction", help="record the runs of a reproduction (mixedrl reproduce) "
+                                                 "instead of training them again")
+    p.add_argument("runs", help="the reproduction's runs/ folder")
+    p.add_argument("--out", default=str(OUT))
     p = sub.add_parser("summary", help="table and figures from the run files")
     p.add_argument("--out", default=str(OUT))
     return parser
@@ -190,7 +208,7 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     if getattr(args, "jobs", 1) < 1:
         raise SystemExit("--jobs: expected a positive integer")
-    {"peers": peers, "ours": ours, "summary": summary}[args.cmd](args)
+    {"peers": peers, "ours": ours, "summary": summary, "from-reproduction": from_reproduction}[args.cmd](args)
     return 0
 
 

@@ -243,8 +243,13 @@ def test_same_seed_identical_weights_different_seed_different() -> None:
 
 
 # ------------------------------------------------------------------------------ the whole loop on LQ
+# Algorithm 2 as the paper writes it: true-environment batch, plain batch mean, decay over the budget. (With
+# the package's defaults -- model batch, relative weighting, 1500-iteration decay -- the oracle's P was 18.9 vs
+# the DARE's 7.14 after these 5000 iterations with relative weighting, 7.138 with the model batch alone:
+# the relative weighting slows the quadratic critic's convergence on this task; docs/model_based.rst.)
 LQ_CONFIG = dict(task="linear", iterations=5000, batch_size=256, critic_lr=5e-2, actor_lr=2e-2, horizon=5,
-                 lr_decay_to=0.05, eval_every=5000)
+                 lr_decay_to=0.05, eval_every=5000, state_source="true", batch_weighting="uniform",
+                 lr_decay_iterations=0)
 
 
 def _lq_run(method: str, seed: int = 0) -> AGPI:
@@ -354,7 +359,7 @@ def test_iteration_plans_with_the_current_ibe_posterior() -> None:
     posterior, and the critic after the iteration is the one a PEV step under the posterior gives --
     not the one under the prior -- while the IBE still updates and reports."""
     task = LinearTask(prior_mean=[0.0, -1.0])  # prior far from the true mean (0, 0.5)
-    cfg = TrainConfig(method="mixed", task="linear", batch_size=32, iterations=10, seed=3)
+    cfg = TrainConfig(method="mixed", task="linear", batch_size=32, iterations=10, seed=3, state_source="true")
     ag = AGPI(task, cfg)
     ag.iteration()  # the IBE has seen data: its posterior is not the prior any more
     posterior = ag.noise_moments()
@@ -418,7 +423,8 @@ def test_inner_loop_takes_extra_pim_steps_while_the_mvc_fails() -> None:
     """Eq. (38) fails (the noise jumps by 3 in velocity): the inner loop must take PIM steps until
     j = j_max, each a real step of the actor under xi_hat_k."""
     task = LinearTask()
-    cfg = TrainConfig(method="mixed", task="linear", batch_size=32, iterations=10, j_max=3, mvc_check="all")
+    cfg = TrainConfig(method="mixed", task="linear", batch_size=32, iterations=10, j_max=3, mvc_check="all",
+                      state_source="true")
     ag = AGPI(task, cfg, noise_source=JumpingNoise())
     calls: list[torch.Tensor] = []
     original = ag.pim

@@ -58,8 +58,9 @@ def test_mixed_true_transitions_follow_the_configured_rate() -> None:
     assert trainer.noise.count == 18
 
 
-def test_default_source_counts_one_true_step_per_copy() -> None:
-    cfg = TrainConfig(method="mixed", task="linear", batch_size=16, iterations=5)
+def test_true_source_counts_one_true_step_per_copy() -> None:
+    assert TrainConfig().state_source == "model"  # the default plans on the model
+    cfg = TrainConfig(method="mixed", task="linear", batch_size=16, iterations=5, state_source="true")
     trainer = make_trainer(cfg)
     assert trainer.sampler is None
     for _ in range(5):

@@ -65,7 +65,8 @@ def test_agpi_plans_with_a_state_dependent_ibe() -> None:
     task = LinearTask()
     noise = StateDependentIBE(Phi(), task.true_cov + 1e-4 * np.eye(2), 2, 1, prior_std=1.0, max_iter=20)
     assert noise.learns and noise.state_dependent
-    ag = AGPI(task, TrainConfig(method="mixed", task="linear", batch_size=16, iterations=5), noise_source=noise)
+    ag = AGPI(task, TrainConfig(method="mixed", task="linear", batch_size=16, iterations=5, state_source="true"),
+              noise_source=noise)
     seen: list[tuple[torch.Tensor, torch.Tensor]] = []
     original = ag.pev
 
@@ -169,7 +170,7 @@ def test_case3_learns_the_grade_along_the_course() -> None:
     along the course is the true one within 5 x its own standard error, sqrt(sigma_F^2 tr(G^-1 M)) (RMS
     over the course of a least-squares fit with Gram matrix G, M = the features' second moments on the
     course grid); a constant mean (Case 2) cannot follow the grade's +-294 N."""
-    cfg = TrainConfig(method="mixed", ibe_case=3, task=GRADE, batch_size=64, iterations=20)
+    cfg = TrainConfig(method="mixed", ibe_case=3, task=GRADE, batch_size=64, iterations=20, state_source="true")
     ag = AGPI(task_from_config(cfg.task), cfg)
     for _ in range(20):
         ag.iteration()

@@ -79,3 +79,23 @@ def test_critic_step_moves_the_critic_only() -> None:
     assert np.isfinite(loss)
     assert all(torch.equal(a, b) for a, b in zip(actor_before, actor.parameters()))
     assert not all(torch.equal(a, b) for a, b in zip(critic_before, critic.parameters()))
+
+
+def test_relative_critic_loss_weights_each_state_by_its_target() -> None:
+    """batch_weighting="relative": mean of ((V - T) / (|T| + c))^2 / 2, computed here from the targets."""
+    task = LinearTask()
+    V = lambda z: torch.full((z.shape[0],), 0.3, dtype=torch.float64)  # noqa: E731
+    s = torch.tensor([[1.0, -0.5], [0.2, 0.8], [-3.0, 2.0]], dtype=torch.float64)
+    u = torch.tensor([[0.5], [-0.2], [1.0]], dtype=torch.float64)
+    mu = np.array([0.0, 0.5])
+    d, w = expectation_nodes(mu, np.zeros((2, 2)), task.noise_matrix, "sigma", dtype=torch.float64)
+    x_next = task.f(s, u) + torch.tensor(mu)
+    target = task.cost(x_next, u) + task.gamma * 0.3
+    c = 0.7
+    expected = 0.5 * (((0.3 - target) / (target.abs() + c)) ** 2).mean()
+    assert float(critic_loss(task, V, s, u, d, w, relative_offset=c)) == pytest.approx(float(expected), rel=1e-14)
+    # a huge offset makes every weight 1 / c^2: the plain loss divided by c^2
+    plain = critic_loss(task, V, s, u, d, w)
+    big = 1e9
+    assert float(critic_loss(task, V, s, u, d, w, relative_offset=big)) * big**2 == pytest.approx(float(plain),
+                                                                                                   rel=1e-6)

@@ -50,3 +50,33 @@ def test_actor_objective_is_the_mean_next_state_cost_for_a_zero_critic() -> None
     expected = task.cost(task.f(s, u) + torch.tensor(mu), u).mean()
     obj = actor_objective(task, zero, actor, s, d, w).detach()
     assert float(obj) == pytest.approx(float(expected.detach()), rel=1e-14)
+
+
+def test_relative_actor_objective_weights_states_by_inverse_value() -> None:
+    """batch_weighting="relative": sum_x rho(x) h(x) / B with rho = 1 / (V(x) + c) normalised to mean 1."""
+    task = LinearTask()
+    actor = torch.nn.Linear(2, 1, dtype=torch.float64)
+    s = torch.tensor([[1.0, -0.5], [0.2, 0.8], [-2.0, 1.5]], dtype=torch.float64)
+    mu = np.array([0.1, 0.5])
+    d, w = expectation_nodes(mu, np.zeros((2, 2)), task.noise_matrix, "sigma", dtype=torch.float64)
+
+    def critic(z: torch.Tensor) -> torch.Tensor:
+        # V(x) = |x|^2 (a state-dependent value, so the weights differ between states)
+        return (z**2).sum(-1)
+
+    c = 1.0
+    u = actor(s)
+    x_next = task.f(s, u) + torch.tensor(mu)
+    h = task.cost(x_next, u) + task.gamma * critic(x_next)
+    rho = 1.0 / (critic(s) + c)
+    expected = (rho / rho.mean() * h).mean()
+    obj = actor_objective(task, critic, actor, s, d, w, relative_offset=c)
+    assert float(obj.detach()) == pytest.approx(float(expected.detach()), rel=1e-12)
+    assert float(obj.detach()) != pytest.approx(float(h.mean().detach()), rel=1e-3)
+    # the weights carry no gradient: d obj / d theta = mean(rho_n * dh/dtheta)
+    obj.backward()
+    g_obj = actor.weight.grad.clone()
+    actor.zero_grad()
+    (rho.detach() / rho.detach().mean() * (task.cost(task.f(s, actor(s)) + torch.tensor(mu), actor(s))
+                                           + task.gamma * critic(task.f(s, actor(s)) + torch.tensor(mu)))).mean().backward()
+    assert torch.allclose(g_obj, actor.weight.grad, rtol=1e-12, atol=0)

@@ -25,6 +25,7 @@ from validation.sample_efficiency import (
     plot_curves,
     reach_accuracy,
     reach_own_final,
+    records_from_reproduction,
     rows_from_metrics,
     settled,
     summarize,
@@ -193,6 +194,29 @@ def test_rows_of_a_real_run_are_its_evaluations(tmp_path: Path) -> None:
     assert [r["iteration"] for r in rec["rows"]] == list(range(1, 13))  # eval_every = round(12 / 12) = 1
     assert rec["rows"][-1]["true_transitions"] == rec["true_transitions"] > 0
     assert rec["rows"][-1]["cost"] == rec["final"]["cost"]
+
+
+def test_records_from_a_reproduction_folder(tmp_path: Path) -> None:
+    """mixed/model/oracle and DDPG's longer run are read back as the study's records; the short DDPG is not."""
+    from mixedrl.config import TrainConfig
+    from mixedrl.runs import RunDirectory, make_trainer, train
+
+    runs = tmp_path / "runs"
+    made = {}
+    for label, method in (("mixed", "mixed"), ("ddpg", "ddpg"), ("ddpg_long", "ddpg")):
+        cfg = TrainConfig(method=method, seed=1, iterations=6, eval_every=3, eval_seeds=1, batch_size=16,
+                          ddpg_warmup=16, checkpoint_every=6)
+        made[label] = train(make_trainer(cfg), RunDirectory(runs / f"{label}_seed1"))
+    records = records_from_reproduction(runs)
+    assert sorted((r["method"], r["seed"]) for r in records) == [("ddpg", 1), ("mixed", 1)]
+    by = {r["method"]: r for r in records}
+    for label, method in (("mixed", "mixed"), ("ddpg_long", "ddpg")):
+        assert [r["iteration"] for r in by[method]["rows"]] == [3, 6]
+        assert by[method]["rows"][-1]["cost"] == made[label]["cost"]
+        assert by[method]["true_transitions"] == made[label]["true_transitions"]
+        assert by[method]["overrides"]["source"].endswith(f"{label}_seed1")
+    with pytest.raises(FileNotFoundError, match="runs_dir"):
+        records_from_reproduction(tmp_path / "nothing")
 
 
 def test_rows_from_metrics_mapping() -> None:

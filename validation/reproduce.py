@@ -99,7 +99,8 @@ def run_config(label: str, seed: int, quick: bool = False) -> TrainConfig:
         config = config.replace(**QUICK)
     if label == "ddpg_long":
         factor = QUICK_DDPG_LONG_FACTOR if quick else DDPG_LONG_FACTOR
-        config = config.replace(iterations=factor * config.iterations,
+        # DDPG keeps its schedule: the learning rates decay over its whole (longer) budget
+        config = config.replace(iterations=factor * config.iterations, lr_decay_iterations=0,
                                 checkpoint_every=factor * config.checkpoint_every,
                                 eval_every=max(1, factor // 4) * config.eval_every)
     return config

@@ -30,6 +30,7 @@ import torch
 from mixedrl.config import TrainConfig
 from mixedrl.runs import (
     CONVERGENCE_RTOL,
+    RunDirectory,
     atomic_write_bytes,
     atomic_write_text,
     iterations_to_converge,
@@ -56,6 +57,7 @@ __all__ = [
     "summarize",
     "ours_config",
     "train_ours",
+    "records_from_reproduction",
     "write_summary",
 ]
 
@@ -260,6 +262,51 @@ def train_ours(method: str, seed: int, iterations: int, overrides: dict[str, Any
         path.parent.mkdir(parents=True, exist_ok=True)
         atomic_write_text(path, json.dumps(record, indent=1) + "\n")
     return record
+
+
+#: Reproduction run labels (``validation.reproduce``) -> the study's method; DDPG's curve is its longer run.
+REPRODUCTION_LABELS = {"mixed": "mixed", "model": "model", "oracle": "oracle", "ddpg_long": "ddpg"}
+
+
+def records_from_reproduction(runs_dir: str | Path) -> list[dict[str, Any]]:
+    """The study's records of the runs of a reproduction (``mixedrl reproduce``), without training again.
+
+    Parameters
+    ----------
+    runs_dir : str or pathlib.Path
+        The ``runs`` folder of a reproduction: ``<label>_seed<n>/`` with ``config.json``, ``metrics.jsonl``
+        and ``results.json``. Labels ``mixed``, ``model``, ``oracle`` and ``ddpg_long`` (DDPG with the longer
+        budget, recorded as method ``ddpg``) are read; the 1500-iteration ``ddpg`` runs are a prefix of
+        nothing (their learning rates decay over 1500 iterations) and are skipped.
+
+    Returns
+    -------
+    list of dict
+        Records as :func:`train_ours` returns them (``overrides`` names the source run directory).
+
+    Raises
+    ------
+    FileNotFoundError
+        No run directory of a known label under ``runs_dir``.
+    ValueError
+        A run's metrics lack the keys :func:`rows_from_metrics` needs.
+    """
+    root = Path(runs_dir)
+    records = []
+    for path in sorted(root.glob("*_seed*")):
+        label, _, seed = path.name.rpartition("_seed")
+        if label not in REPRODUCTION_LABELS or not (path / "results.json").is_file():
+            continue
+        run = RunDirectory(path)
+        config, results = run.read_config(), run.read_results()
+        records.append({"method": REPRODUCTION_LABELS[label], "seed": int(seed), "config": config.to_dict(),
+                        "overrides": {"source": str(path)}, "rows": rows_from_metrics(run.read_metrics()),
+                        "true_transitions": results.get("true_transitions"),
+                        "train_seconds": results["train_seconds"],
+                        "final": {k: results[k] for k in ("lateral_mae", "speed_mae", "cost") if k in results}})
+    if not records:
+        raise FileNotFoundError(f"runs_dir: no reproduction runs ({', '.join(REPRODUCTION_LABELS)}) under {root}")
+    return records
 
 
 def load_runs(paths: Sequence[str | Path]) -> list[dict[str, Any]]:

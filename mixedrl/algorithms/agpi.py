@@ -150,6 +150,11 @@ class AGPI:
 
     # -------------------------------------------------------------------------------------- helpers
     @property
+    def relative_offset(self) -> float | None:
+        """``batch_weight_offset`` if ``batch_weighting == "relative"``, else ``None`` (the plain batch mean)."""
+        return self.config.batch_weight_offset if self.config.batch_weighting == "relative" else None
+
+    @property
     def policy(self) -> torch.nn.Module:
         """The actor ``pi(x; theta)`` as a module on observations."""
         return self.actor
@@ -265,7 +270,7 @@ class AGPI:
             ``critic_lr`` decayed linearly, gradient norm clipped at ``grad_clip``).
         """
         return critic_step(self.task, self.critic, self.actor, self.critic_opt, s, offsets, weights,
-                           self.config.grad_clip)
+                           self.config.grad_clip, self.relative_offset)
 
     def pim(self, s: torch.Tensor, offsets: torch.Tensor, weights: torch.Tensor) -> float:
         """Implements eqs. (51)-(52): PIM, one gradient step of the actor under ``xi_hat_k``.
@@ -286,7 +291,7 @@ class AGPI:
             decayed linearly, gradient clipping, critic frozen).
         """
         return actor_step(self.task, self.critic, self.actor, self.actor_opt, s, offsets, weights,
-                          self.config.grad_clip)
+                          self.config.grad_clip, self.relative_offset)
 
     def ibe(self, residuals: torch.Tensor) -> None:
         """Implements eq. (20): the IBE update ``[mu_k, K_k] = IBE(mu_{k-1}, K_{k-1}, xi^D_k)`` (eq. 13).
