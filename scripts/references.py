@@ -1,10 +1,10 @@
 """Regenerate the reference controllers' measurements for docs/references.rst ("How good is it").
 
 Runs every row of :data:`validation.nmpc.REFERENCE_SETTINGS` (whole-course optimum; NMPC 2 s with the
-true and the prior mean at gamma = 0.99 and 1; LQR at gamma = 0.99 and 1; the NMPC 2 s *without preview*
--- predicting on the reference's tangent at the car's X -- with the true and the prior mean at
-gamma = 0.99 and 1) on the reproduction's course with noise seeds 0, 1, 2 and writes, into
-``docs/_static/references/`` (or ``--out``):
+true and the prior mean at gamma = 0.99 and 1; LQR at gamma = 0.99 and 1; the NMPC 2 s *without
+preview* -- predicting on the reference's tangent at the car's X -- with the true and the prior mean at
+gamma = 0.99 and 1; the LQR with the prior's mean at gamma = 0.99 and 1) on the reproduction's course
+with noise seeds 0, 1, 2 and writes, into ``docs/_static/references/`` (or ``--out``):
 
 * ``references.json`` -- every row (means over seeds, per-seed figures, settings), written after each
   row (atomically), so an interrupted run keeps the rows done;
@@ -12,13 +12,15 @@ gamma = 0.99 and 1) on the reproduction's course with noise seeds 0, 1, 2 and wr
 * ``trajectories.npz`` -- seed 0's ``X``, ``e_y``, ``v_x - 12`` and inputs of every row (for the figures;
   key suffix = the row's index in ``REFERENCE_SETTINGS``);
 * ``trajectory.png`` (path overlay and lateral error vs ``X``) and ``speed_error.png`` (speed error vs
-  ``X``) of the rows with preview and the LQR; ``no_preview.png`` (lateral and speed error vs ``X``) of
-  the no-preview rows beside the NMPC with preview and the LQR at gamma = 0.99.
+  ``X``) of every row but the no-preview NMPC's; ``no_preview.png`` (lateral and speed error vs ``X``)
+  of the no-preview NMPC rows beside the NMPC with preview and the LQRs at gamma = 0.99.
 
-Needs the ``nmpc`` extra (CasADi). About 1 h 10 min in one process on the 2-core development machine
-(NMPC re-solved every step; the wall time of the last full run is logged at the end). Rows already in ``references.json`` are kept, not re-run (``--fresh`` re-runs everything);
-``--only I ...`` runs the rows of those indices; ``--merge DIR`` adds the rows of another output
-directory (e.g. a second process run with ``--only``); ``--figures-only`` redraws the figures and the CSV.
+Needs the ``nmpc`` extra (CasADi). About 25 minutes in one process on the 2-core development machine
+with other jobs running (NMPC re-solved every step; each run logs its wall time at the end). Rows
+already in ``references.json`` are kept, not re-run (``--fresh`` re-runs everything); ``--only I ...``
+runs the rows of those indices (e.g. rows added to ``REFERENCE_SETTINGS``, merged into the existing
+files in the settings' order); ``--merge DIR`` adds the rows of another output directory (e.g. a second
+process run with ``--only``); ``--figures-only`` redraws the figures and the CSV.
 
 Usage: ``python scripts/references.py [--out DIR] [--seeds 0 1 2] [--period 1] [--only I ...] [--merge DIR]
 [--fresh] [--figures-only]``
@@ -49,12 +51,15 @@ STYLE = {"whole-course optimum": ("k", "-"),
          "NMPC 2 s, gamma=0.99, prior mean": ("tab:green", ":"),
          "LQR, gamma=1, true mean": ("tab:red", "-"),
          "LQR, gamma=0.99, true mean": ("tab:orange", "-"),
+         "LQR, gamma=1, prior mean": ("tab:red", ":"),
+         "LQR, gamma=0.99, prior mean": ("tab:orange", ":"),
          "NMPC 2 s, gamma=1, true mean, no preview": ("tab:purple", "-"),
          "NMPC 2 s, gamma=1, prior mean, no preview": ("tab:purple", ":"),
          "NMPC 2 s, gamma=0.99, true mean, no preview": ("tab:brown", "-"),
          "NMPC 2 s, gamma=0.99, prior mean, no preview": ("tab:brown", ":")}
-#: The rows of no_preview.png besides the no-preview rows.
-NO_PREVIEW_COMPANIONS = ("NMPC 2 s, gamma=0.99, true mean", "LQR, gamma=0.99, true mean")
+#: The rows of no_preview.png besides the no-preview NMPC rows.
+NO_PREVIEW_COMPANIONS = ("NMPC 2 s, gamma=0.99, true mean", "LQR, gamma=0.99, true mean",
+                         "LQR, gamma=0.99, prior mean")
 
 
 def _no_preview(label: str) -> bool:

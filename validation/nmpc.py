@@ -1159,6 +1159,9 @@ REFERENCE_SETTINGS: tuple[tuple[str, dict[str, Any]], ...] = (
      {"controller": "nmpc", "gamma": 0.99, "disturbance_mean": "true", "preview": False}),
     ("NMPC 2 s, gamma=0.99, prior mean, no preview",
      {"controller": "nmpc", "gamma": 0.99, "disturbance_mean": "prior", "preview": False}),
+    # the LQR (no preview either) with the prior's mean, beside the no-preview NMPC
+    ("LQR, gamma=1, prior mean", {"controller": "lqr", "gamma": 1.0, "disturbance_mean": "prior"}),
+    ("LQR, gamma=0.99, prior mean", {"controller": "lqr", "gamma": 0.99, "disturbance_mean": "prior"}),
 )
 
 
