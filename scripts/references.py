@@ -1,7 +1,9 @@
 """Regenerate the reference controllers' measurements for docs/references.rst ("How good is it").
 
 Runs every row of :data:`validation.nmpc.REFERENCE_SETTINGS` (whole-course optimum; NMPC 2 s with the
-true and the prior mean at gamma = 0.99 and 1; LQR at gamma = 0.99 and 1) on the reproduction's course
+true and the prior mean at gamma = 0.99 and 1; LQR at gamma = 0.99 and 1; the NMPC 2 s *without
+preview* -- predicting on the reference's tangent at the car's X -- with the true and the prior mean at
+gamma = 0.99 and 1; the LQR with the prior's mean at gamma = 0.99 and 1) on the reproduction's course
 with noise seeds 0, 1, 2 and writes, into ``docs/_static/references/`` (or ``--out``):
 
 * ``references.json`` -- every row (means over seeds, per-seed figures, settings), written after each
@@ -9,12 +11,16 @@ with noise seeds 0, 1, 2 and writes, into ``docs/_static/references/`` (or ``--o
 * ``references.csv`` -- the table of the docs page;
 * ``trajectories.npz`` -- seed 0's ``X``, ``e_y``, ``v_x - 12`` and inputs of every row (for the figures;
   key suffix = the row's index in ``REFERENCE_SETTINGS``);
-* ``trajectory.png`` (path overlay and lateral error vs ``X``) and ``speed_error.png`` (speed error vs ``X``).
+* ``trajectory.png`` (path overlay and lateral error vs ``X``) and ``speed_error.png`` (speed error vs
+  ``X``) of every row but the no-preview NMPC's; ``no_preview.png`` (lateral and speed error vs ``X``)
+  of the no-preview NMPC rows beside the NMPC with preview and the LQRs at gamma = 0.99.
 
-Needs the ``nmpc`` extra (CasADi). About 25-30 minutes on a loaded 2-core machine (NMPC re-solved every
-step). Rows already in ``references.json`` are kept, not re-run (``--fresh`` re-runs everything);
-``--only I ...`` runs the rows of those indices; ``--merge DIR`` adds the rows of another output
-directory (e.g. a second process run with ``--only``); ``--figures-only`` redraws the figures and the CSV.
+Needs the ``nmpc`` extra (CasADi). About 25 minutes in one process on the 2-core development machine
+with other jobs running (NMPC re-solved every step; each run logs its wall time at the end). Rows
+already in ``references.json`` are kept, not re-run (``--fresh`` re-runs everything); ``--only I ...``
+runs the rows of those indices (e.g. rows added to ``REFERENCE_SETTINGS``, merged into the existing
+files in the settings' order); ``--merge DIR`` adds the rows of another output directory (e.g. a second
+process run with ``--only``); ``--figures-only`` redraws the figures and the CSV.
 
 Usage: ``python scripts/references.py [--out DIR] [--seeds 0 1 2] [--period 1] [--only I ...] [--merge DIR]
 [--fresh] [--figures-only]``
@@ -27,6 +33,7 @@ import csv
 import io
 import json
 import logging
+import time
 from pathlib import Path
 
 import numpy as np
@@ -43,7 +50,20 @@ STYLE = {"whole-course optimum": ("k", "-"),
          "NMPC 2 s, gamma=0.99, true mean": ("tab:green", "-"),
          "NMPC 2 s, gamma=0.99, prior mean": ("tab:green", ":"),
          "LQR, gamma=1, true mean": ("tab:red", "-"),
-         "LQR, gamma=0.99, true mean": ("tab:orange", "-")}
+         "LQR, gamma=0.99, true mean": ("tab:orange", "-"),
+         "LQR, gamma=1, prior mean": ("tab:red", ":"),
+         "LQR, gamma=0.99, prior mean": ("tab:orange", ":"),
+         "NMPC 2 s, gamma=1, true mean, no preview": ("tab:purple", "-"),
+         "NMPC 2 s, gamma=1, prior mean, no preview": ("tab:purple", ":"),
+         "NMPC 2 s, gamma=0.99, true mean, no preview": ("tab:brown", "-"),
+         "NMPC 2 s, gamma=0.99, prior mean, no preview": ("tab:brown", ":")}
+#: The rows of no_preview.png besides the no-preview NMPC rows.
+NO_PREVIEW_COMPANIONS = ("NMPC 2 s, gamma=0.99, true mean", "LQR, gamma=0.99, true mean",
+                         "LQR, gamma=0.99, prior mean")
+
+
+def _no_preview(label: str) -> bool:
+    return dict(REFERENCE_SETTINGS)[label].get("preview", True) is False
 
 
 def write_csv(path: Path, rows: list[dict]) -> None:
@@ -64,7 +84,8 @@ def make_figures(out: Path) -> list[Path]:
     data = np.load(out / "trajectories.npz")
     rows = json.loads((out / "references.json").read_text())
     index = {label: i for i, (label, _) in enumerate(REFERENCE_SETTINGS)}
-    labels = [(index[r["method"]], r["method"]) for r in rows]
+    every = [(index[r["method"]], r["method"]) for r in rows]
+    labels = [(i, label) for i, label in every if not _no_preview(label)]
     ref = DoubleLaneChangeModel().reference
     fig, (ax1, ax2) = plt.subplots(2, 1, figsize=(8, 6.5), sharex=True)
     X = np.linspace(0.0, 125.0, 1000)
@@ -97,6 +118,24 @@ def make_figures(out: Path) -> list[Path]:
     paths.append(out / "speed_error.png")
     fig.savefig(paths[1], dpi=120)
     plt.close(fig)
+    chosen = [(i, label) for i, label in every if _no_preview(label) or label in NO_PREVIEW_COMPANIONS]
+    if any(_no_preview(label) for _, label in chosen):
+        fig, (ax1, ax2) = plt.subplots(2, 1, figsize=(8, 6.5), sharex=True)
+        for i, label in chosen:
+            c, ls = STYLE.get(label, (None, "-"))
+            ax1.plot(data[f"X_{i}"], data[f"ey_{i}"], color=c, ls=ls, lw=1.0, label=label)
+            ax2.plot(data[f"X_{i}"], data[f"ev_{i}"], color=c, ls=ls, lw=1.0, label=label)
+        for ax in (ax1, ax2):
+            ax.axhline(0.0, color="0.6", lw=0.5)
+        ax1.set_ylabel("lateral error e_y [m]")
+        ax1.set_title("Without preview (tangent line at the car's X), seed 0")
+        ax1.legend(fontsize=7, ncol=2)
+        ax2.set_ylabel("speed error v_x - 12 [m/s]")
+        ax2.set_xlabel("X [m]")
+        fig.tight_layout()
+        paths.append(out / "no_preview.png")
+        fig.savefig(paths[2], dpi=120)
+        plt.close(fig)
     return paths
 
 
@@ -129,6 +168,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--figures-only", action="store_true")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
+    t0 = time.perf_counter()
     out: Path = args.out
     out.mkdir(parents=True, exist_ok=True)
     rows, arrays = ([], {}) if args.fresh else _load(out)
@@ -156,6 +196,7 @@ def main(argv: list[str] | None = None) -> int:
     _save(out, rows, arrays)
     for path in make_figures(out):
         logging.info("wrote %s", path)
+    logging.info("wall time %.1f min", (time.perf_counter() - t0) / 60.0)
     return 0
 
 

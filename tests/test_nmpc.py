@@ -5,7 +5,9 @@
 * on a straight road without disturbance the NMPC holds 12 m/s;
 * a solver failure raises an error naming the step and IPOPT's status (no fallback);
 * a reduced NMPC run on a short piece of the course beats the LQR there;
-* the LQR's affine optimum is validation.lq's, and the course driver is evaluate_tracking itself.
+* the LQR's affine optimum is validation.lq's, and the course driver is evaluate_tracking itself;
+* without preview the NMPC predicts on the reference's tangent at the car's X: identical to the NMPC
+  with preview on a straight road, different in the lane change.
 """
 
 from __future__ import annotations
@@ -209,13 +211,16 @@ def test_run_reference_lqr_keys() -> None:
     assert out["cost"] == pytest.approx(np.mean([r["cost"] for r in out["per_seed"]]))
 
 
-@pytest.mark.parametrize("mean, force", [("true", 261.0), (-80.0, -80.0)])
-def test_prediction_carries_the_chosen_mean(mean: object, force: float) -> None:
-    """The NMPC predicts with f(s, u) + (F T / m) e_vx for the chosen F, and nothing else."""
-    ctrl = nmpc.VehicleNMPC(horizon=0.05, gamma=0.99, force=mean)
+@pytest.mark.parametrize("preview", [True, False])
+@pytest.mark.parametrize("mean, force", [("true", 261.0), ("prior", 150.0), (-80.0, -80.0)])
+def test_prediction_carries_the_chosen_mean(mean: object, force: float, preview: bool) -> None:
+    """The NMPC predicts with f(s, u) + (F T / m) e_vx for the chosen F, and nothing else (with and
+    without preview)."""
+    ctrl = nmpc.VehicleNMPC(horizon=0.05, gamma=0.99, force=mean, preview=preview)
     model = DoubleLaneChangeModel()
     s0 = np.array([0.1, 0.02, 11.8, 0.05, 0.2, 3.0])
-    sol = ctrl.core.solve(s0)
+    ctrl(s0)
+    sol = ctrl.solution
     xi = np.zeros(6)
     xi[2] = force * model.config.dt / model.config.params.m
     for k in range(ctrl.horizon_steps):
@@ -230,3 +235,129 @@ def test_entry_point_writes_json(tmp_path) -> None:
     rows = json.loads((tmp_path / "references.json").read_text())
     assert [r["force_N"] for r in rows] == [261.0, 150.0] and rows[0]["horizon"] == "infinite"
     assert rows[0]["cost"] < rows[1]["cost"]  # compensating the true mean beats the prior's, same noise
+
+
+# ----------------------------------------------------------------------------------------------------
+# The NMPC without preview (preview=False): it predicts on the reference's tangent at the car's X
+# ----------------------------------------------------------------------------------------------------
+def _on_reference(X: float, speed: float = 12.0) -> np.ndarray:
+    ref = DoubleLaneChangeModel().reference
+    return np.array([0.0, 0.0, speed, ref.heading(X), ref.lateral(X), X])
+
+
+def test_no_preview_on_a_straight_road_is_the_nmpc_with_preview() -> None:
+    """On a straight road the tangent line is the true path: preview=False takes the same inputs (1e-9)."""
+    cfg = make_config(None, reference={"dy1": 0.0, "dy2": 0.0}, course_length=1.5)
+    with_preview = nmpc.VehicleNMPC(cfg, horizon=0.3, gamma=0.99, force="true", preview=True)
+    without = nmpc.VehicleNMPC(cfg, horizon=0.3, gamma=0.99, force="true", preview=False)
+    # a course (true mean force and noise on v_x): same inputs and states at every step
+    res_p, _ = nmpc.drive(with_preview, cfg, seed=0)
+    res_n, timing = nmpc.drive(without, cfg, seed=0)
+    assert timing["solves"] == cfg.max_steps == 25
+    np.testing.assert_allclose(res_n.actions, res_p.actions, rtol=0.0, atol=1e-9)
+    np.testing.assert_allclose(res_n.states, res_p.states, rtol=0.0, atol=1e-9)
+    assert np.max(np.abs(res_p.actions[:, 1])) > 0.1  # the mean force is compensated: not a trivial run
+    # off the lane, sideways and turning, below speed: the whole plan agrees, and it steers
+    for s0 in ([0.1, 0.02, 11.8, 0.05, 0.3, 3.0], [-0.2, -0.05, 12.3, -0.1, -0.4, 0.5]):
+        with_preview.reset()
+        without.reset()
+        u_p, u_n = with_preview(np.array(s0)), without(np.array(s0))
+        np.testing.assert_allclose(u_n, u_p, rtol=0.0, atol=1e-9)
+        np.testing.assert_allclose(without.solution.u, with_preview.solution.u, rtol=0.0, atol=1e-9)
+        assert np.max(np.abs(with_preview.solution.u[:, 0])) > 1e-3
+
+
+def test_no_preview_predicts_on_the_tangent_line() -> None:
+    """In the lane change, the plan's objective is the discounted eq. (54) cost against the tangent
+    ``Y_ref(X_c) + tan(psi_ref(X_c)) (X - X_c)`` at the car's X, not against the path ahead; and the
+    input differs from the one with preview."""
+    model = DoubleLaneChangeModel()
+    cfg, ref = model.config, model.reference
+    gamma = 0.99
+    s0 = _on_reference(40.0) + np.array([0.05, 0.01, -0.1, 0.02, 0.15, 0.0])
+    without = nmpc.VehicleNMPC(horizon=0.5, gamma=gamma, force="prior", preview=False)
+    with_preview = nmpc.VehicleNMPC(horizon=0.5, gamma=gamma, force="prior", preview=True)
+    u_n, u_p = without(s0), with_preview(s0)
+    sol = without.solution
+    X_c = s0[5]
+    np.testing.assert_allclose(without.line, [X_c, ref.lateral(X_c), math.tan(ref.heading(X_c))], rtol=1e-12)
+    s_next, u = sol.x[1:], sol.u
+
+    def cost(y_ref: np.ndarray) -> float:
+        # l = T (45 (v_x - 12)^2 + 60 (Y - y_ref)^2 + 800 delta^2 + a_x^2), discounted by gamma^k
+        stage = cfg.dt * (45.0 * (s_next[:, 2] - 12.0) ** 2 + 60.0 * (s_next[:, 4] - y_ref) ** 2
+                          + 800.0 * u[:, 0] ** 2 + u[:, 1] ** 2)
+        return float(np.sum(gamma ** np.arange(len(stage)) * stage))
+
+    line = ref.lateral(X_c) + math.tan(ref.heading(X_c)) * (s_next[:, 5] - X_c)
+    assert sol.objective == pytest.approx(cost(line), rel=1e-9, abs=1e-12)
+    # the check discriminates: the same plan costs measurably more or less against the true path
+    assert abs(cost(ref.lateral(s_next[:, 5])) - sol.objective) > 1e-3 * sol.objective
+    # the path curves away from the tangent over the horizon: the inputs differ
+    assert abs(u_n[0] - u_p[0]) > 1e-3
+    assert with_preview.line is None
+
+
+def test_no_preview_differs_from_preview_on_the_lane_change() -> None:
+    """A few steps into the first lane change (X from 35 m): the two controllers steer differently."""
+    cfg = make_config(None, course_length=36.0)
+    start = _on_reference(35.0)
+    runs = {}
+    for preview in (True, False):
+        ctrl = nmpc.VehicleNMPC(cfg, horizon=0.5, gamma=0.99, force="true", preview=preview)
+        s, inputs = start.copy(), []
+        for _ in range(5):
+            u = ctrl(s)
+            inputs.append(u)
+            s = np.asarray(ctrl.model.step(s, u)).ravel()
+        runs[preview] = np.array(inputs)
+    assert np.all(np.abs(runs[True][:, 0] - runs[False][:, 0]) > 1e-3)
+
+
+@pytest.mark.parametrize("preview", ["no", 0, 1, None, 1.0])
+def test_preview_must_be_a_bool(preview: object) -> None:
+    with pytest.raises(TypeError, match="^preview:"):
+        nmpc.run_reference("nmpc", preview=preview)
+    with pytest.raises(TypeError, match="^preview:"):
+        nmpc.VehicleNMPC(horizon=0.05, preview=preview)
+
+
+@pytest.mark.parametrize("controller", ["lqr", "optimum"])
+def test_no_preview_is_for_the_nmpc_only(controller: str) -> None:
+    with pytest.raises(ValueError, match="^preview:"):
+        nmpc.run_reference(controller, preview=False)
+
+
+def test_run_reference_without_preview() -> None:
+    """A short run that starts inside a lane change (the first transition moved to X = -10 m): run_reference
+    drives VehicleNMPC(preview=False), records it, and reports the real course's cost."""
+    config = {"course_length": 1.2, "reference": {"x1": -10.0}}
+    cfg = make_config(None, **config)
+    out = nmpc.run_reference("nmpc", gamma=0.99, horizon=0.3, disturbance_mean="prior", seeds=(0,),
+                             config=config, preview=False, keep_trajectory=True)
+    assert out["preview"] is False and out["force_N"] == pytest.approx(150.0)
+    res = out["trajectories"][0]
+    runs = {p: nmpc.drive(nmpc.VehicleNMPC(cfg, horizon=0.3, gamma=0.99, force="prior", preview=p), cfg, seed=0)[0]
+            for p in (True, False)}
+    np.testing.assert_array_equal(res.actions, runs[False].actions)
+    assert np.min(np.abs(res.actions[:, 0] - runs[True].actions[:, 0])) > 1e-4
+    actions = iter(res.actions)
+    replay = evaluate_tracking(lambda obs: next(actions), cfg, seed=0, start_state=res.states[0])
+    assert out["cost"] == replay.total_cost
+    assert "preview" not in nmpc.run_reference("lqr", seeds=(0,), config={"course_length": 1.2})
+
+
+def test_horizon_theta_is_checked() -> None:
+    cm = nmpc.casadi_tracking_model()
+    ca = casadi
+    s, u, th = ca.SX.sym("s", 6), ca.SX.sym("u", 2), ca.SX.sym("th", 3)
+    cost = ca.Function("l", [s, u, th], [ca.sumsqr(s[4] - th[1]) + ca.sumsqr(u)])
+    mpc = nmpc.RecedingHorizon(cm.step, cost, horizon_steps=3)
+    assert mpc.n_theta == 3
+    s0 = _on_reference(0.0)
+    for bad in (None, [0.0, 1.0], [0.0, float("nan"), 0.0]):
+        with pytest.raises(ValueError, match="^theta:"):
+            mpc.solve(s0, theta=bad)
+    plain = nmpc.RecedingHorizon(cm.step, cm.cost, horizon_steps=3)
+    with pytest.raises(ValueError, match="^theta:"):
+        plain.solve(s0, theta=[0.0, 0.0, 0.0])

@@ -18,6 +18,9 @@ module gives the yardsticks a vehicle-control engineer would use, all on the pac
 
   with ``xi_bar = F_bar T / m`` and ``F_bar`` the true mean (261 N), the prior's (150 N), zero, or any
   force. The first input is applied; the problem is re-solved every ``period`` steps.
+  Without preview (``preview=False``) the prediction replaces the path by its tangent line at the
+  car's current ``X``: the controller knows what ``e_y`` and ``e_phi`` tell (and the tangent's heading),
+  nothing of the path ahead (:class:`VehicleNMPC`).
 * **whole-course optimum** -- the same problem over the whole course (2000 steps, ``gamma = 1``) solved
   once from the start with the true mean, applied open loop: the physical limit of the course cost.
 * **LQR** -- the discounted LQ optimum (EQUATIONS.md, last section) of the linearisation of ``f`` at
@@ -289,7 +292,9 @@ class RecedingHorizon:
     step : casadi.Function
         ``(x[nx], u[nu]) -> x_next[nx]`` (including any known mean of the noise).
     cost : casadi.Function
-        ``(x_next[nx], u[nu]) -> scalar``.
+        ``(x_next[nx], u[nu]) -> scalar``, or ``(x_next[nx], u[nu], theta[n_theta]) -> scalar`` with a
+        parameter vector ``theta`` fixed for one solve and given to :meth:`solve` (e.g. the reference path
+        the controller assumes, :class:`VehicleNMPC` without preview).
     horizon_steps : int
         ``N`` >= 1.
     gamma : float, optional
@@ -326,11 +331,15 @@ class RecedingHorizon:
         gamma = _check_gamma(gamma)
         if not (isinstance(step, ca.Function) and step.n_in() == 2 and step.n_out() == 1):
             raise ValueError("step: expected a casadi.Function (x, u) -> x_next")
-        if not (isinstance(cost, ca.Function) and cost.n_in() == 2 and cost.n_out() == 1):
-            raise ValueError("cost: expected a casadi.Function (x_next, u) -> scalar")
+        if not (isinstance(cost, ca.Function) and cost.n_in() in (2, 3) and cost.n_out() == 1):
+            raise ValueError("cost: expected a casadi.Function (x_next, u) -> scalar or (x_next, u, theta) -> scalar")
         nx, nu = step.size1_in(0), step.size1_in(1)
         if step.size1_out(0) != nx or cost.size1_in(0) != nx or cost.size1_in(1) != nu or cost.numel_out(0) != 1:
             raise ValueError(f"cost: signature does not match step's (nx={nx}, nu={nu})")
+        if cost.n_in() == 3 and (cost.size2_in(2) != 1 or cost.size1_in(2) < 1):
+            raise ValueError("cost: its third input theta must be a column vector")
+        #: Length of the cost's parameter vector ``theta`` (0: the cost has none).
+        self.n_theta = cost.size1_in(2) if cost.n_in() == 3 else 0
         self.nx, self.nu, self.N, self.gamma = nx, nu, int(horizon_steps), gamma
         self.u_min = np.full(nu, -np.inf) if u_min is None else _bound(u_min, "u_min", nu)
         self.u_max = np.full(nu, np.inf) if u_max is None else _bound(u_max, "u_max", nu)
@@ -344,9 +353,16 @@ class RecedingHorizon:
         # defects d_k = f(x_k, u_k) - x_{k+1}   (multiple shooting)
         defects = step.map(N)(Xs[:, :N], Us) - Xs[:, 1:]
         weights = ca.DM(gamma ** np.arange(N))
-        # J = sum_k gamma^k l(x_{k+1}, u_k)
-        objective = ca.mtimes(cost.map(N)(Xs[:, 1:], Us), weights)
-        nlp = {"x": ca.vertcat(ca.vec(Xs), ca.vec(Us)), "p": x0, "f": objective,
+        if self.n_theta == 0:
+            # J = sum_k gamma^k l(x_{k+1}, u_k)
+            objective = ca.mtimes(cost.map(N)(Xs[:, 1:], Us), weights)
+            params = x0
+        else:
+            # J = sum_k gamma^k l(x_{k+1}, u_k; theta), theta the same at every stage of one solve
+            theta = ca.MX.sym("theta", self.n_theta)
+            objective = ca.mtimes(cost.map(N)(Xs[:, 1:], Us, ca.repmat(theta, 1, N)), weights)
+            params = ca.vertcat(x0, theta)
+        nlp = {"x": ca.vertcat(ca.vec(Xs), ca.vec(Us)), "p": params, "f": objective,
                "g": ca.vertcat(Xs[:, 0] - x0, ca.vec(defects))}
         self._nlp = nlp
         self._options = {**IPOPT_OPTIONS, **(ipopt_options or {})}
@@ -387,8 +403,8 @@ class RecedingHorizon:
         w0 = np.concatenate([X_new.ravel(), U_new.ravel()])
         return w0, np.concatenate([np.zeros(nx * (N + 1)), lu.ravel()]), lg.ravel()
 
-    def solve(self, x_hat: Any, *, step: int = 0, guess: tuple[np.ndarray, np.ndarray] | None = None
-              ) -> ShootingSolution:
+    def solve(self, x_hat: Any, *, step: int = 0, guess: tuple[np.ndarray, np.ndarray] | None = None,
+              theta: Any = None) -> ShootingSolution:
         """Solve the problem from the measured state ``x_hat``.
 
         Parameters
@@ -399,6 +415,8 @@ class RecedingHorizon:
             Control step of this solve (for the warm-start shift and error messages).
         guess : tuple of arrays, shapes (N + 1, nx) and (N, nu), optional
             Initial guess when there is no warm start (default: ``x_hat`` repeated, inputs clipped 0).
+        theta : array_like, shape (n_theta,), optional
+            The cost's parameters for this solve; required if and only if the cost has a third input.
 
         Returns
         -------
@@ -407,7 +425,8 @@ class RecedingHorizon:
         Raises
         ------
         ValueError
-            ``x_hat`` of the wrong shape or not finite; a ``guess`` of the wrong shapes.
+            ``x_hat`` of the wrong shape or not finite; a ``guess`` of the wrong shapes; ``theta`` missing,
+            not expected, of the wrong shape or not finite.
         NMPCSolveError
             IPOPT did not solve the problem (names ``step`` and the status).
         """
@@ -415,7 +434,16 @@ class RecedingHorizon:
         x_hat = np.asarray(x_hat, dtype=np.float64)
         if x_hat.shape != (nx,) or not np.all(np.isfinite(x_hat)):
             raise ValueError(f"x_hat: expected a finite vector of shape ({nx},), got {x_hat!r}")
-        args: dict[str, Any] = {"p": x_hat, "lbx": self._lbx, "ubx": self._ubx, "lbg": 0.0, "ubg": 0.0}
+        p = x_hat
+        if self.n_theta == 0:
+            if theta is not None:
+                raise ValueError("theta: this problem's cost has no parameters")
+        else:
+            th = None if theta is None else np.asarray(theta, dtype=np.float64)
+            if th is None or th.shape != (self.n_theta,) or not np.all(np.isfinite(th)):
+                raise ValueError(f"theta: expected a finite vector of shape ({self.n_theta},), got {theta!r}")
+            p = np.concatenate([x_hat, th])
+        args: dict[str, Any] = {"p": p, "lbx": self._lbx, "ubx": self._ubx, "lbg": 0.0, "ubg": 0.0}
         if self._warm is not None:
             args["x0"], args["lam_x0"], args["lam_g0"] = self._shifted(step - self._warm_step, x_hat)
             if self._warm_solver is None:
@@ -454,6 +482,12 @@ def _check_gamma(gamma: Any) -> float:
     if isinstance(gamma, bool) or not isinstance(gamma, (int, float, np.floating)) or not 0.0 < float(gamma) <= 1.0:
         raise ValueError(f"gamma: expected a number in (0, 1], got {gamma!r}")
     return float(gamma)
+
+
+def _check_preview(preview: Any) -> bool:
+    if not isinstance(preview, (bool, np.bool_)):
+        raise TypeError(f"preview: expected a bool, got {type(preview).__name__} {preview!r}")
+    return bool(preview)
 
 
 def _bound(value: Any, name: str, n: int) -> np.ndarray:
@@ -512,6 +546,41 @@ def _predict_step(ca: Any, model: CasadiTrackingModel, force: float) -> Any:
     return ca.Function("f_mean", [s, u], [model.step(s, u) + ca.DM(xi)], ["s", "u"], ["s_next"])
 
 
+def _tangent_cost(ca: Any, model: CasadiTrackingModel) -> Any:
+    """``(s', u, theta) -> l(s', u)`` of eq. (54) with the path replaced by the line ``theta = [X_c, Y_c, m_c]``.
+
+    ``Y_line(X) = Y_c + m_c (X - X_c)``; the lateral error is ``Y' - Y_line(X')``, measured in ``Y`` as the
+    environment measures ``e_y`` (not perpendicular to the line).
+    """
+    cfg = model.config
+    s = ca.SX.sym("s", 6)
+    u = ca.SX.sym("u", 2)
+    theta = ca.SX.sym("theta", 3)
+    # e_y = Y - (Y_c + m_c (X - X_c)) ; l = T (45 (v_x - 12)^2 + 60 e_y^2 + 800 delta^2 + a_x^2)
+    e_y = s[4] - (theta[1] + theta[2] * (s[5] - theta[0]))
+    dv = s[2] - cfg.v_des
+    cost_expr = cfg.dt * (cfg.q_speed * dv * dv + cfg.q_lateral * e_y * e_y
+                          + cfg.r_steer * u[0] * u[0] + cfg.r_accel * u[1] * u[1])
+    return ca.Function("l_tangent", [s, u, theta], [cost_expr], ["s_next", "u", "theta"], ["l"])
+
+
+def _tangent_line(cfg: DoubleLaneChangeConfig, X: float) -> np.ndarray:
+    """``[X, Y_ref(X), dY_ref/dX (X)]``: the reference's tangent line at ``X`` (what ``e_y``, ``e_phi`` refer to)."""
+    ref = cfg.reference
+    return np.array([X, float(ref.lateral(X)), float(ref.slope(X))])
+
+
+def _line_guess(s0: np.ndarray, line: np.ndarray, cfg: DoubleLaneChangeConfig, n: int
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """A guess on the tangent line at ``v_des`` from ``s0``'s ``X`` (no look at the path ahead): (n + 1, 6), (n, 2)."""
+    X = s0[5] + cfg.v_des * cfg.dt * np.arange(n + 1)
+    Y = line[1] + line[2] * (X - line[0])
+    states = np.stack([np.zeros(n + 1), np.zeros(n + 1), np.full(n + 1, cfg.v_des),
+                       np.full(n + 1, math.atan(line[2])), Y, X], axis=1)
+    states[0] = s0
+    return states, np.zeros((n, 2))
+
+
 def _reference_guess(cfg: DoubleLaneChangeConfig, s0: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
     """A guess on the reference at ``v_des`` from ``s0``'s ``X``: shapes (n + 1, 6), (n, 2)."""
     X = s0[5] + cfg.v_des * cfg.dt * np.arange(n + 1)
@@ -524,6 +593,29 @@ def _reference_guess(cfg: DoubleLaneChangeConfig, s0: np.ndarray, n: int) -> tup
 class VehicleNMPC:
     """NMPC of the double lane change (see the module docstring): a state-feedback controller ``s -> u``.
 
+    With ``preview=True`` (default) the prediction charges eq. (54) against the true reference path
+    ``Y_ref(X)`` over the whole horizon. With ``preview=False`` the controller does not know the path
+    ahead: at each solve it takes the reference's position and heading at the car's current ``X_c = X``,
+
+    .. math::
+
+        Y_{line}(X) = Y_{ref}(X_c) + \\tan\\psi_{ref}(X_c)\\,(X - X_c),
+
+    and predicts as if the path continued as this straight line (the tangent), charging
+    ``60 (Y_{k+1} - Y_{line}(X_{k+1}))^2`` instead of ``60 (Y_{k+1} - Y_{ref}(X_{k+1}))^2``; everything
+    else (model, mean force, discount, horizon, bounds) is unchanged. The plant still drives the real
+    course, and the costs reported by :func:`drive` are the real course's.
+
+    What the no-preview controller knows: the full state ``s`` and the tangent line at ``X_c``, i.e.
+    ``e_y = Y - Y_ref(X_c)`` and ``e_phi = phi - psi_ref(X_c)`` (the policies' observation) plus the
+    *absolute* heading ``psi_ref(X_c)`` of that tangent. Because the dynamics are invariant to shifts
+    and rotations of the road frame, the optimal plan on a straight line depends on ``s`` only through
+    ``[v_y, r, v_x - 12, e_phi, e_y]`` and ``psi_ref(X_c)``; the heading enters only because eq. (54)
+    measures the lateral error in ``Y`` (vertically), not perpendicular to the line: the perpendicular
+    offset is ``e_y cos psi_ref(X_c)`` and the lateral weight is, in effect, ``60 / cos^2 psi_ref(X_c)``
+    (at most 1.10 times 60 on the paper's course, ``|psi_ref| <= 0.30 rad``). Nothing about the path
+    beyond ``X_c`` (its curvature, the lane changes ahead) enters the prediction or the initial guess.
+
     Parameters
     ----------
     config : DoubleLaneChangeConfig or dict, optional
@@ -532,27 +624,40 @@ class VehicleNMPC:
         Prediction horizon [s]; ``N = round(horizon / T)`` steps. Default 2.
     gamma : float, optional
         Discount of the stage costs in (0, 1]. Default 0.99.
-    force : float, optional
-        Disturbance mean force in the prediction [N]. Default 261 (the true mean).
+    force : float or str, optional
+        Disturbance mean force in the prediction [N], or a name of :func:`force_mean`. Default 261 (the
+        true mean).
     period : int, optional
         Re-solve every ``period`` control steps; in between, the stored plan's inputs are applied.
     ipopt_options : dict, optional
         Overrides of :data:`IPOPT_OPTIONS`.
+    preview : bool, optional
+        Predict on the true path ahead (True, default) or on the tangent line at the current ``X``
+        (False; see above).
 
     Raises
     ------
     ValueError
         Invalid arguments (the message names the argument).
+    TypeError
+        ``preview`` is not a bool.
 
     Attributes
     ----------
+    preview : bool
     solve_ms : list of float
         Wall time of each solve [ms].
+    solution : ShootingSolution or None
+        The last solve's solution (its ``objective`` is the *predicted* cost, on the tangent line without
+        preview).
+    line : numpy.ndarray, shape (3,), or None
+        Without preview, the tangent line ``[X_c, Y_ref(X_c), tan psi_ref(X_c)]`` of the last solve.
     """
 
     def __init__(self, config: DoubleLaneChangeConfig | dict[str, Any] | None = None, *, horizon: float = 2.0,
-                 gamma: float = 0.99, force: float = 261.0, period: int = 1,
-                 ipopt_options: dict[str, Any] | None = None) -> None:
+                 gamma: float = 0.99, force: float | str = 261.0, period: int = 1,
+                 ipopt_options: dict[str, Any] | None = None, preview: bool = True) -> None:
+        self.preview = _check_preview(preview)
         ca = _casadi()
         self.model = casadi_tracking_model(config)
         cfg = self.config = self.model.config
@@ -560,9 +665,12 @@ class VehicleNMPC:
         self.period = _period(period)
         self.force = force_mean(force, cfg)
         bound = np.array([cfg.delta_max, cfg.ax_max])
-        self.core = RecedingHorizon(_predict_step(ca, self.model, self.force), self.model.cost,
+        cost = self.model.cost if self.preview else _tangent_cost(ca, self.model)
+        self.core = RecedingHorizon(_predict_step(ca, self.model, self.force), cost,
                                     horizon_steps=self.horizon_steps, gamma=gamma, u_min=-bound, u_max=bound,
                                     ipopt_options=ipopt_options)
+        self.solution: ShootingSolution | None = None
+        self.line: np.ndarray | None = None
         self.solve_ms: list[float] = []
         self._k = 0
         self._plan: np.ndarray | None = None
@@ -574,6 +682,8 @@ class VehicleNMPC:
         self.solve_ms = []
         self._k = 0
         self._plan = None
+        self.solution = None
+        self.line = None
 
     def __call__(self, s: np.ndarray) -> np.ndarray:
         """The input for tracking state ``s`` (shape (6,)): the first input of the current plan, shape (2,).
@@ -585,9 +695,17 @@ class VehicleNMPC:
         """
         k = self._k
         if self._plan is None or k - self._plan_step >= self.period:
-            guess = None if self._plan is not None else _reference_guess(
-                self.config, np.asarray(s, dtype=np.float64), self.horizon_steps)
-            sol = self.core.solve(s, step=k, guess=guess)
+            s = np.asarray(s, dtype=np.float64)
+            if self.preview:
+                guess = None if self._plan is not None else _reference_guess(self.config, s, self.horizon_steps)
+                sol = self.core.solve(s, step=k, guess=guess)
+            else:
+                # only the tangent at the current X: e_y, e_phi and the tangent's heading, nothing ahead
+                self.line = _tangent_line(self.config, float(s[5]))
+                guess = None if self._plan is not None else _line_guess(s, self.line, self.config,
+                                                                         self.horizon_steps)
+                sol = self.core.solve(s, step=k, guess=guess, theta=self.line)
+            self.solution = sol
             self.solve_ms.append(sol.solve_ms)
             self._plan, self._plan_step = sol.u, k
         self._k += 1
@@ -920,7 +1038,8 @@ def _seeds(seeds: Any) -> tuple[int, ...]:
 def run_reference(controller: str, *, gamma: float = 0.99, horizon: float = 2.0,
                   disturbance_mean: str | float = "true", seeds: Sequence[int] = (0,), period: int = 1,
                   progress: bool = False, keep_trajectory: bool = False,
-                  config: DoubleLaneChangeConfig | dict[str, Any] | None = None) -> dict[str, Any]:
+                  config: DoubleLaneChangeConfig | dict[str, Any] | None = None, preview: bool = True
+                  ) -> dict[str, Any]:
     """Drive the reproduction's double lane change with a reference controller; Table I metrics.
 
     Parameters
@@ -944,6 +1063,11 @@ def run_reference(controller: str, *, gamma: float = 0.99, horizon: float = 2.0,
         Also return ``"trajectories"`` (the :class:`~mixedrl.envs.TrackingResult` of each seed).
     config : DoubleLaneChangeConfig or dict, optional
         The task (default: the paper's).
+    preview : bool, optional
+        NMPC only: predict on the true path ahead (True, default) or on the reference's tangent line at
+        the car's current ``X`` (False: the NMPC knows what ``e_y`` and ``e_phi`` tell, nothing ahead;
+        see :class:`VehicleNMPC`). The LQR never previews, the optimum always does: for them only the
+        default is accepted.
 
     Returns
     -------
@@ -953,12 +1077,15 @@ def run_reference(controller: str, *, gamma: float = 0.99, horizon: float = 2.0,
         (per optimisation: per NMPC solve, the optimum's one offline solve, the LQR's per-step
         evaluation), ``step_ms_mean``, ``step_ms_max`` (online time per control step); the settings
         (``controller``, ``gamma``, ``horizon``, ``period``, ``disturbance_mean``, ``force_N``,
-        ``seeds``) and ``per_seed`` (the same figures per seed).
+        ``seeds``; and ``preview`` for the NMPC when it is False) and ``per_seed`` (the same figures per
+        seed).
 
     Raises
     ------
     ValueError
         A bad argument (the message names it).
+    TypeError
+        ``preview`` is not a bool.
     ImportError
         ``"nmpc"``/``"optimum"`` without CasADi installed.
     NMPCSolveError
@@ -966,6 +1093,10 @@ def run_reference(controller: str, *, gamma: float = 0.99, horizon: float = 2.0,
     """
     if controller not in CONTROLLERS:
         raise ValueError(f"controller: expected one of {CONTROLLERS}, got {controller!r}")
+    preview = _check_preview(preview)
+    if not preview and controller != "nmpc":
+        raise ValueError(f"preview: only the NMPC has a no-preview variant (the LQR never previews, the "
+                         f"optimum plans the whole course); got preview=False with controller {controller!r}")
     gamma = _check_gamma(gamma)
     cfg = DoubleLaneChangeModel(config).config
     horizon_steps = _horizon_steps(horizon, cfg.dt)
@@ -973,13 +1104,15 @@ def run_reference(controller: str, *, gamma: float = 0.99, horizon: float = 2.0,
     force = force_mean(disturbance_mean, cfg)
     seeds = _seeds(seeds)
     if controller == "nmpc":
-        ctrl: Any = VehicleNMPC(cfg, horizon=horizon_steps * cfg.dt, gamma=gamma, force=force, period=period)
+        ctrl: Any = VehicleNMPC(cfg, horizon=horizon_steps * cfg.dt, gamma=gamma, force=force, period=period,
+                                preview=preview)
     elif controller == "lqr":
         ctrl = straight_lqr(cfg, gamma=gamma, force=force)
     else:
         ctrl = CourseOptimum(cfg, force=force)
     per_seed, runs = [], []
-    bar = tqdm(total=cfg.max_steps * len(seeds), desc=f"{controller} gamma={1.0 if controller == 'optimum' else gamma:g}", unit="step",
+    desc = f"{controller} gamma={1.0 if controller == 'optimum' else gamma:g}" + ("" if preview else " no preview")
+    bar = tqdm(total=cfg.max_steps * len(seeds), desc=desc, unit="step",
                disable=not progress, leave=False)
     try:
         for seed in seeds:
@@ -999,6 +1132,7 @@ def run_reference(controller: str, *, gamma: float = 0.99, horizon: float = 2.0,
         "horizon": {"nmpc": horizon_steps * cfg.dt, "lqr": math.inf, "optimum": cfg.max_steps * cfg.dt}[controller],
         "period": period if controller == "nmpc" else None,
         "disturbance_mean": disturbance_mean, "force_N": force, "seeds": list(seeds),
+        **({} if preview else {"preview": False}),
         **{k: float(np.mean([row[k] for row in per_seed])) for k in keys},
         "per_seed": per_seed,
     }
@@ -1016,6 +1150,18 @@ REFERENCE_SETTINGS: tuple[tuple[str, dict[str, Any]], ...] = (
     ("NMPC 2 s, gamma=0.99, prior mean", {"controller": "nmpc", "gamma": 0.99, "disturbance_mean": "prior"}),
     ("LQR, gamma=1, true mean", {"controller": "lqr", "gamma": 1.0}),
     ("LQR, gamma=0.99, true mean", {"controller": "lqr", "gamma": 0.99}),
+    # the NMPC without preview: it predicts on the reference's tangent at the car's X (VehicleNMPC)
+    ("NMPC 2 s, gamma=1, true mean, no preview",
+     {"controller": "nmpc", "gamma": 1.0, "disturbance_mean": "true", "preview": False}),
+    ("NMPC 2 s, gamma=1, prior mean, no preview",
+     {"controller": "nmpc", "gamma": 1.0, "disturbance_mean": "prior", "preview": False}),
+    ("NMPC 2 s, gamma=0.99, true mean, no preview",
+     {"controller": "nmpc", "gamma": 0.99, "disturbance_mean": "true", "preview": False}),
+    ("NMPC 2 s, gamma=0.99, prior mean, no preview",
+     {"controller": "nmpc", "gamma": 0.99, "disturbance_mean": "prior", "preview": False}),
+    # the LQR (no preview either) with the prior's mean, beside the no-preview NMPC
+    ("LQR, gamma=1, prior mean", {"controller": "lqr", "gamma": 1.0, "disturbance_mean": "prior"}),
+    ("LQR, gamma=0.99, prior mean", {"controller": "lqr", "gamma": 0.99, "disturbance_mean": "prior"}),
 )
 
 
@@ -1077,7 +1223,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     """``python -m validation.nmpc``: run references and write ``references.json`` atomically.
 
     Without ``--controller`` it runs every row of :func:`reference_rows`; with it, one
-    :func:`run_reference` per ``(controller, gamma, mean)`` combination given.
+    :func:`run_reference` per ``(controller, gamma, mean)`` combination given (``--no-preview``: the
+    NMPC without preview).
     """
     parser = argparse.ArgumentParser(prog="python -m validation.nmpc", description=__doc__.splitlines()[0])
     parser.add_argument("--out", required=True, help="output directory (references.json)")
@@ -1087,6 +1234,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--horizon", type=float, default=2.0, help="NMPC horizon [s]")
     parser.add_argument("--period", type=int, default=1, help="NMPC re-solve period [steps]")
     parser.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
+    parser.add_argument("--no-preview", action="store_true",
+                        help="NMPC on the tangent line at the car's X (no path ahead); with --controller nmpc")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     out = Path(args.out)
@@ -1095,13 +1244,17 @@ def main(argv: Sequence[str] | None = None) -> int:
         rows = reference_rows(args.seeds, period=args.period, horizon=args.horizon, progress=True)
     else:
         means = [m if m in MEAN_NAMES else float(m) for m in args.mean]
+        if args.no_preview and set(args.controller) != {"nmpc"}:
+            parser.error("--no-preview: only with --controller nmpc")
         rows = []
         for name in args.controller:
             for gamma in ([1.0] if name == "optimum" else args.gamma):
                 for mean in means:
                     res = run_reference(name, gamma=gamma, horizon=args.horizon, disturbance_mean=mean,
-                                        seeds=args.seeds, period=args.period, progress=True)
-                    rows.append({"method": f"{name}, gamma={gamma:g}, mean={mean}", **res})
+                                        seeds=args.seeds, period=args.period, progress=True,
+                                        preview=not args.no_preview)
+                    tail = ", no preview" if args.no_preview else ""
+                    rows.append({"method": f"{name}, gamma={gamma:g}, mean={mean}{tail}", **res})
     atomic_write_text(out / "references.json", json.dumps([jsonable(r) for r in rows], indent=2) + "\n")
     logger.info("wrote %s", out / "references.json")
     return 0
