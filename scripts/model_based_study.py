@@ -37,6 +37,8 @@ from mixedrl.config import TrainConfig
 from mixedrl.runs import atomic_write_text, make_trainer, train
 
 OUT = Path("docs/_static/model_based")
+#: Seeds from this one on are held out: run with the chosen design only, reported apart (``summary``).
+HELD_OUT = 5
 
 _MODEL = {"state_source": "model", "true_envs": 1, "true_steps": 20, "true_every": 10, "model_course_horizon": 2000,
           "model_kick_scale": 1.0, "batch_weighting": "uniform", "lr_decay_iterations": 0}
@@ -51,6 +53,20 @@ DESIGNS: dict[str, dict[str, Any]] = {
     "F": {**_MODEL, "model_course_fraction": 0.9, "model_course_start": 500, "model_box": 3.0, "model_kick_prob": 0.01},
     "G": {**_MODEL, "model_course_fraction": 0.75, "model_course_start": 500, "model_box": 3.0,
           "model_kick_prob": 0.01},
+}
+#: One line per design, for the table of docs/model_based.rst (``designs.csv``).
+DESIGN_NOTES = {
+    "A": "50% course rollouts from iteration 0, box 4, no kicks",
+    "C": "wide starts only (the former true-environment distribution, on the model)",
+    "D": "75% course rollouts from iteration 500, box 3, no kicks",
+    "E": "95% course rollouts from iteration 500, box 3, no kicks",
+    "F": "90% course rollouts from iteration 500, box 3, kicks 0.01",
+    "G": "75% course rollouts from iteration 500, box 3, kicks 0.01",
+    "H": "G + learning-rate decay over a fixed 1500 iterations",
+    "I": "H + actor learning rate 1e-3 (3.3x)",
+    "J": "G + decay over 3000 iterations",
+    "K": "H + batch of 1024 states",
+    "M": "H + relative batch weighting in PEV and PIM (the defaults)",
 }
 #: G with a fixed-length learning-rate decay (1500 iterations, then the final rates).
 DESIGNS["H"] = {**DESIGNS["G"], "lr_decay_iterations": 1500}
@@ -166,31 +182,110 @@ def summary(_: argparse.Namespace) -> None:
     runs = [json.loads(p.read_text()) for p in sorted((OUT / "per_run").glob("*/*.json"))]
     groups: dict[tuple[str, str, int], list[dict[str, Any]]] = {}
     for r in runs:
-        groups.setdefault((r["tag"], r["method"], r["iterations"]), []).append(r)
+        # seeds 0-4 are the study's; seeds >= 5 were run only to check the chosen design on seeds that took no
+        # part in choosing it (reported apart)
+        group = "0-4" if r["seed"] < HELD_OUT else "held-out"
+        groups.setdefault((r["tag"], r["method"], r["iterations"], group), []).append(r)
     rows = []
-    for (tag, method, n), rs in sorted(groups.items()):
+    for (tag, method, n, group), rs in sorted(groups.items()):
         rs = sorted(rs, key=lambda r: r["seed"])
         lat = np.array([r["lateral_mae"] for r in rs])
         spd = np.array([r["speed_mae"] for r in rs])
         cost = np.array([r["cost"] for r in rs])
-        rows.append({"tag": tag, "method": method, "iterations": n, "seeds": " ".join(str(r["seed"]) for r in rs),
+        ddof = 1 if len(rs) > 1 else 0  # sample standard deviation over seeds
+        rows.append({"tag": tag, "method": method, "iterations": n, "seed_group": group,
+                     "seeds": " ".join(str(r["seed"]) for r in rs),
                      "cost_mean": cost.mean(), "cost_max": cost.max(), "lateral_mean": lat.mean(),
-                     "lateral_std": lat.std(), "lateral_max": lat.max(), "speed_mean": spd.mean(),
-                     "speed_std": spd.std(), "speed_max": spd.max(),
+                     "lateral_std": lat.std(ddof=ddof), "lateral_max": lat.max(), "speed_mean": spd.mean(),
+                     "speed_std": spd.std(ddof=ddof), "speed_max": spd.max(),
                      "true_transitions": int(np.mean([r["true_transitions"] for r in rs])),
                      "per_seed_lateral": " ".join(f"{x:.3f}" for x in lat),
                      "per_seed_speed": " ".join(f"{x:.4f}" for x in spd),
                      "per_seed_cost": " ".join(f"{x:.1f}" for x in cost)})
     OUT.mkdir(parents=True, exist_ok=True)
-    with open(OUT / "summary.csv", "w", newline="") as fh:
-        writer = csv.DictWriter(fh, fieldnames=list(rows[0]))
-        writer.writeheader()
-        writer.writerows(rows)
+    atomic_write_text(OUT / "summary.csv", _csv(rows))
     atomic_write_text(OUT / "summary.json", json.dumps(rows, indent=1) + "\n")
+    # the designs at 1500 iterations (J: 3000; mixed RL, seeds 0-4) and the chosen design at every budget
+    designs = [{"tag": r["tag"], "design": DESIGN_NOTES.get(r["tag"], ""), "budget": r["iterations"],
+                "seeds": r["seeds"],
+                "lateral per seed [m]": r["per_seed_lateral"].replace(" ", " / "),
+                "cost mean": f"{r['cost_mean']:.1f}", "speed mean [m/s]": f"{r['speed_mean']:.4f}"}
+               for r in rows if r["method"] == "mixed" and r["seed_group"] == "0-4"
+               and (r["iterations"] == 1500 or r["tag"] == "J")]  # J decays over 3000: its own budget
+    atomic_write_text(OUT / "designs.csv", _csv(designs))
+    chosen = []
+    for r in rows:
+        if r["tag"] != "M":
+            continue
+        prev = [q for q in chosen if q["method"] == r["method"] and q["seeds"] == r["seeds"]]
+        chosen.append({"method": r["method"], "iterations": r["iterations"], "seeds": r["seeds"],
+                       "cost mean": f"{r['cost_mean']:.1f}",
+                       "change": f"{100 * (r['cost_mean'] / prev[-1]['_cost'] - 1):+.1f}%" if prev else "",
+                       "cost per seed": r["per_seed_cost"].replace(" ", " / "),
+                       "lateral mean +- std [m]": f"{r['lateral_mean']:.3f} +- {r['lateral_std']:.3f}",
+                       "lateral per seed": r["per_seed_lateral"].replace(" ", " / "),
+                       "speed mean (max) [m/s]": f"{r['speed_mean']:.4f} ({r['speed_max']:.4f})",
+                       "speed per seed": r["per_seed_speed"].replace(" ", " / "),
+                       "true transitions": r["true_transitions"], "_cost": r["cost_mean"]})
+    order = {"mixed": 0, "model": 1, "oracle": 2}
+    chosen.sort(key=lambda q: (q["seeds"] != "0 1 2 3 4", order.get(q["method"], 9), q["iterations"]))
+    atomic_write_text(OUT / "budgets_M.csv", _csv([{k: v for k, v in q.items() if k != "_cost"} for q in chosen]))
     for r in rows:
         print(f"{r['tag']:>14} {r['method']:>6} n={r['iterations']:>5} seeds[{r['seeds']}] cost {r['cost_mean']:6.1f} "
               f"(max {r['cost_max']:6.1f}) lat {r['lateral_mean']:.3f}±{r['lateral_std']:.3f} "
               f"spd {r['speed_mean']:.4f}±{r['speed_std']:.4f} true {r['true_transitions']} | {r['per_seed_lateral']}")
+
+
+def _csv(rows: list[dict[str, Any]]) -> str:
+    import io
+
+    buf = io.StringIO()
+    writer = csv.DictWriter(buf, fieldnames=list(rows[0]), lineterminator="\n")
+    writer.writeheader()
+    writer.writerows(rows)
+    return buf.getvalue()
+
+
+def budgets(args: argparse.Namespace) -> None:
+    """Figure ``budgets_<tag>.png``: course cost, lateral and speed error of every seed against the budget."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    runs = [json.loads(p.read_text()) for p in sorted((OUT / "per_run" / args.tag).glob("*.json"))]
+    runs = [r for r in runs if r["seed"] < HELD_OUT]
+    fig, axes = plt.subplots(1, 3, figsize=(13, 3.8))
+    for c, method in enumerate(("mixed", "model", "oracle")):
+        mine = [r for r in runs if r["method"] == method]
+        budgets_ = sorted({r["iterations"] for r in mine})
+        if not mine:
+            continue
+        for ax, key in zip(axes, ("cost", "lateral_mae", "speed_mae")):
+            for seed in sorted({r["seed"] for r in mine}):
+                pts = sorted((r["iterations"], r[key]) for r in mine if r["seed"] == seed)
+                ax.plot(*zip(*pts), color=f"C{c}", alpha=0.35, lw=0.8, marker=".")
+            means = [np.mean([r[key] for r in mine if r["iterations"] == n]) for n in budgets_]
+            ax.plot(budgets_, means, color=f"C{c}", lw=2.2, marker="o", label=f"{method} (mean of seeds 0-4)")
+    for ax, label in zip(axes, ("course cost", "lateral error [m]", "speed error [m/s]")):
+        ax.set_xscale("log")
+        ax.set_xlabel("budget [iterations]")
+        ax.set_ylabel(label)
+        ax.grid(alpha=0.3)
+    axes[2].axhline(0.010, color="k", ls=":", lw=1)
+    axes[1].axhline(0.151, color="k", ls=":", lw=1)
+    axes[0].legend(fontsize=8)
+    fig.suptitle(f"design {args.tag}: every seed (thin) and the mean (thick) at each budget")
+    fig.tight_layout()
+    import io
+
+    buf = io.BytesIO()
+    fig.savefig(buf, dpi=110, metadata={"Software": None})
+    plt.close(fig)
+    from mixedrl.runs import atomic_write_bytes
+
+    atomic_write_bytes(OUT / f"budgets_{args.tag}.png", buf.getvalue())
+    print(f"wrote {OUT / f'budgets_{args.tag}.png'}")
 
 
 def reference(_: argparse.Namespace) -> None:
@@ -266,10 +361,13 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--jobs", type=int, default=2)
     p.add_argument("--set", nargs="*")
     sub.add_parser("summary")
+    p = sub.add_parser("budgets")
+    p.add_argument("--tag", default="M")
     sub.add_parser("reference")
     sub.add_parser("objective")
     args = parser.parse_args(argv)
-    {"sweep": sweep, "summary": summary, "reference": reference, "objective": objective}[args.cmd](args)
+    {"sweep": sweep, "summary": summary, "budgets": budgets, "reference": reference,
+     "objective": objective}[args.cmd](args)
 
 
 if __name__ == "__main__":
