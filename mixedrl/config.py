@@ -457,8 +457,9 @@ class TrainConfig:
     """Budget: number of outer iterations ``k`` (one PEV + PIM step of Algorithm 2, or one DDPG update)."""
 
     batch_size: int = 512
-    """Number of states per iteration: the parallel copies of the true environment whose current states
-    form the PEV/PIM batch (Algorithm 2) or the replay minibatch size (DDPG)."""
+    """Number of states per iteration: the rollouts of the planning model (``state_source="model"``) or
+    the parallel copies of the true environment (``"true"``) whose current states form the PEV/PIM batch
+    (Algorithm 2), or the replay minibatch size (DDPG)."""
 
     horizon: int = 60
     """Steps after which a training copy of the environment is reset to a fresh initial state."""

@@ -67,6 +67,7 @@ DESIGN_NOTES = {
     "J": "G + decay over 3000 iterations",
     "K": "H + batch of 1024 states",
     "M": "H + relative batch weighting in PEV and PIM (the defaults)",
+    "M3": "M + decay over 3000 iterations",
 }
 #: G with a fixed-length learning-rate decay (1500 iterations, then the final rates).
 DESIGNS["H"] = {**DESIGNS["G"], "lr_decay_iterations": 1500}
@@ -78,6 +79,8 @@ DESIGNS["J"] = {**DESIGNS["G"], "lr_decay_iterations": 3000}
 DESIGNS["K"] = {**DESIGNS["H"], "batch_size": 1024}
 #: H with relative batch weighting in PEV and PIM: the shipped defaults.
 DESIGNS["M"] = {**DESIGNS["H"], "batch_weighting": "relative", "batch_weight_offset": 1.0}
+#: M with the decay over 3000 iterations.
+DESIGNS["M3"] = {**DESIGNS["M"], "lr_decay_iterations": 3000}
 
 
 def parse_value(text: str) -> Any:
@@ -211,7 +214,7 @@ def summary(_: argparse.Namespace) -> None:
                 "lateral per seed [m]": r["per_seed_lateral"].replace(" ", " / "),
                 "cost mean": f"{r['cost_mean']:.1f}", "speed mean [m/s]": f"{r['speed_mean']:.4f}"}
                for r in rows if r["method"] == "mixed" and r["seed_group"] == "0-4"
-               and (r["iterations"] == 1500 or r["tag"] == "J")]  # J decays over 3000: its own budget
+               and (r["iterations"] == 1500 or r["tag"] in ("J", "M3"))]  # these decay over 3000: their budget
     atomic_write_text(OUT / "designs.csv", _csv(designs))
     chosen = []
     for r in rows:

@@ -49,6 +49,20 @@ def test_targets_and_table_on_known_numbers() -> None:
     assert t["speed_gap_vs_model_ge_0.58"] and not t["speed_gap_vs_ddpg_ge_0.77"]  # 1 - 0.010/0.04 = 0.75
     assert t["ddpg_needs_2x_mixed"] and t["ibe_mean_within_2pct"]
     assert t["mixed_within_10pct_of_oracle"]
+    # every seed: lateral 0.10 / 0.11 <= 0.151; speed 0.010 <= 0.010 on both
+    assert t["mixed_every_seed_lateral_le_0.151"] and t["mixed_every_seed_speed_le_0.010"]
+    assert t["model_over_mixed_speed"] == pytest.approx(3.0) and t["model_over_mixed_speed_ge_1.5"]
+    assert "mixed_cost_over_oracle" not in t  # no costs in these results: not claimed
+    assert t["mixed_run_le_60s"] and t["reproduce_wall_le_900s"]  # 60.0 s, 100 s
+    res["mixed"]["runs"][1]["speed_mae"] = 0.0101
+    for m, cost in (("mixed", 30.0), ("oracle", 28.0)):
+        res[m]["cost_mean"], res[m]["cost_std"] = cost, 1.0
+    res["mixed"]["true_transitions_mean"] = 3000.0
+    t2 = check_targets(res)
+    assert not t2["mixed_every_seed_speed_le_0.010"]
+    assert t2["mixed_cost_over_oracle"] == pytest.approx(30 / 28) and not t2["mixed_cost_within_5pct_of_oracle"]
+    assert t2["mixed_true_transitions_le_5e4"]
+    assert "3,000" in format_table({**res, "targets": t2}) and "30.0 ± 1.0" in format_table({**res, "targets": t2})
     table = format_table({**res, "targets": t})
     for number in ("0.151", "0.179", "0.228", "0.021", "0.051", "0.093"):
         assert number in table

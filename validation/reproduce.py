@@ -348,6 +348,10 @@ def aggregate(out: Path, finished: list[dict[str, Any]], wall: float, quick: boo
         entry: dict[str, Any] = {"runs": [_summary_of_run(r) for r in runs]}
         for key in ("lateral_mae", "speed_mae", "iterations_to_converge", "train_seconds"):
             entry[f"{key}_mean"], entry[f"{key}_std"] = _mean_std([r[key] for r in runs])
+        if all(r.get("cost") is not None for r in runs):
+            entry["cost_mean"], entry["cost_std"] = _mean_std([r["cost"] for r in runs])
+        if all(r.get("true_transitions") is not None for r in runs):
+            entry["true_transitions_mean"] = float(np.mean([r["true_transitions"] for r in runs]))
         if method != "ddpg":
             rows = []
             for r in runs:
@@ -399,6 +403,18 @@ def check_targets(results: dict[str, Any]) -> dict[str, Any]:
     t["mixed_train_seconds_mean"] = mixed["train_seconds_mean"]
     t["mixed_run_le_180s"] = mixed["train_seconds_mean"] <= 180.0
     t["reproduce_wall_le_1800s"] = results["wall_seconds"] <= 1800.0
+    # the model-based Algorithm 2 (docs/model_based.rst): every seed, the oracle's cost, the data used
+    t["mixed_every_seed_lateral_le_0.151"] = all(r["lateral_mae"] <= 0.151 for r in mixed["runs"])
+    t["mixed_every_seed_speed_le_0.010"] = all(r["speed_mae"] <= 0.010 for r in mixed["runs"])
+    t["model_over_mixed_speed"] = model["speed_mae_mean"] / sm
+    t["model_over_mixed_speed_ge_1.5"] = t["model_over_mixed_speed"] >= 1.5
+    if "cost_mean" in mixed and "cost_mean" in oracle:
+        t["mixed_cost_over_oracle"] = mixed["cost_mean"] / oracle["cost_mean"]
+        t["mixed_cost_within_5pct_of_oracle"] = t["mixed_cost_over_oracle"] <= 1.05
+    if "true_transitions_mean" in mixed:
+        t["mixed_true_transitions_le_5e4"] = mixed["true_transitions_mean"] <= 5e4
+    t["mixed_run_le_60s"] = mixed["train_seconds_mean"] <= 60.0
+    t["reproduce_wall_le_900s"] = results["wall_seconds"] <= 900.0
     return t
 
 
@@ -408,7 +424,7 @@ def format_table(results: dict[str, Any]) -> str:
     lines = [f"Table I -- mean absolute tracking errors on the double lane change ({n} seeds, mean ± std)"
              + ("  [QUICK: reduced budget]" if results.get("quick") else ""), ""]
     head = f"{'method':<24}{'lateral [m] ours':>20}{'paper':>8}{'speed [m/s] ours':>22}{'paper':>8}" \
-           f"{'iters to converge':>20}{'paper':>8}{'train s':>9}"
+           f"{'iters to converge':>20}{'paper':>8}{'train s':>9}{'course cost':>17}{'true trans.':>13}"
     lines += [head, "-" * len(head)]
     for method in METHODS + EXTRA:
         if method not in results:
@@ -422,7 +438,9 @@ def format_table(results: dict[str, Any]) -> str:
             f"{e['lateral_mae_mean']:>12.3f} ± {e['lateral_mae_std']:<5.3f}{paper('lateral_mae', '.3f'):>8}"
             f"{e['speed_mae_mean']:>14.4f} ± {e['speed_mae_std']:<5.4f}{paper('speed_mae', '.3f'):>8}"
             f"{e['iterations_to_converge_mean']:>12.0f} ± {e['iterations_to_converge_std']:<5.0f}"
-            f"{paper('iterations_to_converge', '.0e'):>8}{e['train_seconds_mean']:>9.1f}")
+            f"{paper('iterations_to_converge', '.0e'):>8}{e['train_seconds_mean']:>9.1f}"
+            + (f"{e['cost_mean']:>9.1f} ± {e['cost_std']:<5.1f}" if "cost_mean" in e else f"{'--':>17}")
+            + (f"{e['true_transitions_mean']:>13,.0f}" if "true_transitions_mean" in e else f"{'--':>13}"))
     lines.append("")
     lines.append(f"convergence: {results.get('convergence_criterion')}")
     lines.append(f"wall time: {results['wall_seconds']:.1f} s")
