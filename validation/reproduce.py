@@ -474,14 +474,16 @@ def format_references(rows: Sequence[dict[str, Any]]) -> str:
         A row lacks one of the keys above.
     """
     keys = ("method", "lateral_mae", "speed_mae", "cost", "solve_ms_mean", "solve_ms_max", "seeds")
-    head = f"{'reference (not learned)':<34}{'lateral [m]':>12}{'speed [m/s]':>13}{'course cost':>13}" \
-           f"{'online ms mean':>16}{'max':>9}{'seeds':>7}"
-    lines = [head, "-" * len(head)]
     for i, row in enumerate(rows):
         missing = [k for k in keys if k not in row]
         if missing:
             raise ValueError(f"rows: row {i} lacks {missing}")
-        lines.append(f"{str(row['method']):<34}{row['lateral_mae']:>12.3f}{row['speed_mae']:>13.4f}"
+    width = max([34] + [len(str(row["method"])) + 2 for row in rows])
+    head = f"{'reference (not learned)':<{width}}{'lateral [m]':>12}{'speed [m/s]':>13}{'course cost':>13}" \
+           f"{'online ms mean':>16}{'max':>9}{'seeds':>7}"
+    lines = [head, "-" * len(head)]
+    for row in rows:
+        lines.append(f"{str(row['method']):<{width}}{row['lateral_mae']:>12.3f}{row['speed_mae']:>13.4f}"
                      f"{row['cost']:>13.2f}{row['solve_ms_mean']:>16.3g}{row['solve_ms_max']:>9.3g}"
                      f"{len(row['seeds']):>7d}")
     return "\n".join(lines)
