@@ -12,6 +12,8 @@ takes another PIM step.
 
 from __future__ import annotations
 
+import math
+
 from dataclasses import dataclass
 from typing import Any, Callable
 
@@ -180,6 +182,8 @@ def actor_objective(task: Any, critic: torch.nn.Module, actor: torch.nn.Module, 
     single pathwise gradient that autograd computes here, ``E{(dl/dx' + gamma dV/dx') df/du + dl/du}
     du/dtheta``.
     """
+    if relative_offset is not None and not (float(relative_offset) > 0 and math.isfinite(relative_offset)):
+        raise ValueError(f"relative_offset: expected a finite positive number or None, got {relative_offset!r}")
     obs = task.observe(s)
     u = actor(obs)
     scale = float(getattr(task, "value_scale", 1.0))

@@ -99,3 +99,6 @@ def test_relative_critic_loss_weights_each_state_by_its_target() -> None:
     big = 1e9
     assert float(critic_loss(task, V, s, u, d, w, relative_offset=big)) * big**2 == pytest.approx(float(plain),
                                                                                                    rel=1e-6)
+    for bad in (0.0, -1.0, float("nan")):
+        with pytest.raises(ValueError, match="relative_offset"):
+            critic_loss(task, V, s, u, d, w, relative_offset=bad)

@@ -80,3 +80,6 @@ def test_relative_actor_objective_weights_states_by_inverse_value() -> None:
     (rho.detach() / rho.detach().mean() * (task.cost(task.f(s, actor(s)) + torch.tensor(mu), actor(s))
                                            + task.gamma * critic(task.f(s, actor(s)) + torch.tensor(mu)))).mean().backward()
     assert torch.allclose(g_obj, actor.weight.grad, rtol=1e-12, atol=0)
+    for bad in (0.0, -1.0, float("nan"), float("inf")):
+        with pytest.raises(ValueError, match="relative_offset"):
+            actor_objective(task, critic, actor, s, d, w, relative_offset=bad)
