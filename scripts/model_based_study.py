@@ -68,6 +68,9 @@ DESIGN_NOTES = {
     "K": "H + batch of 1024 states",
     "M": "H + relative batch weighting in PEV and PIM (the defaults)",
     "M3": "M + decay over 3000 iterations",
+    "N1": "M + 50% course rollouts (instead of 75%)",
+    "N2": "M + batch_weight_offset 3 (instead of 1)",
+    "N3": "M + decay over 2000 iterations",
 }
 #: G with a fixed-length learning-rate decay (1500 iterations, then the final rates).
 DESIGNS["H"] = {**DESIGNS["G"], "lr_decay_iterations": 1500}
@@ -81,6 +84,10 @@ DESIGNS["K"] = {**DESIGNS["H"], "batch_size": 1024}
 DESIGNS["M"] = {**DESIGNS["H"], "batch_weighting": "relative", "batch_weight_offset": 1.0}
 #: M with the decay over 3000 iterations.
 DESIGNS["M3"] = {**DESIGNS["M"], "lr_decay_iterations": 3000}
+#: Variations of M run after it was chosen (seeds 0-9; leads for the next design, not choices).
+DESIGNS["N1"] = {**DESIGNS["M"], "model_course_fraction": 0.5}
+DESIGNS["N2"] = {**DESIGNS["M"], "batch_weight_offset": 3.0}
+DESIGNS["N3"] = {**DESIGNS["M"], "lr_decay_iterations": 2000}
 
 
 def parse_value(text: str) -> Any:
@@ -214,7 +221,7 @@ def summary(_: argparse.Namespace) -> None:
                 "lateral per seed [m]": r["per_seed_lateral"].replace(" ", " / "),
                 "cost mean": f"{r['cost_mean']:.1f}", "speed mean [m/s]": f"{r['speed_mean']:.4f}"}
                for r in rows if r["method"] == "mixed" and r["seed_group"] == "0-4"
-               and (r["iterations"] == 1500 or r["tag"] in ("J", "M3"))]  # these decay over 3000: their budget
+               and (r["iterations"] == 1500 or r["tag"] in ("J", "M3", "N3"))]  # these decay longer: their budget
     atomic_write_text(OUT / "designs.csv", _csv(designs))
     chosen = []
     for r in rows:
