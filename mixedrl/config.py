@@ -648,9 +648,7 @@ class TrainConfig:
             raise ValueError(f"model_box: expected a positive number, got {self.model_box!r}")
         if self.batch_weighting not in BATCH_WEIGHTINGS:
             raise ValueError(f"batch_weighting: expected one of {BATCH_WEIGHTINGS}, got {self.batch_weighting!r}")
-        if not (float(self.batch_weight_offset) > 0 and math.isfinite(self.batch_weight_offset)):
-            raise ValueError(f"batch_weight_offset: expected a finite positive number, got "
-                             f"{self.batch_weight_offset!r}")
+        self.batch_weight_offset = check_number(self.batch_weight_offset, "batch_weight_offset", positive=True)
         if self.ibe_recursion not in ("exact", "paper"):
             raise ValueError(f"ibe_recursion: expected 'exact' or 'paper', got {self.ibe_recursion!r}")
         if isinstance(self.ibe_case, bool) or not isinstance(self.ibe_case, int) or self.ibe_case not in (1, 2, 3):

@@ -13,15 +13,13 @@ noise ``xi_hat_k`` (exactly for quadratics, by the quadrature of :mod:`mixedrl.e
 
 from __future__ import annotations
 
-import math
-
 from dataclasses import dataclass
 from typing import Any, Callable
 
 import numpy as np
 import torch
 
-from mixedrl.checks import as_vector, check_covariance
+from mixedrl.checks import as_vector, check_covariance, check_number
 from mixedrl.expectation import h_value
 from mixedrl.quadratic import AffinePolicy, LinearDynamics, QuadraticCost, QuadraticValue, check_problem, lyapunov_solve
 
@@ -271,8 +269,8 @@ def critic_loss(task: Any, critic: torch.nn.Module, s: torch.Tensor, u: torch.Te
     gradient. The loss is divided by ``value_scale^2`` so that its size does not depend on the units of
     the cost.
     """
-    if relative_offset is not None and not (float(relative_offset) > 0 and math.isfinite(relative_offset)):
-        raise ValueError(f"relative_offset: expected a finite positive number or None, got {relative_offset!r}")
+    if relative_offset is not None:
+        relative_offset = check_number(relative_offset, "relative_offset", positive=True)
     if s.shape[0] != u.shape[0]:
         raise ValueError(f"u: batch size {u.shape[0]} differs from s's {s.shape[0]}")
     with torch.no_grad():

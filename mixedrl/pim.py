@@ -12,8 +12,6 @@ takes another PIM step.
 
 from __future__ import annotations
 
-import math
-
 from dataclasses import dataclass
 from typing import Any, Callable
 
@@ -21,7 +19,7 @@ import numpy as np
 import scipy.linalg
 import torch
 
-from mixedrl.checks import as_vector
+from mixedrl.checks import as_vector, check_number
 from mixedrl.expectation import h_value
 from mixedrl.quadratic import AffinePolicy, LinearDynamics, QuadraticCost, QuadraticValue, check_problem
 
@@ -182,8 +180,8 @@ def actor_objective(task: Any, critic: torch.nn.Module, actor: torch.nn.Module, 
     single pathwise gradient that autograd computes here, ``E{(dl/dx' + gamma dV/dx') df/du + dl/du}
     du/dtheta``.
     """
-    if relative_offset is not None and not (float(relative_offset) > 0 and math.isfinite(relative_offset)):
-        raise ValueError(f"relative_offset: expected a finite positive number or None, got {relative_offset!r}")
+    if relative_offset is not None:
+        relative_offset = check_number(relative_offset, "relative_offset", positive=True)
     obs = task.observe(s)
     u = actor(obs)
     scale = float(getattr(task, "value_scale", 1.0))

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import io
 import json
 import math
 import time
@@ -34,7 +35,7 @@ import numpy as np
 import torch
 
 from mixedrl.config import TrainConfig
-from mixedrl.runs import atomic_write_text, make_trainer, train
+from mixedrl.runs import atomic_write_bytes, atomic_write_text, make_trainer, train
 
 OUT = Path("docs/_static/model_based")
 #: Seeds from this one on are held out: run with the chosen design only, reported apart (``summary``).
@@ -247,8 +248,6 @@ def summary(_: argparse.Namespace) -> None:
 
 
 def _csv(rows: list[dict[str, Any]]) -> str:
-    import io
-
     buf = io.StringIO()
     writer = csv.DictWriter(buf, fieldnames=list(rows[0]), lineterminator="\n")
     writer.writeheader()
@@ -287,13 +286,9 @@ def budgets(args: argparse.Namespace) -> None:
     axes[0].legend(fontsize=8)
     fig.suptitle(f"design {args.tag}: every seed (thin) and the mean (thick) at each budget")
     fig.tight_layout()
-    import io
-
     buf = io.BytesIO()
     fig.savefig(buf, dpi=110, metadata={"Software": None})
     plt.close(fig)
-    from mixedrl.runs import atomic_write_bytes
-
     atomic_write_bytes(OUT / f"budgets_{args.tag}.png", buf.getvalue())
     print(f"wrote {OUT / f'budgets_{args.tag}.png'}")
 
