@@ -544,6 +544,15 @@ class TrainConfig:
     A fixed length makes a longer budget the same run followed by iterations at the final rates, instead
     of a slower decay (see :func:`mixedrl.schedule.lr_factor`)."""
 
+    actor_average: float = 0.0
+    """Algorithm 2: decay ``beta`` of an exponential moving average of the actor's weights,
+    ``theta_bar <- beta theta_bar + (1 - beta) theta`` after every iteration (Polyak averaging; a
+    departure from the paper, applied identically to mixed, model-driven RL and the oracle). With
+    ``beta > 0`` the *averaged* actor is the run's policy: it is evaluated, saved and deployed
+    (:attr:`mixedrl.algorithms.agpi.AGPI.policy`), while the iterate ``theta`` keeps driving the training
+    rollouts and the gradient steps. 0 (the default) = no averaging: the policy is the iterate. The
+    window is about ``1 / (1 - beta)`` iterations (0.995: 200), the same whatever the budget."""
+
     grad_clip: float = 10.0
     """Clip of the global gradient norm of each update (``math.inf`` disables it)."""
 
@@ -673,6 +682,9 @@ class TrainConfig:
             value = float(getattr(self, name))
             if not value > 0 or math.isnan(value):
                 raise ValueError(f"{name}: expected a positive number, got {value!r}")
+        if not (0.0 <= float(self.actor_average) < 1.0):
+            raise ValueError(f"actor_average: expected a number in [0, 1) (the EMA decay; 0 = off), "
+                             f"got {self.actor_average!r}")
         for name in ("lr_decay_to", "ddpg_tau"):
             value = float(getattr(self, name))
             if not 0 < value <= 1:

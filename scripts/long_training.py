@@ -83,11 +83,11 @@ def run(job: dict[str, Any]) -> list[dict[str, float]]:
     rows: list[dict[str, float]] = []
 
     def record(k: int) -> None:
-        ev = task.evaluate(trainer.actor, EVAL_SEEDS)
-        u0, jac = policy_at_origin(trainer.actor)
+        ev = task.evaluate(trainer.policy, EVAL_SEEDS)
+        u0, jac = policy_at_origin(trainer.policy)
         row = {"method": job["method"], "iteration": k, "lateral_mae": ev["lateral_mae"],
                "speed_mae": ev["speed_mae"], "course_cost": ev["cost"],
-               "J_train": discounted_cost(task, trainer.actor, starts),
+               "J_train": discounted_cost(task, trainer.policy, starts),
                "delta0": u0[0], "ax0": u0[1]}
         row.update({f"ddelta_d{n}": jac[0, i] for i, n in enumerate(OBS_NAMES)})
         row.update({f"dax_d{n}": jac[1, i] for i, n in enumerate(OBS_NAMES)})

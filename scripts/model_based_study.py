@@ -72,6 +72,8 @@ DESIGN_NOTES = {
     "N1": "M + 50% course rollouts (instead of 75%)",
     "N2": "M + batch_weight_offset 3 (instead of 1)",
     "N3": "M + decay over 2000 iterations",
+    "P1": "M + batch_weight_offset 0.3 (instead of 1)",
+    "Q1": "M + Polyak average of the actor (EMA, beta = 0.995) as the policy",
 }
 #: G with a fixed-length learning-rate decay (1500 iterations, then the final rates).
 DESIGNS["H"] = {**DESIGNS["G"], "lr_decay_iterations": 1500}
@@ -89,6 +91,10 @@ DESIGNS["M3"] = {**DESIGNS["M"], "lr_decay_iterations": 3000}
 DESIGNS["N1"] = {**DESIGNS["M"], "model_course_fraction": 0.5}
 DESIGNS["N2"] = {**DESIGNS["M"], "batch_weight_offset": 3.0}
 DESIGNS["N3"] = {**DESIGNS["M"], "lr_decay_iterations": 2000}
+#: Leads of the next session (seeds 0-9): more weight on the states of small value (the course's).
+DESIGNS["P1"] = {**DESIGNS["M"], "batch_weight_offset": 0.3}
+#: M with the policy = the EMA of the actor's iterates (window about 200 iterations).
+DESIGNS["Q1"] = {**DESIGNS["M"], "actor_average": 0.995}
 
 
 def parse_value(text: str) -> Any:
@@ -160,7 +166,7 @@ def run_job(job: dict[str, Any]) -> str:
            "lateral_mae": res["lateral_mae"], "speed_mae": res["speed_mae"], "cost": res["cost"],
            "terminated": res["final"]["terminated"], "true_transitions": res["true_transitions"],
            "final_ibe_mean_vx": res["final_ibe_mean"][2], "evals": diag,
-           **policy_at_origin(trainer.actor)}
+           **policy_at_origin(trainer.policy)}
     path.parent.mkdir(parents=True, exist_ok=True)
     atomic_write_text(path, json.dumps(out, indent=1) + "\n")
     return (f"{job['tag']} {job['method']} s{job['seed']} n{job['iterations']}: lateral {out['lateral_mae']:.3f} m, "
@@ -355,6 +361,42 @@ def objective(_: argparse.Namespace) -> None:
     atomic_write_text(OUT / "objective_of_lqr_gains.json", json.dumps(rows, indent=1) + "\n")
 
 
+def origin(_: argparse.Namespace) -> None:
+    """What sets the speed error? The policy's longitudinal action at the origin across every run.
+
+    For each method, over the runs of design M and over every per-run file, those that stayed on the road (lateral error <= 0.2 m): the mean
+    and standard deviation of ``a_x = pi(0)[1]`` (the acceleration on the reference at 12 m/s), the
+    acceleration that cancels the true mean force (``-F_true / m``) and the prior's (``-F_prior / m``),
+    and how much of the course speed error the offset ``|a_x + F_true / m|`` explains (correlation, and
+    the steady-state prediction ``|a_x + F_true / m| / |d a_x / d v_x|``). Writes ``origin_action.csv``.
+    """
+    from mixedrl.tasks import DoubleLaneChangeTask
+
+    task = DoubleLaneChangeTask()
+    dt = float(task.model.config.dt)
+    a_true = -float(task.true_mean[task.noise_index]) / dt
+    a_prior = -float(task.prior_mean[task.noise_index]) / dt
+    runs = [json.loads(p.read_text()) for p in sorted((OUT / "per_run").glob("*/*.json"))]
+    rows = []
+    for scope, method in [(scope, m) for scope in ("M", "every design") for m in ("mixed", "model", "oracle")]:
+        mine = [r for r in runs if r["method"] == method and r["lateral_mae"] <= 0.2
+                and (scope != "M" or r["tag"] == "M")]
+        a0 = np.array([r["u0"][1] for r in mine])
+        gain = np.array([r["gain"][1][2] for r in mine])
+        speed = np.array([r["speed_mae"] for r in mine])
+        offset = np.abs(a0 - a_true)
+        rows.append({"design": scope, "method": method, "runs": len(mine), "a_x(0) mean [m/s^2]": f"{a0.mean():.3f}",
+                     "a_x(0) std": f"{a0.std(ddof=1):.3f}", "cancels the true mean": f"{a_true:.3f}",
+                     "cancels the prior mean": f"{a_prior:.3f}",
+                     "da_x/dv_x mean": f"{gain.mean():.2f}",
+                     "corr(speed error, |a_x(0) - a_true|)": f"{np.corrcoef(speed, offset)[0, 1]:.2f}",
+                     "corr(speed error, steady-state prediction)":
+                         f"{np.corrcoef(speed, offset / np.abs(gain))[0, 1]:.2f}",
+                     "speed error mean [m/s]": f"{speed.mean():.4f}"})
+        print(rows[-1])
+    atomic_write_text(OUT / "origin_action.csv", _csv(rows))
+
+
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     sub = parser.add_subparsers(dest="cmd", required=True)
@@ -370,9 +412,10 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--tag", default="M")
     sub.add_parser("reference")
     sub.add_parser("objective")
+    sub.add_parser("origin")
     args = parser.parse_args(argv)
     {"sweep": sweep, "summary": summary, "budgets": budgets, "reference": reference,
-     "objective": objective}[args.cmd](args)
+     "objective": objective, "origin": origin}[args.cmd](args)
 
 
 if __name__ == "__main__":

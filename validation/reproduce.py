@@ -187,7 +187,7 @@ class TheoryProbe:
 # ----------------------------------------------------------------------------------------------------
 def _trajectory(trainer: Any, seed: int) -> dict[str, np.ndarray]:
     task = trainer.task
-    ev = task.evaluate(trainer.actor, [seed], keep_trajectory=True)
+    ev = task.evaluate(trainer.policy, [seed], keep_trajectory=True)
     r = ev["trajectories"][0]
     X = r.states[:, 5]
     return {"time": r.time, "X": X, "Y": r.states[:, 4], "Y_ref": np.asarray(task.model.reference.lateral(X)),

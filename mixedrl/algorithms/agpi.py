@@ -39,6 +39,7 @@ from typing import Any
 
 import numpy as np
 import torch
+from torch.optim.swa_utils import AveragedModel, get_ema_multi_avg_fn
 
 from mixedrl.config import TrainConfig
 from mixedrl.algorithms.model_data import ModelStateSampler
@@ -147,6 +148,11 @@ class AGPI:
         self.transitions: tuple[torch.Tensor, torch.Tensor] | None = None
         # state_source="model": the batch comes from rollouts of the planning model (model_data.py)
         self.sampler = ModelStateSampler(task, config, self.generator) if config.state_source == "model" else None
+        #: The Polyak (EMA) average of the actor's weights (``config.actor_average > 0``), else ``None``.
+        self.actor_avg: AveragedModel | None = None
+        if config.actor_average > 0:
+            self.actor_avg = AveragedModel(self.actor, multi_avg_fn=get_ema_multi_avg_fn(config.actor_average),
+                                           use_buffers=True)
 
     # -------------------------------------------------------------------------------------- helpers
     @property
@@ -156,8 +162,9 @@ class AGPI:
 
     @property
     def policy(self) -> torch.nn.Module:
-        """The actor ``pi(x; theta)`` as a module on observations."""
-        return self.actor
+        """The run's policy as a module on observations: the actor ``pi(x; theta)``, or its weight average
+        ``pi(x; theta_bar)`` when ``config.actor_average > 0`` (what is evaluated, saved and deployed)."""
+        return self.actor_avg.module if self.actor_avg is not None else self.actor
 
     def nodes(self, mean: np.ndarray, cov: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
         """Quadrature of ``N(mean, cov)`` with this run's rule (:func:`mixedrl.expectation.expectation_nodes`).
@@ -396,6 +403,8 @@ class AGPI:
         else:
             self.stop_count = 0
         self.stopped = cfg.stop_epsilon > 0 and self.stop_count >= cfg.stop_patience
+        if self.actor_avg is not None:  # theta_bar <- beta theta_bar + (1 - beta) theta^{k+1}
+            self.actor_avg.update_parameters(self.actor)
         self.k += 1
         self.last_batch = s
         metrics = {
@@ -455,7 +464,7 @@ class AGPI:
 
     def evaluate(self, seeds: list[int]) -> dict[str, Any]:
         """Evaluate the current policy on the task (see :meth:`Task.evaluate`)."""
-        return self.task.evaluate(self.actor, seeds)
+        return self.task.evaluate(self.policy, seeds)
 
     # -------------------------------------------------------------------------------------- checkpoints
     def state_dict(self) -> dict[str, Any]:
@@ -473,6 +482,7 @@ class AGPI:
             "stop_count": self.stop_count,
             "stopped": self.stopped,
             **({"sampler": self.sampler.state_dict()} if self.sampler is not None else {}),
+            **({"actor_avg": self.actor_avg.state_dict()} if self.actor_avg is not None else {}),
         }
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
@@ -487,6 +497,8 @@ class AGPI:
                    "stop_count", "stopped"} - set(state)
         if self.sampler is not None and "sampler" not in state:
             missing.add("sampler")
+        if self.actor_avg is not None and "actor_avg" not in state:
+            missing.add("actor_avg")
         if missing:
             raise ValueError(f"state: missing keys {sorted(missing)}")
         if tuple(state["states"].shape) != tuple(self.states.shape):
@@ -499,6 +511,8 @@ class AGPI:
             self.actor.load_state_dict(state["actor"])
             self.critic_opt.load_state_dict(state["critic_opt"])
             self.actor_opt.load_state_dict(state["actor_opt"])
+            if self.actor_avg is not None:
+                self.actor_avg.load_state_dict(state["actor_avg"])
         except (RuntimeError, KeyError) as exc:
             raise ValueError(f"state: weights do not match the networks ({exc})") from None
         self.generator.set_state(state["generator"])
