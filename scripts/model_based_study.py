@@ -389,7 +389,7 @@ def origin(_: argparse.Namespace) -> None:
                      "a_x(0) std": f"{a0.std(ddof=1):.3f}", "cancels the true mean": f"{a_true:.3f}",
                      "cancels the prior mean": f"{a_prior:.3f}",
                      "da_x/dv_x mean": f"{gain.mean():.2f}",
-                     "corr(speed error, |a_x(0) - a_true|)": f"{np.corrcoef(speed, offset)[0, 1]:.2f}",
+                     "corr(speed error, abs(a_x(0) - a_true))": f"{np.corrcoef(speed, offset)[0, 1]:.2f}",
                      "corr(speed error, steady-state prediction)":
                          f"{np.corrcoef(speed, offset / np.abs(gain))[0, 1]:.2f}",
                      "speed error mean [m/s]": f"{speed.mean():.4f}"})
