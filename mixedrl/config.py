@@ -61,6 +61,7 @@ __all__ = [
     "TASKS",
     "DISTURBANCE_LAWS",
     "BATCH_WEIGHTINGS",
+    "MODEL_COURSE_STARTS",
 ]
 
 #: The four methods of the reproduction (mixed RL, model-driven RL, oracle, DDPG).
@@ -72,6 +73,8 @@ TASKS = ("dlc", "linear")
 #: symmetric two-point law), all with the configured mean and variance (:class:`ForceDisturbanceConfig`).
 #: The double lane change simulates all three; the linear task only ``"gaussian"``.
 DISTURBANCE_LAWS = ("gaussian", "student_t", "bumps")
+#: Where Algorithm 2's course rollouts on the model (re)start (``TrainConfig.model_course_starts``).
+MODEL_COURSE_STARTS = ("start", "along", "loop")
 #: How Algorithm 2 weights the states of its batch (``TrainConfig.batch_weighting``).
 BATCH_WEIGHTINGS = ("uniform", "relative")
 
@@ -481,6 +484,23 @@ class TrainConfig:
     before it they restart from the wide distribution like the others (a schedule: the course is driven
     only by a policy that has first learnt to stay near the reference)."""
 
+    model_course_starts: str = "start"
+    """``state_source="model"``: where a course rollout restarts once ``model_course_start`` has passed
+    (the copies keep driving from wherever they are at that iteration -- anywhere on the course, from the
+    wide distribution -- with the longer horizon ``model_course_horizon``):
+
+    * ``"start"``: at the course start (``X = 0``) when it leaves the box, ends or reaches its
+      horizon; it is *not* restarted at the course's end, so a copy that started far along the course
+      drives on past it, on the straight road beyond, until its horizon (design M: by iteration 1500
+      about 43% of the course copies are beyond the course's end, docs/model_based.rst);
+    * ``"along"``: on the reference at a point drawn uniformly along the course (``X ~ U(0,
+      course_length)``, the start's small perturbation), also when it passes the course's end (the
+      course copies then crowd towards the end: their density grows like ``X``);
+    * ``"loop"``: at the course start, also when it passes the course's end, so that the copies loop
+      over the course: uniformly spread over it at iteration ``model_course_start``, they stay so.
+
+    The true-data copies of mixed RL always start at the course start."""
+
     model_course_horizon: int = 2000
     """``state_source="model"``: steps after which a course rollout (and a true-data copy) restarts at the
     course start (2000 = the whole double lane change)."""
@@ -649,6 +669,9 @@ class TrainConfig:
         if isinstance(self.model_course_start, bool) or not isinstance(self.model_course_start, int) \
                 or self.model_course_start < 0:
             raise ValueError(f"model_course_start: expected a non-negative integer, got {self.model_course_start!r}")
+        if self.model_course_starts not in MODEL_COURSE_STARTS:
+            raise ValueError(f"model_course_starts: expected one of {MODEL_COURSE_STARTS}, got "
+                             f"{self.model_course_starts!r}")
         if not 0.0 <= float(self.model_kick_prob) <= 1.0:
             raise ValueError(f"model_kick_prob: expected a number in [0, 1], got {self.model_kick_prob!r}")
         if not (float(self.model_kick_scale) >= 0 and math.isfinite(self.model_kick_scale)):

@@ -41,7 +41,7 @@ OUT = Path("docs/_static/model_based")
 #: Seeds from this one on are held out: run with the chosen design only, reported apart (``summary``).
 HELD_OUT = 5
 
-_MODEL = {"state_source": "model", "true_envs": 1, "true_steps": 20, "true_every": 10, "model_course_horizon": 2000,
+_MODEL = {"state_source": "model", "model_course_starts": "start", "true_envs": 1, "true_steps": 20, "true_every": 10, "model_course_horizon": 2000,
           "model_kick_scale": 1.0, "batch_weighting": "uniform", "lr_decay_iterations": 0}
 #: The designs of docs/model_based.rst, every model_* field explicit (so a design does not change when a
 #: default does). ``sweep --tag T`` uses DESIGNS[T] (plus ``--set``); other tags need ``--set``.
@@ -74,6 +74,8 @@ DESIGN_NOTES = {
     "N3": "M + decay over 2000 iterations",
     "P1": "M + batch_weight_offset 0.3 (instead of 1)",
     "Q1": "M + Polyak average of the actor (EMA, beta = 0.995) as the policy",
+    "S": "M + course rollouts restart at a random point along the course, also at its end",
+    "T": "M + course rollouts also restart at the course start when they pass its end (they loop)",
 }
 #: G with a fixed-length learning-rate decay (1500 iterations, then the final rates).
 DESIGNS["H"] = {**DESIGNS["G"], "lr_decay_iterations": 1500}
@@ -95,6 +97,10 @@ DESIGNS["N3"] = {**DESIGNS["M"], "lr_decay_iterations": 2000}
 DESIGNS["P1"] = {**DESIGNS["M"], "batch_weight_offset": 0.3}
 #: M with the policy = the EMA of the actor's iterates (window about 200 iterations).
 DESIGNS["Q1"] = {**DESIGNS["M"], "actor_average": 0.995}
+#: M with the course copies restarting at a random point along the course (also at its end).
+DESIGNS["S"] = {**DESIGNS["M"], "model_course_starts": "along"}
+#: M with the course copies restarting at the course start when they pass its end: they loop over the course.
+DESIGNS["T"] = {**DESIGNS["M"], "model_course_starts": "loop"}
 
 
 def parse_value(text: str) -> Any:
@@ -397,6 +403,32 @@ def origin(_: argparse.Namespace) -> None:
     atomic_write_text(OUT / "origin_action.csv", _csv(rows))
 
 
+def positions(args: argparse.Namespace) -> None:
+    """Where along the course are the course copies of the batch? Train one run per design (seed
+    ``--seed``) and record, every 100 iterations, the quantiles of ``X`` of the course copies and the
+    fraction of them in each part of the course (straight 0-20 m, first lane change 20-52 m, second
+    52-85 m, last straight 85-120 m). Writes ``course_positions.csv``."""
+    rows = []
+    parts = ((0.0, 20.0), (20.0, 52.0), (52.0, 85.0), (85.0, 120.0))
+    for tag in args.tags.split(","):
+        torch.set_num_threads(1)
+        cfg = TrainConfig().replace(method="mixed", seed=args.seed, iterations=1500, eval_every=1500,
+                                    checkpoint_every=1500, num_threads=1, **DESIGNS[tag])
+        trainer = make_trainer(cfg)
+        for k in range(1, cfg.iterations + 1):
+            trainer.iteration()
+            if k % 100 == 0:
+                X = trainer.sampler.states[trainer.sampler.course, 5]
+                q = np.quantile(X.numpy(), [0.1, 0.5, 0.9])
+                row = {"design": tag, "seed": args.seed, "iteration": k, "X q10 [m]": f"{q[0]:.1f}",
+                       "X median [m]": f"{q[1]:.1f}", "X q90 [m]": f"{q[2]:.1f}"}
+                for a, b in parts:
+                    row[f"share {a:.0f}-{b:.0f} m"] = f"{float(((X >= a) & (X < b)).double().mean()):.2f}"
+                rows.append(row)
+                print(row, flush=True)
+    atomic_write_text(OUT / "course_positions.csv", _csv(rows))
+
+
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     sub = parser.add_subparsers(dest="cmd", required=True)
@@ -413,9 +445,13 @@ def main(argv: list[str] | None = None) -> None:
     sub.add_parser("reference")
     sub.add_parser("objective")
     sub.add_parser("origin")
+    p = sub.add_parser("positions")
+    p.add_argument("--tags", default="M,S,T")
+    p.add_argument("--seed", type=int, default=0)
     args = parser.parse_args(argv)
     {"sweep": sweep, "summary": summary, "budgets": budgets, "reference": reference,
-     "objective": objective, "origin": origin}[args.cmd](args)
+     "objective": objective, "origin": origin,
+     "positions": positions}[args.cmd](args)
 
 
 if __name__ == "__main__":

@@ -5,6 +5,7 @@ at the configured rate, model-driven RL uses zero true transitions, resume == un
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -182,3 +183,84 @@ def test_kicks_move_only_course_copies_by_at_most_the_kick_size() -> None:
     diff = (kicked.states - plain.states).abs()
     assert bool((diff[20:] == 0).all())  # wide copies are never kicked
     assert bool((diff[:20] > 0).all()) and float(diff.max()) <= 0.3  # every course copy, within the size
+
+
+def _course_sampler(starts: str) -> tuple[ModelStateSampler, Any, Any]:
+    from mixedrl.noise import GaussianNoise
+    from mixedrl.tasks import make_task
+
+    task = make_task("dlc")
+    cfg = TrainConfig(batch_size=256, state_source="model", model_course_fraction=1.0, model_course_start=0,
+                      horizon=1, model_course_horizon=2000, model_kick_prob=0.0, model_course_starts=starts)
+    sampler = ModelStateSampler(task, cfg, torch.Generator().manual_seed(0))
+    actor = torch.nn.Linear(5, 2)
+    torch.nn.init.zeros_(actor.weight)
+    torch.nn.init.zeros_(actor.bias)
+    return sampler, actor, GaussianNoise(task.prior_mean, task.prior_cov)
+
+
+def _place_on_reference(sampler: ModelStateSampler, rows: slice, X: float) -> None:
+    ref = sampler.task.model.config.reference
+    x = torch.full((sampler.states[rows].shape[0],), X, dtype=torch.float64)
+    sampler.states[rows] = torch.stack([0 * x, 0 * x, 12.0 + 0 * x, ref.heading(x), ref.lateral(x), x], dim=-1)
+    sampler.steps[rows] = 0
+
+
+def test_course_copies_drive_in_step_from_the_start_and_spread_along_the_course_with_along() -> None:
+    # "start": every course copy restarts at X = 0 (here all at once: their horizon ends), so they advance
+    # together
+    sampler, actor, noise = _course_sampler("start")
+    sampler.steps.fill_(1999)
+    sampler.collect(actor, noise, 0)
+    for k in range(1, 3):
+        sampler.collect(actor, noise, k)
+    X = sampler.states[:, 5]
+    assert float(X.max() - X.min()) < 1.0
+    # "along": the copies restart at X ~ U(0, 120 m): every part of the course is in the batch
+    sampler, actor, noise = _course_sampler("along")
+    sampler.steps.fill_(1999)
+    sampler.collect(actor, noise, 0)
+    X = sampler.states[:, 5]
+    assert float(X.min()) < 15.0 and float(X.max()) > 105.0
+    counts = torch.histc(X.float(), bins=4, min=0.0, max=120.0)
+    assert bool((counts > 256 / 4 * 0.6).all())  # about uniform over the four quarters
+    # on the reference there, within the start's perturbation (e_y: 0.1 m, v_x: 0.1 m/s)
+    ref = sampler.task.model.config.reference
+    assert float((sampler.states[:, 4] - ref.lateral(X)).abs().max()) <= 0.1 + 1e-9
+    assert float((sampler.states[:, 2] - 12.0).abs().max()) <= 0.1 + 1e-9
+
+
+def test_along_course_copies_restart_when_they_pass_the_course_end() -> None:
+    sampler, actor, noise = _course_sampler("along")
+    sampler.collect(actor, noise, 0)
+    _place_on_reference(sampler, slice(None), 119.99)  # every copy at the end of the course
+    restarts = sampler.restarts
+    sampler.collect(actor, noise, 1)  # one step at 12 m/s: 6 cm, past 120 m
+    assert sampler.restarts - restarts == 256
+    assert float(sampler.states[:, 5].max()) < 120.0
+
+
+def test_model_course_starts_is_validated() -> None:
+    with pytest.raises(ValueError, match="^model_course_starts"):
+        TrainConfig(model_course_starts="random")
+
+
+def test_loop_course_copies_restart_at_the_course_start_when_they_pass_its_end() -> None:
+    sampler, actor, noise = _course_sampler("loop")
+    sampler.collect(actor, noise, 0)
+    _place_on_reference(sampler, slice(None), 100.0)
+    _place_on_reference(sampler, slice(0, 128), 119.99)  # half the copies at the end of the course
+    restarts = sampler.restarts
+    sampler.collect(actor, noise, 1)
+    assert sampler.restarts - restarts == 128
+    assert float(sampler.states[:128, 5].abs().max()) == 0.0  # at the course start
+    assert float(sampler.states[128:, 5].min()) > 0.0  # the others drive on
+
+
+def test_start_course_copies_drive_past_the_course_end() -> None:
+    sampler, actor, noise = _course_sampler("start")
+    sampler.collect(actor, noise, 0)
+    _place_on_reference(sampler, slice(None), 119.99)
+    restarts = sampler.restarts
+    sampler.collect(actor, noise, 1)
+    assert sampler.restarts == restarts and float(sampler.states[:, 5].min()) > 120.0

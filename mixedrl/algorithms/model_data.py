@@ -20,7 +20,9 @@ drawn; applied identically to every method):
 
 * *course* copies (a fraction ``model_course_fraction`` of the batch) drive the course from its start
   (the task's episode start) for ``model_course_horizon`` steps, so the batch holds the states the
-  current policy visits on the job it is evaluated on;
+  current policy visits on the job it is evaluated on; ``model_course_starts`` says whether they also
+  restart when they pass the course's end (``"loop"``: at its start; ``"along"``: at a random point
+  along it) or drive on beyond it (``"start"``);
 * the course copies are *kicked* (``model_kick_prob`` per step): a random offset of the size of the
   task's ``obs_scale`` is added to the state and the policy has to recover, so the batch spreads around
   the course trajectory in every direction instead of lying on it;
@@ -47,17 +49,26 @@ from mixedrl.tasks import Task
 __all__ = ["ModelStateSampler", "course_starts"]
 
 
-def course_starts(task: Task, n: int, generator: torch.Generator) -> torch.Tensor:
+def course_starts(task: Task, n: int, generator: torch.Generator, along: bool = False) -> torch.Tensor:
     """``n`` episode start states of ``task``, float64, shape (n, state_dim).
 
     The double lane change starts at the beginning of the course (``task.model.initial_states``, a small
-    perturbation of the reference at ``X = 0``); a task without a course starts from its training
-    distribution (``sample_initial``).
+    perturbation of the reference at ``X = 0``), or with ``along=True`` at a point drawn uniformly along
+    the course (``X ~ U(0, course_length)``, the same perturbation); a task without a course starts from
+    its training distribution (``sample_initial``).
     """
     model = getattr(task, "model", None)
     if model is not None and hasattr(model, "initial_states"):
+        if along:
+            return model.initial_states(n, generator, dtype=torch.float64, along=True)
         return model.initial_states(n, generator, dtype=torch.float64)
     return task.sample_initial(n, generator)
+
+
+def _course_length(task: Task) -> float:
+    """The course length of ``task`` (``inf`` for a task without a course)."""
+    config = getattr(getattr(task, "model", None), "config", None)
+    return float(getattr(config, "course_length", math.inf))
 
 
 class ModelStateSampler:
@@ -103,6 +114,10 @@ class ModelStateSampler:
         self.restarts = 0
         self.k = 0
         self.box = float(config.model_box) * task.obs_scale.to(torch.float64)
+        self.along = config.model_course_starts == "along"
+        #: course copies restart when they pass the course's end ("along", "loop")
+        self.end_restart = config.model_course_starts in ("along", "loop")
+        self.course_length = _course_length(task)
 
     # ------------------------------------------------------------------------------------ rollouts
     def _restart(self, done: torch.Tensor) -> None:
@@ -110,7 +125,7 @@ class ModelStateSampler:
         course = done & self.course if self.k >= self.config.model_course_start else torch.zeros_like(done)
         wide = done & ~course
         if bool(course.any()):
-            self.states[course] = course_starts(self.task, int(course.sum()), self.generator)
+            self.states[course] = course_starts(self.task, int(course.sum()), self.generator, self.along)
         if bool(wide.any()):
             self.states[wide] = self.task.sample_initial(int(wide.sum()), self.generator)
         self.steps[done] = 0
@@ -155,6 +170,8 @@ class ModelStateSampler:
         self.steps += 1
         horizons = self.horizons if self.k >= self.config.model_course_start else self.config.horizon
         done = task.is_terminal(s_next) | self._outside(s_next) | (self.steps >= horizons)
+        if self.end_restart and self.k >= self.config.model_course_start:  # a course copy past the course's end
+            done = done | (self.course & (s_next[:, -1] >= self.course_length))  # (the state's last entry is X)
         self.states = s_next.clone()
         if bool(done.any()):
             self._restart(done)

@@ -908,11 +908,19 @@ class DoubleLaneChangeModel:
         return self._states_from_errors(X, dev)
 
     def initial_states(self, n: int, generator: torch.Generator | None = None, *,
-                       dtype: torch.dtype = torch.float32, device: str | torch.device = "cpu") -> torch.Tensor:
-        """Episode start states (``X = 0``, perturbation uniform in ``reset_half_widths``), shape (n, 6)."""
+                       dtype: torch.dtype = torch.float32, device: str | torch.device = "cpu",
+                       along: bool = False) -> torch.Tensor:
+        """Episode start states (``X = 0``, perturbation uniform in ``reset_half_widths``), shape (n, 6).
+
+        With ``along=True`` each start is at ``X ~ U(0, course_length)`` instead (on the reference there,
+        the same small perturbation): starts spread along the whole course.
+        """
         n = check_positive_int(n, "n")
         cfg = self.config
-        X = torch.zeros(n, dtype=dtype, device=device)
+        if along:
+            X = cfg.course_length * torch.rand(n, generator=generator, dtype=dtype, device=device)
+        else:
+            X = torch.zeros(n, dtype=dtype, device=device)
         w = torch.tensor(cfg.reset_half_widths, dtype=dtype, device=device)
         dev = w * (2.0 * torch.rand(n, 5, generator=generator, dtype=dtype, device=device) - 1.0)
         return self._states_from_errors(X, dev)
