@@ -236,9 +236,24 @@ def summary(_: argparse.Namespace) -> None:
                for r in rows if r["method"] == "mixed" and r["seed_group"] == "0-4"
                and (r["iterations"] == 1500 or r["tag"] in ("J", "M3", "N3"))]  # these decay longer: their budget
     atomic_write_text(OUT / "designs.csv", _csv(designs))
-    chosen = []
+    for tag in BUDGET_TABLES:
+        atomic_write_text(OUT / f"budgets_{tag}.csv", _csv(_budget_rows(rows, tag)))
     for r in rows:
-        if r["tag"] != "M":
+        print(f"{r['tag']:>14} {r['method']:>6} n={r['iterations']:>5} seeds[{r['seeds']}] cost {r['cost_mean']:6.1f} "
+              f"(max {r['cost_max']:6.1f}) lat {r['lateral_mean']:.3f}±{r['lateral_std']:.3f} "
+              f"spd {r['speed_mean']:.4f}±{r['speed_std']:.4f} true {r['true_transitions']} | {r['per_seed_lateral']}")
+
+
+#: Designs whose every budget and seed group gets a table ``budgets_<tag>.csv`` (``summary``).
+BUDGET_TABLES = ("M", "S")
+
+
+def _budget_rows(rows: list[dict[str, Any]], tag: str) -> list[dict[str, Any]]:
+    """The rows of ``budgets_<tag>.csv``: each method, budget and seed group of design ``tag``, with the
+    change of the mean cost from the previous budget."""
+    chosen: list[dict[str, Any]] = []
+    for r in rows:
+        if r["tag"] != tag:
             continue
         prev = [q for q in chosen if q["method"] == r["method"] and q["seeds"] == r["seeds"]]
         chosen.append({"method": r["method"], "iterations": r["iterations"], "seeds": r["seeds"],
@@ -252,11 +267,7 @@ def summary(_: argparse.Namespace) -> None:
                        "true transitions": r["true_transitions"], "_cost": r["cost_mean"]})
     order = {"mixed": 0, "model": 1, "oracle": 2}
     chosen.sort(key=lambda q: (q["seeds"] != "0 1 2 3 4", order.get(q["method"], 9), q["iterations"]))
-    atomic_write_text(OUT / "budgets_M.csv", _csv([{k: v for k, v in q.items() if k != "_cost"} for q in chosen]))
-    for r in rows:
-        print(f"{r['tag']:>14} {r['method']:>6} n={r['iterations']:>5} seeds[{r['seeds']}] cost {r['cost_mean']:6.1f} "
-              f"(max {r['cost_max']:6.1f}) lat {r['lateral_mean']:.3f}±{r['lateral_std']:.3f} "
-              f"spd {r['speed_mean']:.4f}±{r['speed_std']:.4f} true {r['true_transitions']} | {r['per_seed_lateral']}")
+    return [{k: v for k, v in q.items() if k != "_cost"} for q in chosen]
 
 
 def _csv(rows: list[dict[str, Any]]) -> str:
