@@ -46,6 +46,7 @@ import torch
 
 from mixedrl.config import TrainConfig
 from mixedrl.runs import atomic_write_bytes, atomic_write_text, make_trainer, train
+from mixedrl.tasks import task_from_config
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from model_based_study import _csv, seeds_of  # noqa: E402  (the same seed syntax and CSV writer)
@@ -60,7 +61,11 @@ CANDIDATES: dict[str, tuple[float, ...]] = {
     "P12": (2.0, 4.0, 6.0, 8.0, 10.0, 12.0),
     "P24": (3.0, 6.0, 9.0, 12.0, 15.0, 18.0, 21.0, 24.0),
     "P6": (1.5, 3.0, 4.5, 6.0),
+    "P12s": (2.0, 4.0, 6.0, 8.0, 10.0, 12.0),
 }
+#: Candidates whose preview columns are scaled per distance (:func:`preview_scale`) instead of the task's
+#: 2 m for every preview column.
+PER_DISTANCE_SCALE = {"P12s"}
 #: The chosen candidate (docs/references.rst: chosen from the NMPC's evidence, before any training).
 CHOSEN = "P12"
 
@@ -229,30 +234,53 @@ def actor_weights(actor: torch.nn.Module) -> dict[str, list[Any]]:
     return {k: v.detach().double().tolist() for k, v in actor.state_dict().items()}
 
 
-def job_path(candidate: str, method: str, seed: int) -> Path:
-    """``docs/_static/preview/per_run/<candidate>/<method>_s<seed>.json``."""
-    return OUT / "per_run" / candidate / f"{method}_s{seed}.json"
+def job_path(candidate: str, method: str, seed: int, iterations: int | None = None) -> Path:
+    """``docs/_static/preview/per_run/<candidate>/<method>_s<seed>.json`` (``_n<iterations>`` appended for
+    a budget other than the default)."""
+    tail = "" if iterations in (None, TrainConfig().iterations) else f"_n{iterations}"
+    return OUT / "per_run" / candidate / f"{method}_s{seed}{tail}.json"
 
 
-def config_of(candidate: str, method: str, seed: int) -> TrainConfig:
+def config_of(candidate: str, method: str, seed: int, iterations: int | None = None) -> TrainConfig:
     """The run's config: :class:`~mixedrl.config.TrainConfig`'s defaults (design M of
     docs/model_based.rst) plus the candidate's ``task.preview_distances``; evaluations every 300
-    iterations (reporting only, as in scripts/model_based_study.py), one checkpoint at the end."""
+    iterations (reporting only, as in scripts/model_based_study.py), one checkpoint at the end.
+    ``iterations`` (default: the default budget, 1500) is the budget, as the model-based study varies it."""
     if candidate not in CANDIDATES:
         raise ValueError(f"candidate: expected one of {sorted(CANDIDATES)}, got {candidate!r}")
-    n = TrainConfig().iterations
-    return TrainConfig().replace(method=method, seed=seed, eval_every=max(100, n // 5), checkpoint_every=n,
+    n = TrainConfig().iterations if iterations is None else iterations
+    return TrainConfig().replace(method=method, seed=seed, iterations=n, eval_every=max(100, n // 5),
+                                 checkpoint_every=n,
                                  num_threads=1, **{"task.preview_distances": list(CANDIDATES[candidate])})
 
 
-def run_job(candidate: str, method: str, seed: int) -> str:
+def preview_scale(task: Any) -> torch.Tensor:
+    """``max_X |Y_ref(X + d_i) - Y_ref(X)|`` over the course (``X`` in [0, course_length], 1 cm grid) for
+    each preview distance of the task: each preview column then lies in [-1, 1] on the path."""
+    cfg = task.model.config
+    X = np.linspace(0.0, cfg.course_length, int(round(cfg.course_length * 100)) + 1)
+    return torch.tensor([float(np.abs(cfg.reference.lateral(X + d) - cfg.reference.lateral(X)).max())
+                         for d in cfg.preview_distances], dtype=torch.float32)
+
+
+def make_task(candidate: str, cfg: TrainConfig) -> Any:
+    """The run's task: ``task_from_config(cfg.task)``, with :func:`preview_scale` on the preview columns of
+    ``obs_scale`` for the candidates of :data:`PER_DISTANCE_SCALE` (the networks' input scaling and the
+    model box follow ``task.obs_scale``)."""
+    task = task_from_config(cfg.task)
+    if candidate in PER_DISTANCE_SCALE:
+        task.obs_scale = torch.cat([task.obs_scale[:5], preview_scale(task)])
+    return task
+
+
+def run_job(candidate: str, method: str, seed: int, iterations: int | None = None) -> str:
     """Train one run and write its JSON (skipped if it exists); returns a one-line summary."""
-    path = job_path(candidate, method, seed)
+    path = job_path(candidate, method, seed, iterations)
     if path.exists():
         return f"skip {path}"
     torch.set_num_threads(1)
-    cfg = config_of(candidate, method, seed)
-    trainer = make_trainer(cfg)
+    cfg = config_of(candidate, method, seed, iterations)
+    trainer = make_trainer(cfg, make_task(candidate, cfg))
     evals: list[dict[str, float]] = []
 
     def callback(row: dict[str, Any]) -> None:
@@ -269,7 +297,7 @@ def run_job(candidate: str, method: str, seed: int) -> str:
            "lateral_mae": res["lateral_mae"], "speed_mae": res["speed_mae"], "cost": res["cost"],
            "terminated": res["final"]["terminated"], "true_transitions": res["true_transitions"],
            "final_ibe_mean_vx": res["final_ibe_mean"][2], "evals": evals,
-           "actor": actor_weights(trainer.actor)}
+           "obs_scale": trainer.task.obs_scale.tolist(), "actor": actor_weights(trainer.actor)}
     path.parent.mkdir(parents=True, exist_ok=True)
     atomic_write_text(path, json.dumps(out) + "\n")
     return (f"{candidate} {method} s{seed}: cost {out['cost']:.2f}, lateral {out['lateral_mae']:.4f} m, "
@@ -281,23 +309,23 @@ def run(args: argparse.Namespace) -> None:
     for candidate in args.candidate.split(","):
         for seed in seeds_of(args.seeds):
             for method in args.methods.split(","):
-                print(run_job(candidate, method, seed), flush=True)
+                print(run_job(candidate, method, seed, args.iterations), flush=True)
 
 
 def summarize(runs: list[dict[str, Any]]) -> list[dict[str, Any]]:
-    """Mean and sample standard deviation per (candidate, method, seed group); seeds >= :data:`HELD_OUT`
-    form the ``held-out`` group."""
-    groups: dict[tuple[str, str, str], list[dict[str, Any]]] = {}
+    """Mean and sample standard deviation per (candidate, method, budget, seed group); seeds >=
+    :data:`HELD_OUT` form the ``held-out`` group."""
+    groups: dict[tuple[str, str, int, str], list[dict[str, Any]]] = {}
     for r in runs:
         group = "0-4" if r["seed"] < HELD_OUT else "held-out"
-        groups.setdefault((r["candidate"], r["method"], group), []).append(r)
+        groups.setdefault((r["candidate"], r["method"], r["iterations"], group), []).append(r)
     rows = []
-    for (candidate, method, group), rs in sorted(groups.items()):
+    for (candidate, method, iterations, group), rs in sorted(groups.items()):
         rs = sorted(rs, key=lambda r: r["seed"])
         ddof = 1 if len(rs) > 1 else 0
         row: dict[str, Any] = {"candidate": candidate,
                                "preview_distances": " ".join(f"{d:g}" for d in rs[0]["preview_distances"]),
-                               "method": method, "seed_group": group,
+                               "method": method, "iterations": iterations, "seed_group": group,
                                "seeds": " ".join(str(r["seed"]) for r in rs)}
         for key in ("cost", "lateral_mae", "speed_mae"):
             x = np.array([r[key] for r in rs])
@@ -319,20 +347,21 @@ def ship(args: argparse.Namespace) -> None:
     rows = summarize(runs)
     atomic_write_text(OUT / "summary.json", json.dumps(rows, indent=1) + "\n")
     table = [{"candidate": r["candidate"], "preview [m]": r["preview_distances"] or "none",
-              "method": r["method"], "seeds": r["seeds"] if r["seed_group"] == "0-4" else r["seeds"] + " (held out)",
+              "method": r["method"], "iterations": r["iterations"], "seeds": r["seeds"] if r["seed_group"] == "0-4" else r["seeds"] + " (held out)",
               "course cost": f"{r['cost_mean']:.2f} +- {r['cost_std']:.2f}",
               "lateral [m]": f"{r['lateral_mae_mean']:.4f} +- {r['lateral_mae_std']:.4f}",
               "speed [m/s]": f"{r['speed_mae_mean']:.4f} +- {r['speed_mae_std']:.4f}",
               "worst cost": f"{r['cost_max']:.2f}", "true transitions": r["true_transitions"]} for r in rows]
     atomic_write_text(OUT / "summary.csv", _csv(table))
-    per_seed = [{"candidate": r["candidate"], "method": r["method"], "seed": r["seed"],
+    per_seed = [{"candidate": r["candidate"], "method": r["method"], "iterations": r["iterations"],
+                 "seed": r["seed"],
                  "course cost": f"{r['cost']:.2f}", "lateral [m]": f"{r['lateral_mae']:.4f}",
                  "speed [m/s]": f"{r['speed_mae']:.4f}", "true transitions": r["true_transitions"],
                  "wall [s]": f"{r['wall_s']:.0f}"}
-                for r in sorted(runs, key=lambda r: (r["candidate"], r["method"], r["seed"]))]
+                for r in sorted(runs, key=lambda r: (r["candidate"], r["method"], r["iterations"], r["seed"]))]
     atomic_write_text(OUT / "per_seed.csv", _csv(per_seed))
     for r in rows:
-        print(f"{r['candidate']:>5} {r['method']:>6} [{r['seeds']}] cost {r['cost_mean']:.2f}+-{r['cost_std']:.2f} "
+        print(f"{r['candidate']:>5} {r['method']:>6} n={r['iterations']} [{r['seeds']}] cost {r['cost_mean']:.2f}+-{r['cost_std']:.2f} "
               f"lat {r['lateral_mae_mean']:.4f}+-{r['lateral_mae_std']:.4f} "
               f"spd {r['speed_mae_mean']:.4f}+-{r['speed_mae_std']:.4f} true {r['true_transitions']}")
     figure(runs, args.chosen)
@@ -352,7 +381,8 @@ def figure(runs: list[dict[str, Any]], chosen: str) -> None:
     curves = []
     for candidate, label, color in ((chosen, f"mixed RL, preview {chosen}", "C0"),
                                     ("none", "mixed RL, no preview", "C3")):
-        mine = [r for r in runs if r["candidate"] == candidate and r["method"] == "mixed" and r["seed"] == 0]
+        mine = [r for r in runs if r["candidate"] == candidate and r["method"] == "mixed" and r["seed"] == 0
+                and r["iterations"] == TrainConfig().iterations]
         if not mine:
             continue
         cfg = DoubleLaneChangeConfig(preview_distances=tuple(mine[0]["preview_distances"]))
@@ -396,6 +426,7 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--candidate", required=True, help=f"comma-separated, of {sorted(CANDIDATES)}")
     p.add_argument("--methods", default="mixed")
     p.add_argument("--seeds", default="0-4")
+    p.add_argument("--iterations", type=int, default=None, help="budget (default: TrainConfig's, 1500)")
     p = sub.add_parser("ship")
     p.add_argument("--chosen", default=CHOSEN)
     args = parser.parse_args(argv)

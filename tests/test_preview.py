@@ -174,3 +174,20 @@ def test_limited_preview_nmpc_brackets() -> None:
     assert np.abs(half(s) - full(s)).max() > 1e-6
     with pytest.raises(ValueError, match="^reach"):
         PS.LimitedPreviewNMPC(-1.0)
+
+
+def test_per_distance_scale_puts_the_preview_in_unit_range() -> None:
+    """The study's variant P12s: each preview column's ``obs_scale`` is its largest value on the course, so
+    the columns lie in [-1, 1] there (and reach 1); networks and the model box take the task's scale."""
+    cfg = PS.config_of("P12s", "mixed", 0).replace(**{k: v for k, v in FAST.items()})
+    task = PS.make_task("P12s", cfg)
+    trainer = make_trainer(cfg, task)
+    assert torch.equal(trainer.actor.net.input_scale, task.obs_scale)
+    assert torch.equal(trainer.critic.net.input_scale, task.obs_scale)
+    X = torch.linspace(0.0, 120.0, 12001, dtype=torch.float64)
+    ref = task.model.config.reference
+    y, psi = ref.lateral_and_heading(X)
+    on_path = torch.stack([torch.zeros_like(X), torch.zeros_like(X), torch.full_like(X, 12.0), psi, y, X], 1)
+    ratio = (task.observe(on_path)[:, 5:].abs() / task.obs_scale[5:]).max(dim=0).values
+    np.testing.assert_allclose(ratio.numpy(), 1.0, atol=1e-3)
+    assert torch.equal(PS.make_task("P12", cfg).obs_scale[5:], torch.full((6,), 2.0))
