@@ -339,6 +339,14 @@ def summarize(runs: list[dict[str, Any]]) -> list[dict[str, Any]]:
     return rows
 
 
+def steer_gains(run_row: dict[str, Any]) -> np.ndarray:
+    """``d delta / d o`` of a run's actor at the origin (on the path, 12 m/s, straight road ahead), by
+    central differences (step 1e-4) of :class:`NumpyActor`: shape (obs_dim,) [rad per unit of o]."""
+    actor = NumpyActor(run_row["actor"])
+    eye = 1e-4 * np.eye(actor.obs_dim)
+    return np.array([(actor(e)[0] - actor(-e)[0]) / 2e-4 for e in eye])
+
+
 def ship(args: argparse.Namespace) -> None:
     """Write ``summary.csv``, ``summary.json``, ``per_seed.csv`` and ``trajectory.png``."""
     runs = [json.loads(p.read_text()) for p in sorted((OUT / "per_run").glob("*/*.json"))]
@@ -347,6 +355,8 @@ def ship(args: argparse.Namespace) -> None:
     rows = summarize(runs)
     atomic_write_text(OUT / "summary.json", json.dumps(rows, indent=1) + "\n")
     table = [{"candidate": r["candidate"], "preview [m]": r["preview_distances"] or "none",
+              "preview scale": "per distance" if r["candidate"] in PER_DISTANCE_SCALE
+              else ("2 m" if r["preview_distances"] else ""),
               "method": r["method"], "iterations": r["iterations"], "seeds": r["seeds"] if r["seed_group"] == "0-4" else r["seeds"] + " (held out)",
               "course cost": f"{r['cost_mean']:.2f} +- {r['cost_std']:.2f}",
               "lateral [m]": f"{r['lateral_mae_mean']:.4f} +- {r['lateral_mae_std']:.4f}",
@@ -357,6 +367,9 @@ def ship(args: argparse.Namespace) -> None:
                  "seed": r["seed"],
                  "course cost": f"{r['cost']:.2f}", "lateral [m]": f"{r['lateral_mae']:.4f}",
                  "speed [m/s]": f"{r['speed_mae']:.4f}", "true transitions": r["true_transitions"],
+                 "steer gain e_y [rad/m]": f"{steer_gains(r)[4]:.3f}",
+                 "max steer gain preview [rad/m]": f"{np.abs(steer_gains(r)[5:]).max():.3f}"
+                 if r["preview_distances"] else "",
                  "wall [s]": f"{r['wall_s']:.0f}"}
                 for r in sorted(runs, key=lambda r: (r["candidate"], r["method"], r["iterations"], r["seed"]))]
     atomic_write_text(OUT / "per_seed.csv", _csv(per_seed))
