@@ -5,9 +5,22 @@ NMPC solve (2 s horizon, 400 stages, gamma = 0.99, true mean; the online work of
 :class:`validation.nmpc.VehicleNMPC`) and one forward pass of :class:`mixedrl.networks.Actor` (the
 default (64, 64) ELU network) on one observation. ``extra_info["ratio_to_actor"]`` on the NMPC row is
 its median over the actor's. Skipped without CasADi (extra ``nmpc``).
+
+The preview policy of docs/references.rst ("Mixed RL with path preview"; scripts/preview_study.py), in the
+same group and the same run: ``test_preview_actor_inference`` (the torch actor on the 11-dimensional
+preview observation, the shipped seed-0 weights) and ``test_preview_step_numpy`` (the whole online work
+of one control step on a plain-NumPy deployment path: the observation with its six preview distances
+computed from the state, then the same weights' forward pass, :class:`preview_study.NumpyActor`).
+``extra_info["ratio_to_preview_torch"]`` and ``["ratio_to_preview_numpy"]`` on the NMPC row are the NMPC
+solve's median over theirs (the NMPC runs last in the file).
 """
 
 from __future__ import annotations
+
+import importlib.util
+import json
+import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -20,6 +33,10 @@ from mixedrl.envs import DoubleLaneChangeModel  # noqa: E402
 from mixedrl.networks import Actor  # noqa: E402
 from mixedrl.tasks import DoubleLaneChangeTask  # noqa: E402
 from validation.nmpc import VehicleNMPC  # noqa: E402
+
+from mixedrl.envs.tracking import observation_columns  # noqa: E402
+
+_ROOT = Path(__file__).resolve().parents[1]
 
 _MEDIANS: dict[str, float] = {}
 
@@ -44,6 +61,64 @@ def test_actor_inference(benchmark) -> None:
     benchmark.extra_info["threads"] = torch.get_num_threads()
 
 
+def _preview_study():
+    spec = importlib.util.spec_from_file_location("preview_study", _ROOT / "scripts" / "preview_study.py")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules.setdefault("preview_study", module)
+    spec.loader.exec_module(module)
+    return module
+
+
+def _preview_policy() -> tuple[DoubleLaneChangeTask, Actor, str]:
+    """The task with the chosen preview and its actor: the shipped seed-0 weights (else a fresh actor of
+    the same shape, which costs the same)."""
+    ps = _preview_study()
+    preview = ps.CANDIDATES[ps.CHOSEN]
+    task = DoubleLaneChangeTask(preview_distances=preview)
+    cfg = TrainConfig()
+    actor = Actor(task.obs_dim, task.action_dim, cfg.hidden_sizes, cfg.activation, torch.Generator().manual_seed(0),
+                  task.action_bound, task.obs_scale)
+    path = _ROOT / ps.job_path(ps.CHOSEN, "mixed", 0)
+    source = "fresh weights"
+    if path.exists():
+        weights = json.loads(path.read_text())["actor"]
+        actor.load_state_dict({k: torch.tensor(v, dtype=torch.float32) for k, v in weights.items()})
+        source = str(path.relative_to(_ROOT))
+    return task, actor, source
+
+
+def test_preview_actor_inference(benchmark) -> None:
+    """The preview policy's torch ``Actor`` forward on one 11-dimensional observation (float32, no autograd)."""
+    task, actor, source = _preview_policy()
+    obs = task.observe(torch.tensor(_start()[None]))[0].float()
+    benchmark.group = "online-control"
+    with torch.no_grad():
+        benchmark(actor, obs)
+    _MEDIANS["preview_torch"] = benchmark.stats.stats.median
+    benchmark.extra_info["weights"] = source
+
+
+def test_preview_step_numpy(benchmark) -> None:
+    """One whole control step of the preview policy in plain NumPy: observation (with the preview) from
+    the state, then the forward pass of the same weights."""
+    ps = _preview_study()
+    task, actor, source = _preview_policy()
+    fast = ps.NumpyActor(actor.state_dict())
+    cfg = task.model.config
+    s = tuple(float(x) for x in _start())
+
+    def step() -> np.ndarray:
+        return fast(np.array(observation_columns(cfg, *s)))
+
+    with torch.no_grad():
+        torch_u = actor(task.observe(torch.tensor(_start()[None]))[0].float()).double().numpy()
+    np.testing.assert_allclose(step(), torch_u, rtol=0, atol=1e-5)  # the same policy
+    benchmark.group = "online-control"
+    benchmark(step)
+    _MEDIANS["preview_numpy"] = benchmark.stats.stats.median
+    benchmark.extra_info["weights"] = source
+
+
 def test_nmpc_solve(benchmark) -> None:
     """One warm-started NMPC solve (shift by one step) from the course's start, 2 s horizon."""
     ctrl = VehicleNMPC(horizon=2.0, gamma=0.99, force="true")
@@ -60,5 +135,6 @@ def test_nmpc_solve(benchmark) -> None:
 
     benchmark.group = "online-control"
     benchmark.pedantic(solve, rounds=30, iterations=1, warmup_rounds=2)
-    if "actor" in _MEDIANS:
-        benchmark.extra_info["ratio_to_actor"] = benchmark.stats.stats.median / _MEDIANS["actor"]
+    for key in ("actor", "preview_torch", "preview_numpy"):
+        if key in _MEDIANS:
+            benchmark.extra_info[f"ratio_to_{key}"] = benchmark.stats.stats.median / _MEDIANS[key]
