@@ -4,7 +4,9 @@ Each study is a sweep spec in ``studies/<study>.toml`` (:mod:`mixedrl.sweep`)::
 
     PYTHONPATH=. python scripts/beyond_paper.py run STUDY [--reduced] [--out DIR] [--num-cpus N]
                                                           [--address ADDR] [--resume] [--no-share] [--no-progress]
+                                                          [--seeds S ...]
     PYTHONPATH=. python scripts/beyond_paper.py ship STUDY [--runs DIR] [--dest DIR]
+    PYTHONPATH=. python scripts/beyond_paper.py nmpc [--dest DIR] [--seeds S ...] [--progress]
 
 ``run`` trains the study into ``--out`` (default ``runs/beyond/<study>``; with ``--reduced``
 ``runs/beyond/<study>_reduced``) with :func:`mixedrl.sweep.run_sweep`, the engine of ``mixedrl sweep``.
@@ -26,6 +28,12 @@ spec as it is (one part, ``main/``). ``study.json`` in ``--out`` records the par
 ``ship`` reads the parts' ``sweep.json`` and every run's ``results.json`` (and, for the road grade, its
 checkpoint) and writes ``table.csv``, ``table.json`` and ``figure.png`` into ``--dest`` (default
 ``docs/_static/beyond/<study>``), atomically; the same runs give the same bytes.
+
+``nmpc`` drives the NMPC reference (:func:`validation.nmpc.run_reference`, gamma 0.99, 2 s horizon) once
+per prior mean of the prior-mismatch study, predicting with that prior mean, and caches the results in
+``--dest/nmpc.json`` (default ``docs/_static/beyond/prior_mismatch``; written after every prior, a prior
+already there with the same settings is not driven again). ``ship prior_mismatch`` adds the cached priors
+as rows ``method = "nmpc"`` (``runs`` = noise courses) and as a reference line of the figure.
 """
 
 from __future__ import annotations
@@ -53,6 +61,12 @@ from mixedrl.tasks import task_from_config
 ROOT = Path(__file__).resolve().parents[1]
 #: Iterations of a ``--reduced`` run.
 REDUCED_ITERATIONS = 100
+#: The NMPC reference of the prior-mismatch study: :func:`validation.nmpc.run_reference` settings.
+NMPC_SETTINGS: dict[str, Any] = {"controller": "nmpc", "gamma": 0.99, "horizon": 2.0}
+#: The NMPC cache of the prior-mismatch study, in its ``--dest``.
+NMPC_FILE = "nmpc.json"
+#: The figures of an NMPC result kept in the cache (the timings are not: they are not reproducible).
+NMPC_FIGURES = ("lateral_mae", "speed_mae", "lateral_max", "speed_max", "cost", "terminated")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -123,6 +137,21 @@ def reduce_spec(spec: SweepSpec) -> SweepSpec:
     return parse_spec(text, "reduced spec")
 
 
+def subset_seeds(spec: SweepSpec, seeds: list[int]) -> SweepSpec:
+    """The spec on a subset of its seeds (``run --seeds``: a study cut short, reported as such).
+
+    Raises
+    ------
+    ValueError
+        ``seeds`` is empty, repeats a seed, or names a seed the spec does not have.
+    """
+    if not seeds or len(set(seeds)) != len(seeds) or not set(seeds) <= set(spec.seeds):
+        raise ValueError(f"seeds: expected distinct seeds among the spec's {list(spec.seeds)}, got {seeds!r}")
+    kept = [s for s in spec.seeds if s in seeds]  # the spec's order
+    return parse_spec(spec_text(list(spec.methods), kept, dict(spec.base), {k: list(v) for k, v in spec.grid.items()},
+                                f"the spec on seeds {kept} only (scripts/beyond_paper.py run --seeds)"), "seed subset")
+
+
 def study_parts(spec: SweepSpec, shared: dict[str, str]) -> dict[str, SweepSpec]:
     """Split ``spec`` into ``main`` / ``shared`` / ``witness`` sweeps (module docstring); ``{"main": spec}``
     when no method of the spec is shared.
@@ -163,12 +192,20 @@ def study_parts(spec: SweepSpec, shared: dict[str, str]) -> dict[str, SweepSpec]
 # run
 # ----------------------------------------------------------------------------------------------------
 def run_study(name: str, out: Path, reduced: bool = False, share: bool = True, address: str | None = None,
-              num_cpus: int | None = None, resume: bool = False, progress: bool = True) -> dict[str, Any]:
-    """Train the study ``name`` into ``out`` (its parts, in order); return ``{part: sweep.json}``."""
+              num_cpus: int | None = None, resume: bool = False, progress: bool = True,
+              seeds: list[int] | None = None) -> dict[str, Any]:
+    """Train the study ``name`` into ``out`` (its parts, in order); return ``{part: sweep.json}``.
+
+    ``seeds`` (optional) trains only those seeds of the spec (:func:`subset_seeds`); ``study.json`` records
+    them and ``ship`` reports the table as covering them only.
+    """
     study = STUDIES[name]
     spec = load_spec(ROOT / study.spec)
+    spec_seeds = list(spec.seeds)
     if reduced:
         spec = reduce_spec(spec)
+    if seeds is not None:
+        spec = subset_seeds(spec, list(seeds))
     shared = study.shared if share else {}
     parts = study_parts(spec, shared)
     key = next(iter(shared.values()), None) if "shared" in parts else None
@@ -176,6 +213,8 @@ def run_study(name: str, out: Path, reduced: bool = False, share: bool = True, a
                 "methods": list(spec.methods), "seeds": list(spec.seeds),
                 "shared_methods": [m for m in shared if m in spec.methods] if key else [], "shared_key": key,
                 "grid": {k: list(v) for k, v in spec.grid.items()}}
+    if seeds is not None:
+        manifest["spec_seeds"] = spec_seeds  # a study cut short: the seeds it was meant to have
     if num_cpus is not None and (isinstance(num_cpus, bool) or not isinstance(num_cpus, int) or num_cpus < 1):
         raise ValueError(f"num_cpus: expected a positive integer, got {num_cpus!r}")
     try:
@@ -369,7 +408,8 @@ def build_table(name: str, records: list[dict[str, Any]], collapse_shared: bool,
             group["failed"] += 1
         else:
             group["runs"].append(r)
-    rows = []
+    rows: list[dict[str, Any]] = []
+    by_seed: list[dict[int, float]] = []  # each row's cost per seed
     for group in groups.values():
         runs = group["runs"]
         row: dict[str, Any] = {**group["cols"], "method": group["method"], "runs": len(runs), "failed": group["failed"],
@@ -391,14 +431,55 @@ def build_table(name: str, records: list[dict[str, Any]], collapse_shared: bool,
             rms = [float(np.sqrt(np.mean((course[x["name"]] - course["truth"]) ** 2))) for x in runs]
             row["mean_force_rms_error_N_mean"], row["mean_force_rms_error_N_std"] = _mean_std(rms)
         rows.append(row)
-    oracle = {json.dumps(r_cols(r), sort_keys=True): r["cost_mean"] for r in rows if r["method"] == "oracle"}
-    single = next(iter(oracle.values())) if collapse_shared and len(oracle) == 1 else None
-    for row in rows:
-        ref = oracle.get(json.dumps(r_cols(row), sort_keys=True), single)
+        by_seed.append({x["seed"]: x["results"]["cost"] for x in runs})
+    oracle = {json.dumps(r_cols(r), sort_keys=True): (r["cost_mean"], seeds) for r, seeds in zip(rows, by_seed)
+              if r["method"] == "oracle"}
+    single = next(iter(oracle.values())) if collapse_shared and len(oracle) == 1 else (None, {})
+    for row, seeds in zip(rows, by_seed):
+        ref, ref_seeds = oracle.get(json.dumps(r_cols(row), sort_keys=True), single)
         ok = ref is not None and row["cost_mean"] is not None and ref > 0
         row["ratio_to_oracle"] = row["cost_mean"] / ref if ok else None
         row["excess_over_oracle"] = row["cost_mean"] - ref if ok else None
+        # paired by seed: the same seed's oracle run (the seeds finished by both)
+        paired = [seeds[s] - ref_seeds[s] for s in sorted(seeds) if s in ref_seeds]
+        row["paired_excess_mean"], row["paired_excess_std"] = _mean_std(paired)
+        row["paired_seeds"] = len(paired)
     return rows
+
+
+def per_seed_costs(name: str, records: list[dict[str, Any]], collapse_shared: bool) -> list[dict[str, Any]]:
+    """One entry per finished run: its point columns, method, seed and final course figures (the
+    table's raw data, for paired comparisons across grid points)."""
+    out = []
+    for r in records:
+        if r["results"] is None:
+            continue
+        out.append({**_point_columns(name, r, collapse_shared), "method": r["method"], "seed": r["seed"],
+                    **{k: r["results"][k] for k in ("cost", "speed_mae", "lateral_mae")}})
+    return out
+
+
+def case3_vs_case2(per_seed: list[dict[str, Any]]) -> dict[str, Any] | None:
+    """Road grade: mixed RL's Case-3 course cost against Case 2's and the oracle's, paired by seed.
+
+    Returns
+    -------
+    dict or None
+        ``seeds`` (finished by Case 2, Case 3 and the oracle), the per-seed ``relative_change`` of Case 3's
+        cost from Case 2's (``c3 / c2 - 1``) and ``ratio_to_oracle`` (``c3 / oracle``), each with its mean
+        and sample std; None when no seed has the three runs.
+    """
+    cost = {(e["method"], e["ibe_case"], e["seed"]): e["cost"] for e in per_seed}
+    seeds = sorted(s for (m, c, s) in cost if (m, c) == ("mixed", 2) and ("mixed", 3, s) in cost
+                   and ("oracle", None, s) in cost)
+    if not seeds:
+        return None
+    change = [cost[("mixed", 3, s)] / cost[("mixed", 2, s)] - 1.0 for s in seeds]
+    ratio = [cost[("mixed", 3, s)] / cost[("oracle", None, s)] for s in seeds]
+    out: dict[str, Any] = {"seeds": seeds, "relative_change": change, "ratio_to_oracle": ratio}
+    out["relative_change_mean"], out["relative_change_std"] = _mean_std(change)
+    out["ratio_to_oracle_mean"], out["ratio_to_oracle_std"] = _mean_std(ratio)
+    return out
 
 
 def r_cols(row: dict[str, Any]) -> dict[str, Any]:
@@ -439,7 +520,11 @@ def make_figure(name: str, rows: list[dict[str, Any]], course: dict[str, np.ndar
                              if r["method"] == method and r[f"{fig_key}_mean"] is not None)
                 if pts:
                     arr = np.asarray(pts, dtype=float)
-                    ax.errorbar(arr[:, 0], arr[:, 1], yerr=arr[:, 2], marker="o", capsize=3, label=method)
+                    if method == "nmpc":  # a reference, not learned: one course per prior
+                        ax.plot(arr[:, 0], arr[:, 1], color="k", ls="--", marker="s", ms=4,
+                                label="NMPC with the prior mean")
+                    else:
+                        ax.errorbar(arr[:, 0], arr[:, 1], yerr=arr[:, 2], marker="o", capsize=3, label=method)
             ax.axvline(261.0, color="0.5", ls="--", lw=1)
             ax.set_xlabel("prior mean of F_dis [N] (truth 261 N, dashed)")
             ax.set_ylabel(f"{label} (mean ± std over seeds)")
@@ -512,22 +597,142 @@ def ship_study(name: str, runs: Path, dest: Path) -> dict[str, Any]:
             if r["results"] is not None and r["name"] not in course:
                 course[r["name"]] = course_mean_force(r["run_dir"], r["config"], X)
     rows = build_table(name, records, study.collapse_shared, course)
+    per_seed = per_seed_costs(name, records, study.collapse_shared)
+    nmpc = None
+    if name == "prior_mismatch" and (dest / NMPC_FILE).is_file():
+        cache = _load_nmpc_cache(dest / NMPC_FILE)
+        priors = [float(p) for p in manifest["grid"]["task.prior_force_mean"]]
+        oracle = {r["prior_force_mean"]: r["cost_mean"] for r in rows if r["method"] == "oracle"}
+        extra = {r["prior_force_mean"]: r for r in nmpc_rows(cache, priors, oracle)}
+        merged = []
+        for i, row in enumerate(rows):  # each prior's NMPC row after that prior's learned methods
+            merged.append(row)
+            last = i + 1 == len(rows) or rows[i + 1]["prior_force_mean"] != row["prior_force_mean"]
+            if last and row["prior_force_mean"] in extra:
+                merged.append(extra[row["prior_force_mean"]])
+        rows = merged
+        nmpc = {"file": NMPC_FILE, "settings": sorted({json.dumps(e["settings"], sort_keys=True)
+                                                       for e in cache["entries"]}),
+                "priors": sorted(extra), "generated_by": "scripts/beyond_paper.py nmpc"}
     doc = {
         "study": name,
         "description": study.description,
         "spec": study.spec,
         "reduced": manifest["reduced"],
+        "seeds": manifest["seeds"],
+        **({"spec_seeds": manifest["spec_seeds"]} if "spec_seeds" in manifest else {}),
         "generated_by": f"scripts/beyond_paper.py ship {name}",
         "statistics": "mean and sample standard deviation (ddof=1) over seeds; ratio_to_oracle and "
-                      "excess_over_oracle compare the mean course cost with the oracle's at the same point",
+                      "excess_over_oracle compare the mean course cost with the oracle's at the same point; "
+                      "paired_excess_* is the mean and std over seeds of the cost minus the same seed's oracle "
+                      "cost (paired_seeds seeds)",
         "shared": {"methods": manifest["shared_methods"], "key": manifest["shared_key"], "witness": checks},
+        **({"nmpc": nmpc} if nmpc is not None else {}),
         "rows": rows,
+        "per_seed": per_seed,
+        **({"case3_vs_case2": case3_vs_case2(per_seed)} if name == "road_grade" else {}),
     }
     dest.mkdir(parents=True, exist_ok=True)
     atomic_write_text(dest / "table.csv", _csv(rows))
     atomic_write_text(dest / "table.json", json.dumps(doc, indent=2, sort_keys=False) + "\n")
     atomic_write_bytes(dest / "figure.png", make_figure(name, rows, course, records))
     return doc
+
+
+
+# ----------------------------------------------------------------------------------------------------
+# the NMPC reference of the prior-mismatch study
+# ----------------------------------------------------------------------------------------------------
+def _nmpc_settings(seeds: list[int]) -> dict[str, Any]:
+    return {**NMPC_SETTINGS, "seeds": [int(s) for s in seeds]}
+
+
+def _load_nmpc_cache(path: Path) -> dict[str, Any]:
+    if not path.is_file():
+        return {"generated_by": "scripts/beyond_paper.py nmpc", "entries": []}
+    doc = json.loads(path.read_text())
+    if not isinstance(doc, dict) or not isinstance(doc.get("entries"), list):
+        raise ValueError(f"nmpc: {path} is not an NMPC cache of scripts/beyond_paper.py (no 'entries' list)")
+    return doc
+
+
+def nmpc_reference(priors: list[float], path: Path, seeds: list[int], runner: Any = None,
+                   progress: bool = False) -> dict[str, Any]:
+    """Drive the NMPC with each prior mean in ``priors`` (or reuse the cache ``path``) and return the cache.
+
+    Parameters
+    ----------
+    priors : list of float
+        Prior means of the disturbance force [N]; the NMPC predicts with each one.
+    path : Path
+        The cache (JSON, ``{"entries": [...]}``), rewritten atomically after every prior. An entry with
+        the same prior and the same settings (:data:`NMPC_SETTINGS` and ``seeds``) is reused.
+    seeds : list of int
+        Noise seeds, one course each (as :func:`validation.nmpc.run_reference`).
+    runner : callable, optional
+        ``runner(**kwargs) -> dict``; default :func:`validation.nmpc.run_reference` (tests pass a stub).
+    progress : bool, optional
+        Show the NMPC's progress bar.
+
+    Returns
+    -------
+    dict
+        The cache: ``entries``, one per prior driven (the study's order), each with ``prior_force_mean``,
+        ``settings``, ``wall_seconds`` and either ``result`` (:data:`NMPC_FIGURES`, their ``per_seed``
+        values, ``force_N``) or ``error`` (an IPOPT failure, say).
+    """
+    if runner is None:
+        from validation.nmpc import run_reference as runner
+    settings = _nmpc_settings(seeds)
+    doc = _load_nmpc_cache(path)
+    for prior in priors:
+        prior = float(prior)
+        if any(e.get("prior_force_mean") == prior and e.get("settings") == settings for e in doc["entries"]):
+            continue
+        t0 = time.perf_counter()
+        entry: dict[str, Any] = {"prior_force_mean": prior, "settings": settings}
+        try:
+            res = runner(**NMPC_SETTINGS, disturbance_mean=prior, seeds=tuple(settings["seeds"]), progress=progress)
+        except Exception as exc:  # noqa: BLE001 - an IPOPT failure is a result of the study, recorded
+            entry["error"] = f"{type(exc).__name__}: {exc}"
+        else:
+            entry["result"] = {**{k: float(res[k]) for k in NMPC_FIGURES}, "force_N": float(res["force_N"]),
+                               "per_seed": [{"seed": int(r["seed"]), **{k: float(r[k]) for k in NMPC_FIGURES}}
+                                            for r in res["per_seed"]]}
+        entry["wall_seconds"] = round(time.perf_counter() - t0, 1)
+        others = [e for e in doc["entries"] if e.get("prior_force_mean") != prior]
+        doc["entries"] = sorted(others + [entry], key=lambda e: float(e["prior_force_mean"]))
+        path.parent.mkdir(parents=True, exist_ok=True)
+        atomic_write_text(path, json.dumps(doc, indent=2) + "\n")
+    return doc
+
+
+def nmpc_rows(cache: dict[str, Any], priors: list[float], oracle_cost: dict[float, float]) -> list[dict[str, Any]]:
+    """The table rows ``method = "nmpc"`` of the cached priors that are in ``priors`` (their order).
+
+    ``runs`` counts the noise courses (one NMPC, nothing trained); the std is over those courses (0 for
+    one); ``ratio_to_oracle`` / ``excess_over_oracle`` compare its cost with ``oracle_cost[prior]``.
+    A cached failure is a row with ``failed = 1`` and no figures.
+    """
+    by_prior: dict[float, dict[str, Any]] = {}
+    for e in cache.get("entries", []):
+        by_prior[float(e["prior_force_mean"])] = e
+    rows = []
+    for prior in priors:
+        e = by_prior.get(float(prior))
+        if e is None:
+            continue
+        per = e.get("result", {}).get("per_seed", [])
+        row: dict[str, Any] = {"prior_force_mean": float(prior), "method": "nmpc", "runs": len(per),
+                               "failed": 0 if "result" in e else 1, "shared_run": False}
+        for fig in ("cost", "speed_mae", "lateral_mae"):
+            row[f"{fig}_mean"], row[f"{fig}_std"] = _mean_std([r[fig] for r in per])
+        ref = oracle_cost.get(float(prior))
+        ok = ref is not None and row["cost_mean"] is not None and ref > 0
+        row["ratio_to_oracle"] = row["cost_mean"] / ref if ok else None
+        row["excess_over_oracle"] = row["cost_mean"] - ref if ok else None
+        rows.append(row)
+    return rows
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -546,17 +751,24 @@ def main(argv: list[str] | None = None) -> int:
     run.add_argument("--resume", action="store_true", help="skip finished runs, resume interrupted ones")
     run.add_argument("--no-share", action="store_true", help="train every method at every grid point")
     run.add_argument("--no-progress", action="store_true")
+    run.add_argument("--seeds", type=int, nargs="+", default=None,
+                     help="train only these seeds of the spec (a study cut short; recorded in study.json)")
     ship = sub.add_parser("ship", help="write the study's table and figure")
     ship.add_argument("study", choices=sorted(STUDIES))
     ship.add_argument("--runs", type=Path, default=None, help="default runs/beyond/<study>")
     ship.add_argument("--dest", type=Path, default=None, help="default docs/_static/beyond/<study>")
+    nm = sub.add_parser("nmpc", help="drive the NMPC with each prior mean of the prior-mismatch study (cached)")
+    nm.add_argument("--dest", type=Path, default=None, help="default docs/_static/beyond/prior_mismatch")
+    nm.add_argument("--seeds", type=int, nargs="+", default=[0], help="noise seeds, one course each (default 0)")
+    nm.add_argument("--progress", action="store_true")
     args = parser.parse_args(argv)
     try:
         if args.command == "run":
             out = args.out or Path("runs/beyond") / (args.study + ("_reduced" if args.reduced else ""))
             t0 = time.perf_counter()
             docs = run_study(args.study, out, reduced=args.reduced, share=not args.no_share, address=args.address,
-                             num_cpus=args.num_cpus, resume=args.resume, progress=not args.no_progress)
+                             num_cpus=args.num_cpus, resume=args.resume, progress=not args.no_progress,
+                             seeds=args.seeds)
             for part, doc in docs.items():
                 print(f"[{part}]")
                 print(format_summary(doc, out / part))
@@ -564,6 +776,17 @@ def main(argv: list[str] | None = None) -> int:
             print(f"\n{args.study}: {sum(len(d['runs']) for d in docs.values())} runs, {failed} failed, "
                   f"{time.perf_counter() - t0:.1f} s")
             return 1 if failed else 0
+        if args.command == "nmpc":
+            dest = args.dest or Path("docs/_static/beyond/prior_mismatch")
+            priors = list(load_spec(ROOT / STUDIES["prior_mismatch"].spec).grid["task.prior_force_mean"])
+            cache = nmpc_reference(priors, dest / NMPC_FILE, args.seeds, progress=args.progress)
+            for e in cache["entries"]:
+                res = e.get("result")
+                print(f"prior {e['prior_force_mean']:g} N: " + (e["error"] if res is None else
+                      f"cost {res['cost']:.3f}, speed_mae {res['speed_mae']:.4f}, lateral_mae {res['lateral_mae']:.4f}"
+                      f" ({e['wall_seconds']} s)"))
+            print(f"cached in {dest / NMPC_FILE}")
+            return 0
         runs = args.runs or Path("runs/beyond") / args.study
         dest = args.dest or Path("docs/_static/beyond") / args.study
         doc = ship_study(args.study, runs, dest)

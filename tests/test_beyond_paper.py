@@ -118,6 +118,19 @@ def test_reduced_spec() -> None:
     assert spec.grid == {"task.prior_force_mean": (-300.0, 0.0)} and len(expand(spec)) == 6
 
 
+@pytest.mark.parametrize("name", sorted(BP.STUDIES))
+def test_seed_subset_is_the_spec_runs_of_those_seeds(name: str) -> None:
+    """``run --seeds``: the same run names and configs as the full spec, restricted to the seeds."""
+    spec = load_spec(ROOT / BP.STUDIES[name].spec)
+    sub = BP.subset_seeds(spec, [3, 1])
+    assert sub.seeds == (1, 3) and sub.grid == spec.grid and sub.base == spec.base and sub.methods == spec.methods
+    assert {r.name: r.config for r in expand(sub)} == {r.name: r.config for r in expand(spec)
+                                                       if r.config.seed in (1, 3)}
+    for bad in ([], [1, 1], [9]):
+        with pytest.raises(ValueError, match="seeds"):
+            BP.subset_seeds(spec, bad)
+
+
 def test_table_arithmetic_on_synthetic_runs() -> None:
     """Mean, sample std over seeds, ratio and excess over the oracle at the same point, recomputed here
     with the statistics module."""
@@ -142,6 +155,80 @@ def test_table_arithmetic_on_synthetic_runs() -> None:
         assert row["excess_over_oracle"] == pytest.approx(statistics.mean(values) - oracle, rel=1e-15)
         assert row["runs"] == 3 and row["shared_run"] == (row["method"] == "oracle")
     assert rows[0]["failed"] == 1 and sum(r["failed"] for r in rows) == 1
+    # paired by seed with the oracle: mixed at 5 N costs [12, 12, 15] more than the same seed's oracle
+    assert (rows[2]["paired_excess_mean"], rows[2]["paired_seeds"]) == (13.0, 3)
+    assert rows[2]["paired_excess_std"] == pytest.approx(statistics.stdev([12.0, 12.0, 15.0]), rel=1e-15)
+    assert rows[1]["paired_excess_mean"] == 0.0 and rows[1]["paired_excess_std"] == 0.0
+
+
+def test_case3_vs_case2_is_paired_by_seed() -> None:
+    per_seed = [{"ibe_case": c, "method": m, "seed": s, "cost": cost} for (m, c, s, cost) in [
+        ("mixed", 2, 0, 40.0), ("mixed", 3, 0, 30.0), ("oracle", None, 0, 25.0),
+        ("mixed", 2, 1, 50.0), ("mixed", 3, 1, 45.0), ("oracle", None, 1, 30.0),
+        ("mixed", 2, 2, 50.0), ("oracle", None, 2, 30.0)]]  # seed 2: Case 3 failed, left out
+    out = BP.case3_vs_case2(per_seed)
+    assert out["seeds"] == [0, 1]
+    assert out["relative_change"] == pytest.approx([-0.25, -0.1]) and out["ratio_to_oracle"] == pytest.approx([1.2, 1.5])
+    assert out["relative_change_mean"] == pytest.approx(-0.175)
+    assert out["ratio_to_oracle_std"] == pytest.approx(statistics.stdev([1.2, 1.5]))
+    assert BP.case3_vs_case2(per_seed[:2]) is None
+
+
+def _stub_nmpc(calls: list[float]):
+    """A stand-in for validation.nmpc.run_reference: cost = |prior - 261| / 10 + seed, fails at 1000 N."""
+    def runner(*, controller: str, gamma: float, horizon: float, disturbance_mean: float, seeds: tuple[int, ...],
+               progress: bool) -> dict:
+        assert (controller, gamma, horizon) == ("nmpc", 0.99, 2.0) and not progress
+        calls.append(disturbance_mean)
+        if disturbance_mean == 1000.0:
+            raise RuntimeError("IPOPT: Infeasible_Problem_Detected")
+        per = [{"seed": s, "lateral_mae": 0.01, "speed_mae": 0.001 * (1 + s), "lateral_max": 0.1,
+                "speed_max": 0.01, "cost": abs(disturbance_mean - 261.0) / 10 + s, "terminated": 0.0,
+                "solve_ms_mean": 12.3} for s in seeds]
+        out = {k: statistics.mean(r[k] for r in per) for k in per[0] if k != "seed"}
+        return {**out, "force_N": disturbance_mean, "per_seed": per}
+    return runner
+
+
+def test_nmpc_reference_is_cached_per_prior_and_settings(tmp_path: Path) -> None:
+    """Each prior is driven once per settings (the cache is reused, rewritten after every prior); a
+    failure is recorded, not raised; the timings are not kept (not reproducible)."""
+    path, calls = tmp_path / "nmpc.json", []
+    doc = BP.nmpc_reference([0.0, 261.0, 1000.0], path, [0, 1], runner=_stub_nmpc(calls))
+    assert calls == [0.0, 261.0, 1000.0]
+    assert json.loads(path.read_text()) == doc
+    entries = {e["prior_force_mean"]: e for e in doc["entries"]}
+    assert entries[1000.0]["error"].startswith("RuntimeError: IPOPT") and "result" not in entries[1000.0]
+    assert entries[0.0]["result"]["cost"] == pytest.approx(26.1 + 0.5)
+    assert [r["cost"] for r in entries[0.0]["result"]["per_seed"]] == [26.1, 27.1]
+    assert "solve_ms_mean" not in entries[0.0]["result"]
+    assert entries[0.0]["settings"] == {"controller": "nmpc", "gamma": 0.99, "horizon": 2.0, "seeds": [0, 1]}
+    BP.nmpc_reference([-300.0, 0.0, 261.0], path, [0, 1], runner=_stub_nmpc(calls))
+    assert calls == [0.0, 261.0, 1000.0, -300.0]  # only the new prior
+    BP.nmpc_reference([0.0], path, [0], runner=_stub_nmpc(calls))  # other seeds: driven again, replaced
+    doc = json.loads(path.read_text())
+    assert calls[-1] == 0.0 and [e["prior_force_mean"] for e in doc["entries"]] == [-300.0, 0.0, 261.0, 1000.0]
+    assert next(e for e in doc["entries"] if e["prior_force_mean"] == 0.0)["settings"]["seeds"] == [0]
+    (tmp_path / "bad.json").write_text("[]")
+    with pytest.raises(ValueError, match="not an NMPC cache"):
+        BP.nmpc_reference([0.0], tmp_path / "bad.json", [0], runner=_stub_nmpc(calls))
+
+
+def test_nmpc_rows() -> None:
+    cache = {"entries": [
+        {"prior_force_mean": 0.0, "settings": {}, "result": {"per_seed": [
+            {"seed": 0, "cost": 10.0, "speed_mae": 0.1, "lateral_mae": 0.2},
+            {"seed": 1, "cost": 14.0, "speed_mae": 0.3, "lateral_mae": 0.4}]}},
+        {"prior_force_mean": 1000.0, "settings": {}, "error": "RuntimeError: x"},
+        {"prior_force_mean": 5.0, "settings": {}, "result": {"per_seed": [{"seed": 0, "cost": 1.0, "speed_mae": 0.0,
+                                                                           "lateral_mae": 0.0}]}}]}
+    rows = BP.nmpc_rows(cache, [1000.0, 0.0, 150.0], {0.0: 8.0, 1000.0: 9.0})
+    assert [(r["prior_force_mean"], r["method"], r["runs"], r["failed"]) for r in rows] == [
+        (1000.0, "nmpc", 0, 1), (0.0, "nmpc", 2, 0)]  # the study's order; 5 N is not a prior of the study
+    assert rows[0]["cost_mean"] is None and rows[0]["ratio_to_oracle"] is None
+    assert rows[1]["cost_mean"] == 12.0 and rows[1]["cost_std"] == pytest.approx(statistics.stdev([10.0, 14.0]))
+    assert rows[1]["ratio_to_oracle"] == 1.5 and rows[1]["excess_over_oracle"] == 4.0
+    assert rows[1]["speed_mae_mean"] == pytest.approx(0.2)
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -181,6 +268,15 @@ def test_reduced_prior_mismatch_end_to_end_and_shipped_table(tmp_path: Path, cap
     # deterministic: shipping again gives the same bytes
     assert BP.main(["ship", "prior_mismatch", "--runs", str(out), "--dest", str(dest)]) == 0
     assert {name: (dest / name).read_bytes() for name in files} == files
+    # a cached NMPC reference (here a stub) is shipped as one row per prior after the learned methods
+    BP.nmpc_reference([-300.0, 0.0], dest / BP.NMPC_FILE, [0], runner=_stub_nmpc([]))
+    assert BP.main(["ship", "prior_mismatch", "--runs", str(out), "--dest", str(dest)]) == 0
+    doc2 = json.loads((dest / "table.json").read_text())
+    assert [(r["prior_force_mean"], r["method"]) for r in doc2["rows"]] == [
+        (p, m) for p in (-300.0, 0.0) for m in ("mixed", "model", "oracle", "nmpc")]
+    assert doc2["rows"][:3] == rows[:3] and doc2["nmpc"]["priors"] == [-300.0, 0.0]
+    assert doc2["rows"][3]["cost_mean"] == 56.1 and doc2["rows"][3]["ratio_to_oracle"] == 56.1 / rows[2]["cost_mean"]
+    assert (dest / "figure.png").read_bytes() != files["figure.png"]
     # a witness that differs from the shared run (the oracle would depend on the prior) is refused
     bad = tmp_path / "bad"
     shutil.copytree(out, bad)
