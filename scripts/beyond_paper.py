@@ -27,7 +27,8 @@ spec as it is (one part, ``main/``). ``study.json`` in ``--out`` records the par
 
 ``ship`` reads the parts' ``sweep.json`` and every run's ``results.json`` (and, for the road grade, its
 checkpoint) and writes ``table.csv``, ``table.json`` and ``figure.png`` into ``--dest`` (default
-``docs/_static/beyond/<study>``), atomically; the same runs give the same bytes.
+``docs/_static/beyond/<study>``), atomically, with ``summary.csv``, the docs' table (the main figures,
+rounded, ``mean ± std``); the same runs give the same bytes.
 
 ``nmpc`` drives the NMPC reference (:func:`validation.nmpc.run_reference`, gamma 0.99, 2 s horizon) once
 per prior mean of the prior-mismatch study, predicting with that prior mean, and caches the results in
@@ -492,6 +493,43 @@ def r_cols(row: dict[str, Any]) -> dict[str, Any]:
     return out
 
 
+def _pm(row: dict[str, Any], key: str, digits: int) -> str:
+    """``mean ± std`` of ``key`` in a table row, rounded ("" when there is no value)."""
+    mean, std = row.get(f"{key}_mean"), row.get(f"{key}_std")
+    if mean is None:
+        return ""
+    return f"{mean:.{digits}f} ± {std:.{digits}f}" if std is not None else f"{mean:.{digits}f}"
+
+
+def summary_rows(name: str, rows: list[dict[str, Any]]) -> list[dict[str, str]]:
+    """The rows of the docs' table (``summary.csv``): the table's main figures, rounded, ``mean ± std``.
+
+    Every value comes from ``rows`` (:func:`build_table`); the runs column reads ``finished/failed``.
+    """
+    out = []
+    for row in rows:
+        if name == "prior_mismatch":
+            head = {"prior [N]": f"{row['prior_force_mean']:g}"}
+        elif name == "disturbance_law":
+            head = {"law": _law_label(row)}
+        else:
+            head = {}
+        label = _grade_label(row) if name == "road_grade" else row["method"]
+        ratio = row.get("ratio_to_oracle")
+        item = {**head, "method": label, "runs/failed": f"{row['runs']}/{row['failed']}",
+                "cost": _pm(row, "cost", 2), "cost / oracle": "" if ratio is None else f"{ratio:.3f}",
+                "paired excess over oracle": _pm(row, "paired_excess", 2) if row.get("paired_seeds") else "",
+                "speed_mae [m/s]": _pm(row, "speed_mae", 4), "lateral_mae [m]": _pm(row, "lateral_mae", 3)}
+        if name == "disturbance_law":
+            item["planned mean [N]"] = _pm(row, "ibe_mean_N", 1)
+            item["planned var [N²]"] = _pm(row, "ibe_var_N2", 1)
+            item["MVC held"] = _pm(row, "mvc_held_fraction", 3)
+        if name == "road_grade":
+            item["mean force RMS error [N]"] = _pm(row, "mean_force_rms_error_N", 1)
+        out.append(item)
+    return out
+
+
 def _csv(rows: list[dict[str, Any]]) -> str:
     keys = list(dict.fromkeys(k for row in rows for k in row))
     buf = io.StringIO()
@@ -580,7 +618,8 @@ def _grade_label(row: dict[str, Any]) -> str:
 
 
 def ship_study(name: str, runs: Path, dest: Path) -> dict[str, Any]:
-    """Write ``table.csv``, ``table.json`` and ``figure.png`` of the study's runs in ``runs`` into ``dest``."""
+    """Write ``table.csv``, ``table.json``, ``summary.csv`` and ``figure.png`` of the study's runs in ``runs``
+    into ``dest`` (and, for the prior mismatch, the NMPC rows of ``dest/nmpc.json`` if it exists)."""
     study = STUDIES[name]
     manifest, records, checks = collect(runs, replicate=not study.collapse_shared)
     if manifest["study"] != name:
@@ -634,6 +673,7 @@ def ship_study(name: str, runs: Path, dest: Path) -> dict[str, Any]:
     }
     dest.mkdir(parents=True, exist_ok=True)
     atomic_write_text(dest / "table.csv", _csv(rows))
+    atomic_write_text(dest / "summary.csv", _csv(summary_rows(name, rows)))
     atomic_write_text(dest / "table.json", json.dumps(doc, indent=2, sort_keys=False) + "\n")
     atomic_write_bytes(dest / "figure.png", make_figure(name, rows, course, records))
     return doc
@@ -791,7 +831,7 @@ def main(argv: list[str] | None = None) -> int:
         dest = args.dest or Path("docs/_static/beyond") / args.study
         doc = ship_study(args.study, runs, dest)
         print(_csv(doc["rows"]), end="")
-        print(f"shipped to {dest}: table.csv, table.json, figure.png")
+        print(f"shipped to {dest}: table.csv, table.json, summary.csv, figure.png")
         return 0
     except (ValueError, ImportError) as exc:
         print(f"beyond_paper.py: error: {exc}", file=sys.stderr)

@@ -155,6 +155,10 @@ def test_table_arithmetic_on_synthetic_runs() -> None:
         assert row["excess_over_oracle"] == pytest.approx(statistics.mean(values) - oracle, rel=1e-15)
         assert row["runs"] == 3 and row["shared_run"] == (row["method"] == "oracle")
     assert rows[0]["failed"] == 1 and sum(r["failed"] for r in rows) == 1
+    summary = BP.summary_rows("prior_mismatch", rows)
+    assert summary[0] == {"prior [N]": "0", "method": "mixed", "runs/failed": "3/1", "cost": "12.00 ± 2.00",
+                          "cost / oracle": "1.333", "paired excess over oracle": "3.00 ± 1.00",
+                          "speed_mae [m/s]": "0.1200 ± 0.0200", "lateral_mae [m]": "1.000 ± 0.000"}
     # paired by seed with the oracle: mixed at 5 N costs [12, 12, 15] more than the same seed's oracle
     assert (rows[2]["paired_excess_mean"], rows[2]["paired_seeds"]) == (13.0, 3)
     assert rows[2]["paired_excess_std"] == pytest.approx(statistics.stdev([12.0, 12.0, 15.0]), rel=1e-15)
@@ -244,7 +248,7 @@ def test_reduced_prior_mismatch_end_to_end_and_shipped_table(tmp_path: Path, cap
     assert "prior_mismatch: 6 runs, 0 failed" in printed, printed
     assert json.loads((out / "study.json").read_text())["parts"] == ["main", "shared", "witness"]
     assert BP.main(["ship", "prior_mismatch", "--runs", str(out), "--dest", str(dest)]) == 0
-    files = {name: (dest / name).read_bytes() for name in ("table.csv", "table.json", "figure.png")}
+    files = {name: (dest / name).read_bytes() for name in ("table.csv", "table.json", "summary.csv", "figure.png")}
     assert files["figure.png"].startswith(b"\x89PNG")
     doc = json.loads(files["table.json"])
     assert doc["reduced"] and doc["shared"]["witness"][0]["identical"]
