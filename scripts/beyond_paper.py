@@ -589,15 +589,20 @@ def make_figure(name: str, rows: list[dict[str, Any]], course: dict[str, np.ndar
         axes[0].bar(xs, [r["cost_mean"] or 0.0 for _, r in labels], yerr=[r["cost_std"] or 0.0 for _, r in labels],
                     capsize=3, color=[f"C{i}" for i in range(len(labels))])
         axes[0].set_xticks(xs, [lab for lab, _ in labels], fontsize=8)
-        axes[0].set_ylabel("course cost (mean ± std over seeds)")
+        for i, (_, r) in enumerate(labels):  # every seed's cost, on its bar
+            costs = [x["results"]["cost"] for x in _row_records(r, records)]
+            axes[0].plot(i + np.linspace(-0.15, 0.15, len(costs)) if len(costs) > 1 else [i] * len(costs), costs,
+                         "o", color="k", ms=4, label="one seed" if i == 0 else None)
+        axes[0].set_ylabel("course cost (bar: mean ± std over seeds)")
+        axes[0].legend(fontsize=8)
         if course is not None:
             X = course["X"]
-            axes[1].plot(X, course["truth"], color="k", lw=2, label="true mean")
+            axes[1].plot(X, course["truth"], color="0.6", lw=5, label="true mean")
             for i, (lab, r) in enumerate(labels):
-                curves = [course[x["name"]] for x in records if x["name"] in course and x["method"] != "oracle"
-                          and x["method"] == r["method"] and x["config"]["ibe_case"] == r["ibe_case"]]
+                curves = [course[x["name"]] for x in _row_records(r, records) if x["method"] != "oracle"]
                 if curves:
-                    axes[1].plot(X, np.mean(curves, axis=0), color=f"C{i}", label=f"{lab} (mean over seeds)")
+                    axes[1].plot(X, np.mean(curves, axis=0), color=f"C{i}", ls="--" if i else "-",
+                                 label=f"{lab} (mean over seeds)")
             axes[1].set_xlabel("X along the course [m]")
             axes[1].set_ylabel("mean of F_dis the run plans with [N]")
             axes[1].legend(fontsize=8)
@@ -606,6 +611,12 @@ def make_figure(name: str, rows: list[dict[str, Any]], course: dict[str, np.ndar
     fig.savefig(buf, format="png", dpi=110, metadata={"Software": None})
     plt.close(fig)
     return buf.getvalue()
+
+
+def _row_records(row: dict[str, Any], records: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """The finished runs of a road-grade table row (its method and, but for the oracle, its Case)."""
+    return [x for x in records if x["results"] is not None and x["method"] == row["method"]
+            and (row["method"] == "oracle" or x["config"]["ibe_case"] == row["ibe_case"])]
 
 
 def _law_label(row: dict[str, Any]) -> str:
