@@ -579,10 +579,14 @@ def make_figure(name: str, rows: list[dict[str, Any]], course: dict[str, np.ndar
                             xs.append(i + (j - (len(methods) - 1) / 2) * width)
                             ys.append(r[f"{fig_key}_mean"])
                             es.append(r[f"{fig_key}_std"])
-                ax.bar(xs, ys, width=width, yerr=es, capsize=3, label=method)
-            ax.set_xticks(range(len(labels)), labels, fontsize=8)
-            ax.set_ylabel(f"{label} (mean ± std over seeds)")
-        axes[0].legend()
+                            _seed_dots(ax, xs[-1], [x["results"][fig_key] for x in _row_records(name, r, records)],
+                                       width / 4, "one seed" if (i, j) == (0, 0) else None)
+                ax.bar(xs, ys, width=width, yerr=es, capsize=3, label=method, color=f"C{j}")
+            ax.set_xticks(range(len(labels)), [lab.replace(", ", "\n") for lab in labels], fontsize=8)
+            ax.set_ylabel(label)
+            ax.set_title("bars: mean ± std over seeds; dots: each seed", fontsize=9)
+            ax.margins(y=0.3)  # room for the legend above the bars
+        axes[0].legend(fontsize=8, ncol=4, loc="upper center")
     else:
         labels = [(_grade_label(r), r) for r in rows]
         xs = np.arange(len(labels))
@@ -590,16 +594,15 @@ def make_figure(name: str, rows: list[dict[str, Any]], course: dict[str, np.ndar
                     capsize=3, color=[f"C{i}" for i in range(len(labels))])
         axes[0].set_xticks(xs, [lab for lab, _ in labels], fontsize=8)
         for i, (_, r) in enumerate(labels):  # every seed's cost, on its bar
-            costs = [x["results"]["cost"] for x in _row_records(r, records)]
-            axes[0].plot(i + np.linspace(-0.15, 0.15, len(costs)) if len(costs) > 1 else [i] * len(costs), costs,
-                         "o", color="k", ms=4, label="one seed" if i == 0 else None)
+            _seed_dots(axes[0], i, [x["results"]["cost"] for x in _row_records(name, r, records)], 0.15,
+                       "one seed" if i == 0 else None)
         axes[0].set_ylabel("course cost (bar: mean ± std over seeds)")
         axes[0].legend(fontsize=8)
         if course is not None:
             X = course["X"]
             axes[1].plot(X, course["truth"], color="0.6", lw=5, label="true mean")
             for i, (lab, r) in enumerate(labels):
-                curves = [course[x["name"]] for x in _row_records(r, records) if x["method"] != "oracle"]
+                curves = [course[x["name"]] for x in _row_records(name, r, records) if x["method"] != "oracle"]
                 if curves:
                     axes[1].plot(X, np.mean(curves, axis=0), color=f"C{i}", ls="--" if i else "-",
                                  label=f"{lab} (mean over seeds)")
@@ -613,10 +616,17 @@ def make_figure(name: str, rows: list[dict[str, Any]], course: dict[str, np.ndar
     return buf.getvalue()
 
 
-def _row_records(row: dict[str, Any], records: list[dict[str, Any]]) -> list[dict[str, Any]]:
-    """The finished runs of a road-grade table row (its method and, but for the oracle, its Case)."""
+def _row_records(name: str, row: dict[str, Any], records: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """The finished runs of a table row: its method at its grid point (as :func:`build_table` groups them)."""
+    collapse = STUDIES[name].collapse_shared
     return [x for x in records if x["results"] is not None and x["method"] == row["method"]
-            and (row["method"] == "oracle" or x["config"]["ibe_case"] == row["ibe_case"])]
+            and _point_columns(name, x, collapse) == r_cols(row)]
+
+
+def _seed_dots(ax: Any, x: float, costs: list[float], half_width: float, label: str | None) -> None:
+    """Every seed's value as a black dot at ``x`` (spread over ``x ± half_width``)."""
+    xs = x + np.linspace(-half_width, half_width, len(costs)) if len(costs) > 1 else [x] * len(costs)
+    ax.plot(xs, costs, "o", color="k", ms=3, label=label, zorder=3)
 
 
 def _law_label(row: dict[str, Any]) -> str:

@@ -165,6 +165,42 @@ def test_table_arithmetic_on_synthetic_runs() -> None:
     assert rows[1]["paired_excess_mean"] == 0.0 and rows[1]["paired_excess_std"] == 0.0
 
 
+def test_disturbance_law_table_and_figure_on_synthetic_runs() -> None:
+    """The law's columns, the planned noise back in newtons, the MVC fraction; the figure renders and is
+    deterministic."""
+    from mixedrl.tasks import task_from_config
+
+    laws = [{"law": "gaussian"}, {"law": "student_t", "dof": 3.0}]
+    records = []
+    for law in laws:
+        for method in ("mixed", "oracle"):
+            for seed in (0, 1):
+                cfg = TrainConfig(method=method, seed=seed, task={"disturbance": law}).to_dict()
+                task = task_from_config(cfg["task"])
+                mean = [0.0] * task.state_dim
+                var = [0.0] * task.state_dim
+                mean[task.noise_index] = (250.0 + seed) * task.force_scale
+                var[task.noise_index] = (30.0 + seed) * task.force_scale ** 2
+                records.append({"name": f"{law['law']}{method}{seed}", "point": {"task.disturbance": law},
+                                "config": cfg, "method": method, "seed": seed, "error": None, "shared": False,
+                                "results": {"cost": 20.0 + seed, "speed_mae": 0.01, "lateral_mae": 0.1,
+                                            "final_ibe_mean": mean, "final_ibe_cov_diag": var,
+                                            "mvc_held_fraction": 0.9 + 0.05 * seed}})
+    rows = BP.build_table("disturbance_law", records, collapse_shared=False)
+    assert [(r["law"], r["dof"], r["method"]) for r in rows] == [
+        ("gaussian", None, "mixed"), ("gaussian", None, "oracle"), ("student_t", 3.0, "mixed"),
+        ("student_t", 3.0, "oracle")]
+    for row in rows:
+        assert (row["mean_N"], row["variance_N2"]) == (261.0, 32.0)
+        assert row["ibe_mean_N_mean"] == pytest.approx(250.5) and row["ibe_var_N2_mean"] == pytest.approx(30.5)
+        assert row["mvc_held_fraction_mean"] == pytest.approx(0.925)
+        assert len(BP._row_records("disturbance_law", row, records)) == 2
+    summary = BP.summary_rows("disturbance_law", rows)
+    assert summary[2]["law"] == "student_t (3 dof), var 32" and summary[2]["planned mean [N]"] == "250.5 ± 0.7"
+    png = BP.make_figure("disturbance_law", rows, None, records)
+    assert png.startswith(b"\x89PNG") and png == BP.make_figure("disturbance_law", rows, None, records)
+
+
 def test_case3_vs_case2_is_paired_by_seed() -> None:
     per_seed = [{"ibe_case": c, "method": m, "seed": s, "cost": cost} for (m, c, s, cost) in [
         ("mixed", 2, 0, 40.0), ("mixed", 3, 0, 30.0), ("oracle", None, 0, 25.0),
