@@ -5,7 +5,7 @@ Each study is a sweep spec in ``studies/<study>.toml`` (:mod:`mixedrl.sweep`)::
     PYTHONPATH=. python scripts/beyond_paper.py run STUDY [--reduced] [--out DIR] [--num-cpus N]
                                                           [--address ADDR] [--resume] [--no-share] [--no-progress]
                                                           [--seeds S ...]
-    PYTHONPATH=. python scripts/beyond_paper.py ship STUDY [--runs DIR] [--dest DIR]
+    PYTHONPATH=. python scripts/beyond_paper.py ship STUDY [--runs DIR [DIR ...]] [--dest DIR]
     PYTHONPATH=. python scripts/beyond_paper.py nmpc [--dest DIR] [--seeds S ...] [--progress]
 
 ``run`` trains the study into ``--out`` (default ``runs/beyond/<study>``; with ``--reduced``
@@ -345,13 +345,47 @@ def collect(out: Path, replicate: bool = True) -> tuple[dict[str, Any], list[dic
         for value in values:
             for r in parts["shared"]:
                 records.append({**r, "point": {**r["point"], key: value}, "shared": True})
+    return manifest, sorted(records, key=_record_order(manifest, replicate)), checks
+
+
+def _record_order(manifest: dict[str, Any], replicate: bool) -> Any:
+    """The sort key of the spec's order: grid point, method, seed (collapsed shared runs last)."""
     grid, methods = manifest["grid"], manifest["methods"]
 
-    def order(r: dict[str, Any]) -> tuple[Any, ...]:  # the spec's order: grid point, method, seed
+    def order(r: dict[str, Any]) -> tuple[Any, ...]:
         return (r["shared"] and not replicate, *(grid[k].index(r["point"][k]) for k in grid),
                 methods.index(r["method"]), r["seed"])
 
-    return manifest, sorted(records, key=order), checks
+    return order
+
+
+def collect_many(outs: list[Path], replicate: bool = True
+                 ) -> tuple[dict[str, Any], list[dict[str, Any]], list[dict[str, Any]]]:
+    """:func:`collect` over several run directories of one study trained on disjoint seeds (``run
+    --seeds`` into different ``--out``): their records and witness checks together, in the spec's order,
+    the manifest with the union of the seeds.
+
+    Raises
+    ------
+    ValueError
+        No directory, the directories hold different studies or options, or share a seed.
+    """
+    if not outs:
+        raise ValueError("runs: expected at least one run directory")
+    manifests, records, checks = [], [], []
+    for out in outs:
+        m, r, c = collect(out, replicate)
+        manifests.append(m)
+        records += r
+        checks += c
+    strip = [{k: v for k, v in m.items() if k not in ("seeds", "spec_seeds")} for m in manifests]
+    if any(x != strip[0] for x in strip[1:]):
+        raise ValueError(f"runs: {[str(o) for o in outs]} hold different studies or options")
+    seeds = [s for m in manifests for s in m["seeds"]]
+    if len(set(seeds)) != len(seeds):
+        raise ValueError(f"runs: {[str(o) for o in outs]} share seeds ({sorted(seeds)})")
+    manifest = {**manifests[0], "seeds": sorted(seeds)}
+    return manifest, sorted(records, key=_record_order(manifest, replicate)), checks
 
 
 def _xi_to_force(config: dict[str, Any]) -> tuple[float, int]:
@@ -553,20 +587,30 @@ def make_figure(name: str, rows: list[dict[str, Any]], course: dict[str, np.ndar
     fig, axes = plt.subplots(1, 2, figsize=(10.5, 3.9))
     if name == "prior_mismatch":
         for ax, fig_key, label in ((axes[0], "cost", "course cost"), (axes[1], "speed_mae", "mean |v_x - 12| [m/s]")):
+            learned = [m for m in methods if m != "nmpc"]
             for method in methods:
                 pts = sorted((r["prior_force_mean"], r[f"{fig_key}_mean"], r[f"{fig_key}_std"]) for r in rows
                              if r["method"] == method and r[f"{fig_key}_mean"] is not None)
-                if pts:
-                    arr = np.asarray(pts, dtype=float)
-                    if method == "nmpc":  # a reference, not learned: one course per prior
-                        ax.plot(arr[:, 0], arr[:, 1], color="k", ls="--", marker="s", ms=4,
-                                label="NMPC with the prior mean")
-                    else:
-                        ax.errorbar(arr[:, 0], arr[:, 1], yerr=arr[:, 2], marker="o", capsize=3, label=method)
+                if not pts:
+                    continue
+                arr = np.asarray(pts, dtype=float)
+                if method == "nmpc":  # a reference, not learned: one course per prior
+                    ax.plot(arr[:, 0], arr[:, 1], color="k", ls="--", marker="s", ms=4, label="NMPC with the prior mean")
+                    continue
+                j = learned.index(method)
+                off = (j - (len(learned) - 1) / 2) * 18.0  # side by side, not on top of each other
+                ax.errorbar(arr[:, 0] + off, arr[:, 1], yerr=arr[:, 2], marker="o", capsize=3, color=f"C{j}",
+                            label=method)
+                for r in rows:  # every seed, hollow
+                    if r["method"] == method:
+                        vals = [x["results"][fig_key] for x in _row_records(name, r, records)]
+                        ax.plot([r["prior_force_mean"] + off] * len(vals), vals, "o", mfc="none", ms=4,
+                                color=f"C{j}", alpha=0.6)
             ax.axvline(261.0, color="0.5", ls="--", lw=1)
             ax.set_xlabel("prior mean of F_dis [N] (truth 261 N, dashed)")
-            ax.set_ylabel(f"{label} (mean ± std over seeds)")
-        axes[0].legend()
+            ax.set_ylabel(label)
+            ax.set_title("mean ± std over seeds; hollow: each seed", fontsize=9)
+        axes[0].legend(fontsize=8)
     elif name == "disturbance_law":
         labels = list(dict.fromkeys(_law_label(r) for r in rows))
         width = 0.8 / max(len(methods), 1)
@@ -638,11 +682,13 @@ def _grade_label(row: dict[str, Any]) -> str:
     return "oracle" if row["method"] == "oracle" else f"{row['method']}, Case {row['ibe_case']}"
 
 
-def ship_study(name: str, runs: Path, dest: Path) -> dict[str, Any]:
+def ship_study(name: str, runs: Path | list[Path], dest: Path) -> dict[str, Any]:
     """Write ``table.csv``, ``table.json``, ``summary.csv`` and ``figure.png`` of the study's runs in ``runs``
-    into ``dest`` (and, for the prior mismatch, the NMPC rows of ``dest/nmpc.json`` if it exists)."""
+    (one directory, or several trained on disjoint seeds: :func:`collect_many`) into ``dest`` (and, for
+    the prior mismatch, the NMPC rows of ``dest/nmpc.json`` if it exists)."""
     study = STUDIES[name]
-    manifest, records, checks = collect(runs, replicate=not study.collapse_shared)
+    manifest, records, checks = collect_many([runs] if isinstance(runs, Path) else list(runs),
+                                             replicate=not study.collapse_shared)
     if manifest["study"] != name:
         raise ValueError(f"runs: {runs} holds the study {manifest['study']!r}, not {name!r}")
     course = None
@@ -816,7 +862,8 @@ def main(argv: list[str] | None = None) -> int:
                      help="train only these seeds of the spec (a study cut short; recorded in study.json)")
     ship = sub.add_parser("ship", help="write the study's table and figure")
     ship.add_argument("study", choices=sorted(STUDIES))
-    ship.add_argument("--runs", type=Path, default=None, help="default runs/beyond/<study>")
+    ship.add_argument("--runs", type=Path, nargs="+", default=None,
+                      help="default runs/beyond/<study>; several: one study trained on disjoint seeds")
     ship.add_argument("--dest", type=Path, default=None, help="default docs/_static/beyond/<study>")
     nm = sub.add_parser("nmpc", help="drive the NMPC with each prior mean of the prior-mismatch study (cached)")
     nm.add_argument("--dest", type=Path, default=None, help="default docs/_static/beyond/prior_mismatch")
@@ -848,7 +895,7 @@ def main(argv: list[str] | None = None) -> int:
                       f" ({e['wall_seconds']} s)"))
             print(f"cached in {dest / NMPC_FILE}")
             return 0
-        runs = args.runs or Path("runs/beyond") / args.study
+        runs = args.runs or [Path("runs/beyond") / args.study]
         dest = args.dest or Path("docs/_static/beyond") / args.study
         doc = ship_study(args.study, runs, dest)
         print(_csv(doc["rows"]), end="")

@@ -201,6 +201,39 @@ def test_disturbance_law_table_and_figure_on_synthetic_runs() -> None:
     assert png.startswith(b"\x89PNG") and png == BP.make_figure("disturbance_law", rows, None, records)
 
 
+def _fake_study(out: Path, seeds: list[int], grid_value: float = 0.0) -> None:
+    """A finished disturbance-law-like study directory (one part, no Ray) on ``seeds``."""
+    runs = []
+    for seed in seeds:
+        for method in ("mixed", "oracle"):
+            name = f"{method}_seed{seed}"
+            cfg = TrainConfig(method=method, seed=seed).to_dict()
+            (out / "main" / "runs" / name).mkdir(parents=True)
+            (out / "main" / "runs" / name / "results.json").write_text(json.dumps({"cost": 10.0 * seed + grid_value}))
+            runs.append({"name": name, "point": {"task.prior_force_mean": grid_value}, "config": cfg, "error": None})
+    (out / "main" / "sweep.json").write_text(json.dumps({"finished": True, "runs": runs}))
+    manifest = {"study": "prior_mismatch", "parts": ["main"], "methods": ["mixed", "oracle"], "seeds": seeds,
+                "shared_methods": [], "shared_key": None, "grid": {"task.prior_force_mean": [grid_value]}}
+    (out / "study.json").write_text(json.dumps(manifest))
+
+
+def test_collect_many_merges_disjoint_seeds_in_the_spec_order(tmp_path: Path) -> None:
+    _fake_study(tmp_path / "a", [1])
+    _fake_study(tmp_path / "b", [0, 2])
+    manifest, records, checks = BP.collect_many([tmp_path / "a", tmp_path / "b"])
+    assert manifest["seeds"] == [0, 1, 2] and checks == []
+    assert [(r["method"], r["seed"]) for r in records] == [("mixed", 0), ("mixed", 1), ("mixed", 2),
+                                                           ("oracle", 0), ("oracle", 1), ("oracle", 2)]
+    assert [r["results"]["cost"] for r in records[:3]] == [0.0, 10.0, 20.0]
+    with pytest.raises(ValueError, match="share seeds"):
+        BP.collect_many([tmp_path / "a", tmp_path / "a"])
+    _fake_study(tmp_path / "c", [3], grid_value=5.0)
+    with pytest.raises(ValueError, match="different studies"):
+        BP.collect_many([tmp_path / "a", tmp_path / "c"])
+    with pytest.raises(ValueError, match="at least one"):
+        BP.collect_many([])
+
+
 def test_case3_vs_case2_is_paired_by_seed() -> None:
     per_seed = [{"ibe_case": c, "method": m, "seed": s, "cost": cost} for (m, c, s, cost) in [
         ("mixed", 2, 0, 40.0), ("mixed", 3, 0, 30.0), ("oracle", None, 0, 25.0),
