@@ -489,13 +489,14 @@ class TrainConfig:
     (the copies keep driving from wherever they are at that iteration -- anywhere on the course, from the
     wide distribution -- with the longer horizon ``model_course_horizon``):
 
-    * ``"start"``: at the course start (``X = 0``) when it leaves the box, ends or reaches its
-      horizon; it is *not* restarted at the course's end, so a copy that started far along the course
-      drives on past it, on the straight road beyond, until its horizon (design M: by iteration 1500
-      about 43% of the course copies are beyond the course's end, docs/model_based.rst);
-    * ``"along"``: on the reference at a point drawn uniformly along the course (``X ~ U(0,
-      course_length)``, the start's small perturbation), also when it passes the course's end (the
-      course copies then crowd towards the end: their density grows like ``X``);
+    * ``"start"`` (the default, design M): at the course start (``X = 0``) when it leaves the box,
+      ends or reaches its horizon; it is *not* restarted at the course's end, so a copy that started far
+      along the course drives on past it, on the straight road beyond, until its horizon (by iteration
+      1500 about 43% of the course copies are beyond the course's end, docs/model_based.rst);
+    * ``"along"`` (design S, the candidate for the next default): on the reference at a point drawn
+      uniformly along the course (``X ~ U(0, course_length)``, the start's small perturbation), also when
+      it passes the course's end (the course copies then crowd towards the end: their density grows
+      like ``X``);
     * ``"loop"``: at the course start, also when it passes the course's end, so that the copies loop
       over the course: uniformly spread over it at iteration ``model_course_start``, they stay so.
 

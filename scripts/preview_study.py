@@ -241,9 +241,14 @@ def job_path(candidate: str, method: str, seed: int, iterations: int | None = No
     return OUT / "per_run" / candidate / f"{method}_s{seed}{tail}.json"
 
 
+#: The study was run on design M (docs/model_based.rst), the defaults then; kept so the shipped runs reproduce.
+STUDY_COURSE_STARTS = "start"
+
+
 def config_of(candidate: str, method: str, seed: int, iterations: int | None = None) -> TrainConfig:
-    """The run's config: :class:`~mixedrl.config.TrainConfig`'s defaults (design M of
-    docs/model_based.rst) plus the candidate's ``task.preview_distances``; evaluations every 300
+    """The run's config: :class:`~mixedrl.config.TrainConfig`'s defaults with design M's course rollouts
+    (``model_course_starts = "start"``, the default when this study was run; docs/model_based.rst) plus
+    the candidate's ``task.preview_distances``; evaluations every 300
     iterations (reporting only, as in scripts/model_based_study.py), one checkpoint at the end.
     ``iterations`` (default: the default budget, 1500) is the budget, as the model-based study varies it."""
     if candidate not in CANDIDATES:
@@ -251,7 +256,8 @@ def config_of(candidate: str, method: str, seed: int, iterations: int | None = N
     n = TrainConfig().iterations if iterations is None else iterations
     return TrainConfig().replace(method=method, seed=seed, iterations=n, eval_every=max(100, n // 5),
                                  checkpoint_every=n,
-                                 num_threads=1, **{"task.preview_distances": list(CANDIDATES[candidate])})
+                                 num_threads=1, model_course_starts=STUDY_COURSE_STARTS,
+                                 **{"task.preview_distances": list(CANDIDATES[candidate])})
 
 
 def preview_scale(task: Any) -> torch.Tensor:

@@ -156,7 +156,7 @@ def test_course_rollouts_start_at_the_course_start_from_model_course_start() -> 
 
     task = make_task("dlc")
     cfg = TrainConfig(batch_size=64, state_source="model", model_course_fraction=1.0, model_course_start=2,
-                      horizon=1, model_course_horizon=1)
+                      horizon=1, model_course_horizon=1, model_course_starts="start")
     sampler = ModelStateSampler(task, cfg, torch.Generator().manual_seed(0))
     actor = torch.nn.Linear(5, 2)
     torch.nn.init.zeros_(actor.weight)

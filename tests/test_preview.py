@@ -146,9 +146,11 @@ def test_numpy_actor_equals_the_torch_actor() -> None:
 
 
 def test_study_config_is_the_default_but_preview() -> None:
-    """The study changes no training setting but the preview (and the reporting/checkpoint periods)."""
+    """The study changes no training setting but the preview (and the reporting/checkpoint periods), on
+    the design it was run with (design M's course rollouts, ``PS.STUDY_COURSE_STARTS``)."""
     cfg = PS.config_of("P12", "mixed", 3).to_dict()
-    base = TrainConfig().replace(seed=3).to_dict()
+    assert PS.STUDY_COURSE_STARTS == "start"
+    base = TrainConfig().replace(seed=3, model_course_starts=PS.STUDY_COURSE_STARTS).to_dict()
     assert cfg["task"].pop("preview_distances") == list(PS.CANDIDATES["P12"])
     base["task"].pop("preview_distances")
     diff = {k for k in cfg if cfg[k] != base[k]}
