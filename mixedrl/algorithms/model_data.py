@@ -59,9 +59,7 @@ def course_starts(task: Task, n: int, generator: torch.Generator, along: bool = 
     """
     model = getattr(task, "model", None)
     if model is not None and hasattr(model, "initial_states"):
-        if along:
-            return model.initial_states(n, generator, dtype=torch.float64, along=True)
-        return model.initial_states(n, generator, dtype=torch.float64)
+        return model.initial_states(n, generator, dtype=torch.float64, along=along)
     return task.sample_initial(n, generator)
 
 
