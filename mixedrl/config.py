@@ -484,16 +484,16 @@ class TrainConfig:
     before it they restart from the wide distribution like the others (a schedule: the course is driven
     only by a policy that has first learnt to stay near the reference)."""
 
-    model_course_starts: str = "start"
+    model_course_starts: str = "along"
     """``state_source="model"``: where a course rollout restarts once ``model_course_start`` has passed
     (the copies keep driving from wherever they are at that iteration -- anywhere on the course, from the
     wide distribution -- with the longer horizon ``model_course_horizon``):
 
-    * ``"start"`` (the default, design M): at the course start (``X = 0``) when it leaves the box,
+    * ``"start"`` (design M, the default before design S): at the course start (``X = 0``) when it leaves the box,
       ends or reaches its horizon; it is *not* restarted at the course's end, so a copy that started far
       along the course drives on past it, on the straight road beyond, until its horizon (by iteration
       1500 about 43% of the course copies are beyond the course's end, docs/model_based.rst);
-    * ``"along"`` (design S, the candidate for the next default): on the reference at a point drawn
+    * ``"along"`` (the default, design S): on the reference at a point drawn
       uniformly along the course (``X ~ U(0, course_length)``, the start's small perturbation), also when
       it passes the course's end (the course copies then crowd towards the end: their density grows
       like ``X``);
