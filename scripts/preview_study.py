@@ -15,19 +15,20 @@ Sub-commands:
 ``run``
     Trains one run per (candidate, method, seed) (``mixedrl.runs.make_trainer`` / ``train``,
     ``num_threads=1``, every training setting at the defaults of :class:`mixedrl.config.TrainConfig` but
-    ``task.preview_distances``) and writes one JSON file
-    ``docs/_static/preview/per_run/<candidate>/<method>_s<seed>.json`` with the final course evaluation
-    (the run's own evaluation seeds), the true transitions and the actor's weights (for the figure and
-    the benchmark). Existing files are skipped.
+    ``task.preview_distances`` and the batch design ``--design``: ``S``, today's default, or ``M``, the
+    default when the study was first run, see :data:`DESIGNS`) and writes one JSON file
+    ``docs/_static/preview/per_run/<design>/<candidate>/<method>_s<seed>.json`` with the final course
+    evaluation (the run's own evaluation seeds), the true transitions and the actor's weights (for the
+    figure and the benchmark). Existing files are skipped.
 ``ship``
-    Collects every per-run file into ``summary.csv`` / ``summary.json`` (seeds 0-4 and the held-out
-    seeds >= 5 apart) and draws ``trajectory.png`` (the preview policy of seed 0 against the NMPC and the
-    no-preview policy on the course of noise seed 0).
+    Collects every per-run file into ``summary.csv`` / ``summary.json`` (per design; seeds 0-4 and the
+    held-out seeds >= 5 apart) and draws ``trajectory.png`` (the preview policy of seed 0 against the NMPC
+    and the no-preview policy on the course of noise seed 0, design :data:`FIGURE_DESIGN`).
 
 Usage::
 
     PYTHONPATH=. python scripts/preview_study.py horizon
-    PYTHONPATH=. python scripts/preview_study.py run --candidate P12 --methods mixed --seeds 0-4
+    PYTHONPATH=. python scripts/preview_study.py run --candidate P12 --methods mixed --seeds 0-4 [--design S]
     PYTHONPATH=. python scripts/preview_study.py ship
 """
 
@@ -234,29 +235,48 @@ def actor_weights(actor: torch.nn.Module) -> dict[str, list[Any]]:
     return {k: v.detach().double().tolist() for k, v in actor.state_dict().items()}
 
 
-def job_path(candidate: str, method: str, seed: int, iterations: int | None = None) -> Path:
-    """``docs/_static/preview/per_run/<candidate>/<method>_s<seed>.json`` (``_n<iterations>`` appended for
-    a budget other than the default)."""
+#: Batch designs (docs/model_based.rst) -> ``TrainConfig.model_course_starts``. The study first ran on
+#: design M, the default then (its runs are kept, under ``per_run/M``, and reproduce); S is the default now.
+DESIGNS: dict[str, str] = {"M": "start", "S": "along"}
+#: The design of the figure's policies.
+FIGURE_DESIGN = "S"
+
+
+def _check_design(design: str) -> str:
+    if design not in DESIGNS:
+        raise ValueError(f"design: expected one of {sorted(DESIGNS)}, got {design!r}")
+    return DESIGNS[design]
+
+
+def job_path(candidate: str, method: str, seed: int, iterations: int | None = None, design: str = "S") -> Path:
+    """``docs/_static/preview/per_run/<design>/<candidate>/<method>_s<seed>.json`` (``_n<iterations>``
+    appended for a budget other than the default)."""
+    _check_design(design)
     tail = "" if iterations in (None, TrainConfig().iterations) else f"_n{iterations}"
-    return OUT / "per_run" / candidate / f"{method}_s{seed}{tail}.json"
+    return OUT / "per_run" / design / candidate / f"{method}_s{seed}{tail}.json"
 
 
-#: The study was run on design M (docs/model_based.rst), the defaults then; kept so the shipped runs reproduce.
-STUDY_COURSE_STARTS = "start"
+def design_of(config: dict[str, Any]) -> str:
+    """The design (a key of :data:`DESIGNS`) of a run's saved config (a config saved before
+    ``model_course_starts`` existed ran design M, the only one then)."""
+    starts = config.get("model_course_starts", DESIGNS["M"])
+    return next(d for d, v in DESIGNS.items() if v == starts)
 
 
-def config_of(candidate: str, method: str, seed: int, iterations: int | None = None) -> TrainConfig:
-    """The run's config: :class:`~mixedrl.config.TrainConfig`'s defaults with design M's course rollouts
-    (``model_course_starts = "start"``, the default when this study was run; docs/model_based.rst) plus
-    the candidate's ``task.preview_distances``; evaluations every 300
-    iterations (reporting only, as in scripts/model_based_study.py), one checkpoint at the end.
-    ``iterations`` (default: the default budget, 1500) is the budget, as the model-based study varies it."""
+def config_of(candidate: str, method: str, seed: int, iterations: int | None = None,
+              design: str = "S") -> TrainConfig:
+    """The run's config: :class:`~mixedrl.config.TrainConfig`'s defaults with the design's course
+    rollouts (:data:`DESIGNS`; ``S`` is the default's) plus the candidate's ``task.preview_distances``;
+    evaluations every 300 iterations (reporting only, as in scripts/model_based_study.py), one checkpoint
+    at the end. ``iterations`` (default: the default budget, 1500) is the budget, as the model-based study
+    varies it."""
     if candidate not in CANDIDATES:
         raise ValueError(f"candidate: expected one of {sorted(CANDIDATES)}, got {candidate!r}")
+    starts = _check_design(design)
     n = TrainConfig().iterations if iterations is None else iterations
     return TrainConfig().replace(method=method, seed=seed, iterations=n, eval_every=max(100, n // 5),
                                  checkpoint_every=n,
-                                 num_threads=1, model_course_starts=STUDY_COURSE_STARTS,
+                                 num_threads=1, model_course_starts=starts,
                                  **{"task.preview_distances": list(CANDIDATES[candidate])})
 
 
@@ -279,13 +299,13 @@ def make_task(candidate: str, cfg: TrainConfig) -> Any:
     return task
 
 
-def run_job(candidate: str, method: str, seed: int, iterations: int | None = None) -> str:
+def run_job(candidate: str, method: str, seed: int, iterations: int | None = None, design: str = "S") -> str:
     """Train one run and write its JSON (skipped if it exists); returns a one-line summary."""
-    path = job_path(candidate, method, seed, iterations)
+    path = job_path(candidate, method, seed, iterations, design)
     if path.exists():
         return f"skip {path}"
     torch.set_num_threads(1)
-    cfg = config_of(candidate, method, seed, iterations)
+    cfg = config_of(candidate, method, seed, iterations, design)
     trainer = make_trainer(cfg, make_task(candidate, cfg))
     evals: list[dict[str, float]] = []
 
@@ -297,7 +317,7 @@ def run_job(candidate: str, method: str, seed: int, iterations: int | None = Non
 
     t0 = time.perf_counter()
     res = train(trainer, None, callback=callback)
-    out = {"candidate": candidate, "preview_distances": list(CANDIDATES[candidate]), "method": method,
+    out = {"candidate": candidate, "design": design, "preview_distances": list(CANDIDATES[candidate]), "method": method,
            "seed": seed, "iterations": int(res["iterations"]), "config": cfg.to_dict(),
            "wall_s": time.perf_counter() - t0, "train_seconds": res["train_seconds"],
            "lateral_mae": res["lateral_mae"], "speed_mae": res["speed_mae"], "cost": res["cost"],
@@ -306,7 +326,7 @@ def run_job(candidate: str, method: str, seed: int, iterations: int | None = Non
            "obs_scale": trainer.task.obs_scale.tolist(), "actor": actor_weights(trainer.actor)}
     path.parent.mkdir(parents=True, exist_ok=True)
     atomic_write_text(path, json.dumps(out) + "\n")
-    return (f"{candidate} {method} s{seed}: cost {out['cost']:.2f}, lateral {out['lateral_mae']:.4f} m, "
+    return (f"{candidate} {design} {method} s{seed}: cost {out['cost']:.2f}, lateral {out['lateral_mae']:.4f} m, "
             f"speed {out['speed_mae']:.4f} m/s, true {out['true_transitions']}, {out['wall_s']:.0f} s")
 
 
@@ -315,21 +335,22 @@ def run(args: argparse.Namespace) -> None:
     for candidate in args.candidate.split(","):
         for seed in seeds_of(args.seeds):
             for method in args.methods.split(","):
-                print(run_job(candidate, method, seed, args.iterations), flush=True)
+                print(run_job(candidate, method, seed, args.iterations, args.design), flush=True)
 
 
 def summarize(runs: list[dict[str, Any]]) -> list[dict[str, Any]]:
-    """Mean and sample standard deviation per (candidate, method, budget, seed group); seeds >=
+    """Mean and sample standard deviation per (design, candidate, method, budget, seed group); seeds >=
     :data:`HELD_OUT` form the ``held-out`` group."""
-    groups: dict[tuple[str, str, int, str], list[dict[str, Any]]] = {}
+    groups: dict[tuple[str, str, str, int, str], list[dict[str, Any]]] = {}
     for r in runs:
         group = "0-4" if r["seed"] < HELD_OUT else "held-out"
-        groups.setdefault((r["candidate"], r["method"], r["iterations"], group), []).append(r)
+        groups.setdefault((design_of(r["config"]), r["candidate"], r["method"], r["iterations"], group),
+                          []).append(r)
     rows = []
-    for (candidate, method, iterations, group), rs in sorted(groups.items()):
+    for (design, candidate, method, iterations, group), rs in sorted(groups.items()):
         rs = sorted(rs, key=lambda r: r["seed"])
         ddof = 1 if len(rs) > 1 else 0
-        row: dict[str, Any] = {"candidate": candidate,
+        row: dict[str, Any] = {"design": design, "candidate": candidate,
                                "preview_distances": " ".join(f"{d:g}" for d in rs[0]["preview_distances"]),
                                "method": method, "iterations": iterations, "seed_group": group,
                                "seeds": " ".join(str(r["seed"]) for r in rs)}
@@ -355,12 +376,12 @@ def steer_gains(run_row: dict[str, Any]) -> np.ndarray:
 
 def ship(args: argparse.Namespace) -> None:
     """Write ``summary.csv``, ``summary.json``, ``per_seed.csv`` and ``trajectory.png``."""
-    runs = [json.loads(p.read_text()) for p in sorted((OUT / "per_run").glob("*/*.json"))]
+    runs = [json.loads(p.read_text()) for p in sorted((OUT / "per_run").glob("*/*/*.json"))]
     if not runs:
         raise SystemExit(f"no runs under {OUT / 'per_run'}: run `preview_study.py run` first")
     rows = summarize(runs)
     atomic_write_text(OUT / "summary.json", json.dumps(rows, indent=1) + "\n")
-    table = [{"candidate": r["candidate"], "preview [m]": r["preview_distances"] or "none",
+    table = [{"design": r["design"], "candidate": r["candidate"], "preview [m]": r["preview_distances"] or "none",
               "preview scale": "per distance" if r["candidate"] in PER_DISTANCE_SCALE
               else ("2 m" if r["preview_distances"] else ""),
               "method": r["method"], "iterations": r["iterations"], "seeds": r["seeds"] if r["seed_group"] == "0-4" else r["seeds"] + " (held out)",
@@ -369,7 +390,7 @@ def ship(args: argparse.Namespace) -> None:
               "speed [m/s]": f"{r['speed_mae_mean']:.4f} +- {r['speed_mae_std']:.4f}",
               "worst cost": f"{r['cost_max']:.2f}", "true transitions": r["true_transitions"]} for r in rows]
     atomic_write_text(OUT / "summary.csv", _csv(table))
-    per_seed = [{"candidate": r["candidate"], "method": r["method"], "iterations": r["iterations"],
+    per_seed = [{"design": design_of(r["config"]), "candidate": r["candidate"], "method": r["method"], "iterations": r["iterations"],
                  "seed": r["seed"],
                  "course cost": f"{r['cost']:.2f}", "lateral [m]": f"{r['lateral_mae']:.4f}",
                  "speed [m/s]": f"{r['speed_mae']:.4f}", "true transitions": r["true_transitions"],
@@ -377,10 +398,11 @@ def ship(args: argparse.Namespace) -> None:
                  "max steer gain preview [rad/m]": f"{np.abs(steer_gains(r)[5:]).max():.3f}"
                  if r["preview_distances"] else "",
                  "wall [s]": f"{r['wall_s']:.0f}"}
-                for r in sorted(runs, key=lambda r: (r["candidate"], r["method"], r["iterations"], r["seed"]))]
+                for r in sorted(runs, key=lambda r: (design_of(r["config"]), r["candidate"], r["method"],
+                                                     r["iterations"], r["seed"]))]
     atomic_write_text(OUT / "per_seed.csv", _csv(per_seed))
     for r in rows:
-        print(f"{r['candidate']:>5} {r['method']:>6} n={r['iterations']} [{r['seeds']}] cost {r['cost_mean']:.2f}+-{r['cost_std']:.2f} "
+        print(f"{r['design']} {r['candidate']:>5} {r['method']:>6} n={r['iterations']} [{r['seeds']}] cost {r['cost_mean']:.2f}+-{r['cost_std']:.2f} "
               f"lat {r['lateral_mae_mean']:.4f}+-{r['lateral_mae_std']:.4f} "
               f"spd {r['speed_mae_mean']:.4f}+-{r['speed_mae_std']:.4f} true {r['true_transitions']}")
     figure(runs, args.chosen)
@@ -388,8 +410,9 @@ def ship(args: argparse.Namespace) -> None:
 
 def figure(runs: list[dict[str, Any]], chosen: str) -> None:
     """``trajectory.png``: lateral error and speed error along the course (noise seed 0) of the seed-0
-    policy with the chosen preview, the seed-0 policy without preview and the NMPC (2 s, gamma = 0.99,
-    true mean, from docs/_static/references/trajectories.npz)."""
+    policy with the chosen preview (at the default budget and at the largest budget run), the seed-0
+    policy without preview (all of design :data:`FIGURE_DESIGN`) and the NMPC (2 s, gamma = 0.99, true mean, from
+    docs/_static/references/trajectories.npz)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -398,16 +421,20 @@ def figure(runs: list[dict[str, Any]], chosen: str) -> None:
     from mixedrl.envs import DoubleLaneChangeConfig, evaluate_tracking
 
     curves = []
-    for candidate, label, color in ((chosen, f"mixed RL, preview {chosen}", "C0"),
-                                    ("none", "mixed RL, no preview", "C3")):
-        mine = [r for r in runs if r["candidate"] == candidate and r["method"] == "mixed" and r["seed"] == 0
-                and r["iterations"] == TrainConfig().iterations]
+    default = TrainConfig().iterations
+    seed0 = [r for r in runs if r["method"] == "mixed" and r["seed"] == 0 and design_of(r["config"]) == FIGURE_DESIGN]
+    longest = max((r["iterations"] for r in seed0 if r["candidate"] == chosen), default=default)
+    for candidate, iterations, color in ((chosen, default, "C0"), (chosen, longest, "C2"), ("none", default, "C3")):
+        if candidate == chosen and iterations == longest and longest == default and color == "C2":
+            continue
+        mine = [r for r in seed0 if r["candidate"] == candidate and r["iterations"] == iterations]
         if not mine:
             continue
+        label = f"mixed RL, preview {chosen}" if candidate == chosen else "mixed RL, no preview"
         cfg = DoubleLaneChangeConfig(preview_distances=tuple(mine[0]["preview_distances"]))
         res = evaluate_tracking(NumpyActor(mine[0]["actor"]), cfg, seed=0)
-        curves.append((f"{label} (seed 0): cost {res.total_cost:.1f}", color, res.states[:, 5],
-                       res.lateral_error, res.speed_error))
+        curves.append((f"{label}, {iterations} iterations (design {FIGURE_DESIGN}, seed 0): cost {res.total_cost:.1f}",
+                       color, res.states[:, 5], res.lateral_error, res.speed_error))
     ref = Path("docs/_static/references/trajectories.npz")
     if ref.exists():
         from validation.nmpc import REFERENCE_SETTINGS
@@ -446,6 +473,7 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--methods", default="mixed")
     p.add_argument("--seeds", default="0-4")
     p.add_argument("--iterations", type=int, default=None, help="budget (default: TrainConfig's, 1500)")
+    p.add_argument("--design", default="S", choices=sorted(DESIGNS), help="batch design (default S, the default's)")
     p = sub.add_parser("ship")
     p.add_argument("--chosen", default=CHOSEN)
     args = parser.parse_args(argv)

@@ -51,10 +51,9 @@ def _comparable(cfg: TrainConfig, drop: str | None = None) -> dict:
 @pytest.mark.parametrize("name", sorted(BP.STUDIES))
 def test_study_specs_leave_training_settings_to_the_defaults(name: str) -> None:
     spec = load_spec(ROOT / BP.STUDIES[name].spec)
-    # only the experiment, never training -- but for the design of the course rollouts, which a study
-    # shipped on design M pins to it (the default before design S, docs/model_based.rst)
+    # only the experiment, never training
     pinned = {k: v for k, v in spec.base.items() if not k.startswith("task.")}
-    assert pinned in ({}, {"model_course_starts": "start"}), spec.base
+    assert pinned == {}, spec.base
     assert all(key.startswith("task.") or key == "ibe_case" for key in spec.grid), spec.grid
     assert len(spec.seeds) == 5 and "oracle" in spec.methods and "mixed" in spec.methods
     defaults = TrainConfig().to_dict()
@@ -117,7 +116,7 @@ def test_the_parts_are_the_spec_runs_with_the_shared_method_once_per_seed(name: 
 
 def test_reduced_spec() -> None:
     spec = BP.reduce_spec(load_spec(ROOT / BP.STUDIES["prior_mismatch"].spec))
-    assert spec.seeds == (0,) and spec.base == {"model_course_starts": "start", "iterations": BP.REDUCED_ITERATIONS}
+    assert spec.seeds == (0,) and spec.base == {"iterations": BP.REDUCED_ITERATIONS}
     assert spec.grid == {"task.prior_force_mean": (-300.0, 0.0)} and len(expand(spec)) == 6
 
 

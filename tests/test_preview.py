@@ -145,18 +145,26 @@ def test_numpy_actor_equals_the_torch_actor() -> None:
         PS.NumpyActor({"net.input_scale": [1.0]})
 
 
-def test_study_config_is_the_default_but_preview() -> None:
+@pytest.mark.parametrize("design", ["S", "M"])
+def test_study_config_is_the_default_but_preview(design: str) -> None:
     """The study changes no training setting but the preview (and the reporting/checkpoint periods), on
-    the design it was run with (design M's course rollouts, ``PS.STUDY_COURSE_STARTS``)."""
-    cfg = PS.config_of("P12", "mixed", 3).to_dict()
-    assert PS.STUDY_COURSE_STARTS == "start"
-    base = TrainConfig().replace(seed=3, model_course_starts=PS.STUDY_COURSE_STARTS).to_dict()
+    the batch design asked for: S is today's default, M the default when the study first ran."""
+    cfg = PS.config_of("P12", "mixed", 3, design=design).to_dict()
+    base = TrainConfig().replace(seed=3).to_dict()
     assert cfg["task"].pop("preview_distances") == list(PS.CANDIDATES["P12"])
     base["task"].pop("preview_distances")
     diff = {k for k in cfg if cfg[k] != base[k]}
-    assert diff <= {"eval_every", "checkpoint_every", "num_threads"}
+    assert diff <= {"eval_every", "checkpoint_every", "num_threads"} | ({"model_course_starts"} if design == "M" else set())
+    assert cfg["model_course_starts"] == {"S": "along", "M": "start"}[design]
+    assert PS.design_of(cfg) == design
+    path = PS.job_path("P12", "mixed", 3, design=design)
+    assert path.parts[-4:] == ("per_run", design, "P12", "mixed_s3.json")
     with pytest.raises(ValueError, match="^candidate"):
         PS.config_of("P99", "mixed", 0)
+    with pytest.raises(ValueError, match="^design"):
+        PS.config_of("P12", "mixed", 0, design="X")
+    with pytest.raises(ValueError, match="^design"):
+        PS.job_path("P12", "mixed", 0, design="X")
 
 
 @pytest.mark.nmpc
