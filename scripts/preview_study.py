@@ -424,9 +424,8 @@ def figure(runs: list[dict[str, Any]], chosen: str) -> None:
     default = TrainConfig().iterations
     seed0 = [r for r in runs if r["method"] == "mixed" and r["seed"] == 0 and design_of(r["config"]) == FIGURE_DESIGN]
     longest = max((r["iterations"] for r in seed0 if r["candidate"] == chosen), default=default)
-    for candidate, iterations, color in ((chosen, default, "C0"), (chosen, longest, "C2"), ("none", default, "C3")):
-        if candidate == chosen and iterations == longest and longest == default and color == "C2":
-            continue
+    drawn = [(chosen, default, "C0")] + ([(chosen, longest, "C2")] if longest != default else []) + [("none", default, "C3")]
+    for candidate, iterations, color in drawn:
         mine = [r for r in seed0 if r["candidate"] == candidate and r["iterations"] == iterations]
         if not mine:
             continue
