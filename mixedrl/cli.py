@@ -51,7 +51,7 @@ from typing import Any, Sequence
 from mixedrl.config import METHODS, TrainConfig, apply_overrides
 from mixedrl.runs import RunDirectory, eval_seeds, load_checkpoint, make_trainer, train
 from mixedrl.sweep import add_parser as add_sweep_parser
-from mixedrl.sweep import format_summary, load_spec, run_sweep
+from mixedrl.sweep import flatten_table, format_summary, load_spec, run_sweep
 
 __all__ = ["main", "build_parser", "parse_overrides", "command_plugins", "COMMAND_GROUP", "Handler"]
 
@@ -126,15 +126,17 @@ def build_parser() -> argparse.ArgumentParser:
                               "--set task.gamma=0.98\n"
                               "dotted keys address the nested task configuration (see mixedrl.config).")
     p.add_argument("--method", choices=METHODS, required=True)
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=int, default=None, help="seed (default 0; with --resume: the run's)")
     p.add_argument("--out", type=Path, required=True, help="run directory")
-    p.add_argument("--iterations", type=int, default=None, help="budget (default: the config's)")
+    p.add_argument("--iterations", type=int, default=None,
+                   help="budget (default: the config's; with --resume a larger one extends the run)")
     p.add_argument("--config", type=Path, default=None,
                    help="JSON file with TrainConfig fields, nested like a run's config.json")
     p.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE",
                    help="override config fields; dotted keys for nested ones (task.prior_force_mean=300, "
                         "task.disturbance.mean=261); values are JSON, else strings")
-    p.add_argument("--resume", action="store_true", help="continue from the run's checkpoint")
+    p.add_argument("--resume", action="store_true",
+                   help="continue from the run's checkpoint (without it, --out must be new or empty)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(handler=_train)
 
@@ -166,19 +168,51 @@ def _sweep(args: argparse.Namespace) -> int:
     return 0
 
 
+#: Fields with their own ``train`` flag, refused in ``--set``.
+_OWN_FLAGS = {"method": "--method", "seed": "--seed"}
+
+
+def _read_json(path: Path, flag: str) -> dict[str, Any]:
+    """The JSON object in ``path`` (the file of ``flag``), or a one-line ``ValueError``."""
+    if not path.exists():
+        raise ValueError(f"{flag}: {path} does not exist")
+    if not path.is_file():
+        raise ValueError(f"{flag}: {path} is not a file")
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise ValueError(f"{flag}: cannot read {path} as JSON ({exc})") from None
+    if not isinstance(data, dict):
+        raise ValueError(f"{flag}: {path} holds a JSON {type(data).__name__}, expected an object of config fields")
+    return data
+
+
+def _requested_config(args: argparse.Namespace, run: RunDirectory) -> TrainConfig:
+    """The config ``mixedrl train`` asks for: from the flags, or with ``--resume`` the saved config with the
+    flags given explicitly applied on top (so a contradicting flag shows up as a difference)."""
+    overrides = parse_overrides(args.set)
+    for key, flag in _OWN_FLAGS.items():
+        if key in overrides:
+            raise ValueError(f"--set: {key} has its own flag; use {flag} instead of --set {key}=...")
+    given = {"method": args.method, "seed": args.seed, "iterations": args.iterations}
+    file_data = _read_json(args.config, "--config") if args.config is not None else None
+    if args.resume and run.config_path.is_file():
+        base = run.read_config().to_dict()
+        if file_data is not None:
+            base = apply_overrides(base, flatten_table(file_data))
+    else:
+        base = TrainConfig.from_dict(file_data).to_dict() if file_data is not None else {}
+        given["seed"] = 0 if args.seed is None else args.seed
+    base = apply_overrides(base, overrides)
+    base.update({k: v for k, v in given.items() if v is not None})
+    return TrainConfig.from_dict(base)
+
+
 def _train(args: argparse.Namespace) -> int:
     run = RunDirectory(args.out)
-    if args.resume and run.config_path.is_file():
-        config = run.read_config()
-    else:
-        base: dict[str, Any] = {}
-        if args.config is not None:
-            base = TrainConfig.load(args.config).to_dict()
-        base = apply_overrides(base, parse_overrides(args.set))
-        base.update({"method": args.method, "seed": args.seed})
-        if args.iterations is not None:
-            base["iterations"] = args.iterations
-        config = TrainConfig.from_dict(base)
+    if args.resume and not run.holds_run():
+        raise ValueError(f"--resume: {run.path} holds no run to resume (no config.json or checkpoint.pt)")
+    config = _requested_config(args, run)
     trainer = make_trainer(config)
     results = train(trainer, run, resume=args.resume, progress=not args.no_progress)
     print(json.dumps({k: results[k] for k in ("method", "seed", "iterations", "lateral_mae", "speed_mae", "cost",
@@ -189,6 +223,9 @@ def _train(args: argparse.Namespace) -> int:
 
 def _evaluate(args: argparse.Namespace) -> int:
     run = RunDirectory(args.run_dir)
+    if not run.path.is_dir():
+        raise ValueError(f"run_dir: {run.path} is not a directory" if run.path.exists()
+                         else f"run_dir: {run.path} does not exist")
     config = run.read_config()
     if args.seeds is not None:
         config = config.replace(eval_seeds=args.seeds)
@@ -203,14 +240,16 @@ def _evaluate(args: argparse.Namespace) -> int:
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``mixedrl`` command; returns the exit status.
 
-    Errors in the user's input (``ValueError``) are reported in one line with exit status 2.
+    Errors in the user's input (``ValueError``) and file-system errors (``OSError``: a path that cannot
+    be read or written) are reported in one line with exit status 2.
     """
     args = build_parser().parse_args(argv)
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING, format="%(levelname)s %(message)s")
     try:
         return int(args.handler(args))
-    except ValueError as exc:
-        print(f"mixedrl {args.command}: error: {exc}", file=sys.stderr)
+    except (ValueError, OSError) as exc:
+        text = " ".join(str(exc).split()) or type(exc).__name__
+        print(f"mixedrl {args.command}: error: {text}", file=sys.stderr)
         return 2
 
 

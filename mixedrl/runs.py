@@ -30,7 +30,9 @@ ends with exactly the weights of an uninterrupted run.
 
 from __future__ import annotations
 
+import contextlib
 import csv
+import hashlib
 import io
 import json
 import logging
@@ -39,12 +41,13 @@ import os
 import pickle
 import pickletools
 import re
+import socket
 import tempfile
 import time
 import zipfile
 from collections import OrderedDict
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, Iterator
 
 import numpy as np
 import torch
@@ -61,6 +64,11 @@ __all__ = [
     "convert_checkpoint",
     "atomic_write_bytes",
     "atomic_write_text",
+    "write_with_digest",
+    "verify_digest",
+    "digest_path",
+    "RunLockedError",
+    "RUN_FILES",
     "iterations_to_converge",
     "eval_seeds",
     "train",
@@ -108,6 +116,58 @@ def atomic_write_bytes(path: str | Path, data: bytes) -> None:
 def atomic_write_text(path: str | Path, text: str) -> None:
     """Write ``text`` (UTF-8) to ``path`` atomically (see :func:`atomic_write_bytes`)."""
     atomic_write_bytes(path, text.encode("utf-8"))
+
+
+# ----------------------------------------------------------------------------------------------------
+# Integrity: a sha256 sidecar per file (``checkpoint.pt.sha256``, ``results.json.sha256``)
+# ----------------------------------------------------------------------------------------------------
+def digest_path(path: str | Path) -> Path:
+    """The sidecar of ``path`` holding its sha256 (``sha256sum`` format: ``<hex>  <name>``)."""
+    path = Path(path)
+    return path.with_name(path.name + ".sha256")
+
+
+def _sidecar_digests(path: Path) -> list[str] | None:
+    """The digests listed in ``path``'s sidecar (None without a sidecar)."""
+    sidecar = digest_path(path)
+    if not sidecar.is_file():
+        return None
+    return [line.split()[0].lower() for line in sidecar.read_text(encoding="utf-8").splitlines() if line.strip()]
+
+
+def write_with_digest(path: str | Path, data: bytes) -> None:
+    """Write ``data`` to ``path`` atomically together with its sha256 in the sidecar :func:`digest_path`.
+
+    Crash-safe in every order of events: the sidecar first lists the new digest beside the old file's,
+    then the file is replaced, then the sidecar is rewritten with the new digest only; so at any moment
+    the file on disk matches one digest of its sidecar (each step is an atomic replace).
+    """
+    path = Path(path)
+    new = hashlib.sha256(data).hexdigest()
+    old = _sidecar_digests(path) if path.is_file() else None
+    if old:
+        atomic_write_text(digest_path(path), "".join(f"{d}  {path.name}\n" for d in [new, *old[:1]]))
+    atomic_write_bytes(path, data)
+    atomic_write_text(digest_path(path), f"{new}  {path.name}\n")
+
+
+def verify_digest(path: str | Path, data: bytes, what: str) -> None:
+    """Check ``data`` (the bytes read from ``path``) against ``path``'s sidecar, if it has one.
+
+    Raises
+    ------
+    ValueError
+        ``<what>: <path> is corrupted: its sha256 ... does not match <sidecar>``.
+    """
+    path = Path(path)
+    digests = _sidecar_digests(path)
+    if digests is None:
+        return  # written before digests existed: still loads (documented in docs/run_directories)
+    actual = hashlib.sha256(data).hexdigest()
+    if actual not in digests:
+        raise ValueError(f"{what}: {path} is corrupted: its sha256 {actual[:16]}... does not match "
+                         f"{digest_path(path).name} ({digests[0][:16]}...); the file was changed after it was "
+                         f"written")
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -222,6 +282,19 @@ def _refused_global(exc: BaseException) -> str | None:
     return match.group(1) if match else None
 
 
+def _verify_zip(path: Path, data: bytes) -> None:
+    """Check the CRC-32 of every member of a torch zip checkpoint (torch.load does not)."""
+    try:
+        with zipfile.ZipFile(io.BytesIO(data)) as archive:
+            bad = archive.testzip()
+    except (zipfile.BadZipFile, OSError, EOFError):
+        return  # not a zip at all: torch.load reports it below
+    except Exception as exc:  # noqa: BLE001 - a member that cannot even be decompressed
+        raise ValueError(f"checkpoint: {path} is corrupted ({type(exc).__name__}: {exc})") from None
+    if bad is not None:
+        raise ValueError(f"checkpoint: {path} is corrupted: the CRC-32 of its member {bad!r} does not match")
+
+
 def save_checkpoint(path: str | Path, state: dict[str, Any]) -> None:
     """Write ``state`` to ``path`` atomically, as plain data that loads with ``weights_only=True``.
 
@@ -233,7 +306,8 @@ def save_checkpoint(path: str | Path, state: dict[str, Any]) -> None:
     shapes and bits, so a resumed run continues exactly).
 
     The data goes to a temporary file in the same directory, then ``os.replace``: a crash during the
-    write leaves the previous checkpoint intact.
+    write leaves the previous checkpoint intact. Its sha256 goes to ``<path>.sha256``
+    (:func:`write_with_digest`), which :func:`load_checkpoint` verifies.
 
     Parameters
     ----------
@@ -251,7 +325,7 @@ def save_checkpoint(path: str | Path, state: dict[str, Any]) -> None:
     encoded = _encode(state, "state")
     buffer = io.BytesIO()
     torch.save({"format": _FORMAT, "state": encoded}, buffer)
-    atomic_write_bytes(path, buffer.getvalue())
+    write_with_digest(path, buffer.getvalue())
 
 
 def load_checkpoint(path: str | Path) -> dict[str, Any]:
@@ -261,12 +335,15 @@ def load_checkpoint(path: str | Path) -> dict[str, Any]:
     containers and refuses any other pickled object (a function, a class whose ``__reduce__`` would run
     code) *before* creating it; so evaluating or resuming a run directory made by someone else cannot
     execute code. The marked values of :func:`save_checkpoint` are then turned back into numpy arrays and
-    generators.
+    generators. Before that the file's bytes are checked against their sha256 in ``<path>.sha256`` (when
+    the sidecar exists: checkpoints written before digests existed have none and still load) and the CRC-32
+    of every member of the zip archive is verified, so a flipped bit is an error, not a different policy.
 
     Raises
     ------
     ValueError
-        ``checkpoint: ...`` naming ``path`` if the file is missing, truncated, corrupted, not a mixedrl
+        ``checkpoint: ...`` naming ``path`` if the file is missing, truncated, corrupted (its digest or a
+        zip CRC does not match), not a mixedrl
         checkpoint, holds pickled objects other than plain data (refused, not run), or is an old
         ``mixedrl-checkpoint-v1`` file holding numpy objects (convert such a file you trust once with
         :func:`convert_checkpoint`).
@@ -280,8 +357,11 @@ def load_checkpoint(path: str | Path) -> dict[str, Any]:
     path = Path(path)
     if not path.is_file():
         raise ValueError(f"checkpoint: {path} does not exist")
+    data = path.read_bytes()
+    verify_digest(path, data, "checkpoint")
+    _verify_zip(path, data)
     try:
-        payload = torch.load(path, map_location="cpu", weights_only=True)
+        payload = torch.load(io.BytesIO(data), map_location="cpu", weights_only=True)
     except Exception as exc:  # noqa: BLE001 - any failure: explain it without running the file
         tag, refused = _format_tag(path), _refused_global(exc)
         if tag in _OLD_FORMATS and refused:
@@ -364,27 +444,132 @@ def convert_checkpoint(path: str | Path, *, trust: bool = False, out: str | Path
     return target
 
 
+#: The files that make a directory a run (any one of them): never replaced without ``resume``.
+RUN_FILES = ("config.json", "checkpoint.pt", "metrics.jsonl", "results.json")
+#: The lock file of a run directory (see :meth:`RunDirectory.lock`).
+LOCK_NAME = ".lock"
+
+
+class RunLockedError(ValueError):
+    """Another process holds the run directory's lock (a second writer is refused)."""
+
+
+def _is_temporary(name: str) -> bool:
+    """A temporary file of :func:`atomic_write_bytes` left by a killed process."""
+    return name.startswith(".") and name.endswith(".tmp")
+
+
 class RunDirectory:
     """The files of one run (see the module docstring).
 
     Parameters
     ----------
     path : str or pathlib.Path
-        Directory; created if needed.
+        Directory; created by the first write (not by reading or validating).
     """
 
     def __init__(self, path: str | Path) -> None:
         self.path = Path(path)
-        self.path.mkdir(parents=True, exist_ok=True)
 
     config_path = property(lambda self: self.path / "config.json")
     checkpoint_path = property(lambda self: self.path / "checkpoint.pt")
     metrics_path = property(lambda self: self.path / "metrics.jsonl")
     csv_path = property(lambda self: self.path / "metrics.csv")
     results_path = property(lambda self: self.path / "results.json")
+    lock_path = property(lambda self: self.path / LOCK_NAME)
+
+    def _mkdir(self) -> None:
+        try:
+            self.path.mkdir(parents=True, exist_ok=True)
+        except FileExistsError:
+            raise ValueError(f"out: {self.path} is a file, not a directory") from None
+        except OSError as exc:
+            raise ValueError(f"out: cannot create the directory {self.path} ({exc.strerror})") from None
+
+    def entries(self) -> list[str]:
+        """Names in the directory other than its lock and leftover temporary files ([] if it does not exist).
+
+        Raises
+        ------
+        ValueError
+            ``path`` exists and is not a directory, or cannot be listed.
+        """
+        if not self.path.exists():
+            return []
+        if not self.path.is_dir():
+            raise ValueError(f"out: {self.path} is a file, not a directory")
+        try:
+            names = os.listdir(self.path)
+        except OSError as exc:
+            raise ValueError(f"out: cannot read the directory {self.path} ({exc.strerror})") from None
+        return sorted(n for n in names if n != LOCK_NAME and not _is_temporary(n))
+
+    def holds_run(self) -> bool:
+        """True if the directory holds any of :data:`RUN_FILES` (a run, finished or not)."""
+        return any(name in RUN_FILES for name in self.entries())
+
+    def check_new(self) -> None:
+        """Refuse to start a new run here unless the directory is absent or empty; creates nothing.
+
+        Raises
+        ------
+        ValueError
+            ``path`` is a file, holds a run (resume it, or choose a new directory), or holds other files.
+        """
+        names = self.entries()
+        found = [n for n in names if n in RUN_FILES]
+        if found:
+            raise ValueError(f"out: {self.path} already holds a run ({', '.join(found)}); pass --resume "
+                             f"(resume=True) to continue it, or choose a new directory")
+        if names:
+            shown = ", ".join(names[:3]) + (", ..." if len(names) > 3 else "")
+            raise ValueError(f"out: {self.path} is not empty and holds no run ({shown}); choose a new or "
+                             f"empty directory")
+
+    @contextlib.contextmanager
+    def lock(self) -> Iterator[None]:
+        """Hold the directory's one-writer lock (``<path>/.lock``) for the duration of the ``with`` block.
+
+        The lock is an exclusive ``fcntl.flock`` on the lock file, which records the holder (pid, host,
+        start time). The kernel releases it when the holder exits, however it dies, so a lock left by a
+        killed process is recovered by the next writer. The directory is created if needed.
+
+        Raises
+        ------
+        RunLockedError
+            Another process holds the lock (the message names the directory and the holder).
+        ValueError
+            The directory cannot be created or written.
+        """
+        import fcntl
+
+        self._mkdir()
+        try:
+            fd = os.open(self.lock_path, os.O_RDWR | os.O_CREAT, _default_mode())
+        except OSError as exc:
+            raise ValueError(f"out: cannot write in {self.path} ({exc.strerror})") from None
+        try:
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                holder = os.pread(fd, 4096, 0).decode("utf-8", "replace").strip() or "unknown"
+                raise RunLockedError(f"out: {self.path} is being written by another process ({holder}); "
+                                     f"one writer per run directory") from None
+            info = (f"pid {os.getpid()} on {socket.gethostname()} since "
+                    f"{time.strftime('%Y-%m-%dT%H:%M:%SZ', time.gmtime())}\n").encode()
+            os.ftruncate(fd, 0)
+            os.pwrite(fd, info, 0)
+            try:
+                yield
+            finally:
+                os.ftruncate(fd, 0)
+                fcntl.flock(fd, fcntl.LOCK_UN)
+        finally:
+            os.close(fd)
 
     def write_config(self, config: TrainConfig) -> None:
         """Save the run's config as ``config.json``."""
+        self._mkdir()
         atomic_write_text(self.config_path, json.dumps(config.to_dict(), indent=2, sort_keys=True) + "\n")
 
     def read_config(self) -> TrainConfig:
@@ -397,6 +582,7 @@ class RunDirectory:
         """Append rows to ``metrics.jsonl``."""
         if not rows:
             return
+        self._mkdir()
         with open(self.metrics_path, "a") as fh:
             for row in rows:
                 fh.write(json.dumps(row, allow_nan=True) + "\n")
@@ -417,9 +603,26 @@ class RunDirectory:
         return rows
 
     def truncate_metrics(self, k: int) -> None:
-        """Keep only the rows with ``iteration <= k`` (used when resuming from a checkpoint at ``k``)."""
-        rows = [r for r in self.read_metrics() if r["iteration"] <= k]
+        """Keep only the rows with ``iteration <= k`` (used when resuming from a checkpoint at ``k``).
+
+        Raises
+        ------
+        ValueError
+            ``metrics.jsonl`` is missing or lacks a row of some iteration ``1..k`` (resuming would lose
+            metrics); nothing is changed then.
+        """
+        rows = self.check_metrics(k)
         atomic_write_text(self.metrics_path, "".join(json.dumps(r) + "\n" for r in rows))
+
+    def check_metrics(self, k: int) -> list[dict[str, Any]]:
+        """The rows of iterations ``1..k`` of ``metrics.jsonl``, checked complete (see :meth:`truncate_metrics`)."""
+        rows = [r for r in self.read_metrics() if r.get("iteration", k + 1) <= k]
+        if [r["iteration"] for r in rows] != list(range(1, k + 1)):
+            state = "is missing" if not self.metrics_path.is_file() else f"has {len(rows)} rows up to iteration {k}"
+            raise ValueError(f"metrics: {self.metrics_path} {state}, but the checkpoint is at iteration {k} "
+                             f"(one row per iteration expected); resuming would lose metrics: restore the "
+                             f"file or train into a new directory")
+        return rows
 
     def write_csv(self) -> None:
         """Write ``metrics.csv`` from ``metrics.jsonl`` (union of keys as columns)."""
@@ -432,15 +635,31 @@ class RunDirectory:
         writer.writeheader()
         for row in rows:
             writer.writerow(row)
+        self._mkdir()
         atomic_write_text(self.csv_path, out.getvalue())
 
     def write_results(self, results: dict[str, Any]) -> None:
-        """Write ``results.json`` atomically."""
-        atomic_write_text(self.results_path, json.dumps(results, indent=2, sort_keys=True) + "\n")
+        """Write ``results.json`` atomically, with its sha256 in ``results.json.sha256``."""
+        self._mkdir()
+        text = json.dumps(results, indent=2, sort_keys=True) + "\n"
+        write_with_digest(self.results_path, text.encode("utf-8"))
 
     def read_results(self) -> dict[str, Any]:
-        """Read ``results.json``."""
-        return json.loads(self.results_path.read_text())
+        """Read ``results.json``, verified against its sha256 sidecar when it has one.
+
+        Raises
+        ------
+        ValueError
+            ``results: ...`` naming the file if it is missing, does not match its digest, or is not JSON.
+        """
+        if not self.results_path.is_file():
+            raise ValueError(f"results: {self.results_path} does not exist")
+        data = self.results_path.read_bytes()
+        verify_digest(self.results_path, data, "results")
+        try:
+            return json.loads(data)
+        except json.JSONDecodeError as exc:
+            raise ValueError(f"results: {self.results_path} is not valid JSON ({exc})") from None
 
 
 def iterations_to_converge(iterations: list[int], costs: list[float], rtol: float = CONVERGENCE_RTOL) -> int:
@@ -507,10 +726,60 @@ def _scalar_eval(ev: dict[str, Any]) -> dict[str, float]:
     return {f"eval/{k}": float(v) for k, v in ev.items() if isinstance(v, (int, float, np.floating))}
 
 
+def _config_conflicts(saved: TrainConfig, requested: TrainConfig) -> list[tuple[str, Any, Any]]:
+    """``(dotted name, saved value, requested value)`` of the fields where the configs differ; a larger
+    ``iterations`` is not a conflict (an explicit extension of the budget)."""
+    from mixedrl.sweep import flatten_table
+
+    a, b = flatten_table(saved.to_dict()), flatten_table(requested.to_dict())
+    out = [(k, a.get(k), b.get(k)) for k in sorted(set(a) | set(b)) if a.get(k) != b.get(k)]
+    if [k for k, _, _ in out] == ["iterations"] and requested.iterations > saved.iterations:
+        return []
+    return out
+
+
+def _open_run(run: RunDirectory, cfg: TrainConfig, resume: bool) -> dict[str, Any] | None:
+    """Validate ``run`` for training ``cfg`` (creating nothing) and return the checkpoint to resume from.
+
+    Without ``resume`` the directory must be absent or empty. With ``resume``: a checkpoint (its config
+    must equal ``cfg``, up to a larger ``iterations``: an extension; ``metrics.jsonl`` must hold every
+    iteration up to it), or only ``config.json`` (a run killed before its first checkpoint: it starts
+    again), or nothing at all (a run not started yet).
+    """
+    if not resume:
+        run.check_new()
+        return None
+    names = run.entries()
+    if "checkpoint.pt" not in names:
+        others = [n for n in names if n != "config.json"]
+        if others:
+            raise ValueError(f"resume: {run.path} has no checkpoint.pt to resume from but holds "
+                             f"{', '.join(others[:4])}; nothing was changed (train into a new directory)")
+        if "config.json" not in names:
+            return None
+    saved = run.read_config()
+    conflicts = _config_conflicts(saved, cfg)
+    if conflicts:
+        shown = "; ".join(f"{k} {v!r} (saved: {w!r})" for k, w, v in conflicts[:4])
+        more = f" and {len(conflicts) - 4} more" if len(conflicts) > 4 else ""
+        hint = (" (resume can only extend the budget)" if any(k == "iterations" for k, _, _ in conflicts) else "")
+        raise ValueError(f"config: {shown}{more} contradict(s) the saved {run.config_path}{hint}; resume with "
+                         f"the run's config, or train into a new directory")
+    if "checkpoint.pt" not in names:
+        return None
+    state = load_checkpoint(run.checkpoint_path)
+    run.check_metrics(int(state["trainer"]["k"]))
+    return state
+
+
 def train(trainer: Any, run: RunDirectory | None = None, resume: bool = False, progress: bool = False,
           stop_after: int | None = None, callback: Callable[[dict[str, Any]], None] | None = None
           ) -> dict[str, Any]:
     """Run ``trainer`` to its budget (or its stopping test), with checkpoints, metrics and results.
+
+    A run directory has one writer: the run holds :meth:`RunDirectory.lock` from its validation to its
+    last write, and a second process training into the same directory is refused. Nothing is created or
+    changed in ``run`` before the validation has passed.
 
     Parameters
     ----------
@@ -518,8 +787,12 @@ def train(trainer: Any, run: RunDirectory | None = None, resume: bool = False, p
         A freshly built trainer (its config decides budget, evaluation and checkpoint periods).
     run : RunDirectory, optional
         Where to write config, checkpoints, metrics and results; ``None`` keeps everything in memory.
+        Without ``resume`` it must be absent or empty.
     resume : bool
-        Continue from ``run``'s checkpoint (if there is one).
+        Continue from ``run``'s checkpoint. A directory holding only ``config.json`` (killed before its
+        first checkpoint) or nothing starts from scratch; one holding other files but no checkpoint is
+        refused. The saved config must equal the trainer's, except a larger ``iterations`` (the budget
+        is extended).
     progress : bool
         Show a tqdm progress bar.
     stop_after : int, optional
@@ -536,26 +809,36 @@ def train(trainer: Any, run: RunDirectory | None = None, resume: bool = False, p
 
     Raises
     ------
+    RunLockedError
+        Another process is writing ``run``.
     ValueError
-        ``resume`` with a corrupted checkpoint, or a config that differs from the saved one.
+        ``run`` holds a run (or other files) and ``resume`` is false; ``resume`` with a corrupted
+        checkpoint, a config that differs from the saved one, no checkpoint beside other files, or
+        ``metrics.jsonl`` missing rows up to the checkpoint. Nothing is changed then.
     """
+    if run is None:
+        return _train(trainer, None, None, progress, stop_after, callback)
+    cfg: TrainConfig = trainer.config
+    _open_run(run, cfg, resume)  # refuse before creating anything
+    with run.lock():
+        state = _open_run(run, cfg, resume)  # again under the lock: the directory may have changed meanwhile
+        return _train(trainer, run, state, progress, stop_after, callback)
+
+
+def _train(trainer: Any, run: RunDirectory | None, state: dict[str, Any] | None, progress: bool,
+           stop_after: int | None, callback: Callable[[dict[str, Any]], None] | None) -> dict[str, Any]:
+    """The loop of :func:`train` on a validated (and locked) ``run``, from ``state`` if given."""
     cfg: TrainConfig = trainer.config
     torch.set_num_threads(cfg.num_threads)
     memory_rows: list[dict[str, Any]] = []
     elapsed = 0.0
     if run is not None:
-        if resume and run.checkpoint_path.is_file():
-            saved = run.read_config()
-            if saved.to_dict() != cfg.to_dict():
-                raise ValueError(f"config: differs from the saved {run.config_path}; resume with the same config")
-            state = load_checkpoint(run.checkpoint_path)
+        if state is not None:
             trainer.load_state_dict(state["trainer"])
             elapsed = float(state.get("elapsed", 0.0))
             run.truncate_metrics(trainer.k)
-        else:
+        if state is None or cfg.to_dict() != run.read_config().to_dict():
             run.write_config(cfg)
-            if run.metrics_path.exists():
-                run.metrics_path.unlink()
     seeds = eval_seeds(cfg)
     pending: list[dict[str, Any]] = []
 
