@@ -409,10 +409,55 @@ def _csv_text(rows: list[dict[str, Any]]) -> str:
     return out.getvalue()
 
 
+def _spec_doc(spec: SweepSpec) -> dict[str, Any]:
+    """The spec's part of ``sweep.json``."""
+    return {"methods": list(spec.methods), "seeds": list(spec.seeds), "base": spec.base,
+            "grid": {k: list(v) for k, v in spec.grid.items()}}
+
+
+#: What a sweep writes into its ``--out``; anything else there is not the sweep's.
+SWEEP_FILES = ("spec.toml", "sweep.json", "sweep.csv", "sweep_summary.csv", "runs", "figures")
+
+
+def _check_out(out: Path, spec: SweepSpec, runs: list[SweepRun], resume: bool) -> None:
+    """Refuse an ``out`` that is a file, holds anything but this sweep's files, or holds a sweep without
+    ``resume`` or of a different spec; reads only."""
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"out: {out} is a file, not a directory")
+    names = [n for n in sorted(os.listdir(out)) if not (n.startswith(".") and n.endswith(".tmp"))] \
+        if out.is_dir() else []
+    if not names:
+        return
+    foreign = [n for n in names if n not in SWEEP_FILES]
+    if (out / "runs").is_dir():
+        own = {r.name for r in runs}
+        foreign += [f"runs/{n}" for n in sorted(os.listdir(out / "runs")) if n not in own]
+    if foreign:
+        shown = ", ".join(foreign[:3]) + (", ..." if len(foreign) > 3 else "")
+        raise ValueError(f"out: {out} holds files that are not this sweep's ({shown}); choose a new --out")
+    if not resume:
+        raise ValueError(f"out: {out} already holds a sweep; pass --resume to continue it, or choose a new --out")
+    saved_spec = out / "spec.toml"
+    if saved_spec.is_file():
+        saved = parse_spec(saved_spec.read_text(encoding="utf-8"), str(saved_spec))
+        if dataclasses.replace(saved, text="") != dataclasses.replace(spec, text=""):
+            raise ValueError(f"spec: differs from the sweep's {saved_spec}; resume with the same spec or use a new "
+                             f"--out")
+    doc_path = out / "sweep.json"
+    if doc_path.is_file():
+        try:
+            doc = json.loads(doc_path.read_text(encoding="utf-8"))
+        except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+            raise ValueError(f"out: {doc_path} is not a sweep's JSON ({exc}); choose a new --out") from None
+        mine = json.loads(json.dumps(_spec_doc(spec)))
+        if not isinstance(doc, dict) or {k: doc.get(k) for k in mine} != mine:
+            raise ValueError(f"spec: differs from the sweep recorded in {doc_path}; resume with the same spec or "
+                             f"use a new --out")
+
+
 def _write_outputs(out: Path, spec: SweepSpec, records: list[dict[str, Any]], extra: dict[str, Any]) -> None:
     summary = summarize(records)
-    doc = {"methods": list(spec.methods), "seeds": list(spec.seeds), "base": spec.base,
-           "grid": {k: list(v) for k, v in spec.grid.items()}, **extra, "runs": records, "summary": summary}
+    doc = {**_spec_doc(spec), **extra, "runs": records, "summary": summary}
     atomic_write_text(out / "sweep.json", json.dumps(doc, indent=2, allow_nan=True) + "\n")
     flat = []
     for rec in records:
@@ -533,20 +578,16 @@ def run_sweep(spec: SweepSpec, out: str | Path, address: str | None = None, num_
         Ray is not installed (the message names the extra to install).
     ValueError
         ``out`` already holds a sweep and ``resume`` is false, ``resume`` with a different spec in
-        ``out/spec.toml``, or ``num_cpus`` not a positive integer. Nothing is started.
+        ``out/spec.toml`` or ``out/sweep.json``, ``out`` holds files that are not this sweep's (anything
+        but :data:`SWEEP_FILES`, or a run directory the spec does not name), or ``num_cpus`` not a
+        positive integer. Nothing is started or written.
     """
     out = Path(out).resolve()
     runs = expand(spec)
     if num_cpus is not None and (isinstance(num_cpus, bool) or not isinstance(num_cpus, int) or num_cpus < 1):
         raise ValueError(f"num_cpus: expected a positive integer, got {num_cpus!r}")
     saved_spec = out / "spec.toml"
-    if resume and saved_spec.is_file():
-        saved = parse_spec(saved_spec.read_text(encoding="utf-8"), str(saved_spec))
-        if dataclasses.replace(saved, text="") != dataclasses.replace(spec, text=""):
-            raise ValueError(f"spec: differs from the sweep's {saved_spec}; resume with the same spec or use a new "
-                             f"--out")
-    elif not resume and (saved_spec.is_file() or (out / "runs").is_dir() and any((out / "runs").iterdir())):
-        raise ValueError(f"out: {out} already holds a sweep; pass --resume to continue it, or choose a new --out")
+    _check_out(out, spec, runs, resume)
     try:
         import ray
     except ImportError:

@@ -114,6 +114,7 @@ def test_resume_refuses_a_checkpoint_with_code(tmp_path: Path) -> None:
     train(make_trainer(cfg), RunDirectory(tmp_path), stop_after=5)
     marker = tmp_path / "marker"
     torch.save({"format": V2, "state": {"trainer": _WritesMarker(marker)}}, tmp_path / "checkpoint.pt")
+    (tmp_path / "checkpoint.pt.sha256").unlink()  # a hostile directory without a digest (else the digest refuses it)
     with pytest.raises(ValueError, match="^checkpoint: .*refused"):
         train(make_trainer(cfg), RunDirectory(tmp_path), resume=True)
     assert not marker.exists()

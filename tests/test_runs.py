@@ -57,7 +57,7 @@ def test_checkpoint_round_trip_is_atomic(tmp_path: Path) -> None:
     save_checkpoint(path, state)
     loaded = load_checkpoint(path)
     assert loaded["k"] == 7 and torch.equal(loaded["w"], state["w"]) and torch.equal(loaded["gen"], state["gen"])
-    assert [p.name for p in tmp_path.iterdir()] == ["checkpoint.pt"]  # no temporary file left behind
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["checkpoint.pt", "checkpoint.pt.sha256"]  # no temporary file left
 
 
 def test_failed_write_keeps_previous_checkpoint(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
@@ -72,7 +72,7 @@ def test_failed_write_keeps_previous_checkpoint(tmp_path: Path, monkeypatch: pyt
         save_checkpoint(path, {"k": 2})
     monkeypatch.undo()
     assert load_checkpoint(path)["k"] == 1
-    assert [p.name for p in tmp_path.iterdir()] == ["checkpoint.pt"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["checkpoint.pt", "checkpoint.pt.sha256"]
 
 
 def test_corrupted_checkpoint_raises_value_error(tmp_path: Path) -> None:
