@@ -142,22 +142,25 @@ def test_resume_never_drops_metrics(run_copy: Path, damage: str, capsys: pytest.
 # ---------------------------------------------------------------------------------------------------
 # 2. every CLI failure: one line, exit 2, nothing created or changed
 # ---------------------------------------------------------------------------------------------------
-def test_cli_failures_are_one_line_and_change_nothing(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+_TRAIN = ["train", *RUN, *FAST, "--no-progress"]
+
+
+@pytest.mark.parametrize("args, match", [
+    ([*_TRAIN, "--out", "{tmp}/o1", "--config", "{tmp}/missing.json"], "does not exist"),
+    ([*_TRAIN, "--out", "{tmp}/o2", "--config", "{tmp}/adir"], "not a file"),
+    ([*_TRAIN, "--out", "{tmp}/afile"], "is a file"),
+    ([*_TRAIN, "--out", "{tmp}/o3", "--set", "method=ddpg"], "--method"),
+    ([*_TRAIN, "--out", "{tmp}/o4", "--set", "task.prior_mena=1"], "prior_mena"),
+    (["evaluate", "{tmp}/afile"], "not a directory"),
+    (["evaluate", "{tmp}/no/such/dir"], "does not exist"),
+    (["evaluate", "{tmp}/adir"], "config.json"),
+], ids=["config-missing", "config-dir", "out-file", "set-method", "unknown-key", "evaluate-file",
+        "evaluate-missing", "evaluate-not-a-run"])
+def test_cli_failures_are_one_line_and_change_nothing(tmp_path: Path, args: list[str], match: str,
+                                                      capsys: pytest.CaptureFixture[str]) -> None:
     (tmp_path / "afile").write_text("x\n")
     (tmp_path / "adir").mkdir()
-    train = ["train", *RUN, *FAST, "--no-progress"]
-    cases = [
-        ([*train, "--out", str(tmp_path / "o1"), "--config", str(tmp_path / "missing.json")], "does not exist"),
-        ([*train, "--out", str(tmp_path / "o2"), "--config", str(tmp_path / "adir")], "not a file"),
-        ([*train, "--out", str(tmp_path / "afile")], "is a file"),
-        ([*train, "--out", str(tmp_path / "o3"), "--set", "method=ddpg"], "--method"),
-        ([*train, "--out", str(tmp_path / "o4"), "--set", "task.prior_mena=1"], "prior_mena"),
-        (["evaluate", str(tmp_path / "afile")], "not a directory"),
-        (["evaluate", str(tmp_path / "no" / "such" / "dir")], "does not exist"),
-        (["evaluate", str(tmp_path / "adir")], "config.json"),
-    ]
-    for args, match in cases:
-        refused(args, capsys, tmp_path, match)
+    refused([a.format(tmp=tmp_path) for a in args], capsys, tmp_path, match)
 
 
 @pytest.mark.skipif(os.geteuid() == 0, reason="root writes into read-only directories")
