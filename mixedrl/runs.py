@@ -9,6 +9,13 @@ A run lives in one directory::
         metrics.jsonl    one JSON object per iteration (namespaced keys, see below)
         metrics.csv      the same table as CSV, written when the run ends
         results.json     final evaluation, convergence, wall time
+        checkpoint.pt.sha256, results.json.sha256
+                         the sha256 of each (sha256sum format), verified on every load
+        .lock            the one-writer lock (fcntl.flock; holds the writer's pid, host, start time)
+
+Training never replaces a run: without ``resume`` the directory must be absent or empty; with it the
+saved config must match (a larger ``iterations`` extends the budget) and ``metrics.jsonl`` must be
+complete up to the checkpoint (docs/algorithm2.rst, "Run directories").
 
 Metric keys (every row has ``iteration``):
 
