@@ -177,7 +177,7 @@ def _train(args: argparse.Namespace) -> int:
         base = apply_overrides(base, parse_overrides(args.set))
         base.update({"method": args.method, "seed": args.seed})
         if args.iterations is not None:
-            base["iterations"] = args.iterations
+            base = apply_overrides(base, {"algorithm.iterations": args.iterations})
         config = TrainConfig.from_dict(base)
     trainer = make_trainer(config)
     results = train(trainer, run, resume=args.resume, progress=not args.no_progress)

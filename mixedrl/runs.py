@@ -488,7 +488,7 @@ def iterations_to_converge(iterations: list[int], costs: list[float], rtol: floa
 
 def eval_seeds(config: TrainConfig) -> list[int]:
     """Noise seeds of the evaluation episodes: fixed per run, disjoint from the training seed stream."""
-    return [1_000_003 * (config.seed + 1) + i for i in range(config.eval_seeds)]
+    return [1_000_003 * (config.seed + 1) + i for i in range(config.run.eval_seeds)]
 
 
 def make_trainer(config: TrainConfig, task: Task | None = None) -> AGPI | DDPG:
@@ -540,7 +540,7 @@ def train(trainer: Any, run: RunDirectory | None = None, resume: bool = False, p
         ``resume`` with a corrupted checkpoint, or a config that differs from the saved one.
     """
     cfg: TrainConfig = trainer.config
-    torch.set_num_threads(cfg.num_threads)
+    torch.set_num_threads(cfg.run.num_threads)
     memory_rows: list[dict[str, Any]] = []
     elapsed = 0.0
     if run is not None:
@@ -570,14 +570,14 @@ def train(trainer: Any, run: RunDirectory | None = None, resume: bool = False, p
     if progress:
         from tqdm.auto import tqdm
 
-        bar = tqdm(total=cfg.iterations, initial=trainer.k, desc=f"{cfg.method} seed {cfg.seed}", leave=False)
+        bar = tqdm(total=cfg.algorithm.iterations, initial=trainer.k, desc=f"{cfg.method} seed {cfg.seed}", leave=False)
     try:
-        while trainer.k < cfg.iterations and not trainer.stopped:
+        while trainer.k < cfg.algorithm.iterations and not trainer.stopped:
             t0 = time.perf_counter()
             row = trainer.iteration()
             elapsed += time.perf_counter() - t0
             row = {"iteration": trainer.k, **row, "time/elapsed_s": elapsed}
-            if trainer.k % cfg.eval_every == 0 or trainer.k == cfg.iterations or trainer.stopped:
+            if trainer.k % cfg.run.eval_every == 0 or trainer.k == cfg.algorithm.iterations or trainer.stopped:
                 row.update(_scalar_eval(trainer.evaluate(seeds)))
             pending.append(row)
             if callback is not None:
@@ -586,7 +586,7 @@ def train(trainer: Any, run: RunDirectory | None = None, resume: bool = False, p
                 bar.update(1)
                 if "eval/cost" in row:
                     bar.set_postfix(cost=f"{row['eval/cost']:.4g}")
-            if trainer.k % cfg.checkpoint_every == 0:
+            if trainer.k % cfg.run.checkpoint_every == 0:
                 checkpoint()
             if stop_after is not None and trainer.k >= stop_after:
                 checkpoint()

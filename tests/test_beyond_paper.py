@@ -70,7 +70,7 @@ def test_the_studies_cover_the_requested_grids() -> None:
                                                           ("bumps", 32.0, 261.0), ("gaussian", 320.0, 261.0)}
     assert {d.dof for d in laws if d.law == "student_t"} == {3.0}
     grade = expand(load_spec(ROOT / BP.STUDIES["road_grade"].spec))
-    assert {(r.config.method, r.config.ibe_case) for r in grade} == {("mixed", 2), ("mixed", 3), ("oracle", 2),
+    assert {(r.config.method, r.config.algorithm.ibe_case) for r in grade} == {("mixed", 2), ("mixed", 3), ("oracle", 2),
                                                                       ("oracle", 3)}
     assert all(r.config.task.disturbance.grade_amplitude == 0.02 for r in grade)
 

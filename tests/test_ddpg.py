@@ -64,7 +64,7 @@ def test_target_networks_follow_by_polyak_averaging() -> None:
     agent = DDPG(LinearTask(), TrainConfig(**CFG))
     before = [p.clone() for p in agent.critic_target.parameters()]
     agent.iteration()
-    tau = agent.config.ddpg_tau
+    tau = agent.config.ddpg.tau
     for t_old, t_new, src in zip(before, agent.critic_target.parameters(), agent.critic.parameters()):
         torch.testing.assert_close(t_new, (1 - tau) * t_old + tau * src.detach(), rtol=1e-6, atol=1e-7)
 
