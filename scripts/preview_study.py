@@ -235,7 +235,7 @@ def actor_weights(actor: torch.nn.Module) -> dict[str, list[Any]]:
     return {k: v.detach().double().tolist() for k, v in actor.state_dict().items()}
 
 
-#: Batch designs (docs/model_based.rst) -> ``TrainConfig.model_course_starts``. The study first ran on
+#: Batch designs (docs/model_based.rst) -> ``CourseSampler.course_starts``. The study first ran on
 #: design M, the default then (its runs are kept, under ``per_run/M``, and reproduce); S is the default now.
 DESIGNS: dict[str, str] = {"M": "start", "S": "along"}
 #: The design of the figure's policies.

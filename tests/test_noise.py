@@ -1,6 +1,6 @@
 """The noise sources (mixedrl.noise): one factory for Algorithms 1 and 2, the protocol's ``learns`` flag,
 Case 3 (StateDependentIBE, LinearFeatureIBE) planned with by Algorithm 2 through per-state nodes and
-selected by ``TrainConfig.ibe_case``, and the oracle of a state-dependent truth (a road grade)."""
+selected by ``AlgorithmConfig.ibe_case``, and the oracle of a state-dependent truth (a road grade)."""
 
 from __future__ import annotations
 
@@ -89,7 +89,7 @@ def test_agpi_plans_with_a_state_dependent_ibe() -> None:
 
 
 # ----------------------------------------------------------------------------------------------------
-# TrainConfig.ibe_case; Case 3 on the vehicle's road grade; the oracle of a state-dependent truth
+# AlgorithmConfig.ibe_case; Case 3 on the vehicle's road grade; the oracle of a state-dependent truth
 # ----------------------------------------------------------------------------------------------------
 GRADE = {"disturbance": {"grade_amplitude": 0.02, "grade_wavelength": 40.0}}
 T_OVER_M = (1.0 / 200.0) / 1500.0

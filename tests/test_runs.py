@@ -109,7 +109,7 @@ def test_iterations_to_converge() -> None:
     assert iterations_to_converge(its, [9.0, 1.0, 1.0, 1.5, 1.0, 1.0]) == 500
     assert iterations_to_converge(its, [1.0] * 6) == 100
     assert iterations_to_converge(its, [1.0, 1.0, 1.0, 1.0, 1.0, float("nan")]) == 600
-    with pytest.raises(ValueError, match="^iterations"):
+    with pytest.raises(ValueError, match="^algorithm.iterations"):
         iterations_to_converge([], [])
 
 

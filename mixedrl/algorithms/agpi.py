@@ -44,8 +44,8 @@ import numpy as np
 import torch
 from torch.optim.swa_utils import AveragedModel, get_ema_multi_avg_fn
 
-from mixedrl.config import TrainConfig
-from mixedrl.algorithms.model_data import SAMPLER_CLASSES
+from mixedrl.config import CourseSampler, TrainConfig
+from mixedrl.algorithms.model_data import SAMPLER_CLASSES, has_course
 from mixedrl.expectation import expectation_nodes, h_value
 from mixedrl.networks import Actor, AffineActor, Critic, QuadraticCritic
 from mixedrl.noise import make_noise_source
@@ -154,6 +154,9 @@ class AGPI:
         if config.sampler.name not in SAMPLER_CLASSES:
             raise ValueError(f"config: sampler.name {config.sampler.name!r} has no implementation "
                              f"(known: {sorted(SAMPLER_CLASSES)})")
+        if isinstance(config.sampler, CourseSampler) and not has_course(task):
+            raise ValueError(f"sampler.name: {config.sampler.name!r} needs a task with a course (a model with "
+                             f"initial_states and a course_length); task {type(task).__name__} has none")
         self.sampler = sampler_class(task, config, self.generator) if sampler_class is not None else None
         #: The Polyak (EMA) average of the actor's weights (``config.algorithm.actor_average > 0``), else ``None``.
         self.actor_avg: AveragedModel | None = None

@@ -107,9 +107,6 @@ class ModelStateSampler:
         opts = config.sampler
         if not isinstance(opts, ModelRolloutsSampler):
             raise ValueError(f"config: sampler.name is {opts.name!r}, not a model-rollout sampler")
-        if isinstance(opts, CourseSampler) and not has_course(task):
-            raise ValueError(f"sampler.name: {opts.name!r} needs a task with a course (a model with "
-                             f"initial_states and a course_length); task {type(task).__name__} has none")
         self.task, self.config, self.generator = task, config, generator
         #: The sampler's options (``config.sampler``); a plain model-rollout sampler has no course copies.
         self.options = opts
