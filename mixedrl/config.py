@@ -530,7 +530,7 @@ class AlgorithmConfig:
         _choice(self.mvc_check, f"{w}.mvc_check", ("mean", "all"))
         _choice(self.ibe_recursion, f"{w}.ibe_recursion", ("exact", "paper"))
         _choice(self.batch_weighting, f"{w}.batch_weighting", BATCH_WEIGHTINGS)
-        if isinstance(self.ibe_case, bool) or self.ibe_case not in (1, 2, 3):
+        if isinstance(self.ibe_case, bool) or not isinstance(self.ibe_case, (int, np.integer)) or self.ibe_case not in (1, 2, 3):
             raise ValueError(f"{w}.ibe_case: expected 1, 2 or 3 (the IBE's Case), got {self.ibe_case!r}")
         if self.ibe_case != 2 and self.ibe_recursion != "exact":
             raise ValueError(f"{w}.ibe_recursion: 'paper' is eq. (18), a Case 2 recursion; "

@@ -12,7 +12,7 @@ from mixedrl.config import TrainConfig
 from mixedrl.runs import RunDirectory, make_trainer, train
 
 FAST = dict(task="linear", batch_size=32, iterations=30, eval_every=10, eval_seeds=1, checkpoint_every=10,
-            hidden_sizes=(8,), model_course_start=0)
+            hidden_sizes=(8,))
 
 
 def _flat(module: torch.nn.Module) -> torch.Tensor:

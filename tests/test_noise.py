@@ -115,7 +115,7 @@ def test_ibe_case_selects_the_estimator(case: int, cls: type, task: str) -> None
     for method in ("model", "oracle"):  # only mixed RL reads ibe_case
         fixed = AGPI(task_from_config(task), TrainConfig(method=method, task=task, ibe_case=case, batch_size=8)).noise
         assert isinstance(fixed, GaussianNoise)
-    assert TrainConfig().ibe_case == 2  # the reproduction's Case 2 stays the default
+    assert TrainConfig().algorithm.ibe_case == 2  # the reproduction's Case 2 stays the default
 
 
 @pytest.mark.parametrize("changes,field", [({"ibe_case": 0}, "ibe_case"), ({"ibe_case": 4}, "ibe_case"),
@@ -124,7 +124,7 @@ def test_ibe_case_selects_the_estimator(case: int, cls: type, task: str) -> None
                                            ({"ibe_case": 3, "ibe_recursion": "paper"}, "ibe_recursion"),
                                            ({"ibe_case": 1, "ibe_recursion": "paper"}, "ibe_recursion")])
 def test_ibe_case_is_validated(changes: dict, field: str) -> None:
-    with pytest.raises(ValueError, match=f"^{field}:"):
+    with pytest.raises(ValueError, match=f"^algorithm.{field}:"):
         TrainConfig(**changes)
     with pytest.raises(ValueError, match="^state_dependent"):
         make_noise_source("mixed", LinearTask(), state_dependent=True)  # Case 3 needs covariance="known"
