@@ -1,11 +1,12 @@
 """One typed, documented configuration object per training run, the experiment included.
 
-:class:`TrainConfig` holds every knob of a run of Algorithm 2 (``method`` = ``mixed``, ``model``,
-``oracle``) or of the DDPG baseline (``method = "ddpg"``); its field ``task`` holds the *experiment*:
-which system, the designer's prior of the disturbance (eq. 8 / eq. 55), the true disturbance law, the
-discount factor and the cost weights (eq. 54), the observation's preview. It is saved as
-``config.json`` beside the run's results; loading a dictionary with a key that is not a field, at any
-level, is an error naming the dotted key (a misspelt option must never be silently ignored).
+:class:`TrainConfig` holds a run of Algorithm 2 (``method`` = ``mixed``, ``model``, ``oracle``) or of
+the DDPG baseline (``method = "ddpg"``) in seven fields: ``method``, ``seed``, ``task`` (the experiment:
+system, prior, true disturbance law, discount, cost weights, preview), ``algorithm``
+(:class:`AlgorithmConfig`), ``sampler`` (where the PEV/PIM states come from, a registered options class
+chosen by ``name``: :data:`SAMPLERS`), ``ddpg`` (:class:`DDPGConfig`) and ``run`` (:class:`RunConfig`).
+It is saved as ``config.json`` beside the run's results; loading a dictionary with a key that is not a
+field, at any level, is an error naming the dotted key.
 
 The task configuration is one of two nested dataclasses, chosen by its ``name``:
 
@@ -14,23 +15,22 @@ The task configuration is one of two nested dataclasses, chosen by its ``name``:
 * :class:`LinearTaskConfig` (``name = "linear"``, a small LQ system with a known optimum), with the
   nested :class:`GaussianNoiseConfig` (``task.disturbance``).
 
+A section that is not given takes the task's experiment configuration (:data:`PRESETS`): the double
+lane change registers :data:`DLC_EXPERIMENT` (the reproduction of Table I: its course sampler
+:class:`CourseSampler`, the learning-rate decay over 1500 iterations, the relative batch weighting); any
+other task gets the library defaults of the section classes (model rollouts from the task's start
+distribution, the decay tied to the budget, the paper's uniform batch mean).
+
 Dotted keys address nested fields, the same way on the command line, in :func:`apply_overrides` and in
 sweep specifications::
 
-    mixedrl train --method mixed --out runs/p300 --set task.prior_force_mean=300 task.disturbance.variance=64
-    mixedrl train --method model --out runs/lin --set task.name=\\"linear\\" task.prior_mean=[0,2]
+    mixedrl train --method mixed --out runs/p300 --set task.prior_force_mean=300 algorithm.iterations=300
+    mixedrl train --method mixed --out runs/true --set sampler.name=\\"true_copies\\"
     mixedrl train --method mixed --out runs/mine --config experiment.json   # nested JSON, like config.json
 
-Old ``config.json`` files (``"task": "dlc"`` or ``"linear"`` as a string, ``train_half_widths`` at the
-top level) still load: the string selects that task's defaults and the top-level ``train_half_widths``
-moves to ``task.train_half_widths`` (it never had an effect on the linear task and is dropped there).
-
-The defaults are the settings used for the reproduction of Table I (``mixedrl reproduce``). Every method
-gets the *same* networks, optimiser, learning rates, batch of states and iteration budget; the
-``ddpg_*`` fields only configure what DDPG has and the model-based methods do not (replay buffer,
-target networks, exploration noise; textbook values, not tuned). The shared settings (learning rates,
-their decay, ``horizon``, ``value_output``, ``batch_size``, the budget) were chosen by a small search
-on mixed-RL runs of the double lane change (seeds 0-2) and then applied unchanged to every method.
+Old forms still load: the flat 45-field ``config.json`` and old flat keys (``iterations``,
+``model_course_starts``, ...) through :data:`LEGACY_KEYS` (:func:`migrate`); ``"task": "dlc"`` or
+``"linear"`` as a string and a top-level ``train_half_widths`` (moved to ``task.train_half_widths``).
 """
 
 from __future__ import annotations
@@ -50,6 +50,21 @@ from mixedrl.checks import (as_matrix, as_vector, check_covariance, check_number
 
 __all__ = [
     "TrainConfig",
+    "AlgorithmConfig",
+    "DDPGConfig",
+    "RunConfig",
+    "SamplerConfig",
+    "TrueCopiesSampler",
+    "ModelRolloutsSampler",
+    "CourseSampler",
+    "SAMPLERS",
+    "PRESETS",
+    "DLC_EXPERIMENT",
+    "LEGACY_KEYS",
+    "register_sampler",
+    "register_preset",
+    "sampler_config",
+    "migrate",
     "TaskConfig",
     "DoubleLaneChangeTaskConfig",
     "LinearTaskConfig",
@@ -74,9 +89,9 @@ TASKS = ("dlc", "linear")
 #: symmetric two-point law), all with the configured mean and variance (:class:`ForceDisturbanceConfig`).
 #: The double lane change simulates all three; the linear task only ``"gaussian"``.
 DISTURBANCE_LAWS = ("gaussian", "student_t", "bumps")
-#: Where Algorithm 2's course rollouts on the model (re)start (``TrainConfig.model_course_starts``).
+#: Where the course copies of the double lane change's sampler restart (``CourseSampler.course_starts``).
 MODEL_COURSE_STARTS = ("start", "along", "loop")
-#: How Algorithm 2 weights the states of its batch (``TrainConfig.batch_weighting``).
+#: How Algorithm 2 weights the states of its batch (``AlgorithmConfig.batch_weighting``).
 BATCH_WEIGHTINGS = ("uniform", "relative")
 
 
