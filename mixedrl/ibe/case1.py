@@ -1,7 +1,7 @@
 """Case 1 of the IBE: the noise covariance ``K`` is known, eqs. (14)-(16).
 
-* :func:`map_mean_known_cov`: the batch MAP mean, eq. (15).
-* :class:`KnownCovarianceIBE`: the recursion, eq. (16), from the sufficient statistics ``(k, m_k)``.
+* :func:`~mixedrl.ibe.map_mean_known_cov`: the batch MAP mean, eq. (15).
+* :class:`~mixedrl.ibe.KnownCovarianceIBE`: the recursion, eq. (16), from the sufficient statistics ``(k, m_k)``.
 
 Both evaluate eq. (15) in the covariance (Kalman) form of the package docstring (:mod:`mixedrl.ibe`) with
 one function, ``_posterior_known_cov`` (the recursion uses a simultaneous diagonalisation of ``K_M`` and

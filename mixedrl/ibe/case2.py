@@ -1,7 +1,7 @@
 """Case 2 of the IBE: mean and covariance of the noise both unknown, eqs. (17)-(18).
 
-* :func:`map_mean_cov`: the batch fixed point of eq. (17), from the raw residuals.
-* :class:`UnknownCovarianceIBE`: the recursion; ``recursion="exact"`` (default) re-solves eq. (17) from
+* :func:`~mixedrl.ibe.map_mean_cov`: the batch fixed point of eq. (17), from the raw residuals.
+* :class:`~mixedrl.ibe.UnknownCovarianceIBE`: the recursion; ``recursion="exact"`` (default) re-solves eq. (17) from
   the sufficient statistics ``(N, xbar, scatter)`` after every update (``_solve_eq17_stats``),
   ``recursion="paper"`` is eq. (18) literally.
 """

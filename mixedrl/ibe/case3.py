@@ -1,8 +1,8 @@
 """Case 3 of the IBE: a state-dependent mean ``mu = phi(x, u; w)``, eq. (19).
 
-* :class:`StateDependentIBE`: any ``phi`` (a ``torch.nn.Module``), refitted by L-BFGS on every residual
-  kept so far; :meth:`~StateDependentIBE.negative_log_posterior` is eq. (19).
-* :class:`LinearFeatureIBE`: ``phi = W^T g(x, u)`` with fixed features, solved in closed form from the
+* :class:`~mixedrl.ibe.StateDependentIBE`: any ``phi`` (a ``torch.nn.Module``), refitted by L-BFGS on every residual
+  kept so far; :meth:`~mixedrl.ibe.StateDependentIBE.negative_log_posterior` is eq. (19).
+* :class:`~mixedrl.ibe.LinearFeatureIBE`: ``phi = W^T g(x, u)`` with fixed features, solved in closed form from the
   sufficient statistics ``(N, G, S)``.
 
 Both take the noise covariance ``K`` as known.

@@ -1,6 +1,6 @@
 """What the three Cases of the IBE share: the residuals of eq. (10) and the input and state checks.
 
-* :func:`residuals`: eq. (10), ``xi_j = x_{j+1} - f(x_j, u_j)``.
+* :func:`~mixedrl.ibe.residuals`: eq. (10), ``xi_j = x_{j+1} - f(x_j, u_j)``.
 * :func:`real_batch`, :func:`real_vector`, :func:`real_covariance`: the checks every estimator applies to
   its arguments (real numbers only: complex, bool, string and object arrays are refused; finite; of the
   right shape; at least one noise dimension).
