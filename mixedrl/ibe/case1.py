@@ -169,8 +169,8 @@ class KnownCovarianceIBE(GaussianNoiseEstimate):
     three ``n x n`` products and no factorisation. If ``K_M`` is numerically singular (squared Cholesky
     pivot of the scaled ``K_M`` below ``1e-13``) each update instead solves ``k K_M + K`` with
     :func:`mixedrl.gaussian.solve_psd` (pseudo-inverse on its null space: there the prior is kept).
-    An update is computed as a candidate and committed only if ``m_k``, ``mu_hat_k`` and ``Psi_k^{-1}``
-    are finite (``Psi_k^{-1}`` depends on ``k`` alone and is PSD by construction); otherwise it is
+    An update is computed as a candidate and committed only if ``m_k`` and ``mu_hat_k`` are finite
+    (``Psi_k^{-1}`` depends on ``k`` alone and is finite and PSD by construction); otherwise it is
     refused and the estimator keeps its state.
     """
 
@@ -230,7 +230,7 @@ class KnownCovarianceIBE(GaussianNoiseEstimate):
             total = self.total + bsum
             count = self.count + nb
             mean, mean_cov = self._posterior(count, total)
-        check_posterior("xi", (total, mean, mean_cov))
+        check_posterior("xi", (total, mean))  # Psi_k^-1 depends on k alone (finite, PSD by construction)
         self.total, self.count, self.mean, self.mean_cov = total, count, mean, mean_cov
         return self
 

@@ -264,6 +264,9 @@ class UnknownCovarianceIBE(GaussianNoiseEstimate):
       solved with :func:`mixedrl.gaussian.solve_psd`. Batches are processed one residual at a time.
     * Either way an update is computed as a candidate and committed only if it is finite and ``K_hat``
       (and, for ``"paper"``, ``Psi_k``) is symmetric PSD; otherwise it is refused with the state kept.
+      In ``"exact"`` mode the eigenvalue check is made on a batch's merged scatter: a single residual
+      adds a rank-1 PSD term, so the scatter and ``K_hat = scatter / N + d d^T`` stay PSD by
+      construction and only their finiteness is checked.
     """
 
     _KIND = "UnknownCovarianceIBE"
@@ -357,11 +360,16 @@ class UnknownCovarianceIBE(GaussianNoiseEstimate):
             if bscatter is not None:
                 # (outer(delta, delta) is exactly symmetric, so single updates keep symmetry bitwise)
                 scatter = symmetrize(scatter + bscatter)
-            check_posterior("xi", (data_mean, scatter))
+            # The scatter stays PSD by construction under rank-1 merges (w >= 0 times delta delta^T), and so
+            # does K_hat = scatter / N + d d^T; only a batch's own scatter needs the eigenvalue check.
+            if bscatter is None:
+                check_posterior("xi", (data_mean, scatter))
+            else:
+                check_posterior("xi", (data_mean,), (scatter,))
             mean, cov, it, ok = _solve_eq17_stats(
                 self.prior_mean, self.prior_cov, count, data_mean, scatter, self.max_iter, FIXED_POINT_RTOL, self._prior_scale
             )
-        check_posterior("xi", (mean,), (cov,))
+        check_posterior("xi", (mean, cov))
         if not ok:
             logger.warning("UnknownCovarianceIBE: eq. (17) fixed point not converged after %d iterations", it)
         self.count, self.data_mean, self.scatter = count, data_mean, scatter
