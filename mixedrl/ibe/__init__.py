@@ -10,14 +10,14 @@ designer's prior with them:
   :class:`LinearFeatureIBE`: the same for a ``phi`` linear in ``w`` (fixed features), solved in closed form.
 
 Each Case is a module (:mod:`mixedrl.ibe.case1`, :mod:`mixedrl.ibe.case2`, :mod:`mixedrl.ibe.case3`);
-:mod:`mixedrl.ibe.common` holds eq. (10) and the checks all three apply. Every name above is imported
-from here.
+:mod:`mixedrl.ibe.common` holds eq. (10) and the checks all three apply. Every name above can be
+imported from this package.
 
 Bad input
 ---------
 Every estimator refuses, with a ``ValueError`` naming the argument and its state unchanged: residuals
 (and states, actions, covariances) that are not real numbers (complex, bool, strings, objects) or not
-finite; zero-dimensional noise at construction; and any update (or :meth:`load_state_dict` state) whose
+finite; zero-dimensional noise at construction; and any update (or ``load_state_dict`` state) whose
 posterior would not be finite and symmetric PSD, overflow included. The candidate posterior is
 computed with floating-point warnings silenced, checked, and only then committed.
 
