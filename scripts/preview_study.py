@@ -45,7 +45,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from mixedrl.config import TrainConfig
+from mixedrl.config import TrainConfig, migrate
 from mixedrl.runs import atomic_write_bytes, atomic_write_text, make_trainer, train
 from mixedrl.tasks import task_from_config
 
@@ -259,7 +259,7 @@ def job_path(candidate: str, method: str, seed: int, iterations: int | None = No
 def design_of(config: dict[str, Any]) -> str:
     """The design (a key of :data:`DESIGNS`) of a run's saved config (a config saved before
     ``model_course_starts`` existed ran design M, the only one then)."""
-    starts = config.get("model_course_starts", DESIGNS["M"])
+    starts = migrate(config).get("sampler", {}).get("course_starts", DESIGNS["M"])  # old flat configs too
     return next(d for d, v in DESIGNS.items() if v == starts)
 
 
