@@ -39,6 +39,7 @@ import os
 import pickle
 import pickletools
 import re
+import sys
 import tempfile
 import time
 import zipfile
@@ -507,7 +508,7 @@ def _scalar_eval(ev: dict[str, Any]) -> dict[str, float]:
     return {f"eval/{k}": float(v) for k, v in ev.items() if isinstance(v, (int, float, np.floating))}
 
 
-def train(trainer: Any, run: RunDirectory | None = None, resume: bool = False, progress: bool = False,
+def train(trainer: Any, run: RunDirectory | None = None, resume: bool = False, progress: bool | None = None,
           stop_after: int | None = None, callback: Callable[[dict[str, Any]], None] | None = None
           ) -> dict[str, Any]:
     """Run ``trainer`` to its budget (or its stopping test), with checkpoints, metrics and results.
@@ -520,8 +521,9 @@ def train(trainer: Any, run: RunDirectory | None = None, resume: bool = False, p
         Where to write config, checkpoints, metrics and results; ``None`` keeps everything in memory.
     resume : bool
         Continue from ``run``'s checkpoint (if there is one).
-    progress : bool
-        Show a tqdm progress bar.
+    progress : bool, optional
+        Show a tqdm progress bar (on stderr); by default shown when stderr is a terminal, as on the CLI.
+        ``False`` turns it off.
     stop_after : int, optional
         Stop (after checkpointing) once ``trainer.k`` reaches this value: simulates an interruption.
     callback : callable, optional
@@ -567,7 +569,7 @@ def train(trainer: Any, run: RunDirectory | None = None, resume: bool = False, p
         pending.clear()
 
     bar = None
-    if progress:
+    if progress or (progress is None and sys.stderr.isatty()):
         from tqdm.auto import tqdm
 
         bar = tqdm(total=cfg.iterations, initial=trainer.k, desc=f"{cfg.method} seed {cfg.seed}", leave=False)
@@ -613,7 +615,7 @@ def summarize(trainer: Any, rows: list[dict[str, Any]], elapsed: float, seeds: l
     results: dict[str, Any] = {
         "method": cfg.method,
         "seed": cfg.seed,
-        "task": cfg.task.name,
+        "task": getattr(trainer.task, "name", cfg.task.name),
         "iterations": int(trainer.k),
         "train_seconds": float(elapsed),
         "final": {k: float(v) for k, v in final.items() if isinstance(v, (int, float, np.floating))},
