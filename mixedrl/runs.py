@@ -54,6 +54,7 @@ from mixedrl.algorithms.agpi import AGPI
 from mixedrl.algorithms.ddpg import DDPG
 from mixedrl.config import TrainConfig
 from mixedrl.tasks import Task, task_from_config
+from mixedrl.tensorboard import TB_DIR, TensorBoardLogger
 
 __all__ = [
     "RunDirectory",
@@ -509,8 +510,8 @@ def _scalar_eval(ev: dict[str, Any]) -> dict[str, float]:
 
 
 def train(trainer: Any, run: RunDirectory | None = None, resume: bool = False, progress: bool | None = None,
-          stop_after: int | None = None, callback: Callable[[dict[str, Any]], None] | None = None
-          ) -> dict[str, Any]:
+          stop_after: int | None = None, callback: Callable[[dict[str, Any]], None] | None = None,
+          tensorboard: bool = False) -> dict[str, Any]:
     """Run ``trainer`` to its budget (or its stopping test), with checkpoints, metrics and results.
 
     Parameters
@@ -528,6 +529,9 @@ def train(trainer: Any, run: RunDirectory | None = None, resume: bool = False, p
         Stop (after checkpointing) once ``trainer.k`` reaches this value: simulates an interruption.
     callback : callable, optional
         Called with every metrics row.
+    tensorboard : bool
+        Also write the metrics rows as TensorBoard scalars into ``<run>/tb/`` (:mod:`mixedrl.tensorboard`;
+        needs ``run`` and the optional extra ``tensorboard``).
 
     Returns
     -------
@@ -539,9 +543,15 @@ def train(trainer: Any, run: RunDirectory | None = None, resume: bool = False, p
     Raises
     ------
     ValueError
-        ``resume`` with a corrupted checkpoint, or a config that differs from the saved one.
+        ``resume`` with a corrupted checkpoint, or a config that differs from the saved one;
+        ``tensorboard`` without ``run``.
+    ImportError
+        ``tensorboard`` without the optional extra.
     """
+    if tensorboard and run is None:
+        raise ValueError("tensorboard: needs a run directory (run=RunDirectory(path)) to write into")
     cfg: TrainConfig = trainer.config
+    board = TensorBoardLogger(run.path / TB_DIR) if tensorboard and run is not None else None
     torch.set_num_threads(cfg.num_threads)
     memory_rows: list[dict[str, Any]] = []
     elapsed = 0.0
@@ -564,6 +574,8 @@ def train(trainer: Any, run: RunDirectory | None = None, resume: bool = False, p
     def checkpoint() -> None:
         if run is not None:
             run.append_metrics(pending)
+            if board is not None:
+                board.write(pending)
             save_checkpoint(run.checkpoint_path, {"trainer": trainer.state_dict(), "elapsed": elapsed})
         memory_rows.extend(pending)
         pending.clear()
@@ -592,11 +604,15 @@ def train(trainer: Any, run: RunDirectory | None = None, resume: bool = False, p
                 checkpoint()
             if stop_after is not None and trainer.k >= stop_after:
                 checkpoint()
+                if board is not None:
+                    board.close()
                 return {"interrupted_at": trainer.k}
     finally:
         if bar is not None:
             bar.close()
     checkpoint()
+    if board is not None:
+        board.close()
     rows = run.read_metrics() if run is not None else memory_rows
     results = summarize(trainer, rows, elapsed, seeds)
     if run is not None:
