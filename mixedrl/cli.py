@@ -183,7 +183,8 @@ def _train(args: argparse.Namespace) -> int:
         config = TrainConfig.from_dict(base)
     trainer = make_trainer(config)
     try:
-        results = train(trainer, run, resume=args.resume, progress=not args.no_progress, tensorboard=args.tensorboard)
+        results = train(trainer, run, resume=args.resume, progress=not args.no_progress,
+                        tensorboard=args.tensorboard)
     except ImportError as exc:
         print(f"mixedrl train: error: {exc}", file=sys.stderr)
         return 2

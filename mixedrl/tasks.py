@@ -233,7 +233,7 @@ class Task(abc.ABC):
 
 
 def _check_output(value: Any, task: Task, fn: str, shape: tuple[int, ...], dtype: torch.dtype | None) -> None:
-    """Raise ``ValueError`` naming ``Task.fn`` unless ``value`` is a finite floating tensor of ``shape`` (and ``dtype``)."""
+    """Raise ``ValueError`` naming ``Task.fn`` unless ``value`` is a finite float tensor of ``shape`` (``dtype``)."""
     where = f"{type(task).__name__}.{fn}"
     if not isinstance(value, torch.Tensor):
         raise ValueError(f"{where}: expected a torch.Tensor of shape {shape}, returned {type(value).__name__}")

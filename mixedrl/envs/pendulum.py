@@ -87,10 +87,11 @@ class PendulumTask(Task):
                  torque_std: float = 0.2, prior_torque_bias: float = 0.0, prior_torque_std: float = 0.2,
                  q_omega: float = 0.1, r: float = 0.01, gamma: float = 0.97, init_angle: float = 0.3,
                  init_rate: float = 0.3, value_scale: float = 1.0) -> None:
-        for name, value in (("value_scale", value_scale), ("dt", dt), ("gravity", gravity), ("length", length), ("mass", mass),
-                            ("damping", damping), ("torque_bound", torque_bound), ("torque_std", torque_std),
-                            ("prior_torque_std", prior_torque_std), ("q_omega", q_omega), ("r", r),
-                            ("init_angle", init_angle), ("init_rate", init_rate)):
+        positive = {"dt": dt, "gravity": gravity, "length": length, "mass": mass, "damping": damping,
+                    "torque_bound": torque_bound, "torque_std": torque_std, "prior_torque_std": prior_torque_std,
+                    "q_omega": q_omega, "r": r, "init_angle": init_angle, "init_rate": init_rate,
+                    "value_scale": value_scale}
+        for name, value in positive.items():
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not (0.0 < value < math.inf):
                 raise ValueError(f"{name}: expected a finite number > 0, got {value!r}")
         for name, value in (("torque_bias", torque_bias), ("prior_torque_bias", prior_torque_bias)):
