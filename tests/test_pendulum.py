@@ -16,7 +16,7 @@ import torch
 
 from mixedrl.algorithms.agpi import AGPI
 from mixedrl.config import TrainConfig
-from mixedrl.envs import PendulumTask
+from mixedrl.envs.pendulum import PendulumTask
 from mixedrl.runs import train
 from mixedrl.tasks import check_task
 from validation.lq import LQProblem, optimal_solution

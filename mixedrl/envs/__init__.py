@@ -37,7 +37,6 @@ __all__ = [
     "DoubleLaneChangeModel",
     "DoubleLaneChangeReference",
     "DoubleLaneChangeVectorEnv",
-    "PendulumTask",
     "TrackingResult",
     "VehicleDynamics",
     "VehicleParams",
@@ -51,12 +50,3 @@ ENV_ID = "mixedrl/DoubleLaneChange-v0"
 
 if ENV_ID not in gym.registry:
     gym.register(id=ENV_ID, entry_point="mixedrl.envs.dlc_env:DoubleLaneChangeEnv")
-
-
-def __getattr__(name: str) -> object:
-    # PendulumTask is a mixedrl.tasks.Task, and mixedrl.tasks imports this package: load it on first use
-    if name == "PendulumTask":
-        from mixedrl.envs.pendulum import PendulumTask
-
-        return PendulumTask
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
