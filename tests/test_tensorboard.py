@@ -17,6 +17,13 @@ CFG = dict(method="mixed", task="linear", seed=0, iterations=6, batch_size=16, h
            checkpoint_every=3)
 
 
+def _hide_tensorboard(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Make ``import tensorboard`` fail, as without the extra."""
+    for name in [m for m in sys.modules if m.startswith(("tensorboard", "torch.utils.tensorboard"))]:
+        monkeypatch.delitem(sys.modules, name)
+    monkeypatch.setitem(sys.modules, "tensorboard", None)
+
+
 @pytest.mark.regression
 def test_metrics_rows_are_written_as_scalars(tmp_path: Path) -> None:
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
@@ -39,9 +46,7 @@ def test_metrics_rows_are_written_as_scalars(tmp_path: Path) -> None:
 
 def test_missing_extra_is_a_clear_error_and_nothing_is_written(tmp_path: Path, monkeypatch: pytest.MonkeyPatch
                                                                  ) -> None:
-    for name in [m for m in sys.modules if m == "tensorboard" or m.startswith(("tensorboard.", "torch.utils.tensorboard"))]:
-        monkeypatch.delitem(sys.modules, name)
-    monkeypatch.setitem(sys.modules, "tensorboard", None)
+    _hide_tensorboard(monkeypatch)
     run = RunDirectory(tmp_path / "run")
     with pytest.raises(ImportError, match=r"^tensorboard: .*pip install 'mixedrl\[tensorboard\]'"):
         train(AGPI(LinearTask(), TrainConfig(**CFG)), run, progress=False, tensorboard=True)
@@ -51,3 +56,16 @@ def test_missing_extra_is_a_clear_error_and_nothing_is_written(tmp_path: Path, m
 def test_tensorboard_needs_a_run_directory() -> None:
     with pytest.raises(ValueError, match="^tensorboard: needs a run directory"):
         train(AGPI(LinearTask(), TrainConfig(**CFG)), None, progress=False, tensorboard=True)
+
+
+def test_cli_flag_without_the_extra_is_one_line_exit_2(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                                        capsys: pytest.CaptureFixture[str]) -> None:
+    from mixedrl.cli import main
+
+    _hide_tensorboard(monkeypatch)
+    out = tmp_path / "run"
+    assert main(["train", "--method", "model", "--out", str(out), "--iterations", "2", "--no-progress",
+                 "--tensorboard", "--set", "batch_size=16"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("mixedrl train: error: tensorboard: ")
+    assert not (out / "config.json").exists()
