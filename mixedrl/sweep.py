@@ -351,7 +351,7 @@ def run_point(config: dict[str, Any], path: str, resume: bool = False) -> dict[s
         if run_dir.read_config().to_dict() != cfg.to_dict():
             raise ValueError(f"config: differs from the saved {run_dir.config_path}; resume with the same spec")
         return run_dir.read_results()
-    return train(make_trainer(cfg), run_dir, resume=resume)
+    return train(make_trainer(cfg), run_dir, resume=resume, progress=False)
 
 
 # ----------------------------------------------------------------------------------------------------

@@ -54,6 +54,7 @@ def test_ddpg_uses_data_only() -> None:
     """The model f is evaluated only inside the simulated true environment, never to learn."""
     task = CountingTask()
     agent = DDPG(task, TrainConfig(**CFG))
+    task.f_calls = task.true_steps = 0  # the construction's check_task probes f; count from here
     for _ in range(10):
         agent.iteration()
     assert task.true_steps > 0 and task.f_calls == task.true_steps

@@ -205,7 +205,7 @@ def run_one(job: dict[str, Any]) -> dict[str, Any]:
     trainer = make_trainer(config)
     if config.method != "ddpg":
         trainer = TheoryProbe(trainer, job["theory_every"])
-    results = train(trainer, run, resume=job["resume"])
+    results = train(trainer, run, resume=job["resume"], progress=False)
     traj = _trajectory(trainer, eval_seeds(config)[0])
     np.savez(run.path / "trajectory.npz", **traj)
     results["label"] = job["label"]

@@ -52,7 +52,7 @@ from mixedrl.noise import make_noise_source
 from mixedrl.pev import critic_loss, critic_step
 from mixedrl.pim import MVCResult, actor_objective, actor_step, mvc_check
 from mixedrl.schedule import set_learning_rates
-from mixedrl.tasks import Task
+from mixedrl.tasks import Task, check_task
 
 __all__ = [
     "AGPI",
@@ -129,6 +129,7 @@ class AGPI:
                  ) -> None:
         if config.method == "ddpg":
             raise ValueError("config: method 'ddpg' is not Algorithm 2; use mixedrl.algorithms.ddpg.DDPG")
+        check_task(task)
         self.task = task
         self.config = config
         self.architecture = architecture

@@ -19,7 +19,7 @@ import torch
 from mixedrl.config import TrainConfig
 from mixedrl.networks import Actor, QCritic
 from mixedrl.schedule import set_learning_rates
-from mixedrl.tasks import Task
+from mixedrl.tasks import Task, check_task
 
 __all__ = ["DDPG", "ReplayBuffer"]
 
@@ -102,6 +102,7 @@ class DDPG:
     def __init__(self, task: Task, config: TrainConfig) -> None:
         if config.method != "ddpg":
             raise ValueError(f"config: method must be 'ddpg', got {config.method!r}")
+        check_task(task)
         self.task, self.config = task, config
         self.generator = torch.Generator().manual_seed(config.seed)
         g = self.generator
