@@ -885,7 +885,8 @@ def migrate(data: dict[str, Any]) -> dict[str, Any]:
                 moved["sampler.true_horizon"] = legacy[key]
             if new in fields:
                 moved[f"sampler.{new}"] = legacy[key]
-            elif source == "model" and len(legacy) < _FULL:
+            elif source == "model" and len(legacy) < _FULL and legacy.get("model_course_fraction", 1) != 0:
+                # (with model_course_fraction = 0 the course options had no effect: they are dropped)
                 # a partial dict names the option on purpose: an error; a full old config.json carried
                 # every field (the unused ones are dropped), and state_source="true" never read them
                 raise ValueError(f"{key}: sampler option {LEGACY_KEYS[key]!r} needs a sampler with a course "
