@@ -84,7 +84,7 @@ def test_pev_pim_steps_delegate():
 
 
 def test_bad_arguments():
-    with pytest.raises(ValueError, match="^algorithm.iterations"):
+    with pytest.raises(ValueError, match="^iterations"):
         policy_iteration(Recorder([]), lambda p, n: 0, lambda v, n: 0, 0, 0)
     with pytest.raises(ValueError, match="^tol"):
         policy_iteration(Recorder([]), lambda p, n: 0, lambda v, n: 0, 0, 2, tol=-1.0)
