@@ -3,7 +3,7 @@
 ::
 
     mixedrl train --method {mixed,model,ddpg,oracle} --seed S --out DIR [--iterations N]
-                  [--config FILE.json] [--set key=value ...] [--resume] [--no-progress]
+                  [--config FILE.json] [--set key=value ...] [--resume] [--no-progress] [--tensorboard]
     mixedrl evaluate RUN_DIR [--seeds N]
     mixedrl sweep SPEC.toml --out DIR [--address ADDR] [--num-cpus N] [--resume] [--no-progress]
     mixedrl reproduce [--seeds 5] [--out DIR] [--quick] [--resume] [--workers W] [--no-progress]
@@ -138,6 +138,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--resume", action="store_true",
                    help="continue from the run's checkpoint (without it, --out must be new or empty)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument("--tensorboard", action="store_true",
+                   help="also write the metrics as TensorBoard scalars into OUT/tb (extra 'tensorboard')")
     p.set_defaults(handler=_train)
 
     p = sub.add_parser("evaluate", help="evaluate a run's final policy on its task")
@@ -194,7 +196,7 @@ def _requested_config(args: argparse.Namespace, run: RunDirectory) -> TrainConfi
     for key, flag in _OWN_FLAGS.items():
         if key in overrides:
             raise ValueError(f"--set: {key} has its own flag; use {flag} instead of --set {key}=...")
-    given = {"method": args.method, "seed": args.seed, "iterations": args.iterations}
+    given = {"method": args.method, "seed": args.seed, "algorithm.iterations": args.iterations}
     file_data = _read_json(args.config, "--config") if args.config is not None else None
     if args.resume and run.config_path.is_file():
         base = run.read_config().to_dict()
@@ -203,8 +205,7 @@ def _requested_config(args: argparse.Namespace, run: RunDirectory) -> TrainConfi
     else:
         base = TrainConfig.from_dict(file_data).to_dict() if file_data is not None else {}
         given["seed"] = 0 if args.seed is None else args.seed
-    base = apply_overrides(base, overrides)
-    base.update({k: v for k, v in given.items() if v is not None})
+    base = apply_overrides(base, {**overrides, **{k: v for k, v in given.items() if v is not None}})
     return TrainConfig.from_dict(base)
 
 
@@ -214,7 +215,12 @@ def _train(args: argparse.Namespace) -> int:
         raise ValueError(f"--resume: {run.path} holds no run to resume (no config.json or checkpoint.pt)")
     config = _requested_config(args, run)
     trainer = make_trainer(config)
-    results = train(trainer, run, resume=args.resume, progress=not args.no_progress)
+    try:
+        results = train(trainer, run, resume=args.resume, progress=not args.no_progress,
+                        tensorboard=args.tensorboard)
+    except ImportError as exc:
+        print(f"mixedrl train: error: {exc}", file=sys.stderr)
+        return 2
     print(json.dumps({k: results[k] for k in ("method", "seed", "iterations", "lateral_mae", "speed_mae", "cost",
                                               "iterations_to_converge", "train_seconds", "true_transitions") if k in results},
                      indent=2))

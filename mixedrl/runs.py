@@ -49,6 +49,7 @@ import pickle
 import pickletools
 import re
 import socket
+import sys
 import tempfile
 import time
 import zipfile
@@ -63,6 +64,7 @@ from mixedrl.algorithms.agpi import AGPI
 from mixedrl.algorithms.ddpg import DDPG
 from mixedrl.config import TrainConfig
 from mixedrl.tasks import Task, task_from_config
+from mixedrl.tensorboard import TB_DIR, TensorBoardLogger
 
 __all__ = [
     "RunDirectory",
@@ -714,7 +716,7 @@ def iterations_to_converge(iterations: list[int], costs: list[float], rtol: floa
 
 def eval_seeds(config: TrainConfig) -> list[int]:
     """Noise seeds of the evaluation episodes: fixed per run, disjoint from the training seed stream."""
-    return [1_000_003 * (config.seed + 1) + i for i in range(config.eval_seeds)]
+    return [1_000_003 * (config.seed + 1) + i for i in range(config.run.eval_seeds)]
 
 
 def make_trainer(config: TrainConfig, task: Task | None = None) -> AGPI | DDPG:
@@ -733,6 +735,10 @@ def _scalar_eval(ev: dict[str, Any]) -> dict[str, float]:
     return {f"eval/{k}": float(v) for k, v in ev.items() if isinstance(v, (int, float, np.floating))}
 
 
+#: The dotted name of the budget, the one field ``resume`` may change (to a larger value).
+_BUDGET = "algorithm.iterations"
+
+
 def _config_conflicts(saved: TrainConfig, requested: TrainConfig) -> list[tuple[str, Any, Any]]:
     """``(dotted name, saved value, requested value)`` of the fields where the configs differ; a larger
     ``iterations`` is not a conflict (an explicit extension of the budget)."""
@@ -740,7 +746,7 @@ def _config_conflicts(saved: TrainConfig, requested: TrainConfig) -> list[tuple[
 
     a, b = flatten_table(saved.to_dict()), flatten_table(requested.to_dict())
     out = [(k, a.get(k), b.get(k)) for k in sorted(set(a) | set(b)) if a.get(k) != b.get(k)]
-    if [k for k, _, _ in out] == ["iterations"] and requested.iterations > saved.iterations:
+    if [k for k, _, _ in out] == [_BUDGET] and requested.algorithm.iterations > saved.algorithm.iterations:
         return []
     return out
 
@@ -758,7 +764,7 @@ def _open_run(run: RunDirectory, cfg: TrainConfig, resume: bool) -> dict[str, An
         return None
     names = run.entries()
     if "checkpoint.pt" not in names:
-        others = [n for n in names if n != "config.json"]
+        others = [n for n in names if n not in ("config.json", TB_DIR)]
         if others:
             raise ValueError(f"resume: {run.path} has no checkpoint.pt to resume from but holds "
                              f"{', '.join(others[:4])}; nothing was changed (train into a new directory)")
@@ -769,7 +775,7 @@ def _open_run(run: RunDirectory, cfg: TrainConfig, resume: bool) -> dict[str, An
     if conflicts:
         shown = "; ".join(f"{k} {v!r} (saved: {w!r})" for k, w, v in conflicts[:4])
         more = f" and {len(conflicts) - 4} more" if len(conflicts) > 4 else ""
-        hint = (" (resume can only extend the budget)" if any(k == "iterations" for k, _, _ in conflicts) else "")
+        hint = (" (resume can only extend the budget)" if any(k == _BUDGET for k, _, _ in conflicts) else "")
         raise ValueError(f"config: {shown}{more} contradict(s) the saved {run.config_path}{hint}; resume with "
                          f"the run's config, or train into a new directory")
     if "checkpoint.pt" not in names:
@@ -779,9 +785,9 @@ def _open_run(run: RunDirectory, cfg: TrainConfig, resume: bool) -> dict[str, An
     return state
 
 
-def train(trainer: Any, run: RunDirectory | None = None, resume: bool = False, progress: bool = False,
-          stop_after: int | None = None, callback: Callable[[dict[str, Any]], None] | None = None
-          ) -> dict[str, Any]:
+def train(trainer: Any, run: RunDirectory | None = None, resume: bool = False, progress: bool | None = None,
+          stop_after: int | None = None, callback: Callable[[dict[str, Any]], None] | None = None,
+          tensorboard: bool = False) -> dict[str, Any]:
     """Run ``trainer`` to its budget (or its stopping test), with checkpoints, metrics and results.
 
     A run directory has one writer: the run holds :meth:`RunDirectory.lock` from its validation to its
@@ -800,12 +806,16 @@ def train(trainer: Any, run: RunDirectory | None = None, resume: bool = False, p
         first checkpoint) or nothing starts from scratch; one holding other files but no checkpoint is
         refused. The saved config must equal the trainer's, except a larger ``iterations`` (the budget
         is extended).
-    progress : bool
-        Show a tqdm progress bar.
+    progress : bool, optional
+        Show a tqdm progress bar (on stderr); by default shown when stderr is a terminal, as on the CLI.
+        ``False`` turns it off.
     stop_after : int, optional
         Stop (after checkpointing) once ``trainer.k`` reaches this value: simulates an interruption.
     callback : callable, optional
         Called with every metrics row.
+    tensorboard : bool
+        Also write the metrics rows as TensorBoard scalars into ``<run>/tb/`` (:mod:`mixedrl.tensorboard`;
+        needs ``run`` and the optional extra ``tensorboard``).
 
     Returns
     -------
@@ -821,22 +831,34 @@ def train(trainer: Any, run: RunDirectory | None = None, resume: bool = False, p
     ValueError
         ``run`` holds a run (or other files) and ``resume`` is false; ``resume`` with a corrupted
         checkpoint, a config that differs from the saved one, no checkpoint beside other files, or
-        ``metrics.jsonl`` missing rows up to the checkpoint. Nothing is changed then.
+        ``metrics.jsonl`` missing rows up to the checkpoint (nothing is changed then); ``tensorboard``
+        without ``run``.
+    ImportError
+        ``tensorboard`` without the optional extra.
     """
+    if tensorboard and run is None:
+        raise ValueError("tensorboard: needs a run directory (run=RunDirectory(path)) to write into")
     if run is None:
-        return _train(trainer, None, None, progress, stop_after, callback)
+        return _train(trainer, None, None, progress, stop_after, callback, None)
     cfg: TrainConfig = trainer.config
     _open_run(run, cfg, resume)  # refuse before creating anything
+    if tensorboard:
+        try:  # the extra missing: its error (TensorBoardLogger's, naming the extra) before anything is created
+            import torch.utils.tensorboard  # noqa: F401
+        except ImportError:
+            TensorBoardLogger(run.path / TB_DIR)
     with run.lock():
         state = _open_run(run, cfg, resume)  # again under the lock: the directory may have changed meanwhile
-        return _train(trainer, run, state, progress, stop_after, callback)
+        board = TensorBoardLogger(run.path / TB_DIR) if tensorboard else None
+        return _train(trainer, run, state, progress, stop_after, callback, board)
 
 
-def _train(trainer: Any, run: RunDirectory | None, state: dict[str, Any] | None, progress: bool,
-           stop_after: int | None, callback: Callable[[dict[str, Any]], None] | None) -> dict[str, Any]:
+def _train(trainer: Any, run: RunDirectory | None, state: dict[str, Any] | None, progress: bool | None,
+           stop_after: int | None, callback: Callable[[dict[str, Any]], None] | None,
+           board: TensorBoardLogger | None) -> dict[str, Any]:
     """The loop of :func:`train` on a validated (and locked) ``run``, from ``state`` if given."""
     cfg: TrainConfig = trainer.config
-    torch.set_num_threads(cfg.num_threads)
+    torch.set_num_threads(cfg.run.num_threads)
     memory_rows: list[dict[str, Any]] = []
     elapsed = 0.0
     if run is not None:
@@ -852,22 +874,24 @@ def _train(trainer: Any, run: RunDirectory | None, state: dict[str, Any] | None,
     def checkpoint() -> None:
         if run is not None:
             run.append_metrics(pending)
+            if board is not None:
+                board.write(pending)
             save_checkpoint(run.checkpoint_path, {"trainer": trainer.state_dict(), "elapsed": elapsed})
         memory_rows.extend(pending)
         pending.clear()
 
     bar = None
-    if progress:
+    if progress or (progress is None and sys.stderr.isatty()):
         from tqdm.auto import tqdm
 
-        bar = tqdm(total=cfg.iterations, initial=trainer.k, desc=f"{cfg.method} seed {cfg.seed}", leave=False)
+        bar = tqdm(total=cfg.algorithm.iterations, initial=trainer.k, desc=f"{cfg.method} seed {cfg.seed}", leave=False)
     try:
-        while trainer.k < cfg.iterations and not trainer.stopped:
+        while trainer.k < cfg.algorithm.iterations and not trainer.stopped:
             t0 = time.perf_counter()
             row = trainer.iteration()
             elapsed += time.perf_counter() - t0
             row = {"iteration": trainer.k, **row, "time/elapsed_s": elapsed}
-            if trainer.k % cfg.eval_every == 0 or trainer.k == cfg.iterations or trainer.stopped:
+            if trainer.k % cfg.run.eval_every == 0 or trainer.k == cfg.algorithm.iterations or trainer.stopped:
                 row.update(_scalar_eval(trainer.evaluate(seeds)))
             pending.append(row)
             if callback is not None:
@@ -876,15 +900,19 @@ def _train(trainer: Any, run: RunDirectory | None, state: dict[str, Any] | None,
                 bar.update(1)
                 if "eval/cost" in row:
                     bar.set_postfix(cost=f"{row['eval/cost']:.4g}")
-            if trainer.k % cfg.checkpoint_every == 0:
+            if trainer.k % cfg.run.checkpoint_every == 0:
                 checkpoint()
             if stop_after is not None and trainer.k >= stop_after:
                 checkpoint()
+                if board is not None:
+                    board.close()
                 return {"interrupted_at": trainer.k}
     finally:
         if bar is not None:
             bar.close()
     checkpoint()
+    if board is not None:
+        board.close()
     rows = run.read_metrics() if run is not None else memory_rows
     results = summarize(trainer, rows, elapsed, seeds)
     if run is not None:
@@ -903,7 +931,7 @@ def summarize(trainer: Any, rows: list[dict[str, Any]], elapsed: float, seeds: l
     results: dict[str, Any] = {
         "method": cfg.method,
         "seed": cfg.seed,
-        "task": cfg.task.name,
+        "task": getattr(trainer.task, "name", cfg.task.name),
         "iterations": int(trainer.k),
         "train_seconds": float(elapsed),
         "final": {k: float(v) for k, v in final.items() if isinstance(v, (int, float, np.floating))},

@@ -21,7 +21,7 @@ from mixedrl.cli import main
 from mixedrl.runs import RunDirectory, load_checkpoint, verify_digest, write_with_digest
 
 #: A fast run (the only place that names config fields).
-FAST = ["--iterations", "20", "--set", "checkpoint_every=10", "eval_seeds=1"]
+FAST = ["--iterations", "20", "--set", "run.checkpoint_every=10", "run.eval_seeds=1"]
 RUN = ["--method", "mixed", "--seed", "3"]
 
 
@@ -124,7 +124,7 @@ def test_resume_extends_the_budget(run_copy: Path, capsys: pytest.CaptureFixture
                    "--no-progress"], capsys)
     assert rc == 0, err
     run = RunDirectory(run_copy)
-    assert run.read_config().iterations == 30 and run.read_results()["iterations"] == 30
+    assert run.read_config().algorithm.iterations == 30 and run.read_results()["iterations"] == 30
     assert [r["iteration"] for r in run.read_metrics()] == list(range(1, 31))
 
 
@@ -293,8 +293,8 @@ def test_second_writer_refused_and_killed_holder_recovered(tmp_path: Path,
 def test_two_trainers_on_one_out(tmp_path: Path) -> None:
     out = tmp_path / "run"
     args = [sys.executable, "-c", "import sys; from mixedrl.cli import main; sys.exit(main(sys.argv[1:]))",
-            "train", *RUN, "--out", str(out), "--iterations", "200", "--set", "checkpoint_every=50",
-            "eval_seeds=1", "--no-progress"]
+            "train", *RUN, "--out", str(out), "--iterations", "200", "--set", "run.checkpoint_every=50",
+            "run.eval_seeds=1", "--no-progress"]
     env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
     procs = [subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
              for _ in range(2)]
