@@ -9,7 +9,8 @@ Interfaces (all batched, numpy):
 * noise: any object with ``.mean`` (n,) and ``.cov`` (n, n) (an IBE, a :class:`mixedrl.noise.GaussianNoise`).
 
 Expectations over ``xi_hat ~ N(mean, cov)`` use the nodes of :mod:`mixedrl.expectation` (the same
-module, support cut-off and ``h`` of eq. 37 as Algorithm 2) with a stated rule:
+module, support cut-off and ``h`` of eq. 37 as Algorithm 2: :func:`expected_cost_to_go` is
+:func:`mixedrl.expectation.expected_cost_to_go`, re-exported) with a stated rule:
 :class:`~mixedrl.expectation.SigmaPoints` by default, exact for polynomials of degree <= 3 (so exact for
 quadratic values and utilities); :class:`~mixedrl.expectation.GaussHermite` otherwise.
 
@@ -26,8 +27,8 @@ from typing import Any, Callable
 
 import numpy as np
 
-from mixedrl.checks import as_batch, as_vector, check_covariance
-from mixedrl.expectation import GaussHermite, SigmaPoints, gaussian_expectation, h, quadrature_nodes
+from mixedrl.checks import as_batch
+from mixedrl.expectation import GaussHermite, SigmaPoints, expected_cost_to_go, gaussian_expectation
 from mixedrl.gaussian import kl_divergence
 
 __all__ = [
@@ -166,57 +167,6 @@ def _values(fn: Callable[..., Any], name: str, n: int, *args: np.ndarray) -> np.
     if out.shape != (n,):
         raise ValueError(f"{name}: expected output shape ({n},), got {out.shape}")
     return out
-
-
-def expected_cost_to_go(
-    value: Callable[[np.ndarray], np.ndarray],
-    f: Callable[[np.ndarray, np.ndarray], np.ndarray],
-    utility: Callable[[np.ndarray, np.ndarray], np.ndarray],
-    gamma: float,
-    states: Any,
-    actions: Any,
-    noise: Any,
-    rule: Rule = None,
-) -> np.ndarray:
-    """Implements eq. (37): ``h(x, u, xi) = E_xi{ l(x', u) + gamma V^k(x') }``, ``x' = f(x, u) + xi``.
-
-    .. math:: h(x, u, \\xi) = \\mathbb{E}_{\\xi}\\{ l(x', u) + \\gamma V^k(x') \\}
-
-    Parameters
-    ----------
-    value : callable
-        ``V^k``, (N, n) -> (N,).
-    f : callable
-        ``f(x, u)``, (N, n), (N, m) -> (N, n).
-    utility : callable
-        ``l(x', u)``, (N, n), (N, m) -> (N,).
-    gamma : float
-    states : array_like, shape (N, n)
-    actions : array_like, shape (N, m)
-    noise : object
-        ``.mean`` (n,), ``.cov`` (n, n).
-    rule : SigmaPoints or GaussHermite, optional
-        Quadrature rule (default sigma points, exact for quadratics).
-
-    Returns
-    -------
-    ndarray, shape (N,)
-
-    Raises
-    ------
-    ValueError
-        Shapes do not match, or a callable returns the wrong shape.
-    """
-    x = _states(states)
-    u = np.asarray(actions, dtype=np.float64).reshape(x.shape[0], -1)
-    mean = as_vector(noise.mean, "noise.mean", x.shape[1])
-    cov = check_covariance(noise.cov, "noise.cov", x.shape[1])
-    nodes, weights = quadrature_nodes(mean, cov, rule)
-
-    def as_float(fn: Callable[..., Any]) -> Callable[..., np.ndarray]:
-        return lambda *args: np.asarray(fn(*args), dtype=np.float64)
-
-    return h(as_float(f), as_float(utility), as_float(value), float(gamma), x, u, nodes, weights)
 
 
 def lyapunov_decrease(
