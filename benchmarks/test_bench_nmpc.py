@@ -51,7 +51,7 @@ def test_actor_inference(benchmark) -> None:
     """``Actor`` forward on one observation (float32, no autograd): the learned policy's online cost."""
     task = DoubleLaneChangeTask()
     cfg = TrainConfig()
-    actor = Actor(task.obs_dim, task.action_dim, cfg.hidden_sizes, cfg.activation, torch.Generator().manual_seed(0),
+    actor = Actor(task.obs_dim, task.action_dim, cfg.algorithm.hidden_sizes, cfg.algorithm.activation, torch.Generator().manual_seed(0),
                   task.action_bound, task.obs_scale)
     obs = task.observe(torch.tensor(_start()[None]))[0].float()
     benchmark.group = "online-control"
@@ -76,7 +76,7 @@ def _preview_policy() -> tuple[DoubleLaneChangeTask, Actor, str]:
     preview = ps.CANDIDATES[ps.CHOSEN]
     task = DoubleLaneChangeTask(preview_distances=preview)
     cfg = TrainConfig()
-    actor = Actor(task.obs_dim, task.action_dim, cfg.hidden_sizes, cfg.activation, torch.Generator().manual_seed(0),
+    actor = Actor(task.obs_dim, task.action_dim, cfg.algorithm.hidden_sizes, cfg.algorithm.activation, torch.Generator().manual_seed(0),
                   task.action_bound, task.obs_scale)
     path = _ROOT / ps.job_path(ps.CHOSEN, "mixed", 0)
     source = "fresh weights"

@@ -52,7 +52,7 @@ def test_iteration(benchmark, method: str) -> None:
     median = benchmark.stats.stats.median
     benchmark.extra_info["iterations_per_s"] = 1.0 / median
     benchmark.extra_info["seconds_per_1500"] = 1500 * median
-    benchmark.extra_info["batch_size"] = trainer.config.batch_size
+    benchmark.extra_info["batch_size"] = trainer.config.algorithm.batch_size
 
 
 @pytest.mark.parametrize("part", ["collect", "pev", "pim", "ibe", "mvc"])
@@ -78,4 +78,4 @@ def test_iteration_parts(benchmark, part: str) -> None:
     }
     benchmark.group = "training-iteration-parts"
     benchmark.pedantic(calls[part], rounds=60, iterations=1, warmup_rounds=2)
-    benchmark.extra_info["batch_size"] = trainer.config.batch_size
+    benchmark.extra_info["batch_size"] = trainer.config.algorithm.batch_size

@@ -3,7 +3,7 @@
 ::
 
     mixedrl train --method {mixed,model,ddpg,oracle} --seed S --out DIR [--iterations N]
-                  [--config FILE.json] [--set key=value ...] [--resume] [--no-progress]
+                  [--config FILE.json] [--set key=value ...] [--resume] [--no-progress] [--tensorboard]
     mixedrl evaluate RUN_DIR [--seeds N]
     mixedrl sweep SPEC.toml --out DIR [--address ADDR] [--num-cpus N] [--resume] [--no-progress]
     mixedrl reproduce [--seeds 5] [--out DIR] [--quick] [--resume] [--workers W] [--no-progress]
@@ -136,6 +136,8 @@ def build_parser() -> argparse.ArgumentParser:
                         "task.disturbance.mean=261); values are JSON, else strings")
     p.add_argument("--resume", action="store_true", help="continue from the run's checkpoint")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument("--tensorboard", action="store_true",
+                   help="also write the metrics as TensorBoard scalars into OUT/tb (extra 'tensorboard')")
     p.set_defaults(handler=_train)
 
     p = sub.add_parser("evaluate", help="evaluate a run's final policy on its task")
@@ -177,10 +179,15 @@ def _train(args: argparse.Namespace) -> int:
         base = apply_overrides(base, parse_overrides(args.set))
         base.update({"method": args.method, "seed": args.seed})
         if args.iterations is not None:
-            base["iterations"] = args.iterations
+            base = apply_overrides(base, {"algorithm.iterations": args.iterations})
         config = TrainConfig.from_dict(base)
     trainer = make_trainer(config)
-    results = train(trainer, run, resume=args.resume, progress=not args.no_progress)
+    try:
+        results = train(trainer, run, resume=args.resume, progress=not args.no_progress,
+                        tensorboard=args.tensorboard)
+    except ImportError as exc:
+        print(f"mixedrl train: error: {exc}", file=sys.stderr)
+        return 2
     print(json.dumps({k: results[k] for k in ("method", "seed", "iterations", "lateral_mae", "speed_mae", "cost",
                                               "iterations_to_converge", "train_seconds", "true_transitions") if k in results},
                      indent=2))

@@ -1,11 +1,12 @@
 """One typed, documented configuration object per training run, the experiment included.
 
-:class:`TrainConfig` holds every knob of a run of Algorithm 2 (``method`` = ``mixed``, ``model``,
-``oracle``) or of the DDPG baseline (``method = "ddpg"``); its field ``task`` holds the *experiment*:
-which system, the designer's prior of the disturbance (eq. 8 / eq. 55), the true disturbance law, the
-discount factor and the cost weights (eq. 54), the observation's preview. It is saved as
-``config.json`` beside the run's results; loading a dictionary with a key that is not a field, at any
-level, is an error naming the dotted key (a misspelt option must never be silently ignored).
+:class:`TrainConfig` holds a run of Algorithm 2 (``method`` = ``mixed``, ``model``, ``oracle``) or of
+the DDPG baseline (``method = "ddpg"``) in seven fields: ``method``, ``seed``, ``task`` (the experiment:
+system, prior, true disturbance law, discount, cost weights, preview), ``algorithm``
+(:class:`AlgorithmConfig`), ``sampler`` (where the PEV/PIM states come from, a registered options class
+chosen by ``name``: :data:`SAMPLERS`), ``ddpg`` (:class:`DDPGConfig`) and ``run`` (:class:`RunConfig`).
+It is saved as ``config.json`` beside the run's results; loading a dictionary with a key that is not a
+field, at any level, is an error naming the dotted key.
 
 The task configuration is one of two nested dataclasses, chosen by its ``name``:
 
@@ -14,23 +15,22 @@ The task configuration is one of two nested dataclasses, chosen by its ``name``:
 * :class:`LinearTaskConfig` (``name = "linear"``, a small LQ system with a known optimum), with the
   nested :class:`GaussianNoiseConfig` (``task.disturbance``).
 
+A section that is not given takes the task's experiment configuration (:data:`PRESETS`): the double
+lane change registers :data:`DLC_EXPERIMENT` (the reproduction of Table I: its course sampler
+:class:`CourseSampler`, the learning-rate decay over 1500 iterations, the relative batch weighting); any
+other task gets the library defaults of the section classes (model rollouts from the task's start
+distribution, the decay tied to the budget, the paper's uniform batch mean).
+
 Dotted keys address nested fields, the same way on the command line, in :func:`apply_overrides` and in
 sweep specifications::
 
-    mixedrl train --method mixed --out runs/p300 --set task.prior_force_mean=300 task.disturbance.variance=64
-    mixedrl train --method model --out runs/lin --set task.name=\\"linear\\" task.prior_mean=[0,2]
+    mixedrl train --method mixed --out runs/p300 --set task.prior_force_mean=300 algorithm.iterations=300
+    mixedrl train --method mixed --out runs/true --set sampler.name=\\"true_copies\\"
     mixedrl train --method mixed --out runs/mine --config experiment.json   # nested JSON, like config.json
 
-Old ``config.json`` files (``"task": "dlc"`` or ``"linear"`` as a string, ``train_half_widths`` at the
-top level) still load: the string selects that task's defaults and the top-level ``train_half_widths``
-moves to ``task.train_half_widths`` (it never had an effect on the linear task and is dropped there).
-
-The defaults are the settings used for the reproduction of Table I (``mixedrl reproduce``). Every method
-gets the *same* networks, optimiser, learning rates, batch of states and iteration budget; the
-``ddpg_*`` fields only configure what DDPG has and the model-based methods do not (replay buffer,
-target networks, exploration noise; textbook values, not tuned). The shared settings (learning rates,
-their decay, ``horizon``, ``value_output``, ``batch_size``, the budget) were chosen by a small search
-on mixed-RL runs of the double lane change (seeds 0-2) and then applied unchanged to every method.
+Old forms still load: the flat 45-field ``config.json`` and old flat keys (``iterations``,
+``model_course_starts``, ...) through :data:`LEGACY_KEYS` (:func:`migrate`); ``"task": "dlc"`` or
+``"linear"`` as a string and a top-level ``train_half_widths`` (moved to ``task.train_half_widths``).
 """
 
 from __future__ import annotations
@@ -45,10 +45,26 @@ from typing import Any, ClassVar, Union
 
 import numpy as np
 
-from mixedrl.checks import as_matrix, as_vector, check_covariance, check_number, check_unknown_keys
+from mixedrl.checks import (as_matrix, as_vector, check_covariance, check_number, check_positive_int,
+                            check_unknown_keys)
 
 __all__ = [
     "TrainConfig",
+    "AlgorithmConfig",
+    "DDPGConfig",
+    "RunConfig",
+    "SamplerConfig",
+    "TrueCopiesSampler",
+    "ModelRolloutsSampler",
+    "CourseSampler",
+    "SAMPLERS",
+    "PRESETS",
+    "DLC_EXPERIMENT",
+    "LEGACY_KEYS",
+    "register_sampler",
+    "register_preset",
+    "sampler_config",
+    "migrate",
     "TaskConfig",
     "DoubleLaneChangeTaskConfig",
     "LinearTaskConfig",
@@ -73,9 +89,9 @@ TASKS = ("dlc", "linear")
 #: symmetric two-point law), all with the configured mean and variance (:class:`ForceDisturbanceConfig`).
 #: The double lane change simulates all three; the linear task only ``"gaussian"``.
 DISTURBANCE_LAWS = ("gaussian", "student_t", "bumps")
-#: Where Algorithm 2's course rollouts on the model (re)start (``TrainConfig.model_course_starts``).
+#: Where the course copies of the double lane change's sampler restart (``CourseSampler.course_starts``).
 MODEL_COURSE_STARTS = ("start", "along", "loop")
-#: How Algorithm 2 weights the states of its batch (``TrainConfig.batch_weighting``).
+#: How Algorithm 2 weights the states of its batch (``AlgorithmConfig.batch_weighting``).
 BATCH_WEIGHTINGS = ("uniform", "relative")
 
 
@@ -382,13 +398,525 @@ def task_config(value: Any = "dlc") -> TaskConfig:
     return _build(_TASK_CLASSES[name], {**value, "name": name}, "task")
 
 
+# ----------------------------------------------------------------------------------------------------
+# sections of TrainConfig
+# ----------------------------------------------------------------------------------------------------
+def _choice(value: Any, name: str, options: tuple) -> Any:
+    if value not in options:
+        raise ValueError(f"{name}: expected one of {options}, got {value!r}")
+    return value
+
+
+def _int(value: Any, name: str, minimum: int = 1) -> int:
+    if minimum >= 1:
+        return check_positive_int(value, name)
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < minimum:
+        raise ValueError(f"{name}: expected a non-negative integer, got {value!r}")
+    return int(value)
+
+
+def _unit(value: Any, name: str, low_open: bool = False, high_open: bool = False) -> Any:
+    """``value`` in ``[0, 1]`` (``low_open``: ``> 0``; ``high_open``: ``< 1``), returned unchanged."""
+    v = check_number(value, name)
+    if (v < 0 or v > 1) or (low_open and v == 0) or (high_open and v == 1):
+        lo, hi = "(" if low_open else "[", ")" if high_open else "]"
+        raise ValueError(f"{name}: expected a number in {lo}0, 1{hi}, got {value!r}")
+    return value
+
+
+def _positive(value: Any, name: str, allow_inf: bool = False) -> Any:
+    if allow_inf and isinstance(value, (int, float)) and not isinstance(value, bool) and value == math.inf:
+        return value
+    check_number(value, name, positive=True)
+    return value
+
+
+@dataclass
+class AlgorithmConfig:
+    """The training algorithm shared by every method: Algorithm 2 (mixed, model, oracle) and the networks,
+    optimiser and budget DDPG uses too. Dotted keys: ``algorithm.<field>``.
+
+    The last three fields (``batch_weighting``, ``batch_weight_offset``, ``actor_average``) are tuning
+    add-ons, departures from the paper's Algorithm 2 (docs/algorithm2.rst); their defaults here are the
+    paper's (off); the double lane change's experiment configuration turns them on.
+    """
+
+    iterations: int = 1500
+    """Budget: number of outer iterations ``k`` (one PEV + PIM step of Algorithm 2, or one DDPG update)."""
+
+    batch_size: int = 512
+    """Number of states of the PEV/PIM batch per iteration (Algorithm 2; made by the sampler), or the
+    replay minibatch size (DDPG)."""
+
+    horizon: int = 60
+    """Steps after which a training copy (a true-environment copy or a model rollout started from the
+    training distribution) is reset to a fresh initial state."""
+
+    hidden_sizes: tuple[int, ...] = (64, 64)
+    """Hidden layer widths of the actor and the critic (the same for every method)."""
+
+    activation: str = "elu"
+    """Hidden activation of the MLPs: ``"elu"``, ``"tanh"`` or ``"relu"``."""
+
+    value_output: str = "square"
+    """Output head of the critic (and of DDPG's Q-critic): ``"softplus"``, ``"square"`` (sum of squares)
+    or ``"linear"``; see :class:`mixedrl.networks.Critic`."""
+
+    critic_lr: float = 3e-3
+    """Adam learning rate alpha of the critic (eq. 50), also DDPG's Q-critic."""
+
+    actor_lr: float = 3e-4
+    """Adam learning rate beta of the actor (eq. 52), also DDPG's actor."""
+
+    lr_decay_to: float = 0.01
+    """Learning rates decay linearly from their value to ``lr_decay_to`` times it over the budget
+    (1.0 = constant), or over ``lr_decay_iterations`` iterations if that is set."""
+
+    lr_decay_iterations: int = 0
+    """Length of the learning-rate decay in iterations; after it the rates stay at ``lr_decay_to`` times
+    their start. 0 (the default) = the budget (``iterations``), so the decay is tied to the budget; a
+    budget shorter than the length decays over the budget (see :func:`mixedrl.schedule.lr_factor`)."""
+
+    grad_clip: float = 10.0
+    """Clip of the global gradient norm of each update (``math.inf`` disables it)."""
+
+    expectation: str = "sigma"
+    """How the expectation over ``xi_hat ~ N(mu_hat, K_hat)`` in eqs. (49)-(52) is computed:
+    ``"sigma"`` = deterministic spherical-cubature sigma points in the range of ``K_hat`` (2r points,
+    exact for polynomials of degree <= 3 in ``xi``), ``"samples"`` = reparameterised Monte-Carlo samples."""
+
+    noise_samples: int = 4
+    """Number of reparameterised samples per state when ``expectation == "samples"``."""
+
+    j_max: int = 5
+    """Maximum number of extra PIM steps of the AGPI inner loop (Algorithm 2)."""
+
+    mvc_check: str = "mean"
+    """Where the MVC (eq. 38) is checked on the batch: ``"mean"`` (batch average of both sides) or
+    ``"all"`` (every state)."""
+
+    stop_epsilon: float = 0.0
+    """Stopping test of Algorithm 2: stop when the mean absolute change of ``V`` and of ``pi`` on the
+    batch both stay below ``stop_epsilon`` for ``stop_patience`` iterations; 0 disables it."""
+
+    stop_patience: int = 100
+    """Consecutive iterations the stopping test must hold."""
+
+    ibe_recursion: str = "exact"
+    """Recursion of the Case-2 IBE (``"exact"`` = eq. 17 recursively, ``"paper"`` = eq. 18)."""
+
+    ibe_case: int = 2
+    """Which IBE mixed RL plans with (:func:`mixedrl.noise.make_noise_source`): ``2`` = Case 2, mean and
+    covariance unknown (eqs. 17-18); ``1`` = Case 1, covariance known (the true ``K``, eq. 16); ``3`` =
+    Case 3, a state-dependent mean ``phi(x, u) = W^T g(x, u)`` on the task's features, covariance known
+    (eq. 19, :class:`mixedrl.ibe.LinearFeatureIBE`). Only ``method = "mixed"`` reads it;
+    ``ibe_recursion`` must be ``"exact"`` unless it is 2."""
+
+    batch_weighting: str = "uniform"
+    """Departure (tuning add-on): how the states of the batch are weighted in PEV and PIM (eqs. 50 and
+    52): ``"uniform"`` = the plain batch mean (the paper's); ``"relative"`` = each state by its relative
+    error: PEV squares the relative TD error ``(V - V_target) / (|V_target| + c)`` and PIM weights state
+    ``x`` by ``1 / (V(x) + c)`` (batch mean 1), ``c = batch_weight_offset``
+    (:func:`mixedrl.pev.critic_loss`, :func:`mixedrl.pim.actor_objective`)."""
+
+    batch_weight_offset: float = 1.0
+    """Departure (tuning add-on): ``c`` of ``batch_weighting = "relative"``, in the units of the value."""
+
+    actor_average: float = 0.0
+    """Departure (tuning add-on): decay ``beta`` of an exponential moving average of the actor's weights,
+    ``theta_bar <- beta theta_bar + (1 - beta) theta`` after every iteration (Polyak averaging). With
+    ``beta > 0`` the *averaged* actor is the run's policy (evaluated, saved, deployed:
+    :attr:`mixedrl.algorithms.agpi.AGPI.policy`), while the iterate keeps driving the training rollouts
+    and the gradient steps. 0 (the default) = no averaging. The window is about ``1 / (1 - beta)``
+    iterations."""
+
+    def __post_init__(self) -> None:
+        w = "algorithm"
+        for name in ("iterations", "batch_size", "horizon", "noise_samples", "j_max", "stop_patience"):
+            setattr(self, name, _int(getattr(self, name), f"{w}.{name}"))
+        self.lr_decay_iterations = _int(self.lr_decay_iterations, f"{w}.lr_decay_iterations", 0)
+        if isinstance(self.hidden_sizes, (str, bytes)) or not isinstance(self.hidden_sizes, (list, tuple)) \
+                or not self.hidden_sizes:
+            raise ValueError(f"{w}.hidden_sizes: expected positive widths, got {self.hidden_sizes!r}")
+        self.hidden_sizes = tuple(_int(h, f"{w}.hidden_sizes") for h in self.hidden_sizes)
+        _choice(self.activation, f"{w}.activation", ("elu", "tanh", "relu"))
+        _choice(self.value_output, f"{w}.value_output", ("softplus", "square", "linear"))
+        _choice(self.expectation, f"{w}.expectation", ("sigma", "samples"))
+        _choice(self.mvc_check, f"{w}.mvc_check", ("mean", "all"))
+        _choice(self.ibe_recursion, f"{w}.ibe_recursion", ("exact", "paper"))
+        _choice(self.batch_weighting, f"{w}.batch_weighting", BATCH_WEIGHTINGS)
+        if isinstance(self.ibe_case, bool) or not isinstance(self.ibe_case, (int, np.integer)) or self.ibe_case not in (1, 2, 3):
+            raise ValueError(f"{w}.ibe_case: expected 1, 2 or 3 (the IBE's Case), got {self.ibe_case!r}")
+        if self.ibe_case != 2 and self.ibe_recursion != "exact":
+            raise ValueError(f"{w}.ibe_recursion: 'paper' is eq. (18), a Case 2 recursion; "
+                             f"{w}.ibe_case is {self.ibe_case}")
+        for name in ("critic_lr", "actor_lr"):
+            _positive(getattr(self, name), f"{w}.{name}")
+        _positive(self.grad_clip, f"{w}.grad_clip", allow_inf=True)
+        _unit(self.lr_decay_to, f"{w}.lr_decay_to", low_open=True)
+        _unit(self.actor_average, f"{w}.actor_average", high_open=True)
+        check_number(self.stop_epsilon, f"{w}.stop_epsilon", nonneg=True)
+        self.batch_weight_offset = check_number(self.batch_weight_offset, f"{w}.batch_weight_offset", positive=True)
+
+
+@dataclass
+class DDPGConfig:
+    """What DDPG has and the model-based methods do not (replay buffer, target networks, exploration
+    noise; textbook values, not tuned). Dotted keys: ``ddpg.<field>``."""
+
+    envs: int = 16
+    """Parallel true-environment copies stepped once per iteration (transitions per iteration)."""
+
+    buffer_size: int = 200_000
+    """Replay buffer capacity (transitions)."""
+
+    warmup: int = 2000
+    """Transitions collected with exploration before the first update."""
+
+    tau: float = 0.005
+    """Polyak factor of the target networks, in (0, 1]."""
+
+    noise_std: float = 0.2
+    """Standard deviation of the Gaussian exploration noise, as a fraction of each action bound."""
+
+    def __post_init__(self) -> None:
+        self.envs = _int(self.envs, "ddpg.envs")
+        self.buffer_size = _int(self.buffer_size, "ddpg.buffer_size")
+        self.warmup = _int(self.warmup, "ddpg.warmup", 0)
+        _unit(self.tau, "ddpg.tau", low_open=True)
+        _positive(self.noise_std, "ddpg.noise_std")
+
+
+@dataclass
+class RunConfig:
+    """Bookkeeping of a run: evaluation, checkpoints, threads. Dotted keys: ``run.<field>``."""
+
+    eval_every: int = 100
+    """Evaluate the policy every ``eval_every`` iterations (:meth:`mixedrl.tasks.Task.evaluate`)."""
+
+    eval_seeds: int = 2
+    """Number of noise realisations averaged by each evaluation."""
+
+    checkpoint_every: int = 500
+    """Write an atomic checkpoint every ``checkpoint_every`` iterations (and at the end)."""
+
+    num_threads: int = 1
+    """``torch.set_num_threads`` for the run (fixed, so results do not depend on the machine)."""
+
+    def __post_init__(self) -> None:
+        for f in dataclasses.fields(self):
+            setattr(self, f.name, _int(getattr(self, f.name), f"run.{f.name}"))
+
+
+# ----------------------------------------------------------------------------------------------------
+# samplers: where Algorithm 2's PEV/PIM states come from
+# ----------------------------------------------------------------------------------------------------
+#: Sampler name -> its options class (``sampler.name`` selects it); filled by :func:`register_sampler`.
+SAMPLERS: dict[str, type] = {}
+#: Sampler name -> the task names it works with (``None`` = any task).
+_SAMPLER_TASKS: dict[str, tuple[str, ...] | None] = {}
+
+
+def register_sampler(cls: type, tasks: tuple[str, ...] | None = None) -> type:
+    """Register the options class ``cls`` of a sampler under ``cls.NAME`` (usable as a decorator).
+
+    ``tasks`` names the task configurations the sampler needs (``None``: any task); choosing it with
+    another task is an error naming ``sampler.name`` and the task. The algorithm that uses the sampler
+    looks its implementation up by the same name (:data:`mixedrl.algorithms.model_data.SAMPLER_CLASSES`).
+    """
+    SAMPLERS[cls.NAME] = cls
+    _SAMPLER_TASKS[cls.NAME] = tasks
+    return cls
+
+
+@dataclass
+class TrueCopiesSampler:
+    """``sampler.name = "true_copies"``: Algorithm 2 as the paper writes it. The batch is the current
+    states of ``algorithm.batch_size`` copies of the true environment, each stepped once per iteration
+    under the current policy and reset every ``algorithm.horizon`` steps (``batch_size`` true transitions
+    per iteration); the IBE consumes their residuals. No options."""
+
+    NAME: ClassVar[str] = "true_copies"
+
+    name: str = "true_copies"
+    """Always ``"true_copies"`` for this class."""
+
+
+@dataclass
+class ModelRolloutsSampler:
+    """``sampler.name = "model_rollouts"``: the batch is ``algorithm.batch_size`` rollouts of the planning
+    model ``f + E xi_hat`` under the method's noise source, restarted from the task's training
+    distribution (``sample_initial``) every ``algorithm.horizon`` steps; for mixed RL ``true_envs`` copies
+    of the true environment collect the IBE's residuals (model-driven RL and the oracle collect none).
+    Dotted keys: ``sampler.<field>``."""
+
+    NAME: ClassVar[str] = "model_rollouts"
+
+    name: str = "model_rollouts"
+    """Always ``"model_rollouts"`` for this class."""
+
+    box: float = math.inf
+    """A rollout restarts when a component of its observation exceeds ``box`` times the task's
+    ``obs_scale`` (``math.inf``, the default, disables it)."""
+
+    true_envs: int = 1
+    """Mixed RL: true-environment copies driven at each collection."""
+
+    true_steps: int = 20
+    """Mixed RL: consecutive steps each true copy drives per collection."""
+
+    true_every: int = 10
+    """Mixed RL: iterations between collections (true transitions per iteration:
+    ``true_envs * true_steps / true_every``)."""
+
+    true_horizon: int = 200
+    """Mixed RL: steps after which a true copy restarts at the task's episode start."""
+
+    def __post_init__(self) -> None:
+        w = "sampler"
+        if self.name != self.NAME:
+            raise ValueError(f"{w}.name: expected {self.NAME!r} for {type(self).__name__}, got {self.name!r}")
+        _positive(self.box, f"{w}.box", allow_inf=True)
+        for name in ("true_envs", "true_steps", "true_every", "true_horizon"):
+            setattr(self, name, _int(getattr(self, name), f"{w}.{name}"))
+
+
+@dataclass
+class CourseSampler(ModelRolloutsSampler):
+    """``sampler.name = "dlc_course"``: the course design of the double lane change (a task with a
+    course; docs/model_based.rst). Model rollouts as :class:`ModelRolloutsSampler`, of two kinds:
+
+    * *course* copies (a fraction ``course_fraction`` of the batch) drive the course, from iteration
+      ``course_start`` on, for ``course_horizon`` steps, restarting as ``course_starts`` says, and are
+      *kicked* (``kick_prob`` per step, ``kick_scale`` times ``obs_scale``) so that the batch spreads
+      around the course trajectory;
+    * *wide* copies restart from the training distribution every ``algorithm.horizon`` steps.
+
+    The true-data copies of mixed RL start at the course start and restart after ``true_horizon`` steps.
+    Dotted keys: ``sampler.<field>``.
+    """
+
+    NAME: ClassVar[str] = "dlc_course"
+
+    name: str = "dlc_course"
+    """Always ``"dlc_course"`` for this class."""
+
+    box: float = 3.0
+    """A rollout restarts when a component of its observation exceeds ``box`` times ``obs_scale``."""
+
+    true_horizon: int = 2000
+    """Steps after which a true-data copy restarts at the course start (2000 = the whole course)."""
+
+    course_fraction: float = 0.75
+    """Fraction of the batch's rollouts that drive the course (the rest are wide copies)."""
+
+    course_start: int = 500
+    """Iteration from which the course copies drive the course; before it they restart from the wide
+    distribution like the others."""
+
+    course_starts: str = "along"
+    """Where a course copy restarts once ``course_start`` has passed: ``"start"`` = at the course start
+    (``X = 0``), not at the course's end (a copy drives on past it until its horizon); ``"along"`` = on
+    the reference at a point drawn uniformly along the course (``X ~ U(0, course_length)``), also when it
+    passes the course's end; ``"loop"`` = at the course start, also when it passes the course's end."""
+
+    course_horizon: int = 2000
+    """Steps after which a course copy restarts (2000 = the whole double lane change)."""
+
+    kick_prob: float = 0.01
+    """Probability per step that a course copy is kicked: a uniform random offset of ``kick_scale *
+    obs_scale_i`` on each noise component is added to its state."""
+
+    kick_scale: float = 1.0
+    """Size of a kick, in units of the task's ``obs_scale``."""
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        w = "sampler"
+        _unit(self.course_fraction, f"{w}.course_fraction")
+        self.course_start = _int(self.course_start, f"{w}.course_start", 0)
+        _choice(self.course_starts, f"{w}.course_starts", MODEL_COURSE_STARTS)
+        self.course_horizon = _int(self.course_horizon, f"{w}.course_horizon")
+        _unit(self.kick_prob, f"{w}.kick_prob")
+        check_number(self.kick_scale, f"{w}.kick_scale", nonneg=True)
+
+
+register_sampler(TrueCopiesSampler)
+register_sampler(ModelRolloutsSampler)
+register_sampler(CourseSampler, tasks=("dlc",))
+
+#: The configuration of a run's sampler: one of the registered classes (:data:`SAMPLERS`), by ``name``.
+SamplerConfig = Union[TrueCopiesSampler, ModelRolloutsSampler, CourseSampler]
+
+
+def sampler_config(value: Any, task: str | None = None) -> Any:
+    """Build a sampler configuration from its name, a dict (``name`` selects the class, default
+    ``"model_rollouts"``) or an options object (returned as is); ``task`` (a task name) is checked
+    against what the sampler needs.
+
+    Raises
+    ------
+    ValueError
+        Unknown sampler (``sampler.name``), unknown option (``config: unknown key(s) ['sampler.<key>']``),
+        an invalid value, or a sampler the task cannot provide for (naming ``sampler.name`` and the task).
+    """
+    if isinstance(value, str):
+        value = {"name": value}
+    if isinstance(value, dict):
+        name = value.get("name", ModelRolloutsSampler.NAME)
+        if name not in SAMPLERS:
+            raise ValueError(f"sampler.name: expected one of {tuple(SAMPLERS)}, got {name!r}")
+        value = _build(SAMPLERS[name], {**value, "name": name}, "sampler")
+    elif not any(type(value) is cls for cls in SAMPLERS.values()):
+        raise ValueError(f"sampler: expected a sampler name {tuple(SAMPLERS)}, a dict or an options object, "
+                         f"got {value!r}")
+    needs = _SAMPLER_TASKS.get(value.name)
+    if task is not None and needs is not None and task not in needs:
+        raise ValueError(f"sampler.name: {value.name!r} needs a task with a course ({', '.join(needs)}); "
+                         f"task {task!r} has none")
+    return value
+
+
+# ----------------------------------------------------------------------------------------------------
+# presets: a task's experiment configuration
+# ----------------------------------------------------------------------------------------------------
+#: Task name -> its experiment configuration: section -> field values that replace the library defaults
+#: (a section not named keeps the library defaults). Filled by :func:`register_preset`.
+PRESETS: dict[str, dict[str, dict[str, Any]]] = {}
+_SECTIONS = ("algorithm", "sampler", "ddpg", "run")
+
+
+def register_preset(task: str, sections: dict[str, dict[str, Any]]) -> None:
+    """Register the experiment configuration of the task named ``task``: the values ``TrainConfig`` gives
+    a section's missing fields when the run's task is ``task`` (``{"algorithm": {...}, "sampler": {...}}``)."""
+    unknown = set(sections) - set(_SECTIONS)
+    if unknown:
+        raise ValueError(f"sections: unknown section(s) {sorted(unknown)}; allowed: {sorted(_SECTIONS)}")
+    PRESETS[task] = copy.deepcopy(sections)
+
+
+#: The double lane change's experiment configuration (the reproduction of Table I, ``mixedrl reproduce``):
+#: the shared settings (learning rates, their decay, ``horizon``, ``value_output``, ``batch_size``, the
+#: budget) were chosen by a small search on mixed-RL runs of the double lane change (seeds 0-2) and then
+#: applied unchanged to every method; the course sampler and the relative batch weighting are the
+#: departures docs/algorithm2.rst lists.
+DLC_EXPERIMENT: dict[str, dict[str, Any]] = {
+    "algorithm": {"lr_decay_iterations": 1500, "batch_weighting": "relative"},
+    "sampler": {"name": CourseSampler.NAME},
+}
+register_preset("dlc", DLC_EXPERIMENT)
+
+
+# ----------------------------------------------------------------------------------------------------
+# migration of the flat configuration (45 top-level fields)
+# ----------------------------------------------------------------------------------------------------
+#: The flat keys of the old ``TrainConfig`` (45 top-level fields) and where they live now. Old
+#: ``config.json`` files, checkpoints, ``--set`` keys, :func:`apply_overrides` and sweep specs go through
+#: it. ``state_source`` is special: ``"true"`` -> ``sampler.name = "true_copies"``; ``"model"`` ->
+#: ``"dlc_course"`` on the double lane change, ``"model_rollouts"`` on another task (which then takes no
+#: ``course_*`` / ``kick_*`` option).
+LEGACY_KEYS: dict[str, str] = {
+    **{name: f"algorithm.{name}" for name in (
+        "iterations", "batch_size", "horizon", "hidden_sizes", "activation", "value_output", "critic_lr",
+        "actor_lr", "lr_decay_to", "lr_decay_iterations", "grad_clip", "expectation", "noise_samples", "j_max",
+        "mvc_check", "stop_epsilon", "stop_patience", "ibe_recursion", "ibe_case", "batch_weighting",
+        "batch_weight_offset", "actor_average")},
+    **{f"ddpg_{name}": f"ddpg.{name}" for name in ("envs", "buffer_size", "warmup", "tau", "noise_std")},
+    **{name: f"run.{name}" for name in ("eval_every", "eval_seeds", "checkpoint_every", "num_threads")},
+    "state_source": "sampler.name",
+    "model_course_fraction": "sampler.course_fraction",
+    "model_course_start": "sampler.course_start",
+    "model_course_starts": "sampler.course_starts",
+    "model_course_horizon": "sampler.course_horizon",  # also sampler.true_horizon (the old field set both)
+    "model_kick_prob": "sampler.kick_prob",
+    "model_kick_scale": "sampler.kick_scale",
+    "model_box": "sampler.box",
+    "true_envs": "sampler.true_envs",
+    "true_steps": "sampler.true_steps",
+    "true_every": "sampler.true_every",
+}
+_FULL = 40  # an old config.json holds (nearly) every flat field
+
+
+def _task_name(task: Any) -> str:
+    if isinstance(task, str):
+        return task
+    if isinstance(task, dict):
+        return str(task.get("name", "dlc"))
+    return str(getattr(task, "name", "dlc"))
+
+
+def migrate(data: dict[str, Any]) -> dict[str, Any]:
+    """Return the sectioned form of a (possibly partial) config dict with old flat keys (:data:`LEGACY_KEYS`).
+
+    Keys of the new form pass through; an old key moves to its section (a value already given there
+    under the new key wins only if it is equal, else it is an error naming both). ``data`` is not modified.
+
+    Raises
+    ------
+    ValueError
+        A sampler option the chosen sampler does not have (naming the old key and the task), or an old
+        and a new key with different values.
+    """
+    if not isinstance(data, dict):
+        raise ValueError(f"config: expected a dict, got {type(data).__name__}")
+    legacy = {k: v for k, v in data.items() if k in LEGACY_KEYS}
+    if not legacy:
+        return copy.deepcopy(data)
+    out = {k: copy.deepcopy(v) for k, v in data.items() if k not in LEGACY_KEYS}
+    task = _task_name(out.get("task", "dlc"))
+    moved: dict[str, Any] = {}
+    sampler_keys = [k for k in legacy if LEGACY_KEYS[k].startswith("sampler.")]
+    if sampler_keys:  # the old flat form's sampler: state_source (default "model") picks the class
+        source = legacy.get("state_source", "model")
+        if source not in ("true", "model"):
+            raise ValueError(f"state_source: expected 'true' or 'model', got {source!r}")
+        name = TrueCopiesSampler.NAME if source == "true" else (
+            CourseSampler.NAME if task == "dlc" else ModelRolloutsSampler.NAME)
+        moved["sampler.name"] = name
+        fields = {f.name for f in dataclasses.fields(SAMPLERS[name])}
+        for key in sampler_keys:
+            if key == "state_source":
+                continue
+            new = LEGACY_KEYS[key].split(".", 1)[1]
+            if name == ModelRolloutsSampler.NAME and key == "model_course_horizon":
+                new = "true_horizon"
+            elif name == CourseSampler.NAME and key == "model_course_horizon":
+                moved["sampler.true_horizon"] = legacy[key]
+            if new in fields:
+                moved[f"sampler.{new}"] = legacy[key]
+            elif source == "model" and len(legacy) < _FULL and legacy.get("model_course_fraction", 1) != 0:
+                # (with model_course_fraction = 0 the course options had no effect: they are dropped)
+                # a partial dict names the option on purpose: an error; a full old config.json carried
+                # every field (the unused ones are dropped), and state_source="true" never read them
+                raise ValueError(f"{key}: sampler option {LEGACY_KEYS[key]!r} needs a sampler with a course "
+                                 f"('dlc_course'); task {task!r} with state_source={source!r} uses {name!r}")
+    for key, value in legacy.items():
+        if not LEGACY_KEYS[key].startswith("sampler."):
+            moved[LEGACY_KEYS[key]] = value
+    for dotted, value in moved.items():
+        section, field_name = dotted.split(".", 1)
+        node = out.setdefault(section, {})
+        if not isinstance(node, dict):
+            node = out[section] = _jsonable(node)
+        if field_name in node and node[field_name] != value and not (section == "sampler" and field_name == "name"):
+            raise ValueError(f"{dotted}: given both as {dotted} and in the old flat form, with different values")
+        if section == "sampler" and field_name == "name" and node.get("name", value) != value:
+            raise ValueError(f"sampler.name: given as {node['name']!r} and, in the old flat form, "
+                             f"state_source={legacy.get('state_source', 'model')!r} ({value!r})")
+        node[field_name] = copy.deepcopy(value)
+    return out
+
+
 def apply_overrides(data: dict[str, Any], overrides: dict[str, Any]) -> dict[str, Any]:
     """Return a copy of the config dict ``data`` with dotted-key ``overrides`` applied.
 
     ``{"task.prior_force_mean": 300}`` sets ``data["task"]["prior_force_mean"]``; a plain key replaces a
     top-level value. Intermediate levels are created as dicts when missing; a string ``task`` (the old
-    form, ``"dlc"``) is first expanded to ``{"name": "dlc"}``. Keys are not checked here: building the
-    config (:meth:`TrainConfig.from_dict`) reports unknown ones with their dotted name.
+    form, ``"dlc"``) is first expanded to ``{"name": "dlc"}``. Old flat keys (``iterations``,
+    ``model_course_starts``, ...; :data:`LEGACY_KEYS`) in ``data`` or in ``overrides`` are moved to their
+    sections first (:func:`migrate`). Other keys are not checked here: building the config
+    (:meth:`TrainConfig.from_dict`) reports unknown ones with their dotted name.
 
     Parameters
     ----------
@@ -413,10 +941,29 @@ def apply_overrides(data: dict[str, Any], overrides: dict[str, Any]) -> dict[str
     >>> from mixedrl.config import apply_overrides
     >>> apply_overrides({"seed": 1, "task": "dlc"}, {"task.prior_force_mean": 300, "seed": 2})
     {'seed': 2, 'task': {'name': 'dlc', 'prior_force_mean': 300}}
+    >>> apply_overrides({}, {"iterations": 300})
+    {'algorithm': {'iterations': 300}}
     """
     if not isinstance(data, dict):
         raise ValueError(f"data: expected a dict, got {type(data).__name__}")
-    out = copy.deepcopy(data)
+    out = migrate(data)
+    legacy = {k: v for k, v in overrides.items() if k in LEGACY_KEYS}
+    if legacy:
+        task = out.get("task", "dlc")
+        for key, value in overrides.items():  # the task decides what state_source="model" means
+            if str(key) == "task":
+                task = value
+            elif str(key) == "task.name":
+                task = {"name": value}
+        moved = migrate({**legacy, "task": task})
+        moved.pop("task")
+        if "state_source" not in legacy and "sampler" in moved:  # options of the sampler data already has
+            current = out.get("sampler", {})
+            name = current.get("name") if isinstance(current, dict) else getattr(current, "name", None)
+            if name is not None:
+                moved["sampler"]["name"] = name
+        flat = {f"{s}.{k}": v for s, sec in moved.items() for k, v in sec.items()}
+        overrides = {**{k: v for k, v in overrides.items() if k not in LEGACY_KEYS}, **flat}
     for key, value in overrides.items():
         parts = str(key).split(".")
         if any(not p for p in parts):
@@ -426,7 +973,7 @@ def apply_overrides(data: dict[str, Any], overrides: dict[str, Any]) -> dict[str
             child = node.get(part)
             if child is None:
                 child = node[part] = {}
-            elif isinstance(child, str) and part == "task" and i == 0:
+            elif isinstance(child, str) and part in ("task", "sampler") and i == 0:
                 child = node[part] = {"name": child}
             elif not isinstance(child, dict):
                 raise ValueError(f"{key}: {'.'.join(parts[:i + 1])} is {child!r}, not a nested configuration")
@@ -435,304 +982,97 @@ def apply_overrides(data: dict[str, Any], overrides: dict[str, Any]) -> dict[str
     return out
 
 
-@dataclass
-class TrainConfig:
-    """Configuration of one training run (Algorithm 2 or DDPG).
+_SECTION_CLASSES: dict[str, type] = {"algorithm": AlgorithmConfig, "ddpg": DDPGConfig, "run": RunConfig}
 
-    Every field is documented below; ``to_dict`` / ``from_dict`` round-trip exactly through JSON.
+
+@dataclass(init=False)
+class TrainConfig:
+    """Configuration of one training run (Algorithm 2 or DDPG), in sections.
+
+    A section left out (or given as a partial dict) takes the run's task's experiment configuration
+    (:data:`PRESETS`, registered by the task; the double lane change's is :data:`DLC_EXPERIMENT`) over
+    the library defaults of the section's class. Old flat keyword arguments (``iterations=3``,
+    ``model_box=2.0``; :data:`LEGACY_KEYS`) are accepted and moved to their sections. ``to_dict`` /
+    ``from_dict`` round-trip exactly through JSON.
     """
 
-    method: str = "mixed"
+    method: str
     """Which algorithm: ``"mixed"`` (Algorithm 2, IBE posterior), ``"model"`` (Algorithm 2 on the prior
     model of eq. 55, IBE off), ``"oracle"`` (Algorithm 2 with the true noise) or ``"ddpg"``."""
 
-    task: TaskConfig = field(default_factory=DoubleLaneChangeTaskConfig)
-    """The experiment: :class:`DoubleLaneChangeTaskConfig` (``name = "dlc"``, the double lane change of
-    Section VI) or :class:`LinearTaskConfig` (``name = "linear"``, a 2-state linear system with a
-    quadratic cost and a known LQ optimum, used by the tests and the tutorial). The constructor also
-    accepts a task name or a nested dict (see :func:`task_config`)."""
-
-    seed: int = 0
+    seed: int
     """Seed of every generator of the run (network initialisation, initial states, noise, exploration,
     replay sampling). Same seed, same weights."""
 
-    iterations: int = 1500
-    """Budget: number of outer iterations ``k`` (one PEV + PIM step of Algorithm 2, or one DDPG update)."""
+    task: TaskConfig
+    """The experiment: :class:`DoubleLaneChangeTaskConfig` (``name = "dlc"``, the default) or
+    :class:`LinearTaskConfig` (``name = "linear"``); a task name or a nested dict is accepted
+    (:func:`task_config`)."""
 
-    batch_size: int = 512
-    """Number of states per iteration: the rollouts of the planning model (``state_source="model"``) or
-    the parallel copies of the true environment (``"true"``) whose current states form the PEV/PIM batch
-    (Algorithm 2), or the replay minibatch size (DDPG)."""
+    algorithm: AlgorithmConfig
+    """Algorithm 2 and the networks, optimiser and budget every method shares (:class:`AlgorithmConfig`)."""
 
-    horizon: int = 60
-    """Steps after which a training copy of the environment is reset to a fresh initial state."""
+    sampler: SamplerConfig
+    """Where Algorithm 2's PEV/PIM states come from, chosen by ``sampler.name`` (:data:`SAMPLERS`):
+    :class:`TrueCopiesSampler`, :class:`ModelRolloutsSampler` (the library default) or the double lane
+    change's :class:`CourseSampler`."""
 
-    state_source: str = "model"
-    """Where Algorithm 2's PEV/PIM states come from: ``"model"`` (the default and the reproduction's
-    setting) = rollouts of the planning model ``f + xi_hat`` under the method's noise source
-    (:class:`mixedrl.algorithms.model_data.ModelStateSampler`), the true environment only feeding the IBE
-    (``true_envs``, ``true_steps``, ``true_every``); ``"true"`` = the ``batch_size`` copies of the true
-    environment, one true step per copy per iteration (the setting of the earlier reproduction: 512
-    true transitions per iteration)."""
+    ddpg: DDPGConfig
+    """What only DDPG has (:class:`DDPGConfig`)."""
 
-    model_course_fraction: float = 0.75
-    """``state_source="model"``: fraction of the batch's rollouts that drive the course from its start
-    (the rest restart from the wide training distribution every ``horizon`` steps)."""
+    run: RunConfig
+    """Evaluation, checkpoints, threads (:class:`RunConfig`)."""
 
-    model_course_start: int = 500
-    """``state_source="model"``: iteration from which the course rollouts start from the course start;
-    before it they restart from the wide distribution like the others (a schedule: the course is driven
-    only by a policy that has first learnt to stay near the reference)."""
+    def __init__(self, method: str = "mixed", seed: int = 0, task: Any = "dlc", algorithm: Any = None,
+                 sampler: Any = None, ddpg: Any = None, run: Any = None, **legacy: Any) -> None:
+        check_unknown_keys(legacy, set(LEGACY_KEYS), "config")
+        if legacy:
+            sections = {"algorithm": algorithm, "sampler": sampler, "ddpg": ddpg, "run": run}
+            given = {k: _jsonable(v) for k, v in sections.items() if v is not None}
+            moved = migrate({**legacy, **given, "task": _jsonable(task) if not isinstance(task, str) else task})
+            algorithm, sampler, ddpg, run = (moved.get(k) for k in ("algorithm", "sampler", "ddpg", "run"))
+        self.method = _choice(method, "method", METHODS)
+        if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
+            raise ValueError(f"seed: expected a non-negative integer, got {seed!r}")
+        self.seed = int(seed)
+        self.task = task_config(task)
+        preset = PRESETS.get(self.task.name, {})
+        for name, value in (("algorithm", algorithm), ("ddpg", ddpg), ("run", run)):
+            setattr(self, name, _section(_SECTION_CLASSES[name], value, preset.get(name, {}), name))
+        self.sampler = _sampler(sampler, preset.get("sampler", {}), self.task.name)
 
-    model_course_starts: str = "along"
-    """``state_source="model"``: where a course rollout restarts once ``model_course_start`` has passed
-    (the copies keep driving from wherever they are at that iteration -- anywhere on the course, from the
-    wide distribution -- with the longer horizon ``model_course_horizon``):
-
-    * ``"start"`` (design M, the default before design S): at the course start (``X = 0``) when it leaves the box,
-      ends or reaches its horizon; it is *not* restarted at the course's end, so a copy that started far
-      along the course drives on past it, on the straight road beyond, until its horizon (by iteration
-      1500 about 43% of the course copies are beyond the course's end, docs/model_based.rst);
-    * ``"along"`` (the default, design S): on the reference at a point drawn
-      uniformly along the course (``X ~ U(0, course_length)``, the start's small perturbation), also when
-      it passes the course's end (the course copies then crowd towards the end: their density grows
-      like ``X``);
-    * ``"loop"``: at the course start, also when it passes the course's end, so that the copies loop
-      over the course: uniformly spread over it at iteration ``model_course_start``, they stay so.
-
-    The true-data copies of mixed RL always start at the course start."""
-
-    model_course_horizon: int = 2000
-    """``state_source="model"``: steps after which a course rollout (and a true-data copy) restarts at the
-    course start (2000 = the whole double lane change)."""
-
-    model_kick_prob: float = 0.01
-    """``state_source="model"``: probability per step that a course rollout is kicked: a uniform random
-    offset of ``model_kick_scale * obs_scale_i`` on each noise component is added to its state, and the
-    policy has to recover (exploration in state space around the course)."""
-
-    model_kick_scale: float = 1.0
-    """``state_source="model"``: size of a kick, in units of the task's ``obs_scale``."""
-
-    model_box: float = 3.0
-    """``state_source="model"``: a rollout restarts when a component of its observation exceeds
-    ``model_box`` times the task's ``obs_scale`` (``math.inf`` disables it)."""
-
-    true_envs: int = 1
-    """``state_source="model"``, mixed RL: true-environment copies driven at each collection."""
-
-    true_steps: int = 20
-    """``state_source="model"``, mixed RL: consecutive steps each true copy drives per collection."""
-
-    true_every: int = 10
-    """``state_source="model"``, mixed RL: iterations between collections (true transitions per iteration:
-    ``true_envs * true_steps / true_every``; model-driven RL and the oracle collect none)."""
-
-    batch_weighting: str = "relative"
-    """How the states of Algorithm 2's batch are weighted in PEV and PIM (eqs. 50 and 52): ``"uniform"``
-    = the plain batch mean (the paper's text); ``"relative"`` = each state by its relative error: PEV
-    squares the relative TD error ``(V - V_target) / (|V_target| + c)`` and PIM weights state ``x`` by
-    ``1 / (V(x) + c)`` (batch mean 1), ``c = batch_weight_offset``, so that states near the reference,
-    of small value, are not outweighed by the far ones (:func:`mixedrl.pev.critic_loss`,
-    :func:`mixedrl.pim.actor_objective`; docs/model_based.rst)."""
-
-    batch_weight_offset: float = 1.0
-    """``c`` of ``batch_weighting = "relative"``, in the units of the value (the cost)."""
-
-    hidden_sizes: tuple[int, ...] = (64, 64)
-    """Hidden layer widths of the actor and the critic (the same for every method)."""
-
-    activation: str = "elu"
-    """Hidden activation of the MLPs: ``"elu"``, ``"tanh"`` or ``"relu"``."""
-
-    value_output: str = "square"
-    """Output head of the critic (and of DDPG's Q-critic): ``"softplus"``, ``"square"`` (sum of squares)
-    or ``"linear"``; see :class:`mixedrl.networks.Critic`."""
-
-    critic_lr: float = 3e-3
-    """Adam learning rate alpha of the critic (eq. 50), also DDPG's Q-critic."""
-
-    actor_lr: float = 3e-4
-    """Adam learning rate beta of the actor (eq. 52), also DDPG's actor."""
-
-    lr_decay_to: float = 0.01
-    """Learning rates decay linearly from their value to ``lr_decay_to`` times it over the budget
-    (1.0 = constant), or over ``lr_decay_iterations`` iterations if that is set."""
-
-    lr_decay_iterations: int = 1500
-    """Length of the learning-rate decay in iterations; after it the rates stay at ``lr_decay_to`` times
-    their start. 0 = the budget (``iterations``); a budget shorter than the length decays over the budget.
-    A fixed length makes a longer budget the same run followed by iterations at the final rates, instead
-    of a slower decay (see :func:`mixedrl.schedule.lr_factor`)."""
-
-    actor_average: float = 0.0
-    """Algorithm 2: decay ``beta`` of an exponential moving average of the actor's weights,
-    ``theta_bar <- beta theta_bar + (1 - beta) theta`` after every iteration (Polyak averaging; a
-    departure from the paper, applied identically to mixed, model-driven RL and the oracle). With
-    ``beta > 0`` the *averaged* actor is the run's policy: it is evaluated, saved and deployed
-    (:attr:`mixedrl.algorithms.agpi.AGPI.policy`), while the iterate ``theta`` keeps driving the training
-    rollouts and the gradient steps. 0 (the default) = no averaging: the policy is the iterate. The
-    window is about ``1 / (1 - beta)`` iterations (0.995: 200), the same whatever the budget."""
-
-    grad_clip: float = 10.0
-    """Clip of the global gradient norm of each update (``math.inf`` disables it)."""
-
-    expectation: str = "sigma"
-    """How the expectation over ``xi_hat ~ N(mu_hat, K_hat)`` in eqs. (49)-(52) is computed:
-    ``"sigma"`` = deterministic spherical-cubature sigma points in the range of ``K_hat`` (2r points,
-    exact for polynomials of degree <= 3 in ``xi``), ``"samples"`` = reparameterised Monte-Carlo samples."""
-
-    noise_samples: int = 4
-    """Number of reparameterised samples per state when ``expectation == "samples"``."""
-
-    j_max: int = 5
-    """Maximum number of extra PIM steps of the AGPI inner loop (Algorithm 2)."""
-
-    mvc_check: str = "mean"
-    """Where the MVC (eq. 38) is checked on the batch: ``"mean"`` (batch average of both sides) or
-    ``"all"`` (every state)."""
-
-    stop_epsilon: float = 0.0
-    """Stopping test of Algorithm 2: stop when the mean absolute change of ``V`` and of ``pi`` on the
-    batch both stay below ``stop_epsilon`` for ``stop_patience`` iterations; 0 disables it (the run
-    uses its whole budget)."""
-
-    stop_patience: int = 100
-    """Consecutive iterations the stopping test must hold."""
-
-    ibe_recursion: str = "exact"
-    """Recursion of the Case-2 IBE (``"exact"`` = eq. 17 recursively, ``"paper"`` = eq. 18)."""
-
-    ibe_case: int = 2
-    """Which IBE mixed RL plans with (:func:`mixedrl.noise.make_noise_source`): ``2`` = Case 2, mean and
-    covariance unknown (eqs. 17-18, the reproduction's); ``1`` = Case 1, covariance known (the true
-    ``K``, eq. 16); ``3`` = Case 3, a state-dependent mean ``phi(x, u) = W^T g(x, u)`` on the task's
-    features (for the vehicle a Fourier series along the course, for a road grade), covariance known
-    (eq. 19, :class:`mixedrl.ibe.LinearFeatureIBE`). Only ``method = "mixed"`` reads it; ``ibe_recursion``
-    must be ``"exact"`` unless it is 2."""
-
-    eval_every: int = 100
-    """Evaluate the policy on the full double lane change every ``eval_every`` iterations."""
-
-    eval_seeds: int = 2
-    """Number of noise realisations averaged by each evaluation."""
-
-    checkpoint_every: int = 500
-    """Write an atomic checkpoint every ``checkpoint_every`` iterations (and at the end)."""
-
-    num_threads: int = 1
-    """``torch.set_num_threads`` for the run (fixed, so results do not depend on the machine)."""
-
-    ddpg_envs: int = 16
-    """DDPG: parallel true-environment copies stepped once per iteration (transitions per iteration)."""
-
-    ddpg_buffer_size: int = 200_000
-    """DDPG: replay buffer capacity (transitions)."""
-
-    ddpg_warmup: int = 2000
-    """DDPG: transitions collected with exploration before the first update."""
-
-    ddpg_tau: float = 0.005
-    """DDPG: Polyak factor of the target networks."""
-
-    ddpg_noise_std: float = 0.2
-    """DDPG: standard deviation of the Gaussian exploration noise, as a fraction of each action bound."""
-
-    def __post_init__(self) -> None:
-        self.hidden_sizes = tuple(int(h) for h in self.hidden_sizes)
-        self.task = task_config(self.task)
-        self.validate()
+    @classmethod
+    def for_task(cls, task: Any = "dlc", **fields: Any) -> "TrainConfig":
+        """The experiment configuration of ``task`` (its registered preset), with ``fields`` on top."""
+        return cls(task=task, **fields)
 
     def validate(self) -> None:
-        """Check every field.
+        """Check every field (rebuilding the config from its dict).
 
         Raises
         ------
         ValueError
-            The message starts with the offending field's name.
+            The message starts with the offending field's dotted name.
         """
-        if self.method not in METHODS:
-            raise ValueError(f"method: expected one of {METHODS}, got {self.method!r}")
-        if not isinstance(self.task, (DoubleLaneChangeTaskConfig, LinearTaskConfig)):
-            raise ValueError(f"task: expected a task configuration, got {self.task!r}")
-        if self.expectation not in ("sigma", "samples"):
-            raise ValueError(f"expectation: expected 'sigma' or 'samples', got {self.expectation!r}")
-        if self.mvc_check not in ("mean", "all"):
-            raise ValueError(f"mvc_check: expected 'mean' or 'all', got {self.mvc_check!r}")
-        if self.activation not in ("elu", "tanh", "relu"):
-            raise ValueError(f"activation: expected 'elu', 'tanh' or 'relu', got {self.activation!r}")
-        if self.value_output not in ("softplus", "square", "linear"):
-            raise ValueError(f"value_output: expected 'softplus', 'square' or 'linear', got {self.value_output!r}")
-        if self.state_source not in ("true", "model"):
-            raise ValueError(f"state_source: expected 'true' or 'model', got {self.state_source!r}")
-        if not 0.0 <= float(self.model_course_fraction) <= 1.0:
-            raise ValueError(f"model_course_fraction: expected a number in [0, 1], got {self.model_course_fraction!r}")
-        if isinstance(self.model_course_start, bool) or not isinstance(self.model_course_start, int) \
-                or self.model_course_start < 0:
-            raise ValueError(f"model_course_start: expected a non-negative integer, got {self.model_course_start!r}")
-        if self.model_course_starts not in MODEL_COURSE_STARTS:
-            raise ValueError(f"model_course_starts: expected one of {MODEL_COURSE_STARTS}, got "
-                             f"{self.model_course_starts!r}")
-        if not 0.0 <= float(self.model_kick_prob) <= 1.0:
-            raise ValueError(f"model_kick_prob: expected a number in [0, 1], got {self.model_kick_prob!r}")
-        if not (float(self.model_kick_scale) >= 0 and math.isfinite(self.model_kick_scale)):
-            raise ValueError(f"model_kick_scale: expected a finite number >= 0, got {self.model_kick_scale!r}")
-        if not float(self.model_box) > 0:
-            raise ValueError(f"model_box: expected a positive number, got {self.model_box!r}")
-        if self.batch_weighting not in BATCH_WEIGHTINGS:
-            raise ValueError(f"batch_weighting: expected one of {BATCH_WEIGHTINGS}, got {self.batch_weighting!r}")
-        self.batch_weight_offset = check_number(self.batch_weight_offset, "batch_weight_offset", positive=True)
-        if self.ibe_recursion not in ("exact", "paper"):
-            raise ValueError(f"ibe_recursion: expected 'exact' or 'paper', got {self.ibe_recursion!r}")
-        if isinstance(self.ibe_case, bool) or not isinstance(self.ibe_case, int) or self.ibe_case not in (1, 2, 3):
-            raise ValueError(f"ibe_case: expected 1, 2 or 3 (the IBE's Case), got {self.ibe_case!r}")
-        if self.ibe_case != 2 and self.ibe_recursion != "exact":
-            raise ValueError(f"ibe_recursion: 'paper' is eq. (18), a Case 2 recursion; ibe_case is {self.ibe_case}")
-        if isinstance(self.seed, bool) or not isinstance(self.seed, int) or self.seed < 0:
-            raise ValueError(f"seed: expected a non-negative integer, got {self.seed!r}")
-        for name in ("iterations", "batch_size", "horizon", "noise_samples", "j_max", "stop_patience",
-                     "eval_every", "eval_seeds", "checkpoint_every", "num_threads", "ddpg_envs",
-                     "ddpg_buffer_size", "model_course_horizon", "true_envs", "true_steps", "true_every"):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-                raise ValueError(f"{name}: expected a positive integer, got {value!r}")
-        for name in ("ddpg_warmup", "lr_decay_iterations"):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int) or value < 0:
-                raise ValueError(f"{name}: expected a non-negative integer, got {value!r}")
-        if not self.hidden_sizes or any(h < 1 for h in self.hidden_sizes):
-            raise ValueError(f"hidden_sizes: expected positive widths, got {self.hidden_sizes!r}")
-        for name in ("critic_lr", "actor_lr", "grad_clip", "ddpg_noise_std"):
-            value = float(getattr(self, name))
-            if not value > 0 or math.isnan(value):
-                raise ValueError(f"{name}: expected a positive number, got {value!r}")
-        if not (0.0 <= float(self.actor_average) < 1.0):
-            raise ValueError(f"actor_average: expected a number in [0, 1) (the EMA decay; 0 = off), "
-                             f"got {self.actor_average!r}")
-        for name in ("lr_decay_to", "ddpg_tau"):
-            value = float(getattr(self, name))
-            if not 0 < value <= 1:
-                raise ValueError(f"{name}: expected a number in (0, 1], got {value!r}")
-        if not (self.stop_epsilon >= 0 and math.isfinite(self.stop_epsilon)):
-            raise ValueError(f"stop_epsilon: expected a finite number >= 0, got {self.stop_epsilon!r}")
+        TrainConfig.from_dict(self.to_dict())
 
     # ------------------------------------------------------------------ serialisation
     def to_dict(self) -> dict[str, Any]:
-        """Return the fields as a JSON-compatible dictionary, the task configuration as a nested dict
-        (tuples become lists; ``inf`` a string)."""
+        """Return the fields as a JSON-compatible nested dictionary (tuples become lists; ``inf`` a
+        string)."""
         out = _jsonable(self)
-        for name in ("grad_clip", "model_box"):
-            if math.isinf(out[name]):
-                out[name] = "inf"
+        for section, name in (("algorithm", "grad_clip"), ("sampler", "box")):
+            if name in out[section] and math.isinf(out[section][name]):
+                out[section][name] = "inf"
         return out
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> "TrainConfig":
-        """Build a config from a dictionary (the content of ``config.json``), nested ``task`` included.
+        """Build a config from a dictionary (the content of ``config.json``), nested sections included.
 
-        The old form is accepted: ``"task": "dlc"`` (a name: that task's defaults) and a top-level
-        ``train_half_widths`` (moved to ``task.train_half_widths``; dropped for the linear task, on
-        which it never had an effect).
+        Old forms are accepted: the flat 45-field form (:data:`LEGACY_KEYS`, :func:`migrate`), ``"task":
+        "dlc"`` (a name: that task's defaults) and a top-level ``train_half_widths`` (moved to
+        ``task.train_half_widths``; dropped for the linear task, on which it never had an effect).
 
         Raises
         ------
@@ -753,17 +1093,21 @@ class TrainConfig:
                                      "task.train_half_widths, with different values")
                 task["train_half_widths"] = widths
             data["task"] = task
+        data = migrate(data)
         check_unknown_keys(data, {f.name for f in dataclasses.fields(cls)}, "config")
-        for name in ("grad_clip", "model_box"):
-            if data.get(name) == "inf":
-                data[name] = math.inf
+        for section, name in (("algorithm", "grad_clip"), ("sampler", "box")):
+            if isinstance(data.get(section), dict) and data[section].get(name) == "inf":
+                data[section] = {**data[section], name: math.inf}
         return cls(**data)
 
     def replace(self, **changes: Any) -> "TrainConfig":
-        """Return a copy with ``changes`` applied; keys may be dotted (``**{"task.gamma": 0.95}``, see
-        :func:`apply_overrides`); unknown keys are an error."""
+        """Return a copy with ``changes`` applied; keys may be dotted (``**{"algorithm.iterations": 30}``,
+        see :func:`apply_overrides`) or old flat keys; unknown keys are an error."""
         changes = {k: _jsonable(v) for k, v in changes.items()}
-        return TrainConfig.from_dict(apply_overrides(self.to_dict(), changes))
+        data = self.to_dict()
+        if any(k in ("task", "task.name") for k in changes):  # a new task: its own presets for what is not given
+            data = {"method": data["method"], "seed": data["seed"], "task": data["task"]}
+        return TrainConfig.from_dict(apply_overrides(data, changes))
 
     def save(self, path: str | Path) -> None:
         """Write the config as JSON to ``path``."""
@@ -771,7 +1115,7 @@ class TrainConfig:
 
     @classmethod
     def load(cls, path: str | Path) -> "TrainConfig":
-        """Read a config written by :meth:`save`.
+        """Read a config written by :meth:`save` (or an old flat one).
 
         Raises
         ------
@@ -784,3 +1128,26 @@ class TrainConfig:
             raise ValueError(f"path: {path} is not valid JSON ({exc})") from None
         return cls.from_dict(data)
 
+
+def _section(cls: type, value: Any, preset: dict[str, Any], where: str) -> Any:
+    """A section from an instance (as is), ``None`` (the preset) or a partial dict (over the preset)."""
+    if isinstance(value, cls):
+        return value
+    if value is None:
+        value = {}
+    if not isinstance(value, dict):
+        raise ValueError(f"{where}: expected a dict (a JSON object) or a {cls.__name__}, got {value!r}")
+    return _build(cls, {**preset, **value}, where)
+
+
+def _sampler(value: Any, preset: dict[str, Any], task: str) -> Any:
+    if isinstance(value, str):
+        value = {"name": value}
+    if value is None:
+        value = {}
+    if isinstance(value, dict):
+        if value.get("name", preset.get("name")) == preset.get("name"):
+            value = {**preset, **value}
+        if isinstance(value.get("box"), str) and value["box"] == "inf":
+            value = {**value, "box": math.inf}
+    return sampler_config(value, task)

@@ -39,6 +39,7 @@ import os
 import pickle
 import pickletools
 import re
+import sys
 import tempfile
 import time
 import zipfile
@@ -53,6 +54,7 @@ from mixedrl.algorithms.agpi import AGPI
 from mixedrl.algorithms.ddpg import DDPG
 from mixedrl.config import TrainConfig
 from mixedrl.tasks import Task, task_from_config
+from mixedrl.tensorboard import TB_DIR, TensorBoardLogger
 
 __all__ = [
     "RunDirectory",
@@ -488,7 +490,7 @@ def iterations_to_converge(iterations: list[int], costs: list[float], rtol: floa
 
 def eval_seeds(config: TrainConfig) -> list[int]:
     """Noise seeds of the evaluation episodes: fixed per run, disjoint from the training seed stream."""
-    return [1_000_003 * (config.seed + 1) + i for i in range(config.eval_seeds)]
+    return [1_000_003 * (config.seed + 1) + i for i in range(config.run.eval_seeds)]
 
 
 def make_trainer(config: TrainConfig, task: Task | None = None) -> AGPI | DDPG:
@@ -507,9 +509,9 @@ def _scalar_eval(ev: dict[str, Any]) -> dict[str, float]:
     return {f"eval/{k}": float(v) for k, v in ev.items() if isinstance(v, (int, float, np.floating))}
 
 
-def train(trainer: Any, run: RunDirectory | None = None, resume: bool = False, progress: bool = False,
-          stop_after: int | None = None, callback: Callable[[dict[str, Any]], None] | None = None
-          ) -> dict[str, Any]:
+def train(trainer: Any, run: RunDirectory | None = None, resume: bool = False, progress: bool | None = None,
+          stop_after: int | None = None, callback: Callable[[dict[str, Any]], None] | None = None,
+          tensorboard: bool = False) -> dict[str, Any]:
     """Run ``trainer`` to its budget (or its stopping test), with checkpoints, metrics and results.
 
     Parameters
@@ -520,12 +522,16 @@ def train(trainer: Any, run: RunDirectory | None = None, resume: bool = False, p
         Where to write config, checkpoints, metrics and results; ``None`` keeps everything in memory.
     resume : bool
         Continue from ``run``'s checkpoint (if there is one).
-    progress : bool
-        Show a tqdm progress bar.
+    progress : bool, optional
+        Show a tqdm progress bar (on stderr); by default shown when stderr is a terminal, as on the CLI.
+        ``False`` turns it off.
     stop_after : int, optional
         Stop (after checkpointing) once ``trainer.k`` reaches this value: simulates an interruption.
     callback : callable, optional
         Called with every metrics row.
+    tensorboard : bool
+        Also write the metrics rows as TensorBoard scalars into ``<run>/tb/`` (:mod:`mixedrl.tensorboard`;
+        needs ``run`` and the optional extra ``tensorboard``).
 
     Returns
     -------
@@ -537,10 +543,16 @@ def train(trainer: Any, run: RunDirectory | None = None, resume: bool = False, p
     Raises
     ------
     ValueError
-        ``resume`` with a corrupted checkpoint, or a config that differs from the saved one.
+        ``resume`` with a corrupted checkpoint, or a config that differs from the saved one;
+        ``tensorboard`` without ``run``.
+    ImportError
+        ``tensorboard`` without the optional extra.
     """
+    if tensorboard and run is None:
+        raise ValueError("tensorboard: needs a run directory (run=RunDirectory(path)) to write into")
     cfg: TrainConfig = trainer.config
-    torch.set_num_threads(cfg.num_threads)
+    board = TensorBoardLogger(run.path / TB_DIR) if tensorboard and run is not None else None
+    torch.set_num_threads(cfg.run.num_threads)
     memory_rows: list[dict[str, Any]] = []
     elapsed = 0.0
     if run is not None:
@@ -562,22 +574,24 @@ def train(trainer: Any, run: RunDirectory | None = None, resume: bool = False, p
     def checkpoint() -> None:
         if run is not None:
             run.append_metrics(pending)
+            if board is not None:
+                board.write(pending)
             save_checkpoint(run.checkpoint_path, {"trainer": trainer.state_dict(), "elapsed": elapsed})
         memory_rows.extend(pending)
         pending.clear()
 
     bar = None
-    if progress:
+    if progress or (progress is None and sys.stderr.isatty()):
         from tqdm.auto import tqdm
 
-        bar = tqdm(total=cfg.iterations, initial=trainer.k, desc=f"{cfg.method} seed {cfg.seed}", leave=False)
+        bar = tqdm(total=cfg.algorithm.iterations, initial=trainer.k, desc=f"{cfg.method} seed {cfg.seed}", leave=False)
     try:
-        while trainer.k < cfg.iterations and not trainer.stopped:
+        while trainer.k < cfg.algorithm.iterations and not trainer.stopped:
             t0 = time.perf_counter()
             row = trainer.iteration()
             elapsed += time.perf_counter() - t0
             row = {"iteration": trainer.k, **row, "time/elapsed_s": elapsed}
-            if trainer.k % cfg.eval_every == 0 or trainer.k == cfg.iterations or trainer.stopped:
+            if trainer.k % cfg.run.eval_every == 0 or trainer.k == cfg.algorithm.iterations or trainer.stopped:
                 row.update(_scalar_eval(trainer.evaluate(seeds)))
             pending.append(row)
             if callback is not None:
@@ -586,15 +600,19 @@ def train(trainer: Any, run: RunDirectory | None = None, resume: bool = False, p
                 bar.update(1)
                 if "eval/cost" in row:
                     bar.set_postfix(cost=f"{row['eval/cost']:.4g}")
-            if trainer.k % cfg.checkpoint_every == 0:
+            if trainer.k % cfg.run.checkpoint_every == 0:
                 checkpoint()
             if stop_after is not None and trainer.k >= stop_after:
                 checkpoint()
+                if board is not None:
+                    board.close()
                 return {"interrupted_at": trainer.k}
     finally:
         if bar is not None:
             bar.close()
     checkpoint()
+    if board is not None:
+        board.close()
     rows = run.read_metrics() if run is not None else memory_rows
     results = summarize(trainer, rows, elapsed, seeds)
     if run is not None:
@@ -613,7 +631,7 @@ def summarize(trainer: Any, rows: list[dict[str, Any]], elapsed: float, seeds: l
     results: dict[str, Any] = {
         "method": cfg.method,
         "seed": cfg.seed,
-        "task": cfg.task.name,
+        "task": getattr(trainer.task, "name", cfg.task.name),
         "iterations": int(trainer.k),
         "train_seconds": float(elapsed),
         "final": {k: float(v) for k, v in final.items() if isinstance(v, (int, float, np.floating))},

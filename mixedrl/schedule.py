@@ -36,9 +36,10 @@ def lr_factor(config: TrainConfig, k: int) -> float:
     iterations at the final rates (its first ``L`` iterates are those of the ``L``-iteration run); a
     budget below ``L`` decays over the budget, so every run ends at the final rates.
     """
-    length = min(config.lr_decay_iterations, config.iterations) if config.lr_decay_iterations else config.iterations
+    algo = config.algorithm
+    length = min(algo.lr_decay_iterations, algo.iterations) if algo.lr_decay_iterations else algo.iterations
     frac = min(1.0, k / max(1, length - 1))
-    return 1.0 - (1.0 - config.lr_decay_to) * frac
+    return 1.0 - (1.0 - config.algorithm.lr_decay_to) * frac
 
 
 def set_learning_rates(config: TrainConfig, k: int, critic_opt: torch.optim.Optimizer,
@@ -56,6 +57,6 @@ def set_learning_rates(config: TrainConfig, k: int, critic_opt: torch.optim.Opti
     """
     factor = lr_factor(config, k)
     for group in critic_opt.param_groups:
-        group["lr"] = config.critic_lr * factor
+        group["lr"] = config.algorithm.critic_lr * factor
     for group in actor_opt.param_groups:
-        group["lr"] = config.actor_lr * factor
+        group["lr"] = config.algorithm.actor_lr * factor

@@ -27,7 +27,7 @@ duplicates) and the :class:`~mixedrl.config.TrainConfig` of **every** run is bui
 offending key and nothing is started or written.
 
 The runs execute on `Ray <https://docs.ray.io>`_ (the optional extra ``sweep``), one Ray task per run
-(``num_cpus=1``; each run sets its own ``torch.set_num_threads(config.num_threads)``); results are
+(``num_cpus=1``; each run sets its own ``torch.set_num_threads(config.run.num_threads)``); results are
 gathered with ``ray.wait`` as they finish. By default :func:`ray.init` starts a local cluster on this
 machine; ``--address`` joins an existing cluster (``DIR`` must then be a path every node sees, e.g. a
 shared file system). A failed run is recorded with its error and does not stop the others.
@@ -290,7 +290,7 @@ def expand(spec: SweepSpec) -> list[SweepRun]:
         A run's config is invalid (message starts with ``base`` or the run's name, then the field), or two
         runs get the same directory name.
     """
-    defaults = TrainConfig().to_dict()
+    defaults: dict = {}  # each run takes its task's experiment configuration for what the spec leaves out
     try:
         TrainConfig.from_dict(apply_dotted(defaults, spec.base))
     except (ValueError, TypeError) as exc:
@@ -324,7 +324,7 @@ def run_point(config: dict[str, Any], path: str, resume: bool = False) -> dict[s
     """Train one run of a sweep into ``path``; the body of its Ray task.
 
     Exactly ``mixedrl train``: :func:`mixedrl.runs.make_trainer` then :func:`mixedrl.runs.train` (which
-    sets ``torch.set_num_threads(config.num_threads)``).
+    sets ``torch.set_num_threads(config.run.num_threads)``).
 
     Parameters
     ----------
@@ -351,7 +351,7 @@ def run_point(config: dict[str, Any], path: str, resume: bool = False) -> dict[s
         if run_dir.read_config().to_dict() != cfg.to_dict():
             raise ValueError(f"config: differs from the saved {run_dir.config_path}; resume with the same spec")
         return run_dir.read_results()
-    return train(make_trainer(cfg), run_dir, resume=resume)
+    return train(make_trainer(cfg), run_dir, resume=resume, progress=False)
 
 
 # ----------------------------------------------------------------------------------------------------

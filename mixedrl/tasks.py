@@ -32,7 +32,7 @@ from mixedrl.config import DoubleLaneChangeTaskConfig, LinearTaskConfig, TaskCon
 from mixedrl.envs import DoubleLaneChangeModel, evaluate_tracking
 from mixedrl.gaussian import sample_gaussian
 
-__all__ = ["Task", "LinearTask", "DoubleLaneChangeTask", "make_task", "task_from_config"]
+__all__ = ["Task", "LinearTask", "DoubleLaneChangeTask", "check_task", "make_task", "task_from_config"]
 
 
 class Task(abc.ABC):
@@ -61,6 +61,12 @@ class Task(abc.ABC):
         Typical magnitude of the value (the critic's output is multiplied by it).
     true_mean_varies : bool
         Whether the true noise mean depends on the state (:meth:`true_mean_at`); ``False`` by default.
+    name : str
+        The task's name in a run's results (``results["task"]``); the class name unless the subclass sets it.
+    eval_horizon : int
+        Steps of each rollout of the default :meth:`evaluate` (200 unless the subclass sets it).
+    eval_starts : int
+        Start states per evaluation seed of the default :meth:`evaluate` (64 unless the subclass sets it).
     """
 
     state_dim: int
@@ -77,6 +83,14 @@ class Task(abc.ABC):
     obs_scale: torch.Tensor
     value_scale: float = 1.0
     true_mean_varies: bool = False
+    name: str
+    eval_horizon: int = 200
+    eval_starts: int = 64
+
+    def __init_subclass__(cls, **kwargs: Any) -> None:
+        super().__init_subclass__(**kwargs)
+        if "name" not in cls.__dict__:
+            cls.name = cls.__name__
 
     @abc.abstractmethod
     def f(self, s: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
@@ -140,16 +154,154 @@ class Task(abc.ABC):
         with torch.no_grad():
             return (s_next - self.f(s, u.to(s.dtype))) @ self.noise_matrix.to(s.dtype)
 
-    def evaluate(self, policy: torch.nn.Module, seeds: list[int]) -> dict[str, Any]:
-        """Drive evaluation episodes with ``policy`` (a module on observations, float32) under the true
-        noise, one noise realisation per seed; return scalar metrics, ``"cost"`` at least.
+    def evaluate(self, policy: torch.nn.Module, seeds: list[int], horizon: int | None = None) -> dict[str, Any]:
+        """Seeded rollouts of the *true* environment (:meth:`true_step`) under ``policy`` from fixed starts.
+
+        For each seed, a generator seeded with it draws :attr:`eval_starts` start states from
+        :meth:`sample_initial` and then the noise of ``horizon`` steps; the action is
+        ``policy(observe(s))`` (float32 observations, as in training). A copy that reaches a terminal state
+        (:meth:`is_terminal`) stops: no cost, no state counted from then on. Subclasses with a
+        task-specific evaluation (a course, a reference trajectory) override this method.
+
+        Parameters
+        ----------
+        policy : torch.nn.Module
+            The actor: observations (B, obs_dim) float32 -> actions (B, action_dim).
+        seeds : list of int
+            One set of starts and one noise realisation per seed.
+        horizon : int, optional
+            Steps per rollout; :attr:`eval_horizon` by default.
+
+        Returns
+        -------
+        dict
+            Means over the seeds and starts:
+
+            - ``"cost"``: discounted cost ``sum_t gamma^t l(s_{t+1}, u_t)`` of a rollout;
+            - ``"mean_abs_state"``: ``|s|`` averaged over the second half of the rollout and the state's
+              components (the steady offset from the origin, with the noise's spread);
+            - ``"mean_abs_state_<i>"``, ``"mean_state_<i>"``: per state component ``i``, ``|s_i|`` and the
+              signed ``s_i`` over the second half (the latter is the steady offset a constant bias leaves);
+            - ``"terminated_fraction"``: rollouts that reached a terminal state.
 
         Raises
         ------
-        NotImplementedError
-            The task defines no evaluation (subclasses implement it).
+        ValueError
+            ``seeds`` empty, or ``horizon`` not a positive integer.
         """
-        raise NotImplementedError(f"{type(self).__name__}.evaluate is not implemented")
+        horizon = self.eval_horizon if horizon is None else horizon
+        if isinstance(horizon, bool) or not isinstance(horizon, (int, np.integer)) or horizon < 1:
+            raise ValueError(f"horizon: expected a positive integer, got {horizon!r}")
+        if len(seeds) == 0:
+            raise ValueError("seeds: expected at least one evaluation seed, got none")
+        n, half = int(self.eval_starts), int(horizon) // 2
+        costs, terminated, abs_sums, sums, counts = [], [], [], [], []
+        with torch.no_grad():
+            for seed in seeds:
+                gen = torch.Generator().manual_seed(int(seed))
+                s = self.sample_initial(n, gen).to(torch.float64)
+                alive = torch.ones(n, dtype=torch.bool)
+                total = torch.zeros(n, dtype=torch.float64)
+                abs_sum = torch.zeros(self.state_dim, dtype=torch.float64)
+                signed_sum = torch.zeros(self.state_dim, dtype=torch.float64)
+                count = 0.0
+                for t in range(int(horizon)):
+                    u = policy(self.observe(s.float())).double()
+                    s_next = self.true_step(s, u, gen)
+                    step_cost = self.cost(s_next, u).double()
+                    total += torch.where(alive, self.gamma**t * step_cost, torch.zeros_like(total))
+                    alive = alive & ~self.is_terminal(s_next)
+                    s = torch.where(alive[:, None], s_next, s)
+                    if t >= half:
+                        kept = s[alive]
+                        abs_sum += kept.abs().sum(dim=0)
+                        signed_sum += kept.sum(dim=0)
+                        count += kept.shape[0]
+                costs.append(float(total.mean()))
+                terminated.append(float((~alive).double().mean()))
+                abs_sums.append(abs_sum)
+                sums.append(signed_sum)
+                counts.append(count)
+        count = max(sum(counts), 1.0)
+        mean_abs = (torch.stack(abs_sums).sum(dim=0) / count).tolist()
+        mean = (torch.stack(sums).sum(dim=0) / count).tolist()
+        out: dict[str, Any] = {"cost": float(np.mean(costs)), "mean_abs_state": float(np.mean(mean_abs)),
+                               "terminated_fraction": float(np.mean(terminated))}
+        out.update({f"mean_abs_state_{i}": v for i, v in enumerate(mean_abs)})
+        out.update({f"mean_state_{i}": v for i, v in enumerate(mean)})
+        return out
+
+
+def _check_output(value: Any, task: Task, fn: str, shape: tuple[int, ...], dtype: torch.dtype | None) -> None:
+    """Raise ``ValueError`` naming ``Task.fn`` unless ``value`` is a finite float tensor of ``shape`` (``dtype``)."""
+    where = f"{type(task).__name__}.{fn}"
+    if not isinstance(value, torch.Tensor):
+        raise ValueError(f"{where}: expected a torch.Tensor of shape {shape}, returned {type(value).__name__}")
+    if tuple(value.shape) != shape:
+        raise ValueError(f"{where}: expected shape {shape}, returned shape {tuple(value.shape)}")
+    if not value.is_floating_point() or (dtype is not None and value.dtype != dtype):
+        expected = "a floating dtype" if dtype is None else str(dtype)
+        raise ValueError(f"{where}: expected dtype {expected}, returned {value.dtype}")
+    if not bool(torch.isfinite(value).all()):
+        raise ValueError(f"{where}: returned NaN or inf values (on states from sample_initial, zero actions)")
+
+
+def check_task(task: Task, batch: int = 3) -> None:
+    """Check a task's sizes and its functions' outputs once, with errors that name the function.
+
+    Calls :meth:`Task.sample_initial` (own generator, seed 0), :meth:`Task.observe`, :meth:`Task.f` and
+    :meth:`Task.cost` on ``batch`` states with zero and bound actions, in float32 and float64 (training uses
+    both); nothing of the task or of a trainer's random streams is touched.
+
+    Parameters
+    ----------
+    task : Task
+        The task to check.
+    batch : int, optional
+        Number of states to probe with.
+
+    Raises
+    ------
+    ValueError
+        A size attribute is not a positive integer, an array attribute has the wrong shape, or a function
+        returns the wrong shape, dtype or non-finite values; the message names the task class, the
+        attribute or function (``cost``, ``f``, ...), the expected and the returned shape.
+    """
+    name = type(task).__name__
+    for attr in ("state_dim", "obs_dim", "action_dim", "noise_dim"):
+        v = getattr(task, attr, None)
+        if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 1:
+            raise ValueError(f"{name}.{attr}: expected a positive integer, got {v!r}")
+    n, m, o, d = task.state_dim, task.action_dim, task.obs_dim, task.noise_dim
+    gamma = getattr(task, "gamma", None)
+    if not isinstance(gamma, (float, int, np.floating)) or not 0.0 < float(gamma) < 1.0:
+        raise ValueError(f"{name}.gamma: expected a discount factor in (0, 1), got {gamma!r}")
+    for attr, shape in (("noise_matrix", (n, d)), ("prior_mean", (d,)), ("prior_cov", (d, d)),
+                        ("true_mean", (d,)), ("true_cov", (d, d)), ("action_bound", (m,)), ("obs_scale", (o,))):
+        v = getattr(task, attr, None)
+        if v is None:
+            raise ValueError(f"{name}.{attr}: not set (expected shape {shape})")
+        arr = np.asarray(v.detach() if isinstance(v, torch.Tensor) else v, dtype=np.float64)
+        if arr.shape != shape:
+            raise ValueError(f"{name}.{attr}: expected shape {shape}, got shape {arr.shape}")
+        if not np.isfinite(arr).all():
+            raise ValueError(f"{name}.{attr}: contains NaN or inf")
+        if attr in ("action_bound", "obs_scale") and not (arr > 0).all():
+            raise ValueError(f"{name}.{attr}: expected positive values, got {arr.tolist()}")
+    s = task.sample_initial(batch, torch.Generator().manual_seed(0))
+    _check_output(s, task, "sample_initial", (batch, n), torch.float64)
+    bound = torch.as_tensor(task.action_bound, dtype=torch.float64)
+    for dtype in (torch.float32, torch.float64):
+        x = s.to(dtype)
+        _check_output(task.observe(x), task, "observe", (batch, o), None)
+        for u in (torch.zeros(batch, m, dtype=dtype), bound.to(dtype).expand(batch, m).clone()):
+            u.requires_grad_(True)
+            s_next = task.f(x, u)
+            _check_output(s_next, task, "f", (batch, n), dtype)
+            if not s_next.requires_grad:
+                raise ValueError(f"{name}.f: the output does not depend differentiably on u (a detached or "
+                                 f"numpy computation?); the policy improvement differentiates through f")
+            _check_output(task.cost(s_next, u), task, "cost", (batch,), None)
 
 
 class LinearTask(Task):
@@ -181,6 +333,8 @@ class LinearTask(Task):
     ValueError
         On inconsistent shapes or a covariance that is not symmetric PSD.
     """
+
+    name = "linear"
 
     def __init__(self, A: Any = None, B: Any = None, Q: Any = None, R: Any = None, gamma: float = 0.9,
                  true_mean: Any = None, true_cov: Any = None, prior_mean: Any = None, prior_cov: Any = None,
@@ -361,6 +515,8 @@ class DoubleLaneChangeTask(Task):
     ValueError
         ``prior_force_std`` not positive, ``gamma`` not in (0, 1), or an invalid environment override.
     """
+
+    name = "dlc"
 
     def __init__(self, prior_force_mean: float = 150.0, prior_force_std: float = 4.0, gamma: float = 0.99,
                  **config: Any) -> None:

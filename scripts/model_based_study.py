@@ -441,7 +441,7 @@ def positions(args: argparse.Namespace) -> None:
         cfg = TrainConfig().replace(method="mixed", seed=args.seed, iterations=1500, eval_every=1500,
                                     checkpoint_every=1500, num_threads=1, **DESIGNS[tag])
         trainer = make_trainer(cfg)
-        for k in range(1, cfg.iterations + 1):
+        for k in range(1, cfg.algorithm.iterations + 1):
             trainer.iteration()
             if k % 100 == 0:
                 X = trainer.sampler.states[trainer.sampler.course, 5]

@@ -45,7 +45,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from mixedrl.config import TrainConfig
+from mixedrl.config import TrainConfig, migrate
 from mixedrl.runs import atomic_write_bytes, atomic_write_text, make_trainer, train
 from mixedrl.tasks import task_from_config
 
@@ -235,7 +235,7 @@ def actor_weights(actor: torch.nn.Module) -> dict[str, list[Any]]:
     return {k: v.detach().double().tolist() for k, v in actor.state_dict().items()}
 
 
-#: Batch designs (docs/model_based.rst) -> ``TrainConfig.model_course_starts``. The study first ran on
+#: Batch designs (docs/model_based.rst) -> ``CourseSampler.course_starts``. The study first ran on
 #: design M, the default then (its runs are kept, under ``per_run/M``, and reproduce); S is the default now.
 DESIGNS: dict[str, str] = {"M": "start", "S": "along"}
 #: The design of the figure's policies.
@@ -252,14 +252,14 @@ def job_path(candidate: str, method: str, seed: int, iterations: int | None = No
     """``docs/_static/preview/per_run/<design>/<candidate>/<method>_s<seed>.json`` (``_n<iterations>``
     appended for a budget other than the default)."""
     _check_design(design)
-    tail = "" if iterations in (None, TrainConfig().iterations) else f"_n{iterations}"
+    tail = "" if iterations in (None, TrainConfig().algorithm.iterations) else f"_n{iterations}"
     return OUT / "per_run" / design / candidate / f"{method}_s{seed}{tail}.json"
 
 
 def design_of(config: dict[str, Any]) -> str:
     """The design (a key of :data:`DESIGNS`) of a run's saved config (a config saved before
     ``model_course_starts`` existed ran design M, the only one then)."""
-    starts = config.get("model_course_starts", DESIGNS["M"])
+    starts = migrate(config).get("sampler", {}).get("course_starts", DESIGNS["M"])  # old flat configs too
     return next(d for d, v in DESIGNS.items() if v == starts)
 
 
@@ -273,7 +273,7 @@ def config_of(candidate: str, method: str, seed: int, iterations: int | None = N
     if candidate not in CANDIDATES:
         raise ValueError(f"candidate: expected one of {sorted(CANDIDATES)}, got {candidate!r}")
     starts = _check_design(design)
-    n = TrainConfig().iterations if iterations is None else iterations
+    n = TrainConfig().algorithm.iterations if iterations is None else iterations
     return TrainConfig().replace(method=method, seed=seed, iterations=n, eval_every=max(100, n // 5),
                                  checkpoint_every=n,
                                  num_threads=1, model_course_starts=starts,
@@ -421,7 +421,7 @@ def figure(runs: list[dict[str, Any]], chosen: str) -> None:
     from mixedrl.envs import DoubleLaneChangeConfig, evaluate_tracking
 
     curves = []
-    default = TrainConfig().iterations
+    default = TrainConfig().algorithm.iterations
     seed0 = [r for r in runs if r["method"] == "mixed" and r["seed"] == 0 and design_of(r["config"]) == FIGURE_DESIGN]
     longest = max((r["iterations"] for r in seed0 if r["candidate"] == chosen), default=default)
     drawn = [(chosen, default, "C0")] + ([(chosen, longest, "C2")] if longest != default else []) + [("none", default, "C3")]

@@ -1,4 +1,4 @@
-"""``TrainConfig.actor_average``: the Polyak (EMA) average of the actor is the run's policy."""
+"""``AlgorithmConfig.actor_average``: the Polyak (EMA) average of the actor is the run's policy."""
 
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ from mixedrl.config import TrainConfig
 from mixedrl.runs import RunDirectory, make_trainer, train
 
 FAST = dict(task="linear", batch_size=32, iterations=30, eval_every=10, eval_seeds=1, checkpoint_every=10,
-            hidden_sizes=(8,), model_course_start=0)
+            hidden_sizes=(8,))
 
 
 def _flat(module: torch.nn.Module) -> torch.Tensor:
@@ -69,5 +69,5 @@ def test_a_checkpoint_without_the_average_is_refused_and_changes_nothing() -> No
 
 @pytest.mark.parametrize("bad", [-0.1, 1.0, float("nan"), 2])
 def test_actor_average_is_validated(bad: float) -> None:
-    with pytest.raises(ValueError, match="^actor_average"):
+    with pytest.raises(ValueError, match="^algorithm.actor_average"):
         TrainConfig(actor_average=bad)

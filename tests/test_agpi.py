@@ -322,8 +322,8 @@ def test_dlc_ibe_moves_to_truth_with_few_true_transitions() -> None:
     res_mixed, res_model = train(mixed), train(model)
     assert abs(mixed.noise.mean[2] - true_mean) <= 0.02 * true_mean
     assert abs(model.noise.mean[2] - true_mean) > 0.4 * true_mean  # the prior stays where it was
-    collections = -(-cfg.iterations // cfg.true_every)
-    assert res_mixed["true_transitions"] == collections * cfg.true_envs * cfg.true_steps == 3000
+    collections = -(-cfg.algorithm.iterations // cfg.sampler.true_every)
+    assert res_mixed["true_transitions"] == collections * cfg.sampler.true_envs * cfg.sampler.true_steps == 3000
     assert res_model["true_transitions"] == 0
     assert res_mixed["final"]["terminated"] == 0.0 and res_model["final"]["terminated"] == 0.0
 
@@ -338,9 +338,9 @@ def test_agpi_options_run(expectation: str, mvc_check: str) -> None:
     ag = AGPI(task, cfg)
     rows = [ag.iteration() for _ in range(10)]
     assert all(np.isfinite(v) for r in rows for v in r.values())
-    assert all(0 <= r["mvc/inner_steps"] <= cfg.j_max for r in rows)
-    assert all(r["mvc/inner_steps"] == cfg.j_max for r in rows if r["mvc/held"] == 0.0)
-    assert all(r["mvc/held"] == 1.0 for r in rows if r["mvc/inner_steps"] < cfg.j_max)
+    assert all(0 <= r["mvc/inner_steps"] <= cfg.algorithm.j_max for r in rows)
+    assert all(r["mvc/inner_steps"] == cfg.algorithm.j_max for r in rows if r["mvc/held"] == 0.0)
+    assert all(r["mvc/held"] == 1.0 for r in rows if r["mvc/inner_steps"] < cfg.algorithm.j_max)
 
 
 # ------------------------------------------------------------------------------ what iteration() plans with
@@ -390,7 +390,7 @@ def test_iteration_plans_with_the_current_ibe_posterior() -> None:
     gap = max(float((a - b).abs().max()) for a, b in zip(after, _params(twins["prior"].critic)))
     assert gap > 1e-4
     # ... and the IBE itself updated and reports its posterior
-    assert ag.noise.count == count_before + cfg.batch_size
+    assert ag.noise.count == count_before + cfg.algorithm.batch_size
     assert metrics["ibe/mean_1"] == pytest.approx(float(ag.noise.mean[1]))
 
 
@@ -433,6 +433,6 @@ def test_inner_loop_takes_extra_pim_steps_while_the_mvc_fails() -> None:
         calls.clear()
         metrics = ag.iteration()
         assert metrics["mvc/held"] == 0.0
-        assert metrics["mvc/inner_steps"] == cfg.j_max
-        assert len(calls) == 1 + cfg.j_max  # one PIM step, then j_max extra ones
+        assert metrics["mvc/inner_steps"] == cfg.algorithm.j_max
+        assert len(calls) == 1 + cfg.algorithm.j_max  # one PIM step, then j_max extra ones
         assert all(torch.equal(c, calls[0]) for c in calls)  # all under xi_hat_k

@@ -36,7 +36,7 @@ def test_train_then_evaluate(tmp_path: Path, capsys: pytest.CaptureFixture[str])
     printed = json.loads(capsys.readouterr().out)
     assert printed["method"] == "mixed" and printed["seed"] == 2 and printed["iterations"] == 20
     cfg = TrainConfig.load(out / "config.json")
-    assert (cfg.method, cfg.seed, cfg.iterations, cfg.task.name) == ("mixed", 2, 20, "linear")
+    assert (cfg.method, cfg.seed, cfg.algorithm.iterations, cfg.task.name) == ("mixed", 2, 20, "linear")
     assert main(["evaluate", str(out)]) == 0
     ev = json.loads(capsys.readouterr().out)
     assert ev["iteration"] == 20 and ev["cost"] == pytest.approx(RunDirectory(out).read_results()["final"]["cost"])
@@ -97,7 +97,7 @@ def test_nested_config_file_with_dotted_set(tmp_path: Path, capsys: pytest.Captu
                  "--config", str(spec), "--set", "eval_every=1", "eval_seeds=1", "task.init_box=0.5"]) == 0
     capsys.readouterr()
     cfg = TrainConfig.load(out / "config.json")
-    assert cfg.batch_size == 32 and cfg.task.name == "linear" and cfg.task.init_box == 0.5
+    assert cfg.algorithm.batch_size == 32 and cfg.task.name == "linear" and cfg.task.init_box == 0.5
     assert cfg.task.prior_cov == ((0.04, 0.0), (0.0, 0.04)) and cfg.task.disturbance.cov == ((0.0, 0.0), (0.0, 0.02))
 
 

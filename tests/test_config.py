@@ -134,3 +134,123 @@ def test_replace_accepts_dotted_keys_and_task_objects() -> None:
     lin = cfg.replace(task=task_config("linear"))
     assert lin.task == LinearTaskConfig()
     assert cfg.replace(task="linear") == lin
+
+
+# ---------------------------------------------------------------------------------------- sections (issue 19)
+def test_train_config_has_at_most_eight_sections() -> None:
+    import dataclasses
+
+    names = [f.name for f in dataclasses.fields(TrainConfig)]
+    assert names == ["method", "seed", "task", "algorithm", "sampler", "ddpg", "run"]
+    assert set(TrainConfig().to_dict()) == set(names)
+
+
+def test_dotted_section_keys_and_unknown_keys_name_the_dotted_key() -> None:
+    cfg = TrainConfig.from_dict(apply_overrides({}, {"algorithm.iterations": 300, "sampler.name": "true_copies"}))
+    assert cfg.algorithm.iterations == 300 and cfg.sampler.name == "true_copies"
+    with pytest.raises(ValueError, match=r"algorithm\.iteratons"):
+        TrainConfig.from_dict({"algorithm": {"iteratons": 3}})
+    with pytest.raises(ValueError, match=r"sampler\.kick_prob"):
+        TrainConfig.from_dict({"sampler": {"name": "true_copies", "kick_prob": 0.1}})
+    with pytest.raises(ValueError, match="^sampler.name"):
+        TrainConfig(sampler="replay")
+
+
+def test_the_dlc_task_supplies_its_experiment_configuration() -> None:
+    cfg = TrainConfig()  # the double lane change's preset: the reproduction's settings
+    assert cfg == TrainConfig.for_task("dlc")
+    assert cfg.sampler.name == "dlc_course" and cfg.sampler.course_starts == "along"
+    assert cfg.algorithm.lr_decay_iterations == 1500 and cfg.algorithm.batch_weighting == "relative"
+    # a partial section keeps the preset for what it does not name
+    part = TrainConfig(algorithm={"iterations": 30})
+    assert part.algorithm.lr_decay_iterations == 1500 and part.algorithm.iterations == 30
+
+
+def test_a_task_without_a_preset_gets_generic_defaults() -> None:
+    cfg = TrainConfig(task="linear")
+    assert cfg.sampler.name == "model_rollouts" and cfg.sampler.box == float("inf")
+    assert cfg.algorithm.lr_decay_iterations == 0  # the decay is tied to the budget
+    assert cfg.algorithm.batch_weighting == "uniform" and cfg.algorithm.actor_average == 0.0
+    assert not hasattr(cfg.sampler, "kick_prob")
+
+
+def test_a_course_sampler_on_a_task_without_a_course_names_option_and_task() -> None:
+    with pytest.raises(ValueError, match=r"^sampler\.name: 'dlc_course'.*task 'linear'"):
+        TrainConfig(task="linear", sampler="dlc_course")
+    with pytest.raises(ValueError, match=r"^model_course_starts: .*sampler\.course_starts.*task 'linear'"):
+        TrainConfig(task="linear", model_course_starts="loop")
+
+
+def test_a_course_sampler_on_a_custom_task_without_a_course_is_refused_by_the_trainer() -> None:
+    from mixedrl.algorithms.agpi import AGPI
+    from mixedrl.tasks import LinearTask
+
+    with pytest.raises(ValueError, match=r"^sampler\.name: 'dlc_course'.*LinearTask"):
+        AGPI(LinearTask(), TrainConfig(algorithm={"batch_size": 8}))
+
+
+def test_legacy_flat_keys_migrate_to_their_sections() -> None:
+    from mixedrl.config import LEGACY_KEYS, migrate
+
+    assert len(LEGACY_KEYS) == 42  # the 45 flat fields less method, seed, task
+    cfg = TrainConfig(iterations=7, model_course_starts="loop", model_course_horizon=50, ddpg_tau=0.01,
+                      checkpoint_every=3)
+    assert (cfg.algorithm.iterations, cfg.sampler.course_starts, cfg.ddpg.tau, cfg.run.checkpoint_every) == \
+        (7, "loop", 0.01, 3)
+    assert cfg.sampler.course_horizon == cfg.sampler.true_horizon == 50  # the old field set both
+    assert TrainConfig(state_source="true").sampler.name == "true_copies"
+    assert TrainConfig(task="linear", model_box=2.0).sampler.name == "model_rollouts"
+    over = apply_overrides(TrainConfig().to_dict(), {"iterations": 300, "model_course_starts": "start"})
+    cfg = TrainConfig.from_dict(over)
+    assert cfg.algorithm.iterations == 300 and cfg.sampler.course_starts == "start"
+    assert migrate({"iterations": 3}) == {"algorithm": {"iterations": 3}}
+    with pytest.raises(ValueError, match=r"algorithm\.iterations"):
+        migrate({"iterations": 3, "algorithm": {"iterations": 4}})
+
+
+def _flat(cfg: TrainConfig) -> dict:
+    """The 45-field flat form the old TrainConfig.to_dict wrote for ``cfg`` (a DLC course run)."""
+    from mixedrl.config import LEGACY_KEYS
+
+    d = cfg.to_dict()
+    out = {"method": d["method"], "seed": d["seed"], "task": d["task"], "state_source": "model"}
+    for old, new in LEGACY_KEYS.items():
+        if old != "state_source":
+            section, name = new.split(".")
+            out[old] = d[section][name]
+    return out
+
+
+def test_an_old_flat_config_json_loads_to_the_same_run(tmp_path: Path) -> None:
+    new = TrainConfig(method="model", seed=3, algorithm={"iterations": 40}, sampler={"kick_prob": 0.0})
+    old = _flat(new)
+    assert len(old) == 45
+    (tmp_path / "config.json").write_text(json.dumps(old))
+    assert TrainConfig.load(tmp_path / "config.json") == new
+    old_true = {**old, "state_source": "true"}  # the options were never read by the true-copies source
+    assert TrainConfig.from_dict(old_true).sampler.name == "true_copies"
+
+
+def test_every_shipped_run_config_migrates_and_round_trips() -> None:
+    """Every config embedded in a shipped per-run result (old flat form) loads, and its migrated config
+    is one the new code writes and reads back unchanged, with the flat fields at their new places."""
+    from mixedrl.config import LEGACY_KEYS
+
+    root = Path(__file__).resolve().parents[1] / "docs" / "_static"
+    seen = 0
+    for path in sorted(root.rglob("*.json")):
+        data = json.loads(path.read_text())
+        if not (isinstance(data, dict) and isinstance(data.get("config"), dict) and "method" in data["config"]):
+            continue
+        old = data["config"]
+        cfg = TrainConfig.from_dict(old)
+        assert TrainConfig.from_dict(cfg.to_dict()) == cfg, path
+        new = cfg.to_dict()
+        for key, dotted in LEGACY_KEYS.items():
+            section, name = dotted.split(".")
+            if key in old and key != "state_source" and name in new[section]:
+                value = new[section][name]
+                assert value == old[key] or (value == "inf" and old[key] == "inf") or \
+                    (isinstance(value, list) and list(old[key]) == value), (path, key)
+        seen += 1
+    assert seen >= 300

@@ -54,6 +54,7 @@ def test_ddpg_uses_data_only() -> None:
     """The model f is evaluated only inside the simulated true environment, never to learn."""
     task = CountingTask()
     agent = DDPG(task, TrainConfig(**CFG))
+    task.f_calls = task.true_steps = 0  # the construction's check_task probes f; count from here
     for _ in range(10):
         agent.iteration()
     assert task.true_steps > 0 and task.f_calls == task.true_steps
@@ -64,7 +65,7 @@ def test_target_networks_follow_by_polyak_averaging() -> None:
     agent = DDPG(LinearTask(), TrainConfig(**CFG))
     before = [p.clone() for p in agent.critic_target.parameters()]
     agent.iteration()
-    tau = agent.config.ddpg_tau
+    tau = agent.config.ddpg.tau
     for t_old, t_new, src in zip(before, agent.critic_target.parameters(), agent.critic.parameters()):
         torch.testing.assert_close(t_new, (1 - tau) * t_old + tau * src.detach(), rtol=1e-6, atol=1e-7)
 

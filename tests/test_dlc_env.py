@@ -362,3 +362,35 @@ def test_evaluate_tracking_policies_and_errors() -> None:
 def test_package_exports() -> None:
     assert callable(E.evaluate_tracking) and E.ENV_ID == "mixedrl/DoubleLaneChange-v0"
     assert E.NOISE_INDEX == 2 and DoubleLaneChangeModel.NOISE_INDEX == 2
+
+
+def test_step_after_episode_end_raises_until_reset() -> None:
+    """Gymnasium's contract: no step after termination or truncation without a reset."""
+    env = DoubleLaneChangeEnv()
+    env.reset(options={"state": [0, 0, 12.0, 0, 3.5, 0]})  # off the road: terminates at once
+    assert env.step(np.zeros(2))[2]
+    before = env.state
+    for stepper in (env.step, env.step_physical):
+        with pytest.raises(RuntimeError, match="episode has ended.*reset"):
+            stepper(np.zeros(2))
+    np.testing.assert_array_equal(env.state, before)
+    short = DoubleLaneChangeEnv(course_length=0.06, max_lateral_error=100.0)  # 1 step, then truncated
+    short.reset(seed=0)
+    assert short.step(np.zeros(2))[3]
+    with pytest.raises(RuntimeError, match="episode has ended"):
+        short.step(np.zeros(2))
+    short.reset(seed=1)
+    short.step(np.zeros(2))  # a reset makes stepping legal again
+
+
+@pytest.mark.parametrize("bad", ["left", b"ab", ["0.1", "0.2"], object(), {"a": 1}, None])
+def test_non_numeric_action_names_its_type_and_the_space(bad: object) -> None:
+    env = DoubleLaneChangeEnv()
+    env.reset(seed=0)
+    before = env.state
+    with pytest.raises(TypeError, match=rf"^action: expected a numeric array in Box\(-1\.0, 1\.0, \(2,\), float64\), "
+                                        rf"got {type(bad).__name__}"):
+        env.step(bad)
+    with pytest.raises(TypeError, match=rf"^u: .*got {type(bad).__name__}"):
+        env.step_physical(bad)
+    np.testing.assert_array_equal(env.state, before)

@@ -18,7 +18,7 @@ from mixedrl.runs import RunDirectory, make_trainer, train
 from mixedrl.tasks import LinearTask
 
 FAST = dict(task="linear", iterations=40, batch_size=32, eval_every=20, checkpoint_every=10, eval_seeds=1,
-            state_source="model", model_course_horizon=30, model_course_start=5, true_envs=2, true_steps=3, true_every=4)
+            sampler={"name": "model_rollouts", "true_horizon": 30, "true_envs": 2, "true_steps": 3, "true_every": 4})
 
 
 def _forbid_true_steps(monkeypatch: pytest.MonkeyPatch, task: object) -> None:
@@ -60,7 +60,7 @@ def test_mixed_true_transitions_follow_the_configured_rate() -> None:
 
 
 def test_true_source_counts_one_true_step_per_copy() -> None:
-    assert TrainConfig().state_source == "model"  # the default plans on the model
+    assert TrainConfig().sampler.name == "dlc_course"  # the DLC experiment plans on the model
     cfg = TrainConfig(method="mixed", task="linear", batch_size=16, iterations=5, state_source="true")
     trainer = make_trainer(cfg)
     assert trainer.sampler is None
@@ -72,7 +72,7 @@ def test_true_source_counts_one_true_step_per_copy() -> None:
 def test_rollouts_use_the_planning_noise_not_the_true_one() -> None:
     # linear task: prior mean 0, true mean 0.5 on the velocity; the rollout increments must carry the prior's
     task = LinearTask(prior_cov=1e-4 * np.eye(2))
-    cfg = TrainConfig(method="model", task="linear", batch_size=2048, state_source="model", model_box=float("inf"),
+    cfg = TrainConfig(method="model", batch_size=2048, state_source="model", model_box=float("inf"),
                       model_course_start=0, model_kick_prob=0.0)
     gen = torch.Generator().manual_seed(0)
     sampler = ModelStateSampler(task, cfg, gen)
@@ -90,7 +90,7 @@ def test_rollouts_use_the_planning_noise_not_the_true_one() -> None:
 
 def test_rollouts_restart_outside_the_box_and_at_the_horizon() -> None:
     task = LinearTask()
-    cfg = TrainConfig(method="model", task="linear", batch_size=64, state_source="model", model_box=2.0,
+    cfg = TrainConfig(method="model", batch_size=64, state_source="model", model_box=2.0,
                       model_course_fraction=0.25, horizon=5, model_course_horizon=7, model_course_start=0)
     sampler = ModelStateSampler(task, cfg, torch.Generator().manual_seed(1))
     assert int(sampler.course.sum()) == 16
@@ -109,13 +109,13 @@ def test_rollouts_restart_outside_the_box_and_at_the_horizon() -> None:
 def test_state_source_is_validated() -> None:
     with pytest.raises(ValueError, match="^state_source"):
         TrainConfig(state_source="replay")
-    with pytest.raises(ValueError, match="^model_course_fraction"):
+    with pytest.raises(ValueError, match="^sampler.course_fraction"):
         TrainConfig(model_course_fraction=1.5)
-    with pytest.raises(ValueError, match="^model_box"):
+    with pytest.raises(ValueError, match="^sampler.box"):
         TrainConfig(model_box=float("nan"))
-    with pytest.raises(ValueError, match="^true_every"):
+    with pytest.raises(ValueError, match="^sampler.true_every"):
         TrainConfig(true_every=0)
-    assert TrainConfig.from_dict(TrainConfig(model_box=float("inf")).to_dict()).model_box == float("inf")
+    assert TrainConfig.from_dict(TrainConfig(model_box=float("inf")).to_dict()).sampler.box == float("inf")
 
 
 @pytest.mark.parametrize("method,task", [("mixed", "linear"), ("model", "linear"), ("mixed", "dlc")])
@@ -171,7 +171,7 @@ def test_course_rollouts_start_at_the_course_start_from_model_course_start() -> 
 
 def test_kicks_move_only_course_copies_by_at_most_the_kick_size() -> None:
     task = LinearTask()
-    cfg = TrainConfig(method="model", task="linear", batch_size=40, state_source="model", model_box=float("inf"),
+    cfg = TrainConfig(method="model", batch_size=40, state_source="model", model_box=float("inf"),
                       model_course_fraction=0.5, model_course_start=0, model_kick_prob=1.0, model_kick_scale=0.3,
                       horizon=1000, model_course_horizon=1000)
     kicked = ModelStateSampler(task, cfg, torch.Generator().manual_seed(2))
@@ -241,7 +241,7 @@ def test_along_course_copies_restart_when_they_pass_the_course_end() -> None:
 
 
 def test_model_course_starts_is_validated() -> None:
-    with pytest.raises(ValueError, match="^model_course_starts"):
+    with pytest.raises(ValueError, match="^sampler.course_starts"):
         TrainConfig(model_course_starts="random")
 
 

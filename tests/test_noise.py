@@ -1,6 +1,6 @@
 """The noise sources (mixedrl.noise): one factory for Algorithms 1 and 2, the protocol's ``learns`` flag,
 Case 3 (StateDependentIBE, LinearFeatureIBE) planned with by Algorithm 2 through per-state nodes and
-selected by ``TrainConfig.ibe_case``, and the oracle of a state-dependent truth (a road grade)."""
+selected by ``AlgorithmConfig.ibe_case``, and the oracle of a state-dependent truth (a road grade)."""
 
 from __future__ import annotations
 
@@ -89,7 +89,7 @@ def test_agpi_plans_with_a_state_dependent_ibe() -> None:
 
 
 # ----------------------------------------------------------------------------------------------------
-# TrainConfig.ibe_case; Case 3 on the vehicle's road grade; the oracle of a state-dependent truth
+# AlgorithmConfig.ibe_case; Case 3 on the vehicle's road grade; the oracle of a state-dependent truth
 # ----------------------------------------------------------------------------------------------------
 GRADE = {"disturbance": {"grade_amplitude": 0.02, "grade_wavelength": 40.0}}
 T_OVER_M = (1.0 / 200.0) / 1500.0
@@ -115,7 +115,7 @@ def test_ibe_case_selects_the_estimator(case: int, cls: type, task: str) -> None
     for method in ("model", "oracle"):  # only mixed RL reads ibe_case
         fixed = AGPI(task_from_config(task), TrainConfig(method=method, task=task, ibe_case=case, batch_size=8)).noise
         assert isinstance(fixed, GaussianNoise)
-    assert TrainConfig().ibe_case == 2  # the reproduction's Case 2 stays the default
+    assert TrainConfig().algorithm.ibe_case == 2  # the reproduction's Case 2 stays the default
 
 
 @pytest.mark.parametrize("changes,field", [({"ibe_case": 0}, "ibe_case"), ({"ibe_case": 4}, "ibe_case"),
@@ -124,7 +124,7 @@ def test_ibe_case_selects_the_estimator(case: int, cls: type, task: str) -> None
                                            ({"ibe_case": 3, "ibe_recursion": "paper"}, "ibe_recursion"),
                                            ({"ibe_case": 1, "ibe_recursion": "paper"}, "ibe_recursion")])
 def test_ibe_case_is_validated(changes: dict, field: str) -> None:
-    with pytest.raises(ValueError, match=f"^{field}:"):
+    with pytest.raises(ValueError, match=f"^algorithm.{field}:"):
         TrainConfig(**changes)
     with pytest.raises(ValueError, match="^state_dependent"):
         make_noise_source("mixed", LinearTask(), state_dependent=True)  # Case 3 needs covariance="known"

@@ -153,9 +153,15 @@ def test_study_config_is_the_default_but_preview(design: str) -> None:
     base = TrainConfig().replace(seed=3).to_dict()
     assert cfg["task"].pop("preview_distances") == list(PS.CANDIDATES["P12"])
     base["task"].pop("preview_distances")
-    diff = {k for k in cfg if cfg[k] != base[k]}
-    assert diff <= {"eval_every", "checkpoint_every", "num_threads"} | ({"model_course_starts"} if design == "M" else set())
-    assert cfg["model_course_starts"] == {"S": "along", "M": "start"}[design]
+    def dotted(d: dict) -> dict:
+        return {f"{k}.{kk}" if isinstance(v, dict) and k != "task" else k: vv
+                for k, v in d.items() for kk, vv in (v.items() if isinstance(v, dict) and k != "task" else [(k, v)])}
+
+    cfg_d, base_d = dotted(cfg), dotted(base)
+    diff = {k for k in cfg_d if cfg_d[k] != base_d[k]}
+    assert diff <= {"run.eval_every", "run.checkpoint_every", "run.num_threads"} | (
+        {"sampler.course_starts"} if design == "M" else set())
+    assert cfg["sampler"]["course_starts"] == {"S": "along", "M": "start"}[design]
     assert PS.design_of(cfg) == design
     path = PS.job_path("P12", "mixed", 3, design=design)
     assert path.parts[-4:] == ("per_run", design, "P12", "mixed_s3.json")

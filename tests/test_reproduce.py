@@ -136,12 +136,12 @@ def test_reproduce_quick_end_to_end(tmp_path: Path, capsys: pytest.CaptureFixtur
     for method in METHODS:
         assert [r["seed"] for r in res[method]["runs"]] == [0, 1]
     cfg = TrainConfig().replace(**QUICK)
-    drives = -(-cfg.iterations // cfg.true_every) * cfg.true_envs * cfg.true_steps
+    drives = -(-cfg.algorithm.iterations // cfg.sampler.true_every) * cfg.sampler.true_envs * cfg.sampler.true_steps
     assert [r["true_transitions"] for r in res["mixed"]["runs"]] == [drives, drives] == [1200, 1200]
     assert [r["true_transitions"] for r in res["model"]["runs"] + res["oracle"]["runs"]] == [0] * 4
     # the first iteration's step of the 16 copies counts towards the warm-up (ddpg.DDPG.iteration)
-    steps = max(1, -(-cfg.ddpg_warmup // cfg.ddpg_envs)) + cfg.iterations - 1
-    assert all(r["true_transitions"] == steps * cfg.ddpg_envs for r in res["ddpg"]["runs"])
+    steps = max(1, -(-cfg.ddpg.warmup // cfg.ddpg.envs)) + cfg.algorithm.iterations - 1
+    assert all(r["true_transitions"] == steps * cfg.ddpg.envs for r in res["ddpg"]["runs"])
     task = task_from_config(res["task"])
     vx, true_mean = task.noise_index, task.true_mean[task.noise_index]
     assert true_mean == pytest.approx(261.0 * T_OVER_M, rel=1e-12)

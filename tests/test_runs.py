@@ -12,7 +12,7 @@ from typing import Any
 import pytest
 import torch
 
-from mixedrl.config import TrainConfig
+from mixedrl.config import LEGACY_KEYS, TrainConfig
 from mixedrl.runs import (
     RunDirectory,
     iterations_to_converge,
@@ -46,7 +46,7 @@ def test_config_round_trip_and_unknown_keys(tmp_path: Path) -> None:
                                           ("ddpg_tau", 1.5), ("expectation", "exact"), ("hidden_sizes", ()),
                                           ("task", "cartpole")])
 def test_config_rejects_bad_values(field: str, value: object) -> None:
-    with pytest.raises(ValueError, match=f"^{field}"):
+    with pytest.raises(ValueError, match=f"^{LEGACY_KEYS.get(field, field)}"):  # the dotted key of the old one
         TrainConfig(**{field: value})
 
 

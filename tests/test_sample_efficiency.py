@@ -177,9 +177,9 @@ def test_load_runs_rejects_duplicates_and_bad_files(tmp_path: Path) -> None:
 
 def test_ours_config_and_overrides() -> None:
     cfg = ours_config("model", 2, 1500, {"state_source": "model", "task.gamma": 0.98})
-    assert (cfg.method, cfg.seed, cfg.iterations, cfg.eval_every, cfg.num_threads) == ("model", 2, 1500, 125, 1)
-    assert cfg.state_source == "model" and cfg.task.gamma == 0.98
-    assert ours_config("ddpg", 0, 1500, {"eval_every": 50}).eval_every == 50
+    assert (cfg.method, cfg.seed, cfg.algorithm.iterations, cfg.run.eval_every, cfg.run.num_threads) == ("model", 2, 1500, 125, 1)
+    assert cfg.sampler.name == "dlc_course" and cfg.task.gamma == 0.98
+    assert ours_config("ddpg", 0, 1500, {"eval_every": 50}).run.eval_every == 50
     with pytest.raises(ValueError, match="method"):
         ours_config("td3", 0, 10)
     with pytest.raises(ValueError, match="unknown"):

@@ -122,7 +122,7 @@ def test_spec_without_grid() -> None:
     ('methods = ["mixed"]\nseeds = [0]\n[base]\ntask.nothing = 8', r"^base: .*task"),
     ('methods = ["mixed"]\nseeds = [0]\n[grid]\ncriticlr = [1e-3]',
      r"^criticlr=0.001__mixed_seed0: config: unknown key\(s\) \['criticlr'\]"),
-    ('methods = ["mixed"]\nseeds = [0]\n[grid]\nbatch_size = [16, 0]', r"^batch_size=0__mixed_seed0: batch_size"),
+    ('methods = ["mixed"]\nseeds = [0]\n[grid]\nbatch_size = [16, 0]', r"^batch_size=0__mixed_seed0: algorithm.batch_size"),
     ('methods = ["ppo"]\nseeds = [0]', r"^ppo_seed0: method: expected one of"),
     ('methods = ["mixed"]\nseeds = [-1]', r"^mixed_seed-1: seed: expected a non-negative integer"),
     ('methods = ["mixed"]\nseeds = [0]\n[grid]\ntask = ["a b", "a/b"]', r"same run name"),
@@ -160,7 +160,7 @@ def test_invalid_spec_starts_nothing(tmp_path: Path, capsys: pytest.CaptureFixtu
     out = tmp_path / "out"
     assert main([str(spec), "--out", str(out), "--no-progress"]) == 2
     err = capsys.readouterr().err
-    assert "critic_lr=-1.0__mixed_seed0: critic_lr: expected a positive number" in err
+    assert "critic_lr=-1.0__mixed_seed0: algorithm.critic_lr: expected a positive number" in err
     assert "Traceback" not in err and not out.exists()
 
 

@@ -293,7 +293,7 @@ def train_peer(algo: str, *, seed: int = 0, transitions: int = 100_000, eval_eve
     eval_every : int
         Evaluate every this many true transitions.
     eval_seeds : int
-        Number of evaluation seeds (``TrainConfig.eval_seeds``).
+        Number of evaluation seeds (``RunConfig.eval_seeds``).
     out : str or pathlib.Path, optional
         Write the result as JSON there (atomically; parent directories created).
     progress : bool

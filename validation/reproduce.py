@@ -100,9 +100,9 @@ def run_config(label: str, seed: int, quick: bool = False) -> TrainConfig:
     if label == "ddpg_long":
         factor = QUICK_DDPG_LONG_FACTOR if quick else DDPG_LONG_FACTOR
         # DDPG keeps its schedule: the learning rates decay over its whole (longer) budget
-        config = config.replace(iterations=factor * config.iterations, lr_decay_iterations=0,
-                                checkpoint_every=factor * config.checkpoint_every,
-                                eval_every=max(1, factor // 4) * config.eval_every)
+        config = config.replace(iterations=factor * config.algorithm.iterations, lr_decay_iterations=0,
+                                checkpoint_every=factor * config.run.checkpoint_every,
+                                eval_every=max(1, factor // 4) * config.run.eval_every)
     return config
 
 
@@ -197,7 +197,7 @@ def _trajectory(trainer: Any, seed: int) -> dict[str, np.ndarray]:
 def run_one(job: dict[str, Any]) -> dict[str, Any]:
     """Train (or reuse / resume) one run; returns its summary. Executed in a worker process."""
     config = TrainConfig.from_dict(job["config"])
-    torch.set_num_threads(config.num_threads)
+    torch.set_num_threads(config.run.num_threads)
     run = RunDirectory(job["path"])
     if job["resume"] and run.results_path.is_file() and run.config_path.is_file() \
             and run.read_config().to_dict() == config.to_dict() and (run.path / "trajectory.npz").is_file():
@@ -205,7 +205,7 @@ def run_one(job: dict[str, Any]) -> dict[str, Any]:
     trainer = make_trainer(config)
     if config.method != "ddpg":
         trainer = TheoryProbe(trainer, job["theory_every"])
-    results = train(trainer, run, resume=job["resume"])
+    results = train(trainer, run, resume=job["resume"], progress=False)
     traj = _trajectory(trainer, eval_seeds(config)[0])
     np.savez(run.path / "trajectory.npz", **traj)
     results["label"] = job["label"]

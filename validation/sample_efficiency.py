@@ -252,7 +252,7 @@ def train_ours(method: str, seed: int, iterations: int, overrides: dict[str, Any
     """
     cfg = ours_config(method, seed, iterations, overrides)
     torch.set_num_threads(1)
-    results = train(make_trainer(cfg), None)
+    results = train(make_trainer(cfg), None, progress=False)
     record = {"method": method, "seed": int(seed), "config": cfg.to_dict(), "overrides": dict(overrides or {}),
               "rows": rows_from_metrics(results["metrics"]), "true_transitions": results.get("true_transitions"),
               "train_seconds": results["train_seconds"],

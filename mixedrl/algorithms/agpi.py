@@ -2,9 +2,12 @@
 
 One outer iteration ``k`` of :class:`AGPI` (see :meth:`AGPI.iteration`) is
 
-1. **data**: the ``batch_size`` copies of the *true* environment take one step under the current policy
-   ``pi^k``; their states are the batch ``x`` of this iteration and their transitions give residuals
-   ``xi^D`` (eq. 10);
+1. **data**: the sampler chosen by ``config.sampler.name`` makes the batch ``x`` of this iteration and
+   the residuals ``xi^D`` (eq. 10) of the true transitions it drives: ``"true_copies"`` (the paper's
+   Algorithm 2) steps ``batch_size`` copies of the *true* environment once under the current policy
+   ``pi^k``, their states are the batch; a model-rollout sampler (``"model_rollouts"``, or the double
+   lane change's ``"dlc_course"``; :mod:`mixedrl.algorithms.model_data`) takes the batch from rollouts
+   of the planning model and drives a few true copies for the IBE (docs/algorithm2.rst);
 2. **PEV** (eqs. 49-50, :func:`mixedrl.pev.critic_step`): one semi-gradient step of the critic
    ``V(x; w)`` under ``xi_hat_k``;
 3. **PIM** (eqs. 51-52, :func:`mixedrl.pim.actor_step`): one gradient step of the actor
@@ -41,15 +44,15 @@ import numpy as np
 import torch
 from torch.optim.swa_utils import AveragedModel, get_ema_multi_avg_fn
 
-from mixedrl.config import TrainConfig
-from mixedrl.algorithms.model_data import ModelStateSampler
+from mixedrl.config import CourseSampler, TrainConfig
+from mixedrl.algorithms.model_data import SAMPLER_CLASSES, has_course
 from mixedrl.expectation import expectation_nodes, h_value
 from mixedrl.networks import Actor, AffineActor, Critic, QuadraticCritic
 from mixedrl.noise import make_noise_source
 from mixedrl.pev import critic_loss, critic_step
 from mixedrl.pim import MVCResult, actor_objective, actor_step, mvc_check
 from mixedrl.schedule import set_learning_rates
-from mixedrl.tasks import Task
+from mixedrl.tasks import Task, check_task
 
 __all__ = [
     "AGPI",
@@ -81,9 +84,9 @@ def build_networks(task: Task, config: TrainConfig, generator: torch.Generator, 
         return (QuadraticCritic(task.obs_dim, generator), AffineActor(task.obs_dim, task.action_dim, generator))
     if architecture != "mlp":
         raise ValueError(f"architecture: expected 'mlp' or 'quadratic', got {architecture!r}")
-    critic = Critic(task.obs_dim, config.hidden_sizes, config.activation, generator, task.obs_scale,
-                    task.value_scale, config.value_output)
-    actor = Actor(task.obs_dim, task.action_dim, config.hidden_sizes, config.activation, generator,
+    critic = Critic(task.obs_dim, config.algorithm.hidden_sizes, config.algorithm.activation, generator, task.obs_scale,
+                    task.value_scale, config.algorithm.value_output)
+    actor = Actor(task.obs_dim, task.action_dim, config.algorithm.hidden_sizes, config.algorithm.activation, generator,
                   task.action_bound, task.obs_scale)
     return critic, actor
 
@@ -126,44 +129,52 @@ class AGPI:
                  ) -> None:
         if config.method == "ddpg":
             raise ValueError("config: method 'ddpg' is not Algorithm 2; use mixedrl.algorithms.ddpg.DDPG")
+        check_task(task)
         self.task = task
         self.config = config
         self.architecture = architecture
         self.generator = torch.Generator().manual_seed(config.seed)
         self.critic, self.actor = build_networks(task, config, self.generator, architecture)
-        self.critic_opt = torch.optim.Adam(self.critic.parameters(), lr=config.critic_lr)
-        self.actor_opt = torch.optim.Adam(self.actor.parameters(), lr=config.actor_lr)
-        # Case 1 / 2 / 3 of the IBE (config.ibe_case; mixed RL only)
+        self.critic_opt = torch.optim.Adam(self.critic.parameters(), lr=config.algorithm.critic_lr)
+        self.actor_opt = torch.optim.Adam(self.actor.parameters(), lr=config.algorithm.actor_lr)
+        # Case 1 / 2 / 3 of the IBE (config.algorithm.ibe_case; mixed RL only)
         self.noise = noise_source if noise_source is not None else make_noise_source(
-            config.method, task, config.ibe_recursion, covariance="unknown" if config.ibe_case == 2 else "known",
-            state_dependent=config.ibe_case == 3)
+            config.method, task, config.algorithm.ibe_recursion, covariance="unknown" if config.algorithm.ibe_case == 2 else "known",
+            state_dependent=config.algorithm.ibe_case == 3)
         self.k = 0
-        self.states = task.sample_initial(config.batch_size, self.generator)
+        self.states = task.sample_initial(config.algorithm.batch_size, self.generator)
         # desynchronised episode clocks, so the copies do not all reset at the same iteration
-        self.steps = torch.randint(0, config.horizon, (config.batch_size,), generator=self.generator)
+        self.steps = torch.randint(0, config.algorithm.horizon, (config.algorithm.batch_size,), generator=self.generator)
         self.stop_count = 0
         self.stopped = False
         self.last_batch: torch.Tensor | None = None
         #: States and actions (float64) of the last finite residuals, for a state-dependent IBE.
         self.transitions: tuple[torch.Tensor, torch.Tensor] | None = None
-        # state_source="model": the batch comes from rollouts of the planning model (model_data.py)
-        self.sampler = ModelStateSampler(task, config, self.generator) if config.state_source == "model" else None
-        #: The Polyak (EMA) average of the actor's weights (``config.actor_average > 0``), else ``None``.
+        # the sampler chosen by config.sampler.name makes the batch (model_data.py); None = the true copies
+        sampler_class = SAMPLER_CLASSES.get(config.sampler.name)
+        if config.sampler.name not in SAMPLER_CLASSES:
+            raise ValueError(f"config: sampler.name {config.sampler.name!r} has no implementation "
+                             f"(known: {sorted(SAMPLER_CLASSES)})")
+        if isinstance(config.sampler, CourseSampler) and not has_course(task):
+            raise ValueError(f"sampler.name: {config.sampler.name!r} needs a task with a course (a model with "
+                             f"initial_states and a course_length); task {type(task).__name__} has none")
+        self.sampler = sampler_class(task, config, self.generator) if sampler_class is not None else None
+        #: The Polyak (EMA) average of the actor's weights (``config.algorithm.actor_average > 0``), else ``None``.
         self.actor_avg: AveragedModel | None = None
-        if config.actor_average > 0:
-            self.actor_avg = AveragedModel(self.actor, multi_avg_fn=get_ema_multi_avg_fn(config.actor_average),
+        if config.algorithm.actor_average > 0:
+            self.actor_avg = AveragedModel(self.actor, multi_avg_fn=get_ema_multi_avg_fn(config.algorithm.actor_average),
                                            use_buffers=True)
 
     # -------------------------------------------------------------------------------------- helpers
     @property
     def relative_offset(self) -> float | None:
         """``batch_weight_offset`` if ``batch_weighting == "relative"``, else ``None`` (the plain batch mean)."""
-        return self.config.batch_weight_offset if self.config.batch_weighting == "relative" else None
+        return self.config.algorithm.batch_weight_offset if self.config.algorithm.batch_weighting == "relative" else None
 
     @property
     def policy(self) -> torch.nn.Module:
         """The run's policy as a module on observations: the actor ``pi(x; theta)``, or its weight average
-        ``pi(x; theta_bar)`` when ``config.actor_average > 0`` (what is evaluated, saved and deployed)."""
+        ``pi(x; theta_bar)`` when ``config.algorithm.actor_average > 0`` (what is evaluated, saved and deployed)."""
         return self.actor_avg.module if self.actor_avg is not None else self.actor
 
     def nodes(self, mean: np.ndarray, cov: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
@@ -182,8 +193,8 @@ class AGPI:
         weights : torch.Tensor
             Shape (P,).
         """
-        return expectation_nodes(mean, cov, self.task.noise_matrix, self.config.expectation,
-                                 self.config.noise_samples, self.generator)
+        return expectation_nodes(mean, cov, self.task.noise_matrix, self.config.algorithm.expectation,
+                                 self.config.algorithm.noise_samples, self.generator)
 
     def planning_moments(self, s: torch.Tensor, u: torch.Tensor) -> tuple[np.ndarray, np.ndarray]:
         """The moments of ``xi_hat_k`` that PEV and PIM plan with on the batch ``s``, copies.
@@ -219,8 +230,8 @@ class AGPI:
     def collect(self) -> tuple[torch.Tensor, torch.Tensor]:
         """Step the true environment copies once under ``pi^k``; return (states, residuals).
 
-        With ``state_source="model"`` the batch is a step of the planning-model rollouts instead and the
-        residuals come from the true drives of :class:`~mixedrl.algorithms.model_data.ModelStateSampler`.
+        With a model-rollout sampler (``sampler.name`` ``"model_rollouts"`` or ``"dlc_course"``) the
+        batch is a step of the planning-model rollouts instead and the residuals come from the true drives of :class:`~mixedrl.algorithms.model_data.ModelStateSampler`.
 
         Returns
         -------
@@ -244,7 +255,7 @@ class AGPI:
         xi = xi[finite]
         self.transitions = (s[finite], u[finite])
         self.steps += 1
-        done = task.is_terminal(s_next) | (self.steps >= self.config.horizon)
+        done = task.is_terminal(s_next) | (self.steps >= self.config.algorithm.horizon)
         if bool(done.any()):
             n_done = int(done.sum())
             s_next = s_next.clone()
@@ -255,8 +266,8 @@ class AGPI:
 
     @property
     def true_transitions(self) -> int:
-        """True-environment transitions used so far (``batch_size`` per iteration for ``state_source="true"``)."""
-        return self.sampler.true_transitions if self.sampler is not None else self.k * self.config.batch_size
+        """True-environment transitions used so far (``batch_size`` per iteration for ``sampler.name = "true_copies"``)."""
+        return self.sampler.true_transitions if self.sampler is not None else self.k * self.config.algorithm.batch_size
 
     def pev(self, s: torch.Tensor, offsets: torch.Tensor, weights: torch.Tensor) -> float:
         """Implements eqs. (49)-(50): PEV, one semi-gradient step of the critic under ``xi_hat_k``.
@@ -277,7 +288,7 @@ class AGPI:
             ``critic_lr`` decayed linearly, gradient norm clipped at ``grad_clip``).
         """
         return critic_step(self.task, self.critic, self.actor, self.critic_opt, s, offsets, weights,
-                           self.config.grad_clip, self.relative_offset)
+                           self.config.algorithm.grad_clip, self.relative_offset)
 
     def pim(self, s: torch.Tensor, offsets: torch.Tensor, weights: torch.Tensor) -> float:
         """Implements eqs. (51)-(52): PIM, one gradient step of the actor under ``xi_hat_k``.
@@ -298,7 +309,7 @@ class AGPI:
             decayed linearly, gradient clipping, critic frozen).
         """
         return actor_step(self.task, self.critic, self.actor, self.actor_opt, s, offsets, weights,
-                          self.config.grad_clip, self.relative_offset)
+                          self.config.algorithm.grad_clip, self.relative_offset)
 
     def ibe(self, residuals: torch.Tensor) -> None:
         """Implements eq. (20): the IBE update ``[mu_k, K_k] = IBE(mu_{k-1}, K_{k-1}, xi^D_k)`` (eq. 13).
@@ -357,8 +368,8 @@ class AGPI:
                 u_new = self.actor(obs)
                 h_new_cur = h_value(task, self.critic, s, u_new, *nodes_k)
                 h_new_next = h_value(task, self.critic, s, u_new, *nodes_next)
-            mvc = mvc_check(h_new_next, h_new_cur, h_old_cur, cfg.mvc_check)
-            if mvc.held or j >= cfg.j_max:
+            mvc = mvc_check(h_new_next, h_new_cur, h_old_cur, cfg.algorithm.mvc_check)
+            if mvc.held or j >= cfg.algorithm.j_max:
                 return mvc, j, u_new
             self.pim(s, *nodes_k)
             j += 1
@@ -398,11 +409,11 @@ class AGPI:
         with torch.no_grad():
             dv = float((self.critic(obs) - v_before).abs().mean() / (v_before.abs().mean() + 1e-12))
             dpi = float(((u_new - u_old) / self.actor_bound_tensor()).abs().mean())
-        if cfg.stop_epsilon > 0 and dv <= cfg.stop_epsilon and dpi <= cfg.stop_epsilon:
+        if cfg.algorithm.stop_epsilon > 0 and dv <= cfg.algorithm.stop_epsilon and dpi <= cfg.algorithm.stop_epsilon:
             self.stop_count += 1
         else:
             self.stop_count = 0
-        self.stopped = cfg.stop_epsilon > 0 and self.stop_count >= cfg.stop_patience
+        self.stopped = cfg.algorithm.stop_epsilon > 0 and self.stop_count >= cfg.algorithm.stop_patience
         if self.actor_avg is not None:  # theta_bar <- beta theta_bar + (1 - beta) theta^{k+1}
             self.actor_avg.update_parameters(self.actor)
         self.k += 1

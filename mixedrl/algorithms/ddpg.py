@@ -19,7 +19,7 @@ import torch
 from mixedrl.config import TrainConfig
 from mixedrl.networks import Actor, QCritic
 from mixedrl.schedule import set_learning_rates
-from mixedrl.tasks import Task
+from mixedrl.tasks import Task, check_task
 
 __all__ = ["DDPG", "ReplayBuffer"]
 
@@ -102,23 +102,24 @@ class DDPG:
     def __init__(self, task: Task, config: TrainConfig) -> None:
         if config.method != "ddpg":
             raise ValueError(f"config: method must be 'ddpg', got {config.method!r}")
+        check_task(task)
         self.task, self.config = task, config
         self.generator = torch.Generator().manual_seed(config.seed)
         g = self.generator
-        self.critic = QCritic(task.obs_dim, task.action_dim, config.hidden_sizes, config.activation, g,
-                              task.action_bound, task.obs_scale, task.value_scale, config.value_output)
-        self.actor = Actor(task.obs_dim, task.action_dim, config.hidden_sizes, config.activation, g,
+        self.critic = QCritic(task.obs_dim, task.action_dim, config.algorithm.hidden_sizes, config.algorithm.activation, g,
+                              task.action_bound, task.obs_scale, task.value_scale, config.algorithm.value_output)
+        self.actor = Actor(task.obs_dim, task.action_dim, config.algorithm.hidden_sizes, config.algorithm.activation, g,
                            task.action_bound, task.obs_scale)
         self.critic_target = copy.deepcopy(self.critic)
         self.actor_target = copy.deepcopy(self.actor)
         for p in list(self.critic_target.parameters()) + list(self.actor_target.parameters()):
             p.requires_grad_(False)
-        self.critic_opt = torch.optim.Adam(self.critic.parameters(), lr=config.critic_lr)
-        self.actor_opt = torch.optim.Adam(self.actor.parameters(), lr=config.actor_lr)
-        self.buffer = ReplayBuffer(config.ddpg_buffer_size, task.obs_dim, task.action_dim)
-        self.states = task.sample_initial(config.ddpg_envs, g)
+        self.critic_opt = torch.optim.Adam(self.critic.parameters(), lr=config.algorithm.critic_lr)
+        self.actor_opt = torch.optim.Adam(self.actor.parameters(), lr=config.algorithm.actor_lr)
+        self.buffer = ReplayBuffer(config.ddpg.buffer_size, task.obs_dim, task.action_dim)
+        self.states = task.sample_initial(config.ddpg.envs, g)
         # desynchronised episode clocks, so the copies do not all reset at the same iteration
-        self.steps = torch.randint(0, config.horizon, (config.ddpg_envs,), generator=g)
+        self.steps = torch.randint(0, config.algorithm.horizon, (config.ddpg.envs,), generator=g)
         self.k = 0
         self.stopped = False
         #: True-environment transitions taken so far (warm-up and exploration included), counted in :meth:`collect`
@@ -137,7 +138,7 @@ class DDPG:
             obs = task.observe(s.float())
             # u = pi(x) + N(0, sigma^2), clipped to the action bounds
             noise = torch.randn(s.shape[0], task.action_dim, generator=self.generator) * (
-                cfg.ddpg_noise_std * task.action_bound)
+                cfg.ddpg.noise_std * task.action_bound)
             u = torch.maximum(torch.minimum(self.actor(obs) + noise, task.action_bound), -task.action_bound)
             s_next = task.true_step(s, u.double(), self.generator)
             if self.true_transitions is not None:
@@ -148,7 +149,7 @@ class DDPG:
         ok = torch.isfinite(cost) & torch.isfinite(next_obs).all(dim=-1)
         self.buffer.add(obs[ok], u[ok], cost[ok], next_obs[ok], terminal[ok].float())
         self.steps += 1
-        done = terminal | (self.steps >= cfg.horizon)
+        done = terminal | (self.steps >= cfg.algorithm.horizon)
         if bool(done.any()):
             s_next = s_next.clone()
             s_next[done] = task.sample_initial(int(done.sum()), self.generator)
@@ -157,7 +158,7 @@ class DDPG:
         return float(cost[ok].mean()) if bool(ok.any()) else float("nan")
 
     def _soft_update(self, target: torch.nn.Module, source: torch.nn.Module) -> None:
-        tau = self.config.ddpg_tau
+        tau = self.config.ddpg.tau
         with torch.no_grad():
             for pt, ps in zip(target.parameters(), source.parameters()):
                 # w' <- tau w + (1 - tau) w'
@@ -168,9 +169,9 @@ class DDPG:
         cfg, task = self.config, self.task
         set_learning_rates(cfg, self.k, self.critic_opt, self.actor_opt)
         mean_cost = self.collect()
-        while self.buffer.size < cfg.ddpg_warmup:
+        while self.buffer.size < cfg.ddpg.warmup:
             self.collect()
-        obs, act, cost, next_obs, terminal = self.buffer.sample(cfg.batch_size, self.generator)
+        obs, act, cost, next_obs, terminal = self.buffer.sample(cfg.algorithm.batch_size, self.generator)
         scale = float(task.value_scale)
         with torch.no_grad():
             # y = l + gamma (1 - terminal) Q'(x', pi'(x'))
@@ -179,7 +180,7 @@ class DDPG:
         critic_loss = 0.5 * ((q - target) / scale).pow(2).mean()
         self.critic_opt.zero_grad(set_to_none=True)
         critic_loss.backward()
-        torch.nn.utils.clip_grad_norm_(self.critic.parameters(), cfg.grad_clip)
+        torch.nn.utils.clip_grad_norm_(self.critic.parameters(), cfg.algorithm.grad_clip)
         self.critic_opt.step()
         for p in self.critic.parameters():
             p.requires_grad_(False)
@@ -188,7 +189,7 @@ class DDPG:
             actor_loss = self.critic(obs, self.actor(obs)).mean() / scale
             self.actor_opt.zero_grad(set_to_none=True)
             actor_loss.backward()
-            torch.nn.utils.clip_grad_norm_(self.actor.parameters(), cfg.grad_clip)
+            torch.nn.utils.clip_grad_norm_(self.actor.parameters(), cfg.algorithm.grad_clip)
             self.actor_opt.step()
         finally:
             for p in self.critic.parameters():

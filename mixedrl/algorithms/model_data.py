@@ -1,6 +1,7 @@
 """Where Algorithm 2's PEV/PIM states come from when it plans on the model: :class:`ModelStateSampler`.
 
-With ``TrainConfig.state_source = "model"`` the batch ``x`` of eqs. (49)-(52) is made of states of
+With a model-rollout sampler (``TrainConfig.sampler.name`` ``"model_rollouts"`` or ``"dlc_course"``,
+:data:`SAMPLER_CLASSES`) the batch ``x`` of eqs. (49)-(52) is made of states of
 ``batch_size`` rollouts of the *planning* model
 
 .. math::
@@ -15,21 +16,23 @@ only to collect the residuals ``xi^D`` (eq. 10) that the IBE consumes, at the ra
 (``true_envs`` copies driven ``true_steps`` steps every ``true_every`` iterations); a fixed noise source
 (model-driven, oracle) consumes no data, so those runs use **zero** true transitions.
 
-The rollouts are of two kinds (a departure from the paper, which does not say how its states were
-drawn; applied identically to every method):
+With ``"model_rollouts"`` every rollout restarts from the task's training distribution
+(:class:`mixedrl.config.ModelRolloutsSampler`). The double lane change's ``"dlc_course"``
+(:class:`mixedrl.config.CourseSampler`; a departure from the paper, which does not say how its states
+were drawn; applied identically to every method) has two kinds of rollouts:
 
-* *course* copies (a fraction ``model_course_fraction`` of the batch) drive the course from its start
-  (the task's episode start) for ``model_course_horizon`` steps, so the batch holds the states the
-  current policy visits on the job it is evaluated on; ``model_course_starts`` says whether they also
+* *course* copies (a fraction ``course_fraction`` of the batch) drive the course from its start
+  (the task's episode start) for ``course_horizon`` steps, so the batch holds the states the
+  current policy visits on the job it is evaluated on; ``course_starts`` says whether they also
   restart when they pass the course's end (``"loop"``: at its start; ``"along"``: at a random point
   along it) or drive on beyond it (``"start"``);
-* the course copies are *kicked* (``model_kick_prob`` per step): a random offset of the size of the
+* the course copies are *kicked* (``kick_prob`` per step): a random offset of the size of the
   task's ``obs_scale`` is added to the state and the policy has to recover, so the batch spreads around
   the course trajectory in every direction instead of lying on it;
 * *wide* copies restart from the task's wide training distribution (``sample_initial``) every
   ``horizon`` steps, as the true-environment batch does, so large errors stay covered.
 
-A rollout also restarts when it leaves the box ``|observe(x)_i| <= model_box * obs_scale_i``: outside it
+A rollout also restarts when it leaves the box ``|observe(x)_i| <= box * obs_scale_i``: outside it
 the critic would be trained on states far from anything the policy has to handle (see
 docs/model_based.rst).
 """
@@ -42,11 +45,11 @@ from typing import Any
 import numpy as np
 import torch
 
-from mixedrl.config import TrainConfig
+from mixedrl.config import CourseSampler, ModelRolloutsSampler, TrainConfig
 from mixedrl.gaussian import sample_gaussian
 from mixedrl.tasks import Task
 
-__all__ = ["ModelStateSampler", "course_starts"]
+__all__ = ["ModelStateSampler", "SAMPLER_CLASSES", "course_starts", "has_course"]
 
 
 def course_starts(task: Task, n: int, generator: torch.Generator, along: bool = False) -> torch.Tensor:
@@ -63,6 +66,12 @@ def course_starts(task: Task, n: int, generator: torch.Generator, along: bool = 
     return task.sample_initial(n, generator)
 
 
+def has_course(task: Task) -> bool:
+    """Whether ``task`` has a course (a model with ``initial_states`` and a finite ``course_length``)."""
+    model = getattr(task, "model", None)
+    return hasattr(model, "initial_states") and math.isfinite(_course_length(task))
+
+
 def _course_length(task: Task) -> float:
     """The course length of ``task`` (``inf`` for a task without a course)."""
     config = getattr(getattr(task, "model", None), "config", None)
@@ -77,9 +86,8 @@ class ModelStateSampler:
     task : Task
         Model ``f``, ``observe``, ``noise_matrix``, start distributions, the true environment.
     config : TrainConfig
-        ``batch_size``, ``horizon``, ``model_course_fraction``, ``model_course_start``,
-        ``model_course_horizon``, ``model_box``,
-        ``true_envs``, ``true_steps``, ``true_every``.
+        ``algorithm.batch_size``, ``algorithm.horizon`` and the sampler's options ``config.sampler``
+        (:class:`~mixedrl.config.ModelRolloutsSampler` or :class:`~mixedrl.config.CourseSampler`).
     generator : torch.Generator
         The run's generator (every draw of the sampler comes from it, so a run is reproducible and
         resumable).
@@ -96,31 +104,39 @@ class ModelStateSampler:
     """
 
     def __init__(self, task: Task, config: TrainConfig, generator: torch.Generator) -> None:
+        opts = config.sampler
+        if not isinstance(opts, ModelRolloutsSampler):
+            raise ValueError(f"config: sampler.name is {opts.name!r}, not a model-rollout sampler")
         self.task, self.config, self.generator = task, config, generator
-        B = config.batch_size
-        n_course = int(round(config.model_course_fraction * B))
+        #: The sampler's options (``config.sampler``); a plain model-rollout sampler has no course copies.
+        self.options = opts
+        self.course_start = getattr(opts, "course_start", 0)
+        self.kick_prob = getattr(opts, "kick_prob", 0.0)
+        B = config.algorithm.batch_size
+        n_course = int(round(getattr(opts, "course_fraction", 0.0) * B))
         #: True for the copies that drive the course from its start.
         self.course = torch.arange(B) < n_course
-        self.horizons = torch.where(self.course, config.model_course_horizon, config.horizon)
+        self.horizons = torch.where(self.course, getattr(opts, "course_horizon", 1), config.algorithm.horizon)
         # start anywhere in the wide distribution, with desynchronised clocks
         self.states = task.sample_initial(B, generator)
         self.steps = (torch.rand(B, generator=generator, dtype=torch.float64) * self.horizons).long()
-        self.true_states = course_starts(task, config.true_envs, generator)
-        self.true_steps = torch.zeros(config.true_envs, dtype=torch.long)
+        self.true_states = course_starts(task, opts.true_envs, generator)
+        self.true_steps = torch.zeros(opts.true_envs, dtype=torch.long)
         self.true_transitions = 0
         self.transitions: tuple[torch.Tensor, torch.Tensor] | None = None
         self.restarts = 0
         self.k = 0
-        self.box = float(config.model_box) * task.obs_scale.to(torch.float64)
-        self.along = config.model_course_starts == "along"
+        self.box = float(opts.box) * task.obs_scale.to(torch.float64)
+        starts = getattr(opts, "course_starts", "start")
+        self.along = starts == "along"
         #: course copies restart when they pass the course's end ("along", "loop")
-        self.end_restart = config.model_course_starts in ("along", "loop")
+        self.end_restart = starts in ("along", "loop")
         self.course_length = _course_length(task)
 
     # ------------------------------------------------------------------------------------ rollouts
     def _restart(self, done: torch.Tensor) -> None:
         """Restart the copies flagged in ``done``: course copies at the course start, wide ones wide."""
-        course = done & self.course if self.k >= self.config.model_course_start else torch.zeros_like(done)
+        course = done & self.course if self.k >= self.course_start else torch.zeros_like(done)
         wide = done & ~course
         if bool(course.any()):
             self.states[course] = course_starts(self.task, int(course.sum()), self.generator, self.along)
@@ -130,7 +146,7 @@ class ModelStateSampler:
         self.restarts += int(done.sum())
 
     def _outside(self, s: torch.Tensor) -> torch.Tensor:
-        if math.isinf(self.config.model_box):
+        if math.isinf(self.options.box):
             return torch.zeros(s.shape[0], dtype=torch.bool)
         obs = self.task.observe(s)
         return (obs.abs() > self.box[: obs.shape[-1]]).any(dim=-1)
@@ -166,24 +182,24 @@ class ModelStateSampler:
             # x' = f(x, pi(x)) + E xi_hat
             s_next = task.f(s, u) + xi @ task.noise_matrix.to(s.dtype).T
         self.steps += 1
-        horizons = self.horizons if self.k >= self.config.model_course_start else self.config.horizon
+        horizons = self.horizons if self.k >= self.course_start else self.config.algorithm.horizon
         done = task.is_terminal(s_next) | self._outside(s_next) | (self.steps >= horizons)
-        if self.end_restart and self.k >= self.config.model_course_start:  # a course copy past the course's end
+        if self.end_restart and self.k >= self.course_start:  # a course copy past the course's end
             done = done | (self.course & (s_next[:, -1] >= self.course_length))  # (the state's last entry is X)
         self.states = s_next.clone()
         if bool(done.any()):
             self._restart(done)
-        if self.config.model_kick_prob > 0:
+        if self.kick_prob > 0:
             self._kick(~done & self.course)
         return s.float()
 
     def _kick(self, eligible: torch.Tensor) -> None:
-        """Add a uniform offset ``model_kick_scale * obs_scale * U(-1, 1)`` (through ``E``) to the eligible
-        copies, each with probability ``model_kick_prob``."""
-        cfg, task = self.config, self.task
+        """Add a uniform offset ``kick_scale * obs_scale * U(-1, 1)`` (through ``E``) to the eligible
+        copies, each with probability ``kick_prob``."""
+        cfg, task = self.options, self.task
         n = self.states.shape[0]
-        hit = eligible & (torch.rand(n, generator=self.generator, dtype=torch.float64) < cfg.model_kick_prob)
-        width = cfg.model_kick_scale * task.obs_scale.to(torch.float64)[: task.noise_dim]
+        hit = eligible & (torch.rand(n, generator=self.generator, dtype=torch.float64) < cfg.kick_prob)
+        width = cfg.kick_scale * task.obs_scale.to(torch.float64)[: task.noise_dim]
         offset = width * (2.0 * torch.rand(n, task.noise_dim, generator=self.generator, dtype=torch.float64) - 1.0)
         self.states[hit] += (offset @ task.noise_matrix.to(torch.float64).T)[hit]
 
@@ -197,7 +213,7 @@ class ModelStateSampler:
             Finite residuals ``xi^D = E^T (s' - f(s, u))`` of eq. (10), float64. Every step counts
             ``true_envs`` transitions in :attr:`true_transitions`.
         """
-        task, cfg = self.task, self.config
+        task, cfg = self.task, self.options
         out, states, actions = [], [], []
         for _ in range(cfg.true_steps):
             s = self.true_states
@@ -209,7 +225,7 @@ class ModelStateSampler:
             actions.append(u)
             self.true_transitions += s.shape[0]
             self.true_steps += 1
-            done = task.is_terminal(s_next) | (self.true_steps >= cfg.model_course_horizon)
+            done = task.is_terminal(s_next) | (self.true_steps >= cfg.true_horizon)
             s_next = s_next.clone()
             if bool(done.any()):
                 s_next[done] = course_starts(task, int(done.sum()), self.generator)
@@ -247,7 +263,7 @@ class ModelStateSampler:
         cov = np.array(noise.cov, dtype=np.float64)
         self.k = k
         s = self.model_step(actor, mean, cov)
-        if hasattr(noise, "update") and k % self.config.true_every == 0:
+        if hasattr(noise, "update") and k % self.options.true_every == 0:
             return s, self.true_drive(actor)
         return s, torch.zeros(0, self.task.noise_dim, dtype=torch.float64)
 
@@ -277,3 +293,14 @@ class ModelStateSampler:
             setattr(self, key, state[key].clone())
         self.true_transitions = int(state["true_transitions"])
         self.restarts = int(state["restarts"])
+
+
+#: Sampler name (``TrainConfig.sampler.name``, :data:`mixedrl.config.SAMPLERS`) -> the class that makes
+#: Algorithm 2's batch; ``None`` = the true-environment copies of :class:`mixedrl.algorithms.agpi.AGPI`
+#: itself (Algorithm 2 as the paper writes it). A new sampler registers its options class with
+#: :func:`mixedrl.config.register_sampler` and its implementation here.
+SAMPLER_CLASSES: dict[str, type | None] = {
+    "true_copies": None,
+    ModelRolloutsSampler.NAME: ModelStateSampler,
+    CourseSampler.NAME: ModelStateSampler,
+}

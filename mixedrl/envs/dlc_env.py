@@ -28,9 +28,21 @@ from mixedrl.envs.tracking import (
 __all__ = ["DoubleLaneChangeEnv"]
 
 
-def _pair(value: Any, name: str) -> tuple[float, float]:
-    """Validate a length-2 finite action as two floats (the cheap single-step path; raises ``ValueError``)."""
-    a = np.asarray(value, dtype=np.float64)
+def _pair(value: Any, name: str, space: str) -> tuple[float, float]:
+    """Validate a length-2 finite action as two floats (the cheap single-step path).
+
+    Raises ``TypeError`` naming the value's type and ``space`` when it is not numeric, ``ValueError``
+    for a wrong shape or a NaN/inf component.
+    """
+    try:
+        a = np.asarray(value)
+        # strings, raw bytes and a lone object (None) would convert to float or NaN silently; refuse them
+        if a.dtype.kind in "USV" or (a.dtype.kind == "O" and a.ndim == 0):
+            raise TypeError
+        a = a.astype(np.float64, copy=False)
+    except (TypeError, ValueError) as exc:
+        raise TypeError(f"{name}: expected a numeric array in {space}, got {type(value).__name__} "
+                        f"{value!r:.80}") from exc
     if a.shape != (2,):
         raise ValueError(f"{name}: expected shape (2,), got {a.shape}")
     a0, a1 = float(a[0]), float(a[1])
@@ -61,7 +73,8 @@ class DoubleLaneChangeEnv(gym.Env):
     (default bound 0.4 rad, positive = left) and longitudinal acceleration command ``a_x`` [m/s^2]
     (default bound 4 m/s^2). Actions outside ``[-1, 1]`` are *clipped* (the clipped input is applied and
     charged; ``info["action_clipped"]`` says so). A NaN/inf action or a wrong shape raises
-    ``ValueError`` and leaves the state unchanged. (The torch model, the vector env and
+    ``ValueError`` and leaves the state unchanged; a non-numeric action (a string, an object) raises
+    ``TypeError`` naming its type and the space. (The torch model, the vector env and
     :func:`~mixedrl.envs.evaluate_tracking` take the physical ``u``.)
 
     **Observation Space.** ``Box(-f_max, f_max, (5 + n_preview,), float64)`` (any finite value):
@@ -79,7 +92,8 @@ class DoubleLaneChangeEnv(gym.Env):
 
     **Episode End.** Terminated when ``|e_y| > max_lateral_error`` (3 m: the car left the road),
     ``v_x < min_speed`` (1 m/s) or a state component is not finite; truncated after
-    ``round(course_length / (12 T))`` steps (2000 steps = 10 s = 120 m at 12 m/s).
+    ``round(course_length / (12 T))`` steps (2000 steps = 10 s = 120 m at 12 m/s). Stepping an ended
+    episode without :meth:`reset` raises ``RuntimeError``.
 
     **Arguments.** ``gym.make("mixedrl/DoubleLaneChange-v0", config=None, **overrides)``: any field of
     :class:`~mixedrl.envs.tracking.DoubleLaneChangeConfig` (``disturbance``, ``reference`` and
@@ -109,6 +123,7 @@ class DoubleLaneChangeEnv(gym.Env):
         self.observation_space = spaces.Box(-big, big, shape=(self.model.obs_dim,), dtype=np.float64)
         self._state: tuple[float, ...] | None = None
         self._elapsed = 0
+        self._done = False
 
     @property
     def state(self) -> np.ndarray:
@@ -148,6 +163,7 @@ class DoubleLaneChangeEnv(gym.Env):
                  ref.lateral(X) + float(dev[4]), X)
         self._state = s
         self._elapsed = 0
+        self._done = False
         return self._obs(s), self._info(s)
 
     def step(self, action: Any) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
@@ -155,12 +171,15 @@ class DoubleLaneChangeEnv(gym.Env):
 
         Raises
         ------
+        TypeError
+            ``action`` not numeric (a string, an object, ...); the message names its type and the space.
         ValueError
             ``action`` not of shape (2,) or not finite (the state is left unchanged).
         RuntimeError
-            If called before :meth:`reset`.
+            If called before :meth:`reset`, or after the episode ended (terminated or truncated) without
+            a new :meth:`reset`.
         """
-        a0, a1 = _pair(action, "action")
+        a0, a1 = _pair(action, "action", str(self.action_space))
         c0, c1 = _clip(a0, 1.0), _clip(a1, 1.0)
         return self._step_physical(c0 * self._delta_max, c1 * self._ax_max, c0 != a0 or c1 != a1)
 
@@ -171,12 +190,14 @@ class DoubleLaneChangeEnv(gym.Env):
 
         Raises
         ------
+        TypeError
+            ``u`` not numeric; the message names its type.
         ValueError
             ``u`` not of shape (2,) or not finite (the state is left unchanged).
         RuntimeError
-            If called before :meth:`reset`.
+            If called before :meth:`reset`, or after the episode ended without a new :meth:`reset`.
         """
-        delta, ax = _pair(u, "u")
+        delta, ax = _pair(u, "u", f"[-{self._delta_max}, {self._delta_max}] x [-{self._ax_max}, {self._ax_max}]")
         delta_c, ax_c = _clip(delta, self._delta_max), _clip(ax, self._ax_max)
         return self._step_physical(delta_c, ax_c, delta_c != delta or ax_c != ax)
 
@@ -184,6 +205,9 @@ class DoubleLaneChangeEnv(gym.Env):
                        ) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
         if self._state is None:
             raise RuntimeError("step: call reset() before step()")
+        if self._done:
+            raise RuntimeError("step: the episode has ended (terminated or truncated); call reset() before "
+                               "stepping again")
         cfg = self.config
         model = self.model
         s = self._state
@@ -203,6 +227,7 @@ class DoubleLaneChangeEnv(gym.Env):
         finite = all(math.isfinite(v) for v in s_next)
         terminated = (not finite) or not (abs(e_y) <= cfg.max_lateral_error) or not (vx >= cfg.min_speed)
         truncated = (not terminated) and self._elapsed >= cfg.max_steps
+        self._done = terminated or truncated
         info = {
             "lateral_error": e_y, "speed_error": vx - cfg.v_des, "state": np.array(s_next),
             "disturbance": force, "xi": xi, "action": np.array((delta_c, ax_c)),

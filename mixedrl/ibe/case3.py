@@ -1,0 +1,553 @@
+"""Case 3 of the IBE: a state-dependent mean ``mu = phi(x, u; w)``, eq. (19).
+
+* :class:`~mixedrl.ibe.StateDependentIBE`: any ``phi`` (a ``torch.nn.Module``), refitted by L-BFGS on every residual
+  kept so far; :meth:`~mixedrl.ibe.StateDependentIBE.negative_log_posterior` is eq. (19).
+* :class:`~mixedrl.ibe.LinearFeatureIBE`: ``phi = W^T g(x, u)`` with fixed features, solved in closed form from the
+  sufficient statistics ``(N, G, S)``.
+
+Both take the noise covariance ``K`` as known.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+import torch
+
+from mixedrl.checks import as_vector, check_finite, check_positive_int, check_unknown_keys
+from mixedrl.expectation import support
+from mixedrl.gaussian import sample_gaussian
+from mixedrl.ibe.common import (
+    PosteriorGuard,
+    ReadOnlyArray,
+    ReadOnlyArrays,
+    check_dimension,
+    check_posterior,
+    check_state,
+    real_array,
+    real_batch,
+    real_covariance,
+)
+
+__all__ = ["StateDependentIBE", "LinearFeatureIBE"]
+
+
+class StateDependentIBE(ReadOnlyArrays):
+    """Implements eq. (19): Case 3 IBE with a state-dependent mean ``mu = phi(x, u; w)``.
+
+    .. math::
+        \\mathcal{L}(w) = \\frac12\\sum_{j=1}^N \\big(\\xi_j - \\phi(x_j, u_j; w)\\big)^T \\mathcal{K}^{+}
+        \\big(\\xi_j - \\phi(x_j, u_j; w)\\big) + \\frac{1}{2\\sigma_w^2}\\lVert w - w_0\\rVert^2 + C
+
+    the negative log posterior (EQUATIONS.md point 1) with Gaussian prior ``w ~ N(w_0, sigma_w^2 I)``.
+
+    Parameters
+    ----------
+    phi : torch.nn.Module
+        ``forward(x, u)`` maps ``(B, n_x)`` and ``(B, n_u)`` tensors to ``(B, n)``. Its parameters at
+        construction are the prior mean ``w_0``; they are converted to float64.
+    noise_cov : array_like, shape (n, n)
+        Known noise covariance ``K`` (symmetric PSD).
+    state_dim : int
+        ``n_x``.
+    action_dim : int
+        ``n_u``.
+    prior_std : float
+        ``sigma_w > 0``.
+    max_iter : int
+        L-BFGS iterations per :meth:`update` (full batch, strong-Wolfe line search; deterministic).
+
+    Attributes
+    ----------
+    count : int
+        Number of residuals seen.
+
+    Raises
+    ------
+    ValueError
+        Bad covariance (not real numbers, zero-dimensional, not symmetric PSD), non-positive
+        ``prior_std``/``max_iter``/dimensions, ``phi`` not a module.
+
+    Notes
+    -----
+    * ``K^{+}`` is the pseudo-inverse on the support of ``K`` (:func:`mixedrl.expectation.support`): directions without
+      noise do not enter the likelihood, so ``phi`` there is set by the prior on ``w`` alone. The paper
+      gives no treatment; a full-rank ``K`` is the intended use.
+    * Every update refits on all data seen so far (warm-started from the current ``w``). The fit is
+      deterministic (no randomness); the user's module initialisation should be seeded.
+    * The paper's Case 3 leaves ``K`` unspecified; here it is known (as in Case 1).
+    """
+
+    _KIND = "StateDependentIBE"
+    #: A learning source (:class:`mixedrl.noise.StateDependentNoiseSource`).
+    learns = True
+    #: The mean is ``mean_at(x, u)``: Algorithm 2 plans with per-state nodes.
+    state_dependent = True
+
+    def __init__(
+        self,
+        phi: torch.nn.Module,
+        noise_cov: Any,
+        state_dim: int,
+        action_dim: int,
+        prior_std: float = 1.0,
+        max_iter: int = 200,
+    ) -> None:
+        if not isinstance(phi, torch.nn.Module):
+            raise ValueError(f"phi: expected a torch.nn.Module, got {type(phi).__name__}")
+        self.noise_cov = real_covariance(noise_cov, "noise_cov")
+        self.state_dim = check_positive_int(state_dim, "state_dim")
+        self.action_dim = check_positive_int(action_dim, "action_dim")
+        if isinstance(prior_std, bool) or not isinstance(prior_std, (int, float)) or not (math.isfinite(prior_std) and prior_std > 0):
+            raise ValueError(f"prior_std: expected a finite positive float, got {prior_std!r}")
+        self.prior_std = float(prior_std)
+        self.max_iter = check_positive_int(max_iter, "max_iter")
+        self.phi = phi.double()
+        self._prior_w = [p.detach().clone() for p in self.phi.parameters()]
+        lam, vec = support(self.noise_cov)
+        # whitening W with W W^T = K^+ : r^T K^+ r = |r W|^2
+        self._whiten = torch.as_tensor(vec / np.sqrt(lam))
+        self.count = 0
+        self._x = torch.zeros((0, self.state_dim), dtype=torch.float64)
+        self._u = torch.zeros((0, self.action_dim), dtype=torch.float64)
+        self._xi = torch.zeros((0, self.dim), dtype=torch.float64)
+        with torch.no_grad():
+            out = self.phi(torch.zeros((1, self.state_dim), dtype=torch.float64), torch.zeros((1, self.action_dim), dtype=torch.float64))
+        if tuple(out.shape) != (1, self.dim):
+            raise ValueError(f"phi: returned shape {tuple(out.shape)} for one input, expected (1, {self.dim})")
+
+    @property
+    def dim(self) -> int:
+        """Dimension ``n`` of the noise."""
+        return self.noise_cov.shape[0]
+
+    @property
+    def cov(self) -> np.ndarray:
+        """Noise covariance ``K`` of the mixed model, shape (n, n)."""
+        return self.noise_cov
+
+    def negative_log_posterior(self) -> torch.Tensor:
+        """Implements eq. (19) as a negative log posterior on the data seen so far (constant dropped)."""
+        pred = self.phi(self._x, self._u)
+        # (xi_j - phi(x_j, u_j; w))^T K^+ (xi_j - phi(x_j, u_j; w))
+        white = (self._xi - pred) @ self._whiten
+        nll = 0.5 * torch.sum(white * white)
+        # -log p(w) = |w - w_0|^2 / (2 sigma_w^2)
+        prior = sum(torch.sum((p - p0) ** 2) for p, p0 in zip(self.phi.parameters(), self._prior_w))
+        return nll + 0.5 * prior / self.prior_std**2
+
+    def _as_inputs(self, x: Any, u: Any, xi: Any | None) -> tuple[torch.Tensor, ...]:
+        xb = torch.as_tensor(real_batch(x, "x", self.state_dim, copy=True))
+        ub = torch.as_tensor(real_batch(u, "u", self.action_dim, copy=True))
+        if ub.shape[0] != xb.shape[0]:
+            raise ValueError(f"u: {ub.shape[0]} rows, but x has {xb.shape[0]}")
+        if xi is None:
+            return xb, ub
+        xib = torch.as_tensor(real_batch(xi, "xi", self.dim, copy=True))
+        if xib.shape[0] != xb.shape[0]:
+            raise ValueError(f"xi: {xib.shape[0]} rows, but x has {xb.shape[0]}")
+        return xb, ub, xib
+
+    def update(self, x: Any, u: Any, xi: Any) -> StateDependentIBE:
+        """Add transitions ``(x, u, xi)`` and refit ``w`` by minimising eq. (19); returns ``self``.
+
+        Parameters
+        ----------
+        x : array_like, shape (N, n_x) or (n_x,)
+        u : array_like, shape (N, n_u) or (n_u,)
+        xi : array_like, shape (N, n) or (n,)
+            Residuals (eq. (10)) of those transitions.
+
+        Raises
+        ------
+        ValueError
+            Wrong shapes, not real numbers, NaN/inf, or a fit that ends with non-finite parameters or a
+            non-finite eq. (19); the estimator is then unchanged.
+        """
+        xb, ub, xib = self._as_inputs(x, u, xi)
+        if xb.shape[0] == 0:
+            return self
+        saved = [p.detach().clone() for p in self.phi.parameters()]
+        old = (self._x, self._u, self._xi, self.count)
+        self._x, self._u, self._xi = torch.cat([self._x, xb]), torch.cat([self._u, ub]), torch.cat([self._xi, xib])
+        self.count += xb.shape[0]
+        try:
+            self._fit()
+            ok = all(bool(torch.isfinite(p).all()) for p in self.phi.parameters())
+            if ok:
+                with torch.no_grad():
+                    ok = bool(torch.isfinite(self.negative_log_posterior()))
+        except RuntimeError:
+            ok = False
+        if not ok:
+            with torch.no_grad():
+                for p, s in zip(self.phi.parameters(), saved):
+                    p.copy_(s)
+            self._x, self._u, self._xi, self.count = old
+            raise ValueError("xi: update rejected: fitting eq. (19) gave non-finite parameters or a non-finite "
+                             "negative log posterior (residuals too large for float64?)")
+        return self
+
+    def _fit(self) -> None:
+        params = list(self.phi.parameters())
+        opt = torch.optim.LBFGS(
+            params, lr=1.0, max_iter=self.max_iter, tolerance_grad=1e-12, tolerance_change=1e-15,
+            history_size=50, line_search_fn="strong_wolfe",
+        )
+
+        def closure() -> torch.Tensor:
+            opt.zero_grad()
+            loss = self.negative_log_posterior()
+            loss.backward()
+            return loss
+
+        opt.step(closure)
+
+    def mean_at(self, x: Any, u: Any) -> np.ndarray | torch.Tensor:
+        """Posterior-mode mean ``phi(x, u; w_hat)``; with no data ``phi(x, u; w_0)`` (the prior).
+
+        Parameters
+        ----------
+        x : array_like or Tensor, shape (B, n_x) or (n_x,)
+        u : array_like or Tensor, shape (B, n_u) or (n_u,)
+
+        Returns
+        -------
+        ndarray or Tensor, shape (B, n) or (n,)
+            A tensor if ``x`` is a tensor, else an ndarray.
+
+        Raises
+        ------
+        ValueError
+            Wrong shapes or NaN/inf.
+        """
+        single = np.ndim(x) == 1
+        xb, ub = self._as_inputs(x, u, None)
+        with torch.no_grad():
+            out = self.phi(xb, ub)
+        if single:
+            out = out[0]
+        return out.clone() if isinstance(x, torch.Tensor) else out.numpy().copy()
+
+    def sample(self, n: int, generator: np.random.Generator | torch.Generator, x: Any, u: Any) -> np.ndarray | torch.Tensor:
+        """Draw ``xi_hat ~ N(phi(x, u; w_hat), K)`` at one state-action pair.
+
+        Parameters
+        ----------
+        n : int
+        generator : numpy.random.Generator or torch.Generator
+        x : array_like, shape (n_x,)
+        u : array_like, shape (n_u,)
+
+        Returns
+        -------
+        ndarray or Tensor, shape (n, d)
+
+        Raises
+        ------
+        ValueError
+            Bad ``n``, ``generator``, ``x`` or ``u``.
+        """
+        x = as_vector(real_array(x, "x"), "x", self.state_dim)
+        u = as_vector(real_array(u, "u"), "u", self.action_dim)
+        return sample_gaussian(self.mean_at(x, u), self.noise_cov, n, generator)
+
+    def state_dict(self) -> dict[str, Any]:
+        """Return a copy of the full state: parameters, prior, data, covariance."""
+        return {
+            "kind": self._KIND,
+            "noise_cov": self.noise_cov.copy(),
+            "prior_std": self.prior_std,
+            "max_iter": self.max_iter,
+            "count": self.count,
+            "params": [p.detach().numpy().copy() for p in self.phi.parameters()],
+            "prior_params": [p.numpy().copy() for p in self._prior_w],
+            "x": self._x.numpy().copy(),
+            "u": self._u.numpy().copy(),
+            "xi": self._xi.numpy().copy(),
+        }
+
+    def load_state_dict(self, state: dict[str, Any]) -> StateDependentIBE:
+        """Restore a state from :meth:`state_dict`; validate everything first.
+
+        Raises
+        ------
+        ValueError
+            Not a dict, unknown/missing keys, other kind, wrong shapes, NaN/inf, bad covariance.
+            The estimator is then left unchanged.
+        """
+        n = self.dim
+        if not isinstance(state, dict):
+            raise ValueError(f"state_dict: expected a dict, got {type(state).__name__}")
+        check_unknown_keys(state, {"kind", "noise_cov", "prior_std", "max_iter", "count", "params", "prior_params", "x", "u", "xi"}, "state_dict")
+        count = state.get("count")
+        if isinstance(count, bool) or not isinstance(count, (int, np.integer)) or count < 0:
+            raise ValueError(f"state_dict: count must be a non-negative int, got {count!r}")
+        shapes = [tuple(p.shape) for p in self.phi.parameters()]
+        spec: dict[str, Any] = {
+            "kind": "str", "noise_cov": (n, n), "prior_std": "float", "max_iter": "int", "count": "int",
+            "x": (int(count), self.state_dim), "u": (int(count), self.action_dim), "xi": (int(count), n),
+        }
+        for key in ("params", "prior_params"):
+            val = state.get(key)
+            if not isinstance(val, (list, tuple)) or len(val) != len(shapes):
+                raise ValueError(f"state_dict: {key} must be a list of {len(shapes)} arrays")
+            for i, (arr, shp) in enumerate(zip(val, shapes)):
+                spec[f"{key}.{i}"] = shp
+        flat = {k: v for k, v in state.items() if k not in ("params", "prior_params")}
+        for key in ("params", "prior_params"):
+            for i, arr in enumerate(state[key]):
+                flat[f"{key}.{i}"] = arr
+        st = check_state(flat, spec, self._KIND)
+        noise_cov = real_covariance(st["noise_cov"], "state_dict: noise_cov", n)
+        if st["prior_std"] <= 0 or st["max_iter"] < 1:
+            raise ValueError("state_dict: prior_std must be > 0 and max_iter >= 1")
+        lam, vec = support(noise_cov)
+        with torch.no_grad():
+            for i, p in enumerate(self.phi.parameters()):
+                p.copy_(torch.as_tensor(st[f"params.{i}"]))
+        self._prior_w = [torch.as_tensor(st[f"prior_params.{i}"]).clone() for i in range(len(shapes))]
+        self.noise_cov, self.prior_std, self.max_iter, self.count = noise_cov, st["prior_std"], st["max_iter"], st["count"]
+        self._whiten = torch.as_tensor(vec / np.sqrt(lam))
+        self._x, self._u, self._xi = (torch.as_tensor(st[k]).clone() for k in ("x", "u", "xi"))
+        return self
+
+
+class LinearFeatureIBE(ReadOnlyArrays):
+    """Implements eq. (19) in closed form: Case 3 IBE with a mean linear in its parameters.
+
+    .. math::
+        \\phi(x, u; W) = W^T g(x, u), \\qquad
+        \\mathcal{L}(W) = \\frac12\\sum_{j=1}^N \\big(\\xi_j - W^T g_j\\big)^T \\mathcal{K}^{+}
+        \\big(\\xi_j - W^T g_j\\big) + \\frac{1}{2\\sigma_w^2}\\lVert W - W_0\\rVert_F^2 + C
+
+    with fixed features ``g(x, u)`` (``p`` of them) and weights ``W`` (``p x n``). ``L`` is quadratic in
+    ``W``, so its minimiser (the posterior mode, and mean, of eq. 19) is exact: with
+    ``K^+ = sum_i v_i v_i^T / lambda_i`` on the support of ``K``, ``G = sum_j g_j g_j^T`` and
+    ``S = sum_j g_j xi_j^T``,
+
+    .. math::
+        \\big(G + \\tfrac{\\lambda_i}{\\sigma_w^2} I\\big)\\, W v_i = S v_i + \\tfrac{\\lambda_i}{\\sigma_w^2} W_0 v_i
+        \\quad \\text{(each support direction } v_i\\text{)}, \\qquad W v = W_0 v \\ \\text{(} v \\perp
+        \\text{support)}.
+
+    The state is the sufficient statistics ``(N, G, S)`` (``O(p^2)`` memory), so an update costs the same
+    at the first and at the millionth residual; :class:`StateDependentIBE` (any ``phi``, refit by L-BFGS
+    on every residual kept so far) is the general form.
+
+    Parameters
+    ----------
+    features : callable
+        ``g(x, u)``: float64 tensors ``(B, n_x)``, ``(B, n_u)`` -> a float64 tensor ``(B, p)``. Fixed
+        (it holds no learned state; it is not saved by :meth:`state_dict`).
+    prior_weights : array_like, shape (p, n)
+        ``W_0``, the prior mean of the weights.
+    noise_cov : array_like, shape (n, n)
+        The known noise covariance ``K`` (symmetric PSD, may be singular).
+    state_dim, action_dim : int
+        ``n_x``, ``n_u``.
+    prior_std : float
+        ``sigma_w > 0``: prior ``vec(W) ~ N(vec(W_0), sigma_w^2 I)``.
+
+    Attributes
+    ----------
+    count : int
+        Number of residuals seen.
+
+    Raises
+    ------
+    ValueError
+        Bad covariance or prior weights (not real numbers, or no feature or noise dimension),
+        non-positive ``prior_std``/dimensions, ``features`` not callable or returning a wrong shape.
+
+    Notes
+    -----
+    As for :class:`StateDependentIBE`, ``K`` is known (the paper leaves Case 3's covariance unspecified)
+    and directions outside its support carry no likelihood: there ``W`` stays at the prior. Any split of
+    the data into batches gives the same ``W`` up to the rounding of ``G`` and ``S``. The solve is a
+    Cholesky factorisation of the SPD ``p x p`` matrix ``G + (lambda_i / sigma_w^2) I``.
+    """
+
+    _KIND = "LinearFeatureIBE"
+    #: A learning source (:class:`mixedrl.noise.StateDependentNoiseSource`).
+    learns = True
+    #: The mean is ``mean_at(x, u)``: Algorithm 2 plans with per-state nodes.
+    state_dependent = True
+
+    prior_weights = ReadOnlyArray()
+    weights = ReadOnlyArray()
+    gram = ReadOnlyArray()
+    cross = ReadOnlyArray()
+
+    def __init__(self, features: Callable[[torch.Tensor, torch.Tensor], torch.Tensor], prior_weights: Any,
+                 noise_cov: Any, state_dim: int, action_dim: int, prior_std: float = 1.0) -> None:
+        if not callable(features):
+            raise ValueError(f"features: expected a callable g(x, u), got {type(features).__name__}")
+        self.features = features
+        self.state_dim = check_positive_int(state_dim, "state_dim")
+        self.action_dim = check_positive_int(action_dim, "action_dim")
+        w0 = np.array(real_array(prior_weights, "prior_weights"), dtype=np.float64)
+        if w0.ndim != 2:
+            raise ValueError(f"prior_weights: expected a (p, n) matrix, got shape {w0.shape}")
+        check_dimension(w0.shape[0], "prior_weights (rows: features)")
+        check_dimension(w0.shape[1], "prior_weights (columns: noise)")
+        check_finite(w0, "prior_weights")
+        self.noise_cov = real_covariance(noise_cov, "noise_cov", w0.shape[1])
+        if isinstance(prior_std, bool) or not isinstance(prior_std, (int, float)) \
+                or not (math.isfinite(prior_std) and prior_std > 0):
+            raise ValueError(f"prior_std: expected a finite positive float, got {prior_std!r}")
+        self.prior_std = float(prior_std)
+        with torch.no_grad():
+            g = features(torch.zeros((1, self.state_dim), dtype=torch.float64),
+                         torch.zeros((1, self.action_dim), dtype=torch.float64))
+        if tuple(g.shape) != (1, w0.shape[0]):
+            raise ValueError(f"features: returned shape {tuple(g.shape)} for one input, expected (1, {w0.shape[0]}) "
+                             f"(one feature per row of prior_weights)")
+        self.prior_weights = w0
+        self.count = 0
+        self.gram = np.zeros((w0.shape[0], w0.shape[0]))
+        self.cross = np.zeros(w0.shape)
+        self.weights = w0.copy()
+        self._support = support(self.noise_cov)
+
+    @property
+    def dim(self) -> int:
+        """Dimension ``n`` of the noise."""
+        return self.noise_cov.shape[0]
+
+    @property
+    def num_features(self) -> int:
+        """Number ``p`` of features."""
+        return self.prior_weights.shape[0]
+
+    @property
+    def cov(self) -> np.ndarray:
+        """Noise covariance ``K`` of the mixed model, shape (n, n)."""
+        return self.noise_cov
+
+    def _solve(self, gram: np.ndarray, cross: np.ndarray) -> np.ndarray:
+        lam, vec = self._support
+        w0 = self.prior_weights
+        weights = w0.copy()
+        eye = np.eye(self.num_features)
+        for lam_i, v in zip(lam, vec.T):
+            ridge = lam_i / self.prior_std**2
+            # (G + lambda_i / sigma_w^2 I) W v_i = S v_i + lambda_i / sigma_w^2 W_0 v_i
+            chol = np.linalg.cholesky(gram + ridge * eye)
+            rhs = cross @ v + ridge * (w0 @ v)
+            wv = np.linalg.solve(chol.T, np.linalg.solve(chol, rhs))
+            # replace the v_i-component of W (the prior's W_0 v_i) by the solution
+            weights += np.outer(wv - w0 @ v, v)
+        return weights
+
+    def _features(self, x: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+        with torch.no_grad():
+            g = self.features(x, u)
+        if tuple(g.shape) != (x.shape[0], self.num_features):
+            raise ValueError(f"features: returned shape {tuple(g.shape)}, expected ({x.shape[0]}, {self.num_features})")
+        return g.to(torch.float64)
+
+    def update(self, x: Any, u: Any, xi: Any) -> LinearFeatureIBE:
+        """Add transitions ``(x, u, xi)`` and re-solve eq. (19) exactly; returns ``self``.
+
+        Parameters
+        ----------
+        x : array_like, shape (N, n_x) or (n_x,)
+        u : array_like, shape (N, n_u) or (n_u,)
+        xi : array_like, shape (N, n) or (n,)
+            Residuals (eq. (10)) of those transitions.
+
+        Raises
+        ------
+        ValueError
+            Wrong shapes, not real numbers, NaN/inf in the data or in the features, or statistics or
+            weights that would not be finite (``G`` not symmetric PSD); the estimator is then unchanged.
+        """
+        xb = torch.as_tensor(real_batch(x, "x", self.state_dim, copy=True))
+        ub = torch.as_tensor(real_batch(u, "u", self.action_dim, copy=True))
+        xib = real_batch(xi, "xi", self.dim)
+        if ub.shape[0] != xb.shape[0] or xib.shape[0] != xb.shape[0]:
+            raise ValueError(f"xi: x, u and xi need the same number of rows, got {xb.shape[0]}, {ub.shape[0]}, "
+                             f"{xib.shape[0]}")
+        if xb.shape[0] == 0:
+            return self
+        g = self._features(xb, ub).numpy()
+        check_finite(g, "features(x, u)")
+        with PosteriorGuard("xi"):
+            # G = sum_j g_j g_j^T ;  S = sum_j g_j xi_j^T
+            gram, cross = self.gram + g.T @ g, self.cross + g.T @ xib
+            check_posterior("x", (), (gram,))
+            check_posterior("xi", (cross,))
+            weights = self._solve(gram, cross)
+        check_posterior("xi", (weights,))
+        self.gram, self.cross, self.weights, self.count = gram, cross, weights, self.count + xb.shape[0]
+        return self
+
+    def mean_at(self, x: Any, u: Any) -> np.ndarray | torch.Tensor:
+        """The posterior mean ``phi(x, u; W_hat) = W_hat^T g(x, u)`` (the prior's ``W_0`` before any data).
+
+        Parameters
+        ----------
+        x : array_like or Tensor, shape (B, n_x) or (n_x,)
+        u : array_like or Tensor, shape (B, n_u) or (n_u,)
+
+        Returns
+        -------
+        ndarray or Tensor, shape (B, n) or (n,)
+            A float64 tensor if ``x`` is a tensor, else an ndarray.
+
+        Raises
+        ------
+        ValueError
+            Wrong shapes or NaN/inf.
+        """
+        single = np.ndim(x) == 1
+        xb = torch.as_tensor(real_batch(x.detach() if isinstance(x, torch.Tensor) else x, "x", self.state_dim, copy=True))
+        ub = torch.as_tensor(real_batch(u.detach() if isinstance(u, torch.Tensor) else u, "u", self.action_dim, copy=True))
+        if ub.shape[0] != xb.shape[0]:
+            raise ValueError(f"u: {ub.shape[0]} rows, but x has {xb.shape[0]}")
+        out = self._features(xb, ub) @ torch.tensor(self.weights)
+        if single:
+            out = out[0]
+        return out if isinstance(x, torch.Tensor) else out.numpy()
+
+    def state_dict(self) -> dict[str, Any]:
+        """Return a copy of the full state: prior, covariance, sufficient statistics (not the features)."""
+        return {
+            "kind": self._KIND,
+            "noise_cov": self.noise_cov.copy(),
+            "prior_std": self.prior_std,
+            "prior_weights": self.prior_weights.copy(),
+            "count": self.count,
+            "gram": self.gram.copy(),
+            "cross": self.cross.copy(),
+        }
+
+    def load_state_dict(self, state: dict[str, Any]) -> LinearFeatureIBE:
+        """Restore a state from :meth:`state_dict` (same features); validate everything first.
+
+        Raises
+        ------
+        ValueError
+            Not a dict, unknown/missing keys, other kind, wrong shapes, NaN/inf, bad covariance or
+            ``prior_std``. The estimator is then left unchanged.
+        """
+        p, n = self.prior_weights.shape
+        spec = {"kind": "str", "noise_cov": (n, n), "prior_std": "float", "prior_weights": (p, n), "count": "int",
+                "gram": (p, p), "cross": (p, n)}
+        st = check_state(state, spec, self._KIND)
+        noise_cov = real_covariance(st["noise_cov"], "state_dict: noise_cov", n)
+        if st["prior_std"] <= 0:
+            raise ValueError("state_dict: prior_std must be > 0")
+        real_covariance(st["gram"], "state_dict: gram", p)
+        new = LinearFeatureIBE(self.features, st["prior_weights"], noise_cov, self.state_dim, self.action_dim,
+                               st["prior_std"])
+        new.gram, new.cross, new.count = st["gram"], st["cross"], st["count"]
+        with PosteriorGuard("state_dict"):
+            new.weights = new._solve(new.gram, new.cross)
+        check_posterior("state_dict", (new.weights,))
+        self.__dict__.update(new.__dict__)
+        return self

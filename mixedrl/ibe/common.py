@@ -1,0 +1,354 @@
+"""What the three Cases of the IBE share: the residuals of eq. (10) and the input and state checks.
+
+* :func:`~mixedrl.ibe.residuals`: eq. (10), ``xi_j = x_{j+1} - f(x_j, u_j)``.
+* :func:`real_batch`, :func:`real_vector`, :func:`real_covariance`: the checks every estimator applies to
+  its arguments (real numbers only: complex, bool, string and object arrays are refused; finite; of the
+  right shape; at least one noise dimension).
+* :class:`PosteriorGuard` and :func:`check_posterior`: an update computes its candidate posterior
+  inside the guard (no floating-point warning escapes, a failed factorisation is a ``ValueError``) and
+  commits it only after :func:`check_posterior` has found it finite and symmetric PSD, so a rejected
+  update leaves the estimator as it was.
+* :func:`check_state`: validation of a ``state_dict`` against a key/shape specification.
+* :class:`ReadOnlyArray`, :class:`ReadOnlyArrays`: read-only views for the estimators' public arrays;
+  :class:`GaussianNoiseEstimate`: the mixed-model noise ``N(mean, cov)`` of Cases 1 and 2 (eq. (20)).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Sequence
+from types import TracebackType
+from typing import Any
+
+import numpy as np
+import torch
+
+from mixedrl.checks import as_batch, as_vector, check_covariance, check_finite, check_unknown_keys
+from mixedrl.gaussian import sample_gaussian
+
+__all__ = [
+    "residuals",
+    "real_array",
+    "real_batch",
+    "real_vector",
+    "real_covariance",
+    "check_dimension",
+    "symmetrize",
+    "check_posterior",
+    "PosteriorGuard",
+    "check_state",
+    "ReadOnlyArray",
+    "ReadOnlyArrays",
+    "GaussianNoiseEstimate",
+]
+
+#: numpy dtype kinds accepted as real numbers (float, signed and unsigned int).
+_REAL_KINDS = frozenset("fiu")
+
+
+# ----------------------------------------------------------------------------------------------------
+# eq. (10)
+# ----------------------------------------------------------------------------------------------------
+def residuals(
+    f: Callable[[Any, Any], Any],
+    x: np.ndarray | torch.Tensor,
+    u: np.ndarray | torch.Tensor,
+    x_next: np.ndarray | torch.Tensor,
+) -> np.ndarray | torch.Tensor:
+    """Implements eq. (10): the residual of a transition under the model's deterministic part.
+
+    .. math:: \\xi_j^{\\mathcal{D}} = x_{j+1}^{\\mathcal{D}} - f(x_j^{\\mathcal{D}}, u_j^{\\mathcal{D}})
+
+    Parameters
+    ----------
+    f : callable
+        Deterministic model ``f(x, u)``, vectorised over leading dimensions, returning an array (or
+        tensor) of the same kind and shape as ``x_next``.
+    x : ndarray or Tensor, shape (..., n)
+        States.
+    u : ndarray or Tensor, shape (..., m)
+        Actions, same leading dimensions as ``x``.
+    x_next : ndarray or Tensor, shape (..., n)
+        Next states.
+
+    Returns
+    -------
+    ndarray or Tensor, shape (..., n)
+        Same kind as the inputs (numpy in, numpy out; torch in, torch out).
+
+    Raises
+    ------
+    ValueError
+        Inputs of mixed kinds, not real numbers, non-finite, of inconsistent shapes, or ``f`` returning a
+        wrong shape.
+    """
+    is_torch = [isinstance(a, torch.Tensor) for a in (x, u, x_next)]
+    if any(is_torch) and not all(is_torch):
+        raise ValueError("x: x, u and x_next must all be numpy arrays or all torch tensors")
+    x, u, x_next = real_array(x, "x"), real_array(u, "u"), real_array(x_next, "x_next")
+    if not all(is_torch):
+        x = np.asarray(x, dtype=np.float64)
+        u = np.asarray(u, dtype=np.float64)
+        x_next = np.asarray(x_next, dtype=np.float64)
+    for name, val in (("x", x), ("u", u), ("x_next", x_next)):
+        if val.ndim < 1:
+            raise ValueError(f"{name}: expected at least one dimension, got a scalar")
+        check_finite(val, name)
+    if tuple(x.shape) != tuple(x_next.shape):
+        raise ValueError(f"x_next: expected the shape of x {tuple(x.shape)}, got {tuple(x_next.shape)}")
+    if tuple(u.shape[:-1]) != tuple(x.shape[:-1]):
+        raise ValueError(f"u: leading dimensions {tuple(u.shape[:-1])} differ from x's {tuple(x.shape[:-1])}")
+    fx = f(x, u)
+    if tuple(fx.shape) != tuple(x_next.shape):
+        raise ValueError(f"f: returned shape {tuple(fx.shape)}, expected {tuple(x_next.shape)}")
+    # xi_j = x_{j+1} - f(x_j, u_j)
+    return x_next - fx
+
+
+
+# ----------------------------------------------------------------------------------------------------
+# input checks
+# ----------------------------------------------------------------------------------------------------
+def real_array(value: Any, name: str) -> np.ndarray | torch.Tensor:
+    """Return ``value`` as an array (a tensor stays a tensor) after checking that it holds real numbers.
+
+    Raises
+    ------
+    ValueError
+        ``value`` is complex, bool, a string or object array, or ragged; the message names ``name``.
+    """
+    if isinstance(value, torch.Tensor):
+        if value.dtype.is_complex or value.dtype == torch.bool:
+            raise ValueError(f"{name}: expected real numbers, got a tensor of dtype {value.dtype}")
+        return value
+    try:
+        arr = np.asarray(value)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"{name}: cannot be converted to a float array ({exc})") from None
+    if arr.dtype.kind not in _REAL_KINDS:
+        raise ValueError(f"{name}: expected real numbers (float or int), got dtype {arr.dtype}")
+    return arr
+
+
+def real_batch(value: Any, name: str, n: int, copy: bool = False) -> np.ndarray:
+    """Return one sample ``(n,)`` or a batch ``(N, n)`` of real numbers as finite float64 ``(N, n)``.
+
+    A float64 ndarray is returned without a copy (a view for one sample) unless ``copy``.
+
+    Raises
+    ------
+    ValueError
+        Not real numbers (:func:`real_array`), wrong shape, NaN or inf.
+    """
+    if type(value) is np.ndarray and value.dtype == np.float64:
+        if value.ndim == 1 and value.shape[0] == n:
+            batch = value[None, :]
+        elif value.ndim == 2 and value.shape[1] == n:
+            batch = value
+        else:
+            return as_batch(value, name, n)  # raises with the shared message
+        check_finite(batch, name)
+        return batch.copy() if copy else batch
+    return as_batch(real_array(value, name), name, n)
+
+
+def check_dimension(n: int, name: str) -> int:
+    """Return ``n`` if it is at least 1; an estimator of zero-dimensional noise is refused."""
+    if n < 1:
+        raise ValueError(f"{name}: the noise needs at least one dimension, got {n}")
+    return n
+
+
+def real_vector(value: Any, name: str, n: int | None = None) -> np.ndarray:
+    """Return a finite float64 vector of real numbers, shape ``(n,)``, and of length at least 1."""
+    vec = as_vector(real_array(value, name), name, n)
+    check_dimension(vec.shape[0], name)
+    return vec
+
+
+def real_covariance(value: Any, name: str, n: int | None = None) -> np.ndarray:
+    """Return a symmetric PSD ``(n, n)`` float64 matrix of real numbers with ``n >= 1``."""
+    cov = check_covariance(real_array(value, name), name, n)
+    check_dimension(cov.shape[0], name)
+    return cov
+
+
+def symmetrize(a: np.ndarray) -> np.ndarray:
+    """``(A + A^T) / 2``."""
+    return 0.5 * (a + a.T)
+
+
+# ----------------------------------------------------------------------------------------------------
+# guarded updates
+# ----------------------------------------------------------------------------------------------------
+def check_posterior(name: str, finite: Sequence[np.ndarray], psd: Sequence[np.ndarray] = ()) -> None:
+    """Raise ``ValueError`` unless every array of ``finite`` and ``psd`` is finite and each of ``psd``
+    is a symmetric PSD matrix (call it on a candidate posterior before committing it).
+
+    Parameters
+    ----------
+    name : str
+        The argument that produced the candidate (``"xi"``, ``"x"``, ``"state_dict"``); it starts the
+        message.
+    finite : sequence of ndarray
+        Arrays that must be finite.
+    psd : sequence of ndarray
+        Matrices that must be finite, symmetric and positive semi-definite (to the tolerances of
+        :func:`mixedrl.checks.check_covariance`).
+
+    Raises
+    ------
+    ValueError
+        ``"<name>: update rejected: ..."``.
+    """
+    for arr in (*finite, *psd):
+        if not np.isfinite(arr).all():
+            raise ValueError(f"{name}: update rejected: the posterior would not be finite (overflow or NaN "
+                             f"in float64)")
+    for c in psd:
+        check_covariance(c, f"{name}: update rejected: the posterior")
+
+
+class PosteriorGuard:
+    """Context for computing a candidate posterior: floating-point warnings are silenced (overflow and
+    NaN are found by :func:`check_posterior` on the result) and a failed factorisation
+    (``numpy.linalg.LinAlgError``) becomes ``ValueError("<name>: update rejected: ...")``.
+
+    Parameters
+    ----------
+    name : str
+        The argument the error message names.
+    """
+
+    __slots__ = ("name", "_errstate")
+
+    def __init__(self, name: str) -> None:
+        self.name = name
+        self._errstate = np.errstate(all="ignore")
+
+    def __enter__(self) -> PosteriorGuard:
+        self._errstate.__enter__()
+        return self
+
+    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
+                 tb: TracebackType | None) -> None:
+        self._errstate.__exit__(exc_type, exc, tb)
+        if exc_type is not None and issubclass(exc_type, np.linalg.LinAlgError):
+            raise ValueError(f"{self.name}: update rejected: the posterior could not be computed ({exc})") from None
+
+
+# ----------------------------------------------------------------------------------------------------
+# state dicts
+# ----------------------------------------------------------------------------------------------------
+def check_state(state: Any, spec: dict[str, Any], kind: str) -> dict[str, Any]:
+    """Validate a state dict against ``spec`` (key -> shape tuple | 'int' | 'float' | 'str')."""
+    if not isinstance(state, dict):
+        raise ValueError(f"state_dict: expected a dict, got {type(state).__name__}")
+    check_unknown_keys(state, set(spec), "state_dict")
+    missing = sorted(set(spec) - set(state))
+    if missing:
+        raise ValueError(f"state_dict: missing key(s) {missing}")
+    if state["kind"] != kind:
+        raise ValueError(f"state_dict: kind {state['kind']!r} does not match this estimator ({kind!r})")
+    out: dict[str, Any] = {}
+    for key, want in spec.items():
+        val = state[key]
+        if want == "str":
+            if not isinstance(val, str):
+                raise ValueError(f"state_dict: {key} must be a str")
+            out[key] = val
+        elif want == "int":
+            if isinstance(val, bool) or not isinstance(val, (int, np.integer)) or val < 0:
+                raise ValueError(f"state_dict: {key} must be a non-negative int, got {val!r}")
+            out[key] = int(val)
+        elif want == "float":
+            if isinstance(val, bool) or not isinstance(val, (int, float, np.floating)) or not math.isfinite(val):
+                raise ValueError(f"state_dict: {key} must be a finite float, got {val!r}")
+            out[key] = float(val)
+        else:
+            val = real_array(val, f"state_dict: {key}")
+            try:
+                arr = np.array(val, dtype=np.float64)
+            except (TypeError, ValueError):
+                raise ValueError(f"state_dict: {key} is not a float array") from None
+            if arr.shape != want:
+                raise ValueError(f"state_dict: {key} has shape {arr.shape}, expected {want}")
+            if not np.all(np.isfinite(arr)):
+                raise ValueError(f"state_dict: {key} contains NaN or inf")
+            out[key] = arr
+    return out
+
+
+
+# ----------------------------------------------------------------------------------------------------
+# read-only public arrays, the Gaussian noise estimate of Cases 1 and 2
+# ----------------------------------------------------------------------------------------------------
+class ReadOnlyArray:
+    """Descriptor that stores a public array (``mean``, ``cov``, ...) as a read-only view.
+
+    Updates replace these arrays rather than writing into them, so handing out a read-only view is
+    free and guarantees that a caller who writes into ``est.mean`` gets an error instead of silently
+    changing the estimator's state. Only the named attributes pay for it (no ``__setattr__`` hook).
+    """
+
+    def __set_name__(self, owner: type, name: str) -> None:
+        self.key = "_ro_" + name
+
+    def __get__(self, obj: Any, objtype: type | None = None) -> Any:
+        if obj is None:
+            return self
+        try:
+            return obj.__dict__[self.key]
+        except KeyError:
+            raise AttributeError(self.key[4:]) from None
+
+    def __set__(self, obj: Any, value: Any) -> None:
+        if isinstance(value, np.ndarray):
+            value = value.view()
+            value.flags.writeable = False
+        obj.__dict__[self.key] = value
+
+
+class ReadOnlyArrays:
+    """Base class giving the estimators read-only public arrays (see :class:`ReadOnlyArray`)."""
+
+    mean = ReadOnlyArray()
+    prior_mean = ReadOnlyArray()
+    prior_cov = ReadOnlyArray()
+    noise_cov = ReadOnlyArray()
+
+
+class GaussianNoiseEstimate(ReadOnlyArrays):
+    """Shared part of Cases 1 and 2: the mixed-model noise ``N(mean, cov)`` (eq. (20))."""
+
+    #: A learning source (:class:`mixedrl.noise.NoiseSource`): the algorithms call ``update``.
+    learns = True
+    #: One mean for every state (Cases 1 and 2).
+    state_dependent = False
+
+    mean: np.ndarray
+    cov: np.ndarray
+    mean_cov: np.ndarray
+    count: int
+
+    def sample(self, n: int, generator: np.random.Generator | torch.Generator) -> np.ndarray | torch.Tensor:
+        """Draw ``xi_hat ~ N(mean, cov)`` (eq. (20)); works for a singular ``cov``.
+
+        Parameters
+        ----------
+        n : int
+            Number of samples.
+        generator : numpy.random.Generator or torch.Generator
+            numpy gives an ndarray ``(n, d)``, torch a float64 tensor ``(n, d)``.
+
+        Returns
+        -------
+        ndarray or Tensor, shape (n, d)
+
+        Raises
+        ------
+        ValueError
+            ``n`` not a positive int, or ``generator`` of another type.
+        """
+        return sample_gaussian(self.mean, self.cov, n, generator)
+
