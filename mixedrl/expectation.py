@@ -9,8 +9,9 @@ Algorithm 2 (eqs. 49 and 51), the exact checks of :mod:`theory` and the PSD line
   :func:`expectation_nodes` in torch): the ``2r`` spherical-cubature sigma points
   (:class:`SigmaPoints`, exact for polynomials of degree <= 3) or the tensor Gauss-Hermite rule
   (:class:`GaussHermite`, exact to degree ``2q - 1`` per coordinate);
-* ``h(x, u, xi)`` of **eq. (37)** (:func:`h`), for numpy arrays and torch tensors alike, with its
-  task-level form :func:`h_value` used by PEV, PIM and the MVC of Algorithm 2.
+* ``h(x, u, xi)`` of **eq. (37)** (:func:`h`, the one implementation), for numpy arrays and torch
+  tensors alike, called by its task-level form :func:`h_value` (PEV, PIM and the MVC of Algorithm 2)
+  and by its noise-object form :func:`expected_cost_to_go` (the checks of :mod:`theory`).
 
 Because the noise is additive, ``f(x, u)`` is computed once per state and only the integrand is
 evaluated at the nodes: ``E g(f(x, u) + xi) ~= sum_i w_i g(f(x, u) + d_i)``. See ``docs/expectation.rst``
@@ -39,6 +40,7 @@ __all__ = [
     "gaussian_expectation",
     "h",
     "h_value",
+    "expected_cost_to_go",
 ]
 
 #: Relative eigenvalue floor that defines the numerical support (range, rank) of a PSD matrix:
@@ -444,3 +446,55 @@ def h_value(task: _ModelTask, critic: torch.nn.Module, s: torch.Tensor, u: torch
         If the batch sizes of ``s`` and ``u`` differ.
     """
     return h(task.f, task.cost, lambda z: critic(task.observe(z)), task.gamma, s, u, offsets, weights)
+
+
+def expected_cost_to_go(
+    value: Callable[[np.ndarray], np.ndarray],
+    f: Callable[[np.ndarray, np.ndarray], np.ndarray],
+    utility: Callable[[np.ndarray, np.ndarray], np.ndarray],
+    gamma: float,
+    states: Any,
+    actions: Any,
+    noise: Any,
+    rule: Rule | None = None,
+) -> np.ndarray:
+    """Eq. (37) for numpy callables and a noise object: :func:`h` on the nodes of :func:`quadrature_nodes`.
+
+    .. math:: h(x, u, \\xi) = \\mathbb{E}_{\\xi}\\{ l(x', u) + \\gamma V^k(x') \\},\\qquad x' = f(x, u) + \\xi
+
+    Parameters
+    ----------
+    value : callable
+        ``V^k``, (N, n) -> (N,).
+    f : callable
+        ``f(x, u)``, (N, n), (N, m) -> (N, n).
+    utility : callable
+        ``l(x', u)``, (N, n), (N, m) -> (N,).
+    gamma : float
+    states : array_like, shape (N, n)
+    actions : array_like, shape (N, m)
+    noise : object
+        ``.mean`` (n,), ``.cov`` (n, n) (an IBE, a :class:`mixedrl.noise.GaussianNoise`).
+    rule : SigmaPoints or GaussHermite, optional
+        Quadrature rule (default sigma points, exact for quadratics).
+
+    Returns
+    -------
+    ndarray, shape (N,)
+
+    Raises
+    ------
+    ValueError
+        Shapes do not match, or a callable returns the wrong shape.
+    """
+    arr = np.asarray(states, dtype=np.float64)
+    x = as_batch(arr, "states", arr.shape[-1] if arr.ndim else 0)
+    u = np.asarray(actions, dtype=np.float64).reshape(x.shape[0], -1)
+    mean = as_vector(noise.mean, "noise.mean", x.shape[1])
+    cov = check_covariance(noise.cov, "noise.cov", x.shape[1])
+    nodes, weights = quadrature_nodes(mean, cov, rule)
+
+    def as_float(fn: Callable[..., Any]) -> Callable[..., np.ndarray]:
+        return lambda *args: np.asarray(fn(*args), dtype=np.float64)
+
+    return h(as_float(f), as_float(utility), as_float(value), float(gamma), x, u, nodes, weights)

@@ -6,8 +6,9 @@ takes another PIM step.
   eq. (22), :class:`ExactPIM` binds a problem, :func:`pim_step` is Algorithm 1's PIM step.
 * **Parameterised** (Algorithm 2): :func:`actor_objective` is eq. (51) (gradient eq. 52 through the
   model), :func:`actor_step` one optimiser step on it.
-* **MVC**: :func:`mvc_check` evaluates eqs. (38)-(39) on a batch from values of ``h`` (eq. 37,
-  :func:`mixedrl.expectation.h_value`); :class:`MVCResult` is its outcome.
+* **MVC**: :func:`mvc_terms` is eqs. (38)-(39) on a batch from values of ``h`` (eq. 37,
+  :func:`mixedrl.expectation.h_value`), shared with :func:`theory.mvc`; :func:`mvc_check` is
+  Algorithm 2's decision from it, :class:`MVCResult` its outcome.
 """
 
 from __future__ import annotations
@@ -23,7 +24,7 @@ from mixedrl.checks import as_vector, check_number
 from mixedrl.expectation import h_value
 from mixedrl.quadratic import AffinePolicy, LinearDynamics, QuadraticCost, QuadraticValue, check_problem
 
-__all__ = ["improve_policy", "ExactPIM", "pim_step", "actor_objective", "actor_step", "MVCResult", "mvc_check"]
+__all__ = ["improve_policy", "ExactPIM", "pim_step", "actor_objective", "actor_step", "MVCResult", "MVCTerms", "mvc_terms", "mvc_check"]
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -277,14 +278,79 @@ class MVCResult:
     e_nonnegative: float
 
 
-def mvc_check(h_new_next: torch.Tensor, h_new_cur: torch.Tensor, h_old_cur: torch.Tensor, mode: str = "mean"
-              ) -> MVCResult:
-    """Implements eqs. (38)-(39): the maximum variation condition on a batch of states.
+@dataclass(frozen=True)
+class MVCTerms:
+    """Both sides of eq. (38) on a batch (:func:`mvc_terms`), in float64.
+
+    Attributes
+    ----------
+    variation : numpy.ndarray or torch.Tensor, shape (B,)
+        ``h(x, u^{k+1}, xi_{k+1}) - h(x, u^{k+1}, xi_k)``, the left side.
+    e : numpy.ndarray or torch.Tensor, shape (B,)
+        ``e_k(x) = h(x, u^k, xi_k) - h(x, u^{k+1}, xi_k)`` of eq. (39), the right side.
+    pointwise : numpy.ndarray or torch.Tensor of bool, shape (B,)
+        Where ``variation <= e`` (plus the tolerance, if one was given).
+    held_on_mean : bool
+        ``mean(variation) <= mean(e)`` (plus the mean tolerance): the batch form (EQUATIONS.md point 12).
+    """
+
+    variation: Any
+    e: Any
+    pointwise: Any
+    held_on_mean: bool
+
+
+def _float64(a: Any) -> Any:
+    return a.double() if isinstance(a, torch.Tensor) else np.asarray(a, dtype=np.float64)
+
+
+def mvc_terms(h_new_next: Any, h_new_cur: Any, h_old_cur: Any, tolerance: Any = None) -> MVCTerms:
+    """Implements eqs. (38)-(39): the maximum variation condition from three values of ``h`` (eq. 37).
 
     .. math::
 
         h(x, u^{k+1}, \\hat\\xi_{k+1}) - h(x, u^{k+1}, \\hat\\xi_k) \\le e_k(x),
         \\qquad e_k(x) = h(x, u^k, \\hat\\xi_k) - h(x, u^{k+1}, \\hat\\xi_k).
+
+    The differences are taken in the inputs' dtype, then converted to float64 (numpy arrays or torch
+    tensors alike).
+
+    Parameters
+    ----------
+    h_new_next : numpy.ndarray or torch.Tensor, shape (B,)
+        ``h(x, u^{k+1}, xi_hat_{k+1})``.
+    h_new_cur : numpy.ndarray or torch.Tensor, shape (B,)
+        ``h(x, u^{k+1}, xi_hat_k)``.
+    h_old_cur : numpy.ndarray or torch.Tensor, shape (B,)
+        ``h(x, u^k, xi_hat_k)``.
+    tolerance : numpy.ndarray, shape (B,), optional
+        Rounding tolerance added to the right side (the checks of :mod:`theory`); none by default.
+
+    Returns
+    -------
+    MVCTerms
+
+    Raises
+    ------
+    ValueError
+        The three inputs are not of one shape (B,).
+    """
+    if not (h_new_next.shape == h_new_cur.shape == h_old_cur.shape) or h_new_next.ndim != 1:
+        raise ValueError(f"h_new_next: expected three (B,) tensors, got {tuple(h_new_next.shape)}, "
+                         f"{tuple(h_new_cur.shape)}, {tuple(h_old_cur.shape)}")
+    # lhs = h(x, u^{k+1}, xi_{k+1}) - h(x, u^{k+1}, xi_k)   (eq. 38)
+    lhs = _float64(h_new_next - h_new_cur)
+    # e_k(x) = h(x, u^k, xi_k) - h(x, u^{k+1}, xi_k)   (eq. 39)
+    e = _float64(h_old_cur - h_new_cur)
+    if tolerance is None:
+        # lhs <= e_k(x)   (eq. 38)
+        return MVCTerms(lhs, e, lhs <= e, bool(lhs.mean() <= e.mean()))
+    return MVCTerms(lhs, e, lhs <= e + tolerance, bool(lhs.mean() <= e.mean() + float(tolerance.mean())))
+
+
+def mvc_check(h_new_next: torch.Tensor, h_new_cur: torch.Tensor, h_old_cur: torch.Tensor, mode: str = "mean"
+              ) -> MVCResult:
+    """The maximum variation condition (eqs. 38-39, :func:`mvc_terms`) on a batch, as Algorithm 2 decides it.
 
     Parameters
     ----------
@@ -306,19 +372,9 @@ def mvc_check(h_new_next: torch.Tensor, h_new_cur: torch.Tensor, h_old_cur: torc
     ValueError
         Shapes differ, or ``mode`` unknown.
     """
-    if not (h_new_next.shape == h_new_cur.shape == h_old_cur.shape) or h_new_next.ndim != 1:
-        raise ValueError(f"h_new_next: expected three (B,) tensors, got {tuple(h_new_next.shape)}, "
-                         f"{tuple(h_new_cur.shape)}, {tuple(h_old_cur.shape)}")
-    # lhs = h(x, u^{k+1}, xi_{k+1}) - h(x, u^{k+1}, xi_k)
-    lhs = (h_new_next - h_new_cur).double()
-    # e_k(x) = h(x, u^k, xi_k) - h(x, u^{k+1}, xi_k)
-    e = (h_old_cur - h_new_cur).double()
-    pointwise = lhs <= e
-    if mode == "mean":
-        held = bool(lhs.mean() <= e.mean())
-    elif mode == "all":
-        held = bool(pointwise.all())
-    else:
+    t = mvc_terms(h_new_next, h_new_cur, h_old_cur)
+    if mode not in ("mean", "all"):
         raise ValueError(f"mode: expected 'mean' or 'all', got {mode!r}")
-    return MVCResult(held=held, fraction=float(pointwise.double().mean()), lhs_mean=float(lhs.mean()),
-                     e_mean=float(e.mean()), e_nonnegative=float((e >= 0).double().mean()))
+    held = t.held_on_mean if mode == "mean" else bool(t.pointwise.all())
+    return MVCResult(held=held, fraction=float(t.pointwise.double().mean()), lhs_mean=float(t.variation.mean()),
+                     e_mean=float(t.e.mean()), e_nonnegative=float((t.e >= 0).double().mean()))

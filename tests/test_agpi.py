@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import copy
 
-import control
 import numpy as np
 import pytest
 import torch
@@ -24,25 +23,13 @@ from mixedrl.networks import QuadraticCritic
 from mixedrl.runs import train
 from mixedrl.schedule import set_learning_rates
 from mixedrl.tasks import LinearTask
+from validation.lq import discounted_lq_optimum
 
 
 def lq_optimum(task: LinearTask, mu: np.ndarray) -> dict[str, np.ndarray]:
-    """Discounted LQ optimum with next-state cost and noise mean ``mu`` (EQUATIONS.md, last section).
-
-    ``S = Q + gamma P`` from the DARE on (sqrt(g) A, sqrt(g) B, Q, g R); ``L = (R + B'SB)^-1 B'SA``;
-    ``l0`` and ``p`` from the linear system obtained by matching the constant and linear terms.
-    """
-    A, B, Q, R, g = task.A, task.B, task.Q, task.R, task.gamma
-    S, _, _ = control.dare(np.sqrt(g) * A, np.sqrt(g) * B, Q, g * R, method="scipy")
-    P = (S - Q) / g
-    H = R + B.T @ S @ B
-    L = np.linalg.solve(H, B.T @ S @ A)
-    Acl = A - B @ L
-    n, m = B.shape
-    # H l0 - g B' p = B' S mu ;  (Acl' S B - L' R) l0 + (I - g Acl') p = Acl' S mu
-    M = np.block([[H, -g * B.T], [Acl.T @ S @ B - L.T @ R, np.eye(n) - g * Acl.T]])
-    sol = np.linalg.solve(M, np.r_[B.T @ S @ mu, Acl.T @ S @ mu])
-    return {"L": L, "l0": sol[:m], "P": P, "p": sol[m:], "S": S}
+    """Discounted LQ optimum with next-state cost and noise mean ``mu`` (:func:`validation.lq.discounted_lq_optimum`)."""
+    sol = discounted_lq_optimum(task.A, task.B, task.Q, task.R, task.gamma, mu)
+    return {"L": sol.gain, "l0": sol.offset, "P": sol.P, "p": sol.p, "S": sol.S}
 
 
 # ------------------------------------------------------------------------------ expectation nodes

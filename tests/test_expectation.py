@@ -20,6 +20,7 @@ from mixedrl.expectation import (
     quadrature_nodes,
     support,
 )
+from mixedrl.noise import GaussianNoise
 from mixedrl.tasks import LinearTask
 from theory.checks import expected_cost_to_go
 
@@ -138,3 +139,50 @@ def test_theory_and_training_compute_the_same_h(rng: np.random.Generator) -> Non
         task.gamma, x, u, noise)
     np.testing.assert_allclose(theory_h, train_h, rtol=1e-13)
     assert theory.SigmaPoints is SigmaPoints and theory.GaussHermite is GaussHermite
+
+
+def test_one_eq37_function_serves_training_and_theory(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Every eq.-(37) entry point (h_value of PEV/PIM/MVC, the theory checks) goes through expectation.h."""
+    import theory.checks
+    from mixedrl import expectation, pim
+
+    assert theory.expected_cost_to_go is expectation.expected_cost_to_go
+    assert theory.checks.expected_cost_to_go is expectation.expected_cost_to_go
+    calls: list[str] = []
+
+    def sentinel(*args: object) -> np.ndarray:
+        calls.append("h")
+        return np.full(np.shape(args[4])[0], 7.0)
+
+    monkeypatch.setattr(expectation, "h", sentinel)
+    noise = GaussianNoise(np.zeros(1), np.eye(1))
+    x, u = np.ones((3, 1)), np.zeros((3, 1))
+    one = lambda z: z[:, 0]  # noqa: E731
+    lin = lambda s, a: s + a  # noqa: E731
+    cost = lambda s, a: s[:, 0] ** 2  # noqa: E731
+    np.testing.assert_array_equal(theory.expected_cost_to_go(one, lin, cost, 0.9, x, u, noise), 7.0)
+    rep = theory.mvc(one, lambda s: 0 * s, lambda s: 0 * s, lin, cost, 0.9, noise, noise, x)
+    np.testing.assert_array_equal(rep.extra["e"], 0.0)
+    task = LinearTask()
+    d, w = expectation_nodes(np.zeros(2), np.eye(2), task.noise_matrix, "sigma", dtype=torch.float64)
+    out = pim.h_value(task, one, torch.zeros(3, 2), torch.zeros(3, 1), d, w)
+    np.testing.assert_array_equal(out, 7.0)
+    assert calls == ["h"] * 5
+
+
+def test_h_is_the_closed_form_on_a_quadratic_value(rng: np.random.Generator) -> None:
+    """Residual of eq. (37) against ``m^T (Q + gamma P) m + tr((Q + gamma P) K) + u^T R u``, ``m = A x + B u + mu``."""
+    n, m_, N, gamma = 3, 2, 5, 0.95
+    A, B = rng.standard_normal((n, n)), rng.standard_normal((n, m_))
+    G = rng.standard_normal((n, n))
+    P, Q, R = G @ G.T + np.eye(n), np.diag([1.0, 2.0, 0.5]), np.diag([0.3, 4.0])
+    L = rng.standard_normal((n, n))
+    K, mu = L @ L.T, rng.standard_normal(n)
+    x, u = rng.standard_normal((N, n)), rng.standard_normal((N, m_))
+    quad = lambda z, M: np.einsum("ni,ij,nj->n", z, M, z)  # noqa: E731
+    got = expected_cost_to_go(lambda z: quad(z, P), lambda s, a: s @ A.T + a @ B.T,
+                              lambda z, a: quad(z, Q) + quad(a, R), gamma, x, u, GaussianNoise(mu, K))
+    S = Q + gamma * P
+    mean_next = x @ A.T + u @ B.T + mu
+    closed = quad(mean_next, S) + np.trace(S @ K) + quad(u, R)
+    np.testing.assert_allclose(got - closed, 0.0, atol=1e-11 * np.abs(closed).max())

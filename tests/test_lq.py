@@ -79,6 +79,23 @@ def test_offset_system_equals_simplified_form(prob, opt):
     assert rel(opt.p, p) < 1e-12 and rel(opt.offset, l0) < 1e-12
 
 
+def test_undiscounted_optimum_solves_the_riccati_and_offset_equations(prob):
+    """gamma = 1 (the LQR reference's case): residuals of S = Q + P, the Riccati equation and the reduced
+    offset equations; c is infinite."""
+    from validation.lq import discounted_lq_optimum
+
+    A, B, Q, R, mu = prob.A, prob.B, prob.Q, prob.R, prob.noise_mean
+    sol = discounted_lq_optimum(A, B, Q, R, 1.0, mu, prob.noise_cov)
+    S, P = sol.S, sol.P
+    H = R + B.T @ S @ B
+    assert np.abs(S - Q - P).max() <= 1e-12 * np.abs(S).max()
+    assert np.abs(P - (A.T @ S @ A - A.T @ S @ B @ np.linalg.solve(H, B.T @ S @ A))).max() <= 1e-10 * np.abs(P).max()
+    Ac = A - B @ sol.gain
+    assert rel(sol.p, np.linalg.solve(np.eye(prob.n) - Ac.T, Ac.T @ S @ mu)) < 1e-10
+    assert rel(sol.offset, np.linalg.solve(H, B.T @ (S @ mu + sol.p))) < 1e-10
+    assert sol.c == math.inf
+
+
 def test_optimum_is_bellman_fixed_point(prob, opt):
     """PEV of pi* returns V*, and PIM of V* returns pi* (eqs. 6-7)."""
     f, cost, g = prob.dynamics, prob.cost, prob.gamma

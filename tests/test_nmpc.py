@@ -22,7 +22,7 @@ pytestmark = pytest.mark.nmpc
 casadi = pytest.importorskip("casadi", reason="the NMPC references need CasADi: pip install -e '.[nmpc]'")
 
 from mixedrl.envs import DoubleLaneChangeModel, evaluate_tracking, make_config  # noqa: E402
-from validation import nmpc  # noqa: E402
+from validation import lq, nmpc  # noqa: E402
 from validation.lq import LQProblem, optimal_solution  # noqa: E402
 
 
@@ -107,12 +107,14 @@ def test_warm_started_solve_gives_the_same_answer() -> None:
 
 
 def test_discounted_lqr_is_validation_lq_optimum() -> None:
+    """One implementation of the discounted LQ optimum: the LQR's numbers are validation.lq's, bit for bit."""
     prob = _linear_problem()
     opt = optimal_solution(prob)
+    assert nmpc.discounted_lq_optimum is lq.discounted_lq_optimum
     L, l0, S = nmpc.discounted_lqr(prob.A, prob.B, prob.Q, prob.R, prob.gamma, prob.noise_mean)
-    np.testing.assert_allclose(L, opt.gain, rtol=1e-10, atol=1e-12)
-    np.testing.assert_allclose(l0, opt.offset, rtol=1e-10, atol=1e-12)
-    np.testing.assert_allclose(S, opt.S, rtol=1e-10, atol=1e-12)
+    np.testing.assert_array_equal(L, opt.gain)
+    np.testing.assert_array_equal(l0, opt.offset)
+    np.testing.assert_array_equal(S, opt.S)
 
 
 def test_straight_lqr_compensates_the_mean_force() -> None:

@@ -83,3 +83,33 @@ def test_relative_actor_objective_weights_states_by_inverse_value() -> None:
     for bad in (0.0, -1.0, float("nan"), float("inf")):
         with pytest.raises(ValueError, match="relative_offset"):
             actor_objective(task, critic, actor, s, d, w, relative_offset=bad)
+
+
+def test_mvc_terms_is_the_one_mvc_of_training_and_theory(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Eqs. (38)-(39) are computed once (mvc_terms): Algorithm 2's mvc_check and theory.mvc both call it,
+    and mvc_check's figures are the float32 differences of eq. (38)/(39) taken to float64, bit for bit."""
+    import theory.checks
+    from mixedrl import pim
+
+    g = torch.Generator().manual_seed(0)
+    a, b, c = (torch.randn(64, generator=g) for _ in range(3))
+    res = pim.mvc_check(a, b, c, "mean")
+    lhs, e = (a - b).double(), (c - b).double()
+    assert res.lhs_mean == float(lhs.mean()) and res.e_mean == float(e.mean())
+    assert res.held == bool(lhs.mean() <= e.mean())
+    assert res.fraction == float((lhs <= e).double().mean())
+    calls: list[int] = []
+    real = pim.mvc_terms
+
+    def spy(*args: object, **kwargs: object) -> pim.MVCTerms:
+        calls.append(1)
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(pim, "mvc_terms", spy)
+    monkeypatch.setattr(theory.checks, "mvc_terms", spy)
+    pim.mvc_check(a, b, c)
+    noise = type("N", (), {"mean": np.zeros(1), "cov": np.eye(1)})()
+    rep = theory.checks.mvc(lambda z: z[:, 0] ** 2, lambda s: 0 * s, lambda s: -0.5 * s, lambda s, u: s + u,
+                            lambda s, u: s[:, 0] ** 2 + u[:, 0] ** 2, 0.9, noise, noise, np.ones((4, 1)))
+    assert calls == [1, 1]
+    np.testing.assert_array_equal(rep.extra["variation"], 0.0)

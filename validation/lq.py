@@ -6,8 +6,9 @@ the next state ``l(x', u) = x'^T Q x' + u^T R u`` (eq. 2), discount ``gamma``. T
 
 * ``S = Q + gamma P`` solves the standard DARE with ``(sqrt(gamma) A, sqrt(gamma) B, Q, gamma R)``
   (:func:`control.dare`, ``method="scipy"``), and ``L = (R + B^T S B)^{-1} B^T S A``;
-* ``p`` and ``l0`` solve one linear system that depends on ``mu`` (:func:`optimal_solution`), and
-  ``c`` follows; a wrong ``mu`` leaves ``L`` exact and biases ``l0``.
+* ``p`` and ``l0`` solve one linear system that depends on ``mu``, and ``c`` follows; a wrong ``mu``
+  leaves ``L`` exact and biases ``l0`` (:func:`discounted_lq_optimum`, the one implementation, also
+  behind :func:`validation.nmpc.discounted_lqr`; :func:`optimal_solution` for an :class:`LQProblem`).
 
 :func:`run_algorithm1` runs the same loop (:func:`mixedrl.algorithms.policy_iteration.policy_iteration`)
 with three noise sources: ``"mixed"`` (the IBE, Case 2 by default, fed with residuals of the true system
@@ -56,6 +57,7 @@ __all__ = [
     "LQIteration",
     "LQResult",
     "optimal_solution",
+    "discounted_lq_optimum",
     "default_initial_gain",
     "run_algorithm1",
     "lyapunov_region",
@@ -245,8 +247,9 @@ class LQSolution:
         return QuadraticValue(self.P, self.p, self.c)
 
 
-def optimal_solution(problem: LQProblem, noise_mean: Any = None, noise_cov: Any = None) -> LQSolution:
-    """Implements eqs. (6)-(7) for the LQ case: the exact optimum via ``control.dare(method="scipy")``.
+def discounted_lq_optimum(A: np.ndarray, B: np.ndarray, Q: np.ndarray, R: np.ndarray, gamma: float,
+                          mu: np.ndarray, K: np.ndarray | None = None) -> LQSolution:
+    """Implements the discounted LQ optimum with next-state cost and mean-shifted noise (EQUATIONS.md, last section).
 
     .. math::
         S &= \\mathrm{DARE}(\\sqrt\\gamma A, \\sqrt\\gamma B, Q, \\gamma R),\\quad P = (S - Q)/\\gamma,\\quad
@@ -256,14 +259,24 @@ def optimal_solution(problem: LQProblem, noise_mean: Any = None, noise_cov: Any 
         \\begin{bmatrix} A_c^T S \\mu \\\\ B^T S \\mu \\end{bmatrix},\\quad A_c = A - B L \\\\
         (1-\\gamma)\\, c &= d^T S d + \\operatorname{tr}(S K) + l_0^T R l_0 + 2\\gamma p^T d,\\quad d = \\mu - B l_0
 
+    for ``x' = A x + B u + xi``, ``xi ~ N(mu, K)``, ``l = x'^T Q x' + u^T R u``, policy ``u = -L x - l0``,
+    value ``V*(x) = x^T P x + 2 p^T x + c``. Solved with ``control.dare(method="scipy")``.
+
     Parameters
     ----------
-    problem : LQProblem
-    noise_mean : array_like, shape (n,), optional
-        The mean to optimise for (default ``problem.noise_mean``). Pass ``problem.prior_mean`` to get
-        the policy that the prior predicts (model-driven RL's limit), or an IBE estimate.
-    noise_cov : array_like, shape (n, n), optional
-        The covariance for ``c`` (default ``problem.noise_cov``); it does not affect L, l0, P or p.
+    A : numpy.ndarray, shape (n, n)
+    B : numpy.ndarray, shape (n, m)
+    Q : numpy.ndarray, shape (n, n)
+        Symmetric PSD.
+    R : numpy.ndarray, shape (m, m)
+        Symmetric positive definite.
+    gamma : float
+        Discount in (0, 1] (validated by the callers; 1 is allowed: ``L``, ``l0``, ``P`` and ``p`` stay
+        finite when ``A_c`` is stable, and ``c`` is then ``inf``).
+    mu : numpy.ndarray, shape (n,)
+        Noise mean.
+    K : numpy.ndarray, shape (n, n), optional
+        Noise covariance, only for ``c`` (default 0).
 
     Returns
     -------
@@ -272,8 +285,8 @@ def optimal_solution(problem: LQProblem, noise_mean: Any = None, noise_cov: Any 
     Raises
     ------
     ValueError
-        Bad ``noise_mean``/``noise_cov``, or the DARE has no stabilising solution (message names ``Q``:
-        e.g. ``(sqrt(gamma) A, Q^{1/2})`` has an unobservable mode on the unit circle).
+        The DARE has no stabilising solution (message names ``Q``: e.g. ``(sqrt(gamma) A, Q^{1/2})``
+        has an unobservable mode on the unit circle).
 
     Notes
     -----
@@ -281,10 +294,9 @@ def optimal_solution(problem: LQProblem, noise_mean: Any = None, noise_cov: Any 
     so ``p = (I - gamma A_c^T)^{-1} A_c^T S mu`` (docs/lq.rst); it is kept in the system as it comes
     from the PEV and PIM equations, and the tests check the two forms agree.
     """
-    n, m = problem.n, problem.m
-    mu = problem.noise_mean if noise_mean is None else as_vector(noise_mean, "noise_mean", n)
-    K = problem.noise_cov if noise_cov is None else check_covariance(noise_cov, "noise_cov", n)
-    A, B, Q, R, g = problem.A, problem.B, problem.Q, problem.R, problem.gamma
+    A, B, Q, R, mu = (np.asarray(a, dtype=np.float64) for a in (A, B, Q, R, mu))
+    n, g = A.shape[0], float(gamma)
+    K = np.zeros((n, n)) if K is None else np.asarray(K, dtype=np.float64)
     sg = math.sqrt(g)
     try:
         # S solves the DARE with (sqrt(gamma) A, sqrt(gamma) B, Q, gamma R)
@@ -302,8 +314,35 @@ def optimal_solution(problem: LQProblem, noise_mean: Any = None, noise_cov: Any 
     p, l0 = sol[:n], sol[n:]
     d = mu - B @ l0
     # (1 - g) c = d^T S d + tr(S K) + l0^T R l0 + 2 g p^T d
-    c = float((d @ S @ d + np.sum(S * K) + l0 @ R @ l0 + 2.0 * g * p @ d) / (1.0 - g))
+    c = math.inf if g == 1.0 else float((d @ S @ d + np.sum(S * K) + l0 @ R @ l0 + 2.0 * g * p @ d) / (1.0 - g))
     return LQSolution(gain=L, offset=l0, P=P, p=p, c=c, S=S)
+
+
+def optimal_solution(problem: LQProblem, noise_mean: Any = None, noise_cov: Any = None) -> LQSolution:
+    """Implements eqs. (6)-(7) for the LQ case: :func:`discounted_lq_optimum` of an :class:`LQProblem`.
+
+    Parameters
+    ----------
+    problem : LQProblem
+    noise_mean : array_like, shape (n,), optional
+        The mean to optimise for (default ``problem.noise_mean``). Pass ``problem.prior_mean`` to get
+        the policy that the prior predicts (model-driven RL's limit), or an IBE estimate.
+    noise_cov : array_like, shape (n, n), optional
+        The covariance for ``c`` (default ``problem.noise_cov``); it does not affect L, l0, P or p.
+
+    Returns
+    -------
+    LQSolution
+
+    Raises
+    ------
+    ValueError
+        Bad ``noise_mean``/``noise_cov``, or the DARE has no stabilising solution (message names ``Q``).
+    """
+    n = problem.n
+    mu = problem.noise_mean if noise_mean is None else as_vector(noise_mean, "noise_mean", n)
+    K = problem.noise_cov if noise_cov is None else check_covariance(noise_cov, "noise_cov", n)
+    return discounted_lq_optimum(problem.A, problem.B, problem.Q, problem.R, problem.gamma, mu, K)
 
 
 def default_initial_gain(problem: LQProblem) -> np.ndarray:

@@ -47,7 +47,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Sequence
 
-import control
 import numpy as np
 import torch
 from tqdm.auto import tqdm
@@ -55,6 +54,7 @@ from tqdm.auto import tqdm
 from mixedrl.envs import DoubleLaneChangeConfig, DoubleLaneChangeModel, TrackingResult, evaluate_tracking
 from mixedrl.runs import atomic_write_text
 from mixedrl.tasks import DoubleLaneChangeTask
+from validation.lq import discounted_lq_optimum
 
 __all__ = [
     "CONTROLLERS",
@@ -817,16 +817,10 @@ class AffineLQR:
 
 
 def discounted_lqr(A: Any, B: Any, Q: Any, R: Any, gamma: float, mu: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Implements the discounted LQ optimum with next-state cost and mean-shifted noise (EQUATIONS.md, last section).
+    """The discounted LQ optimum as ``(L, l0, S)``: :func:`validation.lq.discounted_lq_optimum` for ``gamma`` in (0, 1].
 
-    .. math::
-
-        S = \\mathrm{DARE}(\\sqrt\\gamma A, \\sqrt\\gamma B, Q, \\gamma R),\\quad
-        L = (R + B^T S B)^{-1} B^T S A,\\quad A_c = A - B L, \\\\
-        p = \\gamma^{-1}(I - \\gamma A_c^T)^{-1} \\gamma A_c^T S \\mu,\\quad
-        l_0 = (R + B^T S B)^{-1} B^T (S \\mu + \\gamma p),
-
-    for ``x' = A x + B u + xi``, ``E xi = mu``, ``l = x'^T Q x' + u^T R u``, policy ``u = -L x - l0``.
+    For ``x' = A x + B u + xi``, ``E xi = mu``, ``l = x'^T Q x' + u^T R u``, policy ``u = -L x - l0``
+    (EQUATIONS.md, last section).
 
     Parameters
     ----------
@@ -852,32 +846,9 @@ def discounted_lqr(A: Any, B: Any, Q: Any, R: Any, gamma: float, mu: Any) -> tup
     ValueError
         Bad ``gamma``, or the DARE has no stabilising solution (names ``Q``).
 
-    Notes
-    -----
-    Same equations as :func:`validation.lq.optimal_solution` (which requires ``gamma < 1`` for its
-    value constant ``c``); a test checks the two agree for ``gamma < 1``. The ``p`` equation is the first
-    block row of that function's linear system, whose off-diagonal block vanishes at the DARE solution.
-    Solved with ``control.dare(method="scipy")``.
     """
-    gamma = _check_gamma(gamma)
-    A, B, Q, R = (np.asarray(m_, dtype=np.float64) for m_ in (A, B, Q, R))
-    mu = np.asarray(mu, dtype=np.float64)
-    sg = math.sqrt(gamma)
-    try:
-        # S solves the DARE with (sqrt(gamma) A, sqrt(gamma) B, Q, gamma R)
-        S, _, _ = control.dare(sg * A, sg * B, Q, gamma * R, method="scipy")
-    except (np.linalg.LinAlgError, ValueError, control.ControlArgument) as exc:
-        raise ValueError(f"Q: the DARE has no stabilising solution ({exc})") from None
-    S = 0.5 * (np.asarray(S) + np.asarray(S).T)
-    H = R + B.T @ S @ B
-    # L = (R + B^T S B)^-1 B^T S A
-    L = np.linalg.solve(H, B.T @ S @ A)
-    Ac = A - B @ L
-    n = A.shape[0]
-    # (I - gamma Ac^T) p = Ac^T S mu ;  l0 = (R + B^T S B)^-1 B^T (S mu + gamma p)
-    p = np.linalg.solve(np.eye(n) - gamma * Ac.T, Ac.T @ S @ mu)
-    l0 = np.linalg.solve(H, B.T @ (S @ mu + gamma * p))
-    return L, l0, S
+    sol = discounted_lq_optimum(A, B, Q, R, _check_gamma(gamma), mu)
+    return sol.gain, sol.offset, sol.S
 
 
 def linearise_straight(config: DoubleLaneChangeConfig | dict[str, Any] | None = None
