@@ -73,6 +73,7 @@ __all__ = [
     "CostWeights",
     "task_config",
     "apply_overrides",
+    "flatten_table",
     "METHODS",
     "TASKS",
     "DISTURBANCE_LAWS",
@@ -905,6 +906,22 @@ def migrate(data: dict[str, Any]) -> dict[str, Any]:
             raise ValueError(f"sampler.name: given as {node['name']!r} and, in the old flat form, "
                              f"state_source={legacy.get('state_source', 'model')!r} ({value!r})")
         node[field_name] = copy.deepcopy(value)
+    return out
+
+
+def flatten_table(table: dict[str, Any], prefix: str = "") -> dict[str, Any]:
+    """Flatten nested TOML tables into dotted keys: ``{"a": {"b": 1}}`` -> ``{"a.b": 1}``.
+
+    TOML turns ``a.b = 1`` into a nested table; a quoted ``"a.b" = 1`` stays one key. Both end up as
+    ``"a.b"``. Lists and scalars are leaves.
+    """
+    out: dict[str, Any] = {}
+    for key, value in table.items():
+        name = f"{prefix}{key}"
+        if isinstance(value, dict):
+            out.update(flatten_table(value, prefix=f"{name}."))
+        else:
+            out[name] = value
     return out
 
 

@@ -62,7 +62,7 @@ import torch
 
 from mixedrl.algorithms.agpi import AGPI
 from mixedrl.algorithms.ddpg import DDPG
-from mixedrl.config import TrainConfig
+from mixedrl.config import TrainConfig, flatten_table
 from mixedrl.tasks import Task, task_from_config
 from mixedrl.tensorboard import TB_DIR, TensorBoardLogger
 
@@ -742,8 +742,6 @@ _BUDGET = "algorithm.iterations"
 def _config_conflicts(saved: TrainConfig, requested: TrainConfig) -> list[tuple[str, Any, Any]]:
     """``(dotted name, saved value, requested value)`` of the fields where the configs differ; a larger
     ``iterations`` is not a conflict (an explicit extension of the budget)."""
-    from mixedrl.sweep import flatten_table
-
     a, b = flatten_table(saved.to_dict()), flatten_table(requested.to_dict())
     out = [(k, a.get(k), b.get(k)) for k in sorted(set(a) | set(b)) if a.get(k) != b.get(k)]
     if [k for k, _, _ in out] == [_BUDGET] and requested.algorithm.iterations > saved.algorithm.iterations:

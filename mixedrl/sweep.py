@@ -67,7 +67,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from mixedrl.config import TrainConfig, apply_overrides
+from mixedrl.config import TrainConfig, apply_overrides, flatten_table
 from mixedrl.runs import RunDirectory, atomic_write_bytes, atomic_write_text, make_trainer, train
 
 __all__ = [
@@ -111,22 +111,6 @@ _MAX_NAME = 160
 #: Dotted-key overrides of a config dict: :func:`mixedrl.config.apply_overrides` (one implementation for
 #: ``mixedrl train --set`` and the sweep's ``[base]`` / ``[grid]`` keys).
 apply_dotted = apply_overrides
-
-
-def flatten_table(table: dict[str, Any], prefix: str = "") -> dict[str, Any]:
-    """Flatten nested TOML tables into dotted keys: ``{"a": {"b": 1}}`` -> ``{"a.b": 1}``.
-
-    TOML turns ``a.b = 1`` into a nested table; a quoted ``"a.b" = 1`` stays one key. Both end up as
-    ``"a.b"``. Lists and scalars are leaves.
-    """
-    out: dict[str, Any] = {}
-    for key, value in table.items():
-        name = f"{prefix}{key}"
-        if isinstance(value, dict):
-            out.update(flatten_table(value, prefix=f"{name}."))
-        else:
-            out[name] = value
-    return out
 
 
 @dataclasses.dataclass(frozen=True)
