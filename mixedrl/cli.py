@@ -19,7 +19,8 @@ configuration (values are JSON, else strings)::
 
 (:func:`mixedrl.config.apply_overrides` applies them; an unknown key, at any level, is an error naming
 its dotted name.) ``evaluate`` drives a run's final policy on its task. ``sweep`` runs a grid of
-configurations x methods x seeds on Ray (:mod:`mixedrl.sweep`, the optional extra ``sweep``).
+configurations x methods x seeds on a local process pool, or on Ray with ``--address`` (:mod:`mixedrl.sweep`;
+Ray is the optional extra ``sweep``).
 
 **Command plug-ins.** Commands beyond ``train``, ``evaluate`` and ``sweep`` are plug-ins, so that the core package
 imports neither ``validation`` nor ``theory``: ``reproduce`` (Table I and the figures of the paper's
@@ -156,10 +157,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 def _sweep(args: argparse.Namespace) -> int:
     """``mixedrl sweep``: 0 if every run finished, 1 if some failed (errors in ``sweep.json``), 2 for an invalid
-    spec or arguments, or without Ray (the message says which extra to install)."""
+    spec or arguments, or ``--address`` without Ray (the message says which extra to install)."""
     try:
         doc = run_sweep(load_spec(args.spec), args.out, address=args.address, num_cpus=args.num_cpus,
-                        resume=args.resume, progress=not args.no_progress)
+                        resume=args.resume, progress=not args.no_progress, workers=args.workers)
     except (ImportError, ValueError) as exc:
         print(f"mixedrl sweep: error: {exc}", file=sys.stderr)
         return 2

@@ -1,8 +1,9 @@
-"""Sweeps: a grid of ordinary training runs (config fields x methods x seeds), executed on Ray.
+"""Sweeps: a grid of ordinary training runs (config fields x variants x methods x seeds), executed on a local
+process pool or on Ray.
 
 ::
 
-    mixedrl sweep SPEC.toml --out DIR [--address ADDR] [--num-cpus N] [--resume] [--no-progress]
+    mixedrl sweep SPEC.toml --out DIR [--workers N] [--address ADDR] [--num-cpus N] [--resume] [--no-progress]
 
 A spec is a small TOML file::
 
@@ -17,58 +18,96 @@ A spec is a small TOML file::
     critic_lr = [1e-3, 3e-3]
     batch_size = [256, 512]
 
-It expands to ``len(grid product) x len(methods) x len(seeds)`` runs. Every run is an ordinary run
-directory (:class:`mixedrl.runs.RunDirectory`) under ``DIR/runs/``, trained by
+    [variants.short]                      # optional: named designs that are not a product, each a table of
+    horizon = 8                           # fields applied over [base] (not method, seed or a grid key)
+    [variants.long]
+    horizon = 32
+
+It expands to ``len(variants or [one]) x len(grid product) x len(methods) x len(seeds)`` runs. Every run is an
+ordinary run directory (:class:`mixedrl.runs.RunDirectory`) under ``DIR/runs/``, trained by
 :func:`mixedrl.runs.make_trainer` and :func:`mixedrl.runs.train`, the code path of ``mixedrl train``: a run
 of a sweep ends with exactly the weights and metrics of the same config trained alone.
 
 Before anything starts, the spec is checked (TOML syntax, top-level keys, non-empty lists without
-duplicates) and the :class:`~mixedrl.config.TrainConfig` of **every** run is built; any error names the
-offending key and nothing is started or written.
+duplicates, variant tables) and the :class:`~mixedrl.config.TrainConfig` of **every** run is built; any error
+names the offending key and nothing is started or written.
 
-The runs execute on `Ray <https://docs.ray.io>`_ (the optional extra ``sweep``), one Ray task per run
-(``num_cpus=1``; each run sets its own ``torch.set_num_threads(config.run.num_threads)``); results are
-gathered with ``ray.wait`` as they finish. By default :func:`ray.init` starts a local cluster on this
-machine; ``--address`` joins an existing cluster (``DIR`` must then be a path every node sees, e.g. a
-shared file system). A failed run is recorded with its error and does not stop the others.
+Engines (the same outputs from each):
+
+* **local process pool** (default): ``--workers N`` processes (default ``os.cpu_count()``;
+  :class:`concurrent.futures.ProcessPoolExecutor` with the ``spawn`` start method, so each worker is a fresh
+  interpreter). ``--workers 1`` trains the runs one after the other in this process. ``--num-cpus`` without
+  ``--address`` is the older name of ``--workers``.
+* **Ray** (the optional extra ``sweep``) when ``--address`` is given: one Ray task per run (``num_cpus=1``),
+  gathered with ``ray.wait``. ``--address local`` starts a local cluster of ``--num-cpus`` CPUs (default
+  all); any other address joins an existing cluster (``DIR`` must then be a path every node sees).
+
+Each run sets its own ``torch.set_num_threads(config.run.num_threads)``. A failed run is recorded with its
+error and does not stop the others.
 
 Outputs in ``DIR``:
 
 * ``spec.toml``: a copy of the spec;
-* ``runs/<name>/``: one run directory per run, ``<name>`` made of the grid values, method and seed
-  (:func:`run_name`);
-* ``sweep.json``: ``runs`` (per run its ``name``, ``point`` (grid values), full ``config``
-  (``TrainConfig.to_dict()``), ``results`` (``lateral_mae``, ``speed_mae``, ``cost``, ``true_transitions``,
-  ``train_seconds``, ``run_dir``) and ``error``), and ``summary``: mean and standard deviation over seeds
-  per grid point and method; rewritten atomically after every finished run;
-* ``sweep.csv`` (one row per run) and ``sweep_summary.csv`` (the summary);
+* ``runs/<name>/``: one run directory per run, ``<name>`` made of the variant, the grid values, method and
+  seed (:func:`run_name`);
+* ``sweep.json``: the spec (``methods``, ``seeds``, ``base``, ``grid``, ``variants`` when it has them), the
+  engine (``engine`` ``"local"`` or ``"ray"``, ``workers`` or ``ray_version``, ``address``), ``failed``,
+  ``finished``, ``wall_seconds``, ``runs`` and ``summary``; rewritten atomically after every finished run.
+  ``runs`` holds **one row per run** (the one result schema of every study):
+
+  * ``name``: the run's directory name
+  * ``point``: its grid values (and ``variant``: the variant's name)
+  * ``config``: the full ``TrainConfig.to_dict()``
+  * ``config_hash``: sha256 of the canonical JSON of ``config`` (:func:`config_hash`)
+  * ``method``: ``config["method"]``
+  * ``seed``: ``config["seed"]``
+  * ``iterations``: the training budget in iterations (``results.json``'s ``iterations``)
+  * ``true_transitions``: true-environment transitions the run consumed (its budget in env steps)
+  * ``metrics``: every top-level number of ``results.json`` (``lateral_mae``, ``speed_mae``, ``cost``,
+    ``iterations_to_converge``, ...) but the columns above and the times
+  * ``train_seconds``: training time (``results.json``)
+  * ``wall_seconds``: the run's wall time in its worker: start-up, training and evaluation
+  * ``run_dir``: ``runs/<name>``, relative to ``DIR``
+  * ``error``: ``null``, or the failed run's exception (``Type: message``)
+  * ``results``: the figures of :data:`RESULT_KEYS` and ``run_dir`` (``null`` for a failed or unfinished run;
+    kept for readers of earlier sweeps)
+
+  A failed or unfinished run has ``null`` budget, times and ``results`` and empty ``metrics``.
+  ``summary``: per grid point and method, mean, sample std and 95% bootstrap interval over seeds
+  (:func:`summarize`);
+* ``sweep.csv``: the rows of ``runs`` flattened (:func:`csv_rows`: grid values and metrics one column each, no
+  ``config``) and ``sweep_summary.csv`` (the summary);
 * ``figures/cost_vs_<first grid key>.png`` when matplotlib is installed.
 
 ``--resume`` skips runs whose ``results.json`` exists and resumes interrupted runs from their
 checkpoints (``train(..., resume=True)``), so a resumed sweep ends with the results of an uninterrupted
 one.
-"""
+
+The statistics and CSV helpers are :mod:`mixedrl.tables`, shared with the studies' scripts."""
 
 from __future__ import annotations
 
 import argparse
-import csv
+import concurrent.futures
 import dataclasses
+import hashlib
 import io
 import itertools
 import json
 import logging
+import multiprocessing
 import os
 import re
 import time
 import tomllib
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any, Iterator, Sequence
 
 import numpy as np
 
 from mixedrl.config import TrainConfig, apply_overrides, flatten_table
 from mixedrl.runs import RunDirectory, atomic_write_bytes, atomic_write_text, make_trainer, train
+from mixedrl.tables import bootstrap_interval, csv_text, mean_std
 
 __all__ = [
     "SPEC_KEYS",
@@ -82,6 +121,8 @@ __all__ = [
     "load_spec",
     "expand",
     "run_name",
+    "config_hash",
+    "csv_rows",
     "run_point",
     "run_sweep",
     "summarize",
@@ -94,9 +135,11 @@ __all__ = [
 logger = logging.getLogger(__name__)
 
 #: Top-level keys a spec may have (``methods`` and ``seeds`` are required).
-SPEC_KEYS = ("methods", "seeds", "base", "grid")
+SPEC_KEYS = ("methods", "seeds", "base", "grid", "variants")
 #: The figures of each run copied into ``sweep.json`` (``None`` when a run does not report one).
 RESULT_KEYS = ("lateral_mae", "speed_mae", "cost", "true_transitions", "train_seconds")
+#: Figures of ``results.json`` that are columns of their own in a sweep's row, not ``metrics``.
+_OWN_COLUMNS = ("seed", "iterations", "true_transitions", "train_seconds")
 #: What to install when Ray is missing.
 INSTALL_HINT = 'pip install -c constraints.txt "mixedrl[sweep]"'
 #: Fields a spec sets through ``methods`` and ``seeds``, never through ``[base]`` or ``[grid]``.
@@ -129,6 +172,9 @@ class SweepSpec:
         Dotted key -> tuple of values; the runs cover their cartesian product (in the spec's key order).
     text : str
         The spec's TOML text (copied to ``DIR/spec.toml``).
+    variants : dict
+        Variant name -> its dotted-key overrides (applied over ``base``); empty for a spec without
+        ``[variants.NAME]`` tables. The runs cover variants x grid points x methods x seeds.
     """
 
     methods: tuple[str, ...]
@@ -136,6 +182,7 @@ class SweepSpec:
     base: dict[str, Any]
     grid: dict[str, tuple[Any, ...]]
     text: str = ""
+    variants: dict[str, dict[str, Any]] = dataclasses.field(default_factory=dict)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -166,7 +213,7 @@ def parse_spec(text: str, source: str = "spec") -> SweepSpec:
     Parameters
     ----------
     text : str
-        TOML with ``methods``, ``seeds``, and optionally ``[base]`` and ``[grid]``.
+        TOML with ``methods``, ``seeds``, and optionally ``[base]``, ``[grid]`` and ``[variants.NAME]``.
     source : str
         Name used in error messages (the file's path).
 
@@ -181,7 +228,8 @@ def parse_spec(text: str, source: str = "spec") -> SweepSpec:
         empty, non-list or duplicated ``methods`` / ``seeds`` / grid list (message starts with the key,
         e.g. ``grid.critic_lr: ...``), ``method`` or ``seed`` set in ``[base]`` / ``[grid]``, a field
         both in ``[base]`` and ``[grid]``, or a run whose config :meth:`TrainConfig.from_dict` rejects
-        (unknown or invalid field; message starts with the run's name).
+        (unknown or invalid field; message starts with the run's name), a ``[variants.NAME]`` that is not a
+        table, sets ``method`` / ``seed`` or a grid key (``variants.NAME.KEY: ...``).
     """
     try:
         data = tomllib.loads(text)
@@ -208,9 +256,33 @@ def parse_spec(text: str, source: str = "spec") -> SweepSpec:
     for key in grid:
         if key in tables["base"]:
             raise ValueError(f"grid.{key}: also set in [base]; set it in one place")
-    spec = SweepSpec(methods=tuple(methods), seeds=tuple(seeds), base=tables["base"], grid=grid, text=text)
+    variants = _parse_variants(data.get("variants", {}), grid)
+    spec = SweepSpec(methods=tuple(methods), seeds=tuple(seeds), base=tables["base"], grid=grid, text=text,
+                     variants=variants)
     expand(spec)  # builds (and so validates) the config of every run before anything starts
     return spec
+
+
+def _parse_variants(table: Any, grid: dict[str, Any]) -> dict[str, dict[str, Any]]:
+    """Check the ``[variants.NAME]`` tables: each a table of dotted-key overrides (over ``[base]``), not
+    ``method`` / ``seed`` and not a grid key."""
+    if not isinstance(table, dict):
+        raise ValueError(f"variants: expected tables [variants.NAME], got {type(table).__name__}")
+    variants: dict[str, dict[str, Any]] = {}
+    for name, body in table.items():
+        if not re.fullmatch(r"[A-Za-z0-9.+\-_]+", name):
+            raise ValueError(f"variants.{name}: a variant name may hold letters, digits, '.', '+', '-', '_' only")
+        if not isinstance(body, dict):
+            raise ValueError(f"variants.{name}: expected a table [variants.{name}], got {type(body).__name__}")
+        flat = flatten_table(body)
+        for field, via in _RESERVED.items():
+            if field in flat:
+                raise ValueError(f"variants.{name}.{field}: set by the spec's {via!r} list, not in a variant")
+        for key in flat:
+            if key in grid:
+                raise ValueError(f"variants.{name}.{key}: also a grid key; set it in one place")
+        variants[name] = flat
+    return variants
 
 
 def load_spec(path: str | Path) -> SweepSpec:
@@ -253,15 +325,14 @@ def run_name(point: dict[str, Any], method: str, seed: int) -> str:
     parts = [f"{key}={_format_value(value)}" for key, value in point.items()] + [f"{method}_seed{seed}"]
     name = "__".join(parts)
     if len(name) > _MAX_NAME:
-        import hashlib
-
         digest = hashlib.sha256(name.encode()).hexdigest()[:12]
         name = f"{name[:_MAX_NAME - 14]}__{digest}"
     return name
 
 
 def expand(spec: SweepSpec) -> list[SweepRun]:
-    """Every run of ``spec``: grid points (cartesian product, spec order) x methods x seeds.
+    """Every run of ``spec``: variants (spec order) x grid points (cartesian product, spec order) x methods x
+    seeds. A run's ``point`` holds ``variant`` (its name, for a spec with variants) and its grid values.
 
     Returns
     -------
@@ -280,7 +351,9 @@ def expand(spec: SweepSpec) -> list[SweepRun]:
     except (ValueError, TypeError) as exc:
         raise ValueError(f"base: {exc}") from None
     keys = list(spec.grid)
-    combos = [(dict(zip(keys, values)), method, seed)
+    variants: list[str | None] = list(spec.variants) or [None]
+    combos = [({**({} if variant is None else {"variant": variant}), **dict(zip(keys, values))}, method, seed)
+              for variant in variants
               for values in itertools.product(*(spec.grid[k] for k in keys))
               for method in spec.methods for seed in spec.seeds]
     names: dict[str, dict[str, Any]] = {}
@@ -292,7 +365,9 @@ def expand(spec: SweepSpec) -> list[SweepRun]:
     runs: list[SweepRun] = []
     for point, method, seed in combos:
         name = run_name(point, method, seed)
-        overrides = {**spec.base, **point, "method": method, "seed": seed}
+        variant = spec.variants.get(point.get("variant"), {}) if spec.variants else {}
+        grid_point = {k: v for k, v in point.items() if not (spec.variants and k == "variant")}
+        overrides = {**spec.base, **variant, **grid_point, "method": method, "seed": seed}
         try:
             config = TrainConfig.from_dict(apply_dotted(defaults, overrides))
         except (ValueError, TypeError) as exc:
@@ -302,10 +377,24 @@ def expand(spec: SweepSpec) -> list[SweepRun]:
 
 
 # ----------------------------------------------------------------------------------------------------
-# one run (executed in a Ray worker)
+# one run (executed in this process, a pool worker or a Ray worker)
 # ----------------------------------------------------------------------------------------------------
+def config_hash(config: TrainConfig | dict[str, Any]) -> str:
+    """The sha256 (hex) of a run's configuration: of the canonical JSON of ``TrainConfig.to_dict()`` (keys
+    sorted, no whitespace), so two runs with equal configs have equal hashes wherever they ran.
+
+    Parameters
+    ----------
+    config : TrainConfig or dict
+        The config, or its ``to_dict()``.
+    """
+    data = config.to_dict() if isinstance(config, TrainConfig) else config
+    text = json.dumps(data, sort_keys=True, separators=(",", ":"), allow_nan=True)
+    return hashlib.sha256(text.encode("utf-8")).hexdigest()
+
+
 def run_point(config: dict[str, Any], path: str, resume: bool = False) -> dict[str, Any]:
-    """Train one run of a sweep into ``path``; the body of its Ray task.
+    """Train one run of a sweep into ``path``; the body of its pool or Ray task.
 
     Exactly ``mixedrl train``: :func:`mixedrl.runs.make_trainer` then :func:`mixedrl.runs.train` (which
     sets ``torch.set_num_threads(config.run.num_threads)``).
@@ -338,18 +427,18 @@ def run_point(config: dict[str, Any], path: str, resume: bool = False) -> dict[s
     return train(make_trainer(cfg), run_dir, resume=resume, progress=False)
 
 
+def _timed_run_point(config: dict[str, Any], path: str, resume: bool) -> tuple[dict[str, Any], float]:
+    """:func:`run_point` and its wall time in seconds (start-up, training and evaluation)."""
+    t0 = time.perf_counter()
+    results = run_point(config, path, resume)
+    return results, time.perf_counter() - t0
+
+
 # ----------------------------------------------------------------------------------------------------
 # the sweep
 # ----------------------------------------------------------------------------------------------------
-def _mean_std(values: list[float]) -> tuple[float | None, float | None]:
-    if not values:
-        return None, None
-    arr = np.asarray(values, dtype=float)
-    return float(arr.mean()), float(arr.std(ddof=1)) if arr.size > 1 else 0.0
-
-
 def summarize(records: list[dict[str, Any]]) -> list[dict[str, Any]]:
-    """Aggregate the runs over seeds: per grid point and method, mean and std of each figure.
+    """Aggregate the runs over seeds: per grid point and method, mean, std and 95% interval of each figure.
 
     Parameters
     ----------
@@ -360,8 +449,11 @@ def summarize(records: list[dict[str, Any]]) -> list[dict[str, Any]]:
     -------
     list of dict
         One row per (grid point, method), in sweep order: ``point``, ``method``, ``runs`` (finished),
-        ``failed``, and ``<figure>_mean`` / ``<figure>_std`` for every figure of :data:`RESULT_KEYS`
-        (sample std, ``ddof=1``; 0 for one seed; ``None`` when no run reports the figure).
+        ``failed``, and ``<figure>_mean`` / ``<figure>_std`` / ``<figure>_ci_low`` / ``<figure>_ci_high``
+        for every figure of :data:`RESULT_KEYS` (:func:`mixedrl.tables.mean_std`: sample std, ``ddof=1``, 0
+        for one seed; :func:`mixedrl.tables.bootstrap_interval`: the seeded 95% percentile-bootstrap
+        interval of the mean, ``None`` for fewer than two seeds; all ``None`` when no run reports the
+        figure).
     """
     groups: dict[str, dict[str, Any]] = {}
     for rec in records:
@@ -378,25 +470,19 @@ def summarize(records: list[dict[str, Any]]) -> list[dict[str, Any]]:
                                "failed": group["failed"]}
         for fig in RESULT_KEYS:
             values = [r[fig] for r in group["done"] if isinstance(r.get(fig), (int, float))]
-            row[f"{fig}_mean"], row[f"{fig}_std"] = _mean_std(values)
+            row[f"{fig}_mean"], row[f"{fig}_std"] = mean_std(values)
+            row[f"{fig}_ci_low"], row[f"{fig}_ci_high"] = bootstrap_interval(values)
         rows.append(row)
     return rows
 
 
-def _csv_text(rows: list[dict[str, Any]]) -> str:
-    """CSV of dict rows; the columns are the union of their keys, in order of appearance."""
-    keys = list(dict.fromkeys(key for row in rows for key in row))
-    out = io.StringIO()
-    writer = csv.writer(out)
-    writer.writerow(keys)
-    writer.writerows([row.get(key) for key in keys] for row in rows)
-    return out.getvalue()
-
-
 def _spec_doc(spec: SweepSpec) -> dict[str, Any]:
-    """The spec's part of ``sweep.json``."""
-    return {"methods": list(spec.methods), "seeds": list(spec.seeds), "base": spec.base,
-            "grid": {k: list(v) for k, v in spec.grid.items()}}
+    """The spec's part of ``sweep.json`` (``variants`` only for a spec that has them)."""
+    doc = {"methods": list(spec.methods), "seeds": list(spec.seeds), "base": spec.base,
+           "grid": {k: list(v) for k, v in spec.grid.items()}}
+    if spec.variants:
+        doc["variants"] = spec.variants
+    return doc
 
 
 #: What a sweep writes into its ``--out``; anything else there is not the sweep's.
@@ -443,15 +529,9 @@ def _write_outputs(out: Path, spec: SweepSpec, records: list[dict[str, Any]], ex
     summary = summarize(records)
     doc = {**_spec_doc(spec), **extra, "runs": records, "summary": summary}
     atomic_write_text(out / "sweep.json", json.dumps(doc, indent=2, allow_nan=True) + "\n")
-    flat = []
-    for rec in records:
-        row = {"name": rec["name"], **rec["point"], "method": rec["config"]["method"], "seed": rec["config"]["seed"]}
-        row.update(rec["results"] or {k: None for k in (*RESULT_KEYS, "run_dir")})
-        row["error"] = rec["error"]
-        flat.append(row)
-    atomic_write_text(out / "sweep.csv", _csv_text(flat))
+    atomic_write_text(out / "sweep.csv", csv_text(csv_rows(records)))
     table = [{**row["point"], **{k: v for k, v in row.items() if k != "point"}} for row in summary]
-    atomic_write_text(out / "sweep_summary.csv", _csv_text(table))
+    atomic_write_text(out / "sweep_summary.csv", csv_text(table))
 
 
 def make_figure(out: str | Path, summary: list[dict[str, Any]], grid: dict[str, Sequence[Any]]) -> Path | None:
@@ -516,13 +596,47 @@ def make_figure(out: str | Path, summary: list[dict[str, Any]], grid: dict[str, 
     return path
 
 
-def _record(sweep_run: SweepRun, results: dict[str, Any] | None, error: str | None) -> dict[str, Any]:
+def _record(sweep_run: SweepRun, results: dict[str, Any] | None, error: str | None,
+            wall_seconds: float | None = None) -> dict[str, Any]:
+    """One row of ``sweep.json``'s ``runs`` (the schema of the module docstring)."""
+    config = sweep_run.config.to_dict()
     figures = None
+    metrics: dict[str, Any] = {}
     if results is not None:
         figures = {k: results.get(k) for k in RESULT_KEYS}
         figures["run_dir"] = str(Path("runs") / sweep_run.name)
-    return {"name": sweep_run.name, "point": sweep_run.point, "config": sweep_run.config.to_dict(),
+        metrics = {k: v for k, v in results.items()
+                   if isinstance(v, (int, float)) and not isinstance(v, bool) and k not in _OWN_COLUMNS}
+    return {"name": sweep_run.name, "point": sweep_run.point, "config": config,
+            "config_hash": config_hash(config), "method": sweep_run.config.method, "seed": sweep_run.config.seed,
+            "iterations": None if results is None else results.get("iterations", config["algorithm"]["iterations"]),
+            "true_transitions": None if results is None else results.get("true_transitions"),
+            "metrics": metrics,
+            "train_seconds": None if results is None else results.get("train_seconds"),
+            "wall_seconds": wall_seconds, "run_dir": str(Path("runs") / sweep_run.name),
             "results": figures, "error": error}
+
+
+def csv_rows(records: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """The rows of ``sweep.csv``: per run its name, grid values, method, seed, config hash, budget, metrics
+    (one column each), times, run directory and error.
+
+    Parameters
+    ----------
+    records : list of dict
+        The ``runs`` of ``sweep.json``.
+    """
+    rows = []
+    for rec in records:
+        row = {"name": rec["name"], **rec["point"], "method": rec["config"]["method"],
+               "seed": rec["config"]["seed"], "config_hash": rec.get("config_hash"),
+               "iterations": rec.get("iterations"), "true_transitions": rec.get("true_transitions")}
+        row.update({k: None for k in RESULT_KEYS})
+        row.update(rec.get("metrics") or {})
+        row.update({"train_seconds": rec.get("train_seconds"), "wall_seconds": rec.get("wall_seconds"),
+                    "run_dir": rec.get("run_dir"), "error": rec["error"]})
+        rows.append(row)
+    return rows
 
 
 def _error_text(exc: BaseException) -> str:
@@ -531,9 +645,62 @@ def _error_text(exc: BaseException) -> str:
     return f"{type(err).__name__}: {err}"
 
 
+#: A finished run as the executors report it: (index, results or None, error text or None, wall seconds).
+_Done = tuple[int, "dict[str, Any] | None", "str | None", "float | None"]
+
+
+def _run_here(jobs: list[tuple[dict[str, Any], str, bool]]) -> Iterator[_Done]:
+    """Run the jobs one after the other in this process (``workers=1``)."""
+    for i, job in enumerate(jobs):
+        try:
+            results, wall = _timed_run_point(*job)
+            yield i, results, None, wall
+        except Exception as exc:  # noqa: BLE001 - one failed run must not stop the others
+            yield i, None, _error_text(exc), None
+
+
+def _run_pool(jobs: list[tuple[dict[str, Any], str, bool]], workers: int) -> Iterator[_Done]:
+    """Run the jobs on a local pool of ``workers`` processes (``spawn``: a fresh interpreter each, no state
+    inherited from this one), yielding them as they finish."""
+    context = multiprocessing.get_context("spawn")
+    with concurrent.futures.ProcessPoolExecutor(max_workers=workers, mp_context=context) as pool:
+        futures = {pool.submit(_timed_run_point, *job): i for i, job in enumerate(jobs)}
+        try:
+            for future in concurrent.futures.as_completed(futures):
+                try:
+                    results, wall = future.result()
+                    yield futures[future], results, None, wall
+                except Exception as exc:  # noqa: BLE001 - one failed run must not stop the others
+                    yield futures[future], None, _error_text(exc), None
+        finally:
+            for future in futures:
+                future.cancel()
+
+
+def _run_ray(jobs: list[tuple[dict[str, Any], str, bool]], ray: Any) -> Iterator[_Done]:
+    """Run the jobs as Ray tasks (``num_cpus=1`` each) on the initialised cluster, yielding them as they
+    finish (``ray.wait``)."""
+    task = ray.remote(num_cpus=1)(_timed_run_point)
+    refs = {task.remote(*job): i for i, job in enumerate(jobs)}
+    pending = list(refs)
+    while pending:
+        done, pending = ray.wait(pending, num_returns=1)
+        try:
+            results, wall = ray.get(done[0])
+            yield refs[done[0]], results, None, wall
+        except Exception as exc:  # noqa: BLE001 - one failed run must not stop the others
+            yield refs[done[0]], None, _error_text(exc), None
+
+
+def _check_count(value: Any, name: str) -> None:
+    if value is not None and (isinstance(value, bool) or not isinstance(value, int) or value < 1):
+        raise ValueError(f"{name}: expected a positive integer, got {value!r}")
+
+
 def run_sweep(spec: SweepSpec, out: str | Path, address: str | None = None, num_cpus: int | None = None,
-              resume: bool = False, progress: bool = True) -> dict[str, Any]:
-    """Run every run of ``spec`` on Ray and write the sweep's outputs into ``out``.
+              resume: bool = False, progress: bool = True, workers: int | None = None) -> dict[str, Any]:
+    """Run every run of ``spec`` (on a local process pool, or on Ray with ``address``) and write the sweep's
+    outputs into ``out``.
 
     Parameters
     ----------
@@ -542,14 +709,21 @@ def run_sweep(spec: SweepSpec, out: str | Path, address: str | None = None, num_
     out : str or pathlib.Path
         The sweep directory (on a shared file system when ``address`` names a multi-node cluster).
     address : str, optional
-        Address of an existing Ray cluster (``"auto"``, ``"HOST:6379"``, ``"ray://HOST:10001"``); ``None``
-        starts a local cluster (unless Ray is already initialised in this process, which is then used).
+        Run on Ray: the address of an existing cluster (``"auto"``, ``"HOST:6379"``, ``"ray://HOST:10001"``)
+        or ``"local"`` (start a local cluster of ``num_cpus`` CPUs). When Ray is already initialised in this
+        process, that cluster is used. ``None`` (default): the local process pool.
     num_cpus : int, optional
-        CPUs of the local cluster (default ``os.cpu_count()``); ignored when joining a cluster.
+        With ``address="local"``: CPUs of the local Ray cluster (default ``os.cpu_count()``). Without
+        ``address``: the older name of ``workers`` (giving both with different values is an error).
+        Ignored when joining a running cluster.
     resume : bool
         Skip finished runs, resume interrupted ones from their checkpoints.
     progress : bool
         tqdm progress bar over runs.
+    workers : int, optional
+        Processes of the local pool (default ``os.cpu_count()``; each run is single-threaded unless its
+        config sets ``run.num_threads``). ``1`` runs the runs one after the other in this process, exactly
+        as ``mixedrl train`` would. Not used with ``address``.
 
     Returns
     -------
@@ -559,27 +733,37 @@ def run_sweep(spec: SweepSpec, out: str | Path, address: str | None = None, num_
     Raises
     ------
     ImportError
-        Ray is not installed (the message names the extra to install).
+        ``address`` is given and Ray is not installed (the message names the extra to install).
     ValueError
         ``out`` already holds a sweep and ``resume`` is false, ``resume`` with a different spec in
         ``out/spec.toml`` or ``out/sweep.json``, ``out`` holds files that are not this sweep's (anything
-        but :data:`SWEEP_FILES`, or a run directory the spec does not name), or ``num_cpus`` not a
-        positive integer. Nothing is started or written.
+        but :data:`SWEEP_FILES`, or a run directory the spec does not name), ``num_cpus`` or ``workers``
+        not a positive integer, ``workers`` with ``address``, or ``workers`` and ``num_cpus`` that differ
+        without ``address``. Nothing is started or written.
     """
     out = Path(out).resolve()
     runs = expand(spec)
-    if num_cpus is not None and (isinstance(num_cpus, bool) or not isinstance(num_cpus, int) or num_cpus < 1):
-        raise ValueError(f"num_cpus: expected a positive integer, got {num_cpus!r}")
+    _check_count(num_cpus, "num_cpus")
+    _check_count(workers, "workers")
+    if address is not None and workers is not None:
+        raise ValueError("workers: the local process pool's size; with address the runs go to Ray (use num_cpus "
+                         "for a local Ray cluster)")
+    if address is None and workers is not None and num_cpus is not None and workers != num_cpus:
+        raise ValueError(f"num_cpus: without address it is the older name of workers; got workers={workers} and "
+                         f"num_cpus={num_cpus}")
     saved_spec = out / "spec.toml"
     _check_out(out, spec, runs, resume)
-    try:
-        import ray
-    except ImportError:
-        raise ImportError(f"mixedrl sweep needs Ray: {INSTALL_HINT}") from None
+    ray = None
+    if address is not None:
+        try:
+            import ray
+        except ImportError:
+            raise ImportError(f"mixedrl sweep --address needs Ray: {INSTALL_HINT}") from None
+    n_workers = workers or num_cpus or os.cpu_count() or 1
 
     started = False
-    if not ray.is_initialized():
-        if address is None:
+    if ray is not None and not ray.is_initialized():
+        if address == "local":
             ray.init(num_cpus=num_cpus or os.cpu_count() or 1, include_dashboard=False, log_to_driver=False)
         else:
             ray.init(address=address, log_to_driver=False)
@@ -588,10 +772,15 @@ def run_sweep(spec: SweepSpec, out: str | Path, address: str | None = None, num_
         (out / "runs").mkdir(parents=True, exist_ok=True)
         atomic_write_text(saved_spec, spec.text)
         t0 = time.perf_counter()
-        task = ray.remote(num_cpus=1)(run_point)
-        refs = {task.remote(r.config.to_dict(), str(out / "runs" / r.name), resume): i for i, r in enumerate(runs)}
+        jobs = [(r.config.to_dict(), str(out / "runs" / r.name), resume) for r in runs]
         records: list[dict[str, Any] | None] = [None] * len(runs)
-        extra = {"ray_version": ray.__version__, "address": address}
+        if ray is not None:
+            extra: dict[str, Any] = {"engine": "ray", "ray_version": ray.__version__, "address": address}
+            finished = _run_ray(jobs, ray)
+        else:
+            n_workers = min(n_workers, len(jobs))
+            extra = {"engine": "local", "workers": n_workers, "address": None}
+            finished = _run_here(jobs) if n_workers == 1 else _run_pool(jobs, n_workers)
 
         def current() -> list[dict[str, Any]]:
             return [rec if rec is not None else _record(r, None, None) for rec, r in zip(records, runs)]
@@ -601,19 +790,13 @@ def run_sweep(spec: SweepSpec, out: str | Path, address: str | None = None, num_
             from tqdm.auto import tqdm
 
             bar = tqdm(total=len(runs), desc="sweep (runs)")
-        pending = list(refs)
         failed = 0
         try:
-            while pending:
-                done, pending = ray.wait(pending, num_returns=1)
-                i = refs[done[0]]
-                try:
-                    results, error = ray.get(done[0]), None
-                except Exception as exc:  # noqa: BLE001 - one failed run must not stop the others
-                    results, error = None, _error_text(exc)
+            for i, results, error, wall in finished:
+                if error is not None:
                     failed += 1
                     logger.error("run %s failed: %s", runs[i].name, error)
-                records[i] = _record(runs[i], results, error)
+                records[i] = _record(runs[i], results, error, wall)
                 _write_outputs(out, spec, current(), {**extra, "failed": failed, "finished": False,
                                                        "wall_seconds": time.perf_counter() - t0})
                 if bar is not None:
@@ -633,24 +816,30 @@ def run_sweep(spec: SweepSpec, out: str | Path, address: str | None = None, num_
     return doc
 
 
+
 # ----------------------------------------------------------------------------------------------------
 # command line
 # ----------------------------------------------------------------------------------------------------
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    """The options of ``mixedrl sweep`` (positional ``spec``, ``--out``, ``--address``, ``--num-cpus``, ``--resume``,
-    ``--no-progress``)."""
-    p.add_argument("spec", type=Path, help="sweep spec (TOML: methods, seeds, [base], [grid])")
+    """The options of ``mixedrl sweep`` (positional ``spec``, ``--out``, ``--workers``, ``--address``,
+    ``--num-cpus``, ``--resume``, ``--no-progress``)."""
+    p.add_argument("spec", type=Path, help="sweep spec (TOML: methods, seeds, [base], [grid], [variants.NAME])")
     p.add_argument("--out", type=Path, required=True, help="sweep directory (shared by every node of a cluster)")
+    p.add_argument("--workers", type=int, default=None,
+                   help="processes of the local pool (default: all CPUs; 1 runs in this process)")
     p.add_argument("--address", default=None,
-                   help="join an existing Ray cluster (e.g. 'auto' or HOST:6379); default: start a local one")
-    p.add_argument("--num-cpus", type=int, default=None, help="CPUs of the local cluster (default: all)")
+                   help="run on Ray: join a cluster (e.g. 'auto' or HOST:6379) or 'local' to start one; "
+                        "default: the local process pool")
+    p.add_argument("--num-cpus", type=int, default=None,
+                   help="CPUs of the local Ray cluster of --address local (default: all); without --address, "
+                        "the same as --workers")
     p.add_argument("--resume", action="store_true", help="skip finished runs, resume interrupted ones")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
 def add_parser(subparsers: Any) -> None:
     """Add the ``sweep`` sub-command to ``mixedrl``'s sub-parsers (``argparse`` ``add_subparsers()``)."""
-    p = subparsers.add_parser("sweep", help="run a grid of training runs (config x methods x seeds) on Ray",
+    p = subparsers.add_parser("sweep", help="run a grid of training runs (config x methods x seeds) on a process pool or Ray",
                               description=__doc__.split("\n", 1)[0])
     add_arguments(p)
 

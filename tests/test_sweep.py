@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import hashlib
 import json
 import shutil
 import sys
@@ -132,6 +133,46 @@ def test_invalid_specs_are_rejected_naming_the_key(text: str, message: str) -> N
         parse_spec(text)
 
 
+VARIANTS = """
+[variants.small]
+batch_size = 16
+
+[variants.wide]
+batch_size = 64
+hidden_sizes = [32, 32]
+"""
+
+
+def test_variants_are_named_overrides_over_base_crossed_with_the_grid() -> None:
+    spec = parse_spec('methods = ["mixed"]\nseeds = [0, 1]\n' + BASE + '\n[grid]\ncritic_lr = [1e-3, 3e-3]\n'
+                      + VARIANTS)
+    runs = expand(spec)
+    assert len(runs) == 2 * 2 * 2
+    assert runs[0].name == "variant=small__critic_lr=0.001__mixed_seed0"
+    assert runs[0].point == {"variant": "small", "critic_lr": 1e-3}
+    base = dict(task="linear", iterations=20, eval_every=10, checkpoint_every=10, eval_seeds=1)
+    assert runs[0].config == TrainConfig(method="mixed", seed=0, batch_size=16, critic_lr=1e-3, **base)
+    assert runs[-1].config == TrainConfig(method="mixed", seed=1, batch_size=64, hidden_sizes=[32, 32],
+                                          critic_lr=3e-3, **base)
+    assert spec.variants == {"small": {"batch_size": 16}, "wide": {"batch_size": 64, "hidden_sizes": [32, 32]}}
+    only = expand(parse_spec('methods = ["model"]\nseeds = [0]\n' + BASE + VARIANTS))
+    assert [r.name for r in only] == ["variant=small__model_seed0", "variant=wide__model_seed0"]
+
+
+@pytest.mark.parametrize("tail, message", [
+    ("variants = 3", r"^variants: expected tables"),
+    ("[variants]\nsmall = 3", r"^variants.small: expected a table"),
+    ("[variants.small]\nseed = 3", r"^variants.small.seed: set by the spec's 'seeds'"),
+    ("[variants.small]\nmethod = 'model'", r"^variants.small.method: set by the spec's 'methods'"),
+    ("[grid]\ncritic_lr = [1e-3]\n[variants.small]\ncritic_lr = 1e-2", r"^variants.small.critic_lr: also a grid key"),
+    ('[variants."a b"]\nbatch_size = 8', r"^variants.a b: a variant name may hold"),
+    ("[variants.small]\nbatchsize = 8", r"^variant=small__mixed_seed0: config: unknown key\(s\) \['batchsize'\]"),
+])
+def test_invalid_variants_are_rejected_naming_the_key(tail: str, message: str) -> None:
+    with pytest.raises(ValueError, match=message):
+        parse_spec('methods = ["mixed"]\nseeds = [0]\n' + tail)
+
+
 def test_load_spec_errors(tmp_path: Path) -> None:
     with pytest.raises(ValueError, match="^spec: .* does not exist"):
         load_spec(tmp_path / "missing.toml")
@@ -164,15 +205,20 @@ def test_invalid_spec_starts_nothing(tmp_path: Path, capsys: pytest.CaptureFixtu
     assert "Traceback" not in err and not out.exists()
 
 
-def test_without_ray_the_command_names_the_extra(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
-                                                  capsys: pytest.CaptureFixture[str]) -> None:
+def test_without_ray_address_names_the_extra_and_the_pool_needs_no_ray(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]) -> None:
     monkeypatch.setitem(sys.modules, "ray", None)  # makes ``import ray`` raise ImportError
     spec = tmp_path / "spec.toml"
     spec.write_text(SPEC)
-    assert main([str(spec), "--out", str(tmp_path / "out"), "--no-progress"]) == 2
+    assert main([str(spec), "--out", str(tmp_path / "out"), "--address", "local", "--no-progress"]) == 2
     err = capsys.readouterr().err
     assert INSTALL_HINT in err and "mixedrl[sweep]" in err and "Traceback" not in err
     assert not (tmp_path / "out").exists()
+    # the local engine (here in this process) does not import Ray
+    assert main([str(spec.parent / "spec.toml"), "--out", str(tmp_path / "out"), "--workers", "1",
+                 "--no-progress"]) == 0
+    doc = json.loads((tmp_path / "out" / "sweep.json").read_text())
+    assert (doc["engine"], doc["workers"], doc["failed"]) == ("local", 1, 0)
 
 
 def test_existing_sweep_needs_resume(tmp_path: Path) -> None:
@@ -193,8 +239,18 @@ def test_add_parser_and_num_cpus() -> None:
         ("sweep", Path("s.toml"), Path("d"), "auto", True, False, None)
     with pytest.raises(SystemExit):
         parser.parse_args(["sweep", "s.toml"])  # --out is required
-    with pytest.raises(ValueError, match="^num_cpus"):
+    args = parser.parse_args(["sweep", "s.toml", "--out", "d", "--workers", "3"])
+    assert (args.workers, args.address, args.num_cpus) == (3, None, None)
+    with pytest.raises(ValueError, match="^num_cpus: expected a positive integer"):
         run_sweep(parse_spec(SPEC), "unused", num_cpus=0)
+    for bad in (0, -1, True, 1.5):
+        with pytest.raises(ValueError, match="^workers: expected a positive integer"):
+            run_sweep(parse_spec(SPEC), "unused", workers=bad)
+    with pytest.raises(ValueError, match="^workers: .* with address"):
+        run_sweep(parse_spec(SPEC), "unused", workers=2, address="auto")
+    with pytest.raises(ValueError, match="^num_cpus: without address it is the older name of workers"):
+        run_sweep(parse_spec(SPEC), "unused", workers=2, num_cpus=3)
+    assert not Path("unused").exists()
 
 
 def test_summarize_means_and_sample_std_over_seeds() -> None:
@@ -238,15 +294,17 @@ def test_make_figure_plots_cost_against_the_first_grid_key(tmp_path: Path, monke
 
 
 # ----------------------------------------------------------------------------------------------------
-# sweeps on a local Ray cluster
+# sweeps on the local process pool, in this process, and on a local Ray cluster
 # ----------------------------------------------------------------------------------------------------
 @pytest.fixture(scope="module")
-def local_ray():
-    """One local Ray cluster for the module (starting one takes ~10 s); run_sweep reuses it."""
-    ray = pytest.importorskip("ray", reason="Ray is not installed (extra 'sweep')")
-    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
-    yield ray
-    ray.shutdown()
+def pool_sweep(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path, dict]:
+    """SPEC swept once on a pool of two spawned processes (the default engine): (spec path, out, sweep.json)."""
+    root = tmp_path_factory.mktemp("pool")
+    spec_path = root / "spec.toml"
+    spec_path.write_text(SPEC)
+    out = root / "full"
+    assert main([str(spec_path), "--out", str(out), "--workers", "2", "--no-progress"]) == 0
+    return spec_path, out, json.loads((out / "sweep.json").read_text())
 
 
 def _weights(run: Path) -> dict[str, torch.Tensor]:
@@ -263,20 +321,25 @@ def _without_time(rows: list[dict]) -> list[dict]:
     return [{k: v for k, v in r.items() if not k.startswith("time/")} for r in rows]
 
 
-@pytest.mark.sweep
-def test_sweep_on_local_ray_equals_train_alone_and_resumes(local_ray, tmp_path: Path) -> None:
+_TIMES = ("train_seconds", "wall_seconds")
 
-    spec_path = tmp_path / "spec.toml"
-    spec_path.write_text(SPEC)
-    full = tmp_path / "full"
-    assert main([str(spec_path), "--out", str(full), "--no-progress"]) == 0
 
+def _timeless(rec: dict) -> dict:
+    """A row of sweep.json without its wall-clock figures."""
+    out = {k: v for k, v in rec.items() if k not in _TIMES}
+    out["metrics"] = {k: v for k, v in rec["metrics"].items() if k not in _TIMES}
+    out["results"] = None if rec["results"] is None else {k: v for k, v in rec["results"].items() if k not in _TIMES}
+    return out
+
+
+def test_sweep_on_the_local_pool_equals_train_alone_and_resumes(pool_sweep, tmp_path: Path) -> None:
+    spec_path, full, doc = pool_sweep
     # sweep.json: each run's full config and its figures; the CSVs and the spec copy
-    doc = json.loads((full / "sweep.json").read_text())
     runs = expand(load_spec(spec_path))
     assert [r["name"] for r in doc["runs"]] == [r.name for r in runs] == \
         ["critic_lr=0.001__mixed_seed0", "critic_lr=0.003__mixed_seed0"]
     assert doc["failed"] == 0 and doc["finished"] is True
+    assert (doc["engine"], doc["workers"], doc["address"]) == ("local", 2, None)
     for rec, sweep_run in zip(doc["runs"], runs):
         assert rec["config"] == sweep_run.config.to_dict() and rec["error"] is None
         results = RunDirectory(full / rec["results"]["run_dir"]).read_results()
@@ -307,7 +370,8 @@ def test_sweep_on_local_ray_equals_train_alone_and_resumes(local_ray, tmp_path: 
     assert RunDirectory(swept).read_results()["final"] == RunDirectory(alone).read_results()["final"]
     assert _without_time(RunDirectory(swept).read_metrics()) == _without_time(RunDirectory(alone).read_metrics())
 
-    # resume: the first run interrupted after 10 of 20 iterations, the second finished
+    # resume (in this process, workers=1): the first run interrupted after 10 of 20 iterations, the second
+    # finished
     resumed = tmp_path / "resumed"
     train(make_trainer(first.config), RunDirectory(resumed / "runs" / first.name), stop_after=10)
     partial = RunDirectory(resumed / "runs" / first.name).read_metrics()
@@ -315,20 +379,57 @@ def test_sweep_on_local_ray_equals_train_alone_and_resumes(local_ray, tmp_path: 
     shutil.copytree(full / "runs" / runs[1].name, resumed / "runs" / runs[1].name)
     finished_results = resumed / "runs" / runs[1].name / "results.json"
     stamp = finished_results.stat().st_mtime_ns
-    doc2 = run_sweep(load_spec(spec_path), resumed, resume=True, progress=False)
+    doc2 = run_sweep(load_spec(spec_path), resumed, resume=True, progress=False, workers=1)
     assert finished_results.stat().st_mtime_ns == stamp  # skipped, not retrained
     rows2 = RunDirectory(resumed / "runs" / first.name).read_metrics()
     assert rows2[:10] == partial  # continued from the checkpoint (a restart would rewrite the times)
     assert _same_weights(resumed / "runs" / first.name, swept)
-    for a, b in zip(doc2["runs"], doc["runs"]):
-        assert {k: v for k, v in a["results"].items() if k != "train_seconds"} == \
-            {k: v for k, v in b["results"].items() if k != "train_seconds"}
-        assert a["config"] == b["config"]
-    assert doc2["failed"] == 0
+    assert [_timeless(a) for a in doc2["runs"]] == [_timeless(b) for b in doc["runs"]]
+    assert doc2["failed"] == 0 and doc2["workers"] == 1
+
+
+def test_one_row_per_run_schema(pool_sweep) -> None:
+    _, full, doc = pool_sweep
+    with open(full / "sweep.csv") as fh:
+        rows = list(csv.DictReader(fh))
+    for rec, row in zip(doc["runs"], rows):
+        results = RunDirectory(full / rec["run_dir"]).read_results()
+        canonical = json.dumps(RunDirectory(full / rec["run_dir"]).read_config().to_dict(), sort_keys=True,
+                               separators=(",", ":"))
+        assert rec["config_hash"] == hashlib.sha256(canonical.encode()).hexdigest()
+        assert (rec["method"], rec["seed"], rec["iterations"]) == ("mixed", 0, 20)
+        assert rec["true_transitions"] == results["true_transitions"] and rec["run_dir"] == f"runs/{rec['name']}"
+        scalars = {k: v for k, v in results.items() if isinstance(v, (int, float)) and not isinstance(v, bool)
+                   and k not in ("seed", "iterations", "true_transitions", "train_seconds")}
+        assert rec["metrics"] == scalars and "cost" in scalars
+        assert rec["train_seconds"] == results["train_seconds"] <= rec["wall_seconds"]
+        assert row["config_hash"] == rec["config_hash"] and float(row["cost"]) == results["cost"]
+        assert row["lateral_mae"] == "" and row["error"] == "" and int(row["iterations"]) == 20
+    assert doc["runs"][0]["config_hash"] != doc["runs"][1]["config_hash"]
+
+
+@pytest.fixture(scope="module")
+def local_ray():
+    """One local Ray cluster for the module (starting one takes ~10 s); run_sweep reuses it."""
+    ray = pytest.importorskip("ray", reason="Ray is not installed (extra 'sweep')")
+    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
+    yield ray
+    ray.shutdown()
 
 
 @pytest.mark.sweep
-def test_a_failed_run_is_recorded_and_does_not_stop_the_others(local_ray, tmp_path: Path,
+def test_sweep_on_ray_gives_the_outputs_of_the_pool(local_ray, pool_sweep, tmp_path: Path) -> None:
+    spec_path, full, doc = pool_sweep
+    out = tmp_path / "ray"
+    assert main([str(spec_path), "--out", str(out), "--address", "local", "--no-progress"]) == 0
+    ray_doc = json.loads((out / "sweep.json").read_text())
+    assert ray_doc["engine"] == "ray" and ray_doc["address"] == "local"
+    assert [_timeless(a) for a in ray_doc["runs"]] == [_timeless(b) for b in doc["runs"]]
+    for rec in doc["runs"]:
+        assert _same_weights(out / rec["run_dir"], full / rec["run_dir"])
+
+
+def test_a_failed_run_is_recorded_and_does_not_stop_the_others(tmp_path: Path,
                                                                capsys: pytest.CaptureFixture[str]) -> None:
     spec_path = tmp_path / "spec.toml"
     spec_path.write_text(SPEC)
@@ -338,11 +439,12 @@ def test_a_failed_run_is_recorded_and_does_not_stop_the_others(local_ray, tmp_pa
     bad = RunDirectory(out / "runs" / runs[0].name)
     bad.write_config(runs[0].config.replace(critic_lr=0.5))
     bad.write_results({"cost": 1.0})
-    assert main([str(spec_path), "--out", str(out), "--resume", "--no-progress"]) == 1
+    assert main([str(spec_path), "--out", str(out), "--resume", "--workers", "2", "--no-progress"]) == 1
     assert "1 run(s) failed" in capsys.readouterr().err
     doc = json.loads((out / "sweep.json").read_text())
     assert doc["failed"] == 1
     assert doc["runs"][0]["results"] is None and doc["runs"][0]["error"].startswith("ValueError: config: differs")
+    assert doc["runs"][0]["metrics"] == {} and doc["runs"][0]["wall_seconds"] is None
     assert doc["runs"][1]["error"] is None and doc["runs"][1]["results"]["cost"] == \
         RunDirectory(out / "runs" / runs[1].name).read_results()["cost"]
     assert [(s["runs"], s["failed"]) for s in doc["summary"]] == [(0, 1), (1, 0)]
