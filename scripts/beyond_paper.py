@@ -1,4 +1,5 @@
-"""Studies beyond the paper (docs/beyond.rst): run them as sweeps on Ray, ship their tables and figures.
+"""Studies beyond the paper (docs/beyond.rst): run them as sweeps (a local process pool, or Ray with
+``--address``), ship their tables and figures.
 
 Each study is a sweep spec in ``studies/<study>.toml`` (:mod:`mixedrl.sweep`)::
 
@@ -40,12 +41,10 @@ as rows ``method = "nmpc"`` (``runs`` = noise courses) and as a reference line o
 from __future__ import annotations
 
 import argparse
-import csv
 import dataclasses
 import io
 import json
 import math
-import os
 import sys
 import time
 from pathlib import Path
@@ -55,8 +54,9 @@ import numpy as np
 import torch
 
 from mixedrl.config import TrainConfig
+from mixedrl.tables import csv_text, mean_std
 from mixedrl.runs import atomic_write_bytes, atomic_write_text, load_checkpoint, make_trainer
-from mixedrl.sweep import INSTALL_HINT, SweepSpec, format_summary, load_spec, parse_spec, run_sweep
+from mixedrl.sweep import SweepSpec, format_summary, load_spec, parse_spec, run_sweep
 from mixedrl.tasks import task_from_config
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -218,10 +218,6 @@ def run_study(name: str, out: Path, reduced: bool = False, share: bool = True, a
         manifest["spec_seeds"] = spec_seeds  # a study cut short: the seeds it was meant to have
     if num_cpus is not None and (isinstance(num_cpus, bool) or not isinstance(num_cpus, int) or num_cpus < 1):
         raise ValueError(f"num_cpus: expected a positive integer, got {num_cpus!r}")
-    try:
-        import ray
-    except ImportError:
-        raise ImportError(f"scripts/beyond_paper.py needs Ray: {INSTALL_HINT}") from None
     out.mkdir(parents=True, exist_ok=True)
     if (out / "study.json").is_file():
         if not resume:
@@ -230,35 +226,16 @@ def run_study(name: str, out: Path, reduced: bool = False, share: bool = True, a
             raise ValueError(f"out: {out} holds this study with other parts or options (--reduced, --no-share); "
                              f"resume it with the same options, or choose a new --out")
     atomic_write_text(out / "study.json", json.dumps(manifest, indent=2) + "\n")
-    started = False
-    if not ray.is_initialized():  # one cluster for every part
-        if address is None:
-            ray.init(num_cpus=num_cpus or os.cpu_count() or 1, include_dashboard=False, log_to_driver=False)
-        else:
-            ray.init(address=address, log_to_driver=False)
-        started = True
     docs = {}
-    try:
-        for part, part_spec in parts.items():
-            docs[part] = run_sweep(part_spec, out / part, address=address, num_cpus=num_cpus, resume=resume,
-                                   progress=progress)
-    finally:
-        if started:
-            ray.shutdown()
+    for part, part_spec in parts.items():  # the engine of mixedrl sweep: the local pool, or Ray with address
+        docs[part] = run_sweep(part_spec, out / part, address=address, num_cpus=num_cpus, resume=resume,
+                               progress=progress)
     return docs
 
 
 # ----------------------------------------------------------------------------------------------------
 # ship
 # ----------------------------------------------------------------------------------------------------
-def _mean_std(values: list[float]) -> tuple[float | None, float | None]:
-    """Mean and sample standard deviation (``ddof=1``; 0 for one value), as :func:`mixedrl.sweep.summarize`."""
-    if not values:
-        return None, None
-    arr = np.asarray(values, dtype=float)
-    return float(arr.mean()), float(arr.std(ddof=1)) if arr.size > 1 else 0.0
-
-
 def _load_part(out: Path, part: str) -> dict[str, Any]:
     path = out / part / "sweep.json"
     if not path.is_file():
@@ -450,7 +427,7 @@ def build_table(name: str, records: list[dict[str, Any]], collapse_shared: bool,
         row: dict[str, Any] = {**group["cols"], "method": group["method"], "runs": len(runs), "failed": group["failed"],
                                "shared_run": group["shared"]}
         for fig in ("cost", "speed_mae", "lateral_mae"):
-            row[f"{fig}_mean"], row[f"{fig}_std"] = _mean_std([x["results"][fig] for x in runs])
+            row[f"{fig}_mean"], row[f"{fig}_std"] = mean_std([x["results"][fig] for x in runs])
         if name == "disturbance_law":
             ibe_mean, ibe_var, held = [], [], []
             for x in runs:
@@ -459,12 +436,12 @@ def build_table(name: str, records: list[dict[str, Any]], collapse_shared: bool,
                 ibe_mean.append(x["results"]["final_ibe_mean"][i] / scale)
                 ibe_var.append(x["results"]["final_ibe_cov_diag"][i] / scale**2)
                 held.append(x["results"]["mvc_held_fraction"])
-            row["ibe_mean_N_mean"], row["ibe_mean_N_std"] = _mean_std(ibe_mean)
-            row["ibe_var_N2_mean"], row["ibe_var_N2_std"] = _mean_std(ibe_var)
-            row["mvc_held_fraction_mean"], row["mvc_held_fraction_std"] = _mean_std(held)
+            row["ibe_mean_N_mean"], row["ibe_mean_N_std"] = mean_std(ibe_mean)
+            row["ibe_var_N2_mean"], row["ibe_var_N2_std"] = mean_std(ibe_var)
+            row["mvc_held_fraction_mean"], row["mvc_held_fraction_std"] = mean_std(held)
         if name == "road_grade" and course is not None:
             rms = [float(np.sqrt(np.mean((course[x["name"]] - course["truth"]) ** 2))) for x in runs]
-            row["mean_force_rms_error_N_mean"], row["mean_force_rms_error_N_std"] = _mean_std(rms)
+            row["mean_force_rms_error_N_mean"], row["mean_force_rms_error_N_std"] = mean_std(rms)
         rows.append(row)
         by_seed.append({x["seed"]: x["results"]["cost"] for x in runs})
     oracle = {json.dumps(r_cols(r), sort_keys=True): (r["cost_mean"], seeds) for r, seeds in zip(rows, by_seed)
@@ -477,7 +454,7 @@ def build_table(name: str, records: list[dict[str, Any]], collapse_shared: bool,
         row["excess_over_oracle"] = row["cost_mean"] - ref if ok else None
         # paired by seed: the same seed's oracle run (the seeds finished by both)
         paired = [seeds[s] - ref_seeds[s] for s in sorted(seeds) if s in ref_seeds]
-        row["paired_excess_mean"], row["paired_excess_std"] = _mean_std(paired)
+        row["paired_excess_mean"], row["paired_excess_std"] = mean_std(paired)
         row["paired_seeds"] = len(paired)
     return rows
 
@@ -512,8 +489,8 @@ def case3_vs_case2(per_seed: list[dict[str, Any]]) -> dict[str, Any] | None:
     change = [cost[("mixed", 3, s)] / cost[("mixed", 2, s)] - 1.0 for s in seeds]
     ratio = [cost[("mixed", 3, s)] / cost[("oracle", None, s)] for s in seeds]
     out: dict[str, Any] = {"seeds": seeds, "relative_change": change, "ratio_to_oracle": ratio}
-    out["relative_change_mean"], out["relative_change_std"] = _mean_std(change)
-    out["ratio_to_oracle_mean"], out["ratio_to_oracle_std"] = _mean_std(ratio)
+    out["relative_change_mean"], out["relative_change_std"] = mean_std(change)
+    out["ratio_to_oracle_mean"], out["ratio_to_oracle_std"] = mean_std(ratio)
     return out
 
 
@@ -562,17 +539,6 @@ def summary_rows(name: str, rows: list[dict[str, Any]]) -> list[dict[str, str]]:
             item["mean force RMS error [N]"] = _pm(row, "mean_force_rms_error_N", 1)
         out.append(item)
     return out
-
-
-def _csv(rows: list[dict[str, Any]]) -> str:
-    keys = list(dict.fromkeys(k for row in rows for k in row))
-    buf = io.StringIO()
-    writer = csv.writer(buf, lineterminator="\n")
-    writer.writerow(keys)
-    for row in rows:
-        writer.writerow(["" if row.get(k) is None else repr(row[k]) if isinstance(row.get(k), float) else row.get(k)
-                         for k in keys])
-    return buf.getvalue()
 
 
 def make_figure(name: str, rows: list[dict[str, Any]], course: dict[str, np.ndarray] | None,
@@ -739,8 +705,8 @@ def ship_study(name: str, runs: Path | list[Path], dest: Path) -> dict[str, Any]
         **({"case3_vs_case2": case3_vs_case2(per_seed)} if name == "road_grade" else {}),
     }
     dest.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(dest / "table.csv", _csv(rows))
-    atomic_write_text(dest / "summary.csv", _csv(summary_rows(name, rows)))
+    atomic_write_text(dest / "table.csv", csv_text(rows))
+    atomic_write_text(dest / "summary.csv", csv_text(summary_rows(name, rows)))
     atomic_write_text(dest / "table.json", json.dumps(doc, indent=2, sort_keys=False) + "\n")
     atomic_write_bytes(dest / "figure.png", make_figure(name, rows, course, records))
     return doc
@@ -833,7 +799,7 @@ def nmpc_rows(cache: dict[str, Any], priors: list[float], oracle_cost: dict[floa
         row: dict[str, Any] = {"prior_force_mean": float(prior), "method": "nmpc", "runs": len(per),
                                "failed": 0 if "result" in e else 1, "shared_run": False}
         for fig in ("cost", "speed_mae", "lateral_mae"):
-            row[f"{fig}_mean"], row[f"{fig}_std"] = _mean_std([r[fig] for r in per])
+            row[f"{fig}_mean"], row[f"{fig}_std"] = mean_std([r[fig] for r in per])
         ref = oracle_cost.get(float(prior))
         ok = ref is not None and row["cost_mean"] is not None and ref > 0
         row["ratio_to_oracle"] = row["cost_mean"] / ref if ok else None
@@ -853,8 +819,12 @@ def main(argv: list[str] | None = None) -> int:
     run.add_argument("--reduced", action="store_true",
                      help=f"first seed, {REDUCED_ITERATIONS} iterations, two grid points (a smoke test)")
     run.add_argument("--out", type=Path, default=None, help="default runs/beyond/<study>[_reduced]")
-    run.add_argument("--address", default=None, help="join an existing Ray cluster")
-    run.add_argument("--num-cpus", type=int, default=None, help="CPUs of the local cluster (default: all)")
+    run.add_argument("--address", default=None,
+                     help="run on Ray: join a cluster (e.g. 'auto') or 'local' to start one; default: the local "
+                          "process pool")
+    run.add_argument("--num-cpus", type=int, default=None,
+                     help="processes of the local pool (default: all CPUs), or CPUs of the Ray cluster of "
+                          "--address local")
     run.add_argument("--resume", action="store_true", help="skip finished runs, resume interrupted ones")
     run.add_argument("--no-share", action="store_true", help="train every method at every grid point")
     run.add_argument("--no-progress", action="store_true")
@@ -898,7 +868,7 @@ def main(argv: list[str] | None = None) -> int:
         runs = args.runs or [Path("runs/beyond") / args.study]
         dest = args.dest or Path("docs/_static/beyond") / args.study
         doc = ship_study(args.study, runs, dest)
-        print(_csv(doc["rows"]), end="")
+        print(csv_text(doc["rows"]), end="")
         print(f"shipped to {dest}: table.csv, table.json, summary.csv, figure.png")
         return 0
     except (ValueError, ImportError) as exc:

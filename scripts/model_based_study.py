@@ -232,7 +232,7 @@ def summary(_: argparse.Namespace) -> None:
                      "per_seed_speed": " ".join(f"{x:.4f}" for x in spd),
                      "per_seed_cost": " ".join(f"{x:.1f}" for x in cost)})
     OUT.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(OUT / "summary.csv", _csv(rows))
+    atomic_write_text(OUT / "summary.csv", csv_text(rows))
     atomic_write_text(OUT / "summary.json", json.dumps(rows, indent=1) + "\n")
     # the designs at 1500 iterations (J: 3000; mixed RL, seeds 0-4) and the chosen design at every budget
     designs = [{"tag": r["tag"], "design": DESIGN_NOTES.get(r["tag"], ""), "budget": r["iterations"],
@@ -241,9 +241,9 @@ def summary(_: argparse.Namespace) -> None:
                 "cost mean": f"{r['cost_mean']:.1f}", "speed mean [m/s]": f"{r['speed_mean']:.4f}"}
                for r in rows if r["method"] == "mixed" and r["seed_group"] == "0-4"
                and (r["iterations"] == 1500 or r["tag"] in ("J", "M3", "N3"))]  # these decay longer: their budget
-    atomic_write_text(OUT / "designs.csv", _csv(designs))
+    atomic_write_text(OUT / "designs.csv", csv_text(designs))
     for tag in BUDGET_TABLES:
-        atomic_write_text(OUT / f"budgets_{tag}.csv", _csv(_budget_rows(rows, tag)))
+        atomic_write_text(OUT / f"budgets_{tag}.csv", csv_text(_budget_rows(rows, tag)))
     # model-driven runs driven in the world they plan in too (the files written since run_job records it)
     own = [{"design": r["tag"], "budget": r["iterations"], "seed": r["seed"],
             "lateral true world [m]": f"{r['lateral_mae']:.3f}", "cost true world": f"{r['cost']:.1f}",
@@ -252,7 +252,7 @@ def summary(_: argparse.Namespace) -> None:
             "speed true / prior world [m/s]": f"{r['speed_mae']:.4f} / {r['prior_world']['speed_mae']:.4f}"}
            for r in sorted(runs, key=lambda r: (r["tag"], r["iterations"], r["seed"])) if "prior_world" in r]
     if own:
-        atomic_write_text(OUT / "prior_world.csv", _csv(own))
+        atomic_write_text(OUT / "prior_world.csv", csv_text(own))
     for r in rows:
         print(f"{r['tag']:>14} {r['method']:>6} n={r['iterations']:>5} seeds[{r['seeds']}] cost {r['cost_mean']:6.1f} "
               f"(max {r['cost_max']:6.1f}) lat {r['lateral_mean']:.3f}±{r['lateral_std']:.3f} "
@@ -283,14 +283,6 @@ def _budget_rows(rows: list[dict[str, Any]], tag: str) -> list[dict[str, Any]]:
     order = {"mixed": 0, "model": 1, "oracle": 2}
     chosen.sort(key=lambda q: (q["seeds"] != "0 1 2 3 4", order.get(q["method"], 9), q["iterations"]))
     return [{k: v for k, v in q.items() if k != "_cost"} for q in chosen]
-
-
-def _csv(rows: list[dict[str, Any]]) -> str:
-    buf = io.StringIO()
-    writer = csv.DictWriter(buf, fieldnames=list(rows[0]), lineterminator="\n")
-    writer.writeheader()
-    writer.writerows(rows)
-    return buf.getvalue()
 
 
 def budgets(args: argparse.Namespace) -> None:
@@ -426,7 +418,7 @@ def origin(_: argparse.Namespace) -> None:
                          f"{np.corrcoef(speed, offset / np.abs(gain))[0, 1]:.2f}",
                      "speed error mean [m/s]": f"{speed.mean():.4f}"})
         print(rows[-1])
-    atomic_write_text(OUT / "origin_action.csv", _csv(rows))
+    atomic_write_text(OUT / "origin_action.csv", csv_text(rows))
 
 
 def positions(args: argparse.Namespace) -> None:
@@ -452,7 +444,7 @@ def positions(args: argparse.Namespace) -> None:
                     row[f"share {a:.0f}-{b:.0f} m"] = f"{float(((X >= a) & (X < b)).double().mean()):.2f}"
                 rows.append(row)
                 print(row, flush=True)
-    atomic_write_text(OUT / "course_positions.csv", _csv(rows))
+    atomic_write_text(OUT / "course_positions.csv", csv_text(rows))
 
 
 def prior_world_task(cfg: TrainConfig) -> Any:
@@ -488,7 +480,7 @@ def own_model(args: argparse.Namespace) -> None:
     jobs = [{"tag": args.tag, "method": m, "seed": s} for m in args.methods.split(",") for s in seeds_of(args.seeds)]
     with Pool(args.jobs) as pool:
         rows = list(pool.imap(_own_model_job, jobs, chunksize=1))
-    atomic_write_text(OUT / "own_model.csv", _csv(rows))
+    atomic_write_text(OUT / "own_model.csv", csv_text(rows))
 
 
 def main(argv: list[str] | None = None) -> None:

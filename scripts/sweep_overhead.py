@@ -74,7 +74,7 @@ def time_ray(spec_toml: str, out: Path, workers: int) -> tuple[float, float]:
     t_init = time.perf_counter() - t0
     try:
         t0 = time.perf_counter()
-        run_sweep(parse_spec(spec_toml), out, progress=False)
+        run_sweep(parse_spec(spec_toml), out, address="local", progress=False)
         t_sweep = time.perf_counter() - t0
     finally:
         ray.shutdown()
