@@ -1,33 +1,33 @@
 """Algorithm 2 planning on the model: training-state designs, budgets, seeds, true transitions (issue 10).
 
-Each job trains one run (``mixedrl.runs.make_trainer`` / ``train``, ``num_threads=1``) with the
-reproduction's config plus ``--set`` overrides, and writes one JSON file
+The runs are the sweep ``studies/model_based.toml`` (every design a ``[variants.NAME]``; M and S also at 4000
+and 10000 iterations); this script only analyses them::
 
-    docs/_static/model_based/per_run/<tag>/<method>_s<seed>_n<iterations>.json
+    mixedrl sweep studies/model_based.toml --out runs/model_based
+    PYTHONPATH=. python scripts/model_based_study.py ship runs/model_based [--dest DIR]
+
+``ship`` writes one JSON file per finished run of the sweep,
+
+    docs/_static/model_based/per_run/<design>/<method>_s<seed>_n<iterations>.json
 
 with the final course evaluation (the run's own evaluation seeds; the course is used for reporting only,
 never to pick a checkpoint or a setting inside a run), the number of true-environment transitions, the
-evaluations along the run, and training diagnostics per evaluation (critic loss, batch value mean and
-max, batch error statistics, MVC inner steps). Existing files are skipped, so a sweep can be stopped and
-restarted. ``summary`` collects every file into ``summary.csv`` / ``summary.json`` (mean, std, worst seed
-per tag, method and budget).
+evaluations along the run (from its ``metrics.jsonl``), the policy's action and Jacobian at the origin (from
+its checkpoint) and, for model-driven RL, the course driven in the world it plans in; then ``summary``
+collects every file into ``summary.csv`` / ``summary.json`` (mean, std, worst seed per design, method and
+budget) and the docs' tables. (Per-run files shipped before the move also hold per-evaluation batch
+diagnostics that a sweep directory does not record.)
 
-Usage::
-
-    PYTHONPATH=. python scripts/model_based_study.py sweep --tag T --methods mixed,model,oracle \\
-        --seeds 0-4 --budgets 1500,4000 --jobs 2 --set state_source=model model_box=4
-    PYTHONPATH=. python scripts/model_based_study.py summary
+Other commands: ``summary`` (the tables from the per-run files), ``budgets`` (figure), ``reference``,
+``objective``, ``origin``, ``own-model DIR`` (every run of a design of a sweep driven in the prior's world
+too) and ``positions`` (trains one run per design from the spec, recording where the course copies are).
 """
 
 from __future__ import annotations
 
 import argparse
-import csv
 import io
 import json
-import math
-import time
-from multiprocessing import Pool
 from pathlib import Path
 from typing import Any
 
@@ -35,27 +35,17 @@ import numpy as np
 import torch
 
 from mixedrl.config import TrainConfig
-from mixedrl.runs import atomic_write_bytes, atomic_write_text, eval_seeds, make_trainer, train
+from mixedrl.runs import RunDirectory, atomic_write_bytes, atomic_write_text, eval_seeds, load_checkpoint, make_trainer
+from mixedrl.sweep import expand, load_spec
+from mixedrl.tables import csv_text
 from mixedrl.tasks import task_from_config
 
 OUT = Path("docs/_static/model_based")
 #: Seeds from this one on are held out: run with the chosen design only, reported apart (``summary``).
 HELD_OUT = 5
 
-_MODEL = {"state_source": "model", "model_course_starts": "start", "true_envs": 1, "true_steps": 20, "true_every": 10, "model_course_horizon": 2000,
-          "model_kick_scale": 1.0, "batch_weighting": "uniform", "lr_decay_iterations": 0}
-#: The designs of docs/model_based.rst, every model_* field explicit (so a design does not change when a
-#: default does). ``sweep --tag T`` uses DESIGNS[T] (plus ``--set``); other tags need ``--set``.
-DESIGNS: dict[str, dict[str, Any]] = {
-    "A": {**_MODEL, "model_course_fraction": 0.5, "model_course_start": 0, "model_box": 4.0, "model_kick_prob": 0.0},
-    "C": {**_MODEL, "model_course_fraction": 0.0, "model_course_start": 0, "model_box": math.inf,
-          "model_kick_prob": 0.0},
-    "D": {**_MODEL, "model_course_fraction": 0.75, "model_course_start": 500, "model_box": 3.0, "model_kick_prob": 0.0},
-    "E": {**_MODEL, "model_course_fraction": 0.95, "model_course_start": 500, "model_box": 3.0, "model_kick_prob": 0.0},
-    "F": {**_MODEL, "model_course_fraction": 0.9, "model_course_start": 500, "model_box": 3.0, "model_kick_prob": 0.01},
-    "G": {**_MODEL, "model_course_fraction": 0.75, "model_course_start": 500, "model_box": 3.0,
-          "model_kick_prob": 0.01},
-}
+#: The study's spec: every design a variant (docs/model_based.rst).
+SPEC = Path(__file__).resolve().parents[1] / "studies" / "model_based.toml"
 #: One line per design, for the table of docs/model_based.rst (``designs.csv``).
 DESIGN_NOTES = {
     "A": "50% course rollouts from iteration 0, box 4, no kicks",
@@ -78,42 +68,6 @@ DESIGN_NOTES = {
     "S": "M + course rollouts restart at a random point along the course, also at its end",
     "T": "M + course rollouts also restart at the course start when they pass its end (they loop)",
 }
-#: G with a fixed-length learning-rate decay (1500 iterations, then the final rates).
-DESIGNS["H"] = {**DESIGNS["G"], "lr_decay_iterations": 1500}
-#: H with a 3.3x larger actor learning rate.
-DESIGNS["I"] = {**DESIGNS["H"], "actor_lr": 1e-3}
-#: G with the decay over 3000 iterations.
-DESIGNS["J"] = {**DESIGNS["G"], "lr_decay_iterations": 3000}
-#: H with a batch of 1024 states.
-DESIGNS["K"] = {**DESIGNS["H"], "batch_size": 1024}
-#: H with relative batch weighting in PEV and PIM: the shipped defaults.
-DESIGNS["M"] = {**DESIGNS["H"], "batch_weighting": "relative", "batch_weight_offset": 1.0}
-#: M with the decay over 3000 iterations.
-DESIGNS["M3"] = {**DESIGNS["M"], "lr_decay_iterations": 3000}
-#: Variations of M run after it was chosen (seeds 0-9; leads for the next design, not choices).
-DESIGNS["N1"] = {**DESIGNS["M"], "model_course_fraction": 0.5}
-DESIGNS["N2"] = {**DESIGNS["M"], "batch_weight_offset": 3.0}
-DESIGNS["N3"] = {**DESIGNS["M"], "lr_decay_iterations": 2000}
-#: Leads of the next session (seeds 0-9): more weight on the states of small value (the course's).
-DESIGNS["P1"] = {**DESIGNS["M"], "batch_weight_offset": 0.3}
-#: M with the policy = the EMA of the actor's iterates (window about 200 iterations).
-DESIGNS["Q1"] = {**DESIGNS["M"], "actor_average": 0.995}
-#: M with the course copies restarting at a random point along the course (also at its end).
-DESIGNS["S"] = {**DESIGNS["M"], "model_course_starts": "along"}
-#: M with the course copies restarting at the course start when they pass its end: they loop over the course.
-DESIGNS["T"] = {**DESIGNS["M"], "model_course_starts": "loop"}
-
-
-def parse_value(text: str) -> Any:
-    """``"4"`` -> 4, ``"0.5"`` -> 0.5, ``"inf"`` -> inf, ``"a,b"`` -> list, else the string."""
-    if "," in text:
-        return [parse_value(x) for x in text.split(",") if x]
-    for cast in (int, float):
-        try:
-            return cast(text)
-        except ValueError:
-            pass
-    return text
 
 
 def policy_at_origin(actor: torch.nn.Module) -> dict[str, list[float]]:
@@ -124,87 +78,64 @@ def policy_at_origin(actor: torch.nn.Module) -> dict[str, list[float]]:
     return {"u0": u0.tolist(), "gain": jac.tolist()}
 
 
-def job_path(tag: str, method: str, seed: int, iterations: int) -> Path:
-    return OUT / "per_run" / tag / f"{method}_s{seed}_n{iterations}.json"
+def design_config(design: str, method: str, seed: int) -> TrainConfig:
+    """The config of one run of the study: variant ``design`` of :data:`SPEC`."""
+    for run in expand(load_spec(SPEC)):
+        if run.point["variant"] == design and run.config.method == method and run.config.seed == seed:
+            return run.config
+    raise ValueError(f"design: {design!r} x {method} x seed {seed} is not a run of {SPEC}")
 
 
-def run_job(job: dict[str, Any]) -> str:
-    path = job_path(job["tag"], job["method"], job["seed"], job["iterations"])
-    if path.exists():
-        return f"skip {path}"
-    torch.set_num_threads(1)
-    overrides = dict(job["set"])
-    cfg = TrainConfig().replace(method=job["method"], seed=job["seed"], iterations=job["iterations"],
-                                eval_every=max(100, job["iterations"] // 5),
-                                checkpoint_every=job["iterations"], num_threads=1, **overrides)
+def _load_policy(run_dir: Path, cfg: TrainConfig) -> Any:
     trainer = make_trainer(cfg)
-    diag: list[dict[str, float]] = []
-    window: list[dict[str, float]] = []
+    trainer.load_state_dict(load_checkpoint(run_dir / "checkpoint.pt")["trainer"])
+    return trainer
 
-    def callback(row: dict[str, Any]) -> None:
-        window.append({k: row[k] for k in ("train/critic_loss", "train/value_mean", "mvc/inner_steps")})
-        if "eval/cost" in row:
-            s = trainer.last_batch
-            obs = trainer.task.observe(s) if s is not None else None
-            with torch.no_grad():
-                v = trainer.critic(obs) if obs is not None else torch.zeros(1)
-            diag.append({
-                "iteration": int(row["iteration"]), "cost": row["eval/cost"], "lateral_mae": row["eval/lateral_mae"],
-                "speed_mae": row["eval/speed_mae"], "terminated": row["eval/terminated"],
-                "true_transitions": row["data/true_transitions"],
-                "critic_loss_mean": float(np.mean([w["train/critic_loss"] for w in window])),
-                "critic_loss_max": float(np.max([w["train/critic_loss"] for w in window])),
-                "value_mean": float(v.mean()), "value_max": float(v.max()),
-                "batch_abs_ey": float(obs[:, 4].abs().mean()) if obs is not None else math.nan,
-                "batch_abs_dv": float(obs[:, 2].abs().mean()) if obs is not None else math.nan,
-                "batch_max_ey": float(obs[:, 4].abs().max()) if obs is not None else math.nan,
-                "batch_max_dv": float(obs[:, 2].abs().max()) if obs is not None else math.nan,
-                "batch_outside_box4": float((obs.abs() > 4 * trainer.task.obs_scale).any(-1).float().mean())
-                if obs is not None else math.nan,
-                "inner_steps": float(np.mean([w["mvc/inner_steps"] for w in window])),
-                "ibe_mean_vx": float(np.asarray(trainer.noise.mean)[2]),
-            })
-            window.clear()
 
-    t0 = time.perf_counter()
-    res = train(trainer, None, callback=callback)
-    out = {"tag": job["tag"], "method": job["method"], "seed": job["seed"], "iterations": job["iterations"],
-           "set": job["set"], "config": cfg.to_dict(), "wall_s": time.perf_counter() - t0, "train_seconds": res["train_seconds"],
+def per_run_record(sweep_dir: Path, row: dict[str, Any]) -> dict[str, Any]:
+    """The per-run file of one finished run of the sweep (a row of its ``sweep.json``)."""
+    run = RunDirectory(sweep_dir / row["run_dir"])
+    cfg = run.read_config()
+    res = run.read_results()
+    design = row["point"]["variant"].split("_n")[0]
+    evals = [{"iteration": int(r["iteration"]), "cost": r["eval/cost"], "lateral_mae": r["eval/lateral_mae"],
+              "speed_mae": r["eval/speed_mae"], "terminated": r["eval/terminated"],
+              "true_transitions": r["data/true_transitions"]}
+             for r in run.read_metrics() if "eval/cost" in r]
+    trainer = _load_policy(run.path, cfg)
+    out = {"tag": design, "method": cfg.method, "seed": cfg.seed, "iterations": res["iterations"],
+           "variant": row["point"]["variant"], "config_hash": row["config_hash"], "config": cfg.to_dict(),
+           "wall_s": row["wall_seconds"], "train_seconds": res["train_seconds"],
            "lateral_mae": res["lateral_mae"], "speed_mae": res["speed_mae"], "cost": res["cost"],
            "terminated": res["final"]["terminated"], "true_transitions": res["true_transitions"],
-           "final_ibe_mean_vx": res["final_ibe_mean"][2], "evals": diag,
-           **policy_at_origin(trainer.policy)}
-    if job["method"] == "model":
+           "final_ibe_mean_vx": res["final_ibe_mean"][2], "evals": evals, **policy_at_origin(trainer.policy)}
+    if cfg.method == "model":
         # the course driven in the world model-driven RL plans in (own-model: a failure there is a failure
         # of training, not of the model's error)
         own = prior_world_task(cfg).evaluate(trainer.policy, eval_seeds(cfg))
         out["prior_world"] = {k: own[k] for k in ("lateral_mae", "speed_mae", "cost")}
-    path.parent.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(path, json.dumps(out, indent=1) + "\n")
-    return (f"{job['tag']} {job['method']} s{job['seed']} n{job['iterations']}: lateral {out['lateral_mae']:.3f} m, "
-            f"speed {out['speed_mae']:.4f} m/s, cost {out['cost']:.1f}, true {out['true_transitions']}, "
-            f"{out['wall_s']:.0f} s")
+    return out
 
 
-def seeds_of(text: str) -> list[int]:
-    if "-" in text:
-        a, b = text.split("-")
-        return list(range(int(a), int(b) + 1))
-    return [int(x) for x in text.split(",")]
+def _finished_rows(sweep_dir: Path) -> list[dict[str, Any]]:
+    doc_path = sweep_dir / "sweep.json"
+    if not doc_path.is_file():
+        raise SystemExit(f"ship: {doc_path} does not exist; run: mixedrl sweep {SPEC.name} --out {sweep_dir}")
+    return [r for r in json.loads(doc_path.read_text())["runs"] if r["error"] is None and r["results"] is not None]
 
 
-def sweep(args: argparse.Namespace) -> None:
-    overrides = dict(DESIGNS.get(args.tag, {}))
-    for item in args.set or []:
-        key, value = item.split("=", 1)
-        overrides[key] = parse_value(value)
-    jobs = [{"tag": args.tag, "method": m, "seed": s, "iterations": n, "set": overrides}
-            for n in [int(b) for b in args.budgets.split(",")]
-            for s in seeds_of(args.seeds) for m in args.methods.split(",")]
-    jobs = [j for j in jobs if not job_path(j["tag"], j["method"], j["seed"], j["iterations"]).exists()]
-    with Pool(args.jobs) as pool:
-        for line in pool.imap(run_job, jobs, chunksize=1):
-            print(line, flush=True)
+def ship(args: argparse.Namespace) -> None:
+    """Write the per-run file of every finished run of the sweep ``args.sweep_dir``, then ``summary``."""
+    global OUT
+    OUT = args.dest
+    torch.set_num_threads(1)
+    for row in _finished_rows(args.sweep_dir):
+        rec = per_run_record(args.sweep_dir, row)
+        path = OUT / "per_run" / rec["tag"] / f"{rec['method']}_s{rec['seed']}_n{rec['iterations']}.json"
+        path.parent.mkdir(parents=True, exist_ok=True)
+        atomic_write_text(path, json.dumps(rec, indent=1) + "\n")
+        print(f"{path}: lateral {rec['lateral_mae']:.3f} m, speed {rec['speed_mae']:.4f} m/s, cost {rec['cost']:.1f}")
+    summary(args)
 
 
 def summary(_: argparse.Namespace) -> None:
@@ -430,8 +361,7 @@ def positions(args: argparse.Namespace) -> None:
     parts = ((0.0, 20.0), (20.0, 52.0), (52.0, 85.0), (85.0, 120.0))
     for tag in args.tags.split(","):
         torch.set_num_threads(1)
-        cfg = TrainConfig().replace(method="mixed", seed=args.seed, iterations=1500, eval_every=1500,
-                                    checkpoint_every=1500, num_threads=1, **DESIGNS[tag])
+        cfg = design_config(tag, "mixed", args.seed)
         trainer = make_trainer(cfg)
         for k in range(1, cfg.algorithm.iterations + 1):
             trainer.iteration()
@@ -455,44 +385,34 @@ def prior_world_task(cfg: TrainConfig) -> Any:
                                                      "variance": task["prior_force_std"] ** 2}})
 
 
-def _own_model_job(job: dict[str, Any]) -> dict[str, Any]:
-    torch.set_num_threads(1)
-    cfg = TrainConfig().replace(method=job["method"], seed=job["seed"], iterations=1500, eval_every=1500,
-                                checkpoint_every=1500, num_threads=1, **DESIGNS[job["tag"]])
-    trainer = make_trainer(cfg)
-    res = train(trainer, None)
-    own = prior_world_task(cfg).evaluate(trainer.policy, eval_seeds(cfg))
-    row = {"design": job["tag"], "method": job["method"], "seed": job["seed"],
-           "lateral true world [m]": f"{res['lateral_mae']:.3f}", "speed true world [m/s]": f"{res['speed_mae']:.4f}",
-           "cost true world": f"{res['cost']:.1f}",
-           "lateral prior world [m]": f"{own['lateral_mae']:.3f}", "speed prior world [m/s]": f"{own['speed_mae']:.4f}",
-           "cost prior world": f"{own['cost']:.1f}"}
-    print(row, flush=True)
-    return row
-
-
 def own_model(args: argparse.Namespace) -> None:
-    """Is a failing run wrong in the world it plans in, or only in the true one? Retrain each
-    (method, seed) of design ``--tag`` at 1500 iterations and drive the course twice: under the true
-    disturbance (the reported numbers; they must equal the per-run file's) and under the prior's
-    ``N(prior_force_mean, prior_force_std^2)``, the world model-driven RL plans in. Writes
-    ``own_model.csv``."""
-    jobs = [{"tag": args.tag, "method": m, "seed": s} for m in args.methods.split(",") for s in seeds_of(args.seeds)]
-    with Pool(args.jobs) as pool:
-        rows = list(pool.imap(_own_model_job, jobs, chunksize=1))
+    """Is a failing run wrong in the world it plans in, or only in the true one? Every finished run of design
+    ``--tag`` (1500 iterations) of the sweep ``args.sweep_dir``, its final policy driven on the course twice:
+    under the true disturbance (the run's own ``results.json``) and under the prior's
+    ``N(prior_force_mean, prior_force_std^2)``, the world model-driven RL plans in. Writes ``own_model.csv``."""
+    torch.set_num_threads(1)
+    rows = []
+    for row in _finished_rows(args.sweep_dir):
+        if row["point"]["variant"] != args.tag:
+            continue
+        run = RunDirectory(args.sweep_dir / row["run_dir"])
+        cfg, res = run.read_config(), run.read_results()
+        own = prior_world_task(cfg).evaluate(_load_policy(run.path, cfg).policy, eval_seeds(cfg))
+        rows.append({"design": args.tag, "method": cfg.method, "seed": cfg.seed,
+                     "lateral true world [m]": f"{res['lateral_mae']:.3f}",
+                     "speed true world [m/s]": f"{res['speed_mae']:.4f}", "cost true world": f"{res['cost']:.1f}",
+                     "lateral prior world [m]": f"{own['lateral_mae']:.3f}",
+                     "speed prior world [m/s]": f"{own['speed_mae']:.4f}", "cost prior world": f"{own['cost']:.1f}"})
+        print(rows[-1], flush=True)
     atomic_write_text(OUT / "own_model.csv", csv_text(rows))
 
 
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     sub = parser.add_subparsers(dest="cmd", required=True)
-    p = sub.add_parser("sweep")
-    p.add_argument("--tag", required=True)
-    p.add_argument("--methods", default="mixed")
-    p.add_argument("--seeds", default="0-4")
-    p.add_argument("--budgets", default="1500")
-    p.add_argument("--jobs", type=int, default=2)
-    p.add_argument("--set", nargs="*")
+    p = sub.add_parser("ship", help="per-run files and tables from a sweep of studies/model_based.toml")
+    p.add_argument("sweep_dir", type=Path)
+    p.add_argument("--dest", type=Path, default=OUT)
     sub.add_parser("summary")
     p = sub.add_parser("budgets")
     p.add_argument("--tag", default="M")
@@ -503,12 +423,10 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--tags", default="M,S,T")
     p.add_argument("--seed", type=int, default=0)
     p = sub.add_parser("own-model")
+    p.add_argument("sweep_dir", type=Path)
     p.add_argument("--tag", default="S")
-    p.add_argument("--methods", default="model,mixed,oracle")
-    p.add_argument("--seeds", default="5-9")
-    p.add_argument("--jobs", type=int, default=2)
     args = parser.parse_args(argv)
-    {"sweep": sweep, "summary": summary, "budgets": budgets, "reference": reference,
+    {"ship": ship, "summary": summary, "budgets": budgets, "reference": reference,
      "objective": objective, "origin": origin,
      "positions": positions, "own-model": own_model}[args.cmd](args)
 

@@ -8,14 +8,18 @@ checkpoint_every=n, num_threads=1, **design)``).
 
 from __future__ import annotations
 
+import json
 import math
+import os
+import subprocess
+import sys
 from pathlib import Path
 from typing import Any
 
 import pytest
 
 from mixedrl.config import TrainConfig
-from mixedrl.sweep import expand, load_spec
+from mixedrl.sweep import expand, load_spec, parse_spec, run_sweep
 
 ROOT = Path(__file__).resolve().parents[1]
 STUDIES = sorted((ROOT / "studies").glob("*.toml"))
@@ -68,3 +72,26 @@ def test_model_based_spec_reproduces_the_old_designs() -> None:
     configs = {run.point["variant"]: run.config for run in runs.values() if run.config.seed == 0
                and run.config.method == "mixed"}
     assert len({c.to_json() if hasattr(c, "to_json") else str(c.to_dict()) for c in configs.values()}) == 23
+
+
+def test_model_based_study_ships_a_sweep_directory(tmp_path: Path) -> None:
+    """The script only analyses: a (tiny) sweep of two variants, shipped through the command line."""
+    spec = parse_spec('methods = ["model"]\nseeds = [0]\n[base]\n"algorithm.iterations" = 10\n'
+                      '"run.eval_every" = 5\n"run.eval_seeds" = 1\n[variants.S]\n"sampler.course_starts" = "along"\n'
+                      '[variants.S_n20]\n"sampler.course_starts" = "along"\n"algorithm.iterations" = 20\n')
+    doc = run_sweep(spec, tmp_path / "sweep", workers=1, progress=False)
+    dest = tmp_path / "ship"
+    proc = subprocess.run([sys.executable, str(ROOT / "scripts" / "model_based_study.py"), "ship",
+                           str(tmp_path / "sweep"), "--dest", str(dest)], capture_output=True, text=True,
+                          env={**os.environ, "PYTHONPATH": str(ROOT)}, timeout=600)
+    assert proc.returncode == 0, proc.stderr
+    for row in doc["runs"]:
+        n = row["iterations"]
+        rec = json.loads((dest / "per_run" / "S" / f"model_s0_n{n}.json").read_text())
+        assert (rec["cost"], rec["true_transitions"], rec["config_hash"]) == (
+            row["metrics"]["cost"], row["true_transitions"], row["config_hash"])
+        assert [e["iteration"] for e in rec["evals"]] == list(range(5, n + 1, 5))
+        assert len(rec["u0"]) == 2 and "prior_world" in rec
+    summary = json.loads((dest / "summary.json").read_text())
+    assert [(r["tag"], r["iterations"], r["cost_mean"]) for r in summary] == [
+        ("S", row["iterations"], row["metrics"]["cost"]) for row in doc["runs"]]
