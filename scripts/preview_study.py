@@ -12,24 +12,23 @@ Sub-commands:
     the path only up to ``D`` metres ahead of the car (:class:`LimitedPreviewNMPC`: beyond ``X + D`` it
     predicts on the path's tangent at ``X + D``; ``D = 0`` is the no-preview NMPC of
     :mod:`validation.nmpc`). Writes ``docs/_static/preview/nmpc_reach.json``.
-``run``
-    Trains one run per (candidate, method, seed) (``mixedrl.runs.make_trainer`` / ``train``,
-    ``num_threads=1``, every training setting at the defaults of :class:`mixedrl.config.TrainConfig` but
-    ``task.preview_distances`` and the batch design ``--design``: ``S``, today's default, or ``M``, the
-    default when the study was first run, see :data:`DESIGNS`) and writes one JSON file
-    ``docs/_static/preview/per_run/<design>/<candidate>/<method>_s<seed>.json`` with the final course
-    evaluation (the run's own evaluation seeds), the true transitions and the actor's weights (for the
-    figure and the benchmark). Existing files are skipped.
-``ship``
-    Collects every per-run file into ``summary.csv`` / ``summary.json`` (per design; seeds 0-4 and the
+``ship [SWEEP_DIR ...]``
+    The runs are the sweep ``studies/preview.toml`` (``mixedrl sweep studies/preview.toml --out DIR``:
+    variant ``<design>_<candidate>``, every training setting at the defaults of
+    :class:`mixedrl.config.TrainConfig` but ``task.preview_distances`` and the batch design: ``S``, today's
+    default, or ``M``, the default when the study was first run, see :data:`DESIGNS`). For each sweep
+    directory given, ``ship`` first writes one JSON file per finished run,
+    ``docs/_static/preview/per_run/<design>/<candidate>/<method>_s<seed>.json``, with the final course
+    evaluation (the run's own evaluation seeds), the true transitions, the evaluations along the run and the
+    actor's weights (for the figure and the benchmark). Then it collects every per-run file into ``summary.csv`` / ``summary.json`` (per design; seeds 0-4 and the
     held-out seeds >= 5 apart) and draws ``trajectory.png`` (the preview policy of seed 0 against the NMPC
     and the no-preview policy on the course of noise seed 0, design :data:`FIGURE_DESIGN`).
 
 Usage::
 
     PYTHONPATH=. python scripts/preview_study.py horizon
-    PYTHONPATH=. python scripts/preview_study.py run --candidate P12 --methods mixed --seeds 0-4 [--design S]
-    PYTHONPATH=. python scripts/preview_study.py ship
+    mixedrl sweep studies/preview.toml --out runs/preview
+    PYTHONPATH=. python scripts/preview_study.py ship runs/preview
 """
 
 from __future__ import annotations
@@ -37,7 +36,6 @@ from __future__ import annotations
 import argparse
 import io
 import json
-import sys
 import time
 from pathlib import Path
 from typing import Any
@@ -46,11 +44,10 @@ import numpy as np
 import torch
 
 from mixedrl.config import TrainConfig, migrate
-from mixedrl.runs import atomic_write_bytes, atomic_write_text, make_trainer, train
-from mixedrl.tasks import task_from_config
+from mixedrl.runs import RunDirectory, atomic_write_bytes, atomic_write_text, load_checkpoint, make_trainer
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from model_based_study import _csv, seeds_of  # noqa: E402  (the same seed syntax and CSV writer)
+from mixedrl.tables import csv_text
+from validation.preview import LimitedPreviewNMPC, NumpyActor, actor_weights
 
 OUT = Path("docs/_static/preview")
 #: Seeds from this one on are held out: run with the chosen candidate only, reported apart.
@@ -103,77 +100,6 @@ def horizon(args: argparse.Namespace) -> None:
     _nmpc_sweep(OUT / "nmpc_horizon.json", "horizon", [float(x) for x in args.horizons.split(",")], drive_one)
 
 
-class LimitedPreviewNMPC:
-    """The 2 s NMPC of :class:`validation.nmpc.VehicleNMPC` that knows the path only ``reach`` metres ahead.
-
-    At each solve, with the car at ``X_c`` and ``X_e = X_c + reach``, it charges eq. (54) against
-
-    .. math:: Y_{lim}(X) = Y_{ref}(\\min(X, X_e)) + \\tan\\psi_{ref}(X_e)\\,\\max(X - X_e, 0),
-
-    the true path up to ``X_e`` continued by its tangent there (``reach = 0``: the no-preview NMPC's
-    tangent at the car). Everything else (model, mean, discount, horizon, warm start) is the NMPC's.
-
-    Parameters
-    ----------
-    reach : float
-        Preview distance ``D`` >= 0 [m].
-    **kwargs
-        Passed to :class:`validation.nmpc.VehicleNMPC` (``horizon``, ``gamma``, ``force``).
-
-    Raises
-    ------
-    ValueError
-        ``reach`` negative or not finite.
-    """
-
-    def __init__(self, reach: float, **kwargs: Any) -> None:
-        import casadi as ca
-
-        from validation import nmpc
-
-        if not (isinstance(reach, (int, float)) and np.isfinite(reach) and reach >= 0):
-            raise ValueError(f"reach: expected a finite distance >= 0 [m], got {reach!r}")
-        self.reach = float(reach)
-        self.inner = nmpc.VehicleNMPC(preview=False, **kwargs)
-        model = self.inner.model
-        cfg = model.config
-        s, u, theta = ca.SX.sym("s", 6), ca.SX.sym("u", 2), ca.SX.sym("theta", 3)
-        # theta = [X_e, Y_ref(X_e), slope(X_e)];  Y_lim(X) = Y_ref(min(X, X_e)) + slope_e max(X - X_e, 0)
-        y_lim = model.lateral(ca.fmin(s[5], theta[0])) + theta[2] * ca.fmax(s[5] - theta[0], 0)
-        e_y, dv = s[4] - y_lim, s[2] - cfg.v_des
-        cost = ca.Function("l_limited", [s, u, theta],
-                           [cfg.dt * (cfg.q_speed * dv * dv + cfg.q_lateral * e_y * e_y
-                                      + cfg.r_steer * u[0] * u[0] + cfg.r_accel * u[1] * u[1])])
-        bound = np.array([cfg.delta_max, cfg.ax_max])
-        self.inner.core = nmpc.RecedingHorizon(nmpc._predict_step(ca, model, self.inner.force), cost,
-                                               horizon_steps=self.inner.horizon_steps,
-                                               gamma=self.inner.core.gamma, u_min=-bound, u_max=bound)
-        self.config = cfg
-        self.solve_ms = self.inner.solve_ms
-
-    def reset(self) -> None:
-        """Start a new episode."""
-        self.inner.reset()
-        self.solve_ms = self.inner.solve_ms
-
-    def __call__(self, s: np.ndarray) -> np.ndarray:
-        """The first input of the plan for tracking state ``s`` (shape (6,))."""
-        from validation import nmpc
-
-        inner, k = self.inner, self.inner._k
-        s = np.asarray(s, dtype=np.float64)
-        X_e = float(s[5]) + self.reach
-        line = nmpc._tangent_line(self.config, X_e)
-        guess = None
-        if inner._plan is None:
-            guess = nmpc._reference_guess(self.config, s, inner.horizon_steps)
-        sol = inner.core.solve(s, step=k, guess=guess, theta=line)
-        inner.solve_ms.append(sol.solve_ms)
-        inner._plan, inner._plan_step = sol.u, k
-        inner._k += 1
-        return sol.u[0].copy()
-
-
 def reach(args: argparse.Namespace) -> None:
     """NMPC (2 s, gamma = 0.99, true mean, seed 0) course cost against its preview distance."""
     from validation.nmpc import drive
@@ -187,73 +113,11 @@ def reach(args: argparse.Namespace) -> None:
     _nmpc_sweep(OUT / "nmpc_reach.json", "reach_m", [float(x) for x in args.reaches.split(",")], drive_one)
 
 
-class NumpyActor:
-    """The forward pass of a :class:`mixedrl.networks.Actor` in plain NumPy (float64), for deployment.
-
-    ``u = bound * tanh(W_L(... elu(W_1 (o / scale) + b_1) ...) + b_L)``: the same weights, no torch call.
-
-    Parameters
-    ----------
-    state_dict : dict
-        ``actor.state_dict()`` of an :class:`~mixedrl.networks.Actor` with ELU hidden layers (tensors or
-        nested lists, as :func:`actor_weights` writes them).
-
-    Raises
-    ------
-    ValueError
-        ``state_dict`` lacks the actor's buffers or a layer's shapes do not chain.
-    """
-
-    def __init__(self, state_dict: dict[str, Any]) -> None:
-        arrays = {k: np.asarray(v.detach().numpy() if isinstance(v, torch.Tensor) else v, dtype=np.float64)
-                  for k, v in state_dict.items()}
-        for key in ("action_bound", "net.input_scale"):
-            if key not in arrays:
-                raise ValueError(f"state_dict: expected the actor's {key!r}, got keys {sorted(arrays)}")
-        self.bound, self.inv_scale = arrays["action_bound"], 1.0 / arrays["net.input_scale"]
-        idx = sorted({int(k.split(".")[2]) for k in arrays if k.startswith("net.body.")})
-        self.layers = [(arrays[f"net.body.{i}.weight"], arrays[f"net.body.{i}.bias"]) for i in idx]
-        width = self.inv_scale.shape[0]
-        for W, b in self.layers:
-            if W.shape[1] != width or b.shape != (W.shape[0],):
-                raise ValueError(f"state_dict: layer of shape {W.shape} does not follow a width of {width}")
-            width = W.shape[0]
-        self.obs_dim = self.inv_scale.shape[0]
-
-    def __call__(self, obs: np.ndarray) -> np.ndarray:
-        """The action for one observation (shape (obs_dim,)): shape (2,)."""
-        z = obs * self.inv_scale
-        for W, b in self.layers[:-1]:
-            z = W @ z + b
-            z = np.where(z > 0.0, z, np.expm1(np.minimum(z, 0.0)))  # ELU
-        W, b = self.layers[-1]
-        return self.bound * np.tanh(W @ z + b)
-
-
-def actor_weights(actor: torch.nn.Module) -> dict[str, list[Any]]:
-    """``actor.state_dict()`` as nested lists (exact float32 values), for the per-run JSON."""
-    return {k: v.detach().double().tolist() for k, v in actor.state_dict().items()}
-
-
 #: Batch designs (docs/model_based.rst) -> ``CourseSampler.course_starts``. The study first ran on
 #: design M, the default then (its runs are kept, under ``per_run/M``, and reproduce); S is the default now.
 DESIGNS: dict[str, str] = {"M": "start", "S": "along"}
 #: The design of the figure's policies.
 FIGURE_DESIGN = "S"
-
-
-def _check_design(design: str) -> str:
-    if design not in DESIGNS:
-        raise ValueError(f"design: expected one of {sorted(DESIGNS)}, got {design!r}")
-    return DESIGNS[design]
-
-
-def job_path(candidate: str, method: str, seed: int, iterations: int | None = None, design: str = "S") -> Path:
-    """``docs/_static/preview/per_run/<design>/<candidate>/<method>_s<seed>.json`` (``_n<iterations>``
-    appended for a budget other than the default)."""
-    _check_design(design)
-    tail = "" if iterations in (None, TrainConfig().algorithm.iterations) else f"_n{iterations}"
-    return OUT / "per_run" / design / candidate / f"{method}_s{seed}{tail}.json"
 
 
 def design_of(config: dict[str, Any]) -> str:
@@ -263,79 +127,40 @@ def design_of(config: dict[str, Any]) -> str:
     return next(d for d, v in DESIGNS.items() if v == starts)
 
 
-def config_of(candidate: str, method: str, seed: int, iterations: int | None = None,
-              design: str = "S") -> TrainConfig:
-    """The run's config: :class:`~mixedrl.config.TrainConfig`'s defaults with the design's course
-    rollouts (:data:`DESIGNS`; ``S`` is the default's) plus the candidate's ``task.preview_distances``;
-    evaluations every 300 iterations (reporting only, as in scripts/model_based_study.py), one checkpoint
-    at the end. ``iterations`` (default: the default budget, 1500) is the budget, as the model-based study
-    varies it."""
-    if candidate not in CANDIDATES:
-        raise ValueError(f"candidate: expected one of {sorted(CANDIDATES)}, got {candidate!r}")
-    starts = _check_design(design)
-    n = TrainConfig().algorithm.iterations if iterations is None else iterations
-    return TrainConfig().replace(method=method, seed=seed, iterations=n, eval_every=max(100, n // 5),
-                                 checkpoint_every=n,
-                                 num_threads=1, model_course_starts=starts,
-                                 **{"task.preview_distances": list(CANDIDATES[candidate])})
-
-
-def preview_scale(task: Any) -> torch.Tensor:
-    """``max_X |Y_ref(X + d_i) - Y_ref(X)|`` over the course (``X`` in [0, course_length], 1 cm grid) for
-    each preview distance of the task: each preview column then lies in [-1, 1] on the path."""
-    cfg = task.model.config
-    X = np.linspace(0.0, cfg.course_length, int(round(cfg.course_length * 100)) + 1)
-    return torch.tensor([float(np.abs(cfg.reference.lateral(X + d) - cfg.reference.lateral(X)).max())
-                         for d in cfg.preview_distances], dtype=torch.float32)
-
-
-def make_task(candidate: str, cfg: TrainConfig) -> Any:
-    """The run's task: ``task_from_config(cfg.task)``, with :func:`preview_scale` on the preview columns of
-    ``obs_scale`` for the candidates of :data:`PER_DISTANCE_SCALE` (the networks' input scaling and the
-    model box follow ``task.obs_scale``)."""
-    task = task_from_config(cfg.task)
-    if candidate in PER_DISTANCE_SCALE:
-        task.obs_scale = torch.cat([task.obs_scale[:5], preview_scale(task)])
-    return task
-
-
-def run_job(candidate: str, method: str, seed: int, iterations: int | None = None, design: str = "S") -> str:
-    """Train one run and write its JSON (skipped if it exists); returns a one-line summary."""
-    path = job_path(candidate, method, seed, iterations, design)
-    if path.exists():
-        return f"skip {path}"
-    torch.set_num_threads(1)
-    cfg = config_of(candidate, method, seed, iterations, design)
-    trainer = make_trainer(cfg, make_task(candidate, cfg))
-    evals: list[dict[str, float]] = []
-
-    def callback(row: dict[str, Any]) -> None:
-        if "eval/cost" in row:
-            evals.append({"iteration": int(row["iteration"]), "cost": row["eval/cost"],
-                          "lateral_mae": row["eval/lateral_mae"], "speed_mae": row["eval/speed_mae"],
-                          "true_transitions": row["data/true_transitions"]})
-
-    t0 = time.perf_counter()
-    res = train(trainer, None, callback=callback)
-    out = {"candidate": candidate, "design": design, "preview_distances": list(CANDIDATES[candidate]), "method": method,
-           "seed": seed, "iterations": int(res["iterations"]), "config": cfg.to_dict(),
-           "wall_s": time.perf_counter() - t0, "train_seconds": res["train_seconds"],
+def per_run_record(sweep_dir: Path, row: dict[str, Any]) -> tuple[Path, dict[str, Any]]:
+    """The per-run file (its path and content) of one finished run of a sweep of ``studies/preview.toml``
+    (a row of its ``sweep.json``: variant ``<design>_<candidate>``)."""
+    run = RunDirectory(sweep_dir / row["run_dir"])
+    cfg, res = run.read_config(), run.read_results()
+    design, candidate = row["point"]["variant"].split("_", 1)
+    trainer = make_trainer(cfg)
+    trainer.load_state_dict(load_checkpoint(run.checkpoint_path)["trainer"])
+    evals = [{"iteration": int(r["iteration"]), "cost": r["eval/cost"], "lateral_mae": r["eval/lateral_mae"],
+              "speed_mae": r["eval/speed_mae"], "true_transitions": r["data/true_transitions"]}
+             for r in run.read_metrics() if "eval/cost" in r]
+    out = {"candidate": candidate, "design": design, "preview_distances": list(cfg.task.preview_distances),
+           "method": cfg.method, "seed": cfg.seed, "iterations": int(res["iterations"]), "config": cfg.to_dict(),
+           "config_hash": row["config_hash"], "wall_s": row["wall_seconds"], "train_seconds": res["train_seconds"],
            "lateral_mae": res["lateral_mae"], "speed_mae": res["speed_mae"], "cost": res["cost"],
            "terminated": res["final"]["terminated"], "true_transitions": res["true_transitions"],
            "final_ibe_mean_vx": res["final_ibe_mean"][2], "evals": evals,
            "obs_scale": trainer.task.obs_scale.tolist(), "actor": actor_weights(trainer.actor)}
-    path.parent.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(path, json.dumps(out) + "\n")
-    return (f"{candidate} {design} {method} s{seed}: cost {out['cost']:.2f}, lateral {out['lateral_mae']:.4f} m, "
-            f"speed {out['speed_mae']:.4f} m/s, true {out['true_transitions']}, {out['wall_s']:.0f} s")
+    tail = "" if out["iterations"] == TrainConfig().algorithm.iterations else f"_n{out['iterations']}"
+    return OUT / "per_run" / design / candidate / f"{cfg.method}_s{cfg.seed}{tail}.json", out
 
 
-def run(args: argparse.Namespace) -> None:
-    """Train every (candidate, method, seed) of the arguments, one at a time."""
-    for candidate in args.candidate.split(","):
-        for seed in seeds_of(args.seeds):
-            for method in args.methods.split(","):
-                print(run_job(candidate, method, seed, args.iterations, args.design), flush=True)
+def write_per_run(sweep_dir: Path) -> None:
+    """Write the per-run file of every finished run of the sweep ``sweep_dir``."""
+    doc_path = sweep_dir / "sweep.json"
+    if not doc_path.is_file():
+        raise SystemExit(f"ship: {doc_path} does not exist; run: mixedrl sweep studies/preview.toml --out {sweep_dir}")
+    torch.set_num_threads(1)
+    for row in json.loads(doc_path.read_text())["runs"]:
+        if row["error"] is None and row["results"] is not None:
+            path, rec = per_run_record(sweep_dir, row)
+            path.parent.mkdir(parents=True, exist_ok=True)
+            atomic_write_text(path, json.dumps(rec) + "\n")
+            print(f"{path}: cost {rec['cost']:.2f}, lateral {rec['lateral_mae']:.4f} m", flush=True)
 
 
 def summarize(runs: list[dict[str, Any]]) -> list[dict[str, Any]]:
@@ -375,10 +200,15 @@ def steer_gains(run_row: dict[str, Any]) -> np.ndarray:
 
 
 def ship(args: argparse.Namespace) -> None:
-    """Write ``summary.csv``, ``summary.json``, ``per_seed.csv`` and ``trajectory.png``."""
+    """Write the per-run files of the sweep directories ``args.sweep_dirs``, then ``summary.csv``,
+    ``summary.json``, ``per_seed.csv`` and ``trajectory.png`` from every per-run file."""
+    global OUT
+    OUT = args.dest
+    for sweep_dir in args.sweep_dirs:
+        write_per_run(sweep_dir)
     runs = [json.loads(p.read_text()) for p in sorted((OUT / "per_run").glob("*/*/*.json"))]
     if not runs:
-        raise SystemExit(f"no runs under {OUT / 'per_run'}: run `preview_study.py run` first")
+        raise SystemExit(f"no runs under {OUT / 'per_run'}: ship a sweep of studies/preview.toml first")
     rows = summarize(runs)
     atomic_write_text(OUT / "summary.json", json.dumps(rows, indent=1) + "\n")
     table = [{"design": r["design"], "candidate": r["candidate"], "preview [m]": r["preview_distances"] or "none",
@@ -389,7 +219,7 @@ def ship(args: argparse.Namespace) -> None:
               "lateral [m]": f"{r['lateral_mae_mean']:.4f} +- {r['lateral_mae_std']:.4f}",
               "speed [m/s]": f"{r['speed_mae_mean']:.4f} +- {r['speed_mae_std']:.4f}",
               "worst cost": f"{r['cost_max']:.2f}", "true transitions": r["true_transitions"]} for r in rows]
-    atomic_write_text(OUT / "summary.csv", _csv(table))
+    atomic_write_text(OUT / "summary.csv", csv_text(table))
     per_seed = [{"design": design_of(r["config"]), "candidate": r["candidate"], "method": r["method"], "iterations": r["iterations"],
                  "seed": r["seed"],
                  "course cost": f"{r['cost']:.2f}", "lateral [m]": f"{r['lateral_mae']:.4f}",
@@ -400,7 +230,7 @@ def ship(args: argparse.Namespace) -> None:
                  "wall [s]": f"{r['wall_s']:.0f}"}
                 for r in sorted(runs, key=lambda r: (design_of(r["config"]), r["candidate"], r["method"],
                                                      r["iterations"], r["seed"]))]
-    atomic_write_text(OUT / "per_seed.csv", _csv(per_seed))
+    atomic_write_text(OUT / "per_seed.csv", csv_text(per_seed))
     for r in rows:
         print(f"{r['design']} {r['candidate']:>5} {r['method']:>6} n={r['iterations']} [{r['seeds']}] cost {r['cost_mean']:.2f}+-{r['cost_std']:.2f} "
               f"lat {r['lateral_mae_mean']:.4f}+-{r['lateral_mae_std']:.4f} "
@@ -467,16 +297,12 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--horizons", default="0.25,0.5,1.0,1.5,2.0")
     p = sub.add_parser("reach")
     p.add_argument("--reaches", default="0,3,6,9,12,18,24,36")
-    p = sub.add_parser("run")
-    p.add_argument("--candidate", required=True, help=f"comma-separated, of {sorted(CANDIDATES)}")
-    p.add_argument("--methods", default="mixed")
-    p.add_argument("--seeds", default="0-4")
-    p.add_argument("--iterations", type=int, default=None, help="budget (default: TrainConfig's, 1500)")
-    p.add_argument("--design", default="S", choices=sorted(DESIGNS), help="batch design (default S, the default's)")
     p = sub.add_parser("ship")
+    p.add_argument("sweep_dirs", type=Path, nargs="*", help="sweep directories of studies/preview.toml")
+    p.add_argument("--dest", type=Path, default=OUT)
     p.add_argument("--chosen", default=CHOSEN)
     args = parser.parse_args(argv)
-    {"horizon": horizon, "reach": reach, "run": run, "ship": ship}[args.cmd](args)
+    {"horizon": horizon, "reach": reach, "ship": ship}[args.cmd](args)
 
 
 if __name__ == "__main__":

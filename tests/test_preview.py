@@ -10,12 +10,9 @@ preview when its reach covers the horizon, and the no-preview NMPC at reach 0.
 from __future__ import annotations
 
 import copy
-import importlib.util
 import json
 import math
-import sys
 from pathlib import Path
-from types import ModuleType
 
 import numpy as np
 import pytest
@@ -25,6 +22,9 @@ from mixedrl.algorithms.model_data import ModelStateSampler
 from mixedrl.cli import main
 from mixedrl.config import TrainConfig
 from mixedrl.runs import RunDirectory, load_checkpoint, make_trainer, train
+from mixedrl.sweep import expand, load_spec
+from mixedrl.tasks import task_from_config
+from validation.preview import LimitedPreviewNMPC, NumpyActor, actor_weights, preview_scale
 
 ROOT = Path(__file__).resolve().parents[1]
 PREVIEW = (3.0, 6.0, 12.0)
@@ -33,16 +33,7 @@ FAST = dict(iterations=12, batch_size=32, eval_every=6, checkpoint_every=4, eval
             true_every=3)
 
 
-def _study() -> ModuleType:
-    spec = importlib.util.spec_from_file_location("preview_study", ROOT / "scripts" / "preview_study.py")
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    sys.modules.setdefault("preview_study", module)
-    spec.loader.exec_module(module)
-    return module
-
-
-PS = _study()
+ROOT_SPEC = ROOT / "studies" / "preview.toml"
 
 
 def _tanh_path(X: np.ndarray) -> np.ndarray:
@@ -136,41 +127,36 @@ def test_numpy_actor_equals_the_torch_actor() -> None:
     with torch.no_grad():
         want = copy.deepcopy(actor).double()(obs.double()).numpy()  # the same weights, in float64
         want32 = actor(obs).double().numpy()
-    for weights in (actor.state_dict(), json.loads(json.dumps(PS.actor_weights(actor)))):
-        fast = PS.NumpyActor(weights)
+    for weights in (actor.state_dict(), json.loads(json.dumps(actor_weights(actor)))):
+        fast = NumpyActor(weights)
         got = np.stack([fast(o) for o in obs.double().numpy()])
         np.testing.assert_allclose(got, want, rtol=0, atol=1e-12)
         np.testing.assert_allclose(got, want32, rtol=0, atol=1e-4)  # torch's float32 rounding
     with pytest.raises(ValueError, match="^state_dict"):
-        PS.NumpyActor({"net.input_scale": [1.0]})
+        NumpyActor({"net.input_scale": [1.0]})
 
 
-@pytest.mark.parametrize("design", ["S", "M"])
-def test_study_config_is_the_default_but_preview(design: str) -> None:
-    """The study changes no training setting but the preview (and the reporting/checkpoint periods), on
-    the batch design asked for: S is today's default, M the default when the study first ran."""
-    cfg = PS.config_of("P12", "mixed", 3, design=design).to_dict()
-    base = TrainConfig().replace(seed=3).to_dict()
-    assert cfg["task"].pop("preview_distances") == list(PS.CANDIDATES["P12"])
-    base["task"].pop("preview_distances")
+def test_study_spec_is_the_default_but_preview() -> None:
+    """The study (studies/preview.toml) changes no training setting but the preview (and the
+    reporting/checkpoint periods), on its batch design: S is today's default, M the default when the study
+    first ran."""
     def dotted(d: dict) -> dict:
         return {f"{k}.{kk}" if isinstance(v, dict) and k != "task" else k: vv
                 for k, v in d.items() for kk, vv in (v.items() if isinstance(v, dict) and k != "task" else [(k, v)])}
 
-    cfg_d, base_d = dotted(cfg), dotted(base)
-    diff = {k for k in cfg_d if cfg_d[k] != base_d[k]}
-    assert diff <= {"run.eval_every", "run.checkpoint_every", "run.num_threads"} | (
-        {"sampler.course_starts"} if design == "M" else set())
-    assert cfg["sampler"]["course_starts"] == {"S": "along", "M": "start"}[design]
-    assert PS.design_of(cfg) == design
-    path = PS.job_path("P12", "mixed", 3, design=design)
-    assert path.parts[-4:] == ("per_run", design, "P12", "mixed_s3.json")
-    with pytest.raises(ValueError, match="^candidate"):
-        PS.config_of("P99", "mixed", 0)
-    with pytest.raises(ValueError, match="^design"):
-        PS.config_of("P12", "mixed", 0, design="X")
-    with pytest.raises(ValueError, match="^design"):
-        PS.job_path("P12", "mixed", 0, design="X")
+    runs = expand(load_spec(ROOT_SPEC))
+    assert {r.point["variant"].split("_")[0] for r in runs} == {"S", "M"}
+    for run in runs:
+        design = run.point["variant"].split("_")[0]
+        cfg = run.config.to_dict()
+        base = TrainConfig().replace(seed=run.config.seed).to_dict()
+        assert cfg["task"].pop("preview_distances") == list(run.config.task.preview_distances)
+        base["task"].pop("preview_distances")
+        cfg_d, base_d = dotted(cfg), dotted(base)
+        diff = {k for k in cfg_d if cfg_d[k] != base_d[k]}
+        assert diff <= {"run.eval_every", "run.checkpoint_every", "run.num_threads"} | (
+            {"sampler.course_starts"} if design == "M" else set())
+        assert cfg["sampler"]["course_starts"] == {"S": "along", "M": "start"}[design]
 
 
 @pytest.mark.nmpc
@@ -181,22 +167,25 @@ def test_limited_preview_nmpc_brackets() -> None:
 
     s = np.array([0.0, 0.0, 12.0, 0.0, 0.0, 35.0])  # in the first lane change
     full = nmpc.VehicleNMPC(horizon=0.3, gamma=0.99, force="true")
-    far = PS.LimitedPreviewNMPC(10.0, horizon=0.3, gamma=0.99, force="true")  # 0.3 s at 12 m/s: 3.6 m
+    far = LimitedPreviewNMPC(10.0, horizon=0.3, gamma=0.99, force="true")  # 0.3 s at 12 m/s: 3.6 m
     blind = nmpc.VehicleNMPC(horizon=0.3, gamma=0.99, force="true", preview=False)
-    zero = PS.LimitedPreviewNMPC(0.0, horizon=0.3, gamma=0.99, force="true")
+    zero = LimitedPreviewNMPC(0.0, horizon=0.3, gamma=0.99, force="true")
     np.testing.assert_allclose(far(s), full(s), rtol=0, atol=1e-9)
     np.testing.assert_allclose(zero(s), blind(s), rtol=0, atol=1e-9)
-    half = PS.LimitedPreviewNMPC(1.5, horizon=0.3, gamma=0.99, force="true")
+    half = LimitedPreviewNMPC(1.5, horizon=0.3, gamma=0.99, force="true")
     assert np.abs(half(s) - full(s)).max() > 1e-6
     with pytest.raises(ValueError, match="^reach"):
-        PS.LimitedPreviewNMPC(-1.0)
+        LimitedPreviewNMPC(-1.0)
 
 
 def test_per_distance_scale_puts_the_preview_in_unit_range() -> None:
-    """The study's variant P12s: each preview column's ``obs_scale`` is its largest value on the course, so
-    the columns lie in [-1, 1] there (and reach 1); networks and the model box take the task's scale."""
-    cfg = PS.config_of("P12s", "mixed", 0).replace(**{k: v for k, v in FAST.items()})
-    task = PS.make_task("P12s", cfg)
+    """The study's variant P12s: each preview column's ``obs_scale`` is its largest value on the course
+    (:func:`validation.preview.preview_scale`), so the columns lie in [-1, 1] there (and reach 1); networks
+    and the model box take the task's scale."""
+    cfg = _config().replace(**{"task.preview_distances": [2.0, 4.0, 6.0, 8.0, 10.0, 12.0]})
+    task = task_from_config(cfg.task)
+    plain = task.obs_scale.clone()
+    task.obs_scale = torch.cat([task.obs_scale[:5], preview_scale(task)])
     trainer = make_trainer(cfg, task)
     assert torch.equal(trainer.actor.net.input_scale, task.obs_scale)
     assert torch.equal(trainer.critic.net.input_scale, task.obs_scale)
@@ -206,4 +195,4 @@ def test_per_distance_scale_puts_the_preview_in_unit_range() -> None:
     on_path = torch.stack([torch.zeros_like(X), torch.zeros_like(X), torch.full_like(X, 12.0), psi, y, X], 1)
     ratio = (task.observe(on_path)[:, 5:].abs() / task.obs_scale[5:]).max(dim=0).values
     np.testing.assert_allclose(ratio.numpy(), 1.0, atol=1e-3)
-    assert torch.equal(PS.make_task("P12", cfg).obs_scale[5:], torch.full((6,), 2.0))
+    assert torch.equal(plain[5:], torch.full((6,), 2.0))

@@ -95,3 +95,22 @@ def test_model_based_study_ships_a_sweep_directory(tmp_path: Path) -> None:
     summary = json.loads((dest / "summary.json").read_text())
     assert [(r["tag"], r["iterations"], r["cost_mean"]) for r in summary] == [
         ("S", row["iterations"], row["metrics"]["cost"]) for row in doc["runs"]]
+
+
+#: ``scripts/preview_study.py``'s candidates and designs before the move (its ``CANDIDATES``, ``DESIGNS``).
+OLD_PREVIEW = {"none": [], "P12": [2.0, 4.0, 6.0, 8.0, 10.0, 12.0],
+               "P24": [3.0, 6.0, 9.0, 12.0, 15.0, 18.0, 21.0, 24.0], "P6": [1.5, 3.0, 4.5, 6.0]}
+OLD_PREVIEW_DESIGNS = {"M": "start", "S": "along"}
+
+
+def test_preview_spec_reproduces_the_old_config_of() -> None:
+    runs = expand(load_spec(ROOT / "studies" / "preview.toml"))
+    assert len(runs) == len(OLD_PREVIEW) * len(OLD_PREVIEW_DESIGNS) * 5
+    for run in runs:
+        design, candidate = run.point["variant"].split("_", 1)
+        # the old config_of(candidate, method, seed, design=design)
+        old = TrainConfig().replace(method=run.config.method, seed=run.config.seed, iterations=1500,
+                                    eval_every=300, checkpoint_every=1500, num_threads=1,
+                                    model_course_starts=OLD_PREVIEW_DESIGNS[design],
+                                    **{"task.preview_distances": OLD_PREVIEW[candidate]})
+        assert run.config == old, run.name
