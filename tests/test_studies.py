@@ -114,3 +114,23 @@ def test_preview_spec_reproduces_the_old_config_of() -> None:
                                     model_course_starts=OLD_PREVIEW_DESIGNS[design],
                                     **{"task.preview_distances": OLD_PREVIEW[candidate]})
         assert run.config == old, run.name
+
+
+def test_preview_study_ships_a_sweep_directory(tmp_path: Path) -> None:
+    """preview_study.py only analyses: a (tiny) sweep of one variant of its spec's form, shipped through the
+    command line into per-run files and the summary."""
+    spec = parse_spec('methods = ["mixed"]\nseeds = [0]\n[base]\n"algorithm.iterations" = 10\n"run.eval_every" = 5\n'
+                      '"run.eval_seeds" = 1\n[variants.S_P6]\n"task.preview_distances" = [1.5, 3.0, 4.5, 6.0]\n')
+    doc = run_sweep(spec, tmp_path / "sweep", workers=1, progress=False)
+    dest = tmp_path / "ship"
+    proc = subprocess.run([sys.executable, str(ROOT / "scripts" / "preview_study.py"), "ship", str(tmp_path / "sweep"),
+                           "--dest", str(dest)], capture_output=True, text=True, cwd=ROOT,
+                          env={**os.environ, "PYTHONPATH": str(ROOT)}, timeout=600)
+    assert proc.returncode == 0, proc.stderr
+    (row,) = doc["runs"]
+    rec = json.loads((dest / "per_run" / "S" / "P6" / "mixed_s0_n10.json").read_text())
+    assert (rec["cost"], rec["config_hash"], rec["preview_distances"]) == (
+        row["metrics"]["cost"], row["config_hash"], [1.5, 3.0, 4.5, 6.0])
+    assert len(rec["obs_scale"]) == 9 and [e["iteration"] for e in rec["evals"]] == [5, 10]
+    (summary,) = json.loads((dest / "summary.json").read_text())
+    assert (summary["design"], summary["candidate"], summary["cost_mean"]) == ("S", "P6", row["metrics"]["cost"])
