@@ -4,18 +4,20 @@ Four subcommands (run from the repository root with ``PYTHONPATH=.`` or the pack
 
     # the peers (extra 'peers'): docs/_static/sample_efficiency/peers/<algo>_s<seed>.json
     python scripts/sample_efficiency.py peers --algos td3,sac --seeds 0-4 --transitions 100000 --jobs 2
-    # mixedrl's methods: docs/_static/sample_efficiency/ours/<method>_s<seed>.json
-    python scripts/sample_efficiency.py ours --methods mixed,model,oracle,ddpg --seeds 0-4 \\
-        --iterations 1500 --jobs 2
+    # mixedrl's methods: a sweep of studies/sample_efficiency.toml, recorded as
+    # docs/_static/sample_efficiency/ours/<method>_s<seed>.json
+    mixedrl sweep studies/sample_efficiency.toml --out runs/sample_efficiency
+    python scripts/sample_efficiency.py from-sweep runs/sample_efficiency
     # or record the runs of a reproduction instead of training them again (mixed, model, oracle, and
     # DDPG's longer runs as 'ddpg'); the shipped study does this with runs/reproduce/runs
     python scripts/sample_efficiency.py from-reproduction runs/reproduce/runs
     # table (summary.csv, summary.json) and figures (curves_transitions.png, curves_wall.png)
     python scripts/sample_efficiency.py summary
 
-Every run is one process of a ``multiprocessing`` pool (``--jobs``) with ``torch.set_num_threads(1)``.
-A run whose JSON file exists is skipped, provided it was made with the same settings (otherwise the
-script stops before training anything: remove the file or choose another ``--out``). ``--out`` (default
+Every peer run is one process of a ``multiprocessing`` pool (``--jobs``) with ``torch.set_num_threads(1)``.
+A peer run whose JSON file exists is skipped, provided it was made with the same settings (otherwise the
+script stops before training anything: remove the file or choose another ``--out``). mixedrl's own runs are
+trained by ``mixedrl sweep`` (the one runner) and only recorded here. ``--out`` (default
 ``docs/_static/sample_efficiency``) is the root of everything. See ``docs/sample_efficiency.rst`` and
 :mod:`validation.sample_efficiency`, :mod:`validation.peers`.
 """
@@ -32,20 +34,17 @@ from typing import Any
 
 import torch
 
-from mixedrl.cli import parse_overrides
 from mixedrl.runs import atomic_write_text
 from mixedrl.runs import eval_seeds as run_eval_seeds
 from mixedrl.config import TrainConfig
 from validation.peers import ALGOS, train_peer
 from validation.sample_efficiency import (
-    OURS,
     choose_eval_every,
     load_runs,
-    ours_config,
     plot_curves,
     records_from_reproduction,
+    records_from_sweep,
     summarize,
-    train_ours,
     write_summary,
 )
 
@@ -79,14 +78,6 @@ def _peer_job(job: dict[str, Any]) -> str:
     last = res["rows"][-1]
     return (f"{job['algo']} s{job['seed']}: {res['true_transitions']} true transitions, {res['train_seconds']:.0f} s, "
             f"lateral {last['lateral_mae']:.4f} m, speed {last['speed_mae']:.4f} m/s, cost {last['cost']:.2f}")
-
-
-def _ours_job(job: dict[str, Any]) -> str:
-    rec = train_ours(job["method"], job["seed"], job["iterations"], job["overrides"], out=job["path"])
-    last = rec["rows"][-1]
-    return (f"{job['method']} s{job['seed']}: {rec['true_transitions']} true transitions, "
-            f"{rec['train_seconds']:.0f} s, lateral {last['lateral_mae']:.4f} m, speed {last['speed_mae']:.4f} m/s, "
-            f"cost {last['cost']:.2f}")
 
 
 def _run(jobs: list[dict[str, Any]], worker: Any, n_jobs: int) -> None:
@@ -126,33 +117,20 @@ def peers(args: argparse.Namespace) -> None:
     _run(jobs, _peer_job, args.jobs)
 
 
-def ours(args: argparse.Namespace) -> None:
-    out = Path(args.out) / "ours"
-    overrides = parse_overrides(args.set)
-    jobs, stale = [], []
-    for method in names_of(args.methods, OURS, "methods"):
-        for seed in seeds_of(args.seeds):
-            path = out / f"{method}_s{seed}.json"
-            config = ours_config(method, seed, args.iterations, overrides)  # validates the overrides now
-            if path.exists():
-                problem = _stale(path, config.to_dict())
-                if problem:
-                    stale.append(problem)
-                continue
-            jobs.append({"method": method, "seed": seed, "iterations": args.iterations, "overrides": overrides,
-                         "path": str(path)})
-    if stale:
-        raise SystemExit("\n".join(stale) + "\nremove these files or choose another --out")
-    _run(jobs, _ours_job, args.jobs)
-
-
-def from_reproduction(args: argparse.Namespace) -> None:
-    out = Path(args.out) / "ours"
+def _write_records(records: list[dict[str, Any]], out: Path) -> None:
     out.mkdir(parents=True, exist_ok=True)
-    for record in records_from_reproduction(args.runs):
+    for record in records:
         path = out / f"{record['method']}_s{record['seed']}.json"
         atomic_write_text(path, json.dumps(record, indent=1) + "\n")
         print(f"wrote {path} ({len(record['rows'])} evaluations, {record['true_transitions']} true transitions)")
+
+
+def from_sweep(args: argparse.Namespace) -> None:
+    _write_records(records_from_sweep(args.sweep_dir), Path(args.out) / "ours")
+
+
+def from_reproduction(args: argparse.Namespace) -> None:
+    _write_records(records_from_reproduction(args.runs), Path(args.out) / "ours")
 
 
 def summary(args: argparse.Namespace) -> None:
@@ -186,14 +164,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--eval-seeds", type=int, default=2)
     p.add_argument("--jobs", type=int, default=2)
     p.add_argument("--out", default=str(OUT))
-    p = sub.add_parser("ours", help="train mixedrl's methods")
-    p.add_argument("--methods", default=",".join(OURS))
-    p.add_argument("--seeds", default="0-4")
-    p.add_argument("--iterations", type=int, default=1500)
-    p.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE",
-                   help="TrainConfig overrides (dotted task keys allowed); eval_every defaults to about 12 "
-                        "evaluations per run")
-    p.add_argument("--jobs", type=int, default=2)
+    p = sub.add_parser("from-sweep", help="record the runs of a sweep of studies/sample_efficiency.toml")
+    p.add_argument("sweep_dir", help="the sweep directory (mixedrl sweep ... --out DIR)")
     p.add_argument("--out", default=str(OUT))
     p = sub.add_parser("from-reproduction", help="record the runs of a reproduction (mixedrl reproduce) "
                                                  "instead of training them again")
@@ -208,7 +180,7 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     if getattr(args, "jobs", 1) < 1:
         raise SystemExit("--jobs: expected a positive integer")
-    {"peers": peers, "ours": ours, "summary": summary, "from-reproduction": from_reproduction}[args.cmd](args)
+    {"peers": peers, "from-sweep": from_sweep, "summary": summary, "from-reproduction": from_reproduction}[args.cmd](args)
     return 0
 
 

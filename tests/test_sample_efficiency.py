@@ -4,9 +4,11 @@ summary, on synthetic rows; one tiny real run of mixedrl's trainer for the rows.
 from __future__ import annotations
 
 import csv
-import importlib.util
 import json
 import math
+import os
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -15,6 +17,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from mixedrl.runs import iterations_to_converge
+from mixedrl.sweep import expand, load_spec, parse_spec, run_sweep
 from validation.sample_efficiency import (
     THRESHOLD_LATERAL,
     THRESHOLD_SPEED,
@@ -26,6 +29,7 @@ from validation.sample_efficiency import (
     reach_accuracy,
     reach_own_final,
     records_from_reproduction,
+    records_from_sweep,
     rows_from_metrics,
     settled,
     summarize,
@@ -230,24 +234,43 @@ def test_rows_from_metrics_mapping() -> None:
         rows_from_metrics(metrics)
 
 
-def load_script():
-    spec = importlib.util.spec_from_file_location("sample_efficiency_script", ROOT / "scripts" / "sample_efficiency.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+def _script(*argv: str) -> subprocess.CompletedProcess:
+    """``scripts/sample_efficiency.py ARGV`` in a subprocess (tests do not import scripts)."""
+    return subprocess.run([sys.executable, str(ROOT / "scripts" / "sample_efficiency.py"), *argv],
+                          capture_output=True, text=True, env={**os.environ, "PYTHONPATH": str(ROOT)}, timeout=600)
 
 
-def test_script_summary_and_skips(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
-    script = load_script()
+def test_script_summary(tmp_path: Path) -> None:
     for run in runs_fixture():
         kind = "peers" if run["method"] == "sac" else "ours"
         (tmp_path / kind).mkdir(exist_ok=True)
         (tmp_path / kind / f"{run['method']}_s{run['seed']}.json").write_text(json.dumps(run))
-    assert script.main(["summary", "--out", str(tmp_path)]) == 0
+    proc = _script("summary", "--out", str(tmp_path))
+    assert proc.returncode == 0, proc.stderr
     for name in ("summary.csv", "summary.json", "curves_transitions.png", "curves_wall.png"):
         assert (tmp_path / name).stat().st_size > 0
     assert [e["method"] for e in json.loads((tmp_path / "summary.json").read_text())] == ["mixed", "model", "sac"]
-    # an existing run file made with other settings stops the study before anything is trained
-    with pytest.raises(SystemExit, match="other settings"):
-        script.main(["ours", "--methods", "mixed", "--seeds", "0", "--iterations", "12", "--out", str(tmp_path)])
-    assert script.seeds_of("0-3") == [0, 1, 2, 3] and script.seeds_of("1,4") == [1, 4]
+
+
+def test_the_spec_is_ours_config() -> None:
+    """studies/sample_efficiency.toml expands to the configs :func:`ours_config` builds at 1500 iterations."""
+    runs = expand(load_spec(ROOT / "studies" / "sample_efficiency.toml"))
+    assert len(runs) == 4 * 5
+    for run in runs:
+        assert run.config == ours_config(run.config.method, run.config.seed, 1500), run.name
+
+
+def test_records_from_a_sweep_and_the_script(tmp_path: Path) -> None:
+    """The runs of a (tiny) sweep become the study's records, as a reproduction's do; the script writes them."""
+    spec = parse_spec('methods = ["mixed"]\nseeds = [0]\n[base]\n"algorithm.iterations" = 6\n'
+                      '"run.eval_every" = 3\n"run.eval_seeds" = 1\n"algorithm.batch_size" = 16\n')
+    doc = run_sweep(spec, tmp_path / "sweep", workers=1, progress=False)
+    (rec,) = records_from_sweep(tmp_path / "sweep")
+    (row,) = doc["runs"]
+    assert (rec["method"], rec["seed"], [r["iteration"] for r in rec["rows"]]) == ("mixed", 0, [3, 6])
+    assert rec["rows"][-1]["cost"] == row["metrics"]["cost"] and rec["true_transitions"] == row["true_transitions"]
+    proc = _script("from-sweep", str(tmp_path / "sweep"), "--out", str(tmp_path / "study"))
+    assert proc.returncode == 0, proc.stderr
+    assert json.loads((tmp_path / "study" / "ours" / "mixed_s0.json").read_text()) == json.loads(json.dumps(rec))
+    with pytest.raises(FileNotFoundError, match="sweep_dir"):
+        records_from_sweep(tmp_path / "nothing")

@@ -58,6 +58,7 @@ import theory
 from mixedrl.config import DoubleLaneChangeTaskConfig, TrainConfig, task_config
 from mixedrl.gaussian import sample_gaussian
 from mixedrl.ibe import UnknownCovarianceIBE
+from mixedrl.tables import mean_std
 from mixedrl.runs import RunDirectory, atomic_write_text, eval_seeds, make_trainer, train
 from validation.nmpc import REFERENCE_SETTINGS
 from mixedrl.tasks import DoubleLaneChangeTask, task_from_config
@@ -220,11 +221,6 @@ def _summary_of_run(res: dict[str, Any]) -> dict[str, Any]:
             "true_transitions": res.get("true_transitions")}
 
 
-def _mean_std(values: Sequence[float]) -> tuple[float, float]:
-    arr = np.asarray(values, dtype=float)
-    return float(arr.mean()), float(arr.std(ddof=1)) if arr.size > 1 else 0.0
-
-
 def _theory_summary(rows: list[dict[str, Any]]) -> dict[str, Any]:
     out: dict[str, Any] = {}
     keys = ("theory/value_decrease", "theory/mvc_pointwise", "theory/mvc_batch_mean", "theory/e_nonnegative",
@@ -347,9 +343,9 @@ def aggregate(out: Path, finished: list[dict[str, Any]], wall: float, quick: boo
             continue
         entry: dict[str, Any] = {"runs": [_summary_of_run(r) for r in runs]}
         for key in ("lateral_mae", "speed_mae", "iterations_to_converge", "train_seconds"):
-            entry[f"{key}_mean"], entry[f"{key}_std"] = _mean_std([r[key] for r in runs])
+            entry[f"{key}_mean"], entry[f"{key}_std"] = mean_std([r[key] for r in runs])
         if all(r.get("cost") is not None for r in runs):
-            entry["cost_mean"], entry["cost_std"] = _mean_std([r["cost"] for r in runs])
+            entry["cost_mean"], entry["cost_std"] = mean_std([r["cost"] for r in runs])
         if all(r.get("true_transitions") is not None for r in runs):
             entry["true_transitions_mean"] = float(np.mean([r["true_transitions"] for r in runs]))
         if method != "ddpg":

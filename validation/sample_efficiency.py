@@ -28,6 +28,7 @@ import numpy as np
 import torch
 
 from mixedrl.config import TrainConfig
+from mixedrl.tables import mean_std
 from mixedrl.runs import (
     CONVERGENCE_RTOL,
     RunDirectory,
@@ -309,6 +310,45 @@ def records_from_reproduction(runs_dir: str | Path) -> list[dict[str, Any]]:
     return records
 
 
+def records_from_sweep(sweep_dir: str | Path) -> list[dict[str, Any]]:
+    """The study's records of the finished runs of a sweep (``mixedrl sweep studies/sample_efficiency.toml``).
+
+    Parameters
+    ----------
+    sweep_dir : str or pathlib.Path
+        A sweep directory (:mod:`mixedrl.sweep`): its ``sweep.json`` rows and their run directories.
+
+    Returns
+    -------
+    list of dict
+        Records as :func:`train_ours` returns them (``overrides`` names the source run directory), in the
+        sweep's order; failed or unfinished runs are left out.
+
+    Raises
+    ------
+    FileNotFoundError
+        ``sweep_dir`` holds no ``sweep.json``.
+    ValueError
+        A run's metrics lack the keys :func:`rows_from_metrics` needs.
+    """
+    root = Path(sweep_dir)
+    doc_path = root / "sweep.json"
+    if not doc_path.is_file():
+        raise FileNotFoundError(f"sweep_dir: {doc_path} does not exist (run mixedrl sweep ... --out {root})")
+    records = []
+    for row in json.loads(doc_path.read_text())["runs"]:
+        if row["error"] is not None or row["results"] is None:
+            continue
+        run = RunDirectory(root / row["run_dir"])
+        config, results = run.read_config(), run.read_results()
+        records.append({"method": config.method, "seed": config.seed, "config": config.to_dict(),
+                        "overrides": {"source": str(run.path)}, "rows": rows_from_metrics(run.read_metrics()),
+                        "true_transitions": results.get("true_transitions"),
+                        "train_seconds": results["train_seconds"],
+                        "final": {k: results[k] for k in ("lateral_mae", "speed_mae", "cost") if k in results}})
+    return records
+
+
 def load_runs(paths: Sequence[str | Path]) -> list[dict[str, Any]]:
     """Read per-run JSON files (of :func:`train_ours` or :func:`validation.peers.train_peer`).
 
@@ -333,11 +373,6 @@ def load_runs(paths: Sequence[str | Path]) -> list[dict[str, Any]]:
         seen.add(key)
         runs.append(run)
     return runs
-
-
-def _mean_std(values: list[float]) -> tuple[float, float | None]:
-    arr = np.asarray(values, dtype=float)
-    return float(arr.mean()), (float(arr.std(ddof=1)) if arr.size > 1 else None)
 
 
 def _aligned(runs: Sequence[dict[str, Any]]) -> bool:
@@ -381,7 +416,7 @@ def summarize(runs: Sequence[dict[str, Any]], lateral: float = THRESHOLD_LATERAL
         stay = [settled(r["rows"], rtol) for r in rs]
         entry: dict[str, Any] = {"method": method, "seeds": [r["seed"] for r in rs]}
         for name, key in (("lateral", "lateral_mae"), ("speed", "speed_mae"), ("cost", "cost")):
-            entry[f"{name}_mean"], entry[f"{name}_std"] = _mean_std([f[key] for f in finals])
+            entry[f"{name}_mean"], entry[f"{name}_std"] = mean_std([f[key] for f in finals], one=None)
         entry["true_transitions"] = [f["true_transitions"] for f in finals]
         entry["wall_seconds"] = [f["wall_seconds"] for f in finals]
         entry["accuracy_transitions"] = [None if a is None else a["true_transitions"] for a in acc]
