@@ -129,10 +129,11 @@ def design_of(config: dict[str, Any]) -> str:
 
 def per_run_record(sweep_dir: Path, row: dict[str, Any]) -> tuple[Path, dict[str, Any]]:
     """The per-run file (its path and content) of one finished run of a sweep of ``studies/preview.toml``
-    (a row of its ``sweep.json``: variant ``<design>_<candidate>``)."""
+    (a row of its ``sweep.json``: variant ``<design>_<candidate>``, ``_n<iterations>`` for a larger budget)."""
     run = RunDirectory(sweep_dir / row["run_dir"])
     cfg, res = run.read_config(), run.read_results()
     design, candidate = row["point"]["variant"].split("_", 1)
+    candidate = candidate.split("_n")[0]  # <design>_<candidate>_n<budget> for the larger budgets
     trainer = make_trainer(cfg)
     trainer.load_state_dict(load_checkpoint(run.checkpoint_path)["trainer"])
     evals = [{"iteration": int(r["iteration"]), "cost": r["eval/cost"], "lateral_mae": r["eval/lateral_mae"],

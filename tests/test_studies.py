@@ -105,12 +105,14 @@ OLD_PREVIEW_DESIGNS = {"M": "start", "S": "along"}
 
 def test_preview_spec_reproduces_the_old_config_of() -> None:
     runs = expand(load_spec(ROOT / "studies" / "preview.toml"))
-    assert len(runs) == len(OLD_PREVIEW) * len(OLD_PREVIEW_DESIGNS) * 5
+    assert len(runs) == (len(OLD_PREVIEW) * len(OLD_PREVIEW_DESIGNS) + 3) * 5
     for run in runs:
         design, candidate = run.point["variant"].split("_", 1)
-        # the old config_of(candidate, method, seed, design=design)
-        old = TrainConfig().replace(method=run.config.method, seed=run.config.seed, iterations=1500,
-                                    eval_every=300, checkpoint_every=1500, num_threads=1,
+        candidate, _, budget = candidate.partition("_n")
+        n = int(budget or 1500)
+        # the old config_of(candidate, method, seed, iterations=n, design=design)
+        old = TrainConfig().replace(method=run.config.method, seed=run.config.seed, iterations=n,
+                                    eval_every=max(100, n // 5), checkpoint_every=n, num_threads=1,
                                     model_course_starts=OLD_PREVIEW_DESIGNS[design],
                                     **{"task.preview_distances": OLD_PREVIEW[candidate]})
         assert run.config == old, run.name
