@@ -1,39 +1,27 @@
-"""scripts/beyond_paper.py: the studies beyond the paper (docs/beyond.rst).
+"""validation.beyond (the command line scripts/beyond_paper.py): the studies beyond the paper (docs/beyond.rst).
 
 Without Ray: the study specs (valid, training settings left to TrainConfig's defaults), the split of a
 study into main / shared / witness sweeps (the same runs as the spec, up to the shared key), the reduced
 spec, the TOML writer, and the table's arithmetic. Marked ``sweep``: the reduced prior-mismatch study end
-to end on a local Ray cluster, then the shipped table checked against the runs' own results.
+to end on the local process pool, then the shipped table checked against the runs' own results.
 """
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import shutil
 import statistics
-import sys
 from pathlib import Path
-from types import ModuleType
 
 import pytest
 
 from mixedrl.config import LEGACY_KEYS, TrainConfig
 from mixedrl.sweep import expand, load_spec, parse_spec
+from validation import beyond as BP
 
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def _driver() -> ModuleType:
-    spec = importlib.util.spec_from_file_location("beyond_paper", ROOT / "scripts" / "beyond_paper.py")
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    sys.modules.setdefault("beyond_paper", module)
-    spec.loader.exec_module(module)
-    return module
-
-
-BP = _driver()
 
 
 def _comparable(cfg: TrainConfig, drop: str | None = None) -> dict:
@@ -307,12 +295,11 @@ def test_nmpc_rows() -> None:
 
 
 # ----------------------------------------------------------------------------------------------------
-# end to end on a local Ray cluster
+# end to end on the local process pool
 # ----------------------------------------------------------------------------------------------------
 @pytest.mark.sweep
 def test_reduced_prior_mismatch_end_to_end_and_shipped_table(tmp_path: Path, capsys: pytest.CaptureFixture[str]
                                                              ) -> None:
-    pytest.importorskip("ray")
     out, dest = tmp_path / "pm", tmp_path / "ship"
     assert BP.main(["run", "prior_mismatch", "--reduced", "--out", str(out), "--num-cpus", "2", "--no-progress"]) == 0
     printed = capsys.readouterr().out
