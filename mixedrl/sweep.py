@@ -129,6 +129,7 @@ __all__ = [
     "make_figure",
     "add_parser",
     "add_arguments",
+    "add_engine_arguments",
     "format_summary",
 ]
 
@@ -827,12 +828,18 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", type=Path, required=True, help="sweep directory (shared by every node of a cluster)")
     p.add_argument("--workers", type=int, default=None,
                    help="processes of the local pool (default: all CPUs; 1 runs in this process)")
+    add_engine_arguments(p)
+
+
+def add_engine_arguments(p: argparse.ArgumentParser) -> None:
+    """The engine's options shared by ``mixedrl sweep`` and the study drivers: ``--address``, ``--num-cpus``,
+    ``--resume``, ``--no-progress``."""
     p.add_argument("--address", default=None,
                    help="run on Ray: join a cluster (e.g. 'auto' or HOST:6379) or 'local' to start one; "
                         "default: the local process pool")
     p.add_argument("--num-cpus", type=int, default=None,
                    help="CPUs of the local Ray cluster of --address local (default: all); without --address, "
-                        "the same as --workers")
+                        "the processes of the local pool")
     p.add_argument("--resume", action="store_true", help="skip finished runs, resume interrupted ones")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
 

@@ -56,7 +56,7 @@ import torch
 from mixedrl.config import TrainConfig
 from mixedrl.tables import csv_text, mean_std
 from mixedrl.runs import atomic_write_bytes, atomic_write_text, load_checkpoint, make_trainer
-from mixedrl.sweep import SweepSpec, format_summary, load_spec, parse_spec, run_sweep
+from mixedrl.sweep import SweepSpec, add_engine_arguments, format_summary, load_spec, parse_spec, run_sweep
 from mixedrl.tasks import task_from_config
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -814,20 +814,13 @@ def nmpc_rows(cache: dict[str, Any], priors: list[float], oracle_cost: dict[floa
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     sub = parser.add_subparsers(dest="command", required=True)
-    run = sub.add_parser("run", help="train the study on Ray")
+    run = sub.add_parser("run", help="train the study (the engine of mixedrl sweep)")
     run.add_argument("study", choices=sorted(STUDIES))
     run.add_argument("--reduced", action="store_true",
                      help=f"first seed, {REDUCED_ITERATIONS} iterations, two grid points (a smoke test)")
     run.add_argument("--out", type=Path, default=None, help="default runs/beyond/<study>[_reduced]")
-    run.add_argument("--address", default=None,
-                     help="run on Ray: join a cluster (e.g. 'auto') or 'local' to start one; default: the local "
-                          "process pool")
-    run.add_argument("--num-cpus", type=int, default=None,
-                     help="processes of the local pool (default: all CPUs), or CPUs of the Ray cluster of "
-                          "--address local")
-    run.add_argument("--resume", action="store_true", help="skip finished runs, resume interrupted ones")
+    add_engine_arguments(run)  # --address, --num-cpus, --resume, --no-progress: as mixedrl sweep
     run.add_argument("--no-share", action="store_true", help="train every method at every grid point")
-    run.add_argument("--no-progress", action="store_true")
     run.add_argument("--seeds", type=int, nargs="+", default=None,
                      help="train only these seeds of the spec (a study cut short; recorded in study.json)")
     ship = sub.add_parser("ship", help="write the study's table and figure")
