@@ -22,8 +22,10 @@ A spec is a small TOML file::
     horizon = 8                           # fields applied over [base] (not method, seed or a grid key)
     [variants.long]
     horizon = 32
+    seeds = [0]                           # a variant may have its own methods / seeds lists
 
-It expands to ``len(variants or [one]) x len(grid product) x len(methods) x len(seeds)`` runs. Every run is an
+It expands to ``len(variants or [one]) x len(grid product) x len(methods) x len(seeds)`` runs (a variant's own
+``methods`` / ``seeds`` replace the spec's for its runs). Every run is an
 ordinary run directory (:class:`mixedrl.runs.RunDirectory`) under ``DIR/runs/``, trained by
 :func:`mixedrl.runs.make_trainer` and :func:`mixedrl.runs.train`, the code path of ``mixedrl train``: a run
 of a sweep ends with exactly the weights and metrics of the same config trained alone.
@@ -145,6 +147,8 @@ _OWN_COLUMNS = ("seed", "iterations", "true_transitions", "train_seconds")
 INSTALL_HINT = 'pip install -c constraints.txt "mixedrl[sweep]"'
 #: Fields a spec sets through ``methods`` and ``seeds``, never through ``[base]`` or ``[grid]``.
 _RESERVED = {"method": "methods", "seed": "seeds"}
+#: Keys of a ``[variants.NAME]`` table that replace the spec's lists for that variant (not config fields).
+_VARIANT_LISTS = ("methods", "seeds")
 #: Longest run name before it is shortened with a hash.
 _MAX_NAME = 160
 
@@ -174,8 +178,9 @@ class SweepSpec:
     text : str
         The spec's TOML text (copied to ``DIR/spec.toml``).
     variants : dict
-        Variant name -> its dotted-key overrides (applied over ``base``); empty for a spec without
-        ``[variants.NAME]`` tables. The runs cover variants x grid points x methods x seeds.
+        Variant name -> its dotted-key overrides (applied over ``base``), and optionally ``methods`` /
+        ``seeds``: the variant's own lists; empty for a spec without ``[variants.NAME]`` tables. The runs
+        cover variants x grid points x methods x seeds.
     """
 
     methods: tuple[str, ...]
@@ -230,7 +235,8 @@ def parse_spec(text: str, source: str = "spec") -> SweepSpec:
         e.g. ``grid.critic_lr: ...``), ``method`` or ``seed`` set in ``[base]`` / ``[grid]``, a field
         both in ``[base]`` and ``[grid]``, or a run whose config :meth:`TrainConfig.from_dict` rejects
         (unknown or invalid field; message starts with the run's name), a ``[variants.NAME]`` that is not a
-        table, sets ``method`` / ``seed`` or a grid key (``variants.NAME.KEY: ...``).
+        table, sets ``method`` / ``seed`` or a grid key, or has a ``methods`` / ``seeds`` that is not a
+        non-empty list without duplicates (``variants.NAME.KEY: ...``).
     """
     try:
         data = tomllib.loads(text)
@@ -266,7 +272,7 @@ def parse_spec(text: str, source: str = "spec") -> SweepSpec:
 
 def _parse_variants(table: Any, grid: dict[str, Any]) -> dict[str, dict[str, Any]]:
     """Check the ``[variants.NAME]`` tables: each a table of dotted-key overrides (over ``[base]``), not
-    ``method`` / ``seed`` and not a grid key."""
+    ``method`` / ``seed`` and not a grid key; ``methods`` / ``seeds`` (lists) give the variant its own."""
     if not isinstance(table, dict):
         raise ValueError(f"variants: expected tables [variants.NAME], got {type(table).__name__}")
     variants: dict[str, dict[str, Any]] = {}
@@ -275,14 +281,15 @@ def _parse_variants(table: Any, grid: dict[str, Any]) -> dict[str, dict[str, Any
             raise ValueError(f"variants.{name}: a variant name may hold letters, digits, '.', '+', '-', '_' only")
         if not isinstance(body, dict):
             raise ValueError(f"variants.{name}: expected a table [variants.{name}], got {type(body).__name__}")
-        flat = flatten_table(body)
+        own = {key: _check_list(body[key], f"variants.{name}.{key}") for key in _VARIANT_LISTS if key in body}
+        flat = flatten_table({k: v for k, v in body.items() if k not in _VARIANT_LISTS})
         for field, via in _RESERVED.items():
             if field in flat:
                 raise ValueError(f"variants.{name}.{field}: set by the spec's {via!r} list, not in a variant")
         for key in flat:
             if key in grid:
                 raise ValueError(f"variants.{name}.{key}: also a grid key; set it in one place")
-        variants[name] = flat
+        variants[name] = {**flat, **own}
     return variants
 
 
@@ -353,10 +360,12 @@ def expand(spec: SweepSpec) -> list[SweepRun]:
         raise ValueError(f"base: {exc}") from None
     keys = list(spec.grid)
     variants: list[str | None] = list(spec.variants) or [None]
+    own = {name: spec.variants.get(name, {}) if name is not None else {} for name in variants}
     combos = [({**({} if variant is None else {"variant": variant}), **dict(zip(keys, values))}, method, seed)
               for variant in variants
               for values in itertools.product(*(spec.grid[k] for k in keys))
-              for method in spec.methods for seed in spec.seeds]
+              for method in own[variant].get("methods", spec.methods)
+              for seed in own[variant].get("seeds", spec.seeds)]
     names: dict[str, dict[str, Any]] = {}
     for point, method, seed in combos:  # every name first: a clash is reported before any config error
         name = run_name(point, method, seed)
@@ -366,7 +375,8 @@ def expand(spec: SweepSpec) -> list[SweepRun]:
     runs: list[SweepRun] = []
     for point, method, seed in combos:
         name = run_name(point, method, seed)
-        variant = spec.variants.get(point.get("variant"), {}) if spec.variants else {}
+        variant = {k: v for k, v in (spec.variants.get(point.get("variant"), {}) if spec.variants else {}).items()
+                   if k not in _VARIANT_LISTS}
         grid_point = {k: v for k, v in point.items() if not (spec.variants and k == "variant")}
         overrides = {**spec.base, **variant, **grid_point, "method": method, "seed": seed}
         try:

@@ -136,3 +136,37 @@ def test_preview_study_ships_a_sweep_directory(tmp_path: Path) -> None:
     assert len(rec["obs_scale"]) == 9 and [e["iteration"] for e in rec["evals"]] == [5, 10]
     (summary,) = json.loads((dest / "summary.json").read_text())
     assert (summary["design"], summary["candidate"], summary["cost_mean"]) == ("S", "P6", row["metrics"]["cost"])
+
+
+def test_reproduction_spec_is_the_reproductions_run_config() -> None:
+    from validation.reproduce import run_config
+
+    runs = expand(load_spec(ROOT / "studies" / "reproduction.toml"))
+    assert len(runs) == 5 * 5
+    labels = []
+    for run in runs:
+        label = "ddpg_long" if run.point["variant"] == "ddpg_long" else run.config.method
+        assert run.config == run_config(label, run.config.seed), run.name
+        labels.append(label)
+    assert sorted(set(labels)) == ["ddpg", "ddpg_long", "mixed", "model", "oracle"]
+
+
+def test_a_sweep_run_has_the_numbers_of_the_reproductions_run(tmp_path: Path) -> None:
+    """On a reduced config (the reproduction's quick budget, cut to 60 iterations): the reproduction's own
+    worker (with its theory probe) and the sweep's give the same per-run numbers, bit for bit."""
+    from validation.reproduce import run_config, run_one
+
+    config = run_config("mixed", 0, quick=True).replace(iterations=60, eval_every=30, checkpoint_every=30)
+    ours = run_one({"config": config.to_dict(), "path": str(tmp_path / "reproduce"), "resume": False,
+                    "theory_every": 30, "label": "mixed"})
+    text = 'methods = ["mixed"]\nseeds = [0]\n[base]\n' + "".join(
+        f'"{k}" = {json.dumps(v)}\n' for k, v in {"algorithm.iterations": 60, "run.eval_every": 30,
+                                                  "run.checkpoint_every": 30, "run.eval_seeds": 1,
+                                                  "ddpg.warmup": 500}.items())
+    spec = parse_spec(text)
+    (run,) = expand(spec)
+    assert run.config == config
+    (row,) = run_sweep(spec, tmp_path / "sweep", workers=1, progress=False)["runs"]
+    for key in ("lateral_mae", "speed_mae", "cost", "iterations_to_converge", "mvc_held_fraction"):
+        assert row["metrics"][key] == ours[key], key
+    assert row["true_transitions"] == ours["true_transitions"]

@@ -157,6 +157,12 @@ def test_variants_are_named_overrides_over_base_crossed_with_the_grid() -> None:
     assert spec.variants == {"small": {"batch_size": 16}, "wide": {"batch_size": 64, "hidden_sizes": [32, 32]}}
     only = expand(parse_spec('methods = ["model"]\nseeds = [0]\n' + BASE + VARIANTS))
     assert [r.name for r in only] == ["variant=small__model_seed0", "variant=wide__model_seed0"]
+    # a variant with its own methods and seeds
+    own = expand(parse_spec('methods = ["model"]\nseeds = [0]\n' + BASE + VARIANTS +
+                            'methods = ["mixed", "oracle"]\nseeds = [3, 4]\n'))
+    assert [r.name for r in own] == ["variant=small__model_seed0"] + [
+        f"variant=wide__{m}_seed{s}" for m in ("mixed", "oracle") for s in (3, 4)]
+    assert own[-1].config == TrainConfig(method="oracle", seed=4, batch_size=64, hidden_sizes=[32, 32], **base)
 
 
 @pytest.mark.parametrize("tail, message", [
@@ -167,6 +173,9 @@ def test_variants_are_named_overrides_over_base_crossed_with_the_grid() -> None:
     ("[grid]\ncritic_lr = [1e-3]\n[variants.small]\ncritic_lr = 1e-2", r"^variants.small.critic_lr: also a grid key"),
     ('[variants."a b"]\nbatch_size = 8', r"^variants.a b: a variant name may hold"),
     ("[variants.small]\nbatchsize = 8", r"^variant=small__mixed_seed0: config: unknown key\(s\) \['batchsize'\]"),
+    ("[variants.small]\nseeds = []", r"^variants.small.seeds: empty list"),
+    ("[variants.small]\nmethods = 'mixed'", r"^variants.small.methods: expected a list"),
+    ("[variants.small]\nseeds = [-2]", r"^variant=small__mixed_seed-2: seed: expected a non-negative integer"),
 ])
 def test_invalid_variants_are_rejected_naming_the_key(tail: str, message: str) -> None:
     with pytest.raises(ValueError, match=message):
