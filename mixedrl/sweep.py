@@ -92,6 +92,7 @@ from __future__ import annotations
 import argparse
 import concurrent.futures
 import dataclasses
+import functools
 import hashlib
 import io
 import itertools
@@ -448,6 +449,13 @@ def _timed_run_point(config: dict[str, Any], path: str, resume: bool) -> tuple[d
 # ----------------------------------------------------------------------------------------------------
 # the sweep
 # ----------------------------------------------------------------------------------------------------
+@functools.lru_cache(maxsize=4096)
+def _interval(values: tuple[float, ...]) -> tuple[float | None, float | None]:
+    """:func:`mixedrl.tables.bootstrap_interval`, cached: ``sweep.json`` is rewritten after every finished run,
+    and only the group of that run has new values (one interval costs tens of milliseconds)."""
+    return bootstrap_interval(values)
+
+
 def summarize(records: list[dict[str, Any]]) -> list[dict[str, Any]]:
     """Aggregate the runs over seeds: per grid point and method, mean, std and 95% interval of each figure.
 
@@ -482,7 +490,7 @@ def summarize(records: list[dict[str, Any]]) -> list[dict[str, Any]]:
         for fig in RESULT_KEYS:
             values = [r[fig] for r in group["done"] if isinstance(r.get(fig), (int, float))]
             row[f"{fig}_mean"], row[f"{fig}_std"] = mean_std(values)
-            row[f"{fig}_ci_low"], row[f"{fig}_ci_high"] = bootstrap_interval(values)
+            row[f"{fig}_ci_low"], row[f"{fig}_ci_high"] = _interval(tuple(float(v) for v in values))
         rows.append(row)
     return rows
 

@@ -30,6 +30,7 @@ from mixedrl.sweep import (
     summarize,
 )
 from mixedrl.cli import main as cli_main
+from mixedrl.tables import bootstrap_interval
 
 
 def main(argv: list[str]) -> int:
@@ -275,6 +276,12 @@ def test_summarize_means_and_sample_std_over_seeds() -> None:
     assert rows[0]["cost_mean"] == 2.0 and rows[0]["cost_std"] == pytest.approx(2 ** 0.5)
     assert rows[1]["cost_std"] == 0.0 and rows[0]["lateral_mae_mean"] is None
     assert rows[0]["speed_mae_mean"] == 1.0
+    # 95% bootstrap interval of the mean over seeds (mixedrl.tables.bootstrap_interval): inside the values'
+    # range around the mean; none for one seed, the value itself when every seed agrees
+    assert (rows[0]["cost_ci_low"], rows[0]["cost_ci_high"]) == bootstrap_interval([1.0, 3.0])
+    assert 1.0 <= rows[0]["cost_ci_low"] < 2.0 < rows[0]["cost_ci_high"] <= 3.0
+    assert (rows[1]["cost_ci_low"], rows[1]["cost_ci_high"]) == (None, None)
+    assert (rows[0]["speed_mae_ci_low"], rows[0]["speed_mae_ci_high"]) == (1.0, 1.0)
 
 
 def test_make_figure_plots_cost_against_the_first_grid_key(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
