@@ -254,3 +254,20 @@ def test_policy_gap_in_results_json_of_a_tiny_run(tmp_path: Path) -> None:
     assert gap["noise_mean"] == pytest.approx(results["final_ibe_mean"])
     assert gap["action"][0] - gap["optimum_action"][0] == pytest.approx(gap["action_error"][0], abs=1e-12)
     assert "policy_gap_reason" not in results
+
+
+def test_table_one_aggregates_and_lists_the_policy_gap(tmp_path: Path) -> None:
+    """validation.reproduce: per method the mean and std of |action error| per component, and one line each."""
+    from validation.reproduce import aggregate, format_table
+
+    def run(seed: int, error: list[float]) -> dict:
+        return {"label": "ddpg", "seed": seed, "lateral_mae": 0.2, "speed_mae": 0.05, "iterations_to_converge": 10,
+                "train_seconds": 1.0, "cost": 80.0, "convergence_criterion": "c",
+                "policy_gap": {"action_error": error}}
+
+    results = aggregate(tmp_path, [run(0, [0.1, -0.2]), run(1, [-0.3, 0.4])], wall=1.0, quick=True)
+    assert results["ddpg"]["policy_gap_abs_mean"] == pytest.approx([0.2, 0.3])
+    assert results["ddpg"]["policy_gap_abs_std"] == pytest.approx([math.sqrt(0.02), math.sqrt(0.02)])
+    assert [r["policy_gap_action_error"] for r in results["ddpg"]["runs"]] == [[0.1, -0.2], [-0.3, 0.4]]
+    assert "policy_gap (ddpg): |action - LQ optimum| at the origin, own mean: 0.2000 ± 0.1414, 0.3000 ± 0.1414" \
+        in format_table(results)
