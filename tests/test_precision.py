@@ -271,3 +271,16 @@ def test_table_one_aggregates_and_lists_the_policy_gap(tmp_path: Path) -> None:
     assert [r["policy_gap_action_error"] for r in results["ddpg"]["runs"]] == [[0.1, -0.2], [-0.3, 0.4]]
     assert "policy_gap (ddpg): |action - LQ optimum| at the origin, own mean: 0.2000 ± 0.1414, 0.3000 ± 0.1414" \
         in format_table(results)
+
+
+def test_ddpg_is_compared_with_the_true_mean_and_its_q_critic() -> None:
+    from mixedrl.algorithms.ddpg import DDPG
+
+    task = LinearTask()
+    trainer = DDPG(task, _config("ddpg"))
+    gap, reason = run_policy_gap(trainer)
+    assert reason is None and gap["noise_mean"] == pytest.approx(task.true_mean.tolist())
+    assert gap["action_error"] == pytest.approx(gap["action_error_true_mean"])
+    obs = torch.zeros(1, 2)
+    with torch.no_grad():
+        assert gap["value"] == pytest.approx(float(trainer.critic(obs, trainer.policy(obs))))
