@@ -237,15 +237,18 @@ def run_policy_gap(trainer: Any) -> tuple[dict[str, Any] | None, str | None]:
     Returns
     -------
     tuple
-        ``(policy_gap dict, None)``, or ``(None, reason)`` when the task has no equilibrium or the LQ
-        problem at it has no solution (the reason says which); never raises for those.
+        ``(policy_gap dict, None)``, or ``(None, reason)`` when the task has no equilibrium, its
+        linearisation fails (a ``ValueError`` of :meth:`~mixedrl.tasks.Task.linearisation`, or a
+        ``RuntimeError`` of autograd on a non-differentiable ``f`` or ``cost``) or the LQ problem at it has
+        no solution; the reason says which. It does not raise for those, so a finished run always writes
+        its results.
     """
     task: Task = trainer.task
     policy = trainer.policy
     try:
         lin = task.linearisation()
-    except ValueError as exc:
-        return None, f"no linearisation at the equilibrium: {exc}"
+    except (ValueError, RuntimeError) as exc:  # RuntimeError: f or cost not differentiable by torch.func
+        return None, f"no linearisation at the equilibrium: {type(exc).__name__}: {exc}"
     if lin is None:
         return None, f"task {getattr(task, 'name', type(task).__name__)!r} defines no equilibrium (Task.equilibrium)"
     critic = getattr(trainer, "critic", None)
@@ -267,8 +270,8 @@ def run_policy_gap(trainer: Any) -> tuple[dict[str, Any] | None, str | None]:
         mean = task.true_mean_at(s_star, torch.as_tensor(np.asarray(lin.action))[None])[0].numpy()
     try:
         return policy_gap(task, policy, mean, cov, value=value, lin=lin), None
-    except ValueError as exc:
-        return None, f"no LQ optimum at the equilibrium: {exc}"
+    except (ValueError, RuntimeError) as exc:
+        return None, f"no LQ optimum at the equilibrium: {type(exc).__name__}: {exc}"
 
 
 #: The entries of a ``policy_gap`` that the command line shows (:func:`gap_summary`).

@@ -284,3 +284,8 @@ def test_ddpg_is_compared_with_the_true_mean_and_its_q_critic() -> None:
     obs = torch.zeros(1, 2)
     with torch.no_grad():
         assert gap["value"] == pytest.approx(float(trainer.critic(obs, trainer.policy(obs))))
+
+
+def test_a_failing_linearisation_is_a_reason_not_a_crash() -> None:
+    gap, reason = run_policy_gap(AGPI(_NotARestPoint(), _config("model")))
+    assert gap is None and reason.startswith("no linearisation at the equilibrium: ValueError: equilibrium:")
