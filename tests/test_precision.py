@@ -289,3 +289,17 @@ def test_ddpg_is_compared_with_the_true_mean_and_its_q_critic() -> None:
 def test_a_failing_linearisation_is_a_reason_not_a_crash() -> None:
     gap, reason = run_policy_gap(AGPI(_NotARestPoint(), _config("model")))
     assert gap is None and reason.startswith("no linearisation at the equilibrium: ValueError: equilibrium:")
+
+
+def test_train_and_evaluate_print_the_policy_gap(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    from mixedrl.cli import main
+
+    out = tmp_path / "run"
+    assert main(["train", "--method", "model", "--out", str(out), "--iterations", "2", "--no-progress", "--set",
+                 "task.name=linear", "algorithm.batch_size=16", "algorithm.hidden_sizes=[8]", "run.eval_seeds=1"]) == 0
+    captured = capsys.readouterr()
+    printed, saved = json.loads(captured.out), json.loads((out / "results.json").read_text())["policy_gap"]
+    assert printed["policy_gap"]["action_error"] == saved["action_error"]
+    assert captured.err.startswith("policy_gap: action - LQ optimum at the equilibrium [")
+    assert main(["evaluate", str(out)]) == 0
+    assert json.loads(capsys.readouterr().out)["policy_gap"]["action_error"] == pytest.approx(saved["action_error"])
