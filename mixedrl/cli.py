@@ -18,9 +18,11 @@ configuration (values are JSON, else strings)::
     mixedrl train --method model --out runs/lin --set task.name=linear "task.prior_mean=[0, 2]"
 
 (:func:`mixedrl.config.apply_overrides` applies them; an unknown key, at any level, is an error naming
-its dotted name.) ``evaluate`` drives a run's final policy on its task. ``sweep`` runs a grid of
-configurations x methods x seeds on a local process pool, or on Ray with ``--address`` (:mod:`mixedrl.sweep`;
-Ray is the optional extra ``sweep``).
+its dotted name.) ``evaluate`` drives a run's final policy on its task. Both print one JSON object on
+stdout, with the ``policy_gap`` summary (the action at the task's equilibrium minus the LQ optimum's,
+:mod:`mixedrl.precision`), and one line about it on stderr. ``sweep`` runs a grid of configurations x
+methods x seeds on a local process pool, or on Ray with ``--address`` (:mod:`mixedrl.sweep`; Ray is the
+optional extra ``sweep``).
 
 **Command plug-ins.** Commands beyond ``train``, ``evaluate`` and ``sweep`` are plug-ins, so that the core package
 imports neither ``validation`` nor ``theory``: ``reproduce`` (Table I and the figures of the paper's
@@ -50,6 +52,7 @@ from pathlib import Path
 from typing import Any, Sequence
 
 from mixedrl.config import METHODS, TrainConfig, apply_overrides
+from mixedrl.precision import format_policy_gap, gap_summary, run_policy_gap
 from mixedrl.runs import RunDirectory, eval_seeds, load_checkpoint, make_trainer, train
 from mixedrl.sweep import add_parser as add_sweep_parser
 from mixedrl.sweep import flatten_table, format_summary, load_spec, run_sweep
@@ -222,9 +225,13 @@ def _train(args: argparse.Namespace) -> int:
     except ImportError as exc:
         print(f"mixedrl train: error: {exc}", file=sys.stderr)
         return 2
-    print(json.dumps({k: results[k] for k in ("method", "seed", "iterations", "lateral_mae", "speed_mae", "cost",
-                                              "iterations_to_converge", "train_seconds", "true_transitions") if k in results},
-                     indent=2))
+    shown = {k: results[k] for k in ("method", "seed", "iterations", "lateral_mae", "speed_mae", "cost",
+                                      "iterations_to_converge", "train_seconds", "true_transitions") if k in results}
+    if "policy_gap" in results:
+        shown["policy_gap"] = gap_summary(results["policy_gap"])
+    print(json.dumps(shown, indent=2))
+    if "policy_gap" in results:  # the one human-readable line (stdout stays one JSON object)
+        print(format_policy_gap(results["policy_gap"], results.get("policy_gap_reason")), file=sys.stderr)
     return 0
 
 
@@ -239,8 +246,11 @@ def _evaluate(args: argparse.Namespace) -> int:
     trainer = make_trainer(config)
     trainer.load_state_dict(load_checkpoint(run.checkpoint_path)["trainer"])
     metrics = trainer.evaluate(eval_seeds(config))
+    gap, reason = run_policy_gap(trainer)
     print(json.dumps({"run": str(run.path), "method": config.method, "seed": config.seed, "iteration": trainer.k,
-                      **{k: v for k, v in metrics.items() if isinstance(v, (int, float))}}, indent=2))
+                      **{k: v for k, v in metrics.items() if isinstance(v, (int, float))},
+                      "policy_gap": gap_summary(gap)}, indent=2))
+    print(format_policy_gap(gap, reason), file=sys.stderr)
     return 0
 
 

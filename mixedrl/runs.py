@@ -63,6 +63,7 @@ import torch
 from mixedrl.algorithms.agpi import AGPI
 from mixedrl.algorithms.ddpg import DDPG
 from mixedrl.config import TrainConfig, flatten_table
+from mixedrl.precision import run_policy_gap
 from mixedrl.tasks import Task, task_from_config
 from mixedrl.tensorboard import TB_DIR, TensorBoardLogger
 
@@ -922,7 +923,12 @@ def _train(trainer: Any, run: RunDirectory | None, state: dict[str, Any] | None,
 
 
 def summarize(trainer: Any, rows: list[dict[str, Any]], elapsed: float, seeds: list[int]) -> dict[str, Any]:
-    """Final evaluation and convergence figures of a finished run (the content of ``results.json``)."""
+    """Final evaluation and convergence figures of a finished run (the content of ``results.json``).
+
+    ``policy_gap`` is the policy at the task's equilibrium against the discounted LQ optimum for the
+    method's own noise mean (:func:`mixedrl.precision.run_policy_gap`), ``null`` with ``policy_gap_reason``
+    when the task has no equilibrium.
+    """
     cfg: TrainConfig = trainer.config
     final = trainer.evaluate(seeds)
     evals = [(r["iteration"], r["eval/cost"]) for r in rows if "eval/cost" in r]
@@ -953,4 +959,9 @@ def summarize(trainer: Any, rows: list[dict[str, Any]], elapsed: float, seeds: l
         results["mvc_held_fraction"] = float(np.mean(mvc)) if mvc else None
         inner = [r["mvc/inner_steps"] for r in rows if "mvc/inner_steps" in r]
         results["mean_inner_steps"] = float(np.mean(inner)) if inner else None
+    # the precision yardstick at the equilibrium (mixedrl.precision; evaluation only): null with a reason
+    # when the task has none
+    results["policy_gap"], reason = run_policy_gap(trainer)
+    if reason is not None:
+        results["policy_gap_reason"] = reason
     return results

@@ -22,7 +22,8 @@ from __future__ import annotations
 
 import abc
 import math
-from typing import Any
+from dataclasses import dataclass, field
+from typing import Any, Callable
 
 import numpy as np
 import torch
@@ -32,7 +33,109 @@ from mixedrl.config import DoubleLaneChangeTaskConfig, LinearTaskConfig, TaskCon
 from mixedrl.envs import DoubleLaneChangeModel, evaluate_tracking
 from mixedrl.gaussian import sample_gaussian
 
-__all__ = ["Task", "LinearTask", "DoubleLaneChangeTask", "check_task", "make_task", "task_from_config"]
+__all__ = ["Task", "LinearTask", "DoubleLaneChangeTask", "Equilibrium", "Linearisation", "check_task", "make_task",
+           "task_from_config"]
+
+
+#: Largest ``|f(s*, u*) - s*|`` and ``|grad l|`` (relative to the state's and the cost's scale) accepted at an
+#: equilibrium by :meth:`Task.linearisation` (float64 round-off of the model and the cost).
+EQUILIBRIUM_ATOL = 1e-9
+
+
+@dataclass(frozen=True)
+class Equilibrium:
+    """A rest point of the noise-free model: ``f(state, action) = state`` (:meth:`Task.equilibrium`).
+
+    Attributes
+    ----------
+    state : numpy.ndarray, shape (state_dim,)
+        ``s*``, float64.
+    action : numpy.ndarray, shape (action_dim,)
+        ``u*``, float64.
+    """
+
+    state: np.ndarray
+    action: np.ndarray
+
+
+@dataclass(frozen=True)
+class Linearisation:
+    """The discounted LQ problem of a task at an equilibrium (:meth:`Task.linearisation`).
+
+    In the coordinates ``x`` of the linearisation (``x = s - s*`` unless the task says otherwise) and
+    ``v = u - u*``,
+
+    .. math:: x' = A x + B v + E \\xi, \\qquad l(x', v) = x'^\\top Q x' + v^\\top R v,\\qquad \\gamma,
+
+    the next-state convention of eq. (2) (EQUATIONS.md, last section). The item access ``lin["A"]``
+    (keys ``A``, ``B``, ``Q``, ``R``, ``E``, ``gamma``) is kept for the callers of the former dict of
+    :meth:`mixedrl.envs.pendulum.PendulumTask.linearisation`.
+
+    Attributes
+    ----------
+    A : numpy.ndarray, shape (n, n)
+    B : numpy.ndarray, shape (n, action_dim)
+    Q : numpy.ndarray, shape (n, n)
+        Symmetric PSD.
+    R : numpy.ndarray, shape (action_dim, action_dim)
+        Symmetric positive definite.
+    E : numpy.ndarray, shape (n, noise_dim)
+        How the noise ``xi`` enters ``x``.
+    gamma : float
+        The task's discount.
+    state : numpy.ndarray, shape (state_dim,)
+        The task state at ``x = 0`` (``s*``).
+    action : numpy.ndarray, shape (action_dim,)
+        ``u*``.
+    embed : callable, optional
+        ``x`` (B, n) torch float64 -> task states (B, state_dim); default ``s* + x`` (then ``n = state_dim``).
+    """
+
+    A: np.ndarray
+    B: np.ndarray
+    Q: np.ndarray
+    R: np.ndarray
+    E: np.ndarray
+    gamma: float
+    state: np.ndarray
+    action: np.ndarray
+    embed: Callable[[torch.Tensor], torch.Tensor] | None = field(default=None, compare=False)
+
+    _KEYS = ("A", "B", "Q", "R", "E", "gamma")
+
+    def __getitem__(self, key: str) -> Any:
+        if key not in self._KEYS:
+            raise KeyError(f"key: expected one of {list(self._KEYS)}, got {key!r}")
+        return getattr(self, key)
+
+    def to_state(self, x: torch.Tensor) -> torch.Tensor:
+        """Task states of the coordinates ``x`` (B, n) -> (B, state_dim), float64 (differentiable)."""
+        if self.embed is not None:
+            return self.embed(x)
+        return torch.as_tensor(self.state, dtype=torch.float64) + x
+
+
+def _cost_hessian(cost: Callable[[torch.Tensor, torch.Tensor], torch.Tensor], x0: torch.Tensor, u0: torch.Tensor,
+                  name: str, scale: float) -> tuple[np.ndarray, np.ndarray]:
+    """``Q = l_xx / 2``, ``R = l_uu / 2`` of a batched cost ``l(x', u)`` at ``(x0, u0)`` (float64, ``torch.func``),
+    after checking that the gradient and the cross term ``l_xu`` vanish there (see :meth:`Task.linearisation`)."""
+    n = x0.shape[0]
+
+    def stage(z: torch.Tensor) -> torch.Tensor:
+        return cost(z[None, :n], z[None, n:])[0]
+
+    z0 = torch.cat([x0, u0])
+    grad = torch.func.jacrev(stage)(z0)
+    H = torch.func.hessian(stage)(z0)
+    H = 0.5 * (H + H.T)
+    cost_scale = 1.0 + float(H.abs().max()) * scale
+    if float(grad.abs().max()) > EQUILIBRIUM_ATOL * cost_scale:
+        raise ValueError(f"cost: {name}.cost has a nonzero gradient {grad.tolist()} at the equilibrium (the LQ "
+                         f"yardstick needs the cost's minimum there)")
+    if float(H[:n, n:].abs().max()) > EQUILIBRIUM_ATOL * cost_scale:
+        raise ValueError(f"cost: {name}.cost couples the next state and the action at the equilibrium (the LQ form "
+                         f"l = x'^T Q x' + u^T R u has no cross term)")
+    return 0.5 * H[:n, :n].numpy(), 0.5 * H[n:, n:].numpy()
 
 
 class Task(abc.ABC):
@@ -111,6 +214,63 @@ class Task(abc.ABC):
     def is_terminal(self, s: torch.Tensor) -> torch.Tensor:
         """Boolean (B,): the episode of this copy ends (left the domain, course finished, not finite)."""
         return ~torch.isfinite(s).all(dim=-1)
+
+    def equilibrium(self) -> Equilibrium | None:
+        """A rest point ``f(s*, u*) = s*`` of the noise-free model where the precision yardstick
+        (:mod:`mixedrl.precision`) is taken; ``None`` here (a task without one has no ``policy_gap``).
+
+        Subclasses with an equilibrium override it (:class:`LinearTask`, the pendulum: the origin;
+        :class:`DoubleLaneChangeTask`: on the reference at the desired speed).
+        """
+        return None
+
+    def linearisation(self) -> Linearisation | None:
+        """The discounted LQ problem at :meth:`equilibrium` (``None`` without one).
+
+        By default ``x = s - s*``, ``v = u - u*`` and
+
+        .. math::
+
+            A = \\frac{\\partial f}{\\partial s}(s^*, u^*),\\quad B = \\frac{\\partial f}{\\partial u}(s^*, u^*),\\quad
+            Q = \\tfrac12 \\frac{\\partial^2 l}{\\partial s'^2},\\quad R = \\tfrac12 \\frac{\\partial^2 l}{\\partial u^2}
+            \\ \\text{at } (s', u) = (s^*, u^*),\\qquad E = \\text{noise\\_matrix},
+
+        from :func:`torch.func.jacrev` and :func:`torch.func.hessian` of :meth:`f` and :meth:`cost` in
+        float64 (exact for a linear ``f`` and a quadratic ``l``, the second-order model otherwise).
+
+        Returns
+        -------
+        Linearisation or None
+
+        Raises
+        ------
+        ValueError
+            ``f(s*, u*) != s*`` (not a rest point), the cost's gradient at ``(s*, u*)`` is not zero (the
+            equilibrium is not the cost's minimum: the LQ problem would need linear terms), or its Hessian
+            couples ``s'`` and ``u`` (the LQ form has no cross term); the message names ``equilibrium`` or
+            ``cost``.
+        """
+        eq = self.equilibrium()
+        if eq is None:
+            return None
+        s0 = torch.as_tensor(np.asarray(eq.state, dtype=np.float64))
+        u0 = torch.as_tensor(np.asarray(eq.action, dtype=np.float64))
+        name = type(self).__name__
+
+        def step(s: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+            return self.f(s[None], u[None])[0]
+
+        with torch.no_grad():
+            drift = float((step(s0, u0) - s0).abs().max())
+        scale = 1.0 + float(s0.abs().max())
+        if drift > EQUILIBRIUM_ATOL * scale:
+            raise ValueError(f"equilibrium: {name}.f(state, action) differs from state by {drift:.3g} (not a rest "
+                             f"point of the model; override {name}.linearisation)")
+        A, B = torch.func.jacrev(step, argnums=(0, 1))(s0, u0)
+        Q, R = _cost_hessian(lambda x, u: self.cost(x, u), s0, u0, name, scale)
+        return Linearisation(A=A.numpy(), B=B.numpy(), Q=Q, R=R, E=self.noise_matrix.double().numpy(),
+                             gamma=float(self.gamma),
+                             state=s0.numpy(), action=u0.numpy())
 
     def true_step(self, s: torch.Tensor, u: torch.Tensor, generator: torch.Generator) -> torch.Tensor:
         """One step of the *true* environment, eq. (1): ``f(s, u) + E xi``, ``xi ~ N(true_mean, true_cov)``.
@@ -383,6 +543,10 @@ class LinearTask(Task):
                    prior_mean=config.prior_mean, prior_cov=config.prior_cov, init_box=config.init_box,
                    action_bound=config.action_bound)
 
+    def equilibrium(self) -> Equilibrium:
+        """The origin ``s* = 0``, ``u* = 0`` (the linearisation is the task itself: ``A``, ``B``, ``Q``, ``R``, ``E = I``)."""
+        return Equilibrium(state=np.zeros(self.state_dim), action=np.zeros(self.action_dim))
+
     def f(self, s: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
         # x' = A x + B u (deterministic part)
         return s @ self._At[s.dtype] + u @ self._Bt[s.dtype]
@@ -605,6 +769,44 @@ class DoubleLaneChangeTask(Task):
     def xi_to_force(self, xi: Any) -> Any:
         """The force [N] whose noise on ``v_x`` is ``xi`` [m/s]: ``F_dis = xi m / T``."""
         return xi / self.force_scale
+
+    def equilibrium(self) -> Equilibrium:
+        """On the reference at the course start at the desired speed: ``s* = [0, 0, v_des, psi_ref(0), Y_ref(0), 0]``,
+        ``u* = 0`` -- the origin of the tracking errors (the observation is 0 without preview).
+
+        It is a rest point of the errors on a straight road (eq. 53 at ``v_y = r = 0``, ``delta = a_x = 0``), not
+        of the six-component state (``X`` advances): :meth:`linearisation` is taken on the paper's state.
+        """
+        cfg = self.model.config
+        X0 = torch.zeros((), dtype=torch.float64)
+        heading, lateral = float(cfg.reference.heading(X0)), float(cfg.reference.lateral(X0))
+        return Equilibrium(state=np.array([0.0, 0.0, cfg.v_des, heading, lateral, 0.0]), action=np.zeros(2))
+
+    def linearisation(self) -> Linearisation:
+        """The discounted LQ problem of the tracking errors at :meth:`equilibrium` (the LQR reference's problem).
+
+        Coordinates: the paper's relative state ``x = [v_y, r, v_x - v_des, e_phi, e_y]`` (eq. 53), ``v = u``;
+        ``A``, ``B`` are the Jacobians of the shared ``f`` (:class:`~mixedrl.envs.VehicleDynamics`) at
+        ``[0, 0, v_des, 0, 0]`` on a straight road (as :func:`validation.nmpc.linearise_straight`), ``Q``,
+        ``R`` half the Hessian of eq. (54) (``T diag(0, 0, q_speed, 0, q_lateral)``, ``T diag(r_steer, r_accel)``),
+        ``E = I_5`` (the noise's five components are those of ``x``). ``x`` embeds into the task state at
+        ``X = 0``: ``s = [x_0, x_1, v_des + x_2, psi_ref(0) + x_3, Y_ref(0) + x_4, 0]``.
+        """
+        eq = self.equilibrium()
+        cfg = self.model.config
+        s0 = torch.as_tensor(eq.state)
+        x0 = torch.tensor([0.0, 0.0, cfg.v_des, 0.0, 0.0], dtype=torch.float64)
+        u0 = torch.zeros(2, dtype=torch.float64)
+        A, B = torch.func.jacrev(lambda x, u: self.model.dynamics(x, u), argnums=(0, 1))(x0, u0)
+
+        def embed(x: torch.Tensor) -> torch.Tensor:
+            # s = s* + [x_0, x_1, x_2, x_3, x_4, 0]: the errors around the reference at X = 0
+            return s0 + torch.cat([x, torch.zeros(x.shape[0], 1, dtype=x.dtype)], dim=1)
+
+        Q, R = _cost_hessian(lambda x, u: self.model.cost(embed(x), u), torch.zeros(5, dtype=torch.float64), u0,
+                             type(self).__name__, 1.0 + cfg.v_des)
+        return Linearisation(A=A.numpy(), B=B.numpy(), Q=Q, R=R, E=np.eye(5), gamma=self.gamma, state=eq.state,
+                             action=eq.action, embed=embed)
 
     def f(self, s: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
         return self.model.step(s, u)

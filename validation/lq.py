@@ -7,8 +7,10 @@ the next state ``l(x', u) = x'^T Q x' + u^T R u`` (eq. 2), discount ``gamma``. T
 * ``S = Q + gamma P`` solves the standard DARE with ``(sqrt(gamma) A, sqrt(gamma) B, Q, gamma R)``
   (:func:`control.dare`, ``method="scipy"``), and ``L = (R + B^T S B)^{-1} B^T S A``;
 * ``p`` and ``l0`` solve one linear system that depends on ``mu``, and ``c`` follows; a wrong ``mu``
-  leaves ``L`` exact and biases ``l0`` (:func:`discounted_lq_optimum`, the one implementation, also
-  behind :func:`validation.nmpc.discounted_lqr`; :func:`optimal_solution` for an :class:`LQProblem`).
+  leaves ``L`` exact and biases ``l0`` (:func:`mixedrl.quadratic.discounted_lq_optimum`, the one
+  implementation, re-exported here as :func:`discounted_lq_optimum` with :class:`LQSolution`; also behind
+  :func:`validation.nmpc.discounted_lqr` and the precision yardstick :mod:`mixedrl.precision`;
+  :func:`optimal_solution` for an :class:`LQProblem`).
 
 :func:`run_algorithm1` runs the same loop (:func:`mixedrl.algorithms.policy_iteration.policy_iteration`)
 with three noise sources: ``"mixed"`` (the IBE, Case 2 by default, fed with residuals of the true system
@@ -48,7 +50,8 @@ from mixedrl.ibe import residuals
 from mixedrl.noise import GaussianNoise, make_noise_source
 from mixedrl.pev import ExactPEV
 from mixedrl.pim import ExactPIM
-from mixedrl.quadratic import AffinePolicy, LinearDynamics, QuadraticCost, QuadraticValue
+from mixedrl.quadratic import (AffinePolicy, LinearDynamics, LQSolution, QuadraticCost, QuadraticValue,
+                               discounted_lq_optimum)
 from theory import ibe_shift, lyapunov_decrease, mvc, value_decrease
 
 __all__ = [
@@ -209,113 +212,6 @@ class LQProblem:
             k: (getattr(self, k).tolist() if isinstance(getattr(self, k), np.ndarray) else getattr(self, k))
             for k in ("A", "B", "Q", "R", "gamma", "noise_mean", "noise_cov", "prior_mean", "prior_cov")
         }
-
-
-@dataclass(frozen=True)
-class LQSolution:
-    """The optimal (affine policy, quadratic value) of an :class:`LQProblem` for a given noise.
-
-    Attributes
-    ----------
-    gain : ndarray, shape (m, n)
-        ``L``.
-    offset : ndarray, shape (m,)
-        ``l0``.
-    P : ndarray, shape (n, n)
-    p : ndarray, shape (n,)
-    c : float
-        ``V*(x) = x^T P x + 2 p^T x + c``.
-    S : ndarray, shape (n, n)
-        ``S = Q + gamma P``, the DARE solution.
-    """
-
-    gain: np.ndarray
-    offset: np.ndarray
-    P: np.ndarray
-    p: np.ndarray
-    c: float
-    S: np.ndarray
-
-    @property
-    def policy(self) -> AffinePolicy:
-        """``u = -L x - l0``."""
-        return AffinePolicy(self.gain, self.offset)
-
-    @property
-    def value(self) -> QuadraticValue:
-        """``V*``."""
-        return QuadraticValue(self.P, self.p, self.c)
-
-
-def discounted_lq_optimum(A: np.ndarray, B: np.ndarray, Q: np.ndarray, R: np.ndarray, gamma: float,
-                          mu: np.ndarray, K: np.ndarray | None = None) -> LQSolution:
-    """Implements the discounted LQ optimum with next-state cost and mean-shifted noise (EQUATIONS.md, last section).
-
-    .. math::
-        S &= \\mathrm{DARE}(\\sqrt\\gamma A, \\sqrt\\gamma B, Q, \\gamma R),\\quad P = (S - Q)/\\gamma,\\quad
-        L = (R + B^T S B)^{-1} B^T S A \\\\
-        \\begin{bmatrix} I - \\gamma A_c^T & A_c^T S B - L^T R \\\\ -\\gamma B^T & R + B^T S B \\end{bmatrix}
-        \\begin{bmatrix} p \\\\ l_0 \\end{bmatrix} &=
-        \\begin{bmatrix} A_c^T S \\mu \\\\ B^T S \\mu \\end{bmatrix},\\quad A_c = A - B L \\\\
-        (1-\\gamma)\\, c &= d^T S d + \\operatorname{tr}(S K) + l_0^T R l_0 + 2\\gamma p^T d,\\quad d = \\mu - B l_0
-
-    for ``x' = A x + B u + xi``, ``xi ~ N(mu, K)``, ``l = x'^T Q x' + u^T R u``, policy ``u = -L x - l0``,
-    value ``V*(x) = x^T P x + 2 p^T x + c``. Solved with ``control.dare(method="scipy")``.
-
-    Parameters
-    ----------
-    A : numpy.ndarray, shape (n, n)
-    B : numpy.ndarray, shape (n, m)
-    Q : numpy.ndarray, shape (n, n)
-        Symmetric PSD.
-    R : numpy.ndarray, shape (m, m)
-        Symmetric positive definite.
-    gamma : float
-        Discount in (0, 1] (validated by the callers; 1 is allowed: ``L``, ``l0``, ``P`` and ``p`` stay
-        finite when ``A_c`` is stable, and ``c`` is then ``inf``).
-    mu : numpy.ndarray, shape (n,)
-        Noise mean.
-    K : numpy.ndarray, shape (n, n), optional
-        Noise covariance, only for ``c`` (default 0).
-
-    Returns
-    -------
-    LQSolution
-
-    Raises
-    ------
-    ValueError
-        The DARE has no stabilising solution (message names ``Q``: e.g. ``(sqrt(gamma) A, Q^{1/2})``
-        has an unobservable mode on the unit circle).
-
-    Notes
-    -----
-    The block ``A_c^T S B - L^T R`` vanishes at the DARE solution (``L^T (R + B^T S B) = A^T S B``),
-    so ``p = (I - gamma A_c^T)^{-1} A_c^T S mu`` (docs/lq.rst); it is kept in the system as it comes
-    from the PEV and PIM equations, and the tests check the two forms agree.
-    """
-    A, B, Q, R, mu = (np.asarray(a, dtype=np.float64) for a in (A, B, Q, R, mu))
-    n, g = A.shape[0], float(gamma)
-    K = np.zeros((n, n)) if K is None else np.asarray(K, dtype=np.float64)
-    sg = math.sqrt(g)
-    try:
-        # S solves the DARE with (sqrt(gamma) A, sqrt(gamma) B, Q, gamma R)
-        S, _, L = control.dare(sg * A, sg * B, Q, g * R, method="scipy")
-    except (np.linalg.LinAlgError, ValueError, control.ControlArgument) as exc:
-        raise ValueError(f"Q: the DARE has no stabilising solution ({exc})") from None
-    S = _sym(np.asarray(S, dtype=np.float64))
-    L = np.asarray(L, dtype=np.float64)
-    P = _sym((S - Q) / g)
-    Ac = A - B @ L
-    # [[I - g Ac^T, Ac^T S B - L^T R], [-g B^T, R + B^T S B]] [p; l0] = [Ac^T S mu; B^T S mu]
-    M = np.block([[np.eye(n) - g * Ac.T, Ac.T @ S @ B - L.T @ R], [-g * B.T, R + B.T @ S @ B]])
-    rhs = np.concatenate([Ac.T @ S @ mu, B.T @ S @ mu])
-    sol = np.linalg.solve(M, rhs)
-    p, l0 = sol[:n], sol[n:]
-    d = mu - B @ l0
-    # (1 - g) c = d^T S d + tr(S K) + l0^T R l0 + 2 g p^T d
-    c = math.inf if g == 1.0 else float((d @ S @ d + np.sum(S * K) + l0 @ R @ l0 + 2.0 * g * p @ d) / (1.0 - g))
-    return LQSolution(gain=L, offset=l0, P=P, p=p, c=c, S=S)
 
 
 def optimal_solution(problem: LQProblem, noise_mean: Any = None, noise_cov: Any = None) -> LQSolution:

@@ -218,7 +218,8 @@ def _summary_of_run(res: dict[str, Any]) -> dict[str, Any]:
     return {"seed": res["seed"], "lateral_mae": res["lateral_mae"], "speed_mae": res["speed_mae"],
             "iterations_to_converge": res["iterations_to_converge"], "train_seconds": res["train_seconds"],
             "cost": res.get("cost"), "left_road": res.get("final", {}).get("terminated"),
-            "true_transitions": res.get("true_transitions")}
+            "true_transitions": res.get("true_transitions"),
+            "policy_gap_action_error": (res.get("policy_gap") or {}).get("action_error")}
 
 
 def _theory_summary(rows: list[dict[str, Any]]) -> dict[str, Any]:
@@ -355,6 +356,11 @@ def aggregate(out: Path, finished: list[dict[str, Any]], wall: float, quick: boo
             entry["theory"] = _theory_summary(rows)
         if method == "mixed":
             entry["final_ibe_mean"] = [r["final_ibe_mean"] for r in runs]
+        gaps = [(r.get("policy_gap") or {}).get("action_error") for r in runs]
+        if all(g is not None for g in gaps):  # mixedrl.precision: action - LQ optimum at the origin, own mean
+            entry["policy_gap_abs_mean"], entry["policy_gap_abs_std"] = (
+                np.abs(np.asarray(gaps, dtype=float)).mean(axis=0).tolist(),
+                np.abs(np.asarray(gaps, dtype=float)).std(axis=0, ddof=1 if len(gaps) > 1 else 0).tolist())
         results[method] = entry
     results["targets"] = check_targets(results)
     return results
@@ -442,6 +448,12 @@ def format_table(results: dict[str, Any]) -> str:
     lines.append(f"wall time: {results['wall_seconds']:.1f} s")
     if results.get("targets"):
         lines.append("targets: " + ", ".join(f"{k}={_fmt(v)}" for k, v in results["targets"].items()))
+    for method in METHODS + EXTRA:
+        gap = results.get(method, {}).get("policy_gap_abs_mean")
+        if gap is not None:
+            std = results[method]["policy_gap_abs_std"]
+            lines.append(f"policy_gap ({method}): |action - LQ optimum| at the origin, own mean: "
+                         + ", ".join(f"{g:.4f} ± {s:.4f}" for g, s in zip(gap, std)))
     for method in ("mixed", "model", "oracle"):
         th = results.get(method, {}).get("theory")
         if th:

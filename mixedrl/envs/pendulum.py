@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from mixedrl.tasks import Task
+from mixedrl.tasks import Equilibrium, Linearisation, Task
 
 __all__ = ["PendulumTask"]
 
@@ -115,21 +115,29 @@ class PendulumTask(Task):
         self._weights = torch.tensor([1.0, self.q_omega], dtype=torch.float64)
         self.value_scale = float(value_scale)
 
-    def linearisation(self) -> dict[str, np.ndarray]:
-        """The discounted LQ problem at the upright equilibrium ``s = 0, u = 0``.
+    def equilibrium(self) -> Equilibrium:
+        """The upright rest point ``s* = [0, 0]``, ``u* = 0`` of the noise-free model."""
+        return Equilibrium(state=np.zeros(2), action=np.zeros(1))
+
+    def linearisation(self) -> Linearisation:
+        """The discounted LQ problem at the upright equilibrium ``s = 0, u = 0``, written out by hand.
 
         Returns
         -------
-        dict
+        Linearisation
             ``A`` (2, 2), ``B`` (2, 1): Jacobians of :meth:`f` at the origin; ``Q = diag(1, q_omega)``,
             ``R = [[r]]`` (the utility is exactly quadratic, charged on the next state as in
-            :class:`validation.lq.LQProblem`); ``E`` (2, 1), the noise matrix.
+            :class:`validation.lq.LQProblem`); ``E`` (2, 1), the noise matrix; ``gamma``. Item access
+            (``lin["A"]``) works as with the dict this method returned before. The default
+            :meth:`mixedrl.tasks.Task.linearisation` (autograd) gives the same matrices (a test checks it).
         """
         k = self.xi_per_torque
         A = np.array([[1.0, self.dt], [k * self.mass * self.gravity * self.length, 1.0 - k * self.damping]])
         B = np.array([[0.0], [k]])
-        return {"A": A, "B": B, "Q": np.diag([1.0, self.q_omega]), "R": np.array([[self.r]]),
-                "E": self.noise_matrix.double().numpy()}
+        eq = self.equilibrium()
+        return Linearisation(A=A, B=B, Q=np.diag([1.0, self.q_omega]), R=np.array([[self.r]]),
+                             E=self.noise_matrix.double().numpy(), gamma=self.gamma, state=eq.state,
+                             action=eq.action)
 
     def torque_from_xi(self, xi: Any) -> Any:
         """Disturbance torque [N m] of a noise value (or IBE mean) ``xi`` [rad/s per step]."""

@@ -1,0 +1,294 @@
+"""The precision yardstick: a learned policy at the equilibrium against the discounted LQ optimum.
+
+Mixed RL's benefit is a better estimate of the noise mean, and at an equilibrium that estimate is a
+feed-forward: the action that cancels the disturbance. This module measures how precisely a learned
+policy resolves it (docs page ``precision.rst``). For a task with an equilibrium and its linearisation
+(:meth:`mixedrl.tasks.Task.linearisation`: ``x' = A x + B v + E xi``, ``l = x'^T Q x' + v^T R v``,
+``v = u - u*``, discount ``gamma``), the discounted LQ optimum for a noise mean ``mu`` (eqs. 6-7 on the
+linearisation; EQUATIONS.md, last section; :func:`mixedrl.quadratic.discounted_lq_optimum`) is
+
+.. math:: v = -L x - l_0(E\\mu), \\qquad V^*(x) = x^T P x + 2 p^T x + c(E\\mu, E K E^T),
+
+so at the equilibrium (``x = 0``) the optimal action is ``u* - l0`` and the optimal value is ``c``.
+:func:`lq_reference` computes these and the steady state the optimum holds under its own mean;
+:func:`policy_gap` compares a policy (and its critic) with them; :func:`run_policy_gap` does it for a
+trainer with the method's own noise mean (mixed RL: the IBE posterior at the end of training;
+model-driven RL: the prior; the oracle and DDPG: the true mean) and is what :func:`mixedrl.runs.summarize`
+writes to ``results.json`` as ``policy_gap``. Evaluation only: nothing here touches a trainer's weights,
+generators or buffers.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any, Callable
+
+import numpy as np
+import torch
+
+from mixedrl.pev import evaluate_policy
+from mixedrl.quadratic import AffinePolicy, LinearDynamics, LQSolution, QuadraticCost, discounted_lq_optimum
+from mixedrl.tasks import Linearisation, Task
+
+__all__ = ["LQReference", "lq_reference", "policy_gap", "run_policy_gap", "gap_summary", "format_policy_gap",
+           "VALUE_NOTE"]
+
+#: What the ``value`` entries of :func:`policy_gap` compare (also in ``results.json``).
+VALUE_NOTE = ("value: the critic at the equilibrium (V(x*), for DDPG Q(x*, pi(x*))) on the nonlinear model; "
+              "optimum_value: c = V*(0) of the LQ optimum on the linearisation with the method's own N(mu, K); "
+              "linearised_policy_value: the exact value at 0 on the same LQ problem of the policy's affine "
+              "approximation at the equilibrium (action and Jacobian there); value_regret = "
+              "linearised_policy_value - optimum_value >= 0. value vs optimum_value agree only as far as the "
+              "linearisation holds and the critic's V(x*) is not an average over contexts it cannot see.")
+
+
+@dataclass(frozen=True)
+class LQReference:
+    """The discounted LQ optimum at an equilibrium for one noise mean (:func:`lq_reference`).
+
+    Attributes
+    ----------
+    solution : LQSolution
+        ``L``, ``l0``, ``P``, ``p``, ``c``, ``S`` in the linearisation's coordinates.
+    action : numpy.ndarray, shape (action_dim,)
+        ``u* - l0``: the optimal action at the equilibrium.
+    steady_state : numpy.ndarray, shape (n,)
+        ``x_ss = (I - A + B L)^{-1} (E mu - B l0)``: the mean state the optimum holds under its own mean.
+    steady_action : numpy.ndarray, shape (action_dim,)
+        ``u* - L x_ss - l0``: its action there (the action that cancels the mean: ``B v_ss = -(A - I) x_ss - E mu``).
+    """
+
+    solution: LQSolution
+    action: np.ndarray
+    steady_state: np.ndarray
+    steady_action: np.ndarray
+
+
+def _noise_vector(value: Any, size: int, name: str) -> np.ndarray:
+    arr = np.asarray(value, dtype=np.float64)
+    if arr.shape != (size,) or not np.isfinite(arr).all():
+        raise ValueError(f"{name}: expected {size} finite numbers (noise coordinates), got shape {arr.shape}")
+    return arr
+
+
+def lq_reference(lin: Linearisation, noise_mean: Any, noise_cov: Any = None) -> LQReference:
+    """Implements the discounted LQ optimum (eqs. 6-7) on a task's linearisation for a noise mean.
+
+    .. math::
+
+        v = -L x - l_0, \\qquad [L, l_0, P, p, c] = \\mathrm{LQ}(A, B, Q, R, \\gamma;\\ E\\mu, E K E^T),
+        \\qquad x_{ss} = (I - A + B L)^{-1} (E\\mu - B l_0)
+
+    (:func:`mixedrl.quadratic.discounted_lq_optimum`: the DARE with ``(sqrt(gamma) A, sqrt(gamma) B, Q,
+    gamma R)`` and the feed-forward's linear system).
+
+    Parameters
+    ----------
+    lin : Linearisation
+        From :meth:`mixedrl.tasks.Task.linearisation`; ``A`` (n, n), ``B`` (n, m), ``E`` (n, d).
+    noise_mean : array_like, shape (d,)
+        The noise mean ``mu`` in noise coordinates.
+    noise_cov : array_like, shape (d, d), optional
+        The noise covariance ``K`` (only the constant ``c`` depends on it); default 0.
+
+    Returns
+    -------
+    LQReference
+
+    Raises
+    ------
+    ValueError
+        ``noise_mean`` / ``noise_cov`` of the wrong shape or not finite, or the DARE has no stabilising
+        solution (the message names ``Q``).
+    """
+    d = lin.E.shape[1]
+    mu = _noise_vector(noise_mean, d, "noise_mean")
+    K = np.zeros((d, d)) if noise_cov is None else np.asarray(noise_cov, dtype=np.float64)
+    if K.shape != (d, d) or not np.isfinite(K).all():
+        raise ValueError(f"noise_cov: expected a finite ({d}, {d}) matrix, got shape {K.shape}")
+    mean_x, cov_x = lin.E @ mu, lin.E @ K @ lin.E.T
+    sol = discounted_lq_optimum(lin.A, lin.B, lin.Q, lin.R, lin.gamma, mean_x, cov_x)
+    n = lin.A.shape[0]
+    # x_ss = A x_ss + B (-L x_ss - l0) + E mu  =>  (I - A + B L) x_ss = E mu - B l0
+    x_ss = np.linalg.solve(np.eye(n) - lin.A + lin.B @ sol.gain, mean_x - lin.B @ sol.offset)
+    u_star = np.asarray(lin.action, dtype=np.float64)
+    return LQReference(solution=sol, action=u_star - sol.offset, steady_state=x_ss,
+                       steady_action=u_star - sol.gain @ x_ss - sol.offset)
+
+
+def _policy_on_coordinates(task: Task, lin: Linearisation, policy: torch.nn.Module
+                           ) -> Callable[[torch.Tensor], torch.Tensor]:
+    """``x (n,) float64 -> pi(observe(s(x)))`` (m,) float64, with float32 observations as in training."""
+    def act(x: torch.Tensor) -> torch.Tensor:
+        s = lin.to_state(x[None].to(torch.float64))
+        return policy(task.observe(s.float()))[0].double()
+
+    return act
+
+
+def policy_gap(task: Task, policy: torch.nn.Module, noise_mean: Any, noise_cov: Any = None, *,
+               value: Callable[[torch.Tensor], torch.Tensor] | None = None, true_mean: Any = None,
+               lin: Linearisation | None = None) -> dict[str, Any] | None:
+    """Implements the precision yardstick: ``policy`` at the task's equilibrium against the LQ optimum.
+
+    .. math::
+
+        \\Delta u = \\pi(o(s^*)) - (u^* - l_0(E\\mu)), \\qquad
+        \\Delta u_{true} = \\pi(o(s^*)) - (u^* - l_0(E\\mu_{true}))
+
+    per action component, and the values of :data:`VALUE_NOTE`.
+
+    Parameters
+    ----------
+    task : Task
+        The task; its :meth:`~mixedrl.tasks.Task.linearisation` (or ``lin``) defines the equilibrium.
+    policy : torch.nn.Module
+        Observations (B, obs_dim) float32 -> actions (B, action_dim).
+    noise_mean : array_like, shape (noise_dim,)
+        The noise mean the policy was trained for (the method's own).
+    noise_cov : array_like, shape (noise_dim, noise_dim), optional
+        Its covariance (for the values' constant term); default 0.
+    value : callable, optional
+        Observations (B, obs_dim) float32 -> values (B,): the learned critic at the equilibrium.
+    true_mean : array_like, shape (noise_dim,), optional
+        The true noise mean at the equilibrium; default ``task.true_mean_at`` there.
+    lin : Linearisation, optional
+        Instead of ``task.linearisation()``.
+
+    Returns
+    -------
+    dict or None
+        ``None`` if the task has no equilibrium; else JSON-ready lists and floats:
+        ``action``, ``optimum_action``, ``action_error``, ``optimum_action_true_mean``,
+        ``action_error_true_mean`` (each (action_dim,)), ``max_abs_action_error``, ``noise_mean``,
+        ``true_mean``, ``optimum_steady_state`` (the optimum's ``x_ss``), ``state`` and ``observation`` at
+        the equilibrium, ``value``, ``optimum_value``, ``linearised_policy_value``, ``value_regret``
+        (``None`` where not available, e.g. a linearised policy that does not stabilise the LQ problem),
+        ``value_note``.
+
+    Raises
+    ------
+    ValueError
+        As :func:`lq_reference`, or from :meth:`~mixedrl.tasks.Task.linearisation`.
+    """
+    lin = task.linearisation() if lin is None else lin
+    if lin is None:
+        return None
+    d = lin.E.shape[1]
+    mu = _noise_vector(noise_mean, d, "noise_mean")
+    K = np.zeros((d, d)) if noise_cov is None else np.asarray(noise_cov, dtype=np.float64)
+    s_star = torch.as_tensor(np.asarray(lin.state, dtype=np.float64))[None]
+    u_star = np.asarray(lin.action, dtype=np.float64)
+    if true_mean is None:
+        true_mean = task.true_mean_at(s_star, torch.as_tensor(u_star)[None])[0].numpy()
+    mu_true = _noise_vector(true_mean, d, "true_mean")
+    own, truth = lq_reference(lin, mu, K), lq_reference(lin, mu_true)
+    act = _policy_on_coordinates(task, lin, policy)
+    x0 = torch.zeros(lin.A.shape[0], dtype=torch.float64)
+    obs = task.observe(lin.to_state(x0[None]).float())
+    with torch.no_grad():
+        a = act(x0).numpy()
+        v = None if value is None else float(value(obs)[0])
+    # the policy's affine approximation at x = 0: v = (a - u*) + J x  ->  AffinePolicy(L = -J, l0 = u* - a)
+    J = torch.func.jacrev(act)(x0).detach().numpy()
+    try:
+        lin_value = evaluate_policy(LinearDynamics(lin.A, lin.B), QuadraticCost(lin.Q, lin.R), lin.gamma,
+                                    AffinePolicy(-J, u_star - a), lin.E @ mu, lin.E @ K @ lin.E.T)
+        v_lin: float | None = float(lin_value.c)
+    except ValueError:  # the linearised policy does not stabilise the discounted LQ problem
+        v_lin = None
+    c = float(own.solution.c)
+    err, err_true = a - own.action, a - truth.action
+    return {
+        "noise_mean": mu.tolist(),
+        "true_mean": mu_true.tolist(),
+        "state": lin.state.tolist(),
+        "observation": obs[0].double().tolist(),
+        "action": a.tolist(),
+        "optimum_action": own.action.tolist(),
+        "action_error": err.tolist(),
+        "optimum_action_true_mean": truth.action.tolist(),
+        "action_error_true_mean": err_true.tolist(),
+        "max_abs_action_error": float(np.max(np.abs(err))),
+        "optimum_steady_state": own.steady_state.tolist(),
+        "value": v,
+        "optimum_value": c if math.isfinite(c) else None,
+        "linearised_policy_value": v_lin,
+        "value_regret": None if v_lin is None else v_lin - c,
+        "value_note": VALUE_NOTE,
+    }
+
+
+def run_policy_gap(trainer: Any) -> tuple[dict[str, Any] | None, str | None]:
+    """:func:`policy_gap` of a trainer's policy for the method's own noise mean, or ``(None, reason)``.
+
+    The method's own noise: with a noise source (Algorithm 2: mixed, model, oracle) the planning moments
+    at the end (:meth:`~mixedrl.algorithms.agpi.AGPI.noise_moments`, for a state-dependent source
+    :meth:`~mixedrl.algorithms.agpi.AGPI.planning_moments` at the equilibrium); without one (DDPG, which
+    learns from the true environment) the true mean and covariance. The value is the critic at the
+    equilibrium (DDPG's ``Q(x*, pi(x*))``).
+
+    Parameters
+    ----------
+    trainer : AGPI or DDPG
+        Anything with ``task``, ``policy`` and ``critic``.
+
+    Returns
+    -------
+    tuple
+        ``(policy_gap dict, None)``, or ``(None, reason)`` when the task has no equilibrium, its
+        linearisation fails (a ``ValueError`` of :meth:`~mixedrl.tasks.Task.linearisation`, or a
+        ``RuntimeError`` of autograd on a non-differentiable ``f`` or ``cost``) or the LQ problem at it has
+        no solution; the reason says which. It does not raise for those, so a finished run always writes
+        its results.
+    """
+    task: Task = trainer.task
+    policy = trainer.policy
+    try:
+        lin = task.linearisation()
+    except (ValueError, RuntimeError) as exc:  # RuntimeError: f or cost not differentiable by torch.func
+        return None, f"no linearisation at the equilibrium: {type(exc).__name__}: {exc}"
+    if lin is None:
+        return None, f"task {getattr(task, 'name', type(task).__name__)!r} defines no equilibrium (Task.equilibrium)"
+    critic = getattr(trainer, "critic", None)
+    noise = getattr(trainer, "noise", None)
+    if noise is None:
+        mean, cov = None, np.asarray(task.true_cov, dtype=np.float64)
+        value = None if critic is None else (lambda o: critic(o, policy(o)))
+    else:
+        if getattr(noise, "state_dependent", False):
+            s = torch.as_tensor(np.asarray(lin.state, dtype=np.float64))[None].float()
+            with torch.no_grad():
+                m, cov = trainer.planning_moments(s, policy(task.observe(s)))
+            mean = m[0]
+        else:
+            mean, cov = trainer.noise_moments()
+        value = critic
+    if mean is None:
+        s_star = torch.as_tensor(np.asarray(lin.state, dtype=np.float64))[None]
+        mean = task.true_mean_at(s_star, torch.as_tensor(np.asarray(lin.action))[None])[0].numpy()
+    try:
+        return policy_gap(task, policy, mean, cov, value=value, lin=lin), None
+    except (ValueError, RuntimeError) as exc:
+        return None, f"no LQ optimum at the equilibrium: {type(exc).__name__}: {exc}"
+
+
+#: The entries of a ``policy_gap`` that the command line shows (:func:`gap_summary`).
+SUMMARY_KEYS = ("action_error", "action_error_true_mean", "value_regret")
+
+
+def gap_summary(gap: dict[str, Any] | None) -> dict[str, Any] | None:
+    """The entries :data:`SUMMARY_KEYS` of a :func:`policy_gap` result (``None`` stays ``None``)."""
+    return None if gap is None else {k: gap[k] for k in SUMMARY_KEYS}
+
+
+def format_policy_gap(gap: dict[str, Any] | None, reason: str | None = None) -> str:
+    """One line for the command line: the action error per component (own mean, true mean) and the regret."""
+    if gap is None:
+        return f"policy_gap: n/a ({reason or 'no equilibrium'})"
+    own = ", ".join(f"{e:+.4g}" for e in gap["action_error"])
+    true = ", ".join(f"{e:+.4g}" for e in gap["action_error_true_mean"])
+    regret = gap["value_regret"]
+    tail = "" if regret is None else f"; LQ value regret {regret:.3g}"
+    return (f"policy_gap: action - LQ optimum at the equilibrium [{own}] (own mean), [{true}] (true mean){tail}")

@@ -1,0 +1,305 @@
+"""The precision yardstick (mixedrl.precision): the policy at the equilibrium against the discounted LQ optimum.
+
+The references are derived here, independently of the code under test: the LQ optimum from scipy's DARE
+and the closed form of docs/lq.rst, the double lane change's longitudinal loop as a scalar problem solved
+by the quadratic formula, and steady states from the physics (the action that balances the mean force).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+import scipy.linalg
+import torch
+
+from mixedrl.algorithms.agpi import AGPI
+from mixedrl.config import TrainConfig
+from mixedrl.envs.pendulum import PendulumTask
+from mixedrl.networks import AffineActor
+from mixedrl.precision import gap_summary, lq_reference, policy_gap, run_policy_gap
+from mixedrl.runs import RunDirectory, train
+from mixedrl.tasks import DoubleLaneChangeTask, Equilibrium, LinearTask, Task
+
+# float32 actors: the action at the equilibrium carries float32 round-off of a few units in 1e-7
+ACTION_ATOL = 1e-6
+
+
+def scipy_optimum(A: np.ndarray, B: np.ndarray, Q: np.ndarray, R: np.ndarray, gamma: float, mu: np.ndarray
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """``(L, l0)`` of the discounted LQ optimum: scipy's DARE and the closed form of docs/lq.rst."""
+    g = gamma
+    S = scipy.linalg.solve_discrete_are(math.sqrt(g) * A, math.sqrt(g) * B, Q, g * R)
+    M = R + B.T @ S @ B
+    L = np.linalg.solve(M, B.T @ S @ A)
+    Ac = A - B @ L
+    p = np.linalg.solve(np.eye(A.shape[0]) - g * Ac.T, Ac.T @ S @ mu)
+    return L, np.linalg.solve(M, B.T @ (S @ mu + g * p))
+
+
+def affine_actor(L: np.ndarray, l0: np.ndarray) -> AffineActor:
+    actor = AffineActor(L.shape[1], L.shape[0], torch.Generator().manual_seed(0))
+    with torch.no_grad():
+        actor.L.copy_(torch.as_tensor(L))
+        actor.l0.copy_(torch.as_tensor(l0))
+    return actor
+
+
+# ------------------------------------------------------------------------------------------ LinearTask
+def test_linear_task_linearisation_is_the_task() -> None:
+    task = LinearTask()
+    lin = task.linearisation()
+    assert np.allclose(lin.A, task.A, atol=1e-12) and np.allclose(lin.B, task.B, atol=1e-12)
+    assert np.allclose(lin.Q, task.Q, atol=1e-12) and np.allclose(lin.R, task.R, atol=1e-12)
+    assert np.array_equal(lin.E, np.eye(2)) and lin.gamma == task.gamma
+
+
+def test_exact_lq_policy_has_no_gap() -> None:
+    task = LinearTask()
+    L, l0 = scipy_optimum(task.A, task.B, task.Q, task.R, task.gamma, task.true_mean)
+    gap = policy_gap(task, affine_actor(L, l0), task.true_mean, task.true_cov)
+    assert np.allclose(gap["optimum_action"], -l0, rtol=1e-10)
+    assert np.abs(gap["action_error"]).max() < ACTION_ATOL
+    assert np.abs(gap["action_error_true_mean"]).max() < ACTION_ATOL
+    assert abs(gap["value_regret"]) < 1e-6 * gap["optimum_value"]
+    json.dumps(gap)  # JSON-ready
+
+
+@pytest.mark.parametrize("offset", [0.3, -1.25])
+def test_a_deliberate_offset_is_the_gap(offset: float) -> None:
+    """``u = -L x - (l0 + delta)``: the action error at the equilibrium is ``-delta``; the regret is positive."""
+    task = LinearTask()
+    L, l0 = scipy_optimum(task.A, task.B, task.Q, task.R, task.gamma, task.true_mean)
+    gap = policy_gap(task, affine_actor(L, l0 + offset), task.true_mean, task.true_cov)
+    assert gap["action_error"] == pytest.approx([-offset], abs=ACTION_ATOL)
+    assert gap["max_abs_action_error"] == pytest.approx(abs(offset), abs=ACTION_ATOL)
+    assert gap["value_regret"] > 0.0
+
+
+def test_own_mean_and_true_mean_differ_by_the_prior_offset() -> None:
+    """The exact policy for the prior's mean: zero gap against the own mean, ``l0(mu) - l0(mu_M)`` against the truth."""
+    task = LinearTask()
+    L, l0_prior = scipy_optimum(task.A, task.B, task.Q, task.R, task.gamma, task.prior_mean)
+    _, l0_true = scipy_optimum(task.A, task.B, task.Q, task.R, task.gamma, task.true_mean)
+    gap = policy_gap(task, affine_actor(L, l0_prior), task.prior_mean, task.prior_cov)
+    assert np.abs(gap["action_error"]).max() < ACTION_ATOL
+    assert gap["action_error_true_mean"] == pytest.approx(l0_true - l0_prior, abs=ACTION_ATOL)
+    assert abs(float(l0_true[0] - l0_prior[0])) > 0.1  # the test can fail
+
+
+# ------------------------------------------------------------------------------------------ pendulum
+def test_pendulum_default_linearisation_matches_the_hand_derived_one() -> None:
+    task = PendulumTask()
+    by_hand, by_autograd = task.linearisation(), Task.linearisation(task)
+    for key in ("A", "B", "Q", "R", "E"):
+        assert np.allclose(by_hand[key], by_autograd[key], atol=1e-12), key
+
+
+def test_pendulum_feed_forward_against_the_known_bias() -> None:
+    """The optimum's action at the upright (scipy reference) and its steady state: no rate, and the torque
+    balances gravity and the bias, ``u_ss = -(tau + m g l theta_ss)`` (linearised)."""
+    task = PendulumTask()
+    lin = task.linearisation()
+    E = lin.E
+    for torque in (0.5, 0.0, -0.3):
+        mean = np.array([task.xi_per_torque * torque])
+        ref = lq_reference(lin, mean)
+        _, l0 = scipy_optimum(lin.A, lin.B, lin.Q, lin.R, task.gamma, E @ mean)
+        assert ref.action == pytest.approx(-l0, rel=1e-9, abs=1e-12)
+        theta, omega = ref.steady_state
+        assert omega == pytest.approx(0.0, abs=1e-12)
+        assert ref.steady_action[0] == pytest.approx(-(torque + task.mass * task.gravity * task.length * theta),
+                                                     rel=1e-9, abs=1e-12)
+    # the feed-forward is linear in the bias, zero without one, and pushes against it
+    zero, true = lq_reference(lin, [0.0]), lq_reference(lin, task.true_mean)
+    assert zero.action == pytest.approx([0.0], abs=1e-12) and true.action[0] < -0.5
+
+
+def test_pendulum_policy_gap_of_the_lqr_with_the_prior() -> None:
+    """The LQR designed for the prior (zero bias) misses exactly the true mean's feed-forward."""
+    task = PendulumTask()
+    lin = task.linearisation()
+    L, l0 = scipy_optimum(lin.A, lin.B, lin.Q, lin.R, task.gamma, lin.E @ task.prior_mean)
+    _, l0_true = scipy_optimum(lin.A, lin.B, lin.Q, lin.R, task.gamma, lin.E @ task.true_mean)
+    gap = policy_gap(task, affine_actor(L, l0), task.prior_mean, task.prior_cov)
+    assert np.abs(gap["action_error"]).max() < ACTION_ATOL
+    assert gap["action_error_true_mean"] == pytest.approx(l0_true - l0, abs=ACTION_ATOL)
+
+
+# ------------------------------------------------------------------------------------------ double lane change
+def scalar_offset(b: float, q: float, r: float, gamma: float, mu: float) -> float:
+    """``l0`` of the scalar discounted LQ problem ``e' = e + b a + mu``, ``l = q e'^2 + r a^2``.
+
+    ``S = q + gamma S r / (r + b^2 S)`` (the scalar DARE with ``A = 1``) is the positive root of
+    ``b^2 S^2 + (r - q b^2 - gamma r) S - q r = 0``; then ``L = b S / (r + b^2 S)``, ``A_c = 1 - b L``,
+    ``p = A_c S mu / (1 - gamma A_c)`` and ``l0 = b (S mu + gamma p) / (r + b^2 S)``.
+    """
+    lin_coef = r - q * b * b - gamma * r
+    S = (-lin_coef + math.sqrt(lin_coef**2 + 4.0 * b * b * q * r)) / (2.0 * b * b)
+    L = b * S / (r + b * b * S)
+    Ac = 1.0 - b * L
+    p = Ac * S * mu / (1.0 - gamma * Ac)
+    return b * (S * mu + gamma * p) / (r + b * b * S)
+
+
+def test_dlc_feed_forward_difference_between_261_and_150_newtons() -> None:
+    """At the origin the longitudinal loop decouples (at ``v_y = r = phi = 0`` nothing couples ``v_x`` to the
+    lateral states): the action difference is the scalar problem's; at the optimum's steady state the
+    acceleration cancels the mean force exactly, so the difference there is ``-(261 - 150) / 1500``."""
+    task = DoubleLaneChangeTask()
+    cfg = task.model.config
+    lin = task.linearisation()
+    T, m, vx = cfg.dt, cfg.params.m, task.noise_index
+    refs = {}
+    for force in (261.0, 150.0):
+        mean = np.zeros(5)
+        mean[vx] = force * T / m
+        refs[force] = lq_reference(lin, mean)
+    steady = refs[261.0].steady_action - refs[150.0].steady_action
+    assert steady[1] == pytest.approx(-(261.0 - 150.0) / m, rel=1e-9)  # -0.074 m/s^2
+    assert abs(steady[0]) < 1e-12  # no steering
+    origin = refs[261.0].action - refs[150.0].action
+    expected = -(scalar_offset(T, T * cfg.q_speed, T * cfg.r_accel, task.gamma, 261.0 * T / m)
+                 - scalar_offset(T, T * cfg.q_speed, T * cfg.r_accel, task.gamma, 150.0 * T / m))
+    assert origin[1] == pytest.approx(expected, rel=1e-8)
+    assert abs(origin[0]) < 1e-12
+    # the speed error the optimum holds with the true mean: (mu / T - l0) / L of the scalar loop
+    assert refs[261.0].steady_state[2] > 0.0 and abs(refs[261.0].steady_state[[0, 1, 3, 4]]).max() < 1e-12
+
+
+def test_dlc_linearisation_is_the_lqr_references() -> None:
+    """The core's linearisation gives the LQR reference's controller (validation.nmpc.straight_lqr)."""
+    from validation.nmpc import straight_lqr
+
+    task = DoubleLaneChangeTask()
+    lin = task.linearisation()
+    for force in (261.0, 150.0):
+        lqr = straight_lqr(force=force, gamma=task.gamma)
+        mean = np.zeros(5)
+        mean[task.noise_index] = task.force_to_xi(force)
+        ref = lq_reference(lin, mean)
+        assert np.allclose(ref.solution.gain, lqr.gain, rtol=1e-9, atol=1e-12)
+        assert ref.action == pytest.approx(-lqr.offset, rel=1e-9, abs=1e-12)
+
+
+def test_dlc_observation_at_the_equilibrium_is_the_origin() -> None:
+    task = DoubleLaneChangeTask()
+    lin = task.linearisation()
+    s = lin.to_state(torch.zeros(1, 5, dtype=torch.float64))
+    assert torch.allclose(task.observe(s), torch.zeros(1, 5, dtype=torch.float64), atol=1e-12)
+    assert float(task.cost(s, torch.zeros(1, 2, dtype=torch.float64))) == pytest.approx(0.0, abs=1e-15)
+
+
+# ------------------------------------------------------------------------------------------ errors, trainers
+class _NoEquilibrium(LinearTask):
+    def equilibrium(self) -> None:
+        return None
+
+
+class _NotARestPoint(LinearTask):
+    def equilibrium(self) -> Equilibrium:
+        return Equilibrium(state=np.array([0.0, 1.0]), action=np.zeros(1))  # moving: x' = x + 0.1 v
+
+
+class _CostNotAtMinimum(LinearTask):
+    def cost(self, s_next: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+        return super().cost(s_next, u) + s_next[:, 0]
+
+
+def test_bad_equilibria_are_clear_errors() -> None:
+    assert _NoEquilibrium().linearisation() is None
+    with pytest.raises(ValueError, match="^equilibrium: _NotARestPoint.f"):
+        _NotARestPoint().linearisation()
+    with pytest.raises(ValueError, match="^cost: _CostNotAtMinimum.cost has a nonzero gradient"):
+        _CostNotAtMinimum().linearisation()
+    with pytest.raises(ValueError, match="^noise_mean"):
+        lq_reference(LinearTask().linearisation(), [0.0])
+
+
+def _config(method: str, **extra: object) -> TrainConfig:
+    return TrainConfig(method=method, task="linear", seed=0, batch_size=16, hidden_sizes=(8,), **extra)
+
+
+@pytest.mark.parametrize("method, mean", [("model", "prior_mean"), ("oracle", "true_mean"), ("mixed", "prior_mean")])
+def test_run_policy_gap_uses_the_methods_own_mean(method: str, mean: str) -> None:
+    """Before any data the IBE's mean is the prior's; model-driven RL plans with the prior, the oracle the truth."""
+    task = LinearTask()
+    trainer = AGPI(task, _config(method))
+    gap, reason = run_policy_gap(trainer)
+    assert reason is None
+    assert gap["noise_mean"] == pytest.approx(getattr(task, mean).tolist(), abs=1e-15)
+    assert gap["true_mean"] == pytest.approx(task.true_mean.tolist())
+    with torch.no_grad():
+        critic = float(trainer.critic(torch.zeros(1, 2)))
+        action = trainer.policy(torch.zeros(1, 2))[0].tolist()
+    assert gap["value"] == pytest.approx(critic) and gap["action"] == pytest.approx(action)
+
+
+def test_no_equilibrium_gives_null_with_a_reason() -> None:
+    gap, reason = run_policy_gap(AGPI(_NoEquilibrium(), _config("model")))
+    assert gap is None and "defines no equilibrium" in reason
+    assert gap_summary(gap) is None
+
+
+def test_policy_gap_in_results_json_of_a_tiny_run(tmp_path: Path) -> None:
+    out = tmp_path / "run"
+    trainer = AGPI(LinearTask(), _config("mixed", iterations=2, eval_every=2, checkpoint_every=2, eval_seeds=1))
+    train(trainer, RunDirectory(out), progress=False)
+    results = json.loads((out / "results.json").read_text())
+    gap = results["policy_gap"]
+    assert len(gap["action_error"]) == 1 and len(gap["optimum_action"]) == 1
+    assert gap["noise_mean"] == pytest.approx(results["final_ibe_mean"])
+    assert gap["action"][0] - gap["optimum_action"][0] == pytest.approx(gap["action_error"][0], abs=1e-12)
+    assert "policy_gap_reason" not in results
+
+
+def test_table_one_aggregates_and_lists_the_policy_gap(tmp_path: Path) -> None:
+    """validation.reproduce: per method the mean and std of |action error| per component, and one line each."""
+    from validation.reproduce import aggregate, format_table
+
+    def run(seed: int, error: list[float]) -> dict:
+        return {"label": "ddpg", "seed": seed, "lateral_mae": 0.2, "speed_mae": 0.05, "iterations_to_converge": 10,
+                "train_seconds": 1.0, "cost": 80.0, "convergence_criterion": "c",
+                "policy_gap": {"action_error": error}}
+
+    results = aggregate(tmp_path, [run(0, [0.1, -0.2]), run(1, [-0.3, 0.4])], wall=1.0, quick=True)
+    assert results["ddpg"]["policy_gap_abs_mean"] == pytest.approx([0.2, 0.3])
+    assert results["ddpg"]["policy_gap_abs_std"] == pytest.approx([math.sqrt(0.02), math.sqrt(0.02)])
+    assert [r["policy_gap_action_error"] for r in results["ddpg"]["runs"]] == [[0.1, -0.2], [-0.3, 0.4]]
+    assert "policy_gap (ddpg): |action - LQ optimum| at the origin, own mean: 0.2000 ± 0.1414, 0.3000 ± 0.1414" \
+        in format_table(results)
+
+
+def test_ddpg_is_compared_with_the_true_mean_and_its_q_critic() -> None:
+    from mixedrl.algorithms.ddpg import DDPG
+
+    task = LinearTask()
+    trainer = DDPG(task, _config("ddpg"))
+    gap, reason = run_policy_gap(trainer)
+    assert reason is None and gap["noise_mean"] == pytest.approx(task.true_mean.tolist())
+    assert gap["action_error"] == pytest.approx(gap["action_error_true_mean"])
+    obs = torch.zeros(1, 2)
+    with torch.no_grad():
+        assert gap["value"] == pytest.approx(float(trainer.critic(obs, trainer.policy(obs))))
+
+
+def test_a_failing_linearisation_is_a_reason_not_a_crash() -> None:
+    gap, reason = run_policy_gap(AGPI(_NotARestPoint(), _config("model")))
+    assert gap is None and reason.startswith("no linearisation at the equilibrium: ValueError: equilibrium:")
+
+
+def test_train_and_evaluate_print_the_policy_gap(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    from mixedrl.cli import main
+
+    out = tmp_path / "run"
+    assert main(["train", "--method", "model", "--out", str(out), "--iterations", "2", "--no-progress", "--set",
+                 "task.name=linear", "algorithm.batch_size=16", "algorithm.hidden_sizes=[8]", "run.eval_seeds=1"]) == 0
+    captured = capsys.readouterr()
+    printed, saved = json.loads(captured.out), json.loads((out / "results.json").read_text())["policy_gap"]
+    assert printed["policy_gap"]["action_error"] == saved["action_error"]
+    assert captured.err.startswith("policy_gap: action - LQ optimum at the equilibrium [")
+    assert main(["evaluate", str(out)]) == 0
+    assert json.loads(capsys.readouterr().out)["policy_gap"]["action_error"] == pytest.approx(saved["action_error"])
