@@ -25,6 +25,7 @@ from typing import Any, Callable
 import numpy as np
 
 from theory.checks import DEFAULT_RTOL, CheckReport
+from mixedrl.checks import check_number
 from mixedrl.expectation import GaussHermite, SigmaPoints, gaussian_expectation
 
 __all__ = [
@@ -158,8 +159,7 @@ def gamma_condition(
     (EQUATIONS.md point 13); the report says where.
     """
     g = _discount(gamma)
-    if not (isinstance(rtol, (int, float)) and not isinstance(rtol, bool) and rtol >= 0.0 and math.isfinite(rtol)):
-        raise ValueError(f"rtol: expected a finite float >= 0, got {rtol!r}")
+    check_number(rtol, "rtol", nonneg=True)
     if not (hasattr(noise, "mean") and hasattr(noise, "cov")):
         raise ValueError(f"noise: expected an object with .mean and .cov, got {type(noise).__name__}")
     x = _finite_batch(states)

@@ -46,7 +46,7 @@ import gymnasium as gym
 import numpy as np
 import torch
 
-from mixedrl.checks import check_positive_int
+from mixedrl.checks import check_nonnegative_int, check_positive_int
 from mixedrl.config import TrainConfig
 from mixedrl.envs import ENV_ID, DoubleLaneChangeEnv
 from mixedrl.runs import atomic_write_text, eval_seeds as run_eval_seeds
@@ -329,8 +329,7 @@ def train_peer(algo: str, *, seed: int = 0, transitions: int = 100_000, eval_eve
     """
     if algo not in ALGOS:
         raise ValueError(f"algo: expected one of {ALGOS}, got {algo!r}")
-    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
-        raise ValueError(f"seed: expected a non-negative integer, got {seed!r}")
+    check_nonnegative_int(seed, "seed")
     transitions = check_positive_int(transitions, "transitions")
     eval_every = check_positive_int(eval_every, "eval_every")
     eval_seeds = check_positive_int(eval_seeds, "eval_seeds")

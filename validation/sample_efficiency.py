@@ -27,6 +27,7 @@ from typing import Any, Callable, Sequence
 import numpy as np
 import torch
 
+from mixedrl.checks import check_positive_int
 from mixedrl.config import TrainConfig
 from mixedrl.runs import (
     CONVERGENCE_RTOL,
@@ -173,10 +174,8 @@ def choose_eval_every(iterations: int, points: int = 12) -> int:
     ValueError
         ``iterations`` or ``points`` not a positive integer.
     """
-    for name, value in (("iterations", iterations), ("points", points)):
-        if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-            raise ValueError(f"{name}: expected a positive integer, got {value!r}")
-    return -(-iterations // points)
+    iterations = check_positive_int(iterations, "iterations")
+    return -(-iterations // check_positive_int(points, "points"))
 
 
 def rows_from_metrics(metrics: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:

@@ -436,8 +436,7 @@ class UnknownCovarianceIBE(GaussianNoiseEstimate):
         else:
             spec.update(psi=(n, n), total=(n,), mean=(n,), cov=(n, n))
         st = check_state(state, spec, self._KIND)
-        if st["max_iter"] < 1:
-            raise ValueError("state_dict: max_iter must be >= 1")
+        check_positive_int(st["max_iter"], "state_dict: max_iter")
         prior_cov = real_covariance(st["prior_cov"], "state_dict: prior_cov", n)
         new = UnknownCovarianceIBE.__new__(UnknownCovarianceIBE)
         new.prior_mean, new.prior_cov, new.recursion, new.max_iter = st["prior_mean"], prior_cov, st["recursion"], st["max_iter"]
