@@ -61,7 +61,7 @@ from mixedrl.algorithms.ddpg import DDPG
 from mixedrl.checkpoint import (atomic_write_bytes, atomic_write_text, convert_checkpoint, default_file_mode,
                                 digest_path, is_temporary, load_checkpoint, save_checkpoint, verify_digest,
                                 write_with_digest)
-from mixedrl.config import TrainConfig, flatten_table
+from mixedrl.config import TASKS, TrainConfig, flatten_table
 from mixedrl.tasks import Task, task_from_config
 from mixedrl.tensorboard import TB_DIR, TensorBoardLogger
 
@@ -79,6 +79,7 @@ __all__ = [
     "RUN_FILES",
     "iterations_to_converge",
     "eval_seeds",
+    "config_record",
     "train",
     "make_trainer",
     "CONVERGENCE_RTOL",
@@ -207,16 +208,40 @@ class RunDirectory:
         finally:
             os.close(fd)
 
-    def write_config(self, config: TrainConfig) -> None:
-        """Save the run's config as ``config.json``."""
+    def write_config(self, config: TrainConfig, task: Any = None) -> None:
+        """Save the run's config as ``config.json`` (:func:`config_record`: with the user's own ``task``,
+        its name)."""
         self._mkdir()
-        atomic_write_text(self.config_path, json.dumps(config.to_dict(), indent=2, sort_keys=True) + "\n")
+        atomic_write_text(self.config_path, json.dumps(config_record(config, task), indent=2, sort_keys=True) + "\n")
 
     def read_config(self) -> TrainConfig:
-        """Load ``config.json`` (unknown keys are an error)."""
+        """Load ``config.json`` (unknown keys are an error).
+
+        Raises
+        ------
+        ValueError
+            No ``config.json``, or one that is not a valid config; one recorded for the user's own task
+            (``task.name`` not a built-in task) is refused with a message naming the task: its
+            :class:`~mixedrl.tasks.Task` object is needed (read the raw record with :meth:`read_record`).
+        """
+        record = self.read_record()
+        task = record.get("task")
+        if isinstance(task, dict) and set(task) == {"name"} and task["name"] not in TASKS:
+            raise ValueError(f"config: {self.config_path} records the user's own task {task['name']!r}, which "
+                             f"no config can rebuild; build it and pass it to make_trainer(config, task)")
+        return TrainConfig.load(self.config_path)
+
+    def read_record(self) -> dict[str, Any]:
+        """The JSON object of ``config.json`` as written (:func:`config_record`), not migrated or validated."""
         if not self.config_path.is_file():
             raise ValueError(f"path: {self.path} has no config.json")
-        return TrainConfig.load(self.config_path)
+        try:
+            data = json.loads(self.config_path.read_text(encoding="utf-8"))
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+            raise ValueError(f"config: cannot read {self.config_path} as JSON ({exc})") from None
+        if not isinstance(data, dict):
+            raise ValueError(f"config: {self.config_path} holds a JSON {type(data).__name__}, expected an object")
+        return data
 
     def append_metrics(self, rows: list[dict[str, Any]]) -> None:
         """Append rows to ``metrics.jsonl``."""
@@ -345,6 +370,30 @@ def iterations_to_converge(iterations: list[int], costs: list[float], rtol: floa
     return int(k_star)
 
 
+def config_record(config: TrainConfig, task: Any = None) -> dict[str, Any]:
+    """The content of a run's ``config.json``: ``config.to_dict()``, naming the task the run trains.
+
+    A built-in task is built from ``config.task``, which is recorded in full. The user's own ``task`` (a
+    :class:`~mixedrl.tasks.Task` whose ``name`` is not ``config.task.name``, e.g. ``"Cruise"`` trained
+    with the placeholder ``TrainConfig(task="linear")``) does not use ``config.task``; the record's
+    ``task`` is then ``{"name": task.name}``.
+    """
+    data = config.to_dict()
+    name = getattr(task, "name", None)
+    if task is not None and name != config.task.name:
+        data["task"] = {"name": str(name)}
+    return json.loads(json.dumps(data))  # exactly what config.json holds (lists, not tuples)
+
+
+def _saved_record(run: RunDirectory) -> dict[str, Any]:
+    """``config.json`` of ``run`` in the form :func:`config_record` writes (old flat files migrated)."""
+    record = run.read_record()
+    task = record.get("task")
+    if isinstance(task, dict) and set(task) == {"name"} and task["name"] not in TASKS:
+        return record  # the user's own task: written by config_record, already in the sectioned form
+    return config_record(run.read_config())
+
+
 def eval_seeds(config: TrainConfig) -> list[int]:
     """Noise seeds of the evaluation episodes: fixed per run, disjoint from the training seed stream."""
     return [1_000_003 * (config.seed + 1) + i for i in range(config.run.eval_seeds)]
@@ -370,17 +419,17 @@ def _scalar_eval(ev: dict[str, Any]) -> dict[str, float]:
 _BUDGET = "algorithm.iterations"
 
 
-def _config_conflicts(saved: TrainConfig, requested: TrainConfig) -> list[tuple[str, Any, Any]]:
-    """``(dotted name, saved value, requested value)`` of the fields where the configs differ; a larger
-    ``iterations`` is not a conflict (an explicit extension of the budget)."""
-    a, b = flatten_table(saved.to_dict()), flatten_table(requested.to_dict())
+def _config_conflicts(saved: dict[str, Any], requested: dict[str, Any]) -> list[tuple[str, Any, Any]]:
+    """``(dotted name, saved value, requested value)`` of the fields where two :func:`config_record`
+    forms differ; a larger ``iterations`` is not a conflict (an explicit extension of the budget)."""
+    a, b = flatten_table(saved), flatten_table(requested)
     out = [(k, a.get(k), b.get(k)) for k in sorted(set(a) | set(b)) if a.get(k) != b.get(k)]
-    if [k for k, _, _ in out] == [_BUDGET] and requested.algorithm.iterations > saved.algorithm.iterations:
+    if [k for k, _, _ in out] == [_BUDGET] and b[_BUDGET] > a[_BUDGET]:
         return []
     return out
 
 
-def _open_run(run: RunDirectory, cfg: TrainConfig, resume: bool) -> dict[str, Any] | None:
+def _open_run(run: RunDirectory, cfg: TrainConfig, resume: bool, task: Any = None) -> dict[str, Any] | None:
     """Validate ``run`` for training ``cfg`` (creating nothing) and return the checkpoint to resume from.
 
     Without ``resume`` the directory must be absent or empty. With ``resume``: a checkpoint (its config
@@ -399,8 +448,7 @@ def _open_run(run: RunDirectory, cfg: TrainConfig, resume: bool) -> dict[str, An
                              f"{', '.join(others[:4])}; nothing was changed (train into a new directory)")
         if "config.json" not in names:
             return None
-    saved = run.read_config()
-    conflicts = _config_conflicts(saved, cfg)
+    conflicts = _config_conflicts(_saved_record(run), config_record(cfg, task))
     if conflicts:
         shown = "; ".join(f"{k} {v!r} (saved: {w!r})" for k, w, v in conflicts[:4])
         more = f" and {len(conflicts) - 4} more" if len(conflicts) > 4 else ""
@@ -470,14 +518,15 @@ def train(trainer: Any, run: RunDirectory | None = None, resume: bool = False, p
     if run is None:
         return _train(trainer, None, None, progress, stop_after, callback, None)
     cfg: TrainConfig = trainer.config
-    _open_run(run, cfg, resume)  # refuse before creating anything
+    task = getattr(trainer, "task", None)
+    _open_run(run, cfg, resume, task)  # refuse before creating anything
     if tensorboard:
         try:  # the extra missing: its error (TensorBoardLogger's, naming the extra) before anything is created
             import torch.utils.tensorboard  # noqa: F401
         except ImportError:
             TensorBoardLogger(run.path / TB_DIR)
     with run.lock():
-        state = _open_run(run, cfg, resume)  # again under the lock: the directory may have changed meanwhile
+        state = _open_run(run, cfg, resume, task)  # again under the lock: the directory may have changed meanwhile
         board = TensorBoardLogger(run.path / TB_DIR) if tensorboard else None
         return _train(trainer, run, state, progress, stop_after, callback, board)
 
@@ -495,8 +544,9 @@ def _train(trainer: Any, run: RunDirectory | None, state: dict[str, Any] | None,
             trainer.load_state_dict(state["trainer"])
             elapsed = float(state.get("elapsed", 0.0))
             run.truncate_metrics(trainer.k)
-        if state is None or cfg.to_dict() != run.read_config().to_dict():
-            run.write_config(cfg)
+        record = config_record(cfg, getattr(trainer, "task", None))
+        if state is None or record != _saved_record(run):
+            run.write_config(cfg, getattr(trainer, "task", None))
     seeds = eval_seeds(cfg)
     pending: list[dict[str, Any]] = []
 
