@@ -100,8 +100,8 @@ def test_task_name_defaults_to_the_class_and_reaches_the_results(tmp_path: Any) 
     class Named(Cruise):
         name = "my-cruise"
 
-    config = TrainConfig(method="mixed", task="linear", seed=0, iterations=4, batch_size=16, hidden_sizes=(8,),
-                         eval_every=4, checkpoint_every=4)
+    config = TrainConfig(method="mixed", task="linear", seed=0, algorithm=dict(iterations=4, batch_size=16,
+                         hidden_sizes=(8,)), run=dict(eval_every=4, checkpoint_every=4))
     results = train(AGPI(Cruise(), config), progress=False)
     assert results["task"] == "Cruise"
     assert {"cost", "mean_abs_state", "mean_state_0"} <= set(results["final"])
@@ -173,7 +173,7 @@ def test_check_task_names_array_attributes() -> None:
 def test_trainers_check_the_task_at_construction(trainer: str) -> None:
     """The error a (B, 1) cost gave deep inside the expectation now comes at construction, naming cost."""
     bad = _broken(cost=lambda self, s, u: (s**2).sum(-1, keepdim=True))
-    config = TrainConfig(method=trainer, task="linear", batch_size=16, hidden_sizes=(8,))
+    config = TrainConfig(method=trainer, task="linear", algorithm=dict(batch_size=16, hidden_sizes=(8,)))
     with pytest.raises(ValueError, match=r"^Broken\.cost: expected shape \(3,\), returned shape \(3, 1\)"):
         (DDPG if trainer == "ddpg" else AGPI)(bad, config)
 
@@ -188,8 +188,8 @@ def test_progress_bar_on_by_default_on_a_terminal(monkeypatch: pytest.MonkeyPatc
         def isatty(self) -> bool:
             return True
 
-    config = TrainConfig(method="model", task="linear", seed=0, iterations=3, batch_size=16, hidden_sizes=(8,),
-                         eval_every=3, checkpoint_every=3)
+    config = TrainConfig(method="model", task="linear", seed=0, algorithm=dict(iterations=3, batch_size=16,
+                         hidden_sizes=(8,)), run=dict(eval_every=3, checkpoint_every=3))
     for progress, shown in ((None, True), (False, False)):
         err = Tty()
         monkeypatch.setattr(sys, "stderr", err)

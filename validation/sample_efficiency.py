@@ -28,7 +28,7 @@ import numpy as np
 import torch
 
 from mixedrl.checks import check_positive_int
-from mixedrl.config import TrainConfig
+from mixedrl.config import LEGACY_KEYS, TrainConfig
 from mixedrl.runs import (
     CONVERGENCE_RTOL,
     RunDirectory,
@@ -219,9 +219,11 @@ def ours_config(method: str, seed: int, iterations: int, overrides: dict[str, An
     if method not in OURS:
         raise ValueError(f"method: expected one of {OURS}, got {method!r}")
     iterations = int(iterations)
-    base = {"method": method, "seed": seed, "iterations": iterations,
-            "eval_every": choose_eval_every(iterations), "num_threads": 1}
-    return TrainConfig().replace(**{**base, **(overrides or {})})
+    overrides = dict(overrides or {})
+    base = {"method": method, "seed": seed, "algorithm.iterations": iterations,
+            "run.eval_every": choose_eval_every(iterations), "run.num_threads": 1}
+    given = {LEGACY_KEYS.get(k, k) for k in overrides}  # an override, in either form, replaces its base value
+    return TrainConfig().replace(**{**{k: v for k, v in base.items() if k not in given}, **overrides})
 
 
 def train_ours(method: str, seed: int, iterations: int, overrides: dict[str, Any] | None = None,
