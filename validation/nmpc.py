@@ -991,7 +991,7 @@ def _horizon_steps(horizon: Any, dt: float) -> int:
 
 
 def _period(period: Any) -> int:
-    return check_positive_int(period, "period (control steps)")
+    return check_positive_int(period, "period")
 
 
 def _seeds(seeds: Any) -> tuple[int, ...]:
@@ -1001,7 +1001,7 @@ def _seeds(seeds: Any) -> tuple[int, ...]:
         raise ValueError(f"seeds: expected a non-empty sequence of non-negative ints, got {seeds!r}") from None
     if not out:
         raise ValueError(f"seeds: expected a non-empty sequence of non-negative ints, got {seeds!r}")
-    return tuple(check_nonnegative_int(s, f"seeds[{i}]") for i, s in enumerate(out))
+    return tuple(check_nonnegative_int(s, "seeds") for s in out)
 
 
 def run_reference(controller: str, *, gamma: float = 0.99, horizon: float = 2.0,
