@@ -218,9 +218,9 @@ def test_exactly_singular_and_zero_priors():
         ({"prior_cov": [[np.nan, 0.0], [0.0, 1.0]]}, "^prior_cov: contains NaN or inf"),
         ({"prior_cov": np.ones((2, 3))}, "^prior_cov: expected a square matrix"),
         ({"prior_cov": "abc"}, "^prior_cov: cannot be converted"),
-        ({"rtol": 1.0}, r"^rtol: expected a float in \[0, 1\)"),
-        ({"rtol": -0.1}, r"^rtol: expected a float in \[0, 1\)"),
-        ({"rtol": "1e-8"}, r"^rtol: expected a float in \[0, 1\)"),
+        ({"rtol": 1.0}, r"^rtol: expected a number in \[0, 1\)"),
+        ({"rtol": -0.1}, r"^rtol: expected a number in \[0, 1\)"),
+        ({"rtol": "1e-8"}, r"^rtol: expected a number, got '1e-8'"),
         ({"noise_cov": np.eye(3)}, r"^noise_cov: expected a square matrix of shape \(2, 2\)"),
     ],
 )

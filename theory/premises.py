@@ -25,7 +25,7 @@ from typing import Any, Callable
 import numpy as np
 
 from theory.checks import DEFAULT_RTOL, CheckReport
-from mixedrl.checks import check_number
+from mixedrl.checks import check_fraction, check_number
 from mixedrl.expectation import GaussHermite, SigmaPoints, gaussian_expectation
 
 __all__ = [
@@ -283,12 +283,7 @@ class PriorRankReport:
 
 
 def _relative_tolerance(rtol: Any) -> float:
-    if isinstance(rtol, bool) or not isinstance(rtol, (int, float, np.floating)):
-        raise ValueError(f"rtol: expected a float in [0, 1), got {rtol!r}")
-    r = float(rtol)
-    if not 0.0 <= r < 1.0:
-        raise ValueError(f"rtol: expected a float in [0, 1), got {rtol!r}")
-    return r
+    return check_fraction(rtol, "rtol", high_open=True)
 
 
 def _symmetric_psd(value: Any, name: str, n: int | None = None) -> np.ndarray:
