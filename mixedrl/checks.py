@@ -23,6 +23,9 @@ __all__ = [
     "as_batch",
     "check_covariance",
     "check_finite",
+    "check_fraction",
+    "check_int",
+    "check_nonnegative_int",
     "check_positive_int",
     "check_unknown_keys",
     "check_number",
@@ -115,11 +118,30 @@ def check_covariance(value: Any, name: str, n: int | None = None) -> np.ndarray:
     return arr
 
 
-def check_positive_int(value: Any, name: str) -> int:
-    """Return ``value`` as an int ``>= 1``."""
-    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
-        raise ValueError(f"{name}: expected a positive integer, got {value!r}")
+def check_int(value: Any, name: str, minimum: int | None = None) -> int:
+    """Return ``value`` (a Python or numpy integer, not a bool) as an int, ``>= minimum`` if given.
+
+    Raises
+    ------
+    ValueError
+        ``value`` is not an integer or is below ``minimum``; the message starts with ``name``.
+    """
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) \
+            or (minimum is not None and value < minimum):
+        kind = {None: "an integer", 0: "a non-negative integer", 1: "a positive integer"}.get(
+            minimum, f"an integer >= {minimum}")
+        raise ValueError(f"{name}: expected {kind}, got {value!r}")
     return int(value)
+
+
+def check_positive_int(value: Any, name: str) -> int:
+    """Return ``value`` as an int ``>= 1`` (:func:`check_int` with ``minimum=1``)."""
+    return check_int(value, name, 1)
+
+
+def check_nonnegative_int(value: Any, name: str) -> int:
+    """Return ``value`` as an int ``>= 0`` (:func:`check_int` with ``minimum=0``), e.g. a seed or a count."""
+    return check_int(value, name, 0)
 
 
 def check_unknown_keys(given: dict[str, Any], allowed: set[str] | frozenset[str], where: str) -> None:
@@ -129,9 +151,10 @@ def check_unknown_keys(given: dict[str, Any], allowed: set[str] | frozenset[str]
         raise ValueError(f"{where}: unknown key(s) {unknown}; allowed: {sorted(allowed)}")
 
 
-def check_number(value: Any, name: str, *, positive: bool = False, nonneg: bool = False) -> float:
+def check_number(value: Any, name: str, *, positive: bool = False, nonneg: bool = False,
+                 allow_inf: bool = False) -> float:
     """Return ``value`` (an int or float, not a bool) as a finite float; ``positive`` / ``nonneg`` add ``> 0`` /
-    ``>= 0``.
+    ``>= 0``; ``allow_inf`` also accepts ``+inf`` (for "no limit").
 
     Raises
     ------
@@ -141,7 +164,24 @@ def check_number(value: Any, name: str, *, positive: bool = False, nonneg: bool 
     if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)):
         raise ValueError(f"{name}: expected a number, got {value!r}")
     value = float(value)
+    if allow_inf and value == np.inf:
+        return value
     if not np.isfinite(value) or (positive and value <= 0) or (nonneg and value < 0):
         kind = "positive" if positive else ("non-negative" if nonneg else "finite")
         raise ValueError(f"{name}: expected a {kind} number, got {value!r}")
     return value
+
+
+def check_fraction(value: Any, name: str, *, low_open: bool = False, high_open: bool = False) -> float:
+    """Return ``value`` as a float in ``[0, 1]``; ``low_open`` excludes 0, ``high_open`` excludes 1.
+
+    Raises
+    ------
+    ValueError
+        ``value`` is not a number or lies outside the interval; the message starts with ``name``.
+    """
+    v = check_number(value, name)
+    if (v < 0 or v > 1) or (low_open and v == 0) or (high_open and v == 1):
+        lo, hi = "(" if low_open else "[", ")" if high_open else "]"
+        raise ValueError(f"{name}: expected a number in {lo}0, 1{hi}, got {value!r}")
+    return v

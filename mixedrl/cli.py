@@ -242,7 +242,7 @@ def _evaluate(args: argparse.Namespace) -> int:
                          else f"run_dir: {run.path} does not exist")
     config = run.read_config()
     if args.seeds is not None:
-        config = config.replace(eval_seeds=args.seeds)
+        config = config.replace(**{"run.eval_seeds": args.seeds})
     trainer = make_trainer(config)
     trainer.load_state_dict(load_checkpoint(run.checkpoint_path)["trainer"])
     metrics = trainer.evaluate(eval_seeds(config))

@@ -45,8 +45,8 @@ from typing import Any, ClassVar, Union
 
 import numpy as np
 
-from mixedrl.checks import (as_matrix, as_vector, check_covariance, check_number, check_positive_int,
-                            check_unknown_keys)
+from mixedrl.checks import (as_matrix, as_vector, check_covariance, check_fraction, check_int,
+                            check_nonnegative_int, check_number, check_positive_int, check_unknown_keys)
 
 __all__ = [
     "TrainConfig",
@@ -408,30 +408,6 @@ def _choice(value: Any, name: str, options: tuple) -> Any:
     return value
 
 
-def _int(value: Any, name: str, minimum: int = 1) -> int:
-    if minimum >= 1:
-        return check_positive_int(value, name)
-    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < minimum:
-        raise ValueError(f"{name}: expected a non-negative integer, got {value!r}")
-    return int(value)
-
-
-def _unit(value: Any, name: str, low_open: bool = False, high_open: bool = False) -> Any:
-    """``value`` in ``[0, 1]`` (``low_open``: ``> 0``; ``high_open``: ``< 1``), returned unchanged."""
-    v = check_number(value, name)
-    if (v < 0 or v > 1) or (low_open and v == 0) or (high_open and v == 1):
-        lo, hi = "(" if low_open else "[", ")" if high_open else "]"
-        raise ValueError(f"{name}: expected a number in {lo}0, 1{hi}, got {value!r}")
-    return value
-
-
-def _positive(value: Any, name: str, allow_inf: bool = False) -> Any:
-    if allow_inf and isinstance(value, (int, float)) and not isinstance(value, bool) and value == math.inf:
-        return value
-    check_number(value, name, positive=True)
-    return value
-
-
 @dataclass
 class AlgorithmConfig:
     """The training algorithm shared by every method: Algorithm 2 (mixed, model, oracle) and the networks,
@@ -534,28 +510,28 @@ class AlgorithmConfig:
     def __post_init__(self) -> None:
         w = "algorithm"
         for name in ("iterations", "batch_size", "horizon", "noise_samples", "j_max", "stop_patience"):
-            setattr(self, name, _int(getattr(self, name), f"{w}.{name}"))
-        self.lr_decay_iterations = _int(self.lr_decay_iterations, f"{w}.lr_decay_iterations", 0)
+            setattr(self, name, check_positive_int(getattr(self, name), f"{w}.{name}"))
+        self.lr_decay_iterations = check_nonnegative_int(self.lr_decay_iterations, f"{w}.lr_decay_iterations")
         if isinstance(self.hidden_sizes, (str, bytes)) or not isinstance(self.hidden_sizes, (list, tuple)) \
                 or not self.hidden_sizes:
             raise ValueError(f"{w}.hidden_sizes: expected positive widths, got {self.hidden_sizes!r}")
-        self.hidden_sizes = tuple(_int(h, f"{w}.hidden_sizes") for h in self.hidden_sizes)
+        self.hidden_sizes = tuple(check_positive_int(h, f"{w}.hidden_sizes") for h in self.hidden_sizes)
         _choice(self.activation, f"{w}.activation", ("elu", "tanh", "relu"))
         _choice(self.value_output, f"{w}.value_output", ("softplus", "square", "linear"))
         _choice(self.expectation, f"{w}.expectation", ("sigma", "samples"))
         _choice(self.mvc_check, f"{w}.mvc_check", ("mean", "all"))
         _choice(self.ibe_recursion, f"{w}.ibe_recursion", ("exact", "paper"))
         _choice(self.batch_weighting, f"{w}.batch_weighting", BATCH_WEIGHTINGS)
-        if isinstance(self.ibe_case, bool) or not isinstance(self.ibe_case, (int, np.integer)) or self.ibe_case not in (1, 2, 3):
+        if check_int(self.ibe_case, f"{w}.ibe_case") not in (1, 2, 3):
             raise ValueError(f"{w}.ibe_case: expected 1, 2 or 3 (the IBE's Case), got {self.ibe_case!r}")
         if self.ibe_case != 2 and self.ibe_recursion != "exact":
             raise ValueError(f"{w}.ibe_recursion: 'paper' is eq. (18), a Case 2 recursion; "
                              f"{w}.ibe_case is {self.ibe_case}")
         for name in ("critic_lr", "actor_lr"):
-            _positive(getattr(self, name), f"{w}.{name}")
-        _positive(self.grad_clip, f"{w}.grad_clip", allow_inf=True)
-        _unit(self.lr_decay_to, f"{w}.lr_decay_to", low_open=True)
-        _unit(self.actor_average, f"{w}.actor_average", high_open=True)
+            check_number(getattr(self, name), f"{w}.{name}", positive=True)
+        check_number(self.grad_clip, f"{w}.grad_clip", positive=True, allow_inf=True)
+        check_fraction(self.lr_decay_to, f"{w}.lr_decay_to", low_open=True)
+        check_fraction(self.actor_average, f"{w}.actor_average", high_open=True)
         check_number(self.stop_epsilon, f"{w}.stop_epsilon", nonneg=True)
         self.batch_weight_offset = check_number(self.batch_weight_offset, f"{w}.batch_weight_offset", positive=True)
 
@@ -581,11 +557,11 @@ class DDPGConfig:
     """Standard deviation of the Gaussian exploration noise, as a fraction of each action bound."""
 
     def __post_init__(self) -> None:
-        self.envs = _int(self.envs, "ddpg.envs")
-        self.buffer_size = _int(self.buffer_size, "ddpg.buffer_size")
-        self.warmup = _int(self.warmup, "ddpg.warmup", 0)
-        _unit(self.tau, "ddpg.tau", low_open=True)
-        _positive(self.noise_std, "ddpg.noise_std")
+        self.envs = check_positive_int(self.envs, "ddpg.envs")
+        self.buffer_size = check_positive_int(self.buffer_size, "ddpg.buffer_size")
+        self.warmup = check_nonnegative_int(self.warmup, "ddpg.warmup")
+        check_fraction(self.tau, "ddpg.tau", low_open=True)
+        check_number(self.noise_std, "ddpg.noise_std", positive=True)
 
 
 @dataclass
@@ -606,7 +582,7 @@ class RunConfig:
 
     def __post_init__(self) -> None:
         for f in dataclasses.fields(self):
-            setattr(self, f.name, _int(getattr(self, f.name), f"run.{f.name}"))
+            setattr(self, f.name, check_positive_int(getattr(self, f.name), f"run.{f.name}"))
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -677,9 +653,9 @@ class ModelRolloutsSampler:
         w = "sampler"
         if self.name != self.NAME:
             raise ValueError(f"{w}.name: expected {self.NAME!r} for {type(self).__name__}, got {self.name!r}")
-        _positive(self.box, f"{w}.box", allow_inf=True)
+        check_number(self.box, f"{w}.box", positive=True, allow_inf=True)
         for name in ("true_envs", "true_steps", "true_every", "true_horizon"):
-            setattr(self, name, _int(getattr(self, name), f"{w}.{name}"))
+            setattr(self, name, check_positive_int(getattr(self, name), f"{w}.{name}"))
 
 
 @dataclass
@@ -734,11 +710,11 @@ class CourseSampler(ModelRolloutsSampler):
     def __post_init__(self) -> None:
         super().__post_init__()
         w = "sampler"
-        _unit(self.course_fraction, f"{w}.course_fraction")
-        self.course_start = _int(self.course_start, f"{w}.course_start", 0)
+        check_fraction(self.course_fraction, f"{w}.course_fraction")
+        self.course_start = check_nonnegative_int(self.course_start, f"{w}.course_start")
         _choice(self.course_starts, f"{w}.course_starts", MODEL_COURSE_STARTS)
-        self.course_horizon = _int(self.course_horizon, f"{w}.course_horizon")
-        _unit(self.kick_prob, f"{w}.kick_prob")
+        self.course_horizon = check_positive_int(self.course_horizon, f"{w}.course_horizon")
+        check_fraction(self.kick_prob, f"{w}.kick_prob")
         check_number(self.kick_scale, f"{w}.kick_scale", nonneg=True)
 
 
@@ -1049,9 +1025,7 @@ class TrainConfig:
             moved = migrate({**legacy, **given, "task": _jsonable(task) if not isinstance(task, str) else task})
             algorithm, sampler, ddpg, run = (moved.get(k) for k in ("algorithm", "sampler", "ddpg", "run"))
         self.method = _choice(method, "method", METHODS)
-        if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
-            raise ValueError(f"seed: expected a non-negative integer, got {seed!r}")
-        self.seed = int(seed)
+        self.seed = check_nonnegative_int(seed, "seed")
         self.task = task_config(task)
         preset = PRESETS.get(self.task.name, {})
         for name, value in (("algorithm", algorithm), ("ddpg", ddpg), ("run", run)):

@@ -28,7 +28,7 @@ from typing import Any, Callable
 import numpy as np
 import torch
 
-from mixedrl.checks import as_vector, check_covariance
+from mixedrl.checks import as_vector, check_covariance, check_positive_int
 from mixedrl.config import DoubleLaneChangeTaskConfig, LinearTaskConfig, TaskConfig, task_config
 from mixedrl.envs import DoubleLaneChangeModel, evaluate_tracking
 from mixedrl.gaussian import sample_gaussian
@@ -350,8 +350,7 @@ class Task(abc.ABC):
             ``seeds`` empty, or ``horizon`` not a positive integer.
         """
         horizon = self.eval_horizon if horizon is None else horizon
-        if isinstance(horizon, bool) or not isinstance(horizon, (int, np.integer)) or horizon < 1:
-            raise ValueError(f"horizon: expected a positive integer, got {horizon!r}")
+        horizon = check_positive_int(horizon, "horizon")
         if len(seeds) == 0:
             raise ValueError("seeds: expected at least one evaluation seed, got none")
         n, half = int(self.eval_starts), int(horizon) // 2
@@ -429,9 +428,7 @@ def check_task(task: Task, batch: int = 3) -> None:
     """
     name = type(task).__name__
     for attr in ("state_dim", "obs_dim", "action_dim", "noise_dim"):
-        v = getattr(task, attr, None)
-        if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 1:
-            raise ValueError(f"{name}.{attr}: expected a positive integer, got {v!r}")
+        check_positive_int(getattr(task, attr, None), f"{name}.{attr}")
     n, m, o, d = task.state_dim, task.action_dim, task.obs_dim, task.noise_dim
     gamma = getattr(task, "gamma", None)
     if not isinstance(gamma, (float, int, np.floating)) or not 0.0 < float(gamma) < 1.0:

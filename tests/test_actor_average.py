@@ -11,8 +11,8 @@ from mixedrl.algorithms.agpi import AGPI
 from mixedrl.config import TrainConfig
 from mixedrl.runs import RunDirectory, make_trainer, train
 
-FAST = dict(task="linear", batch_size=32, iterations=30, eval_every=10, eval_seeds=1, checkpoint_every=10,
-            hidden_sizes=(8,))
+FAST = dict(task="linear", run=dict(eval_every=10, eval_seeds=1, checkpoint_every=10))
+ALGORITHM = dict(batch_size=32, iterations=30, hidden_sizes=(8,))
 
 
 def _flat(module: torch.nn.Module) -> torch.Tensor:
@@ -21,7 +21,7 @@ def _flat(module: torch.nn.Module) -> torch.Tensor:
 
 def test_the_average_is_the_ema_of_the_iterates_and_is_what_is_evaluated() -> None:
     beta = 0.9
-    trainer: AGPI = make_trainer(TrainConfig(method="mixed", actor_average=beta, **FAST))
+    trainer: AGPI = make_trainer(TrainConfig(method="mixed", algorithm=dict(ALGORITHM, actor_average=beta), **FAST))
     expected = None
     for _ in range(12):
         trainer.iteration()
@@ -36,14 +36,14 @@ def test_the_average_is_the_ema_of_the_iterates_and_is_what_is_evaluated() -> No
 
 
 def test_no_average_by_default() -> None:
-    trainer: AGPI = make_trainer(TrainConfig(method="mixed", **FAST))
+    trainer: AGPI = make_trainer(TrainConfig(method="mixed", algorithm=ALGORITHM, **FAST))
     trainer.iteration()
     assert trainer.actor_avg is None and trainer.policy is trainer.actor
     assert "actor_avg" not in trainer.state_dict()
 
 
 def test_resume_with_an_average_equals_uninterrupted(tmp_path: Path) -> None:
-    cfg = TrainConfig(method="mixed", actor_average=0.95, **FAST)
+    cfg = TrainConfig(method="mixed", algorithm=dict(ALGORITHM, actor_average=0.95), **FAST)
     full = make_trainer(cfg)
     res_full = train(full, RunDirectory(tmp_path / "full"))
     cut = make_trainer(cfg)
@@ -55,7 +55,7 @@ def test_resume_with_an_average_equals_uninterrupted(tmp_path: Path) -> None:
 
 
 def test_a_checkpoint_without_the_average_is_refused_and_changes_nothing() -> None:
-    cfg = TrainConfig(method="mixed", actor_average=0.95, **FAST)
+    cfg = TrainConfig(method="mixed", algorithm=dict(ALGORITHM, actor_average=0.95), **FAST)
     trainer: AGPI = make_trainer(cfg)
     trainer.iteration()
     state = trainer.state_dict()
@@ -70,4 +70,4 @@ def test_a_checkpoint_without_the_average_is_refused_and_changes_nothing() -> No
 @pytest.mark.parametrize("bad", [-0.1, 1.0, float("nan"), 2])
 def test_actor_average_is_validated(bad: float) -> None:
     with pytest.raises(ValueError, match="^algorithm.actor_average"):
-        TrainConfig(actor_average=bad)
+        TrainConfig(algorithm=dict(actor_average=bad))

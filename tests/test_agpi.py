@@ -184,7 +184,7 @@ def test_noise_sources_and_ibe_changes_the_model() -> None:
     assert np.allclose(make_noise_source("oracle", task).mean, task.true_mean)
     with pytest.raises(ValueError, match="^method"):
         make_noise_source("ddpg", task)
-    ag = AGPI(task, TrainConfig(method="mixed", task="linear", batch_size=64, iterations=5))
+    ag = AGPI(task, TrainConfig(method="mixed", task="linear", algorithm=dict(batch_size=64, iterations=5)))
     prior_nodes, _ = ag.nodes(*ag.noise_moments())
     ag.iteration()
     post_nodes, post_w = ag.nodes(*ag.noise_moments())
@@ -197,7 +197,7 @@ def test_agpi_rejects_ddpg_and_bad_state() -> None:
     task = LinearTask()
     with pytest.raises(ValueError, match="^config"):
         AGPI(task, TrainConfig(method="ddpg", task="linear"))
-    ag = AGPI(task, TrainConfig(method="model", task="linear", batch_size=8))
+    ag = AGPI(task, TrainConfig(method="model", task="linear", algorithm=dict(batch_size=8)))
     state = ag.state_dict()
     del state["actor"]
     with pytest.raises(ValueError, match="^state"):
@@ -208,10 +208,11 @@ def test_stopping_test_of_algorithm2() -> None:
     """|V^{k+1} - V^k| <= eps and |pi^{k+1} - pi^k| <= eps for stop_patience iterations ends the run;
     with eps = 0 the run uses its whole budget."""
     task = LinearTask()
-    base = dict(method="model", task="linear", batch_size=16, iterations=50, eval_every=50)
-    loose = AGPI(task, TrainConfig(stop_epsilon=1e9, stop_patience=3, **base))
+    base = dict(method="model", task="linear", run=dict(eval_every=50))
+    loose = AGPI(task, TrainConfig(algorithm=dict(batch_size=16, iterations=50, stop_epsilon=1e9, stop_patience=3), **base))
     assert train(loose)["iterations"] == 3
-    tight = AGPI(task, TrainConfig(stop_epsilon=1e-12, stop_patience=3, **base))
+    tight = AGPI(task, TrainConfig(algorithm=dict(batch_size=16, iterations=50, stop_epsilon=1e-12, stop_patience=3),
+                                   **base))
     assert train(tight)["iterations"] == 50
 
 
@@ -219,7 +220,8 @@ def test_same_seed_identical_weights_different_seed_different() -> None:
     task = LinearTask()
 
     def weights(seed: int) -> list[torch.Tensor]:
-        ag = AGPI(task, TrainConfig(method="mixed", task="linear", seed=seed, batch_size=32, iterations=15))
+        ag = AGPI(task, TrainConfig(method="mixed", task="linear", seed=seed, algorithm=dict(batch_size=32,
+                                    iterations=15)))
         for _ in range(15):
             ag.iteration()
         return [p.detach().clone() for p in list(ag.actor.parameters()) + list(ag.critic.parameters())]
@@ -234,9 +236,9 @@ def test_same_seed_identical_weights_different_seed_different() -> None:
 # the package's defaults -- model batch, relative weighting, 1500-iteration decay -- the oracle's P was 18.9 vs
 # the DARE's 7.14 after these 5000 iterations with relative weighting, 7.138 with the model batch alone:
 # the relative weighting slows the quadratic critic's convergence on this task; docs/model_based.rst.)
-LQ_CONFIG = dict(task="linear", iterations=5000, batch_size=256, critic_lr=5e-2, actor_lr=2e-2, horizon=5,
-                 lr_decay_to=0.05, eval_every=5000, state_source="true", batch_weighting="uniform",
-                 lr_decay_iterations=0)
+LQ_CONFIG = dict(task="linear", algorithm=dict(iterations=5000, batch_size=256, critic_lr=5e-2, actor_lr=2e-2,
+                 horizon=5, lr_decay_to=0.05, batch_weighting="uniform", lr_decay_iterations=0),
+                 sampler="true_copies", run=dict(eval_every=5000))
 
 
 def _lq_run(method: str, seed: int = 0) -> AGPI:
@@ -333,8 +335,8 @@ def test_agpi_options_run(expectation: str, mvc_check: str) -> None:
     """The reparameterised-sample expectation and the every-state MVC run and log finite metrics; an
     iteration whose MVC still fails after the inner loop has run exactly j_max extra PIM steps."""
     task = LinearTask()
-    cfg = TrainConfig(method="mixed", task="linear", batch_size=32, iterations=10, expectation=expectation,
-                      mvc_check=mvc_check, noise_samples=3)
+    cfg = TrainConfig(method="mixed", task="linear", algorithm=dict(batch_size=32, iterations=10,
+                      expectation=expectation, mvc_check=mvc_check, noise_samples=3))
     ag = AGPI(task, cfg)
     rows = [ag.iteration() for _ in range(10)]
     assert all(np.isfinite(v) for r in rows for v in r.values())
@@ -354,7 +356,8 @@ def test_iteration_plans_with_the_current_ibe_posterior() -> None:
     posterior, and the critic after the iteration is the one a PEV step under the posterior gives --
     not the one under the prior -- while the IBE still updates and reports."""
     task = LinearTask(prior_mean=[0.0, -1.0])  # prior far from the true mean (0, 0.5)
-    cfg = TrainConfig(method="mixed", task="linear", batch_size=32, iterations=10, seed=3, state_source="true")
+    cfg = TrainConfig(method="mixed", task="linear", seed=3, algorithm=dict(batch_size=32, iterations=10),
+                      sampler="true_copies")
     ag = AGPI(task, cfg)
     ag.iteration()  # the IBE has seen data: its posterior is not the prior any more
     posterior = ag.noise_moments()
@@ -418,8 +421,8 @@ def test_inner_loop_takes_extra_pim_steps_while_the_mvc_fails() -> None:
     """Eq. (38) fails (the noise jumps by 3 in velocity): the inner loop must take PIM steps until
     j = j_max, each a real step of the actor under xi_hat_k."""
     task = LinearTask()
-    cfg = TrainConfig(method="mixed", task="linear", batch_size=32, iterations=10, j_max=3, mvc_check="all",
-                      state_source="true")
+    cfg = TrainConfig(method="mixed", task="linear", algorithm=dict(batch_size=32, iterations=10, j_max=3,
+                      mvc_check="all"), sampler="true_copies")
     ag = AGPI(task, cfg, noise_source=JumpingNoise())
     calls: list[torch.Tensor] = []
     original = ag.pim

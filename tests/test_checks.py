@@ -50,3 +50,31 @@ def test_unknown_keys_and_positive_int():
     for bad in (0, -1, 2.0, True):
         with pytest.raises(ValueError, match="^n: expected a positive integer"):
             checks.check_positive_int(bad, "n")
+
+
+def test_check_int_bounds_and_messages():
+    assert checks.check_nonnegative_int(0, "seed") == 0
+    assert type(checks.check_int(np.int64(5), "k", minimum=5)) is int
+    assert checks.check_int(-3, "offset") == -3
+    for bad in (-1, 1.0, False, "1", None):
+        with pytest.raises(ValueError, match="^seed: expected a non-negative integer"):
+            checks.check_nonnegative_int(bad, "seed")
+    with pytest.raises(ValueError, match="^k: expected an integer >= 5, got 4"):
+        checks.check_int(4, "k", minimum=5)
+    with pytest.raises(ValueError, match="^offset: expected an integer, got 0.5"):
+        checks.check_int(0.5, "offset")
+
+
+def test_check_fraction_and_allow_inf():
+    assert checks.check_fraction(1, "tau") == 1.0
+    assert checks.check_fraction(0.0, "p") == 0.0
+    for bad, kwargs, interval in ((0.0, {"low_open": True}, r"\(0, 1\]"), (1.0, {"high_open": True}, r"\[0, 1\)"),
+                                  (1.5, {}, r"\[0, 1\]"), (-0.1, {}, r"\[0, 1\]")):
+        with pytest.raises(ValueError, match=rf"^tau: expected a number in {interval}"):
+            checks.check_fraction(bad, "tau", **kwargs)
+    assert checks.check_number(np.inf, "box", positive=True, allow_inf=True) == np.inf
+    for bad in (np.inf, -np.inf, 0.0):
+        with pytest.raises(ValueError, match="^box: expected a positive number"):
+            checks.check_number(bad, "box", positive=True)
+    with pytest.raises(ValueError, match="^box: expected a positive number"):
+        checks.check_number(-np.inf, "box", positive=True, allow_inf=True)

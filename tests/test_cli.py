@@ -91,10 +91,10 @@ def test_dotted_set_reaches_the_task_and_config_json(tmp_path: Path, capsys: pyt
 def test_nested_config_file_with_dotted_set(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     spec = tmp_path / "experiment.json"
     spec.write_text(json.dumps({"task": {"name": "linear", "prior_cov": [[0.04, 0], [0, 0.04]],
-                                         "disturbance": {"cov": [[0, 0], [0, 0.02]]}}, "batch_size": 32}))
+                                         "disturbance": {"cov": [[0, 0], [0, 0.02]]}}, "algorithm": {"batch_size": 32}}))
     out = tmp_path / "run"
     assert main(["train", "--method", "mixed", "--out", str(out), "--iterations", "2", "--no-progress",
-                 "--config", str(spec), "--set", "eval_every=1", "eval_seeds=1", "task.init_box=0.5"]) == 0
+                 "--config", str(spec), "--set", "run.eval_every=1", "run.eval_seeds=1", "task.init_box=0.5"]) == 0
     capsys.readouterr()
     cfg = TrainConfig.load(out / "config.json")
     assert cfg.algorithm.batch_size == 32 and cfg.task.name == "linear" and cfg.task.init_box == 0.5

@@ -4,6 +4,7 @@ results, :func:`mixedrl.tasks.check_task`'s errors naming the function, progress
 from __future__ import annotations
 
 import io
+import json
 import sys
 from typing import Any
 
@@ -99,8 +100,8 @@ def test_task_name_defaults_to_the_class_and_reaches_the_results(tmp_path: Any) 
     class Named(Cruise):
         name = "my-cruise"
 
-    config = TrainConfig(method="mixed", task="linear", seed=0, iterations=4, batch_size=16, hidden_sizes=(8,),
-                         eval_every=4, checkpoint_every=4)
+    config = TrainConfig(method="mixed", task="linear", seed=0, algorithm=dict(iterations=4, batch_size=16,
+                         hidden_sizes=(8,)), run=dict(eval_every=4, checkpoint_every=4))
     results = train(AGPI(Cruise(), config), progress=False)
     assert results["task"] == "Cruise"
     assert {"cost", "mean_abs_state", "mean_state_0"} <= set(results["final"])
@@ -109,6 +110,26 @@ def test_task_name_defaults_to_the_class_and_reaches_the_results(tmp_path: Any) 
     assert run.read_results()["task"] == "my-cruise"
     builtin = train(AGPI(LinearTask(), config), progress=False)
     assert builtin["task"] == "linear"
+
+
+def test_config_json_names_the_users_task_and_a_custom_run_resumes(tmp_path: Any) -> None:
+    config = TrainConfig(method="mixed", task="linear", seed=0, algorithm=dict(iterations=4, batch_size=16,
+                         hidden_sizes=(8,)), run=dict(eval_every=2, checkpoint_every=2))
+    run = RunDirectory(tmp_path / "run")
+    assert train(AGPI(Cruise(), config), run, progress=False, stop_after=2) == {"interrupted_at": 2}
+    saved = json.loads(run.config_path.read_text())
+    assert saved["task"] == {"name": "Cruise"}  # not the placeholder "linear" and its unused fields
+    assert saved["algorithm"]["iterations"] == 4 and saved["method"] == "mixed"
+    with pytest.raises(ValueError, match="^config: .*the user's own task 'Cruise'"):
+        run.read_config()
+    resumed = train(AGPI(Cruise(), config), run, resume=True, progress=False)
+    assert resumed["iterations"] == 4 and resumed["task"] == "Cruise"
+    with pytest.raises(ValueError, match=r"^config: .*task\.A .*\(saved: None\).*contradict"):  # another task
+        train(AGPI(LinearTask(), config.replace(**{"algorithm.iterations": 6})), run, resume=True, progress=False)
+    builtin = RunDirectory(tmp_path / "builtin")
+    train(AGPI(LinearTask(), config), builtin, progress=False)
+    assert json.loads(builtin.config_path.read_text())["task"] == config.to_dict()["task"]
+    assert builtin.read_config().to_dict() == config.to_dict()
 
 
 def _broken(**methods: Any) -> Task:
@@ -152,7 +173,7 @@ def test_check_task_names_array_attributes() -> None:
 def test_trainers_check_the_task_at_construction(trainer: str) -> None:
     """The error a (B, 1) cost gave deep inside the expectation now comes at construction, naming cost."""
     bad = _broken(cost=lambda self, s, u: (s**2).sum(-1, keepdim=True))
-    config = TrainConfig(method=trainer, task="linear", batch_size=16, hidden_sizes=(8,))
+    config = TrainConfig(method=trainer, task="linear", algorithm=dict(batch_size=16, hidden_sizes=(8,)))
     with pytest.raises(ValueError, match=r"^Broken\.cost: expected shape \(3,\), returned shape \(3, 1\)"):
         (DDPG if trainer == "ddpg" else AGPI)(bad, config)
 
@@ -167,8 +188,8 @@ def test_progress_bar_on_by_default_on_a_terminal(monkeypatch: pytest.MonkeyPatc
         def isatty(self) -> bool:
             return True
 
-    config = TrainConfig(method="model", task="linear", seed=0, iterations=3, batch_size=16, hidden_sizes=(8,),
-                         eval_every=3, checkpoint_every=3)
+    config = TrainConfig(method="model", task="linear", seed=0, algorithm=dict(iterations=3, batch_size=16,
+                         hidden_sizes=(8,)), run=dict(eval_every=3, checkpoint_every=3))
     for progress, shown in ((None, True), (False, False)):
         err = Tty()
         monkeypatch.setattr(sys, "stderr", err)

@@ -11,8 +11,8 @@ from mixedrl.config import TrainConfig
 from mixedrl.runs import train
 from mixedrl.tasks import LinearTask
 
-CFG = dict(method="ddpg", task="linear", batch_size=32, ddpg_envs=8, ddpg_warmup=64, iterations=30,
-           eval_every=30)
+CFG = dict(method="ddpg", task="linear", algorithm=dict(batch_size=32, iterations=30), ddpg=dict(envs=8, warmup=64),
+           run=dict(eval_every=30))
 
 
 def test_replay_buffer_ring_and_state_dict() -> None:
@@ -96,8 +96,8 @@ def test_ddpg_rejects_other_methods() -> None:
 def test_ddpg_improves_on_the_linear_task() -> None:
     """A quantitative learning check: after 1500 updates the discounted cost of the greedy policy is
     below half that of the initial (near-zero) policy on the same evaluation episodes."""
-    cfg = TrainConfig(**{**CFG, "iterations": 1500, "eval_every": 1500, "batch_size": 128, "critic_lr": 3e-3,
-                         "actor_lr": 1e-3})
+    cfg = TrainConfig(**{**CFG, "algorithm": dict(iterations=1500, batch_size=128, critic_lr=3e-3, actor_lr=1e-3),
+                         "run": dict(eval_every=1500)})
     agent = DDPG(LinearTask(), cfg)
     initial = agent.evaluate([11, 12])["cost"]
     res = train(agent)
@@ -118,7 +118,7 @@ def test_true_transitions_are_counted_steps_of_the_true_environment() -> None:
     agent = DDPG(task, TrainConfig(**CFG))
     for _ in range(5):  # training iterations only (the evaluation drives the true environment too)
         metrics = agent.iteration()
-    assert StepCounter.rows == CFG["ddpg_warmup"] + 4 * CFG["ddpg_envs"]  # warm-up, then one step per copy
+    assert StepCounter.rows == CFG["ddpg"]["warmup"] + 4 * CFG["ddpg"]["envs"]  # warm-up, then one step per copy
     assert agent.true_transitions == StepCounter.rows == metrics["data/true_transitions"]
     twin = DDPG(LinearTask(), TrainConfig(**CFG))
     twin.load_state_dict(agent.state_dict())

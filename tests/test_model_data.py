@@ -17,8 +17,9 @@ from mixedrl.config import TrainConfig
 from mixedrl.runs import RunDirectory, make_trainer, train
 from mixedrl.tasks import LinearTask
 
-FAST = dict(task="linear", iterations=40, batch_size=32, eval_every=20, checkpoint_every=10, eval_seeds=1,
-            sampler={"name": "model_rollouts", "true_horizon": 30, "true_envs": 2, "true_steps": 3, "true_every": 4})
+FAST = dict(task="linear", algorithm=dict(iterations=40, batch_size=32), run=dict(eval_every=20, checkpoint_every=10,
+            eval_seeds=1), sampler={"name": "model_rollouts", "true_horizon": 30, "true_envs": 2, "true_steps": 3,
+                                    "true_every": 4})
 
 
 def _forbid_true_steps(monkeypatch: pytest.MonkeyPatch, task: object) -> None:
@@ -30,7 +31,7 @@ def _forbid_true_steps(monkeypatch: pytest.MonkeyPatch, task: object) -> None:
 
 @pytest.mark.parametrize("task_name", ["linear", "dlc"])
 def test_model_driven_uses_zero_true_transitions(monkeypatch: pytest.MonkeyPatch, task_name: str) -> None:
-    cfg = TrainConfig(method="model", **{**FAST, "task": task_name, "iterations": 12})
+    cfg = TrainConfig(method="model", **{**FAST, "task": task_name, "algorithm": dict(iterations=12, batch_size=32)})
     trainer = make_trainer(cfg)
     _forbid_true_steps(monkeypatch, trainer.task)
     rows = [trainer.iteration() for _ in range(12)]
@@ -61,7 +62,8 @@ def test_mixed_true_transitions_follow_the_configured_rate() -> None:
 
 def test_true_source_counts_one_true_step_per_copy() -> None:
     assert TrainConfig().sampler.name == "dlc_course"  # the DLC experiment plans on the model
-    cfg = TrainConfig(method="mixed", task="linear", batch_size=16, iterations=5, state_source="true")
+    cfg = TrainConfig(method="mixed", task="linear", algorithm=dict(batch_size=16, iterations=5),
+                      sampler="true_copies")
     trainer = make_trainer(cfg)
     assert trainer.sampler is None
     for _ in range(5):
@@ -72,8 +74,8 @@ def test_true_source_counts_one_true_step_per_copy() -> None:
 def test_rollouts_use_the_planning_noise_not_the_true_one() -> None:
     # linear task: prior mean 0, true mean 0.5 on the velocity; the rollout increments must carry the prior's
     task = LinearTask(prior_cov=1e-4 * np.eye(2))
-    cfg = TrainConfig(method="model", batch_size=2048, state_source="model", model_box=float("inf"),
-                      model_course_start=0, model_kick_prob=0.0)
+    cfg = TrainConfig(method="model", algorithm=dict(batch_size=2048), sampler=dict(name="dlc_course",
+                      box=float("inf"), course_start=0, kick_prob=0.0))
     gen = torch.Generator().manual_seed(0)
     sampler = ModelStateSampler(task, cfg, gen)
     actor = torch.nn.Linear(2, 1)
@@ -90,8 +92,8 @@ def test_rollouts_use_the_planning_noise_not_the_true_one() -> None:
 
 def test_rollouts_restart_outside_the_box_and_at_the_horizon() -> None:
     task = LinearTask()
-    cfg = TrainConfig(method="model", batch_size=64, state_source="model", model_box=2.0,
-                      model_course_fraction=0.25, horizon=5, model_course_horizon=7, model_course_start=0)
+    cfg = TrainConfig(method="model", algorithm=dict(batch_size=64, horizon=5), sampler=dict(name="dlc_course",
+                      box=2.0, course_fraction=0.25, true_horizon=7, course_horizon=7, course_start=0))
     sampler = ModelStateSampler(task, cfg, torch.Generator().manual_seed(1))
     assert int(sampler.course.sum()) == 16
     assert sampler.horizons.tolist() == [7] * 16 + [5] * 48
@@ -106,16 +108,17 @@ def test_rollouts_restart_outside_the_box_and_at_the_horizon() -> None:
     assert sampler.restarts > 64
 
 
-def test_state_source_is_validated() -> None:
-    with pytest.raises(ValueError, match="^state_source"):
-        TrainConfig(state_source="replay")
+def test_sampler_options_are_validated() -> None:
+    with pytest.raises(ValueError, match="^sampler.name"):
+        TrainConfig(sampler="replay")
     with pytest.raises(ValueError, match="^sampler.course_fraction"):
-        TrainConfig(model_course_fraction=1.5)
+        TrainConfig(sampler=dict(name="dlc_course", course_fraction=1.5))
     with pytest.raises(ValueError, match="^sampler.box"):
-        TrainConfig(model_box=float("nan"))
+        TrainConfig(sampler=dict(name="dlc_course", box=float("nan")))
     with pytest.raises(ValueError, match="^sampler.true_every"):
-        TrainConfig(true_every=0)
-    assert TrainConfig.from_dict(TrainConfig(model_box=float("inf")).to_dict()).sampler.box == float("inf")
+        TrainConfig(sampler=dict(name="dlc_course", true_every=0))
+    unbounded = TrainConfig(sampler=dict(name="dlc_course", box=float("inf")))
+    assert TrainConfig.from_dict(unbounded.to_dict()).sampler.box == float("inf")
 
 
 @pytest.mark.parametrize("method,task", [("mixed", "linear"), ("model", "linear"), ("mixed", "dlc")])
@@ -155,8 +158,9 @@ def test_course_rollouts_start_at_the_course_start_from_model_course_start() -> 
     from mixedrl.tasks import make_task
 
     task = make_task("dlc")
-    cfg = TrainConfig(batch_size=64, state_source="model", model_course_fraction=1.0, model_course_start=2,
-                      horizon=1, model_course_horizon=1, model_course_starts="start")
+    cfg = TrainConfig(algorithm=dict(batch_size=64, horizon=1), sampler=dict(name="dlc_course",
+                      course_fraction=1.0, course_start=2, true_horizon=1, course_horizon=1,
+                      course_starts="start"))
     sampler = ModelStateSampler(task, cfg, torch.Generator().manual_seed(0))
     actor = torch.nn.Linear(5, 2)
     torch.nn.init.zeros_(actor.weight)
@@ -171,11 +175,11 @@ def test_course_rollouts_start_at_the_course_start_from_model_course_start() -> 
 
 def test_kicks_move_only_course_copies_by_at_most_the_kick_size() -> None:
     task = LinearTask()
-    cfg = TrainConfig(method="model", batch_size=40, state_source="model", model_box=float("inf"),
-                      model_course_fraction=0.5, model_course_start=0, model_kick_prob=1.0, model_kick_scale=0.3,
-                      horizon=1000, model_course_horizon=1000)
+    cfg = TrainConfig(method="model", algorithm=dict(batch_size=40, horizon=1000), sampler=dict(name="dlc_course",
+                      box=float("inf"), course_fraction=0.5, course_start=0, kick_prob=1.0, kick_scale=0.3,
+                      true_horizon=1000, course_horizon=1000))
     kicked = ModelStateSampler(task, cfg, torch.Generator().manual_seed(2))
-    plain = ModelStateSampler(task, cfg.replace(model_kick_prob=0.0), torch.Generator().manual_seed(2))
+    plain = ModelStateSampler(task, cfg.replace(**{"sampler.kick_prob": 0.0}), torch.Generator().manual_seed(2))
     actor = torch.nn.Linear(2, 1)
     zero = np.zeros((2, 2))
     kicked.model_step(actor, task.prior_mean, zero)
@@ -190,8 +194,9 @@ def _course_sampler(starts: str) -> tuple[ModelStateSampler, Any, Any]:
     from mixedrl.tasks import make_task
 
     task = make_task("dlc")
-    cfg = TrainConfig(batch_size=256, state_source="model", model_course_fraction=1.0, model_course_start=0,
-                      horizon=1, model_course_horizon=2000, model_kick_prob=0.0, model_course_starts=starts)
+    cfg = TrainConfig(algorithm=dict(batch_size=256, horizon=1), sampler=dict(name="dlc_course",
+                      course_fraction=1.0, course_start=0, true_horizon=2000, course_horizon=2000, kick_prob=0.0,
+                      course_starts=starts))
     sampler = ModelStateSampler(task, cfg, torch.Generator().manual_seed(0))
     actor = torch.nn.Linear(5, 2)
     torch.nn.init.zeros_(actor.weight)
@@ -242,7 +247,7 @@ def test_along_course_copies_restart_when_they_pass_the_course_end() -> None:
 
 def test_model_course_starts_is_validated() -> None:
     with pytest.raises(ValueError, match="^sampler.course_starts"):
-        TrainConfig(model_course_starts="random")
+        TrainConfig(sampler=dict(name="dlc_course", course_starts="random"))
 
 
 def test_loop_course_copies_restart_at_the_course_start_when_they_pass_its_end() -> None:

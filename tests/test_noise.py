@@ -65,7 +65,8 @@ def test_agpi_plans_with_a_state_dependent_ibe() -> None:
     task = LinearTask()
     noise = StateDependentIBE(Phi(), task.true_cov + 1e-4 * np.eye(2), 2, 1, prior_std=1.0, max_iter=20)
     assert noise.learns and noise.state_dependent
-    ag = AGPI(task, TrainConfig(method="mixed", task="linear", batch_size=16, iterations=5, state_source="true"),
+    ag = AGPI(task, TrainConfig(method="mixed", task="linear", algorithm=dict(batch_size=16, iterations=5),
+                                sampler="true_copies"),
               noise_source=noise)
     seen: list[tuple[torch.Tensor, torch.Tensor]] = []
     original = ag.pev
@@ -109,11 +110,13 @@ def _course_states(task, X: np.ndarray) -> torch.Tensor:  # noqa: ANN001
 @pytest.mark.parametrize("case,cls", [(1, KnownCovarianceIBE), (2, UnknownCovarianceIBE), (3, LinearFeatureIBE)])
 @pytest.mark.parametrize("task", ["linear", "dlc"])
 def test_ibe_case_selects_the_estimator(case: int, cls: type, task: str) -> None:
-    ag = AGPI(task_from_config(task), TrainConfig(method="mixed", task=task, ibe_case=case, batch_size=8))
+    ag = AGPI(task_from_config(task), TrainConfig(method="mixed", task=task, algorithm=dict(ibe_case=case,
+                                                  batch_size=8)))
     assert isinstance(ag.noise, cls)
     assert ag.noise.learns and ag.noise.state_dependent == (case == 3)
     for method in ("model", "oracle"):  # only mixed RL reads ibe_case
-        fixed = AGPI(task_from_config(task), TrainConfig(method=method, task=task, ibe_case=case, batch_size=8)).noise
+        fixed = AGPI(task_from_config(task), TrainConfig(method=method, task=task, algorithm=dict(ibe_case=case,
+                                                         batch_size=8))).noise
         assert isinstance(fixed, GaussianNoise)
     assert TrainConfig().algorithm.ibe_case == 2  # the reproduction's Case 2 stays the default
 
@@ -125,7 +128,7 @@ def test_ibe_case_selects_the_estimator(case: int, cls: type, task: str) -> None
                                            ({"ibe_case": 1, "ibe_recursion": "paper"}, "ibe_recursion")])
 def test_ibe_case_is_validated(changes: dict, field: str) -> None:
     with pytest.raises(ValueError, match=f"^algorithm.{field}:"):
-        TrainConfig(**changes)
+        TrainConfig(algorithm=changes)
     with pytest.raises(ValueError, match="^state_dependent"):
         make_noise_source("mixed", LinearTask(), state_dependent=True)  # Case 3 needs covariance="known"
 
@@ -158,7 +161,7 @@ def test_oracle_on_a_grade_plans_with_the_true_state_dependent_mean() -> None:
     np.testing.assert_allclose(mean[:, 2], _true_force(X) * T_OVER_M, rtol=1e-12)
     assert np.all(mean[:, [0, 1, 3, 4]] == 0.0)
     assert isinstance(make_noise_source("oracle", task_from_config("dlc")), GaussianNoise)  # level road: unchanged
-    ag = AGPI(task, TrainConfig(method="oracle", task=GRADE, batch_size=16))
+    ag = AGPI(task, TrainConfig(method="oracle", task=GRADE, algorithm=dict(batch_size=16)))
     batch = ag.states.float()
     got, cov = ag.planning_moments(batch, ag.actor(task.observe(batch)))
     np.testing.assert_allclose(got[:, 2], _true_force(batch[:, 5].double().numpy()) * T_OVER_M, rtol=1e-5)
@@ -170,7 +173,8 @@ def test_case3_learns_the_grade_along_the_course() -> None:
     along the course is the true one within 5 x its own standard error, sqrt(sigma_F^2 tr(G^-1 M)) (RMS
     over the course of a least-squares fit with Gram matrix G, M = the features' second moments on the
     course grid); a constant mean (Case 2) cannot follow the grade's +-294 N."""
-    cfg = TrainConfig(method="mixed", ibe_case=3, task=GRADE, batch_size=64, iterations=20, state_source="true")
+    cfg = TrainConfig(method="mixed", task=GRADE, algorithm=dict(ibe_case=3, batch_size=64, iterations=20),
+                      sampler="true_copies")
     ag = AGPI(task_from_config(cfg.task), cfg)
     for _ in range(20):
         ag.iteration()
@@ -188,11 +192,11 @@ def test_case3_learns_the_grade_along_the_course() -> None:
 
 
 def test_case3_and_the_grade_oracle_on_model_rollouts() -> None:
-    """state_source="model": the rollouts step with the per-state mean, and every true residual reaches
+    """The course sampler: the rollouts step with the per-state mean, and every true residual reaches
     the Case-3 IBE with its state and action."""
-    base = dict(task=GRADE, batch_size=16, state_source="model", true_envs=2, true_steps=3, true_every=2,
-                model_course_start=0, model_kick_prob=0.0)
-    ag = AGPI(task_from_config(GRADE), TrainConfig(method="mixed", ibe_case=3, **base))
+    base = dict(task=GRADE, sampler=dict(name="dlc_course", true_envs=2, true_steps=3, true_every=2, course_start=0,
+                                         kick_prob=0.0), algorithm=dict(batch_size=16))
+    ag = AGPI(task_from_config(GRADE), TrainConfig(method="mixed", **{**base, "algorithm": dict(ibe_case=3, batch_size=16)}))
     for _ in range(4):
         ag.iteration()
     assert ag.noise.count == ag.true_transitions == 2 * 2 * 3
@@ -210,7 +214,8 @@ def test_case3_and_the_grade_oracle_on_model_rollouts() -> None:
 
 
 def test_case3_results_report_the_batch_average_of_the_planning_mean(tmp_path) -> None:  # noqa: ANN001
-    cfg = TrainConfig(method="mixed", task="linear", ibe_case=3, iterations=3, batch_size=16, eval_every=3, eval_seeds=1)
+    cfg = TrainConfig(method="mixed", task="linear", algorithm=dict(ibe_case=3, iterations=3, batch_size=16),
+                      run=dict(eval_every=3, eval_seeds=1))
     trainer = make_trainer(cfg)
     res = train(trainer, RunDirectory(tmp_path))
     mean, cov = trainer.noise_moments()

@@ -31,7 +31,7 @@ OBS_ATOL = 1e-12
 
 
 def test_peer_task_is_the_runs_task_and_seeds() -> None:
-    cfg = TrainConfig(seed=3, eval_seeds=4)
+    cfg = TrainConfig(seed=3, run=dict(eval_seeds=4))
     task, seeds = peer_task(3, 4)
     assert seeds == eval_seeds(cfg)
     assert task.model.config == make_trainer(cfg).task.model.config
@@ -160,7 +160,7 @@ def test_seeded_run_is_reproducible_and_counted(algo: str, tmp_path) -> None:
     assert cfg["sb3_version"] == sb3.__version__
     assert cfg["kwargs"] == {"learning_starts": 100}
     assert cfg["hyperparameters"]["learning_starts"] == 100
-    assert cfg["eval_seeds"] == eval_seeds(TrainConfig(seed=4, eval_seeds=1))
+    assert cfg["eval_seeds"] == eval_seeds(TrainConfig(seed=4, run=dict(eval_seeds=1)))
     sig = inspect.signature({"td3": sb3.TD3, "sac": sb3.SAC}[algo].__init__)
     for name in ("learning_rate", "batch_size", "buffer_size", "tau", "gamma", "gradient_steps", "action_noise"):
         assert cfg["hyperparameters"][name] == sig.parameters[name].default  # SB3's defaults, untouched

@@ -110,12 +110,12 @@ def test_lqr_feed_forward_yardstick() -> None:
         assert ev["mean_state_0"] == pytest.approx(steady[0], abs=2e-3)
 
 
-def _short_config(**kw: object) -> TrainConfig:
-    base = dict(method="mixed", task="linear", seed=3, iterations=20, batch_size=32, hidden_sizes=(8, 8),
-                horizon=100, model_course_fraction=0.0, model_course_horizon=100, model_kick_prob=0.0,
-                lr_decay_iterations=20, eval_every=20, checkpoint_every=20, eval_seeds=1)
-    base.update(kw)
-    return TrainConfig(**base)
+def _short_config(method: str = "mixed", iterations: int = 20) -> TrainConfig:
+    return TrainConfig(method=method, task="linear", seed=3,
+                       algorithm=dict(iterations=iterations, batch_size=32, hidden_sizes=(8, 8), horizon=100,
+                                      lr_decay_iterations=20),
+                       sampler=dict(name="model_rollouts", true_horizon=100),
+                       run=dict(eval_every=20, checkpoint_every=20, eval_seeds=1))
 
 
 def test_short_mixed_run_is_reproducible_and_learns_the_bias() -> None:

@@ -96,8 +96,9 @@ def test_mixed_beats_model_driven_when_the_prior_is_wrong() -> None:
     cost = {}
     trainers = {}
     for method in ("mixed", "model"):
-        cfg = TrainConfig(method=method, seed=0, task={"name": "linear", "prior_mean": [0.0, -0.5]}, iterations=100,
-                          batch_size=64, horizon=20, eval_every=100, eval_seeds=2, checkpoint_every=100)
+        cfg = TrainConfig(method=method, seed=0, task={"name": "linear", "prior_mean": [0.0, -0.5]},
+                          algorithm=dict(iterations=100, batch_size=64, horizon=20), run=dict(eval_every=100,
+                          eval_seeds=2, checkpoint_every=100))
         trainers[method] = make_trainer(cfg)
         cost[method] = train(trainers[method])["cost"]
     assert cost["mixed"] <= 0.6 * cost["model"], cost

@@ -22,13 +22,13 @@ from mixedrl.runs import (
     train,
 )
 
-FAST = dict(task="linear", iterations=40, batch_size=32, eval_every=20, checkpoint_every=10, eval_seeds=1,
-            ddpg_warmup=64, ddpg_envs=8)
+FAST = dict(task="linear", algorithm=dict(iterations=40, batch_size=32), ddpg=dict(warmup=64, envs=8),
+            run=dict(eval_every=20, checkpoint_every=10, eval_seeds=1))
 
 
 # ------------------------------------------------------------------------------ config
 def test_config_round_trip_and_unknown_keys(tmp_path: Path) -> None:
-    cfg = TrainConfig(method="model", seed=3, hidden_sizes=(16, 8), grad_clip=math.inf)
+    cfg = TrainConfig(method="model", seed=3, algorithm=dict(hidden_sizes=(16, 8), grad_clip=math.inf))
     path = tmp_path / "config.json"
     cfg.save(path)
     assert TrainConfig.load(path) == cfg
@@ -137,9 +137,9 @@ GRADE = {"disturbance": {"grade_amplitude": 0.02}}
                                                ("mixed", "dlc", {}), ("ddpg", "dlc", {}),
                                                ("mixed", "linear", {"ibe_case": 3}),
                                                ("mixed", GRADE, {"ibe_case": 3, "batch_size": 16}),
-                                               ("oracle", GRADE, {"batch_size": 16})])
+                                               ("oracle", GRADE, {"batch_size": 16})])  # algorithm fields
 def test_resume_equals_uninterrupted(tmp_path: Path, method: str, task: Any, extra: dict) -> None:
-    cfg = TrainConfig(method=method, **{**FAST, "task": task, **extra})
+    cfg = TrainConfig(method=method, **{**FAST, "task": task, "algorithm": {**FAST["algorithm"], **extra}})
     full = make_trainer(cfg)
     train(full, RunDirectory(tmp_path / "full"))
     first = make_trainer(cfg)
@@ -161,4 +161,4 @@ def test_resume_rejects_a_changed_config(tmp_path: Path) -> None:
     cfg = TrainConfig(method="model", **FAST)
     train(make_trainer(cfg), RunDirectory(tmp_path), stop_after=10)
     with pytest.raises(ValueError, match="^config"):
-        train(make_trainer(cfg.replace(actor_lr=0.5)), RunDirectory(tmp_path), resume=True)
+        train(make_trainer(cfg.replace(**{"algorithm.actor_lr": 0.5})), RunDirectory(tmp_path), resume=True)

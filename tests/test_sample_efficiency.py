@@ -180,10 +180,10 @@ def test_load_runs_rejects_duplicates_and_bad_files(tmp_path: Path) -> None:
 
 
 def test_ours_config_and_overrides() -> None:
-    cfg = ours_config("model", 2, 1500, {"state_source": "model", "task.gamma": 0.98})
+    cfg = ours_config("model", 2, 1500, {"sampler.name": "dlc_course", "task.gamma": 0.98})
     assert (cfg.method, cfg.seed, cfg.algorithm.iterations, cfg.run.eval_every, cfg.run.num_threads) == ("model", 2, 1500, 125, 1)
     assert cfg.sampler.name == "dlc_course" and cfg.task.gamma == 0.98
-    assert ours_config("ddpg", 0, 1500, {"eval_every": 50}).run.eval_every == 50
+    assert ours_config("ddpg", 0, 1500, {"run.eval_every": 50}).run.eval_every == 50
     with pytest.raises(ValueError, match="method"):
         ours_config("td3", 0, 10)
     with pytest.raises(ValueError, match="unknown"):
@@ -192,7 +192,7 @@ def test_ours_config_and_overrides() -> None:
 
 def test_rows_of_a_real_run_are_its_evaluations(tmp_path: Path) -> None:
     """A tiny mixed RL run on the model path: rows = the evaluation metrics rows, transitions as counted."""
-    rec = train_ours("mixed", 0, 12, {"state_source": "model", "batch_size": 16, "eval_seeds": 1},
+    rec = train_ours("mixed", 0, 12, {"sampler.name": "dlc_course", "algorithm.batch_size": 16, "run.eval_seeds": 1},
                      out=tmp_path / "r.json")
     assert json.loads((tmp_path / "r.json").read_text()) == json.loads(json.dumps(rec))
     assert [r["iteration"] for r in rec["rows"]] == list(range(1, 13))  # eval_every = round(12 / 12) = 1
@@ -208,8 +208,8 @@ def test_records_from_a_reproduction_folder(tmp_path: Path) -> None:
     runs = tmp_path / "runs"
     made = {}
     for label, method in (("mixed", "mixed"), ("ddpg", "ddpg"), ("ddpg_long", "ddpg")):
-        cfg = TrainConfig(method=method, seed=1, iterations=6, eval_every=3, eval_seeds=1, batch_size=16,
-                          ddpg_warmup=16, checkpoint_every=6)
+        cfg = TrainConfig(method=method, seed=1, algorithm=dict(iterations=6, batch_size=16), ddpg=dict(warmup=16),
+                          run=dict(eval_every=3, eval_seeds=1, checkpoint_every=6))
         made[label] = train(make_trainer(cfg), RunDirectory(runs / f"{label}_seed1"))
     records = records_from_reproduction(runs)
     assert sorted((r["method"], r["seed"]) for r in records) == [("ddpg", 1), ("mixed", 1)]

@@ -13,8 +13,8 @@ from mixedrl.config import TrainConfig
 from mixedrl.runs import RunDirectory, train
 from mixedrl.tasks import LinearTask
 
-CFG = dict(method="mixed", task="linear", seed=0, iterations=6, batch_size=16, hidden_sizes=(8,), eval_every=3,
-           checkpoint_every=3)
+CFG = dict(method="mixed", task="linear", seed=0, algorithm=dict(iterations=6, batch_size=16, hidden_sizes=(8,)),
+           run=dict(eval_every=3, checkpoint_every=3))
 
 
 def _hide_tensorboard(monkeypatch: pytest.MonkeyPatch) -> None:

@@ -25,6 +25,7 @@ from typing import Any, Callable
 import numpy as np
 
 from theory.checks import DEFAULT_RTOL, CheckReport
+from mixedrl.checks import check_fraction, check_number
 from mixedrl.expectation import GaussHermite, SigmaPoints, gaussian_expectation
 
 __all__ = [
@@ -158,8 +159,7 @@ def gamma_condition(
     (EQUATIONS.md point 13); the report says where.
     """
     g = _discount(gamma)
-    if not (isinstance(rtol, (int, float)) and not isinstance(rtol, bool) and rtol >= 0.0 and math.isfinite(rtol)):
-        raise ValueError(f"rtol: expected a finite float >= 0, got {rtol!r}")
+    check_number(rtol, "rtol", nonneg=True)
     if not (hasattr(noise, "mean") and hasattr(noise, "cov")):
         raise ValueError(f"noise: expected an object with .mean and .cov, got {type(noise).__name__}")
     x = _finite_batch(states)
@@ -283,12 +283,7 @@ class PriorRankReport:
 
 
 def _relative_tolerance(rtol: Any) -> float:
-    if isinstance(rtol, bool) or not isinstance(rtol, (int, float, np.floating)):
-        raise ValueError(f"rtol: expected a float in [0, 1), got {rtol!r}")
-    r = float(rtol)
-    if not 0.0 <= r < 1.0:
-        raise ValueError(f"rtol: expected a float in [0, 1), got {rtol!r}")
-    return r
+    return check_fraction(rtol, "rtol", high_open=True)
 
 
 def _symmetric_psd(value: Any, name: str, n: int | None = None) -> np.ndarray:

@@ -44,7 +44,7 @@ from typing import Any
 import control
 import numpy as np
 
-from mixedrl.checks import as_matrix, as_vector, check_covariance, check_positive_int
+from mixedrl.checks import as_matrix, as_vector, check_covariance, check_nonnegative_int, check_positive_int
 from mixedrl.algorithms.policy_iteration import Iteration, policy_iteration
 from mixedrl.ibe import residuals
 from mixedrl.noise import GaussianNoise, make_noise_source
@@ -502,8 +502,7 @@ def run_algorithm1(
     iterations = check_positive_int(iterations, "iterations")
     samples_per_iteration = check_positive_int(samples_per_iteration, "samples_per_iteration")
     n_check_states = check_positive_int(n_check_states, "n_check_states")
-    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
-        raise ValueError(f"seed: expected a non-negative integer, got {seed!r}")
+    check_nonnegative_int(seed, "seed")
     if not (math.isfinite(exploration_std) and exploration_std >= 0.0):
         raise ValueError(f"exploration_std: expected a finite value >= 0, got {exploration_std!r}")
     if not (reset_norm > 0.0):

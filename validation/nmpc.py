@@ -51,6 +51,7 @@ import numpy as np
 import torch
 from tqdm.auto import tqdm
 
+from mixedrl.checks import check_nonnegative_int, check_positive_int
 from mixedrl.envs import DoubleLaneChangeConfig, DoubleLaneChangeModel, TrackingResult, evaluate_tracking
 from mixedrl.runs import atomic_write_text
 from mixedrl.tasks import DoubleLaneChangeTask
@@ -326,8 +327,7 @@ class RecedingHorizon:
     def __init__(self, step: Any, cost: Any, *, horizon_steps: int, gamma: float = 1.0, u_min: Any = None,
                  u_max: Any = None, ipopt_options: dict[str, Any] | None = None, warm_start: bool = True) -> None:
         ca = _casadi()
-        if isinstance(horizon_steps, bool) or not isinstance(horizon_steps, (int, np.integer)) or horizon_steps < 1:
-            raise ValueError(f"horizon_steps: expected a positive int, got {horizon_steps!r}")
+        horizon_steps = check_positive_int(horizon_steps, "horizon_steps")
         gamma = _check_gamma(gamma)
         if not (isinstance(step, ca.Function) and step.n_in() == 2 and step.n_out() == 1):
             raise ValueError("step: expected a casadi.Function (x, u) -> x_next")
@@ -991,9 +991,7 @@ def _horizon_steps(horizon: Any, dt: float) -> int:
 
 
 def _period(period: Any) -> int:
-    if isinstance(period, bool) or not isinstance(period, (int, np.integer)) or period < 1:
-        raise ValueError(f"period: expected a positive int (control steps), got {period!r}")
-    return int(period)
+    return check_positive_int(period, "period")
 
 
 def _seeds(seeds: Any) -> tuple[int, ...]:
@@ -1001,9 +999,9 @@ def _seeds(seeds: Any) -> tuple[int, ...]:
         out = tuple(seeds)
     except TypeError:
         raise ValueError(f"seeds: expected a non-empty sequence of non-negative ints, got {seeds!r}") from None
-    if not out or any(isinstance(s, bool) or not isinstance(s, (int, np.integer)) or s < 0 for s in out):
+    if not out:
         raise ValueError(f"seeds: expected a non-empty sequence of non-negative ints, got {seeds!r}")
-    return tuple(int(s) for s in out)
+    return tuple(check_nonnegative_int(s, "seeds") for s in out)
 
 
 def run_reference(controller: str, *, gamma: float = 0.99, horizon: float = 2.0,

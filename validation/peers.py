@@ -46,7 +46,7 @@ import gymnasium as gym
 import numpy as np
 import torch
 
-from mixedrl.checks import check_positive_int
+from mixedrl.checks import check_nonnegative_int, check_positive_int
 from mixedrl.config import TrainConfig
 from mixedrl.envs import ENV_ID, DoubleLaneChangeEnv
 from mixedrl.runs import atomic_write_text, eval_seeds as run_eval_seeds
@@ -163,7 +163,7 @@ def peer_task(seed: int = 0, eval_seeds: int = 2) -> tuple[DoubleLaneChangeTask,
     ValueError
         ``seed`` negative or ``eval_seeds`` not a positive integer (from :class:`TrainConfig`).
     """
-    config = TrainConfig(seed=seed, eval_seeds=eval_seeds)
+    config = TrainConfig(seed=seed, run=dict(eval_seeds=eval_seeds))
     task = task_from_config(config.task)
     if not isinstance(task, DoubleLaneChangeTask):  # pragma: no cover - the default task is the vehicle
         raise TypeError(f"task: expected the double lane change, got {type(task).__name__}")
@@ -329,8 +329,7 @@ def train_peer(algo: str, *, seed: int = 0, transitions: int = 100_000, eval_eve
     """
     if algo not in ALGOS:
         raise ValueError(f"algo: expected one of {ALGOS}, got {algo!r}")
-    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
-        raise ValueError(f"seed: expected a non-negative integer, got {seed!r}")
+    check_nonnegative_int(seed, "seed")
     transitions = check_positive_int(transitions, "transitions")
     eval_every = check_positive_int(eval_every, "eval_every")
     eval_seeds = check_positive_int(eval_seeds, "eval_seeds")
@@ -350,7 +349,7 @@ def train_peer(algo: str, *, seed: int = 0, transitions: int = 100_000, eval_eve
         raise ValueError(f"kwargs: not accepted by {cls.__name__}: {exc}") from None
     config = {
         "algo": algo, "seed": seed, "transitions": transitions, "eval_every": eval_every, "eval_seeds": seeds,
-        "env": ENV_ID, "task": TrainConfig(seed=seed, eval_seeds=eval_seeds).to_dict()["task"],
+        "env": ENV_ID, "task": TrainConfig(seed=seed, run=dict(eval_seeds=eval_seeds)).to_dict()["task"],
         "sb3_version": sb3.__version__, "torch_version": torch.__version__,
         "gymnasium_version": metadata.version("gymnasium"), "kwargs": extra,
         "hyperparameters": _hyperparameters(model),

@@ -27,7 +27,8 @@ from typing import Any, Callable, Sequence
 import numpy as np
 import torch
 
-from mixedrl.config import TrainConfig
+from mixedrl.checks import check_positive_int
+from mixedrl.config import LEGACY_KEYS, TrainConfig
 from mixedrl.tables import mean_std
 from mixedrl.runs import (
     CONVERGENCE_RTOL,
@@ -174,10 +175,8 @@ def choose_eval_every(iterations: int, points: int = 12) -> int:
     ValueError
         ``iterations`` or ``points`` not a positive integer.
     """
-    for name, value in (("iterations", iterations), ("points", points)):
-        if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-            raise ValueError(f"{name}: expected a positive integer, got {value!r}")
-    return -(-iterations // points)
+    iterations = check_positive_int(iterations, "iterations")
+    return -(-iterations // check_positive_int(points, "points"))
 
 
 def rows_from_metrics(metrics: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
@@ -221,9 +220,11 @@ def ours_config(method: str, seed: int, iterations: int, overrides: dict[str, An
     if method not in OURS:
         raise ValueError(f"method: expected one of {OURS}, got {method!r}")
     iterations = int(iterations)
-    base = {"method": method, "seed": seed, "iterations": iterations,
-            "eval_every": choose_eval_every(iterations), "num_threads": 1}
-    return TrainConfig().replace(**{**base, **(overrides or {})})
+    overrides = dict(overrides or {})
+    base = {"method": method, "seed": seed, "algorithm.iterations": iterations,
+            "run.eval_every": choose_eval_every(iterations), "run.num_threads": 1}
+    given = {LEGACY_KEYS.get(k, k) for k in overrides}  # an override, in either form, replaces its base value
+    return TrainConfig().replace(**{**{k: v for k, v in base.items() if k not in given}, **overrides})
 
 
 def train_ours(method: str, seed: int, iterations: int, overrides: dict[str, Any] | None = None,

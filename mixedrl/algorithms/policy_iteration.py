@@ -30,7 +30,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from mixedrl.checks import check_positive_int
+from mixedrl.checks import check_number, check_positive_int
 from mixedrl.noise import NoiseSource
 from mixedrl.pev import pev_step
 from mixedrl.pim import pim_step
@@ -168,8 +168,8 @@ def policy_iteration(
     from ``noise.count`` when present (the IBE's number of residuals), else 0.
     """
     iterations = check_positive_int(iterations, "iterations")
-    if tol is not None and not (float(tol) >= 0.0):
-        raise ValueError(f"tol: must be >= 0, got {tol!r}")
+    if tol is not None:
+        check_number(tol, "tol", nonneg=True)
     policy = initial_policy
     history: list[Iteration] = []
     value = None

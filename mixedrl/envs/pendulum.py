@@ -15,6 +15,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from mixedrl.checks import check_number
 from mixedrl.tasks import Equilibrium, Linearisation, Task
 
 __all__ = ["PendulumTask"]
@@ -92,11 +93,9 @@ class PendulumTask(Task):
                     "q_omega": q_omega, "r": r, "init_angle": init_angle, "init_rate": init_rate,
                     "value_scale": value_scale}
         for name, value in positive.items():
-            if isinstance(value, bool) or not isinstance(value, (int, float)) or not (0.0 < value < math.inf):
-                raise ValueError(f"{name}: expected a finite number > 0, got {value!r}")
+            check_number(value, name, positive=True)
         for name, value in (("torque_bias", torque_bias), ("prior_torque_bias", prior_torque_bias)):
-            if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-                raise ValueError(f"{name}: expected a finite number, got {value!r}")
+            check_number(value, name)
         if not 0.0 < gamma < 1.0:
             raise ValueError(f"gamma: expected a number in (0, 1), got {gamma!r}")
         self.dt, self.gravity, self.length, self.mass, self.damping = dt, gravity, length, mass, damping

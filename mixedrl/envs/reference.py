@@ -22,6 +22,8 @@ from typing import Any
 import numpy as np
 import torch
 
+from mixedrl.checks import check_number
+
 __all__ = ["DoubleLaneChangeReference"]
 
 
@@ -92,11 +94,7 @@ class DoubleLaneChangeReference:
     def __post_init__(self) -> None:
         for f in fields(self):
             value = getattr(self, f.name)
-            if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-                raise ValueError(f"{f.name}: expected a finite number, got {value!r}")
-            if f.name in ("len1", "len2", "shape") and value <= 0:
-                raise ValueError(f"{f.name}: expected a positive number, got {value!r}")
-            object.__setattr__(self, f.name, float(value))
+            object.__setattr__(self, f.name, check_number(value, f.name, positive=f.name in ("len1", "len2", "shape")))
 
     def _tanh_terms(self, X: Any) -> tuple[Any, Any, Any]:
         ops = _ops_for(X)

@@ -27,7 +27,7 @@ from typing import Any, Callable, overload
 import numpy as np
 import torch
 
-from mixedrl.checks import check_finite
+from mixedrl.checks import check_finite, check_number
 
 __all__ = [
     "VehicleParams",
@@ -98,9 +98,7 @@ class VehicleParams:
     def __post_init__(self) -> None:
         for f in fields(self):
             value = getattr(self, f.name)
-            if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value <= 0:
-                raise ValueError(f"{f.name}: expected a finite positive number, got {value!r}")
-            object.__setattr__(self, f.name, float(value))
+            object.__setattr__(self, f.name, check_number(value, f.name, positive=True))
 
     @property
     def L(self) -> float:
@@ -271,8 +269,7 @@ def fiala_lateral_force(alpha: np.ndarray | torch.Tensor | float, C: float, mu: 
     -8000.0
     """
     for name, value in (("C", C), ("mu", mu), ("F_z", F_z)):
-        if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
-            raise ValueError(f"{name}: expected a finite positive number, got {value!r}")
+        check_number(value, name, positive=True)
     tire = _Tire.from_axle(float(C), float(mu), float(F_z))
     if isinstance(alpha, torch.Tensor):
         return _fiala(_TorchOps, alpha, tire)
@@ -318,8 +315,7 @@ class VehicleDynamics:
         params = VehicleParams() if params is None else params
         if not isinstance(params, VehicleParams):
             raise ValueError(f"params: expected VehicleParams, got {type(params).__name__}")
-        if isinstance(dt, bool) or not isinstance(dt, (int, float)) or not math.isfinite(dt) or dt <= 0:
-            raise ValueError(f"dt: expected a finite positive number, got {dt!r}")
+        check_number(dt, "dt", positive=True)
         if scheme not in ("euler", "rk4"):
             raise ValueError(f"scheme: expected 'euler' or 'rk4', got {scheme!r}")
         self.params = params

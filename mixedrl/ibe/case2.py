@@ -2,7 +2,7 @@
 
 * :func:`~mixedrl.ibe.map_mean_cov`: the batch fixed point of eq. (17), from the raw residuals.
 * :class:`~mixedrl.ibe.UnknownCovarianceIBE`: the recursion; ``recursion="exact"`` (default) re-solves eq. (17) from
-  the sufficient statistics ``(N, xbar, scatter)`` after every update (``_solve_eq17_stats``),
+  the sufficient statistics ``(N, xbar, scatter)`` after every update (``_solve_eq17``),
   ``recursion="paper"`` is eq. (18) literally.
 """
 
@@ -38,7 +38,7 @@ FIXED_POINT_RTOL = 1e-13
 FIXED_POINT_MAX_ITER = 10_000
 
 
-def _solve_eq17_stats(
+def _solve_eq17(
     prior_mean: np.ndarray,
     prior_cov: np.ndarray,
     count: int,
@@ -48,12 +48,50 @@ def _solve_eq17_stats(
     rtol: float,
     prior_scale: float | None = None,
 ) -> tuple[np.ndarray, np.ndarray, int, bool]:
-    """Fixed point of eq. (17) from ``(N, xbar, sum (xi - xbar)(xi - xbar)^T)``.
+    """Implements eq. (17): the Case 2 fixed point from the sufficient statistics of ``N`` residuals.
 
-    Uses ``K(mu) = C + d d^T`` with ``C = scatter / N`` and ``d = xbar - mu``, and the rank-1
-    (Sherman-Morrison) update of the Cholesky-solved ``S_0 = N K_M + C``. Stops early, not converged,
-    when an iterate is not finite (the caller's :func:`~mixedrl.ibe.common.check_posterior` then refuses
-    the result).
+    .. math::
+        \\hat\\mu = \\left(\\mathcal{K}_M^{-1} + N\\hat{\\mathcal{K}}^{-1}\\right)^{-1}
+        \\left(\\mathcal{K}_M^{-1}\\mu_M + \\hat{\\mathcal{K}}^{-1}\\sum_j \\xi_j\\right), \\qquad
+        \\hat{\\mathcal{K}} = \\frac1N\\sum_j (\\xi_j - \\hat\\mu)(\\xi_j - \\hat\\mu)^T
+
+    The one implementation of eq. (17): the batch :func:`map_mean_cov` and the recursive
+    :class:`UnknownCovarianceIBE` (``recursion="exact"``) both call it, on statistics they compute their own
+    way (from the raw residuals; merged update by update).
+
+    Parameters
+    ----------
+    prior_mean : ndarray, shape (n,)
+        ``mu_M``.
+    prior_cov : ndarray, shape (n, n)
+        ``K_M``.
+    count : int
+        ``N >= 1``.
+    xbar : ndarray, shape (n,)
+        Mean of the residuals.
+    scatter : ndarray, shape (n, n)
+        Centred scatter ``sum_j (xi_j - xbar)(xi_j - xbar)^T``.
+    max_iter, rtol
+        Iteration cap and relative stopping tolerance (see :func:`map_mean_cov`).
+    prior_scale : float or None
+        The prior's part of the tolerance scale, if the caller caches it.
+
+    Returns
+    -------
+    mean : ndarray, shape (n,)
+    cov : ndarray, shape (n, n)
+    iterations : int
+    converged : bool
+
+    Notes
+    -----
+    Starts from the data, ``mu_0 = xbar`` (``K_0 = C``, the maximum-likelihood covariance), and alternates
+    the two lines. With ``C = scatter / N`` and ``d = xbar - mu`` the covariance line is
+    ``K(mu) = C + d d^T``, and the mean line is evaluated in covariance form
+    ``mu_M + N K_M (N K_M + K_hat)^{-1} (xbar - mu_M)`` (no inverse of the possibly singular ``K_hat``),
+    by a rank-1 (Sherman-Morrison) update of the Cholesky-solved ``S_0 = N K_M + C``. Stops early, not
+    converged, when an iterate is not finite (the caller's :func:`~mixedrl.ibe.common.check_posterior` then
+    refuses the result).
     """
     c = scatter / count
     r = xbar - prior_mean
@@ -161,9 +199,10 @@ def map_mean_cov(
       (the cubic ``(e - d)(c + d^2) = N k d`` in the scalar case); the start from the data selects the
       one closest to the data, and the recursive :class:`UnknownCovarianceIBE` uses the same start, so
       both agree after every update.
-    * The mean line is evaluated in covariance form ``mu_M + N K_M (N K_M + K_hat)^{-1} (xbar - mu_M)``
-      (no inverse of the possibly singular ``K_hat``). This batch reference recomputes ``K_hat`` from the
-      raw residuals at every iteration (it shares no statistics code with the recursion).
+    * The fixed point itself is ``_solve_eq17``, shared with the recursion; this batch form computes
+      the statistics ``xbar`` and the centred scatter directly from all residuals (the recursion merges
+      them update by update), and the mean line is evaluated in covariance form (no inverse of the
+      possibly singular ``K_hat``).
     * With ``N = 1`` the maximum-likelihood covariance is 0 and eq. (17) gives ``mu_hat = xi_1``,
       ``K_hat = 0`` (the degenerate but literal answer).
     """
@@ -176,28 +215,11 @@ def map_mean_cov(
     max_iter = check_positive_int(max_iter, "max_iter")
     count = batch.shape[0]
     with PosteriorGuard("xi"):
-        total = batch.sum(axis=0)
-        xbar = total / count
+        xbar = batch.sum(axis=0) / count
         centred = batch - xbar
-        c = centred.T @ centred / count
-        check_posterior("xi", (xbar,), (c,))
-        scale = _fp_scale(mu_m, k_m, xbar, c)
-        mu = xbar.copy()
-        k_hat = c
-        converged = False
-        for _ in range(max_iter):
-            # mu_hat = (K_M^-1 + N K_hat^-1)^-1 (K_M^-1 mu_M + K_hat^-1 sum xi)   [covariance form]
-            mu_new = mu_m + k_m @ solve_psd(count * k_m + k_hat, total - count * mu_m)
-            step = float(np.max(np.abs(mu_new - mu)))
-            mu = mu_new
-            # K_hat = 1/N sum_j (xi_j - mu_hat)(xi_j - mu_hat)^T
-            dev = batch - mu
-            k_hat = symmetrize(dev.T @ dev / count)
-            if step <= rtol * scale:
-                converged = True
-                break
-            if not math.isfinite(step):
-                break
+        scatter = symmetrize(centred.T @ centred)
+        check_posterior("xi", (xbar,), (scatter,))
+        mu, k_hat, _, converged = _solve_eq17(mu_m, k_m, count, xbar, scatter, max_iter, rtol)
     check_posterior("xi", (mu,), (k_hat,))
     if not converged:
         logger.warning("map_mean_cov: eq. (17) fixed point not converged after %d iterations", max_iter)
@@ -366,7 +388,7 @@ class UnknownCovarianceIBE(GaussianNoiseEstimate):
                 check_posterior("xi", (data_mean, scatter))
             else:
                 check_posterior("xi", (data_mean,), (scatter,))
-            mean, cov, it, ok = _solve_eq17_stats(
+            mean, cov, it, ok = _solve_eq17(
                 self.prior_mean, self.prior_cov, count, data_mean, scatter, self.max_iter, FIXED_POINT_RTOL, self._prior_scale
             )
         check_posterior("xi", (mean, cov))
@@ -436,8 +458,7 @@ class UnknownCovarianceIBE(GaussianNoiseEstimate):
         else:
             spec.update(psi=(n, n), total=(n,), mean=(n,), cov=(n, n))
         st = check_state(state, spec, self._KIND)
-        if st["max_iter"] < 1:
-            raise ValueError("state_dict: max_iter must be >= 1")
+        check_positive_int(st["max_iter"], "state_dict: max_iter")
         prior_cov = real_covariance(st["prior_cov"], "state_dict: prior_cov", n)
         new = UnknownCovarianceIBE.__new__(UnknownCovarianceIBE)
         new.prior_mean, new.prior_cov, new.recursion, new.max_iter = st["prior_mean"], prior_cov, st["recursion"], st["max_iter"]
@@ -450,7 +471,7 @@ class UnknownCovarianceIBE(GaussianNoiseEstimate):
                 raise ValueError("state_dict: count is 0 but the statistics are not empty")
             if new.count > 0:
                 with PosteriorGuard("state_dict"):
-                    (new.mean, new.cov, new.iterations, new.converged) = _solve_eq17_stats(
+                    (new.mean, new.cov, new.iterations, new.converged) = _solve_eq17(
                         new.prior_mean, new.prior_cov, new.count, new.data_mean, new.scatter, new.max_iter, FIXED_POINT_RTOL
                     )
                 check_posterior("state_dict", (new.mean,), (new.cov,))

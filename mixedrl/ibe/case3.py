@@ -10,14 +10,13 @@ Both take the noise covariance ``K`` as known.
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable
 from typing import Any
 
 import numpy as np
 import torch
 
-from mixedrl.checks import as_vector, check_finite, check_positive_int, check_unknown_keys
+from mixedrl.checks import as_vector, check_finite, check_nonnegative_int, check_number, check_positive_int, check_unknown_keys
 from mixedrl.expectation import support
 from mixedrl.gaussian import sample_gaussian
 from mixedrl.ibe.common import (
@@ -101,9 +100,7 @@ class StateDependentIBE(ReadOnlyArrays):
         self.noise_cov = real_covariance(noise_cov, "noise_cov")
         self.state_dim = check_positive_int(state_dim, "state_dim")
         self.action_dim = check_positive_int(action_dim, "action_dim")
-        if isinstance(prior_std, bool) or not isinstance(prior_std, (int, float)) or not (math.isfinite(prior_std) and prior_std > 0):
-            raise ValueError(f"prior_std: expected a finite positive float, got {prior_std!r}")
-        self.prior_std = float(prior_std)
+        self.prior_std = check_number(prior_std, "prior_std", positive=True)
         self.max_iter = check_positive_int(max_iter, "max_iter")
         self.phi = phi.double()
         self._prior_w = [p.detach().clone() for p in self.phi.parameters()]
@@ -283,9 +280,7 @@ class StateDependentIBE(ReadOnlyArrays):
         if not isinstance(state, dict):
             raise ValueError(f"state_dict: expected a dict, got {type(state).__name__}")
         check_unknown_keys(state, {"kind", "noise_cov", "prior_std", "max_iter", "count", "params", "prior_params", "x", "u", "xi"}, "state_dict")
-        count = state.get("count")
-        if isinstance(count, bool) or not isinstance(count, (int, np.integer)) or count < 0:
-            raise ValueError(f"state_dict: count must be a non-negative int, got {count!r}")
+        count = check_nonnegative_int(state.get("count"), "state_dict: count")
         shapes = [tuple(p.shape) for p in self.phi.parameters()]
         spec: dict[str, Any] = {
             "kind": "str", "noise_cov": (n, n), "prior_std": "float", "max_iter": "int", "count": "int",
@@ -303,8 +298,8 @@ class StateDependentIBE(ReadOnlyArrays):
                 flat[f"{key}.{i}"] = arr
         st = check_state(flat, spec, self._KIND)
         noise_cov = real_covariance(st["noise_cov"], "state_dict: noise_cov", n)
-        if st["prior_std"] <= 0 or st["max_iter"] < 1:
-            raise ValueError("state_dict: prior_std must be > 0 and max_iter >= 1")
+        check_number(st["prior_std"], "state_dict: prior_std", positive=True)
+        check_positive_int(st["max_iter"], "state_dict: max_iter")
         lam, vec = support(noise_cov)
         with torch.no_grad():
             for i, p in enumerate(self.phi.parameters()):
@@ -396,10 +391,7 @@ class LinearFeatureIBE(ReadOnlyArrays):
         check_dimension(w0.shape[1], "prior_weights (columns: noise)")
         check_finite(w0, "prior_weights")
         self.noise_cov = real_covariance(noise_cov, "noise_cov", w0.shape[1])
-        if isinstance(prior_std, bool) or not isinstance(prior_std, (int, float)) \
-                or not (math.isfinite(prior_std) and prior_std > 0):
-            raise ValueError(f"prior_std: expected a finite positive float, got {prior_std!r}")
-        self.prior_std = float(prior_std)
+        self.prior_std = check_number(prior_std, "prior_std", positive=True)
         with torch.no_grad():
             g = features(torch.zeros((1, self.state_dim), dtype=torch.float64),
                          torch.zeros((1, self.action_dim), dtype=torch.float64))
@@ -540,8 +532,7 @@ class LinearFeatureIBE(ReadOnlyArrays):
                 "gram": (p, p), "cross": (p, n)}
         st = check_state(state, spec, self._KIND)
         noise_cov = real_covariance(st["noise_cov"], "state_dict: noise_cov", n)
-        if st["prior_std"] <= 0:
-            raise ValueError("state_dict: prior_std must be > 0")
+        check_number(st["prior_std"], "state_dict: prior_std", positive=True)
         real_covariance(st["gram"], "state_dict: gram", p)
         new = LinearFeatureIBE(self.features, st["prior_weights"], noise_cov, self.state_dim, self.action_dim,
                                st["prior_std"])

@@ -23,7 +23,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from mixedrl.checks import as_batch, as_vector, check_covariance, check_finite, check_unknown_keys
+from mixedrl.checks import as_batch, as_vector, check_covariance, check_finite, check_nonnegative_int, check_unknown_keys
 from mixedrl.gaussian import sample_gaussian
 
 __all__ = [
@@ -258,9 +258,7 @@ def check_state(state: Any, spec: dict[str, Any], kind: str) -> dict[str, Any]:
                 raise ValueError(f"state_dict: {key} must be a str")
             out[key] = val
         elif want == "int":
-            if isinstance(val, bool) or not isinstance(val, (int, np.integer)) or val < 0:
-                raise ValueError(f"state_dict: {key} must be a non-negative int, got {val!r}")
-            out[key] = int(val)
+            out[key] = check_nonnegative_int(val, f"state_dict: {key}")
         elif want == "float":
             if isinstance(val, bool) or not isinstance(val, (int, float, np.floating)) or not math.isfinite(val):
                 raise ValueError(f"state_dict: {key} must be a finite float, got {val!r}")
