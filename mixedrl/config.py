@@ -10,8 +10,11 @@ field, at any level, is an error naming the dotted key.
 
 The task configuration is one of two nested dataclasses, chosen by its ``name``:
 
-* :class:`DoubleLaneChangeTaskConfig` (``name = "dlc"``, the paper's Section VI), with the nested
-  :class:`ForceDisturbanceConfig` (``task.disturbance``) and :class:`CostWeights` (``task.cost``);
+* :class:`DoubleLaneChangeTaskConfig` (``name = "dlc"``, the paper's Section VI): the environment's own
+  configuration (:mod:`mixedrl.envs.dlc_config`, re-exported here) with the discount and the prior, so
+  every field of the environment is a ``task.<field>`` key, with the nested
+  :class:`ForceDisturbanceConfig` (``task.disturbance``, the environment's
+  :class:`~mixedrl.envs.disturbance.Disturbance`) and :class:`CostWeights` (``task.cost``);
 * :class:`LinearTaskConfig` (``name = "linear"``, a small LQ system with a known optimum), with the
   nested :class:`GaussianNoiseConfig` (``task.disturbance``).
 
@@ -47,6 +50,8 @@ import numpy as np
 
 from mixedrl.checks import (as_matrix, as_vector, check_covariance, check_number, check_positive_int,
                             check_unknown_keys)
+from mixedrl.envs.disturbance import DISTURBANCE_LAWS, Disturbance
+from mixedrl.envs.dlc_config import CostWeights, DoubleLaneChangeTaskConfig
 
 __all__ = [
     "TrainConfig",
@@ -85,11 +90,6 @@ __all__ = [
 METHODS = ("mixed", "model", "oracle", "ddpg")
 #: Tasks a run can be trained on: the double lane change (paper) and a small linear system.
 TASKS = ("dlc", "linear")
-#: Laws of the true disturbance a task configuration may name (the IBE itself assumes a Gaussian):
-#: ``"gaussian"`` (the paper's), ``"student_t"`` (heavy tails, ``dof`` degrees of freedom) and ``"bumps"`` (a
-#: symmetric two-point law), all with the configured mean and variance (:class:`ForceDisturbanceConfig`).
-#: The double lane change simulates all three; the linear task only ``"gaussian"``.
-DISTURBANCE_LAWS = ("gaussian", "student_t", "bumps")
 #: Where the course copies of the double lane change's sampler restart (``CourseSampler.course_starts``).
 MODEL_COURSE_STARTS = ("start", "along", "loop")
 #: How Algorithm 2 weights the states of its batch (``AlgorithmConfig.batch_weighting``).
@@ -129,140 +129,11 @@ def _build(cls: type, data: Any, where: str) -> Any:
 
 
 # ----------------------------------------------------------------------------------------------------
-# the double lane change (Section VI of the paper)
+# the double lane change (Section VI of the paper): its configuration is the environment's
 # ----------------------------------------------------------------------------------------------------
-@dataclass
-class ForceDisturbanceConfig:
-    """The true longitudinal disturbance force ``F_dis`` of the double lane change (eq. 53), in newtons.
-
-    Its noise on ``v_x`` is ``xi = F_dis T / m`` (eq. 54). Dotted keys: ``task.disturbance.<field>``.
-    ``grade_amplitude`` [rad], ``grade_wavelength`` [m] and ``grade_phase`` [rad] describe an optional road
-    grade (:class:`mixedrl.envs.Disturbance`; amplitude 0, the default, is the paper's level road).
-
-    Every law has mean ``mean`` (minus the grade's ``m g sin(theta(X))``) and variance ``variance``:
-    ``F_dis = mean + sqrt(variance) z`` with the law's standardised draw ``z``:
-
-    * ``law = "gaussian"`` (default, the paper's ``N(261, 32)``): ``z ~ N(0, 1)``;
-    * ``law = "student_t"``: ``F_dis`` is Student-t with ``dof`` degrees of freedom, rescaled to the
-      variance: scale ``sqrt(variance (dof - 2) / dof)`` (``dof > 2``; heavy tails);
-    * ``law = "bumps"``: ``F_dis = mean - sqrt(variance)`` or ``mean + sqrt(variance)`` with probability 1/2
-      each (a symmetric two-point law).
-
-    Ten times the paper's variance is just ``variance = 320``. The planners model the noise as a
-    Gaussian whatever the law (the oracle plans with ``N(mean, variance)``); see
-    :class:`mixedrl.envs.Disturbance` for how each law is drawn.
-    """
-
-    WHERE: ClassVar[str] = "task.disturbance"
-
-    law: str = "gaussian"
-    """Distribution of ``F_dis``; one of :data:`DISTURBANCE_LAWS`: ``"gaussian"``, ``"student_t"``,
-    ``"bumps"`` (same mean and variance for all three)."""
-
-    mean: float = 261.0
-    """Mean force on a level road [N] (paper: 261)."""
-
-    variance: float = 32.0
-    """Variance of ``F_dis`` [N^2] (paper: 32, ``N(261, 32)``; EQUATIONS.md, point 7)."""
-
-    dof: float = 3.0
-    """Degrees of freedom of the ``"student_t"`` law (> 2: a finite variance); ignored by the others."""
-
-    # an optional road grade, a state-dependent mean (Case 3); amplitude 0 is the paper's level road. The
-    # three fields are passed on to mixedrl.envs.Disturbance, which documents the grade's formula.
-    grade_amplitude: float = 0.0
-    grade_wavelength: float = 40.0
-    grade_phase: float = 0.0
-
-    def __post_init__(self) -> None:
-        self.law = _law(self.law, f"{self.WHERE}.law")
-        for f in dataclasses.fields(self):
-            if f.name != "law":
-                setattr(self, f.name, check_number(getattr(self, f.name), f"{self.WHERE}.{f.name}",
-                                              nonneg=f.name == "variance", positive=f.name == "grade_wavelength"))
-        if not self.dof > 2.0:
-            raise ValueError(f"{self.WHERE}.dof: expected a number > 2 (the Student-t variance is finite only "
-                             f"then), got {self.dof!r}")
-
-
-@dataclass
-class CostWeights:
-    """Weights of the utility of eq. (54), ``T (q_speed (v_x - 12)^2 + q_lateral y^2 + u^T diag(r_steer,
-    r_accel) u)``, charged on the next state. Dotted keys: ``task.cost.<field>``."""
-
-    WHERE: ClassVar[str] = "task.cost"
-
-    q_speed: float = 45.0
-    """Weight of the squared speed error ``(v_x - 12)^2``. Paper: 45."""
-
-    q_lateral: float = 60.0
-    """Weight of the squared lateral error ``y^2``. Paper: 60."""
-
-    r_steer: float = 800.0
-    """Weight of the squared steering angle ``delta^2``. Paper: 800."""
-
-    r_accel: float = 1.0
-    """Weight of the squared acceleration ``a_x^2``. Paper: 1."""
-
-    def __post_init__(self) -> None:
-        for f in dataclasses.fields(self):
-            setattr(self, f.name, check_number(getattr(self, f.name), f"{self.WHERE}.{f.name}", nonneg=True))
-
-
-@dataclass
-class DoubleLaneChangeTaskConfig:
-    """The experiment of Section VI: the double lane change with a random longitudinal force.
-
-    Dotted keys: ``task.<field>``; the prior of eq. (55) is given in force units and acts on ``v_x``
-    (EQUATIONS.md, point 6): ``mu_M = prior_force_mean T / m``, ``K_M = (prior_force_std T / m)^2`` on
-    ``v_x``, ``1e-20`` on the other four components of ``xi``.
-    """
-
-    WHERE: ClassVar[str] = "task"
-
-    name: str = "dlc"
-    """Always ``"dlc"`` for this class (selects it when loading)."""
-
-    gamma: float = 0.99
-    """Discount factor of eq. (2), in (0, 1)."""
-
-    prior_force_mean: float = 150.0
-    """The designer's prior mean of ``F_dis`` [N] (eq. 55; paper: 150)."""
-
-    prior_force_std: float = 4.0
-    """The designer's prior standard deviation ``sqrt(K_M)`` in force units [N] (paper: 4)."""
-
-    disturbance: ForceDisturbanceConfig = field(default_factory=ForceDisturbanceConfig)
-    """The true disturbance law (used by the true environment and the oracle only)."""
-
-    cost: CostWeights = field(default_factory=CostWeights)
-    """Weights of the utility, eq. (54)."""
-
-    preview_distances: tuple[float, ...] = ()
-    """Look-ahead distances [m] of the reference preview appended to the observation (default none: the
-    paper's relative state ``[v_y, r, v_x - 12, e_phi, e_y]``); see
-    :class:`mixedrl.envs.DoubleLaneChangeConfig`."""
-
-    train_half_widths: tuple[float, ...] = (0.3, 0.2, 1.0, 0.1, 1.0)
-    """Half-widths of the uniform perturbation of ``[v_y, r, v_x - 12, e_phi, e_y]`` of the training start
-    states (anywhere on the course), see :meth:`mixedrl.envs.DoubleLaneChangeModel.reset_states`."""
-
-    def __post_init__(self) -> None:
-        if self.name != "dlc":
-            raise ValueError(f"task.name: expected 'dlc' for DoubleLaneChangeTaskConfig, got {self.name!r}")
-        self.gamma = _gamma(self.gamma)
-        self.prior_force_mean = check_number(self.prior_force_mean, "task.prior_force_mean")
-        self.prior_force_std = check_number(self.prior_force_std, "task.prior_force_std", positive=True)
-        self.disturbance = _build(ForceDisturbanceConfig, self.disturbance, "task.disturbance")
-        self.cost = _build(CostWeights, self.cost, "task.cost")
-        if isinstance(self.preview_distances, (str, bytes)) or not isinstance(self.preview_distances, (list, tuple)):
-            raise ValueError(f"task.preview_distances: expected a list of numbers, got {self.preview_distances!r}")
-        self.preview_distances = tuple(check_number(d, "task.preview_distances", positive=True)
-                                       for d in self.preview_distances)
-        widths = self.train_half_widths
-        if isinstance(widths, (str, bytes)) or not isinstance(widths, (list, tuple)) or len(widths) != 5:
-            raise ValueError(f"task.train_half_widths: expected 5 finite numbers >= 0, got {widths!r}")
-        self.train_half_widths = tuple(check_number(w, "task.train_half_widths", nonneg=True) for w in widths)
+#: The true longitudinal force ``F_dis`` of the double lane change (``task.disturbance``): the
+#: environment's :class:`mixedrl.envs.disturbance.Disturbance` itself.
+ForceDisturbanceConfig = Disturbance
 
 
 def _gamma(value: Any) -> float:
@@ -396,6 +267,8 @@ def task_config(value: Any = "dlc") -> TaskConfig:
     name = value.get("name", "dlc")
     if name not in _TASK_CLASSES:
         raise ValueError(f"task.name: expected one of {TASKS}, got {name!r}")
+    if name == "dlc":
+        return DoubleLaneChangeTaskConfig.from_dict({**value, "name": name}, where="task")
     return _build(_TASK_CLASSES[name], {**value, "name": name}, "task")
 
 

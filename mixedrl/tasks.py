@@ -21,6 +21,7 @@ the observation ``observe(s)``; the utility is charged on the next state, ``l(s'
 from __future__ import annotations
 
 import abc
+import dataclasses
 import math
 from typing import Any
 
@@ -29,7 +30,7 @@ import torch
 
 from mixedrl.checks import as_vector, check_covariance
 from mixedrl.config import DoubleLaneChangeTaskConfig, LinearTaskConfig, TaskConfig, task_config
-from mixedrl.envs import DoubleLaneChangeModel, evaluate_tracking
+from mixedrl.envs import DoubleLaneChangeModel, evaluate_tracking, make_config
 from mixedrl.gaussian import sample_gaussian
 
 __all__ = ["Task", "LinearTask", "DoubleLaneChangeTask", "check_task", "make_task", "task_from_config"]
@@ -520,26 +521,22 @@ class DoubleLaneChangeTask(Task):
 
     def __init__(self, prior_force_mean: float = 150.0, prior_force_std: float = 4.0, gamma: float = 0.99,
                  **config: Any) -> None:
-        if not (0.0 < gamma < 1.0):
-            raise ValueError(f"gamma: expected a number in (0, 1), got {gamma!r}")
-        if not (prior_force_std > 0.0 and np.isfinite(prior_force_std)):
-            raise ValueError(f"prior_force_std: expected a positive number, got {prior_force_std!r}")
-        if not np.isfinite(prior_force_mean):
-            raise ValueError(f"prior_force_mean: expected a finite number, got {prior_force_mean!r}")
-        self.model = DoubleLaneChangeModel(config or None)
-        cfg = self.model.config
+        cfg = make_config(DoubleLaneChangeTaskConfig(), prior_force_mean=prior_force_mean,
+                          prior_force_std=prior_force_std, gamma=gamma, **config)
+        self.config = cfg
+        self.model = DoubleLaneChangeModel(cfg)
         scale = cfg.dt / cfg.params.m  # T / m: force [N] -> xi [m/s]
         self.force_scale = scale
         self.state_dim, self.action_dim = self.model.state_dim, self.model.action_dim
         self.obs_dim, self.noise_dim = self.model.obs_dim, 5
-        self.gamma = float(gamma)
+        self.gamma = cfg.gamma
         vx = self.noise_index = self.model.noise_index
         self.noise_matrix = torch.zeros(self.state_dim, self.noise_dim)
         self.noise_matrix[:5, :5] = torch.eye(5)
         self.prior_mean = np.zeros(5)
-        self.prior_mean[vx] = prior_force_mean * scale
+        self.prior_mean[vx] = cfg.prior_force_mean * scale
         self.prior_cov = np.diag(np.full(5, 1e-20))
-        self.prior_cov[vx, vx] = (prior_force_std * scale) ** 2
+        self.prior_cov[vx, vx] = (cfg.prior_force_std * scale) ** 2
         self.true_mean = np.zeros(5)
         self.true_mean[vx] = cfg.disturbance.mean * scale
         self.true_cov = np.zeros((5, 5))
@@ -552,7 +549,8 @@ class DoubleLaneChangeTask(Task):
 
     @classmethod
     def from_config(cls, config: DoubleLaneChangeTaskConfig) -> "DoubleLaneChangeTask":
-        """Build the task of a :class:`mixedrl.config.DoubleLaneChangeTaskConfig` (``task.*`` of a run's config).
+        """Build the task of a :class:`~mixedrl.envs.dlc_config.DoubleLaneChangeTaskConfig` (``task.*`` of a
+        run's config), which is also the environment's configuration (``self.config``, ``self.model.config``).
 
         Every law of :data:`mixedrl.config.DISTURBANCE_LAWS` is simulated (``task.disturbance.law``,
         ``task.disturbance.dof``); the task's ``true_mean`` / ``true_cov`` are the law's mean and variance
@@ -561,17 +559,12 @@ class DoubleLaneChangeTask(Task):
         Raises
         ------
         ValueError
-            An invalid field (the message starts with its dotted name).
+            ``config`` is not a :class:`~mixedrl.envs.dlc_config.DoubleLaneChangeTaskConfig`.
         """
-        dist = config.disturbance
-        cost = config.cost
-        return cls(prior_force_mean=config.prior_force_mean, prior_force_std=config.prior_force_std,
-                   gamma=config.gamma,
-                   disturbance={"law": dist.law, "mean": dist.mean, "variance": dist.variance, "dof": dist.dof,
-                                "grade_amplitude": dist.grade_amplitude, "grade_wavelength": dist.grade_wavelength,
-                                "grade_phase": dist.grade_phase},
-                   q_speed=cost.q_speed, q_lateral=cost.q_lateral, r_steer=cost.r_steer, r_accel=cost.r_accel,
-                   preview_distances=config.preview_distances, train_half_widths=config.train_half_widths)
+        if not isinstance(config, DoubleLaneChangeTaskConfig):
+            raise ValueError(f"config: expected a DoubleLaneChangeTaskConfig, got {type(config).__name__}")
+        fields = {f.name: getattr(config, f.name) for f in dataclasses.fields(config) if f.name != "name"}
+        return cls(**fields)
 
     # harmonics of the Case-3 Fourier basis along the course (documented under Attributes)
     mean_harmonics: int = 8

@@ -4,6 +4,7 @@ true moments, gamma and cost weights, the noise matrix, bad configuration values
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -106,9 +107,14 @@ def test_dlc_bad_values_name_the_field() -> None:
     with pytest.raises(ValueError, match="^prior_force_std"):
         DoubleLaneChangeTask(prior_force_std=-4.0)
     cfg = task_config("dlc")
-    cfg.disturbance.law = "cauchy"  # set after validation: the environment's own check still catches it
-    with pytest.raises(ValueError, match="^law: expected one of .*'gaussian', 'student_t', 'bumps'"):
-        task_from_config(cfg)
+    # the task configuration is the environment's (one frozen schema): it cannot go invalid after validation
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        cfg.disturbance.law = "cauchy"  # type: ignore[misc]
+    with pytest.raises(ValueError, match=r"^disturbance\.law: expected one of .*'gaussian', 'student_t', 'bumps'"):
+        DoubleLaneChangeTask(disturbance={"law": "cauchy"})
+    assert task_from_config(cfg).model.config == cfg  # the environment runs on the task configuration itself
+    with pytest.raises(ValueError, match="^config: expected a DoubleLaneChangeTaskConfig"):
+        DoubleLaneChangeTask.from_config(cfg.disturbance)  # type: ignore[arg-type]
 
 
 # ------------------------------------------------------------------------------ the linear task

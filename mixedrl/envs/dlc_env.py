@@ -14,16 +14,9 @@ import numpy as np
 from gymnasium import spaces
 
 from mixedrl.checks import as_vector, check_unknown_keys
-from mixedrl.envs.tracking import (
-    STATE_DIM,
-    DoubleLaneChangeConfig,
-    DoubleLaneChangeModel,
-    make_config,
-    observation_columns,
-    observation_from_errors,
-    stage_cost,
-    tracking_errors,
-)
+from mixedrl.envs.columns import observation_columns, observation_from_errors, stage_cost, tracking_errors
+from mixedrl.envs.dlc_config import DoubleLaneChangeConfig, make_config
+from mixedrl.envs.model import STATE_DIM, DoubleLaneChangeModel
 
 __all__ = ["DoubleLaneChangeEnv"]
 
