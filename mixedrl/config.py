@@ -19,8 +19,9 @@ The task configuration is one of two nested dataclasses, chosen by its ``name``:
   nested :class:`GaussianNoiseConfig` (``task.disturbance``).
 
 A section that is not given takes the task's experiment configuration (:data:`PRESETS`): the double
-lane change registers :data:`DLC_EXPERIMENT` (the reproduction of Table I: its course sampler
-:class:`CourseSampler`, the learning-rate decay over 1500 iterations, the relative batch weighting); any
+lane change registers :data:`mixedrl.tasks.DLC_EXPERIMENT` (the reproduction of Table I: its course
+sampler :class:`mixedrl.tasks.CourseSampler`, the learning-rate decay over 1500 iterations, the relative
+batch weighting; both live with the task in :mod:`mixedrl.tasks` and stay importable from here); any
 other task gets the library defaults of the section classes (model rollouts from the task's start
 distribution, the decay tied to the budget, the paper's uniform batch mean).
 
@@ -52,6 +53,7 @@ from mixedrl.checks import (as_matrix, as_vector, check_covariance, check_number
                             check_unknown_keys)
 from mixedrl.envs.disturbance import DISTURBANCE_LAWS, Disturbance
 from mixedrl.envs.dlc_config import CostWeights, DoubleLaneChangeTaskConfig
+from mixedrl.lq import LQProblem
 
 __all__ = [
     "TrainConfig",
@@ -90,7 +92,8 @@ __all__ = [
 METHODS = ("mixed", "model", "oracle", "ddpg")
 #: Tasks a run can be trained on: the double lane change (paper) and a small linear system.
 TASKS = ("dlc", "linear")
-#: Where the course copies of the double lane change's sampler restart (``CourseSampler.course_starts``).
+#: Where the course copies of the double lane change's sampler restart
+#: (:attr:`mixedrl.tasks.CourseSampler.course_starts`).
 MODEL_COURSE_STARTS = ("start", "along", "loop")
 #: How Algorithm 2 weights the states of its batch (``AlgorithmConfig.batch_weighting``).
 BATCH_WEIGHTINGS = ("uniform", "relative")
@@ -181,6 +184,10 @@ class LinearTaskConfig:
     """The linear test bed :class:`mixedrl.tasks.LinearTask`: ``s' = A s + B u + xi``, utility
     ``s'^T Q s' + u^T R u`` (a sampled double integrator, ``dt = 0.1``, the noise on the velocity, by
     default). Dotted keys: ``task.<field>``; ``n`` = ``A``'s size, ``m`` = ``B``'s columns.
+
+    The JSON face of the LQ problem: it is validated by, and :meth:`problem` returns, the problem's one
+    representation :class:`mixedrl.lq.LQProblem` (``(A, B)`` stabilisable, ``R`` positive definite);
+    ``init_box``, ``action_bound`` and the law are what the learning task adds.
     """
 
     WHERE: ClassVar[str] = "task"
@@ -222,24 +229,40 @@ class LinearTaskConfig:
         if self.name != "linear":
             raise ValueError(f"task.name: expected 'linear' for LinearTaskConfig, got {self.name!r}")
         self.gamma = _gamma(self.gamma)
-        A = as_matrix(self.A, "task.A")
-        n = A.shape[0]
-        if A.shape != (n, n):
-            raise ValueError(f"task.A: expected a square matrix, got shape {A.shape}")
-        B = as_matrix(self.B, "task.B", (n, None))
-        m = B.shape[1]
-        self.A, self.B = _rows(A), _rows(B)
-        self.Q = _rows(check_covariance(as_matrix(self.Q, "task.Q", (n, n)), "task.Q", n))
-        self.R = _rows(check_covariance(as_matrix(self.R, "task.R", (m, m)), "task.R", m))
-        self.prior_mean = tuple(as_vector(self.prior_mean, "task.prior_mean", n).tolist())
-        self.prior_cov = _rows(check_covariance(as_matrix(self.prior_cov, "task.prior_cov", (n, n)),
-                                                "task.prior_cov", n))
         dist = self.disturbance
-        mean = dist.get("mean", GaussianNoiseConfig.mean) if isinstance(dist, dict) else getattr(dist, "mean", None)
-        as_vector(mean, "task.disturbance.mean", n)  # the system's size decides which of mean / cov is wrong
+        if not isinstance(dist, (dict, GaussianNoiseConfig)):
+            raise ValueError(f"task.disturbance: expected a dict (a JSON object), got {dist!r}")
+        mean, cov = (dist.get(k, getattr(GaussianNoiseConfig, k)) if isinstance(dist, dict) else getattr(dist, k)
+                     for k in ("mean", "cov"))
+        # the problem is validated once, by its one representation (the system's size decides which of
+        # the noise's mean / cov is wrong)
+        problem = _lq_problem(self, mean, cov)
         self.disturbance = _build(GaussianNoiseConfig, dist, "task.disturbance")
+        self.A, self.B, self.Q, self.R = (_rows(getattr(problem, k)) for k in ("A", "B", "Q", "R"))
+        self.prior_mean, self.prior_cov = tuple(problem.prior_mean.tolist()), _rows(problem.prior_cov)
         self.init_box = check_number(self.init_box, "task.init_box", positive=True)
         self.action_bound = check_number(self.action_bound, "task.action_bound", positive=True)
+
+
+    def problem(self) -> LQProblem:
+        """The LQ problem this configuration describes, in its one representation (:class:`mixedrl.lq.LQProblem`:
+        the true noise ``disturbance.mean`` / ``disturbance.cov``, the prior, the matrices, ``gamma``)."""
+        return _lq_problem(self, self.disturbance.mean, self.disturbance.cov)
+
+
+#: Names of :class:`mixedrl.lq.LQProblem`'s fields that :class:`LinearTaskConfig` calls otherwise.
+_PROBLEM_KEYS = {"noise_mean": "disturbance.mean", "noise_cov": "disturbance.cov"}
+
+
+def _lq_problem(cfg: LinearTaskConfig, mean: Any, cov: Any) -> LQProblem:
+    """:class:`mixedrl.lq.LQProblem` of ``cfg`` with the true noise ``N(mean, cov)``; its errors name the
+    dotted key (``task.A``, ``task.disturbance.mean``, ...)."""
+    try:
+        return LQProblem(A=cfg.A, B=cfg.B, Q=cfg.Q, R=cfg.R, gamma=cfg.gamma, noise_mean=mean, noise_cov=cov,
+                         prior_mean=cfg.prior_mean, prior_cov=cfg.prior_cov)
+    except ValueError as exc:
+        name, _, rest = str(exc).partition(":")
+        raise ValueError(f"task.{_PROBLEM_KEYS.get(name, name)}:{rest}") from None
 
 
 #: The configuration of a run's task: one of the two classes, selected by ``name``.
@@ -555,72 +578,12 @@ class ModelRolloutsSampler:
             setattr(self, name, _int(getattr(self, name), f"{w}.{name}"))
 
 
-@dataclass
-class CourseSampler(ModelRolloutsSampler):
-    """``sampler.name = "dlc_course"``: the course design of the double lane change (a task with a
-    course; docs/model_based.rst). Model rollouts as :class:`ModelRolloutsSampler`, of two kinds:
-
-    * *course* copies (a fraction ``course_fraction`` of the batch) drive the course, from iteration
-      ``course_start`` on, for ``course_horizon`` steps, restarting as ``course_starts`` says, and are
-      *kicked* (``kick_prob`` per step, ``kick_scale`` times ``obs_scale``) so that the batch spreads
-      around the course trajectory;
-    * *wide* copies restart from the training distribution every ``algorithm.horizon`` steps.
-
-    The true-data copies of mixed RL start at the course start and restart after ``true_horizon`` steps.
-    Dotted keys: ``sampler.<field>``.
-    """
-
-    NAME: ClassVar[str] = "dlc_course"
-
-    name: str = "dlc_course"
-    """Always ``"dlc_course"`` for this class."""
-
-    box: float = 3.0
-    """A rollout restarts when a component of its observation exceeds ``box`` times ``obs_scale``."""
-
-    true_horizon: int = 2000
-    """Steps after which a true-data copy restarts at the course start (2000 = the whole course)."""
-
-    course_fraction: float = 0.75
-    """Fraction of the batch's rollouts that drive the course (the rest are wide copies)."""
-
-    course_start: int = 500
-    """Iteration from which the course copies drive the course; before it they restart from the wide
-    distribution like the others."""
-
-    course_starts: str = "along"
-    """Where a course copy restarts once ``course_start`` has passed: ``"start"`` = at the course start
-    (``X = 0``), not at the course's end (a copy drives on past it until its horizon); ``"along"`` = on
-    the reference at a point drawn uniformly along the course (``X ~ U(0, course_length)``), also when it
-    passes the course's end; ``"loop"`` = at the course start, also when it passes the course's end."""
-
-    course_horizon: int = 2000
-    """Steps after which a course copy restarts (2000 = the whole double lane change)."""
-
-    kick_prob: float = 0.01
-    """Probability per step that a course copy is kicked: a uniform random offset of ``kick_scale *
-    obs_scale_i`` on each noise component is added to its state."""
-
-    kick_scale: float = 1.0
-    """Size of a kick, in units of the task's ``obs_scale``."""
-
-    def __post_init__(self) -> None:
-        super().__post_init__()
-        w = "sampler"
-        _unit(self.course_fraction, f"{w}.course_fraction")
-        self.course_start = _int(self.course_start, f"{w}.course_start", 0)
-        _choice(self.course_starts, f"{w}.course_starts", MODEL_COURSE_STARTS)
-        self.course_horizon = _int(self.course_horizon, f"{w}.course_horizon")
-        _unit(self.kick_prob, f"{w}.kick_prob")
-        check_number(self.kick_scale, f"{w}.kick_scale", nonneg=True)
-
-
 register_sampler(TrueCopiesSampler)
 register_sampler(ModelRolloutsSampler)
-register_sampler(CourseSampler, tasks=("dlc",))
 
-#: The configuration of a run's sampler: one of the registered classes (:data:`SAMPLERS`), by ``name``.
-SamplerConfig = Union[TrueCopiesSampler, ModelRolloutsSampler, CourseSampler]
+#: The configuration of a run's sampler: one of the registered classes (:data:`SAMPLERS`), by ``name``
+#: (these two, or a task's own, such as the double lane change's :class:`mixedrl.tasks.CourseSampler`).
+SamplerConfig = Union[TrueCopiesSampler, ModelRolloutsSampler]
 
 
 def sampler_config(value: Any, task: str | None = None) -> Any:
@@ -669,16 +632,15 @@ def register_preset(task: str, sections: dict[str, dict[str, Any]]) -> None:
     PRESETS[task] = copy.deepcopy(sections)
 
 
-#: The double lane change's experiment configuration (the reproduction of Table I, ``mixedrl reproduce``):
-#: the shared settings (learning rates, their decay, ``horizon``, ``value_output``, ``batch_size``, the
-#: budget) were chosen by a small search on mixed-RL runs of the double lane change (seeds 0-2) and then
-#: applied unchanged to every method; the course sampler and the relative batch weighting are the
-#: departures docs/algorithm2.rst lists.
-DLC_EXPERIMENT: dict[str, dict[str, Any]] = {
-    "algorithm": {"lr_decay_iterations": 1500, "batch_weighting": "relative"},
-    "sampler": {"name": CourseSampler.NAME},
-}
-register_preset("dlc", DLC_EXPERIMENT)
+def __getattr__(name: str) -> Any:
+    """``CourseSampler`` and ``DLC_EXPERIMENT``, which the double lane change registers
+    (:mod:`mixedrl.tasks`, imported with the package), stay readable here: the options class of its
+    sampler (``SAMPLERS["dlc_course"]``) and its preset (``PRESETS["dlc"]``)."""
+    if name == "CourseSampler" and "dlc_course" in SAMPLERS:
+        return SAMPLERS["dlc_course"]
+    if name == "DLC_EXPERIMENT" and "dlc" in PRESETS:
+        return PRESETS["dlc"]
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -720,6 +682,14 @@ def _task_name(task: Any) -> str:
     return str(getattr(task, "name", "dlc"))
 
 
+def _model_sampler(task: str) -> str:
+    """The sampler the old ``state_source = "model"`` meant on ``task``: the model-rollout sampler of the
+    task's preset (the double lane change's ``"dlc_course"``), else ``"model_rollouts"``."""
+    name = PRESETS.get(task, {}).get("sampler", {}).get("name", ModelRolloutsSampler.NAME)
+    model = issubclass(SAMPLERS.get(name, TrueCopiesSampler), ModelRolloutsSampler)
+    return name if model else ModelRolloutsSampler.NAME
+
+
 def migrate(data: dict[str, Any]) -> dict[str, Any]:
     """Return the sectioned form of a (possibly partial) config dict with old flat keys (:data:`LEGACY_KEYS`).
 
@@ -745,8 +715,7 @@ def migrate(data: dict[str, Any]) -> dict[str, Any]:
         source = legacy.get("state_source", "model")
         if source not in ("true", "model"):
             raise ValueError(f"state_source: expected 'true' or 'model', got {source!r}")
-        name = TrueCopiesSampler.NAME if source == "true" else (
-            CourseSampler.NAME if task == "dlc" else ModelRolloutsSampler.NAME)
+        name = TrueCopiesSampler.NAME if source == "true" else _model_sampler(task)
         moved["sampler.name"] = name
         fields = {f.name for f in dataclasses.fields(SAMPLERS[name])}
         for key in sampler_keys:
@@ -755,7 +724,7 @@ def migrate(data: dict[str, Any]) -> dict[str, Any]:
             new = LEGACY_KEYS[key].split(".", 1)[1]
             if name == ModelRolloutsSampler.NAME and key == "model_course_horizon":
                 new = "true_horizon"
-            elif name == CourseSampler.NAME and key == "model_course_horizon":
+            elif "course_horizon" in fields and key == "model_course_horizon":
                 moved["sampler.true_horizon"] = legacy[key]
             if new in fields:
                 moved[f"sampler.{new}"] = legacy[key]
@@ -880,7 +849,7 @@ class TrainConfig:
     """Configuration of one training run (Algorithm 2 or DDPG), in sections.
 
     A section left out (or given as a partial dict) takes the run's task's experiment configuration
-    (:data:`PRESETS`, registered by the task; the double lane change's is :data:`DLC_EXPERIMENT`) over
+    (:data:`PRESETS`, registered by the task; the double lane change's is :data:`mixedrl.tasks.DLC_EXPERIMENT`) over
     the library defaults of the section's class. Old flat keyword arguments (``iterations=3``,
     ``model_box=2.0``; :data:`LEGACY_KEYS`) are accepted and moved to their sections. ``to_dict`` /
     ``from_dict`` round-trip exactly through JSON.
@@ -905,7 +874,7 @@ class TrainConfig:
     sampler: SamplerConfig
     """Where Algorithm 2's PEV/PIM states come from, chosen by ``sampler.name`` (:data:`SAMPLERS`):
     :class:`TrueCopiesSampler`, :class:`ModelRolloutsSampler` (the library default) or the double lane
-    change's :class:`CourseSampler`."""
+    change's :class:`mixedrl.tasks.CourseSampler`."""
 
     ddpg: DDPGConfig
     """What only DDPG has (:class:`DDPGConfig`)."""

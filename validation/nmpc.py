@@ -54,7 +54,7 @@ from tqdm.auto import tqdm
 from mixedrl.envs import DoubleLaneChangeConfig, DoubleLaneChangeModel, TrackingResult, evaluate_tracking
 from mixedrl.runs import atomic_write_text
 from mixedrl.tasks import DoubleLaneChangeTask
-from validation.lq import discounted_lq_optimum
+from mixedrl.lq import discounted_lq_optimum
 
 __all__ = [
     "CONTROLLERS",

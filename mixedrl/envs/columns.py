@@ -40,7 +40,8 @@ def tracking_errors(cfg: DoubleLaneChangeConfig, phi: Any, Y: Any, X: Any) -> tu
 
 def observation_from_errors(cfg: DoubleLaneChangeConfig, vy: Any, r: Any, vx: Any, e_phi: Any, e_y: Any,
                             X: Any, y_ref: Any) -> list[Any]:
-    """The observation's columns from already computed errors (see :meth:`~mixedrl.envs.model.DoubleLaneChangeModel.observe`).
+    """The observation's columns from already computed errors
+    (see :meth:`~mixedrl.envs.model.DoubleLaneChangeModel.observe`).
 
     .. math:: o = [v_y,\\ r,\\ v_x - v_{des},\\ e_\\phi,\\ e_y,\\
                    Y_{ref}(X + d_1) - Y_{ref}(X), \\dots]
