@@ -4,7 +4,9 @@ For ``x' = A x + B u + xi`` with ``xi ~ N(mu_hat, K_hat)`` (the mixed model, eq.
 charged on the **next** state (eq. 2), ``l(x', u) = x'^T Q x' + u^T R u``, the value of an affine
 policy ``u = -L x - l0`` is exactly quadratic, ``V(x) = x^T P x + 2 p^T x + c``, and the PEV (eq. 21)
 and PIM (eq. 22) steps of Algorithm 1 have closed forms: they live in :mod:`mixedrl.pev` and
-:mod:`mixedrl.pim`, on the types of this module; the derivation is in ``docs/lq.rst``.
+:mod:`mixedrl.pim`, on the types of this module; the derivation is in ``docs/lq.rst``. The problem as a
+whole (matrices, discount, true noise and prior) is one :class:`mixedrl.lq.LQProblem`, whose
+``dynamics`` and ``cost`` are the :class:`LinearDynamics` and :class:`QuadraticCost` of this module.
 
 Every expectation over ``xi`` is taken exactly with the identity, for a symmetric ``M``,
 

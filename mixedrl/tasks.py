@@ -25,7 +25,6 @@ the observation ``observe(s)``; the utility is charged on the next state, ``l(s'
 from __future__ import annotations
 
 import abc
-import dataclasses
 import math
 from dataclasses import dataclass
 from typing import Any, ClassVar
@@ -573,8 +572,10 @@ class DoubleLaneChangeTask(Task):
 
     def __init__(self, prior_force_mean: float = 150.0, prior_force_std: float = 4.0, gamma: float = 0.99,
                  **config: Any) -> None:
-        cfg = make_config(DoubleLaneChangeTaskConfig(), prior_force_mean=prior_force_mean,
-                          prior_force_std=prior_force_std, gamma=gamma, **config)
+        self._setup(make_config(DoubleLaneChangeTaskConfig(), prior_force_mean=prior_force_mean,
+                                prior_force_std=prior_force_std, gamma=gamma, **config))
+
+    def _setup(self, cfg: DoubleLaneChangeTaskConfig) -> None:
         self.config = cfg
         self.model = DoubleLaneChangeModel(cfg)
         scale = cfg.dt / cfg.params.m  # T / m: force [N] -> xi [m/s]
@@ -615,8 +616,9 @@ class DoubleLaneChangeTask(Task):
         """
         if not isinstance(config, DoubleLaneChangeTaskConfig):
             raise ValueError(f"config: expected a DoubleLaneChangeTaskConfig, got {type(config).__name__}")
-        fields = {f.name: getattr(config, f.name) for f in dataclasses.fields(config) if f.name != "name"}
-        return cls(**fields)
+        task = cls.__new__(cls)
+        task._setup(config)  # the configuration itself, not a copy
+        return task
 
     # harmonics of the Case-3 Fourier basis along the course (documented under Attributes)
     mean_harmonics: int = 8

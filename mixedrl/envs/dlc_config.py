@@ -273,6 +273,8 @@ def _merge(base: _C, values: dict[str, Any], where: str, dotted: bool) -> _C:
         check_unknown_keys({prefix + k: v for k, v in values.items()}, {prefix + k for k in allowed}, "config")
     else:
         check_unknown_keys(values, allowed, where)
+    if not values:
+        return base  # nothing to change: the configuration itself, not a copy
     values = dict(values)
     for name, cls in _nested(type(base)).items():
         if name in values and not isinstance(values[name], cls):
