@@ -38,7 +38,7 @@ from mixedrl.quadratic import AffinePolicy, LinearDynamics, QuadraticCost, Quadr
 
 __all__ = ["LQProblem", "LQSolution", "PBH_RTOL", "discounted_lq_optimum", "optimal_solution"]
 
-#: Tolerance (relative to the largest |singular value| of ``[A - lambda I, B]``) of the PBH
+#: Tolerance (relative to the largest singular value of ``[A - lambda I, B]``) of the PBH
 #: stabilisability test in :class:`LQProblem`.
 PBH_RTOL = 1e-10
 
