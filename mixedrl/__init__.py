@@ -2,9 +2,16 @@
 
 Implements Mu et al., *Mixed Reinforcement Learning with Additive Stochastic Uncertainty*. Equation
 numbers ``eq. (N)`` everywhere in this package follow ``shared/paper/EQUATIONS.md``.
+
+Importing the package imports :mod:`mixedrl.tasks`, which registers the double lane change's experiment
+with the configuration (its course sampler ``"dlc_course"`` in :data:`mixedrl.config.SAMPLERS` and its
+preset in :data:`mixedrl.config.PRESETS`), so that every :class:`~mixedrl.config.TrainConfig` of that
+task sees them.
 """
 
 import logging
+
+from mixedrl import tasks as _tasks  # noqa: F401  (registers the double lane change's sampler and preset)
 
 __version__ = "0.1.0"
 

@@ -10,14 +10,18 @@ field, at any level, is an error naming the dotted key.
 
 The task configuration is one of two nested dataclasses, chosen by its ``name``:
 
-* :class:`DoubleLaneChangeTaskConfig` (``name = "dlc"``, the paper's Section VI), with the nested
-  :class:`ForceDisturbanceConfig` (``task.disturbance``) and :class:`CostWeights` (``task.cost``);
+* :class:`DoubleLaneChangeTaskConfig` (``name = "dlc"``, the paper's Section VI): the environment's own
+  configuration (:mod:`mixedrl.envs.dlc_config`, re-exported here) with the discount and the prior, so
+  every field of the environment is a ``task.<field>`` key, with the nested
+  :class:`ForceDisturbanceConfig` (``task.disturbance``, the environment's
+  :class:`~mixedrl.envs.disturbance.Disturbance`) and :class:`CostWeights` (``task.cost``);
 * :class:`LinearTaskConfig` (``name = "linear"``, a small LQ system with a known optimum), with the
   nested :class:`GaussianNoiseConfig` (``task.disturbance``).
 
 A section that is not given takes the task's experiment configuration (:data:`PRESETS`): the double
-lane change registers :data:`DLC_EXPERIMENT` (the reproduction of Table I: its course sampler
-:class:`CourseSampler`, the learning-rate decay over 1500 iterations, the relative batch weighting); any
+lane change registers :data:`mixedrl.tasks.DLC_EXPERIMENT` (the reproduction of Table I: its course
+sampler :class:`mixedrl.tasks.CourseSampler`, the learning-rate decay over 1500 iterations, the relative
+batch weighting; both live with the task in :mod:`mixedrl.tasks` and stay importable from here); any
 other task gets the library defaults of the section classes (model rollouts from the task's start
 distribution, the decay tied to the budget, the paper's uniform batch mean).
 
@@ -47,6 +51,9 @@ import numpy as np
 
 from mixedrl.checks import (as_matrix, as_vector, check_covariance, check_fraction, check_int,
                             check_nonnegative_int, check_number, check_positive_int, check_unknown_keys)
+from mixedrl.envs.disturbance import DISTURBANCE_LAWS, Disturbance
+from mixedrl.envs.dlc_config import CostWeights, DoubleLaneChangeTaskConfig
+from mixedrl.lq import LQProblem
 
 __all__ = [
     "TrainConfig",
@@ -85,12 +92,8 @@ __all__ = [
 METHODS = ("mixed", "model", "oracle", "ddpg")
 #: Tasks a run can be trained on: the double lane change (paper) and a small linear system.
 TASKS = ("dlc", "linear")
-#: Laws of the true disturbance a task configuration may name (the IBE itself assumes a Gaussian):
-#: ``"gaussian"`` (the paper's), ``"student_t"`` (heavy tails, ``dof`` degrees of freedom) and ``"bumps"`` (a
-#: symmetric two-point law), all with the configured mean and variance (:class:`ForceDisturbanceConfig`).
-#: The double lane change simulates all three; the linear task only ``"gaussian"``.
-DISTURBANCE_LAWS = ("gaussian", "student_t", "bumps")
-#: Where the course copies of the double lane change's sampler restart (``CourseSampler.course_starts``).
+#: Where the course copies of the double lane change's sampler restart
+#: (:attr:`mixedrl.tasks.CourseSampler.course_starts`).
 MODEL_COURSE_STARTS = ("start", "along", "loop")
 #: How Algorithm 2 weights the states of its batch (``AlgorithmConfig.batch_weighting``).
 BATCH_WEIGHTINGS = ("uniform", "relative")
@@ -129,140 +132,11 @@ def _build(cls: type, data: Any, where: str) -> Any:
 
 
 # ----------------------------------------------------------------------------------------------------
-# the double lane change (Section VI of the paper)
+# the double lane change (Section VI of the paper): its configuration is the environment's
 # ----------------------------------------------------------------------------------------------------
-@dataclass
-class ForceDisturbanceConfig:
-    """The true longitudinal disturbance force ``F_dis`` of the double lane change (eq. 53), in newtons.
-
-    Its noise on ``v_x`` is ``xi = F_dis T / m`` (eq. 54). Dotted keys: ``task.disturbance.<field>``.
-    ``grade_amplitude`` [rad], ``grade_wavelength`` [m] and ``grade_phase`` [rad] describe an optional road
-    grade (:class:`mixedrl.envs.Disturbance`; amplitude 0, the default, is the paper's level road).
-
-    Every law has mean ``mean`` (minus the grade's ``m g sin(theta(X))``) and variance ``variance``:
-    ``F_dis = mean + sqrt(variance) z`` with the law's standardised draw ``z``:
-
-    * ``law = "gaussian"`` (default, the paper's ``N(261, 32)``): ``z ~ N(0, 1)``;
-    * ``law = "student_t"``: ``F_dis`` is Student-t with ``dof`` degrees of freedom, rescaled to the
-      variance: scale ``sqrt(variance (dof - 2) / dof)`` (``dof > 2``; heavy tails);
-    * ``law = "bumps"``: ``F_dis = mean - sqrt(variance)`` or ``mean + sqrt(variance)`` with probability 1/2
-      each (a symmetric two-point law).
-
-    Ten times the paper's variance is just ``variance = 320``. The planners model the noise as a
-    Gaussian whatever the law (the oracle plans with ``N(mean, variance)``); see
-    :class:`mixedrl.envs.Disturbance` for how each law is drawn.
-    """
-
-    WHERE: ClassVar[str] = "task.disturbance"
-
-    law: str = "gaussian"
-    """Distribution of ``F_dis``; one of :data:`DISTURBANCE_LAWS`: ``"gaussian"``, ``"student_t"``,
-    ``"bumps"`` (same mean and variance for all three)."""
-
-    mean: float = 261.0
-    """Mean force on a level road [N] (paper: 261)."""
-
-    variance: float = 32.0
-    """Variance of ``F_dis`` [N^2] (paper: 32, ``N(261, 32)``; EQUATIONS.md, point 7)."""
-
-    dof: float = 3.0
-    """Degrees of freedom of the ``"student_t"`` law (> 2: a finite variance); ignored by the others."""
-
-    # an optional road grade, a state-dependent mean (Case 3); amplitude 0 is the paper's level road. The
-    # three fields are passed on to mixedrl.envs.Disturbance, which documents the grade's formula.
-    grade_amplitude: float = 0.0
-    grade_wavelength: float = 40.0
-    grade_phase: float = 0.0
-
-    def __post_init__(self) -> None:
-        self.law = _law(self.law, f"{self.WHERE}.law")
-        for f in dataclasses.fields(self):
-            if f.name != "law":
-                setattr(self, f.name, check_number(getattr(self, f.name), f"{self.WHERE}.{f.name}",
-                                              nonneg=f.name == "variance", positive=f.name == "grade_wavelength"))
-        if not self.dof > 2.0:
-            raise ValueError(f"{self.WHERE}.dof: expected a number > 2 (the Student-t variance is finite only "
-                             f"then), got {self.dof!r}")
-
-
-@dataclass
-class CostWeights:
-    """Weights of the utility of eq. (54), ``T (q_speed (v_x - 12)^2 + q_lateral y^2 + u^T diag(r_steer,
-    r_accel) u)``, charged on the next state. Dotted keys: ``task.cost.<field>``."""
-
-    WHERE: ClassVar[str] = "task.cost"
-
-    q_speed: float = 45.0
-    """Weight of the squared speed error ``(v_x - 12)^2``. Paper: 45."""
-
-    q_lateral: float = 60.0
-    """Weight of the squared lateral error ``y^2``. Paper: 60."""
-
-    r_steer: float = 800.0
-    """Weight of the squared steering angle ``delta^2``. Paper: 800."""
-
-    r_accel: float = 1.0
-    """Weight of the squared acceleration ``a_x^2``. Paper: 1."""
-
-    def __post_init__(self) -> None:
-        for f in dataclasses.fields(self):
-            setattr(self, f.name, check_number(getattr(self, f.name), f"{self.WHERE}.{f.name}", nonneg=True))
-
-
-@dataclass
-class DoubleLaneChangeTaskConfig:
-    """The experiment of Section VI: the double lane change with a random longitudinal force.
-
-    Dotted keys: ``task.<field>``; the prior of eq. (55) is given in force units and acts on ``v_x``
-    (EQUATIONS.md, point 6): ``mu_M = prior_force_mean T / m``, ``K_M = (prior_force_std T / m)^2`` on
-    ``v_x``, ``1e-20`` on the other four components of ``xi``.
-    """
-
-    WHERE: ClassVar[str] = "task"
-
-    name: str = "dlc"
-    """Always ``"dlc"`` for this class (selects it when loading)."""
-
-    gamma: float = 0.99
-    """Discount factor of eq. (2), in (0, 1)."""
-
-    prior_force_mean: float = 150.0
-    """The designer's prior mean of ``F_dis`` [N] (eq. 55; paper: 150)."""
-
-    prior_force_std: float = 4.0
-    """The designer's prior standard deviation ``sqrt(K_M)`` in force units [N] (paper: 4)."""
-
-    disturbance: ForceDisturbanceConfig = field(default_factory=ForceDisturbanceConfig)
-    """The true disturbance law (used by the true environment and the oracle only)."""
-
-    cost: CostWeights = field(default_factory=CostWeights)
-    """Weights of the utility, eq. (54)."""
-
-    preview_distances: tuple[float, ...] = ()
-    """Look-ahead distances [m] of the reference preview appended to the observation (default none: the
-    paper's relative state ``[v_y, r, v_x - 12, e_phi, e_y]``); see
-    :class:`mixedrl.envs.DoubleLaneChangeConfig`."""
-
-    train_half_widths: tuple[float, ...] = (0.3, 0.2, 1.0, 0.1, 1.0)
-    """Half-widths of the uniform perturbation of ``[v_y, r, v_x - 12, e_phi, e_y]`` of the training start
-    states (anywhere on the course), see :meth:`mixedrl.envs.DoubleLaneChangeModel.reset_states`."""
-
-    def __post_init__(self) -> None:
-        if self.name != "dlc":
-            raise ValueError(f"task.name: expected 'dlc' for DoubleLaneChangeTaskConfig, got {self.name!r}")
-        self.gamma = _gamma(self.gamma)
-        self.prior_force_mean = check_number(self.prior_force_mean, "task.prior_force_mean")
-        self.prior_force_std = check_number(self.prior_force_std, "task.prior_force_std", positive=True)
-        self.disturbance = _build(ForceDisturbanceConfig, self.disturbance, "task.disturbance")
-        self.cost = _build(CostWeights, self.cost, "task.cost")
-        if isinstance(self.preview_distances, (str, bytes)) or not isinstance(self.preview_distances, (list, tuple)):
-            raise ValueError(f"task.preview_distances: expected a list of numbers, got {self.preview_distances!r}")
-        self.preview_distances = tuple(check_number(d, "task.preview_distances", positive=True)
-                                       for d in self.preview_distances)
-        widths = self.train_half_widths
-        if isinstance(widths, (str, bytes)) or not isinstance(widths, (list, tuple)) or len(widths) != 5:
-            raise ValueError(f"task.train_half_widths: expected 5 finite numbers >= 0, got {widths!r}")
-        self.train_half_widths = tuple(check_number(w, "task.train_half_widths", nonneg=True) for w in widths)
+#: The true longitudinal force ``F_dis`` of the double lane change (``task.disturbance``): the
+#: environment's :class:`mixedrl.envs.disturbance.Disturbance` itself.
+ForceDisturbanceConfig = Disturbance
 
 
 def _gamma(value: Any) -> float:
@@ -310,6 +184,10 @@ class LinearTaskConfig:
     """The linear test bed :class:`mixedrl.tasks.LinearTask`: ``s' = A s + B u + xi``, utility
     ``s'^T Q s' + u^T R u`` (a sampled double integrator, ``dt = 0.1``, the noise on the velocity, by
     default). Dotted keys: ``task.<field>``; ``n`` = ``A``'s size, ``m`` = ``B``'s columns.
+
+    The JSON face of the LQ problem: it is validated by, and :meth:`problem` returns, the problem's one
+    representation :class:`mixedrl.lq.LQProblem` (``(A, B)`` stabilisable, ``R`` positive definite);
+    ``init_box``, ``action_bound`` and the law are what the learning task adds.
     """
 
     WHERE: ClassVar[str] = "task"
@@ -351,24 +229,40 @@ class LinearTaskConfig:
         if self.name != "linear":
             raise ValueError(f"task.name: expected 'linear' for LinearTaskConfig, got {self.name!r}")
         self.gamma = _gamma(self.gamma)
-        A = as_matrix(self.A, "task.A")
-        n = A.shape[0]
-        if A.shape != (n, n):
-            raise ValueError(f"task.A: expected a square matrix, got shape {A.shape}")
-        B = as_matrix(self.B, "task.B", (n, None))
-        m = B.shape[1]
-        self.A, self.B = _rows(A), _rows(B)
-        self.Q = _rows(check_covariance(as_matrix(self.Q, "task.Q", (n, n)), "task.Q", n))
-        self.R = _rows(check_covariance(as_matrix(self.R, "task.R", (m, m)), "task.R", m))
-        self.prior_mean = tuple(as_vector(self.prior_mean, "task.prior_mean", n).tolist())
-        self.prior_cov = _rows(check_covariance(as_matrix(self.prior_cov, "task.prior_cov", (n, n)),
-                                                "task.prior_cov", n))
         dist = self.disturbance
-        mean = dist.get("mean", GaussianNoiseConfig.mean) if isinstance(dist, dict) else getattr(dist, "mean", None)
-        as_vector(mean, "task.disturbance.mean", n)  # the system's size decides which of mean / cov is wrong
+        if not isinstance(dist, (dict, GaussianNoiseConfig)):
+            raise ValueError(f"task.disturbance: expected a dict (a JSON object), got {dist!r}")
+        mean, cov = (dist.get(k, getattr(GaussianNoiseConfig, k)) if isinstance(dist, dict) else getattr(dist, k)
+                     for k in ("mean", "cov"))
+        # the problem is validated once, by its one representation (the system's size decides which of
+        # the noise's mean / cov is wrong)
+        problem = _lq_problem(self, mean, cov)
         self.disturbance = _build(GaussianNoiseConfig, dist, "task.disturbance")
+        self.A, self.B, self.Q, self.R = (_rows(getattr(problem, k)) for k in ("A", "B", "Q", "R"))
+        self.prior_mean, self.prior_cov = tuple(problem.prior_mean.tolist()), _rows(problem.prior_cov)
         self.init_box = check_number(self.init_box, "task.init_box", positive=True)
         self.action_bound = check_number(self.action_bound, "task.action_bound", positive=True)
+
+
+    def problem(self) -> LQProblem:
+        """The LQ problem this configuration describes, in its one representation (:class:`mixedrl.lq.LQProblem`:
+        the true noise ``disturbance.mean`` / ``disturbance.cov``, the prior, the matrices, ``gamma``)."""
+        return _lq_problem(self, self.disturbance.mean, self.disturbance.cov)
+
+
+#: Names of :class:`mixedrl.lq.LQProblem`'s fields that :class:`LinearTaskConfig` calls otherwise.
+_PROBLEM_KEYS = {"noise_mean": "disturbance.mean", "noise_cov": "disturbance.cov"}
+
+
+def _lq_problem(cfg: LinearTaskConfig, mean: Any, cov: Any) -> LQProblem:
+    """:class:`mixedrl.lq.LQProblem` of ``cfg`` with the true noise ``N(mean, cov)``; its errors name the
+    dotted key (``task.A``, ``task.disturbance.mean``, ...)."""
+    try:
+        return LQProblem(A=cfg.A, B=cfg.B, Q=cfg.Q, R=cfg.R, gamma=cfg.gamma, noise_mean=mean, noise_cov=cov,
+                         prior_mean=cfg.prior_mean, prior_cov=cfg.prior_cov)
+    except ValueError as exc:
+        name, _, rest = str(exc).partition(":")
+        raise ValueError(f"task.{_PROBLEM_KEYS.get(name, name)}:{rest}") from None
 
 
 #: The configuration of a run's task: one of the two classes, selected by ``name``.
@@ -396,6 +290,8 @@ def task_config(value: Any = "dlc") -> TaskConfig:
     name = value.get("name", "dlc")
     if name not in _TASK_CLASSES:
         raise ValueError(f"task.name: expected one of {TASKS}, got {name!r}")
+    if name == "dlc":
+        return DoubleLaneChangeTaskConfig.from_dict({**value, "name": name}, where="task")
     return _build(_TASK_CLASSES[name], {**value, "name": name}, "task")
 
 
@@ -658,72 +554,12 @@ class ModelRolloutsSampler:
             setattr(self, name, check_positive_int(getattr(self, name), f"{w}.{name}"))
 
 
-@dataclass
-class CourseSampler(ModelRolloutsSampler):
-    """``sampler.name = "dlc_course"``: the course design of the double lane change (a task with a
-    course; docs/model_based.rst). Model rollouts as :class:`ModelRolloutsSampler`, of two kinds:
-
-    * *course* copies (a fraction ``course_fraction`` of the batch) drive the course, from iteration
-      ``course_start`` on, for ``course_horizon`` steps, restarting as ``course_starts`` says, and are
-      *kicked* (``kick_prob`` per step, ``kick_scale`` times ``obs_scale``) so that the batch spreads
-      around the course trajectory;
-    * *wide* copies restart from the training distribution every ``algorithm.horizon`` steps.
-
-    The true-data copies of mixed RL start at the course start and restart after ``true_horizon`` steps.
-    Dotted keys: ``sampler.<field>``.
-    """
-
-    NAME: ClassVar[str] = "dlc_course"
-
-    name: str = "dlc_course"
-    """Always ``"dlc_course"`` for this class."""
-
-    box: float = 3.0
-    """A rollout restarts when a component of its observation exceeds ``box`` times ``obs_scale``."""
-
-    true_horizon: int = 2000
-    """Steps after which a true-data copy restarts at the course start (2000 = the whole course)."""
-
-    course_fraction: float = 0.75
-    """Fraction of the batch's rollouts that drive the course (the rest are wide copies)."""
-
-    course_start: int = 500
-    """Iteration from which the course copies drive the course; before it they restart from the wide
-    distribution like the others."""
-
-    course_starts: str = "along"
-    """Where a course copy restarts once ``course_start`` has passed: ``"start"`` = at the course start
-    (``X = 0``), not at the course's end (a copy drives on past it until its horizon); ``"along"`` = on
-    the reference at a point drawn uniformly along the course (``X ~ U(0, course_length)``), also when it
-    passes the course's end; ``"loop"`` = at the course start, also when it passes the course's end."""
-
-    course_horizon: int = 2000
-    """Steps after which a course copy restarts (2000 = the whole double lane change)."""
-
-    kick_prob: float = 0.01
-    """Probability per step that a course copy is kicked: a uniform random offset of ``kick_scale *
-    obs_scale_i`` on each noise component is added to its state."""
-
-    kick_scale: float = 1.0
-    """Size of a kick, in units of the task's ``obs_scale``."""
-
-    def __post_init__(self) -> None:
-        super().__post_init__()
-        w = "sampler"
-        check_fraction(self.course_fraction, f"{w}.course_fraction")
-        self.course_start = check_nonnegative_int(self.course_start, f"{w}.course_start")
-        _choice(self.course_starts, f"{w}.course_starts", MODEL_COURSE_STARTS)
-        self.course_horizon = check_positive_int(self.course_horizon, f"{w}.course_horizon")
-        check_fraction(self.kick_prob, f"{w}.kick_prob")
-        check_number(self.kick_scale, f"{w}.kick_scale", nonneg=True)
-
-
 register_sampler(TrueCopiesSampler)
 register_sampler(ModelRolloutsSampler)
-register_sampler(CourseSampler, tasks=("dlc",))
 
-#: The configuration of a run's sampler: one of the registered classes (:data:`SAMPLERS`), by ``name``.
-SamplerConfig = Union[TrueCopiesSampler, ModelRolloutsSampler, CourseSampler]
+#: The configuration of a run's sampler: one of the registered classes (:data:`SAMPLERS`), by ``name``
+#: (these two, or a task's own, such as the double lane change's :class:`mixedrl.tasks.CourseSampler`).
+SamplerConfig = Union[TrueCopiesSampler, ModelRolloutsSampler]
 
 
 def sampler_config(value: Any, task: str | None = None) -> Any:
@@ -772,16 +608,15 @@ def register_preset(task: str, sections: dict[str, dict[str, Any]]) -> None:
     PRESETS[task] = copy.deepcopy(sections)
 
 
-#: The double lane change's experiment configuration (the reproduction of Table I, ``mixedrl reproduce``):
-#: the shared settings (learning rates, their decay, ``horizon``, ``value_output``, ``batch_size``, the
-#: budget) were chosen by a small search on mixed-RL runs of the double lane change (seeds 0-2) and then
-#: applied unchanged to every method; the course sampler and the relative batch weighting are the
-#: departures docs/algorithm2.rst lists.
-DLC_EXPERIMENT: dict[str, dict[str, Any]] = {
-    "algorithm": {"lr_decay_iterations": 1500, "batch_weighting": "relative"},
-    "sampler": {"name": CourseSampler.NAME},
-}
-register_preset("dlc", DLC_EXPERIMENT)
+def __getattr__(name: str) -> Any:
+    """``CourseSampler`` and ``DLC_EXPERIMENT``, which the double lane change registers
+    (:mod:`mixedrl.tasks`, imported with the package), stay readable here: the options class of its
+    sampler (``SAMPLERS["dlc_course"]``) and its preset (``PRESETS["dlc"]``)."""
+    if name == "CourseSampler" and "dlc_course" in SAMPLERS:
+        return SAMPLERS["dlc_course"]
+    if name == "DLC_EXPERIMENT" and "dlc" in PRESETS:
+        return PRESETS["dlc"]
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -823,6 +658,14 @@ def _task_name(task: Any) -> str:
     return str(getattr(task, "name", "dlc"))
 
 
+def _model_sampler(task: str) -> str:
+    """The sampler the old ``state_source = "model"`` meant on ``task``: the model-rollout sampler of the
+    task's preset (the double lane change's ``"dlc_course"``), else ``"model_rollouts"``."""
+    name = PRESETS.get(task, {}).get("sampler", {}).get("name", ModelRolloutsSampler.NAME)
+    model = issubclass(SAMPLERS.get(name, TrueCopiesSampler), ModelRolloutsSampler)
+    return name if model else ModelRolloutsSampler.NAME
+
+
 def migrate(data: dict[str, Any]) -> dict[str, Any]:
     """Return the sectioned form of a (possibly partial) config dict with old flat keys (:data:`LEGACY_KEYS`).
 
@@ -848,8 +691,7 @@ def migrate(data: dict[str, Any]) -> dict[str, Any]:
         source = legacy.get("state_source", "model")
         if source not in ("true", "model"):
             raise ValueError(f"state_source: expected 'true' or 'model', got {source!r}")
-        name = TrueCopiesSampler.NAME if source == "true" else (
-            CourseSampler.NAME if task == "dlc" else ModelRolloutsSampler.NAME)
+        name = TrueCopiesSampler.NAME if source == "true" else _model_sampler(task)
         moved["sampler.name"] = name
         fields = {f.name for f in dataclasses.fields(SAMPLERS[name])}
         for key in sampler_keys:
@@ -858,7 +700,7 @@ def migrate(data: dict[str, Any]) -> dict[str, Any]:
             new = LEGACY_KEYS[key].split(".", 1)[1]
             if name == ModelRolloutsSampler.NAME and key == "model_course_horizon":
                 new = "true_horizon"
-            elif name == CourseSampler.NAME and key == "model_course_horizon":
+            elif "course_horizon" in fields and key == "model_course_horizon":
                 moved["sampler.true_horizon"] = legacy[key]
             if new in fields:
                 moved[f"sampler.{new}"] = legacy[key]
@@ -983,7 +825,7 @@ class TrainConfig:
     """Configuration of one training run (Algorithm 2 or DDPG), in sections.
 
     A section left out (or given as a partial dict) takes the run's task's experiment configuration
-    (:data:`PRESETS`, registered by the task; the double lane change's is :data:`DLC_EXPERIMENT`) over
+    (:data:`PRESETS`, registered by the task; the double lane change's is :data:`mixedrl.tasks.DLC_EXPERIMENT`) over
     the library defaults of the section's class. Old flat keyword arguments (``iterations=3``,
     ``model_box=2.0``; :data:`LEGACY_KEYS`) are accepted and moved to their sections. ``to_dict`` /
     ``from_dict`` round-trip exactly through JSON.
@@ -1008,7 +850,7 @@ class TrainConfig:
     sampler: SamplerConfig
     """Where Algorithm 2's PEV/PIM states come from, chosen by ``sampler.name`` (:data:`SAMPLERS`):
     :class:`TrueCopiesSampler`, :class:`ModelRolloutsSampler` (the library default) or the double lane
-    change's :class:`CourseSampler`."""
+    change's :class:`mixedrl.tasks.CourseSampler`."""
 
     ddpg: DDPGConfig
     """What only DDPG has (:class:`DDPGConfig`)."""

@@ -5,7 +5,7 @@ feed-forward: the action that cancels the disturbance. This module measures how 
 policy resolves it (docs page ``precision.rst``). For a task with an equilibrium and its linearisation
 (:meth:`mixedrl.tasks.Task.linearisation`: ``x' = A x + B v + E xi``, ``l = x'^T Q x' + v^T R v``,
 ``v = u - u*``, discount ``gamma``), the discounted LQ optimum for a noise mean ``mu`` (eqs. 6-7 on the
-linearisation; EQUATIONS.md, last section; :func:`mixedrl.quadratic.discounted_lq_optimum`) is
+linearisation; EQUATIONS.md, last section; :func:`mixedrl.lq.discounted_lq_optimum`) is
 
 .. math:: v = -L x - l_0(E\\mu), \\qquad V^*(x) = x^T P x + 2 p^T x + c(E\\mu, E K E^T),
 
@@ -28,7 +28,8 @@ import numpy as np
 import torch
 
 from mixedrl.pev import evaluate_policy
-from mixedrl.quadratic import AffinePolicy, LinearDynamics, LQSolution, QuadraticCost, discounted_lq_optimum
+from mixedrl.lq import LQSolution, discounted_lq_optimum
+from mixedrl.quadratic import AffinePolicy, LinearDynamics, QuadraticCost
 from mixedrl.tasks import Linearisation, Task
 
 __all__ = ["LQReference", "lq_reference", "policy_gap", "run_policy_gap", "gap_summary", "format_policy_gap",
@@ -80,7 +81,7 @@ def lq_reference(lin: Linearisation, noise_mean: Any, noise_cov: Any = None) -> 
         v = -L x - l_0, \\qquad [L, l_0, P, p, c] = \\mathrm{LQ}(A, B, Q, R, \\gamma;\\ E\\mu, E K E^T),
         \\qquad x_{ss} = (I - A + B L)^{-1} (E\\mu - B l_0)
 
-    (:func:`mixedrl.quadratic.discounted_lq_optimum`: the DARE with ``(sqrt(gamma) A, sqrt(gamma) B, Q,
+    (:func:`mixedrl.lq.discounted_lq_optimum`: the DARE with ``(sqrt(gamma) A, sqrt(gamma) B, Q,
     gamma R)`` and the feed-forward's linear system).
 
     Parameters

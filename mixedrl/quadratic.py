@@ -4,9 +4,9 @@ For ``x' = A x + B u + xi`` with ``xi ~ N(mu_hat, K_hat)`` (the mixed model, eq.
 charged on the **next** state (eq. 2), ``l(x', u) = x'^T Q x' + u^T R u``, the value of an affine
 policy ``u = -L x - l0`` is exactly quadratic, ``V(x) = x^T P x + 2 p^T x + c``, and the PEV (eq. 21)
 and PIM (eq. 22) steps of Algorithm 1 have closed forms: they live in :mod:`mixedrl.pev` and
-:mod:`mixedrl.pim`, on the types of this module; the derivation is in ``docs/lq.rst``. The discounted
-LQ optimum itself (the DARE and the mean's feed-forward, :func:`discounted_lq_optimum`) lives here too,
-once: the LQ validation, the LQR reference and the precision yardstick (:mod:`mixedrl.precision`) call it.
+:mod:`mixedrl.pim`, on the types of this module; the derivation is in ``docs/lq.rst``. The problem as a
+whole (matrices, discount, true noise and prior) is one :class:`mixedrl.lq.LQProblem`, whose
+``dynamics`` and ``cost`` are the :class:`LinearDynamics` and :class:`QuadraticCost` of this module.
 
 Every expectation over ``xi`` is taken exactly with the identity, for a symmetric ``M``,
 
@@ -16,11 +16,9 @@ Every expectation over ``xi`` is taken exactly with the identity, for a symmetri
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 from typing import Any
 
-import control
 import numpy as np
 import scipy.linalg
 
@@ -34,8 +32,6 @@ __all__ = [
     "lyapunov_solve",
     "is_nonnegative",
     "check_problem",
-    "LQSolution",
-    "discounted_lq_optimum",
 ]
 
 #: Largest state dimension for which the discrete Lyapunov equation is solved by the Kronecker
@@ -267,113 +263,3 @@ def check_problem(dynamics: LinearDynamics, cost: QuadraticCost, gamma: float) -
     if not (0.0 < g < 1.0):
         raise ValueError(f"gamma: must lie in (0, 1), got {gamma!r}")
     return g
-
-
-@dataclass(frozen=True)
-class LQSolution:
-    """The optimal (affine policy, quadratic value) of a discounted LQ problem for a given noise mean
-    (:func:`discounted_lq_optimum`; :class:`validation.lq.LQProblem` is one such problem).
-
-    Attributes
-    ----------
-    gain : ndarray, shape (m, n)
-        ``L``.
-    offset : ndarray, shape (m,)
-        ``l0``.
-    P : ndarray, shape (n, n)
-    p : ndarray, shape (n,)
-    c : float
-        ``V*(x) = x^T P x + 2 p^T x + c``.
-    S : ndarray, shape (n, n)
-        ``S = Q + gamma P``, the DARE solution.
-    """
-
-    gain: np.ndarray
-    offset: np.ndarray
-    P: np.ndarray
-    p: np.ndarray
-    c: float
-    S: np.ndarray
-
-    @property
-    def policy(self) -> AffinePolicy:
-        """``u = -L x - l0``."""
-        return AffinePolicy(self.gain, self.offset)
-
-    @property
-    def value(self) -> QuadraticValue:
-        """``V*``."""
-        return QuadraticValue(self.P, self.p, self.c)
-
-
-def discounted_lq_optimum(A: np.ndarray, B: np.ndarray, Q: np.ndarray, R: np.ndarray, gamma: float,
-                          mu: np.ndarray, K: np.ndarray | None = None) -> LQSolution:
-    """Implements the discounted LQ optimum with next-state cost and mean-shifted noise (EQUATIONS.md, last section).
-
-    .. math::
-        S &= \\mathrm{DARE}(\\sqrt\\gamma A, \\sqrt\\gamma B, Q, \\gamma R),\\quad P = (S - Q)/\\gamma,\\quad
-        L = (R + B^T S B)^{-1} B^T S A \\\\
-        \\begin{bmatrix} I - \\gamma A_c^T & A_c^T S B - L^T R \\\\ -\\gamma B^T & R + B^T S B \\end{bmatrix}
-        \\begin{bmatrix} p \\\\ l_0 \\end{bmatrix} &=
-        \\begin{bmatrix} A_c^T S \\mu \\\\ B^T S \\mu \\end{bmatrix},\\quad A_c = A - B L \\\\
-        (1-\\gamma)\\, c &= d^T S d + \\operatorname{tr}(S K) + l_0^T R l_0 + 2\\gamma p^T d,\\quad d = \\mu - B l_0
-
-    for ``x' = A x + B u + xi``, ``xi ~ N(mu, K)``, ``l = x'^T Q x' + u^T R u``, policy ``u = -L x - l0``,
-    value ``V*(x) = x^T P x + 2 p^T x + c``. Solved with ``control.dare(method="scipy")``.
-
-    Parameters
-    ----------
-    A : numpy.ndarray, shape (n, n)
-    B : numpy.ndarray, shape (n, m)
-    Q : numpy.ndarray, shape (n, n)
-        Symmetric PSD.
-    R : numpy.ndarray, shape (m, m)
-        Symmetric positive definite.
-    gamma : float
-        Discount in (0, 1] (validated by the callers; 1 is allowed: ``L``, ``l0``, ``P`` and ``p`` stay
-        finite when ``A_c`` is stable, and ``c`` is then ``inf``).
-    mu : numpy.ndarray, shape (n,)
-        Noise mean.
-    K : numpy.ndarray, shape (n, n), optional
-        Noise covariance, only for ``c`` (default 0).
-
-    Returns
-    -------
-    LQSolution
-
-    Raises
-    ------
-    ValueError
-        The DARE has no stabilising solution (message names ``Q``: e.g. ``(sqrt(gamma) A, Q^{1/2})``
-        has an unobservable mode on the unit circle).
-
-    Notes
-    -----
-    The block ``A_c^T S B - L^T R`` vanishes at the DARE solution (``L^T (R + B^T S B) = A^T S B``),
-    so ``p = (I - gamma A_c^T)^{-1} A_c^T S mu`` (docs/lq.rst); it is kept in the system as it comes
-    from the PEV and PIM equations, and the tests check the two forms agree.
-    """
-    A, B, Q, R, mu = (np.asarray(a, dtype=np.float64) for a in (A, B, Q, R, mu))
-    n, g = A.shape[0], float(gamma)
-    K = np.zeros((n, n)) if K is None else np.asarray(K, dtype=np.float64)
-    sg = math.sqrt(g)
-    try:
-        # S solves the DARE with (sqrt(gamma) A, sqrt(gamma) B, Q, gamma R)
-        S, _, L = control.dare(sg * A, sg * B, Q, g * R, method="scipy")
-    except (np.linalg.LinAlgError, ValueError, control.ControlArgument) as exc:
-        raise ValueError(f"Q: the DARE has no stabilising solution ({exc})") from None
-    S = np.asarray(S, dtype=np.float64)
-    S = 0.5 * (S + S.T)
-    L = np.asarray(L, dtype=np.float64)
-    P = (S - Q) / g
-    P = 0.5 * (P + P.T)
-    Ac = A - B @ L
-    # [[I - g Ac^T, Ac^T S B - L^T R], [-g B^T, R + B^T S B]] [p; l0] = [Ac^T S mu; B^T S mu]
-    M = np.block([[np.eye(n) - g * Ac.T, Ac.T @ S @ B - L.T @ R], [-g * B.T, R + B.T @ S @ B]])
-    rhs = np.concatenate([Ac.T @ S @ mu, B.T @ S @ mu])
-    sol = np.linalg.solve(M, rhs)
-    p, l0 = sol[:n], sol[n:]
-    d = mu - B @ l0
-    # (1 - g) c = d^T S d + tr(S K) + l0^T R l0 + 2 g p^T d
-    c = math.inf if g == 1.0 else float((d @ S @ d + np.sum(S * K) + l0 @ R @ l0 + 2.0 * g * p @ d) / (1.0 - g))
-    return LQSolution(gain=L, offset=l0, P=P, p=p, c=c, S=S)

@@ -3,12 +3,14 @@ the old config.json form, and errors naming the dotted key."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 from pathlib import Path
 
 import pytest
 
+from mixedrl.envs import DoubleLaneChangeConfig
 from mixedrl.config import (
     DISTURBANCE_LAWS,
     DoubleLaneChangeTaskConfig,
@@ -47,12 +49,19 @@ def test_config_json_holds_the_whole_task_and_round_trips(tmp_path: Path) -> Non
     path = tmp_path / "config.json"
     cfg.save(path)
     saved = json.loads(path.read_text())
-    assert saved["task"] == {
+    task = saved["task"]
+    assert {k: task[k] for k in ("name", "gamma", "prior_force_mean", "prior_force_std", "disturbance", "cost",
+                                 "preview_distances", "train_half_widths")} == {
         "name": "dlc", "gamma": 0.99, "prior_force_mean": 300.0, "prior_force_std": 4.0,
         "disturbance": {"law": "gaussian", "mean": 261.0, "variance": 64.0, "dof": 3.0, "grade_amplitude": 0.0,
                         "grade_wavelength": 40.0, "grade_phase": 0.0},
         "cost": {"q_speed": 45.0, "q_lateral": 60.0, "r_steer": 800.0, "r_accel": 1.0},
         "preview_distances": [5.0], "train_half_widths": [0.3, 0.2, 1.0, 0.1, 1.0]}
+    # the task section is the environment's whole configuration (one schema): vehicle, reference, bounds
+    env_fields = {f.name for f in dataclasses.fields(DoubleLaneChangeConfig)}
+    assert env_fields <= set(task) and set(task) - env_fields == {"name", "gamma", "prior_force_mean",
+                                                                     "prior_force_std"}
+    assert (task["params"]["m"], task["dt"], task["v_des"], task["reference"]["dy1"]) == (1500.0, 0.005, 12.0, 4.05)
     assert "train_half_widths" not in saved  # only under task now
     assert TrainConfig.load(path) == cfg
     lin = TrainConfig(task={"name": "linear", "prior_mean": [0, -1]})

@@ -4,6 +4,7 @@ true moments, gamma and cost weights, the noise matrix, bad configuration values
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -106,9 +107,14 @@ def test_dlc_bad_values_name_the_field() -> None:
     with pytest.raises(ValueError, match="^prior_force_std"):
         DoubleLaneChangeTask(prior_force_std=-4.0)
     cfg = task_config("dlc")
-    cfg.disturbance.law = "cauchy"  # set after validation: the environment's own check still catches it
-    with pytest.raises(ValueError, match="^law: expected one of .*'gaussian', 'student_t', 'bumps'"):
-        task_from_config(cfg)
+    # the task configuration is the environment's (one frozen schema): it cannot go invalid after validation
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        cfg.disturbance.law = "cauchy"  # type: ignore[misc]
+    with pytest.raises(ValueError, match=r"^disturbance\.law: expected one of .*'gaussian', 'student_t', 'bumps'"):
+        DoubleLaneChangeTask(disturbance={"law": "cauchy"})
+    assert task_from_config(cfg).model.config == cfg  # the environment runs on the task configuration itself
+    with pytest.raises(ValueError, match="^config: expected a DoubleLaneChangeTaskConfig"):
+        DoubleLaneChangeTask.from_config(cfg.disturbance)  # type: ignore[arg-type]
 
 
 # ------------------------------------------------------------------------------ the linear task
@@ -156,3 +162,75 @@ def test_linear_bad_values_name_the_field() -> None:
         task_from_config({"name": "linear", "prior_force_mean": 150})
     with pytest.raises(ValueError, match="^task.B"):
         task_from_config({"name": "linear", "B": [[1, 2, 3]]})
+    with pytest.raises(ValueError, match="^task.A: .*not stabilisable"):  # the LQ problem's own check
+        task_from_config({"name": "linear", "A": [[2.0, 0.0], [0.0, 1.0]], "B": [[0.0], [1.0]]})
+    with pytest.raises(ValueError, match="^true_mean"):  # LinearTask's own argument names
+        LinearTask(true_mean=[0.0, 0.0, 1.0])
+    with pytest.raises(ValueError, match="^problem: given together"):
+        LinearTask(A=np.eye(2), problem=LinearTask().problem)
+
+
+# ------------------------------------------------------------------------------ one schema per task
+def test_a_field_of_the_environment_is_a_task_key_and_reaches_the_model() -> None:
+    """The task configuration is the environment's: a field defined once (here the vehicle's mass, the
+    desired speed, a reference offset) is set by a dotted key and acts on the model and the noise scale."""
+    from mixedrl.config import apply_overrides
+    from mixedrl.envs import DoubleLaneChangeEnv
+
+    data = apply_overrides(TrainConfig().to_dict(), {"task.params.m": 1600.0, "task.v_des": 10.0,
+                                                     "task.reference.dy1": 3.0})
+    cfg = TrainConfig.from_dict(data)
+    task = task_from_config(cfg.task)
+    assert task.model.config is cfg.task and task.force_scale == pytest.approx(T / 1600.0, rel=1e-15)
+    assert task.prior_mean[task.noise_index] == pytest.approx(150.0 * T / 1600.0, rel=1e-15)
+    s = torch.zeros(1, 6, dtype=torch.float64)
+    s[0, 2] = 10.0  # at the desired speed: no speed error in the observation
+    assert float(task.observe(s)[0, 2]) == 0.0
+    assert task.model.reference.dy1 == 3.0
+    env = DoubleLaneChangeEnv(config=cfg.task)  # the Gymnasium env takes the task configuration as it is
+    assert env.config is cfg.task
+    with pytest.raises(ValueError, match=r"^config: unknown key\(s\) \['task.params.mass'\]"):
+        TrainConfig(task={"params": {"mass": 1.0}})
+    with pytest.raises(ValueError, match=r"^task\.params\.m: expected a finite positive number"):
+        TrainConfig(task={"params": {"m": -1.0}})
+
+
+def test_the_course_sampler_and_the_preset_are_registered_by_the_task() -> None:
+    import mixedrl.config as config
+    import mixedrl.tasks as tasks
+
+    assert config.CourseSampler is tasks.CourseSampler is config.SAMPLERS["dlc_course"]
+    assert config.DLC_EXPERIMENT == tasks.DLC_EXPERIMENT == config.PRESETS["dlc"]
+    assert isinstance(TrainConfig().sampler, tasks.CourseSampler)
+    with pytest.raises(AttributeError, match="no attribute 'CourseSamplr'"):
+        config.CourseSamplr  # noqa: B018
+
+
+def test_the_lq_problem_has_one_representation() -> None:
+    """LinearTask, LinearTaskConfig and validation.lq share mixedrl.lq.LQProblem; the optimum of the
+    task's problem is the one the validation computes."""
+    from mixedrl.config import LinearTaskConfig
+    from mixedrl.lq import LQProblem, optimal_solution
+    from validation import lq
+
+    assert lq.LQProblem is LQProblem and lq.optimal_solution is optimal_solution
+    cfg = LinearTaskConfig(prior_mean=(0.0, -1.0))
+    task = task_from_config(cfg)
+    prob = cfg.problem()
+    assert isinstance(task.problem, LQProblem)
+    for name in ("A", "B", "Q", "R", "noise_mean", "noise_cov", "prior_mean", "prior_cov"):
+        assert np.array_equal(getattr(task.problem, name), getattr(prob, name)), name
+    assert task.true_mean is task.problem.noise_mean and task.prior_mean[1] == -1.0
+    default = LinearTask()
+    for name in ("A", "B", "Q", "R", "true_mean", "true_cov", "prior_mean", "prior_cov"):
+        assert np.array_equal(getattr(default, name), getattr(LinearTask.from_config(LinearTaskConfig()), name))
+    # the optimum of the shared problem solves the Bellman equation of the task's own f and cost:
+    # V*(x) = E[l(f(x, u*) + xi, u*) + gamma V*(f(x, u*) + xi)], xi ~ N(mu, K), exactly (quadratic forms)
+    opt = optimal_solution(task.problem)
+    x = np.random.default_rng(0).uniform(-1.0, 1.0, size=(8, 2))
+    u = opt.policy(x)
+    center = task.f(torch.as_tensor(x), torch.as_tensor(u)).numpy() + prob.noise_mean
+    mu0 = torch.zeros(8, 2, dtype=torch.float64)
+    stage = task.cost(torch.as_tensor(center), torch.as_tensor(u)).numpy() + np.sum(prob.Q * prob.noise_cov)
+    rhs = stage + task.gamma * opt.value.expected(center, mu0[0].numpy(), prob.noise_cov)
+    np.testing.assert_allclose(opt.value(x), rhs, rtol=1e-10, atol=1e-10)

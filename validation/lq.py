@@ -7,10 +7,12 @@ the next state ``l(x', u) = x'^T Q x' + u^T R u`` (eq. 2), discount ``gamma``. T
 * ``S = Q + gamma P`` solves the standard DARE with ``(sqrt(gamma) A, sqrt(gamma) B, Q, gamma R)``
   (:func:`control.dare`, ``method="scipy"``), and ``L = (R + B^T S B)^{-1} B^T S A``;
 * ``p`` and ``l0`` solve one linear system that depends on ``mu``, and ``c`` follows; a wrong ``mu``
-  leaves ``L`` exact and biases ``l0`` (:func:`mixedrl.quadratic.discounted_lq_optimum`, the one
-  implementation, re-exported here as :func:`discounted_lq_optimum` with :class:`LQSolution`; also behind
-  :func:`validation.nmpc.discounted_lqr` and the precision yardstick :mod:`mixedrl.precision`;
-  :func:`optimal_solution` for an :class:`LQProblem`).
+  leaves ``L`` exact and biases ``l0`` (:func:`discounted_lq_optimum`, the one implementation, also
+  behind :func:`validation.nmpc.discounted_lqr`; :func:`optimal_solution` for an :class:`LQProblem`).
+
+The problem, its solution and the optimum live in the library (:mod:`mixedrl.lq`: :class:`LQProblem`,
+:class:`LQSolution`, :func:`discounted_lq_optimum`, :func:`optimal_solution`, ``PBH_RTOL``); this module
+re-exports them.
 
 :func:`run_algorithm1` runs the same loop (:func:`mixedrl.algorithms.policy_iteration.policy_iteration`)
 with three noise sources: ``"mixed"`` (the IBE, Case 2 by default, fed with residuals of the true system
@@ -44,14 +46,14 @@ from typing import Any
 import control
 import numpy as np
 
-from mixedrl.checks import as_matrix, as_vector, check_covariance, check_nonnegative_int, check_positive_int
+from mixedrl.checks import as_matrix, as_vector, check_covariance, check_positive_int
 from mixedrl.algorithms.policy_iteration import Iteration, policy_iteration
 from mixedrl.ibe import residuals
+from mixedrl.lq import PBH_RTOL, LQProblem, LQSolution, discounted_lq_optimum, optimal_solution
 from mixedrl.noise import GaussianNoise, make_noise_source
 from mixedrl.pev import ExactPEV
 from mixedrl.pim import ExactPIM
-from mixedrl.quadratic import (AffinePolicy, LinearDynamics, LQSolution, QuadraticCost, QuadraticValue,
-                               discounted_lq_optimum)
+from mixedrl.quadratic import AffinePolicy, QuadraticValue
 from theory import ibe_shift, lyapunov_decrease, mvc, value_decrease
 
 __all__ = [
@@ -76,169 +78,10 @@ __all__ = [
 logger = logging.getLogger(__name__)
 
 METHODS = ("mixed", "model", "oracle")
-#: Tolerance (relative to the largest |singular value| of ``[A - lambda I, B]``) of the PBH
-#: stabilisability test in :class:`LQProblem`.
-PBH_RTOL = 1e-10
 
 
 def _sym(a: np.ndarray) -> np.ndarray:
     return 0.5 * (a + a.T)
-
-
-def _is_stabilisable(A: np.ndarray, B: np.ndarray) -> bool:
-    """PBH test: ``rank [A - lambda I, B] = n`` for every eigenvalue ``|lambda| >= 1``."""
-    n = A.shape[0]
-    for lam in np.linalg.eigvals(A):
-        if abs(lam) < 1.0:
-            continue
-        M = np.hstack([A - lam * np.eye(n), B.astype(complex)])
-        sv = np.linalg.svd(M, compute_uv=False)
-        if sv[-1] <= PBH_RTOL * max(1.0, sv[0]):
-            return False
-    return True
-
-
-@dataclass(frozen=True)
-class LQProblem:
-    """A discounted LQ problem with mean-shifted Gaussian noise and a designer's prior on the mean.
-
-    Parameters
-    ----------
-    A : array_like, shape (n, n)
-    B : array_like, shape (n, m)
-        ``(A, B)`` must be stabilisable.
-    Q : array_like, shape (n, n)
-        Symmetric PSD state weight, charged on the next state (eq. 2).
-    R : array_like, shape (m, m)
-        Symmetric positive definite input weight.
-    gamma : float
-        Discount factor in (0, 1).
-    noise_mean : array_like, shape (n,)
-        True ``mu`` of eq. (1).
-    noise_cov : array_like, shape (n, n)
-        True ``K`` of eq. (1), symmetric PSD.
-    prior_mean : array_like, shape (n,)
-        ``mu_M`` of eq. (8).
-    prior_cov : array_like, shape (n, n)
-        ``K_M`` of eq. (8), symmetric PSD.
-
-    Raises
-    ------
-    ValueError
-        Wrong shapes, NaN/inf, covariances or Q not symmetric PSD, R not positive definite, gamma
-        outside (0, 1), or ``(A, B)`` not stabilisable; the message starts with the argument name.
-    """
-
-    A: np.ndarray
-    B: np.ndarray
-    Q: np.ndarray
-    R: np.ndarray
-    gamma: float
-    noise_mean: np.ndarray
-    noise_cov: np.ndarray
-    prior_mean: np.ndarray
-    prior_cov: np.ndarray
-
-    @property
-    def true_mean(self) -> np.ndarray:
-        """``noise_mean`` (the name :func:`mixedrl.noise.make_noise_source` reads)."""
-        return self.noise_mean
-
-    @property
-    def true_cov(self) -> np.ndarray:
-        """``noise_cov`` (the name :func:`mixedrl.noise.make_noise_source` reads)."""
-        return self.noise_cov
-
-    def __post_init__(self) -> None:
-        A = as_matrix(self.A, "A")
-        n = A.shape[0]
-        if A.shape != (n, n):
-            raise ValueError(f"A: must be square, got {A.shape}")
-        B = as_matrix(self.B, "B", (n, None))
-        m = B.shape[1]
-        if m < 1:
-            raise ValueError("B: needs at least one column")
-        Q = check_covariance(self.Q, "Q", n)
-        R = check_covariance(self.R, "R", m)
-        if np.linalg.eigvalsh(R)[0] <= 0.0:
-            raise ValueError("R: must be positive definite")
-        if isinstance(self.gamma, bool):
-            raise ValueError(f"gamma: expected a float in (0, 1), got {self.gamma!r}")
-        try:
-            gamma = float(self.gamma)
-        except (TypeError, ValueError):
-            raise ValueError(f"gamma: expected a float in (0, 1), got {self.gamma!r}") from None
-        if not (0.0 < gamma < 1.0):
-            raise ValueError(f"gamma: must lie in (0, 1), got {self.gamma!r}")
-        vals = {
-            "A": A,
-            "B": B,
-            "Q": Q,
-            "R": R,
-            "gamma": gamma,
-            "noise_mean": as_vector(self.noise_mean, "noise_mean", n),
-            "noise_cov": check_covariance(self.noise_cov, "noise_cov", n),
-            "prior_mean": as_vector(self.prior_mean, "prior_mean", n),
-            "prior_cov": check_covariance(self.prior_cov, "prior_cov", n),
-        }
-        if not _is_stabilisable(A, B):
-            raise ValueError("A: (A, B) is not stabilisable (PBH test)")
-        for key, val in vals.items():
-            object.__setattr__(self, key, val)
-
-    @property
-    def n(self) -> int:
-        """State dimension."""
-        return self.A.shape[0]
-
-    @property
-    def m(self) -> int:
-        """Input dimension."""
-        return self.B.shape[1]
-
-    @property
-    def dynamics(self) -> LinearDynamics:
-        """``f(x, u) = A x + B u``."""
-        return LinearDynamics(self.A, self.B)
-
-    @property
-    def cost(self) -> QuadraticCost:
-        """``l(x', u) = x'^T Q x' + u^T R u``."""
-        return QuadraticCost(self.Q, self.R)
-
-    def to_dict(self) -> dict[str, Any]:
-        """JSON-serialisable form (lists)."""
-        return {
-            k: (getattr(self, k).tolist() if isinstance(getattr(self, k), np.ndarray) else getattr(self, k))
-            for k in ("A", "B", "Q", "R", "gamma", "noise_mean", "noise_cov", "prior_mean", "prior_cov")
-        }
-
-
-def optimal_solution(problem: LQProblem, noise_mean: Any = None, noise_cov: Any = None) -> LQSolution:
-    """Implements eqs. (6)-(7) for the LQ case: :func:`discounted_lq_optimum` of an :class:`LQProblem`.
-
-    Parameters
-    ----------
-    problem : LQProblem
-    noise_mean : array_like, shape (n,), optional
-        The mean to optimise for (default ``problem.noise_mean``). Pass ``problem.prior_mean`` to get
-        the policy that the prior predicts (model-driven RL's limit), or an IBE estimate.
-    noise_cov : array_like, shape (n, n), optional
-        The covariance for ``c`` (default ``problem.noise_cov``); it does not affect L, l0, P or p.
-
-    Returns
-    -------
-    LQSolution
-
-    Raises
-    ------
-    ValueError
-        Bad ``noise_mean``/``noise_cov``, or the DARE has no stabilising solution (message names ``Q``).
-    """
-    n = problem.n
-    mu = problem.noise_mean if noise_mean is None else as_vector(noise_mean, "noise_mean", n)
-    K = problem.noise_cov if noise_cov is None else check_covariance(noise_cov, "noise_cov", n)
-    return discounted_lq_optimum(problem.A, problem.B, problem.Q, problem.R, problem.gamma, mu, K)
 
 
 def default_initial_gain(problem: LQProblem) -> np.ndarray:
@@ -502,7 +345,8 @@ def run_algorithm1(
     iterations = check_positive_int(iterations, "iterations")
     samples_per_iteration = check_positive_int(samples_per_iteration, "samples_per_iteration")
     n_check_states = check_positive_int(n_check_states, "n_check_states")
-    check_nonnegative_int(seed, "seed")
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
+        raise ValueError(f"seed: expected a non-negative integer, got {seed!r}")
     if not (math.isfinite(exploration_std) and exploration_std >= 0.0):
         raise ValueError(f"exploration_std: expected a finite value >= 0, got {exploration_std!r}")
     if not (reset_norm > 0.0):

@@ -55,7 +55,7 @@ from mixedrl.checks import check_nonnegative_int, check_positive_int
 from mixedrl.envs import DoubleLaneChangeConfig, DoubleLaneChangeModel, TrackingResult, evaluate_tracking
 from mixedrl.runs import atomic_write_text
 from mixedrl.tasks import DoubleLaneChangeTask
-from validation.lq import discounted_lq_optimum
+from mixedrl.lq import discounted_lq_optimum
 
 __all__ = [
     "CONTROLLERS",
@@ -817,7 +817,7 @@ class AffineLQR:
 
 
 def discounted_lqr(A: Any, B: Any, Q: Any, R: Any, gamma: float, mu: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The discounted LQ optimum as ``(L, l0, S)``: :func:`validation.lq.discounted_lq_optimum` for ``gamma`` in (0, 1].
+    """The discounted LQ optimum as ``(L, l0, S)``: :func:`mixedrl.lq.discounted_lq_optimum` for ``gamma`` in (0, 1].
 
     For ``x' = A x + B u + xi``, ``E xi = mu``, ``l = x'^T Q x' + u^T R u``, policy ``u = -L x - l0``
     (EQUATIONS.md, last section).

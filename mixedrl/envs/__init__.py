@@ -3,27 +3,26 @@
 Importing this package registers the Gymnasium id ``mixedrl/DoubleLaneChange-v0``
 (:class:`~mixedrl.envs.dlc_env.DoubleLaneChangeEnv`).
 
-Planning API (torch, batched): :class:`~mixedrl.envs.tracking.DoubleLaneChangeModel` (``step`` = the
-shared deterministic ``f``, ``observe``, ``cost``, ``reset_states``, ``NOISE_INDEX``); data collection:
-:class:`~mixedrl.envs.tracking.DoubleLaneChangeVectorEnv` (same ``f`` plus the true noise) or the
+Configuration: :class:`~mixedrl.envs.dlc_config.DoubleLaneChangeConfig` (the environment) and
+:class:`~mixedrl.envs.dlc_config.DoubleLaneChangeTaskConfig` (the same with the discount and the prior:
+a run's ``task``), with the true force :class:`~mixedrl.envs.disturbance.Disturbance` and the
+:class:`~mixedrl.envs.dlc_config.CostWeights` of eq. (54). Planning API (torch, batched):
+:class:`~mixedrl.envs.model.DoubleLaneChangeModel` (``step`` = the shared deterministic ``f``,
+``observe``, ``cost``, ``reset_states``, ``NOISE_INDEX``); data collection:
+:class:`~mixedrl.envs.vector_env.DoubleLaneChangeVectorEnv` (same ``f`` plus the true noise) or the
 Gymnasium env; Table I metrics: :func:`~mixedrl.envs.evaluation.evaluate_tracking`.
+:mod:`mixedrl.envs.tracking` gathers these names (and says how the reference enters).
 """
 
 import gymnasium as gym
 
+from mixedrl.envs.disturbance import Disturbance
+from mixedrl.envs.dlc_config import CostWeights, DoubleLaneChangeConfig, DoubleLaneChangeTaskConfig, make_config
 from mixedrl.envs.dlc_env import DoubleLaneChangeEnv
 from mixedrl.envs.evaluation import TrackingResult, evaluate_tracking
+from mixedrl.envs.model import ACTION_DIM, NOISE_INDEX, STATE_DIM, DoubleLaneChangeModel
 from mixedrl.envs.reference import DoubleLaneChangeReference
-from mixedrl.envs.tracking import (
-    ACTION_DIM,
-    NOISE_INDEX,
-    STATE_DIM,
-    Disturbance,
-    DoubleLaneChangeConfig,
-    DoubleLaneChangeModel,
-    DoubleLaneChangeVectorEnv,
-    make_config,
-)
+from mixedrl.envs.vector_env import DoubleLaneChangeVectorEnv
 from mixedrl.envs.vehicle import VehicleDynamics, VehicleParams, fiala_lateral_force
 
 __all__ = [
@@ -31,11 +30,13 @@ __all__ = [
     "ACTION_DIM",
     "NOISE_INDEX",
     "STATE_DIM",
+    "CostWeights",
     "Disturbance",
     "DoubleLaneChangeConfig",
     "DoubleLaneChangeEnv",
     "DoubleLaneChangeModel",
     "DoubleLaneChangeReference",
+    "DoubleLaneChangeTaskConfig",
     "DoubleLaneChangeVectorEnv",
     "TrackingResult",
     "VehicleDynamics",

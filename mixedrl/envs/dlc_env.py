@@ -14,16 +14,9 @@ import numpy as np
 from gymnasium import spaces
 
 from mixedrl.checks import as_vector, check_unknown_keys
-from mixedrl.envs.tracking import (
-    STATE_DIM,
-    DoubleLaneChangeConfig,
-    DoubleLaneChangeModel,
-    make_config,
-    observation_columns,
-    observation_from_errors,
-    stage_cost,
-    tracking_errors,
-)
+from mixedrl.envs.columns import observation_columns, observation_from_errors, stage_cost, tracking_errors
+from mixedrl.envs.dlc_config import DoubleLaneChangeConfig, make_config
+from mixedrl.envs.model import STATE_DIM, DoubleLaneChangeModel
 
 __all__ = ["DoubleLaneChangeEnv"]
 
@@ -66,7 +59,7 @@ class DoubleLaneChangeEnv(gym.Env):
     env call), with ``F_dis`` drawn from ``self.np_random``. ``disturbance={"law": ...}`` selects the
     law of ``F_dis`` with the same mean and variance: ``"gaussian"`` (default), ``"student_t"`` (``dof``
     degrees of freedom, rescaled to the variance) or ``"bumps"`` (mean -+ standard deviation, probability
-    1/2 each); see :class:`~mixedrl.envs.tracking.Disturbance`.
+    1/2 each); see :class:`~mixedrl.envs.disturbance.Disturbance`.
 
     **Action Space.** ``Box(-1, 1, (2,), float64)``, *normalised* (as Gymnasium's checker asks): the
     physical input is ``u = [delta, a_x] = a * [delta_max, ax_max]``, front wheel angle ``delta`` [rad]
@@ -96,7 +89,7 @@ class DoubleLaneChangeEnv(gym.Env):
     episode without :meth:`reset` raises ``RuntimeError``.
 
     **Arguments.** ``gym.make("mixedrl/DoubleLaneChange-v0", config=None, **overrides)``: any field of
-    :class:`~mixedrl.envs.tracking.DoubleLaneChangeConfig` (``disturbance``, ``reference`` and
+    :class:`~mixedrl.envs.dlc_config.DoubleLaneChangeConfig` (``disturbance``, ``reference``, ``cost`` and
     ``params`` also as dicts); unknown keys raise ``ValueError``.
 
     **Version History.** v0: initial version.

@@ -10,7 +10,7 @@ import torch
 
 from mixedrl.checks import as_vector, check_positive_int
 from mixedrl.envs.dlc_env import DoubleLaneChangeEnv
-from mixedrl.envs.tracking import DoubleLaneChangeConfig
+from mixedrl.envs.dlc_config import DoubleLaneChangeConfig
 
 __all__ = ["TrackingResult", "evaluate_tracking"]
 

@@ -1,0 +1,220 @@
+"""The random longitudinal disturbance of the double lane change: ``F_dis`` (eq. 53) and its laws.
+
+:class:`Disturbance` is the one description of the true force: the environments draw from it
+(:meth:`~mixedrl.envs.model.DoubleLaneChangeModel.sample_force`) and a run's configuration holds it as
+``task.disturbance`` (:class:`mixedrl.config.ForceDisturbanceConfig` is the same class). Its noise on
+``v_x`` is ``xi = F_dis T / m`` (eq. 54).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import torch
+
+from mixedrl.checks import check_number
+
+__all__ = ["DISTURBANCE_LAWS", "Disturbance"]
+
+#: Laws of the true disturbance a task configuration may name (the IBE itself assumes a Gaussian):
+#: ``"gaussian"`` (the paper's), ``"student_t"`` (heavy tails, ``dof`` degrees of freedom) and ``"bumps"`` (a
+#: symmetric two-point law), all with the configured mean and variance (:class:`Disturbance`).
+#: The double lane change simulates all three; the linear task only ``"gaussian"``.
+DISTURBANCE_LAWS = ("gaussian", "student_t", "bumps")
+
+
+@dataclass(frozen=True)
+class Disturbance:
+    """Random longitudinal disturbance force ``F_dis`` (eq. 53) and its noise ``xi = F_dis T / m`` (eq. 54).
+
+    Attributes
+    ----------
+    law : str
+        Distribution of ``F_dis`` around its mean, one of :data:`DISTURBANCE_LAWS`; every
+        law has the mean and the variance below (see Notes). Default ``"gaussian"`` (the paper's).
+    mean : float
+        Mean force on a level road [N]. Paper: 261.
+    variance : float
+        Variance of ``F_dis`` [N^2]. Paper: 32 (``N(mean, covariance)``; EQUATIONS.md, point 7).
+    dof : float
+        Degrees of freedom ``nu`` of the ``"student_t"`` law (> 2, so that the variance is finite);
+        ignored by the other laws. Default 3.
+    grade_amplitude : float
+        Amplitude of an optional road grade angle [rad]; 0 (default) gives the paper's constant mean.
+    grade_wavelength : float
+        Wavelength of the grade along ``X`` [m]. Default 40.
+    grade_phase : float
+        Phase of the grade [rad]. Default 0.
+
+    Raises
+    ------
+    ValueError
+        An unknown ``law`` (the message lists the allowed ones), non-finite fields, a negative
+        variance, a non-positive wavelength, or ``dof <= 2``.
+
+    Notes
+    -----
+    State-dependent mean (for the Case-3 estimator, eq. 19): with a road grade
+    ``theta(X) = grade_amplitude * sin(2 pi X / grade_wavelength + grade_phase)`` the mean force is
+    ``mean - m g sin(theta(X))`` (an uphill grade slows the car), evaluated at the state *before* the
+    step. ``F_dis`` has that mean and variance ``variance``, independent across steps:
+
+    .. math:: F_{dis} = \\bar F(X) + \\sigma z, \\qquad E z = 0, \\quad \\mathrm{Var}\\, z = 1,
+
+    with the standardised draw ``z`` of the law (:meth:`standard_noise`):
+
+    * ``"gaussian"``: ``z ~ N(0, 1)`` (the paper's ``N(261, 32)``); excess kurtosis 0;
+    * ``"student_t"``: ``z = t sqrt((nu - 2) / nu)``, ``t`` Student-t with ``nu = dof`` degrees of
+      freedom (variance ``nu / (nu - 2)``, hence the rescale), i.e. ``F_dis`` is Student-t with scale
+      ``sqrt(variance (nu - 2) / nu)``; heavy tails: excess kurtosis ``6 / (nu - 4)`` for ``nu > 4``,
+      infinite for ``2 < nu <= 4``;
+    * ``"bumps"``: ``z = -1`` or ``+1`` with probability 1/2 each, i.e. ``F_dis = mean -+ sqrt(variance)``
+      (a symmetric two-point law); excess kurtosis -2, the smallest of any law.
+
+    The planners (IBE, prior, oracle) model the noise as a Gaussian; only the true environment draws
+    from the law.
+    """
+
+    law: str = "gaussian"
+    mean: float = 261.0
+    variance: float = 32.0
+    dof: float = 3.0
+    grade_amplitude: float = 0.0
+    grade_wavelength: float = 40.0
+    grade_phase: float = 0.0
+
+    def __post_init__(self) -> None:
+        if self.law not in DISTURBANCE_LAWS:
+            raise ValueError(f"law: expected one of {DISTURBANCE_LAWS}, got {self.law!r}")
+        for f in dataclasses.fields(self):
+            if f.name != "law":
+                object.__setattr__(self, f.name, check_number(
+                    getattr(self, f.name), f.name, positive=f.name == "grade_wavelength",
+                    nonneg=f.name == "variance"))
+        if not self.dof > 2.0:
+            raise ValueError(f"dof: expected a number > 2 (the Student-t variance is finite only then), "
+                             f"got {self.dof!r}")
+
+    @property
+    def std(self) -> float:
+        """Standard deviation of ``F_dis`` [N] (every law)."""
+        return math.sqrt(self.variance)
+
+    def standard_noise(self, generator: torch.Generator | np.random.Generator | None,
+                       shape: tuple[int, ...] | None = None, *, dtype: torch.dtype = torch.float64,
+                       device: str | torch.device = "cpu") -> Any:
+        """Draw the law's standardised noise ``z`` (mean 0, variance 1; class Notes) from ``generator``.
+
+        .. math:: F_{dis} = \\bar F(X) + \\sigma z
+
+        Parameters
+        ----------
+        generator : torch.Generator, numpy.random.Generator or None
+            A :class:`torch.Generator` (or None: torch's global generator) draws a tensor; a
+            :class:`numpy.random.Generator` draws a numpy array (or a float when ``shape`` is None).
+        shape : tuple of int, optional
+            Shape of the draw; None draws one float (numpy generators only).
+        dtype, device
+            Of a torch draw.
+
+        Returns
+        -------
+        torch.Tensor, numpy.ndarray or float
+            ``z``, of shape ``shape``.
+
+        Raises
+        ------
+        ValueError
+            ``generator`` is neither a torch nor a numpy generator, or ``shape`` is None with a torch one.
+
+        Notes
+        -----
+        The Gaussian law draws exactly what the package drew before the other laws existed
+        (``torch.randn`` / ``Generator.standard_normal``, one normal per state, in order), so every
+        published number is unchanged. The Student-t draw uses ``Generator.standard_t`` on numpy and
+        Bailey's polar method on torch (uniform pairs ``(U, V)`` in the unit disc, ``W = U^2 + V^2``,
+        ``t = U sqrt(nu (W^(-2/nu) - 1) / W)``, exact for any ``nu > 0``; R. W. Bailey, Math. Comp. 62
+        (1994) 779-781), since torch has no Student-t sampler that takes a generator. The two-point law
+        draws one uniform per state: ``z = -1`` if it is below 1/2, else ``+1``.
+        """
+        if generator is None or isinstance(generator, torch.Generator):
+            if shape is None:
+                raise ValueError("shape: a torch draw needs a shape")
+            return _standard_noise_torch(self, tuple(shape), generator, dtype, device)
+        if not isinstance(generator, np.random.Generator):
+            raise ValueError(f"generator: expected a torch.Generator or a numpy.random.Generator, got "
+                             f"{type(generator).__name__}")
+        if self.law == "gaussian":
+            return generator.standard_normal(shape)
+        if self.law == "student_t":
+            # z = t sqrt((nu - 2) / nu), t ~ Student-t(nu): variance 1
+            return generator.standard_t(self.dof, shape) * math.sqrt((self.dof - 2.0) / self.dof)
+        u = generator.random(shape)
+        if shape is None:
+            return -1.0 if u < 0.5 else 1.0
+        return np.where(u < 0.5, -1.0, 1.0)
+
+    def mean_force(self, X: Any, m: float, g: float) -> Any:
+        """Mean disturbance force at longitudinal position ``X`` [N].
+
+        Parameters
+        ----------
+        X : float, numpy.ndarray or torch.Tensor, shape (...)
+            Longitudinal position [m].
+        m, g : float
+            Vehicle mass [kg] and gravity [m/s^2].
+
+        Returns
+        -------
+        float, numpy.ndarray or torch.Tensor, shape (...)
+            ``mean - m g sin(theta(X))``; a float ``mean`` when there is no grade.
+        """
+        if self.grade_amplitude == 0.0:
+            if isinstance(X, torch.Tensor):
+                return torch.full_like(X, self.mean)
+            if isinstance(X, np.ndarray):
+                return np.full_like(X, self.mean, dtype=np.float64)
+            return self.mean
+        ops = torch if isinstance(X, torch.Tensor) else (np if isinstance(X, np.ndarray) else math)
+        theta = self.grade_amplitude * ops.sin(2.0 * math.pi / self.grade_wavelength * X + self.grade_phase)
+        return self.mean - m * g * ops.sin(theta)
+
+
+
+def _student_t_torch(dof: float, n: int, generator: torch.Generator | None, device: str | torch.device
+                     ) -> torch.Tensor:
+    """``n`` Student-t draws with ``dof`` degrees of freedom (float64), Bailey's polar method."""
+    out = torch.empty(n, dtype=torch.float64, device=device)
+    filled = 0
+    while filled < n:
+        need = n - filled
+        # (U, V) uniform in the square, kept when inside the unit disc (probability pi / 4)
+        uv = 2.0 * torch.rand(need + need // 3 + 16, 2, generator=generator, dtype=torch.float64, device=device) - 1.0
+        w = (uv * uv).sum(dim=-1)
+        keep = (w > 0.0) & (w <= 1.0)
+        u, w = uv[keep, 0], w[keep]
+        # t = U sqrt(nu (W^(-2/nu) - 1) / W)   (Bailey 1994)
+        t = u * torch.sqrt(dof * (w.pow(-2.0 / dof) - 1.0) / w)
+        take = min(need, t.numel())
+        out[filled:filled + take] = t[:take]
+        filled += take
+    return out
+
+
+def _standard_noise_torch(dist: Disturbance, shape: tuple[int, ...], generator: torch.Generator | None,
+                          dtype: torch.dtype, device: str | torch.device) -> torch.Tensor:
+    if dist.law == "gaussian":
+        return torch.randn(shape, generator=generator, dtype=dtype, device=device)
+    n = math.prod(shape)
+    if dist.law == "student_t":
+        # z = t sqrt((nu - 2) / nu): variance 1
+        z = _student_t_torch(dist.dof, n, generator, device) * math.sqrt((dist.dof - 2.0) / dist.dof)
+    else:  # "bumps": z = -1 or +1 with probability 1/2 each
+        u = torch.rand(n, generator=generator, dtype=torch.float64, device=device)
+        z = torch.where(u < 0.5, -1.0, 1.0).to(torch.float64)
+    return z.reshape(shape).to(dtype)
+
