@@ -830,7 +830,7 @@ LEGACY_KEYS: dict[str, str] = {
         "iterations", "batch_size", "horizon", "hidden_sizes", "activation", "value_output", "critic_lr",
         "actor_lr", "lr_decay_to", "lr_decay_iterations", "grad_clip", "expectation", "noise_samples", "j_max",
         "mvc_check", "stop_epsilon", "stop_patience", "ibe_recursion", "ibe_case", "batch_weighting",
-        "batch_weight_offset", "actor_average", "bellman_steps")},
+        "batch_weight_offset", "actor_average")},
     **{f"ddpg_{name}": f"ddpg.{name}" for name in ("envs", "buffer_size", "warmup", "tau", "noise_std")},
     **{name: f"run.{name}" for name in ("eval_every", "eval_seeds", "checkpoint_every", "num_threads")},
     "state_source": "sampler.name",

@@ -20,7 +20,7 @@ Every ``--track`` iterations ``u(0)`` and ``u_h(0)`` are printed, to see them co
 Usage::
 
     OMP_NUM_THREADS=1 PYTHONPATH=$PWD python scripts/precision_study.py --methods mixed model oracle \\
-        --seeds 0 1 2 --iterations 1500 [--set batch_weighting=relative ...]
+        --seeds 0 1 2 --iterations 1500 [--set algorithm.bellman_steps=10 ...]
 """
 
 from __future__ import annotations
@@ -89,7 +89,12 @@ def run(method: str, seed: int, iterations: int, overrides: dict, track: int) ->
     flat = dict(method=method, task="linear", seed=seed, iterations=iterations, batch_size=256, horizon=100,
                 model_course_fraction=0.0, model_course_horizon=100, model_kick_prob=0.0,
                 model_box=3.0, batch_weighting="relative", lr_decay_iterations=iterations, eval_every=300)
-    flat.update(overrides)
+    for key, value in overrides.items():  # "section.field" keys (e.g. algorithm.bellman_steps) or old flat keys
+        if "." in key:
+            section, name = key.split(".", 1)
+            flat.setdefault(section, {})[name] = value
+        else:
+            flat[key] = value
     config = TrainConfig(**flat)
     agent = AGPI(task, config)
     zero = torch.zeros(1, 2)
@@ -132,7 +137,7 @@ def main() -> None:
     parser.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
     parser.add_argument("--iterations", type=int, default=1500)
     parser.add_argument("--track", type=int, default=0, help="print u(0) every this many iterations")
-    parser.add_argument("--set", nargs="*", default=[], help="field=value overrides (TrainConfig flat keys, e.g. batch_weighting=relative)")
+    parser.add_argument("--set", nargs="*", default=[], help="key=value overrides: section.field (algorithm.bellman_steps=10) or an old flat key")
     parser.add_argument("--json", default="", help="append the rows to this JSON-lines file")
     args = parser.parse_args()
     overrides = {kv.split("=", 1)[0]: parse_value(kv.split("=", 1)[1]) for kv in args.set}

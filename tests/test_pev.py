@@ -148,7 +148,8 @@ def test_bellman_steps_config_default_and_checks() -> None:
     from mixedrl.config import AlgorithmConfig, TrainConfig
 
     assert AlgorithmConfig().bellman_steps == 1    # the paper's one-step h (eq. 37)
-    assert TrainConfig(method="mixed", task="linear", seed=0, bellman_steps=4).algorithm.bellman_steps == 4
+    cfg = TrainConfig(method="mixed", task="linear", seed=0, algorithm={"bellman_steps": 4})
+    assert cfg.algorithm.bellman_steps == 4 and TrainConfig.from_dict(cfg.to_dict()).algorithm.bellman_steps == 4
     for bad in (0, -2, 2.5):
         with pytest.raises(ValueError, match="algorithm.bellman_steps"):
             AlgorithmConfig(bellman_steps=bad)
