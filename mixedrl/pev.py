@@ -264,9 +264,10 @@ def h_steps(task: Any, critic: torch.nn.Module, actor: torch.nn.Module | None, s
     Notes
     -----
     A departure from the paper, whose PEV and PIM use the one-step ``h`` (``algorithm.bellman_steps = 1``,
-    the default). With ``n`` steps the critic enters the target only through ``gamma^(n-1) V(x_n)``: its
-    error near the equilibrium, where a constant disturbance's feed-forward is decided, weighs ``gamma^(n-1)``
-    times less, and the cost of a steady offset is charged by the model itself on ``n - 1`` steps. The
+    the default). With ``n`` steps the critic enters the target only through ``gamma^n V(x_n)``: its
+    error near the equilibrium, where a constant disturbance's feed-forward is decided, is weighted by
+    ``gamma^n`` instead of ``gamma``, and the cost of a steady offset is charged by the model itself on
+    ``n`` steps. The
     steps before the last use the noise mean only (certainty equivalence); for additive noise and a
     quadratic utility on linear dynamics that moves ``h_n`` by a constant, which changes neither
     minimiser nor semi-gradient.
