@@ -403,9 +403,18 @@ class AlgorithmConfig:
     and the gradient steps. 0 (the default) = no averaging. The window is about ``1 / (1 - beta)``
     iterations."""
 
+    bellman_steps: int = 1
+    """Departure (precision add-on): model steps ``n`` of the Bellman operator in PEV and PIM. 1 (the
+    default) = the one-step ``h`` of eq. (37), the paper's Algorithm 2. ``n > 1``: the critic's target
+    and the actor's objective are the ``n``-step ``h_n`` on a rollout of the planning model under the
+    actor, the noise at its mean for ``n - 1`` steps and ``V^k`` with the quadrature of ``xi_hat_k``
+    after them (:func:`mixedrl.pev.h_steps`; the actor's gradient back-propagated through the rollout).
+    The same for every method; the MVC (eq. 38) keeps the one-step ``h``."""
+
     def __post_init__(self) -> None:
         w = "algorithm"
-        for name in ("iterations", "batch_size", "horizon", "noise_samples", "j_max", "stop_patience"):
+        for name in ("iterations", "batch_size", "horizon", "noise_samples", "j_max", "stop_patience",
+                     "bellman_steps"):
             setattr(self, name, check_positive_int(getattr(self, name), f"{w}.{name}"))
         self.lr_decay_iterations = check_nonnegative_int(self.lr_decay_iterations, f"{w}.lr_decay_iterations")
         if isinstance(self.hidden_sizes, (str, bytes)) or not isinstance(self.hidden_sizes, (list, tuple)) \

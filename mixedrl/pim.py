@@ -22,6 +22,7 @@ import torch
 
 from mixedrl.checks import as_vector, check_number
 from mixedrl.expectation import h_value
+from mixedrl.pev import h_steps
 from mixedrl.quadratic import AffinePolicy, LinearDynamics, QuadraticCost, QuadraticValue, check_problem
 
 __all__ = ["improve_policy", "ExactPIM", "pim_step", "actor_objective", "actor_step", "MVCResult", "MVCTerms", "mvc_terms", "mvc_check"]
@@ -139,8 +140,8 @@ def pim_step(improve: Callable[[Any, Any], Any], value: Any, noise: Any) -> Any:
 # parameterised PIM (eqs. 51-52)
 # ----------------------------------------------------------------------------------------------------
 def actor_objective(task: Any, critic: torch.nn.Module, actor: torch.nn.Module, s: torch.Tensor,
-                    offsets: torch.Tensor, weights: torch.Tensor, relative_offset: float | None = None
-                    ) -> torch.Tensor:
+                    offsets: torch.Tensor, weights: torch.Tensor, relative_offset: float | None = None,
+                    steps: int = 1) -> torch.Tensor:
     """Implements eqs. (51)-(52): the PIM objective, differentiated through the model ``f``.
 
     .. math::
@@ -167,6 +168,10 @@ def actor_objective(task: Any, critic: torch.nn.Module, actor: torch.nn.Module, 
         are not outweighed by far ones (``TrainConfig.batch_weighting = "relative"``). A positive
         weight per state does not move the minimiser of ``h`` at any state: it changes which states
         the batch gradient favours, as another state distribution of the batch would.
+    steps : int, optional
+        Model steps of the objective (:func:`mixedrl.pev.h_steps`; ``algorithm.bellman_steps``): 1 =
+        ``h`` of eq. (37), the paper's; ``n > 1`` = the ``n``-step ``h_n``, its gradient back-propagated
+        through the model rollout and the actor at every step.
 
     Returns
     -------
@@ -186,8 +191,8 @@ def actor_objective(task: Any, critic: torch.nn.Module, actor: torch.nn.Module, 
     obs = task.observe(s)
     u = actor(obs)
     scale = float(getattr(task, "value_scale", 1.0))
-    # J_actor = mean_x h(x, pi(x; theta), xi_hat_k)   (eq. 37)
-    h = h_value(task, critic, s, u, offsets, weights)
+    # J_actor = mean_x h(x, pi(x; theta), xi_hat_k)   (eq. 37; h_n if steps > 1)
+    h = h_steps(task, critic, actor, s, u, offsets, weights, steps)
     if relative_offset is None:
         return h.mean() / scale
     with torch.no_grad():
@@ -199,7 +204,7 @@ def actor_objective(task: Any, critic: torch.nn.Module, actor: torch.nn.Module, 
 
 def actor_step(task: Any, critic: torch.nn.Module, actor: torch.nn.Module, optimizer: torch.optim.Optimizer,
                s: torch.Tensor, offsets: torch.Tensor, weights: torch.Tensor, grad_clip: float,
-               relative_offset: float | None = None) -> float:
+               relative_offset: float | None = None, steps: int = 1) -> float:
     """Implements eqs. (51)-(52): PIM, one gradient step of the actor under ``xi_hat_k``.
 
     .. math:: \\theta^{k+1} = \\theta^k - \\beta\\, \\partial J_{\\rm actor} / \\partial \\theta
@@ -222,6 +227,8 @@ def actor_step(task: Any, critic: torch.nn.Module, actor: torch.nn.Module, optim
         Largest gradient norm.
     relative_offset : float or None, optional
         See :func:`actor_objective`.
+    steps : int, optional
+        See :func:`actor_objective`.
 
     Returns
     -------
@@ -236,7 +243,7 @@ def actor_step(task: Any, critic: torch.nn.Module, actor: torch.nn.Module, optim
     for p in critic.parameters():
         p.requires_grad_(False)
     try:
-        obj = actor_objective(task, critic, actor, s, offsets, weights, relative_offset)
+        obj = actor_objective(task, critic, actor, s, offsets, weights, relative_offset, steps)
         optimizer.zero_grad(set_to_none=True)
         obj.backward()
         torch.nn.utils.clip_grad_norm_(actor.parameters(), grad_clip)

@@ -102,3 +102,54 @@ def test_relative_critic_loss_weights_each_state_by_its_target() -> None:
     for bad in (0.0, -1.0, float("nan")):
         with pytest.raises(ValueError, match="relative_offset"):
             critic_loss(task, V, s, u, d, w, relative_offset=bad)
+
+
+def test_h_steps_on_an_lq_problem_is_the_value_minus_the_skipped_variance_terms() -> None:
+    """algorithm.bellman_steps = n: for an affine policy and its exact value V (eq. 21), the n-step h_n
+    of :func:`h_steps` on the certainty-equivalent rollout is V(x) - sum_{i<n-1} gamma^i tr((Q + gamma P) K)
+    at every x (the steps before the last use the noise mean only), and h_1 = h of eq. (37) = V."""
+    from mixedrl.pev import h_steps
+    from mixedrl.pim import improve_policy
+
+    task = LinearTask()
+    mu, K = np.array([0.1, 0.5]), np.array([[0.02, 0.005], [0.005, 0.03]])
+    dyn, cost = LinearDynamics(task.A, task.B), QuadraticCost(task.Q, task.R)
+    policy = improve_policy(dyn, cost, task.gamma, evaluate_policy(dyn, cost, task.gamma,
+                            AffinePolicy(np.zeros((1, 2)), np.zeros(1)), mu, K), mu)
+    V = evaluate_policy(dyn, cost, task.gamma, policy, mu, K)
+    P, p, c = (torch.tensor(a) for a in (V.P, V.p, V.c))
+    L, l0 = torch.tensor(policy.L), torch.tensor(policy.l0)
+
+    def critic(z: torch.Tensor) -> torch.Tensor:
+        return torch.einsum("bi,ij,bj->b", z, P, z) + 2.0 * z @ p + c
+
+    def actor(z: torch.Tensor) -> torch.Tensor:
+        return -(z @ L.T) - l0
+
+    s = torch.tensor([[1.0, -0.5], [0.2, 0.8], [-1.0, 0.3], [0.0, 0.0]], dtype=torch.float64)
+    d, w = expectation_nodes(mu, K, task.noise_matrix, "sigma", dtype=torch.float64)
+    skipped = float(np.sum((task.Q + task.gamma * V.P) * K))   # tr(S K) per certainty-equivalent step
+    # V satisfies eq. (21) to the precision of its linear solves: the one-step Bellman residual |h_1 - V|
+    # (the n = 1 case, which is eq. 37 itself); each of the n - 1 steps may add one such residual
+    residual = float((h_steps(task, critic, actor, s, actor(s), d, w, 1) - critic(s)).abs().max())
+    assert residual < 1e-8 * float(critic(s).abs().max())
+    for n in (2, 5):
+        h_n = h_steps(task, critic, actor, s, actor(s), d, w, n)
+        expected = critic(s) - sum(task.gamma**i for i in range(n - 1)) * skipped
+        np.testing.assert_allclose(h_n.numpy(), expected.numpy(), rtol=0, atol=2 * n * residual + 1e-12)
+    for bad in (0, 1.5, True):
+        with pytest.raises(ValueError, match="^steps"):
+            h_steps(task, critic, actor, s, actor(s), d, w, bad)
+    with pytest.raises(ValueError, match="^actor"):
+        h_steps(task, critic, None, s, actor(s), d, w, 3)
+
+
+def test_bellman_steps_config_default_and_checks() -> None:
+    from mixedrl.config import AlgorithmConfig, TrainConfig
+
+    assert AlgorithmConfig().bellman_steps == 1    # the paper's one-step h (eq. 37)
+    cfg = TrainConfig(method="mixed", task="linear", seed=0, algorithm={"bellman_steps": 4})
+    assert cfg.algorithm.bellman_steps == 4 and TrainConfig.from_dict(cfg.to_dict()).algorithm.bellman_steps == 4
+    for bad in (0, -2, 2.5):
+        with pytest.raises(ValueError, match="algorithm.bellman_steps"):
+            AlgorithmConfig(bellman_steps=bad)

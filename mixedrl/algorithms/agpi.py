@@ -288,7 +288,7 @@ class AGPI:
             ``critic_lr`` decayed linearly, gradient norm clipped at ``grad_clip``).
         """
         return critic_step(self.task, self.critic, self.actor, self.critic_opt, s, offsets, weights,
-                           self.config.algorithm.grad_clip, self.relative_offset)
+                           self.config.algorithm.grad_clip, self.relative_offset, self.config.algorithm.bellman_steps)
 
     def pim(self, s: torch.Tensor, offsets: torch.Tensor, weights: torch.Tensor) -> float:
         """Implements eqs. (51)-(52): PIM, one gradient step of the actor under ``xi_hat_k``.
@@ -309,7 +309,7 @@ class AGPI:
             decayed linearly, gradient clipping, critic frozen).
         """
         return actor_step(self.task, self.critic, self.actor, self.actor_opt, s, offsets, weights,
-                          self.config.algorithm.grad_clip, self.relative_offset)
+                          self.config.algorithm.grad_clip, self.relative_offset, self.config.algorithm.bellman_steps)
 
     def ibe(self, residuals: torch.Tensor) -> None:
         """Implements eq. (20): the IBE update ``[mu_k, K_k] = IBE(mu_{k-1}, K_{k-1}, xi^D_k)`` (eq. 13).
