@@ -794,7 +794,7 @@ class DoubleLaneChangeTask(Task):
         self.true_cov[vx, vx] = cfg.disturbance.variance * scale**2
         self.true_mean_varies = cfg.disturbance.grade_amplitude != 0.0
         self.action_bound = torch.tensor(self.model.action_bound, dtype=torch.float32)
-        scales = [0.3, 0.2, 0.5, 0.1, 0.5] + [2.0] * (self.obs_dim - 5)
+        scales = [0.3, 0.2, 0.5, 0.1, 0.5] + [2.0] * (self.obs_dim - 5) if cfg.obs_scale is None else cfg.obs_scale
         self.obs_scale = torch.tensor(scales, dtype=torch.float32)
         self.value_scale = 1.0
 

@@ -106,17 +106,39 @@ OLD_PREVIEW_DESIGNS = {"M": "start", "S": "along"}
 
 def test_preview_spec_reproduces_the_old_config_of() -> None:
     runs = expand(load_spec(ROOT / "studies" / "preview.toml"))
-    assert len(runs) == (len(OLD_PREVIEW) * len(OLD_PREVIEW_DESIGNS) + 3) * 5
+    assert len(runs) == (len(OLD_PREVIEW) * len(OLD_PREVIEW_DESIGNS) + 3 + 1) * 5
     for run in runs:
         design, candidate = run.point["variant"].split("_", 1)
         candidate, _, budget = candidate.partition("_n")
         n = int(budget or 1500)
+        if candidate == "P12s":
+            continue  # test_preview_spec_p12s_is_the_old_patched_obs_scale
         # the old config_of(candidate, method, seed, iterations=n, design=design)
         old = TrainConfig().replace(method=run.config.method, seed=run.config.seed, iterations=n,
                                     eval_every=max(100, n // 5), checkpoint_every=n, num_threads=1,
                                     model_course_starts=OLD_PREVIEW_DESIGNS[design],
                                     **{"task.preview_distances": OLD_PREVIEW[candidate]})
         assert run.config == old, run.name
+
+
+def test_preview_spec_p12s_is_the_old_patched_obs_scale() -> None:
+    """M_P12s: P12 under design M with ``task.obs_scale`` set; the task it builds has the observation scale the
+    old ``make_task("P12s", cfg)`` patched in after building (``cat(obs_scale[:5], preview_scale(task))``)."""
+    import torch
+
+    from mixedrl.tasks import task_from_config
+    from validation.preview import preview_scale
+
+    runs = [r for r in expand(load_spec(ROOT / "studies" / "preview.toml")) if r.point["variant"] == "M_P12s"]
+    assert len(runs) == 5
+    for run in runs:
+        old = TrainConfig().replace(method=run.config.method, seed=run.config.seed, iterations=1500,
+                                    eval_every=300, checkpoint_every=1500, num_threads=1, model_course_starts="start",
+                                    **{"task.preview_distances": OLD_PREVIEW["P12"]})
+        assert run.config.replace(**{"task.obs_scale": None}) == old, run.name
+        task, plain = task_from_config(run.config.task), task_from_config(old.task)
+        assert torch.equal(task.obs_scale, torch.cat([plain.obs_scale[:5], preview_scale(plain)]))
+        assert not torch.equal(task.obs_scale, plain.obs_scale)
 
 
 def test_preview_study_ships_a_sweep_directory(tmp_path: Path) -> None:
