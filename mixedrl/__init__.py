@@ -6,12 +6,14 @@ numbers ``eq. (N)`` everywhere in this package follow ``shared/paper/EQUATIONS.m
 Importing the package imports :mod:`mixedrl.tasks`, which registers the double lane change's experiment
 with the configuration (its course sampler ``"dlc_course"`` in :data:`mixedrl.config.SAMPLERS` and its
 preset in :data:`mixedrl.config.PRESETS`), so that every :class:`~mixedrl.config.TrainConfig` of that
-task sees them.
+task sees them, and :mod:`mixedrl.envs.pendulum`, which registers the pendulum task by name
+(``task.name = "pendulum"``).
 """
 
 import logging
 
 from mixedrl import tasks as _tasks  # noqa: F401  (registers the double lane change's sampler and preset)
+from mixedrl.envs import pendulum as _pendulum  # noqa: F401  (registers the pendulum task by name)
 
 __version__ = "0.1.0"
 

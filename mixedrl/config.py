@@ -79,6 +79,8 @@ __all__ = [
     "GaussianNoiseConfig",
     "CostWeights",
     "task_config",
+    "register_task",
+    "task_names",
     "apply_overrides",
     "flatten_table",
     "METHODS",
@@ -90,7 +92,8 @@ __all__ = [
 
 #: The four methods of the reproduction (mixed RL, model-driven RL, oracle, DDPG).
 METHODS = ("mixed", "model", "oracle", "ddpg")
-#: Tasks a run can be trained on: the double lane change (paper) and a small linear system.
+#: The built-in tasks: the double lane change (paper) and a small linear system. Tasks registered with
+#: :func:`register_task` (the pendulum, a user's own) are listed by :func:`task_names`.
 TASKS = ("dlc", "linear")
 #: Where the course copies of the double lane change's sampler restart
 #: (:attr:`mixedrl.tasks.CourseSampler.course_starts`).
@@ -265,9 +268,45 @@ def _lq_problem(cfg: LinearTaskConfig, mean: Any, cov: Any) -> LQProblem:
         raise ValueError(f"task.{_PROBLEM_KEYS.get(name, name)}:{rest}") from None
 
 
-#: The configuration of a run's task: one of the two classes, selected by ``name``.
+#: The configuration of a run's task: one of the two built-in classes, or a class registered with
+#: :func:`register_task`, selected by ``name``.
 TaskConfig = Union[DoubleLaneChangeTaskConfig, LinearTaskConfig]
 _TASK_CLASSES: dict[str, type] = {"dlc": DoubleLaneChangeTaskConfig, "linear": LinearTaskConfig}
+
+
+def register_task(config_cls: type) -> type:
+    """Register the configuration dataclass of a named task (usable as a decorator).
+
+    The name is the default of the class's ``name`` field; ``TrainConfig(task={"name": ..., ...})``,
+    ``--set task.name=...`` and a sweep specification's ``"task.name"`` then build ``config_cls`` from the
+    other ``task.<field>`` values. The task object itself is built by
+    :func:`mixedrl.tasks.register_task`'s factory (which calls this function).
+
+    Parameters
+    ----------
+    config_cls : type
+        A dataclass with a ``name`` field whose default is the task's name; its ``__post_init__`` checks
+        the values (messages starting with the dotted key ``task.<field>``).
+
+    Raises
+    ------
+    ValueError
+        ``config_cls`` is not a dataclass with a string default for ``name``, or the name is a built-in
+        task's.
+    """
+    fields = {f.name: f for f in dataclasses.fields(config_cls)} if dataclasses.is_dataclass(config_cls) else {}
+    name = fields["name"].default if "name" in fields else None
+    if not isinstance(name, str) or not name:
+        raise ValueError(f"config_cls: expected a dataclass with a string default for 'name', got {config_cls!r}")
+    if name in TASKS:
+        raise ValueError(f"config_cls: the name {name!r} is a built-in task's")
+    _TASK_CLASSES[name] = config_cls
+    return config_cls
+
+
+def task_names() -> tuple[str, ...]:
+    """Names of the tasks a configuration can name: the built-in :data:`TASKS` and the registered ones."""
+    return tuple(_TASK_CLASSES)
 
 
 def task_config(value: Any = "dlc") -> TaskConfig:
@@ -277,19 +316,19 @@ def task_config(value: Any = "dlc") -> TaskConfig:
     Raises
     ------
     ValueError
-        Unknown task name (``task.name``), unknown key (``config: unknown key(s) ['task.<key>']``, e.g. a
-        double-lane-change field given to the linear task) or an invalid value (message starts with the
-        dotted field name).
+        Unknown task name (``task.name``, the message lists :func:`task_names`), unknown key (``config:
+        unknown key(s) ['task.<key>']``, e.g. a double-lane-change field given to the linear task) or an
+        invalid value (message starts with the dotted field name).
     """
-    if isinstance(value, (DoubleLaneChangeTaskConfig, LinearTaskConfig)):
+    if isinstance(value, tuple(_TASK_CLASSES.values())):
         return value
     if isinstance(value, str):
         value = {"name": value}
     if not isinstance(value, dict):
-        raise ValueError(f"task: expected a task name {TASKS} or a dict, got {value!r}")
+        raise ValueError(f"task: expected a task name {task_names()} or a dict, got {value!r}")
     name = value.get("name", "dlc")
     if name not in _TASK_CLASSES:
-        raise ValueError(f"task.name: expected one of {TASKS}, got {name!r}")
+        raise ValueError(f"task.name: expected one of {task_names()}, got {name!r}")
     if name == "dlc":
         return DoubleLaneChangeTaskConfig.from_dict({**value, "name": name}, where="task")
     return _build(_TASK_CLASSES[name], {**value, "name": name}, "task")
@@ -901,11 +940,13 @@ class TrainConfig:
     # ------------------------------------------------------------------ serialisation
     def to_dict(self) -> dict[str, Any]:
         """Return the fields as a JSON-compatible nested dictionary (tuples become lists; ``inf`` a
-        string)."""
+        string; the double lane change's ``task.obs_scale`` left out when it is ``None``, its default)."""
         out = _jsonable(self)
         for section, name in (("algorithm", "grad_clip"), ("sampler", "box")):
             if name in out[section] and math.isinf(out[section][name]):
                 out[section][name] = "inf"
+        if out["task"].get("name") == "dlc" and out["task"].get("obs_scale", 0) is None:
+            del out["task"]["obs_scale"]  # the default: config.json and config hashes as before the field
         return out
 
     @classmethod

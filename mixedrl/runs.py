@@ -61,7 +61,7 @@ from mixedrl.algorithms.ddpg import DDPG
 from mixedrl.checkpoint import (atomic_write_bytes, atomic_write_text, convert_checkpoint, default_file_mode,
                                 digest_path, is_temporary, load_checkpoint, save_checkpoint, verify_digest,
                                 write_with_digest)
-from mixedrl.config import TASKS, TrainConfig, flatten_table
+from mixedrl.config import TrainConfig, flatten_table, task_names
 from mixedrl.precision import run_policy_gap
 from mixedrl.tasks import Task, task_from_config
 from mixedrl.tensorboard import TB_DIR, TensorBoardLogger
@@ -222,12 +222,12 @@ class RunDirectory:
         ------
         ValueError
             No ``config.json``, or one that is not a valid config; one recorded for the user's own task
-            (``task.name`` not a built-in task) is refused with a message naming the task: its
+            (``task.name`` not a built-in or registered task) is refused with a message naming the task: its
             :class:`~mixedrl.tasks.Task` object is needed (read the raw record with :meth:`read_record`).
         """
         record = self.read_record()
         task = record.get("task")
-        if isinstance(task, dict) and set(task) == {"name"} and task["name"] not in TASKS:
+        if isinstance(task, dict) and set(task) == {"name"} and task["name"] not in task_names():
             raise ValueError(f"config: {self.config_path} records the user's own task {task['name']!r}, which "
                              f"no config can rebuild; build it and pass it to make_trainer(config, task)")
         return TrainConfig.load(self.config_path)
@@ -390,7 +390,7 @@ def _saved_record(run: RunDirectory) -> dict[str, Any]:
     """``config.json`` of ``run`` in the form :func:`config_record` writes (old flat files migrated)."""
     record = run.read_record()
     task = record.get("task")
-    if isinstance(task, dict) and set(task) == {"name"} and task["name"] not in TASKS:
+    if isinstance(task, dict) and set(task) == {"name"} and task["name"] not in task_names():
         return record  # the user's own task: written by config_record, already in the sectioned form
     return config_record(run.read_config())
 

@@ -4,7 +4,9 @@ Algorithm 2 (:mod:`mixedrl.algorithms.agpi`) and DDPG (:mod:`mixedrl.algorithms.
 only through this small interface, so they run unchanged on the double lane change
 (:class:`DoubleLaneChangeTask`, Section VI of the paper) and on any user system (:class:`LinearTask`, and
 the tutorial). :func:`task_from_config` builds either from the run's task configuration
-(:class:`mixedrl.config.DoubleLaneChangeTaskConfig`, :class:`mixedrl.config.LinearTaskConfig`).
+(:class:`mixedrl.config.DoubleLaneChangeTaskConfig`, :class:`mixedrl.config.LinearTaskConfig`), and
+any task registered by name with :func:`register_task` (the pendulum of :mod:`mixedrl.envs.pendulum`,
+registered when :mod:`mixedrl` is imported).
 
 The double lane change's experiment lives here with its task: the options of its course sampler
 (:class:`CourseSampler`, ``sampler.name = "dlc_course"``) and its preset (:data:`DLC_EXPERIMENT`), which
@@ -36,12 +38,13 @@ from mixedrl.checks import (as_vector, check_covariance, check_fraction, check_n
                             check_positive_int)
 from mixedrl.config import (MODEL_COURSE_STARTS, DoubleLaneChangeTaskConfig, LinearTaskConfig, ModelRolloutsSampler,
                             TaskConfig, register_preset, register_sampler, task_config)
+from mixedrl.config import register_task as register_task_config
 from mixedrl.envs import DoubleLaneChangeModel, evaluate_tracking, make_config
 from mixedrl.gaussian import sample_gaussian
 from mixedrl.lq import LQProblem
 
 __all__ = ["Task", "LinearTask", "DoubleLaneChangeTask", "CourseSampler", "DLC_EXPERIMENT", "Equilibrium",
-           "Linearisation", "check_task", "make_task", "task_from_config"]
+           "Linearisation", "check_task", "make_task", "register_task", "task_from_config"]
 
 
 
@@ -632,20 +635,50 @@ class LinearTask(Task):
         return {"cost": float(np.mean(costs))}
 
 
-def make_task(name: str, **kwargs: Any) -> Task:
-    """Build a task by name: ``"dlc"`` (:class:`DoubleLaneChangeTask`) or ``"linear"`` (:class:`LinearTask`),
-    with constructor arguments ``kwargs``.
+#: Registered task name -> its :class:`Task` class (built by ``from_config``); :func:`register_task`.
+_TASK_FACTORIES: dict[str, type] = {}
+
+
+def register_task(task_cls: type, config_cls: type) -> type:
+    """Register a named task: its :class:`Task` class and its configuration dataclass.
+
+    ``config_cls`` is registered with :func:`mixedrl.config.register_task` (its ``name`` default is the
+    task's name, which must equal ``task_cls.name``); :func:`task_from_config` and :func:`make_task` then
+    build ``task_cls.from_config(config)``, so a run, a ``--set task.name=...`` override and a sweep
+    specification can name the task.
 
     Raises
     ------
     ValueError
-        ``name`` unknown.
+        ``task_cls`` is not a :class:`Task` subclass with a ``from_config`` class method, or its ``name``
+        is not ``config_cls``'s (and the errors of :func:`mixedrl.config.register_task`).
+    """
+    if not (isinstance(task_cls, type) and issubclass(task_cls, Task) and hasattr(task_cls, "from_config")):
+        raise ValueError(f"task_cls: expected a Task subclass with a from_config class method, got {task_cls!r}")
+    register_task_config(config_cls)
+    name = config_cls().name
+    if getattr(task_cls, "name", None) != name:
+        raise ValueError(f"task_cls: its name {getattr(task_cls, 'name', None)!r} is not the configuration's {name!r}")
+    _TASK_FACTORIES[name] = task_cls
+    return task_cls
+
+
+def make_task(name: str, **kwargs: Any) -> Task:
+    """Build a task by name: ``"dlc"`` (:class:`DoubleLaneChangeTask`), ``"linear"`` (:class:`LinearTask`)
+    or a registered one (:func:`register_task`), with constructor arguments ``kwargs``.
+
+    Raises
+    ------
+    ValueError
+        ``name`` unknown (the message lists the known names).
     """
     if name == "linear":
         return LinearTask(**kwargs)
     if name == "dlc":
         return DoubleLaneChangeTask(**kwargs)
-    raise ValueError(f"name: expected 'dlc' or 'linear', got {name!r}")
+    if name in _TASK_FACTORIES:
+        return _TASK_FACTORIES[name](**kwargs)
+    raise ValueError(f"name: expected one of {('dlc', 'linear', *_TASK_FACTORIES)}, got {name!r}")
 
 
 def task_from_config(config: TaskConfig | dict[str, Any] | str) -> Task:
@@ -653,23 +686,27 @@ def task_from_config(config: TaskConfig | dict[str, Any] | str) -> Task:
 
     Parameters
     ----------
-    config : DoubleLaneChangeTaskConfig, LinearTaskConfig, dict or str
+    config : DoubleLaneChangeTaskConfig, LinearTaskConfig, a registered configuration, dict or str
         The configuration, or anything :func:`mixedrl.config.task_config` accepts (a name, a nested dict).
 
     Returns
     -------
     Task
-        :class:`DoubleLaneChangeTask` or :class:`LinearTask`.
+        :class:`DoubleLaneChangeTask`, :class:`LinearTask` or the registered task class of
+        ``config.name`` (:func:`register_task`).
 
     Raises
     ------
     ValueError
-        An invalid configuration (the message starts with the dotted field name).
+        An invalid configuration (the message starts with the dotted field name), or an unknown task
+        name (``task.name``, listing the known ones).
     """
     config = task_config(config)
     if isinstance(config, DoubleLaneChangeTaskConfig):
         return DoubleLaneChangeTask.from_config(config)
-    return LinearTask.from_config(config)
+    if isinstance(config, LinearTaskConfig):
+        return LinearTask.from_config(config)
+    return _TASK_FACTORIES[config.name].from_config(config)
 
 
 class DoubleLaneChangeTask(Task):
@@ -757,7 +794,7 @@ class DoubleLaneChangeTask(Task):
         self.true_cov[vx, vx] = cfg.disturbance.variance * scale**2
         self.true_mean_varies = cfg.disturbance.grade_amplitude != 0.0
         self.action_bound = torch.tensor(self.model.action_bound, dtype=torch.float32)
-        scales = [0.3, 0.2, 0.5, 0.1, 0.5] + [2.0] * (self.obs_dim - 5)
+        scales = [0.3, 0.2, 0.5, 0.1, 0.5] + [2.0] * (self.obs_dim - 5) if cfg.obs_scale is None else cfg.obs_scale
         self.obs_scale = torch.tensor(scales, dtype=torch.float32)
         self.value_scale = 1.0
 

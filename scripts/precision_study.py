@@ -1,12 +1,17 @@
 """Precision study of issue 21 (Build item 2): does the learned actor resolve the feed-forward at the
-equilibrium, and which training option makes it? Analysis and measurement only; prints a table.
+equilibrium, and which training option makes it? Analysis only; prints and ships a table.
 
-For each (method, seed) the pendulum of :mod:`mixedrl.envs.pendulum` is trained with the settings of
-docs/pendulum.rst (plus the ``algorithm.*`` overrides given on the command line), and at the end it
-reports
+The runs are the sweep ``studies/precision_pendulum.toml`` (the pendulum of :mod:`mixedrl.envs.pendulum`,
+``task.name = "pendulum"``, trained with the settings of docs/pendulum.rst, variant ``bellman1``: the
+paper's Algorithm 2, ``bellman10``: ``algorithm.bellman_steps = 10``); this script only analyses them::
 
-* ``theta*``: the steady offset, ``mean_state_0`` of the final evaluation (the seeds of
-  :func:`mixedrl.runs.eval_seeds`, as :func:`mixedrl.runs.train` uses them);
+    mixedrl sweep studies/precision_pendulum.toml --out runs/precision_pendulum
+    PYTHONPATH=. python scripts/precision_study.py ship runs/precision_pendulum [--dest DIR]
+
+For each finished run (its ``config.json``, ``results.json`` and final ``checkpoint.pt``) it reports
+
+* ``theta*``: the steady offset, ``mean_state_0`` of the run's final evaluation (``results.json``: the
+  seeds of :func:`mixedrl.runs.eval_seeds`, as :func:`mixedrl.runs.train` uses them);
 * ``u(0)``: the policy's action at the upright; ``u_lqr(0) = -l0``: the discounted LQR's on the
   linearisation for the noise mean the method plans with, and the steady offset that LQR holds;
 * ``u_h(0)``: the minimiser over ``u`` of the critic's ``h(0, u, xi_hat)`` (eq. 37, on a grid of
@@ -15,29 +20,32 @@ reports
 * the same three actions at the policy's own steady state ``s*`` (the second-half mean of one
   noise-free rollout of the true mean from the upright), where the feed-forward acts.
 
-Every ``--track`` iterations ``u(0)`` and ``u_h(0)`` are printed, to see them converge (or not).
-
-Usage::
-
-    OMP_NUM_THREADS=1 PYTHONPATH=$PWD python scripts/precision_study.py --methods mixed model oracle \\
-        --seeds 0 1 2 --iterations 1500 [--set algorithm.bellman_steps=10 ...]
+``ship`` prints the table and writes ``rows.json`` (one object per run) and ``table.md`` to ``--dest``
+(default ``docs/_static/precision``). (Before the move the script trained the runs itself and could print
+``u(0)`` along training, ``--track``; a sweep keeps only the final checkpoint.)
 """
 
 from __future__ import annotations
 
 import argparse
 import json
-import time
+from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
 
 from mixedrl.algorithms.agpi import AGPI
-from mixedrl.config import TrainConfig
 from mixedrl.envs.pendulum import PendulumTask
 from mixedrl.expectation import h_value
-from mixedrl.runs import eval_seeds
+from mixedrl.runs import RunDirectory, atomic_write_text, load_checkpoint, make_trainer
 from validation.lq import LQProblem, optimal_solution
+
+ROOT = Path(__file__).resolve().parents[1]
+SPEC = ROOT / "studies" / "precision_pendulum.toml"
+OUT = ROOT / "docs" / "_static" / "precision"
+HEADER = ("variant", "method", "seed", "cost", "theta*", "lqr_theta*", "u(0)", "u_lqr(0)", "u_h(0)", "dh/du(0)",
+          "s*", "u(s*)", "u_lqr(s*)", "u_h(s*)", "tau_hat", "sec")
 
 
 def lqr(task: PendulumTask, mean: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
@@ -84,30 +92,20 @@ def own_steady_state(agent: AGPI) -> torch.Tensor:
     return torch.cat(tail).mean(0, keepdim=True).float()
 
 
-def run(method: str, seed: int, iterations: int, overrides: dict, track: int) -> dict:
-    task = PendulumTask()
-    flat = dict(method=method, task="linear", seed=seed, iterations=iterations, batch_size=256, horizon=100,
-                model_course_fraction=0.0, model_course_horizon=100, model_kick_prob=0.0,
-                model_box=3.0, batch_weighting="relative", lr_decay_iterations=iterations, eval_every=300)
-    for key, value in overrides.items():  # "section.field" keys (e.g. algorithm.bellman_steps) or old flat keys
-        if "." in key:
-            section, name = key.split(".", 1)
-            flat.setdefault(section, {})[name] = value
-        else:
-            flat[key] = value
-    config = TrainConfig(**flat)
-    agent = AGPI(task, config)
+def analyse(run_dir: Path, variant: str = "") -> dict[str, Any]:
+    """The row of one finished pendulum run: its final evaluation (``results.json``) and the actions of its
+    final checkpoint at the upright and at its own steady state, against the LQR on the linearisation."""
+    run = RunDirectory(run_dir)
+    config = run.read_config()
+    res = run.read_results()
+    agent = make_trainer(config)
+    if not isinstance(agent, AGPI) or not isinstance(agent.task, PendulumTask):
+        raise ValueError(f"run_dir: {run_dir} is not an Algorithm 2 run on the pendulum (task.name = "
+                         f"{config.task.name!r}, method = {config.method!r})")
+    agent.load_state_dict(load_checkpoint(run.path / "checkpoint.pt")["trainer"])
+    task = agent.task
+    ev = res["final"]
     zero = torch.zeros(1, 2)
-    t0 = time.time()
-    for k in range(iterations):
-        agent.iteration()
-        if track and (k + 1) % track == 0:
-            with torch.no_grad():
-                u0 = float(agent.policy(task.observe(zero))[0, 0])
-            uh, g = critic_argmin(agent, zero)
-            print(f"  [{method} s{seed}] k={k + 1:5d} u(0)={u0:+.3f} u_h(0)={uh:+.3f} dh/du={g:+.2e}", flush=True)
-    elapsed = time.time() - t0
-    ev = task.evaluate(agent.policy, eval_seeds(config))
     mean, _ = agent.noise_moments()
     L, l0, lqr_theta = lqr(task, mean)
     with torch.no_grad():
@@ -118,53 +116,48 @@ def run(method: str, seed: int, iterations: int, overrides: dict, track: int) ->
         uss = float(agent.policy(task.observe(ss))[0, 0])
     uhs, gs = critic_argmin(agent, ss)
     ulqr_ss = float((-(L @ ss.double().numpy()[0]) - l0)[0])
-    return dict(method=method, seed=seed, iterations=iterations, overrides=overrides, cost=ev["cost"],
-                theta=ev["mean_state_0"], terminated=ev["terminated_fraction"], u0=u0, u_lqr0=float(-l0[0]),
-                u_h0=uh0, dhdu0=g0, lqr_theta=lqr_theta, tau_hat=float(task.torque_from_xi(mean[0])),
-                s_star=float(ss[0, 0]), u_ss=uss, u_h_ss=uhs, dhdu_ss=gs, u_lqr_ss=ulqr_ss, seconds=elapsed)
+    return dict(variant=variant, method=config.method, seed=config.seed, iterations=res["iterations"],
+                bellman_steps=config.algorithm.bellman_steps, cost=ev["cost"], theta=ev["mean_state_0"],
+                terminated=ev["terminated_fraction"], u0=u0, u_lqr0=float(-l0[0]), u_h0=uh0, dhdu0=g0,
+                lqr_theta=lqr_theta, tau_hat=float(task.torque_from_xi(mean[0])), s_star=float(ss[0, 0]),
+                u_ss=uss, u_h_ss=uhs, dhdu_ss=gs, u_lqr_ss=ulqr_ss, seconds=res["train_seconds"])
 
 
-def parse_value(text: str):
-    try:
-        return json.loads(text)
-    except json.JSONDecodeError:
-        return text
+def format_row(r: dict[str, Any]) -> str:
+    """One line of the table (the columns of :data:`HEADER`)."""
+    return " | ".join(f"{x}" for x in (
+        r["variant"], r["method"], r["seed"], f"{r['cost']:.3f}", f"{r['theta']:+.4f}", f"{r['lqr_theta']:+.4f}",
+        f"{r['u0']:+.3f}", f"{r['u_lqr0']:+.3f}", f"{r['u_h0']:+.3f}", f"{r['dhdu0']:+.2e}",
+        f"{r['s_star']:+.4f}", f"{r['u_ss']:+.3f}", f"{r['u_lqr_ss']:+.3f}", f"{r['u_h_ss']:+.3f}",
+        f"{r['tau_hat']:.3f}", f"{r['seconds']:.0f}"))
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--methods", nargs="+", default=["mixed", "model", "oracle"])
-    parser.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
-    parser.add_argument("--iterations", type=int, default=1500)
-    parser.add_argument("--track", type=int, default=0, help="print u(0) every this many iterations")
-    parser.add_argument("--set", nargs="*", default=[], help="key=value overrides: section.field (algorithm.bellman_steps=10) or an old flat key")
-    parser.add_argument("--json", default="", help="append the rows to this JSON-lines file")
-    args = parser.parse_args()
-    overrides = {kv.split("=", 1)[0]: parse_value(kv.split("=", 1)[1]) for kv in args.set}
+def ship(args: argparse.Namespace) -> None:
+    """Analyse every finished run of the sweep ``args.sweep_dir``; print the table, write ``rows.json`` and
+    ``table.md`` to ``args.dest``."""
+    doc_path = args.sweep_dir / "sweep.json"
+    if not doc_path.is_file():
+        raise SystemExit(f"ship: {doc_path} does not exist; run: mixedrl sweep {SPEC.relative_to(ROOT)} "
+                         f"--out {args.sweep_dir}")
     torch.set_num_threads(1)
-    header = ("method", "seed", "cost", "theta*", "lqr_theta*", "u(0)", "u_lqr(0)", "u_h(0)", "dh/du(0)",
-              "s*", "u(s*)", "u_lqr(s*)", "u_h(s*)", "tau_hat", "sec")
-    rows = []
-    for method in args.methods:
-        for seed in args.seeds:
-            r = run(method, seed, args.iterations, overrides, args.track)
-            rows.append(r)
-            print(" | ".join(f"{x}" for x in (
-                r["method"], r["seed"], f"{r['cost']:.3f}", f"{r['theta']:+.4f}", f"{r['lqr_theta']:+.4f}",
-                f"{r['u0']:+.3f}", f"{r['u_lqr0']:+.3f}", f"{r['u_h0']:+.3f}", f"{r['dhdu0']:+.2e}",
-                f"{r['s_star']:+.4f}", f"{r['u_ss']:+.3f}", f"{r['u_lqr_ss']:+.3f}", f"{r['u_h_ss']:+.3f}",
-                f"{r['tau_hat']:.3f}", f"{r['seconds']:.0f}")), flush=True)
-            if args.json:
-                with open(args.json, "a") as fh:
-                    fh.write(json.dumps(r) + "\n")
-    print("overrides:", overrides, "iterations:", args.iterations)
-    print(" | ".join(header))
-    for r in rows:
-        print(" | ".join(f"{x}" for x in (
-            r["method"], r["seed"], f"{r['cost']:.3f}", f"{r['theta']:+.4f}", f"{r['lqr_theta']:+.4f}",
-            f"{r['u0']:+.3f}", f"{r['u_lqr0']:+.3f}", f"{r['u_h0']:+.3f}", f"{r['dhdu0']:+.2e}",
-            f"{r['s_star']:+.4f}", f"{r['u_ss']:+.3f}", f"{r['u_lqr_ss']:+.3f}", f"{r['u_h_ss']:+.3f}",
-            f"{r['tau_hat']:.3f}", f"{r['seconds']:.0f}")))
+    finished = [r for r in json.loads(doc_path.read_text())["runs"] if r["error"] is None and r["results"] is not None]
+    rows = [analyse(args.sweep_dir / r["run_dir"], r["point"].get("variant", "")) for r in finished]
+    lines = [" | ".join(HEADER), " | ".join("---" for _ in HEADER)] + [format_row(r) for r in rows]
+    print("\n".join(lines))
+    args.dest.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(args.dest / "rows.json", json.dumps(rows, indent=1) + "\n")
+    atomic_write_text(args.dest / "table.md", "\n".join(lines) + "\n")
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    sub = parser.add_subparsers(dest="command", required=True)
+    p = sub.add_parser("ship", help="analyse the runs of a sweep of studies/precision_pendulum.toml")
+    p.add_argument("sweep_dir", type=Path)
+    p.add_argument("--dest", type=Path, default=OUT)
+    p.set_defaults(func=ship)
+    args = parser.parse_args(argv)
+    args.func(args)
 
 
 if __name__ == "__main__":

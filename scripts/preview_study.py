@@ -62,7 +62,7 @@ CANDIDATES: dict[str, tuple[float, ...]] = {
     "P12s": (2.0, 4.0, 6.0, 8.0, 10.0, 12.0),
 }
 #: Candidates whose preview columns are scaled per distance (:func:`preview_scale`) instead of the task's
-#: 2 m for every preview column.
+#: 2 m for every preview column (in the spec: ``task.obs_scale``, variant ``M_P12s``).
 PER_DISTANCE_SCALE = {"P12s"}
 #: The chosen candidate (docs/references.rst: chosen from the NMPC's evidence, before any training).
 CHOSEN = "P12"

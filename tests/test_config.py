@@ -263,3 +263,26 @@ def test_every_shipped_run_config_migrates_and_round_trips() -> None:
                     (isinstance(value, list) and list(old[key]) == value), (path, key)
         seen += 1
     assert seen >= 300
+
+
+def test_dlc_obs_scale_override() -> None:
+    """``task.obs_scale`` (default ``None``: the task's scales, left out of ``to_dict`` so config.json and
+    config hashes are as before) sets the DLC task's observation scale; its length is checked."""
+    import torch
+
+    from mixedrl.sweep import config_hash
+    from mixedrl.tasks import task_from_config
+
+    default = TrainConfig()
+    assert default.task.obs_scale is None and "obs_scale" not in default.to_dict()["task"]
+    assert TrainConfig.from_dict(default.to_dict()) == default
+    scales = [0.3, 0.2, 0.5, 0.1, 0.5, 0.7]
+    cfg = TrainConfig(task={"preview_distances": [2.0], "obs_scale": scales})
+    assert cfg.to_dict()["task"]["obs_scale"] == scales and TrainConfig.from_dict(cfg.to_dict()) == cfg
+    assert config_hash(cfg) != config_hash(cfg.replace(**{"task.obs_scale": None}))
+    assert torch.equal(task_from_config(cfg.task).obs_scale, torch.tensor(scales, dtype=torch.float32))
+    assert task_from_config(cfg.replace(**{"task.obs_scale": None}).task).obs_scale.tolist()[5] == 2.0
+    with pytest.raises(ValueError, match=r"task\.obs_scale: expected 5 \+ len\(preview_distances\) = 6 numbers, got 5"):
+        TrainConfig(task={"preview_distances": [2.0], "obs_scale": scales[:5]})
+    with pytest.raises(ValueError, match=r"task\.obs_scale"):
+        TrainConfig(task={"obs_scale": [0.3, 0.2, 0.5, 0.1, -0.5]})

@@ -8,6 +8,7 @@ short seeded mixed-RL run whose IBE estimate moves from the prior to the true bi
 
 from __future__ import annotations
 
+import json
 import math
 
 import numpy as np
@@ -15,7 +16,7 @@ import pytest
 import torch
 
 from mixedrl.algorithms.agpi import AGPI
-from mixedrl.config import TrainConfig
+from mixedrl.config import TrainConfig, apply_overrides
 from mixedrl.envs.pendulum import PendulumTask
 from mixedrl.runs import train
 from mixedrl.tasks import check_task
@@ -134,3 +135,47 @@ def test_short_mixed_run_is_reproducible_and_learns_the_bias() -> None:
     # model-driven RL keeps the prior
     model = train(AGPI(task, _short_config(method="model", iterations=2)), progress=False)
     assert model["final_ibe_mean"] == [0.0] and model["true_transitions"] == 0
+
+
+def test_the_pendulum_is_a_named_task_of_the_configuration() -> None:
+    """``task.name = "pendulum"`` builds a PendulumTask from the task.<field> values (dict and --set)."""
+    from mixedrl.config import task_names
+    from mixedrl.tasks import make_task, task_from_config
+
+    assert "pendulum" in task_names()
+    config = TrainConfig(task={"name": "pendulum", "torque_bias": 0.3, "gamma": 0.95})
+    task = task_from_config(config.task)
+    assert isinstance(task, PendulumTask) and task.gamma == 0.95
+    assert task.torque_from_xi(task.true_mean[0]) == pytest.approx(0.3, rel=1e-12)
+    assert isinstance(make_task("pendulum", torque_bias=0.3), PendulumTask)
+    # the default config is PendulumTask()'s
+    default = task_from_config("pendulum")
+    assert np.array_equal(default.true_mean, PendulumTask().true_mean) and default.gamma == PendulumTask().gamma
+    data = apply_overrides({}, {"task.name": "pendulum", "task.init_angle": 0.2})  # as --set and a sweep spec
+    assert task_from_config(TrainConfig.from_dict(data).task).obs_scale.tolist() == pytest.approx([0.2, 0.3])
+    with pytest.raises(ValueError, match=r"task\.name: expected one of \('dlc', 'linear', 'pendulum'"):
+        TrainConfig(task={"name": "pendulm"})
+    with pytest.raises(ValueError, match=r"task\.dt: expected a positive number"):
+        TrainConfig(task={"name": "pendulum", "dt": -0.1})
+    with pytest.raises(ValueError, match=r"task\.gamma: expected a number in \(0, 1\)"):
+        TrainConfig(task={"name": "pendulum", "gamma": 1.0})
+    with pytest.raises(ValueError, match=r"unknown key\(s\) \['task\.prior_force_mean'\]"):
+        TrainConfig(task={"name": "pendulum", "prior_force_mean": 1.0})
+
+
+def test_a_pendulum_run_records_its_name_and_resumes(tmp_path) -> None:
+    from mixedrl.runs import RunDirectory, make_trainer
+
+    config = TrainConfig(method="mixed", seed=1, task={"name": "pendulum", "torque_bias": 0.4},
+                         algorithm=dict(iterations=2, batch_size=16, hidden_sizes=(8, 8)),
+                         run=dict(eval_seeds=1, eval_every=2, checkpoint_every=1))
+    run = RunDirectory(tmp_path / "p")
+    first = train(make_trainer(config), run, progress=False)
+    record = json.loads(run.config_path.read_text())
+    assert record["task"]["name"] == "pendulum" and record["task"]["torque_bias"] == 0.4
+    assert first["task"] == "pendulum"
+    loaded = run.read_config()
+    assert loaded.task == config.task and isinstance(make_trainer(loaded).task, PendulumTask)
+    longer = TrainConfig.from_dict(apply_overrides(loaded.to_dict(), {"algorithm.iterations": 3}))
+    resumed = train(make_trainer(longer), run, resume=True, progress=False)
+    assert resumed["task"] == "pendulum" and resumed["iterations"] == 3

@@ -16,6 +16,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 
 from mixedrl.config import TrainConfig
@@ -105,17 +106,39 @@ OLD_PREVIEW_DESIGNS = {"M": "start", "S": "along"}
 
 def test_preview_spec_reproduces_the_old_config_of() -> None:
     runs = expand(load_spec(ROOT / "studies" / "preview.toml"))
-    assert len(runs) == (len(OLD_PREVIEW) * len(OLD_PREVIEW_DESIGNS) + 3) * 5
+    assert len(runs) == (len(OLD_PREVIEW) * len(OLD_PREVIEW_DESIGNS) + 3 + 1) * 5
     for run in runs:
         design, candidate = run.point["variant"].split("_", 1)
         candidate, _, budget = candidate.partition("_n")
         n = int(budget or 1500)
+        if candidate == "P12s":
+            continue  # test_preview_spec_p12s_is_the_old_patched_obs_scale
         # the old config_of(candidate, method, seed, iterations=n, design=design)
         old = TrainConfig().replace(method=run.config.method, seed=run.config.seed, iterations=n,
                                     eval_every=max(100, n // 5), checkpoint_every=n, num_threads=1,
                                     model_course_starts=OLD_PREVIEW_DESIGNS[design],
                                     **{"task.preview_distances": OLD_PREVIEW[candidate]})
         assert run.config == old, run.name
+
+
+def test_preview_spec_p12s_is_the_old_patched_obs_scale() -> None:
+    """M_P12s: P12 under design M with ``task.obs_scale`` set; the task it builds has the observation scale the
+    old ``make_task("P12s", cfg)`` patched in after building (``cat(obs_scale[:5], preview_scale(task))``)."""
+    import torch
+
+    from mixedrl.tasks import task_from_config
+    from validation.preview import preview_scale
+
+    runs = [r for r in expand(load_spec(ROOT / "studies" / "preview.toml")) if r.point["variant"] == "M_P12s"]
+    assert len(runs) == 5
+    for run in runs:
+        old = TrainConfig().replace(method=run.config.method, seed=run.config.seed, iterations=1500,
+                                    eval_every=300, checkpoint_every=1500, num_threads=1, model_course_starts="start",
+                                    **{"task.preview_distances": OLD_PREVIEW["P12"]})
+        assert run.config.replace(**{"task.obs_scale": None}) == old, run.name
+        task, plain = task_from_config(run.config.task), task_from_config(old.task)
+        assert torch.equal(task.obs_scale, torch.cat([plain.obs_scale[:5], preview_scale(plain)]))
+        assert not torch.equal(task.obs_scale, plain.obs_scale)
 
 
 def test_preview_study_ships_a_sweep_directory(tmp_path: Path) -> None:
@@ -170,3 +193,55 @@ def test_a_sweep_run_has_the_numbers_of_the_reproductions_run(tmp_path: Path) ->
     for key in ("lateral_mae", "speed_mae", "cost", "iterations_to_converge", "mvc_held_fraction"):
         assert row["metrics"][key] == ours[key], key
     assert row["true_transitions"] == ours["true_transitions"]
+
+
+def _old_precision_config(method: str, seed: int, bellman_steps: int, iterations: int = 1500) -> TrainConfig:
+    """``scripts/precision_study.py``'s ``run`` before the move (``--set algorithm.bellman_steps=N``): the
+    placeholder ``task="linear"`` config it trained ``PendulumTask()`` with, its task the pendulum's."""
+    flat = dict(method=method, task="linear", seed=seed, iterations=iterations, batch_size=256, horizon=100,
+                model_course_fraction=0.0, model_course_horizon=100, model_kick_prob=0.0,
+                model_box=3.0, batch_weighting="relative", lr_decay_iterations=iterations, eval_every=300,
+                algorithm={"bellman_steps": bellman_steps})
+    return TrainConfig.from_dict({**TrainConfig(**flat).to_dict(), "task": {"name": "pendulum"}})
+
+
+def test_precision_spec_reproduces_the_old_script_configs() -> None:
+    from mixedrl.envs.pendulum import PendulumTask
+    from mixedrl.tasks import task_from_config
+
+    runs = expand(load_spec(ROOT / "studies" / "precision_pendulum.toml"))
+    assert len(runs) == 2 * 3 * 3
+    seen = set()
+    for run in runs:
+        steps = {"bellman1": 1, "bellman10": 10}[run.point["variant"]]
+        assert run.config == _old_precision_config(run.config.method, run.config.seed, steps), run.name
+        task = task_from_config(run.config.task)
+        assert isinstance(task, PendulumTask) and vars(task).keys() == vars(PendulumTask()).keys()
+        assert all(np.array_equal(np.asarray(getattr(task, k)), np.asarray(v)) for k, v in vars(PendulumTask()).items())
+        seen.add((run.config.method, run.config.seed, steps))
+    assert seen == {(m, s, n) for m in ("mixed", "model", "oracle") for s in (0, 1, 2) for n in (1, 10)}
+
+
+def test_precision_study_ships_a_sweep_directory(tmp_path: Path) -> None:
+    """precision_study.py only analyses: a tiny pendulum sweep (2 iterations) of the spec's form, shipped
+    through the command line into the table."""
+    spec = parse_spec('methods = ["mixed"]\nseeds = [0]\n[base]\n"task.name" = "pendulum"\n'
+                      '"algorithm.iterations" = 2\n"algorithm.batch_size" = 16\n"run.eval_every" = 2\n'
+                      '"run.eval_seeds" = 1\n[variants.bellman10]\n"algorithm.bellman_steps" = 10\n')
+    doc = run_sweep(spec, tmp_path / "sweep", workers=1, progress=False)
+    dest = tmp_path / "ship"
+    proc = subprocess.run([sys.executable, str(ROOT / "scripts" / "precision_study.py"), "ship",
+                           str(tmp_path / "sweep"), "--dest", str(dest)], capture_output=True, text=True, cwd=ROOT,
+                          env={**os.environ, "PYTHONPATH": str(ROOT)}, timeout=600)
+    assert proc.returncode == 0, proc.stderr
+    (row,) = doc["runs"]
+    (rec,) = json.loads((dest / "rows.json").read_text())
+    results = json.loads((tmp_path / "sweep" / row["run_dir"] / "results.json").read_text())
+    assert (rec["variant"], rec["method"], rec["bellman_steps"], rec["iterations"]) == ("bellman10", "mixed", 10, 2)
+    assert (rec["cost"], rec["theta"]) == (row["metrics"]["cost"], results["final"]["mean_state_0"])
+    # the IBE estimate of the loaded checkpoint is the run's final one (0.05 / 1 = xi per N m of the default)
+    assert rec["tau_hat"] == pytest.approx(results["final_ibe_mean"][0] / 0.05, rel=1e-12)
+    assert rec["tau_hat"] != 0.0  # mixed RL moved off the prior's 0
+    table = (dest / "table.md").read_text().splitlines()
+    assert table[0].startswith("variant | method | seed | cost") and table[2].startswith("bellman10 | mixed | 0 | ")
+    assert table[2] in proc.stdout

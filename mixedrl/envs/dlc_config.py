@@ -217,6 +217,11 @@ class DoubleLaneChangeTaskConfig(DoubleLaneChangeConfig):
         The designer's prior mean of ``F_dis`` [N] (eq. 55; paper: 150).
     prior_force_std : float
         The designer's prior standard deviation ``sqrt(K_M)`` in force units [N] (paper: 4).
+    obs_scale : tuple of float or None
+        The observation's typical magnitudes (the task's ``obs_scale``: the networks' input scaling, the
+        model sampler's box and kicks), ``5 + len(preview_distances)`` positive numbers. ``None`` (the
+        default): ``(0.3, 0.2, 0.5, 0.1, 0.5)`` and 2 m for every preview column
+        (:class:`mixedrl.tasks.DoubleLaneChangeTask`); a run's ``config.json`` omits it then.
 
     Raises
     ------
@@ -228,9 +233,17 @@ class DoubleLaneChangeTaskConfig(DoubleLaneChangeConfig):
     gamma: float = 0.99
     prior_force_mean: float = 150.0
     prior_force_std: float = 4.0
+    obs_scale: tuple[float, ...] | None = None
 
     def __post_init__(self) -> None:
         super().__post_init__()
+        if self.obs_scale is not None:
+            scale = _numbers(self.obs_scale, "obs_scale", positive=True)
+            expected = 5 + len(self.preview_distances)
+            if len(scale) != expected:
+                raise ValueError(f"obs_scale: expected 5 + len(preview_distances) = {expected} numbers, "
+                                 f"got {len(scale)}")
+            object.__setattr__(self, "obs_scale", scale)
         if self.name != "dlc":
             raise ValueError(f"name: expected 'dlc' for DoubleLaneChangeTaskConfig, got {self.name!r}")
         gamma = check_number(self.gamma, "gamma")

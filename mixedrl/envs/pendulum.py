@@ -5,20 +5,42 @@ unstable system with a bounded input whose true environment carries a constant t
 prior misses. Its linearisation at the upright equilibrium (:meth:`PendulumTask.linearisation`) is
 the discounted LQ problem whose optimum with the noise-mean feed-forward is the precision yardstick of
 a learned policy (docs page ``pendulum.rst``).
+
+The task is registered under its name (:func:`mixedrl.tasks.register_task`, when :mod:`mixedrl` is
+imported) with its configuration :class:`PendulumTaskConfig` (the constructor's arguments as
+``task.<field>`` keys), so a run, ``--set task.name=\\"pendulum\\"`` and a sweep specification's
+``"task.name" = "pendulum"`` build it; ``config.json`` records ``"name": "pendulum"`` and its fields.
 """
 
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass, fields
 from typing import Any
 
 import numpy as np
 import torch
 
 from mixedrl.checks import check_number
-from mixedrl.tasks import Equilibrium, Linearisation, Task
+from mixedrl.tasks import Equilibrium, Linearisation, Task, register_task
 
-__all__ = ["PendulumTask"]
+__all__ = ["PendulumTask", "PendulumTaskConfig"]
+
+#: Parameters that must be finite and positive (the others: ``torque_bias``, ``prior_torque_bias``
+#: finite, ``gamma`` in (0, 1)).
+_POSITIVE = ("dt", "gravity", "length", "mass", "damping", "torque_bound", "torque_std", "prior_torque_std",
+             "q_omega", "r", "init_angle", "init_rate", "value_scale")
+
+
+def _check_parameters(values: dict[str, Any], where: str = "") -> None:
+    """Check the pendulum's parameters; an error names the key (``where`` + its name)."""
+    for name in _POSITIVE:
+        check_number(values[name], where + name, positive=True)
+    for name in ("torque_bias", "prior_torque_bias"):
+        check_number(values[name], where + name)
+    gamma = values["gamma"]
+    if not 0.0 < gamma < 1.0:
+        raise ValueError(f"{where}gamma: expected a number in (0, 1), got {gamma!r}")
 
 
 class PendulumTask(Task):
@@ -88,16 +110,7 @@ class PendulumTask(Task):
                  torque_std: float = 0.2, prior_torque_bias: float = 0.0, prior_torque_std: float = 0.2,
                  q_omega: float = 0.1, r: float = 0.01, gamma: float = 0.97, init_angle: float = 0.3,
                  init_rate: float = 0.3, value_scale: float = 1.0) -> None:
-        positive = {"dt": dt, "gravity": gravity, "length": length, "mass": mass, "damping": damping,
-                    "torque_bound": torque_bound, "torque_std": torque_std, "prior_torque_std": prior_torque_std,
-                    "q_omega": q_omega, "r": r, "init_angle": init_angle, "init_rate": init_rate,
-                    "value_scale": value_scale}
-        for name, value in positive.items():
-            check_number(value, name, positive=True)
-        for name, value in (("torque_bias", torque_bias), ("prior_torque_bias", prior_torque_bias)):
-            check_number(value, name)
-        if not 0.0 < gamma < 1.0:
-            raise ValueError(f"gamma: expected a number in (0, 1), got {gamma!r}")
+        _check_parameters(dict(locals()))
         self.dt, self.gravity, self.length, self.mass, self.damping = dt, gravity, length, mass, damping
         self.torque_bound, self.q_omega, self.r = float(torque_bound), float(q_omega), float(r)
         self.gamma = float(gamma)
@@ -113,6 +126,11 @@ class PendulumTask(Task):
         self.obs_scale = torch.tensor([self.init_angle, self.init_rate])
         self._weights = torch.tensor([1.0, self.q_omega], dtype=torch.float64)
         self.value_scale = float(value_scale)
+
+    @classmethod
+    def from_config(cls, config: "PendulumTaskConfig") -> "PendulumTask":
+        """The pendulum of a run's task configuration (``TrainConfig.task`` with ``name = "pendulum"``)."""
+        return cls(**{f.name: getattr(config, f.name) for f in fields(config) if f.name != "name"})
 
     def equilibrium(self) -> Equilibrium:
         """The upright rest point ``s* = [0, 0]``, ``u* = 0`` of the noise-free model."""
@@ -162,3 +180,61 @@ class PendulumTask(Task):
         """Not finite, or fallen: ``|theta| > pi / 2``."""
         return ~torch.isfinite(s).all(dim=-1) | (s[:, 0].abs() > 0.5 * math.pi)
 
+
+
+@dataclass
+class PendulumTaskConfig:
+    """Configuration of :class:`PendulumTask` (``task.name = "pendulum"``): its constructor's arguments,
+    with the same defaults and meaning (see :class:`PendulumTask`). Dotted keys: ``task.<field>``.
+
+    Raises
+    ------
+    ValueError
+        As :class:`PendulumTask`, the message naming the dotted key (``task.dt``, ``task.gamma``, ...).
+    """
+
+    name: str = "pendulum"
+    """Always ``"pendulum"`` for this class (selects it when loading)."""
+    dt: float = 0.05
+    """Sampling time [s]."""
+    gravity: float = 9.81
+    """``g`` [m/s^2]."""
+    length: float = 1.0
+    """``l`` [m]."""
+    mass: float = 1.0
+    """``m`` [kg]."""
+    damping: float = 0.1
+    """``b`` [N m s]."""
+    torque_bound: float = 4.0
+    """Bound of the input torque [N m]."""
+    torque_bias: float = 0.5
+    """Mean of the true disturbance torque [N m]."""
+    torque_std: float = 0.2
+    """Standard deviation of the true disturbance torque [N m]."""
+    prior_torque_bias: float = 0.0
+    """The designer's prior mean of the disturbance torque [N m] (eq. 8)."""
+    prior_torque_std: float = 0.2
+    """The designer's prior standard deviation [N m]."""
+    q_omega: float = 0.1
+    """Weight of ``omega'^2`` in the utility."""
+    r: float = 0.01
+    """Weight of ``u^2`` in the utility."""
+    gamma: float = 0.97
+    """Discount factor of eq. (2), in (0, 1)."""
+    init_angle: float = 0.3
+    """Half-width of the start angles [rad]."""
+    init_rate: float = 0.3
+    """Half-width of the start rates [rad/s]."""
+    value_scale: float = 1.0
+    """Typical magnitude of the value (the critic's output scale)."""
+
+    def __post_init__(self) -> None:
+        if self.name != "pendulum":
+            raise ValueError(f"task.name: expected 'pendulum' for PendulumTaskConfig, got {self.name!r}")
+        for f in fields(self):
+            if f.name != "name":
+                setattr(self, f.name, check_number(getattr(self, f.name), f"task.{f.name}"))
+        _check_parameters({f.name: getattr(self, f.name) for f in fields(self)}, "task.")
+
+
+register_task(PendulumTask, PendulumTaskConfig)
