@@ -17,9 +17,7 @@ solve's median over theirs (the NMPC runs last in the file).
 
 from __future__ import annotations
 
-import importlib.util
 import json
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -33,6 +31,10 @@ from mixedrl.envs import DoubleLaneChangeModel  # noqa: E402
 from mixedrl.networks import Actor  # noqa: E402
 from mixedrl.tasks import DoubleLaneChangeTask  # noqa: E402
 from validation.nmpc import VehicleNMPC  # noqa: E402
+from validation.preview import NumpyActor  # noqa: E402
+
+#: The preview distances of the chosen candidate P12 (scripts/preview_study.py, ``CANDIDATES["P12"]``).
+PREVIEW_P12 = (2.0, 4.0, 6.0, 8.0, 10.0, 12.0)
 
 from mixedrl.envs.tracking import observation_columns  # noqa: E402
 
@@ -61,24 +63,15 @@ def test_actor_inference(benchmark) -> None:
     benchmark.extra_info["threads"] = torch.get_num_threads()
 
 
-def _preview_study():
-    spec = importlib.util.spec_from_file_location("preview_study", _ROOT / "scripts" / "preview_study.py")
-    module = importlib.util.module_from_spec(spec)
-    sys.modules.setdefault("preview_study", module)
-    spec.loader.exec_module(module)
-    return module
-
-
 def _preview_policy() -> tuple[DoubleLaneChangeTask, Actor, str]:
     """The task with the chosen preview and its actor: the shipped seed-0 weights (else a fresh actor of
     the same shape, which costs the same)."""
-    ps = _preview_study()
-    preview = ps.CANDIDATES[ps.CHOSEN]
+    preview = PREVIEW_P12
     task = DoubleLaneChangeTask(preview_distances=preview)
     cfg = TrainConfig()
     actor = Actor(task.obs_dim, task.action_dim, cfg.algorithm.hidden_sizes, cfg.algorithm.activation, torch.Generator().manual_seed(0),
                   task.action_bound, task.obs_scale)
-    path = _ROOT / ps.job_path(ps.CHOSEN, "mixed", 0)
+    path = _ROOT / "docs" / "_static" / "preview" / "per_run" / "S" / "P12" / "mixed_s0.json"
     source = "fresh weights"
     if path.exists():
         weights = json.loads(path.read_text())["actor"]
@@ -101,9 +94,8 @@ def test_preview_actor_inference(benchmark) -> None:
 def test_preview_step_numpy(benchmark) -> None:
     """One whole control step of the preview policy in plain NumPy: observation (with the preview) from
     the state, then the forward pass of the same weights."""
-    ps = _preview_study()
     task, actor, source = _preview_policy()
-    fast = ps.NumpyActor(actor.state_dict())
+    fast = NumpyActor(actor.state_dict())
     cfg = task.model.config
     s = tuple(float(x) for x in _start())
 
