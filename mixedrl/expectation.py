@@ -37,6 +37,7 @@ __all__ = [
     "quadrature_nodes",
     "expectation_nodes",
     "expect",
+    "weighted_sum",
     "gaussian_expectation",
     "h",
     "h_value",
@@ -273,7 +274,7 @@ def expect(g: Callable[..., Any], centers: Any, offsets: Any, weights: Any, extr
     offsets : array or Tensor
         Nodes ``d_i``, shape (P, n), or (P, B, n) per state for a state-dependent noise.
     weights : array or Tensor
-        Shape (P,).
+        Shape (P,), or (P, B) per state (:func:`weighted_sum`).
     extra : array or Tensor, shape (B, m), optional
         Per-row extra argument (the action ``u`` of ``l(x', u)``), repeated for every node.
 
@@ -301,7 +302,20 @@ def expect(g: Callable[..., Any], centers: Any, offsets: Any, weights: Any, extr
         values = g(points, rep)
     if tuple(values.shape) != (P * B,):
         raise ValueError(f"g: expected output shape ({P * B},), got {tuple(values.shape)}")
+    if weights.ndim == 2:
+        return weighted_sum(weights, values.reshape(P, B))
     return weights @ values.reshape(P, B)
+
+
+def weighted_sum(weights: Any, values: Any) -> Any:
+    """``sum_i w_i v_i`` with per-state weights, ``weights`` (P, B) and ``values`` (P, B[, ...]), summed in the
+    order ``i = 0, 1, ..., P - 1``: each state's sum uses its own column only (the batched engine's
+    quadrature, :mod:`mixedrl.algorithms.batched`; trailing nodes of weight 0 change nothing)."""
+    w = weights.reshape(weights.shape + (1,) * (values.ndim - weights.ndim))
+    total = w[0] * values[0]
+    for i in range(1, values.shape[0]):
+        total = total + w[i] * values[i]
+    return total
 
 
 def gaussian_expectation(

@@ -20,10 +20,11 @@ import numpy as np
 import torch
 
 from mixedrl.checks import as_vector, check_covariance, check_number
-from mixedrl.expectation import h_value
+from mixedrl.expectation import h_value, weighted_sum
+from mixedrl.schedule import descend
 from mixedrl.quadratic import AffinePolicy, LinearDynamics, QuadraticCost, QuadraticValue, check_problem, lyapunov_solve
 
-__all__ = ["evaluate_policy", "bellman_backup", "ExactPEV", "pev_step", "h_steps", "critic_loss", "critic_step"]
+__all__ = ["evaluate_policy", "bellman_backup", "ExactPEV", "pev_step", "h_steps", "critic_loss", "critic_step", "run_mean", "check_runs"]
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -279,7 +280,10 @@ def h_steps(task: Any, critic: torch.nn.Module, actor: torch.nn.Module | None, s
     if actor is None:
         raise ValueError("actor: steps > 1 needs the actor that acts after the first step")
     # xi_bar = sum_p w_p xi_p: the quadrature's mean, (state_dim,) or (B, state_dim)
-    mean = torch.tensordot(weights.to(offsets.dtype), offsets, dims=([0], [0])).to(s.dtype)
+    if weights.ndim == 2:  # per-state weights (a batch of runs)
+        mean = weighted_sum(weights.to(offsets.dtype), offsets).to(s.dtype)
+    else:
+        mean = torch.tensordot(weights.to(offsets.dtype), offsets, dims=([0], [0])).to(s.dtype)
     total = torch.zeros(s.shape[0], dtype=s.dtype)
     discount = 1.0
     x, a = s, u
@@ -295,7 +299,7 @@ def h_steps(task: Any, critic: torch.nn.Module, actor: torch.nn.Module | None, s
 
 def critic_loss(task: Any, critic: torch.nn.Module, s: torch.Tensor, u: torch.Tensor, offsets: torch.Tensor,
                 weights: torch.Tensor, relative_offset: float | None = None, actor: torch.nn.Module | None = None,
-                steps: int = 1) -> torch.Tensor:
+                steps: int = 1, runs: int = 1) -> torch.Tensor:
     """Implements eqs. (49)-(50): the PEV loss whose gradient is the critic's semi-gradient.
 
     .. math::
@@ -328,18 +332,22 @@ def critic_loss(task: Any, critic: torch.nn.Module, s: torch.Tensor, u: torch.Te
         ``pi(x; theta)``, needed only when ``steps > 1`` (it acts on the rollout's later steps).
     steps : int, optional
         Model steps of the target (:func:`h_steps`; ``algorithm.bellman_steps``): 1 = eq. (37), the paper's.
+    runs : int, optional
+        ``R >= 1``: the batch holds ``R`` runs' batches one after the other (``s`` of shape ``(R B, n)``,
+        ``critic`` and ``actor`` stacked networks, :mod:`mixedrl.algorithms.batched`); the loss is taken
+        per run.
 
     Returns
     -------
-    torch.Tensor, shape ()
-        ``mean_x 1/2 (V(x; w) - E V_target)^2`` (or its relative form); its gradient in ``w`` is the
-        semi-gradient of eq. (50), averaged over the batch (per state weighted by
-        ``1 / (|E V_target| + c)^2`` in the relative form).
+    torch.Tensor, shape () or (R,)
+        ``mean_x 1/2 (V(x; w) - E V_target)^2`` (or its relative form), one per run when ``runs > 1``;
+        its gradient in ``w`` is the semi-gradient of eq. (50), averaged over the batch (per state
+        weighted by ``1 / (|E V_target| + c)^2`` in the relative form).
 
     Raises
     ------
     ValueError
-        If the batch sizes of ``s`` and ``u`` differ.
+        If the batch sizes of ``s`` and ``u`` differ, or ``runs`` does not divide them.
 
     Notes
     -----
@@ -353,15 +361,29 @@ def critic_loss(task: Any, critic: torch.nn.Module, s: torch.Tensor, u: torch.Te
         relative_offset = check_number(relative_offset, "relative_offset", positive=True)
     if s.shape[0] != u.shape[0]:
         raise ValueError(f"u: batch size {u.shape[0]} differs from s's {s.shape[0]}")
+    runs = check_runs(runs, s.shape[0])
     with torch.no_grad():
         # V_target = l(x', u_theta) + gamma V^k(x'),  x' = f(x, u_theta) + xi_hat   (h of eq. 37; h_n if steps > 1)
         target = h_steps(task, critic, actor, s, u, offsets, weights, steps)
     value = critic(task.observe(s))
     if relative_offset is not None:
         # relative TD error: a per-state weight 1 / (|E V_target| + c)^2 of the squared error
-        return 0.5 * ((value - target) / (target.abs() + relative_offset)).pow(2).mean()
+        return 0.5 * run_mean(((value - target) / (target.abs() + relative_offset)).pow(2), runs)
     scale = float(getattr(task, "value_scale", 1.0))
-    return 0.5 * ((value - target) / scale).pow(2).mean()
+    return 0.5 * run_mean(((value - target) / scale).pow(2), runs)
+
+
+def check_runs(runs: int, batch: int) -> int:
+    """Return ``runs`` if it is an integer ``>= 1`` that divides ``batch``; else a ``ValueError`` naming ``runs``."""
+    if isinstance(runs, bool) or not isinstance(runs, int) or runs < 1 or batch % runs:
+        raise ValueError(f"runs: expected an integer >= 1 that divides the batch ({batch}), got {runs!r}")
+    return runs
+
+
+def run_mean(values: torch.Tensor, runs: int = 1) -> torch.Tensor:
+    """The batch mean of per-state ``values`` (B,): a scalar, or one mean per run (R,) when ``runs = R > 1``
+    (the states of run ``r`` are rows ``r B' .. (r + 1) B' - 1``, ``B' = B / R``)."""
+    return values.mean() if runs == 1 else values.reshape(runs, -1).mean(dim=1)
 
 
 def critic_step(task: Any, critic: torch.nn.Module, actor: torch.nn.Module, optimizer: torch.optim.Optimizer,
@@ -405,9 +427,7 @@ def critic_step(task: Any, critic: torch.nn.Module, actor: torch.nn.Module, opti
     with torch.no_grad():
         u = actor(task.observe(s))
     loss = critic_loss(task, critic, s, u, offsets, weights, relative_offset, actor, steps)
-    optimizer.zero_grad(set_to_none=True)
-    loss.backward()
-    torch.nn.utils.clip_grad_norm_(critic.parameters(), grad_clip)
+    params = list(critic.parameters())
     # w^{k+1} = w^k - alpha dJ_critic/dw   (Adam)
-    optimizer.step()
+    descend(loss, params, [params], [optimizer], [grad_clip])
     return float(loss.detach())

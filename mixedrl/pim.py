@@ -22,7 +22,8 @@ import torch
 
 from mixedrl.checks import as_vector, check_number
 from mixedrl.expectation import h_value
-from mixedrl.pev import h_steps
+from mixedrl.pev import check_runs, h_steps, run_mean
+from mixedrl.schedule import descend
 from mixedrl.quadratic import AffinePolicy, LinearDynamics, QuadraticCost, QuadraticValue, check_problem
 
 __all__ = ["improve_policy", "ExactPIM", "pim_step", "actor_objective", "actor_step", "MVCResult", "MVCTerms", "mvc_terms", "mvc_check"]
@@ -141,7 +142,7 @@ def pim_step(improve: Callable[[Any, Any], Any], value: Any, noise: Any) -> Any:
 # ----------------------------------------------------------------------------------------------------
 def actor_objective(task: Any, critic: torch.nn.Module, actor: torch.nn.Module, s: torch.Tensor,
                     offsets: torch.Tensor, weights: torch.Tensor, relative_offset: float | None = None,
-                    steps: int = 1) -> torch.Tensor:
+                    steps: int = 1, runs: int = 1) -> torch.Tensor:
     """Implements eqs. (51)-(52): the PIM objective, differentiated through the model ``f``.
 
     .. math::
@@ -172,12 +173,15 @@ def actor_objective(task: Any, critic: torch.nn.Module, actor: torch.nn.Module, 
         Model steps of the objective (:func:`mixedrl.pev.h_steps`; ``algorithm.bellman_steps``): 1 =
         ``h`` of eq. (37), the paper's; ``n > 1`` = the ``n``-step ``h_n``, its gradient back-propagated
         through the model rollout and the actor at every step.
+    runs : int, optional
+        ``R >= 1``: the batch holds ``R`` runs' batches one after the other (stacked networks,
+        :mod:`mixedrl.algorithms.batched`); the objective (and ``rho``'s normalisation) is per run.
 
     Returns
     -------
-    torch.Tensor, shape ()
+    torch.Tensor, shape () or (R,)
         Batch mean of ``h(x, pi(x; theta), xi_hat_k)`` (weighted by ``rho`` in the relative form),
-        divided by ``value_scale``.
+        divided by ``value_scale``; one per run when ``runs > 1``.
 
     Notes
     -----
@@ -188,18 +192,19 @@ def actor_objective(task: Any, critic: torch.nn.Module, actor: torch.nn.Module, 
     """
     if relative_offset is not None:
         relative_offset = check_number(relative_offset, "relative_offset", positive=True)
+    runs = check_runs(runs, s.shape[0])
     obs = task.observe(s)
     u = actor(obs)
     scale = float(getattr(task, "value_scale", 1.0))
     # J_actor = mean_x h(x, pi(x; theta), xi_hat_k)   (eq. 37; h_n if steps > 1)
     h = h_steps(task, critic, actor, s, u, offsets, weights, steps)
     if relative_offset is None:
-        return h.mean() / scale
+        return run_mean(h, runs) / scale
     with torch.no_grad():
-        # rho(x) = 1 / (V^k(x) + c), normalised to batch mean 1
+        # rho(x) = 1 / (V^k(x) + c), normalised to batch mean 1 (per run)
         rho = 1.0 / (critic(obs).reshape(h.shape) + relative_offset)
-        rho = rho / rho.mean()
-    return (rho * h).mean() / scale
+        rho = rho / (rho.mean() if runs == 1 else run_mean(rho, runs).repeat_interleave(h.shape[0] // runs))
+    return run_mean(rho * h, runs) / scale
 
 
 def actor_step(task: Any, critic: torch.nn.Module, actor: torch.nn.Module, optimizer: torch.optim.Optimizer,
@@ -244,11 +249,9 @@ def actor_step(task: Any, critic: torch.nn.Module, actor: torch.nn.Module, optim
         p.requires_grad_(False)
     try:
         obj = actor_objective(task, critic, actor, s, offsets, weights, relative_offset, steps)
-        optimizer.zero_grad(set_to_none=True)
-        obj.backward()
-        torch.nn.utils.clip_grad_norm_(actor.parameters(), grad_clip)
+        params = list(actor.parameters())
         # theta^{k+1} = theta^k - beta dJ_actor/dtheta   (Adam)
-        optimizer.step()
+        descend(obj, params, [params], [optimizer], [grad_clip])
     finally:
         for p in critic.parameters():
             p.requires_grad_(True)

@@ -82,6 +82,7 @@ __all__ = [
     "eval_seeds",
     "config_record",
     "train",
+    "train_batch",
     "make_trainer",
     "CONVERGENCE_RTOL",
 ]
@@ -514,93 +515,191 @@ def train(trainer: Any, run: RunDirectory | None = None, resume: bool = False, p
     ImportError
         ``tensorboard`` without the optional extra.
     """
-    if tensorboard and run is None:
+    return train_batch([trainer], [run], resume, progress, stop_after, callback, tensorboard)[0]
+
+
+def train_batch(trainers: list[Any], runs: list[RunDirectory | None] | None = None, resume: bool = False,
+                progress: bool | None = None, stop_after: int | None = None,
+                callback: Callable[[dict[str, Any]], None] | None = None,
+                tensorboard: bool = False) -> list[dict[str, Any]]:
+    """Train several runs as one computation (:class:`mixedrl.algorithms.batched.BatchedAGPI`), each into its own directory.
+
+    :func:`train` is this function with one run. Every run keeps what a run alone has: its directory
+    (the same layout), its lock (all are taken before anything is written, so a batch never shares a
+    directory with another writer), its checkpoints, metrics, evaluation and ``results.json``, its
+    budget (a run that reached it, or stopped, leaves the batch's iterations), and ``resume``.
+
+    Parameters
+    ----------
+    trainers : list of AGPI or DDPG
+        Freshly built trainers. Several must all be Algorithm 2 (:class:`~mixedrl.algorithms.agpi.AGPI`)
+        and share the task and :data:`mixedrl.algorithms.batched.SHARED_FIELDS`; DDPG trains alone.
+    runs : list of RunDirectory or None, optional
+        One per trainer (``None`` entries, or ``runs=None``, keep that run in memory).
+    resume, progress, stop_after, callback, tensorboard
+        As for :func:`train`, per run (``callback`` gets every run's rows; ``train_seconds`` and
+        ``time/elapsed_s`` are the batch's wall time while the run was in it).
+
+    Returns
+    -------
+    list of dict
+        Per run, what :func:`train` returns; with more than one run ``results`` also hold
+        ``batch_size_runs`` (the number of runs trained together).
+
+    Raises
+    ------
+    RunLockedError
+        Another process is writing one of the directories (nothing is written into any of them).
+    ValueError
+        As for :func:`train` (for any run: nothing is then written into any of them); ``runs`` of another
+        length than ``trainers``; two runs on one directory; several trainers that cannot share a batch.
+    """
+    trainers = list(trainers)
+    if not trainers:
+        raise ValueError("trainers: expected at least one trainer, got none")
+    runs = [None] * len(trainers) if runs is None else list(runs)
+    if len(runs) != len(trainers):
+        raise ValueError(f"runs: {len(runs)} directories for {len(trainers)} trainers")
+    paths = [str(Path(r.path).resolve()) for r in runs if r is not None]
+    if len(set(paths)) != len(paths):
+        raise ValueError("runs: two runs of the batch write the same directory")
+    if tensorboard and any(r is None for r in runs):
         raise ValueError("tensorboard: needs a run directory (run=RunDirectory(path)) to write into")
-    if run is None:
-        return _train(trainer, None, None, progress, stop_after, callback, None)
-    cfg: TrainConfig = trainer.config
-    task = getattr(trainer, "task", None)
-    _open_run(run, cfg, resume, task)  # refuse before creating anything
+    engine = _engine(trainers)
+    for trainer, run in zip(trainers, runs):  # refuse before creating anything
+        if run is not None:
+            _open_run(run, trainer.config, resume, getattr(trainer, "task", None))
     if tensorboard:
         try:  # the extra missing: its error (TensorBoardLogger's, naming the extra) before anything is created
             import torch.utils.tensorboard  # noqa: F401
         except ImportError:
-            TensorBoardLogger(run.path / TB_DIR)
-    with run.lock():
-        state = _open_run(run, cfg, resume, task)  # again under the lock: the directory may have changed meanwhile
-        board = TensorBoardLogger(run.path / TB_DIR) if tensorboard else None
-        return _train(trainer, run, state, progress, stop_after, callback, board)
+            TensorBoardLogger(Path(paths[0]) / TB_DIR)
+    with contextlib.ExitStack() as stack:
+        for run in runs:
+            if run is not None:
+                stack.enter_context(run.lock())
+        # again under the locks: the directories may have changed meanwhile
+        states = [None if run is None else _open_run(run, t.config, resume, getattr(t, "task", None))
+                  for t, run in zip(trainers, runs)]
+        boards = [TensorBoardLogger(run.path / TB_DIR) if tensorboard and run is not None else None for run in runs]
+        return _train(trainers, engine, runs, states, progress, stop_after, callback, boards)
 
 
-def _train(trainer: Any, run: RunDirectory | None, state: dict[str, Any] | None, progress: bool | None,
+def _engine(trainers: list[Any]) -> Callable[[list[bool]], list[dict[str, float] | None]]:
+    """``iteration(active) -> rows`` for the trainers: one trainer's own iteration, or a batch's."""
+    if len(trainers) == 1:
+        trainer = trainers[0]
+        return lambda active: [trainer.iteration() if active[0] else None]
+    for i, t in enumerate(trainers):
+        if not isinstance(t, AGPI):
+            raise ValueError(f"trainers: entry {i} is {type(t).__name__} ({t.config.method}); only Algorithm 2 "
+                             f"runs train in a batch (train DDPG alone)")
+    from mixedrl.algorithms.batched import BatchedAGPI
+
+    batch: list[BatchedAGPI] = []
+
+    def iteration(active: list[bool]) -> list[dict[str, float] | None]:
+        if not batch:  # built after the checkpoints are loaded
+            batch.append(BatchedAGPI(trainers))
+        return batch[0].iteration(active)
+
+    return iteration
+
+
+def _train(trainers: list[Any], engine: Callable[[list[bool]], list[dict[str, float] | None]],
+           runs: list[RunDirectory | None], states: list[dict[str, Any] | None], progress: bool | None,
            stop_after: int | None, callback: Callable[[dict[str, Any]], None] | None,
-           board: TensorBoardLogger | None) -> dict[str, Any]:
-    """The loop of :func:`train` on a validated (and locked) ``run``, from ``state`` if given."""
-    cfg: TrainConfig = trainer.config
-    torch.set_num_threads(cfg.run.num_threads)
-    memory_rows: list[dict[str, Any]] = []
-    elapsed = 0.0
-    if run is not None:
+           boards: list[TensorBoardLogger | None]) -> list[dict[str, Any]]:
+    """The loop of :func:`train_batch` on validated (and locked) ``runs``, each from its ``state`` if given."""
+    torch.set_num_threads(trainers[0].config.run.num_threads)
+    n = len(trainers)
+    memory_rows: list[list[dict[str, Any]]] = [[] for _ in range(n)]
+    elapsed = [0.0] * n
+    for i, (trainer, run, state) in enumerate(zip(trainers, runs, states)):
+        if run is None:
+            continue
         if state is not None:
             trainer.load_state_dict(state["trainer"])
-            elapsed = float(state.get("elapsed", 0.0))
+            elapsed[i] = float(state.get("elapsed", 0.0))
             run.truncate_metrics(trainer.k)
-        record = config_record(cfg, getattr(trainer, "task", None))
+        record = config_record(trainer.config, getattr(trainer, "task", None))
         if state is None or record != _saved_record(run):
-            run.write_config(cfg, getattr(trainer, "task", None))
-    seeds = eval_seeds(cfg)
-    pending: list[dict[str, Any]] = []
+            run.write_config(trainer.config, getattr(trainer, "task", None))
+    seeds = [eval_seeds(t.config) for t in trainers]
+    pending: list[list[dict[str, Any]]] = [[] for _ in range(n)]
+    interrupted = [False] * n
 
-    def checkpoint() -> None:
-        if run is not None:
-            run.append_metrics(pending)
-            if board is not None:
-                board.write(pending)
-            save_checkpoint(run.checkpoint_path, {"trainer": trainer.state_dict(), "elapsed": elapsed})
-        memory_rows.extend(pending)
-        pending.clear()
+    def checkpoint(i: int) -> None:
+        if runs[i] is not None:
+            runs[i].append_metrics(pending[i])
+            if boards[i] is not None:
+                boards[i].write(pending[i])
+            save_checkpoint(runs[i].checkpoint_path, {"trainer": trainers[i].state_dict(), "elapsed": elapsed[i]})
+        memory_rows[i].extend(pending[i])
+        pending[i].clear()
+
+    def running(i: int) -> bool:
+        t = trainers[i]
+        return not interrupted[i] and t.k < t.config.algorithm.iterations and not t.stopped
 
     bar = None
     if progress or (progress is None and sys.stderr.isatty()):
         from tqdm.auto import tqdm
 
-        bar = tqdm(total=cfg.algorithm.iterations, initial=trainer.k, desc=f"{cfg.method} seed {cfg.seed}", leave=False)
+        first = trainers[0].config
+        desc = f"{first.method} seed {first.seed}" if n == 1 else f"{n} runs"
+        bar = tqdm(total=sum(t.config.algorithm.iterations for t in trainers), initial=sum(t.k for t in trainers),
+                   desc=desc, leave=False)
     try:
-        while trainer.k < cfg.algorithm.iterations and not trainer.stopped:
+        while True:
+            active = [running(i) for i in range(n)]
+            if not any(active):
+                break
             t0 = time.perf_counter()
-            row = trainer.iteration()
-            elapsed += time.perf_counter() - t0
-            row = {"iteration": trainer.k, **row, "time/elapsed_s": elapsed}
-            if trainer.k % cfg.run.eval_every == 0 or trainer.k == cfg.algorithm.iterations or trainer.stopped:
-                row.update(_scalar_eval(trainer.evaluate(seeds)))
-            pending.append(row)
-            if callback is not None:
-                callback(row)
-            if bar is not None:
-                bar.update(1)
-                if "eval/cost" in row:
-                    bar.set_postfix(cost=f"{row['eval/cost']:.4g}")
-            if trainer.k % cfg.run.checkpoint_every == 0:
-                checkpoint()
-            if stop_after is not None and trainer.k >= stop_after:
-                checkpoint()
-                if board is not None:
-                    board.close()
-                return {"interrupted_at": trainer.k}
+            rows = engine(active)
+            dt = time.perf_counter() - t0
+            for i in (i for i in range(n) if active[i]):
+                trainer, cfg = trainers[i], trainers[i].config
+                elapsed[i] += dt
+                row = {"iteration": trainer.k, **rows[i], "time/elapsed_s": elapsed[i]}
+                if trainer.k % cfg.run.eval_every == 0 or trainer.k == cfg.algorithm.iterations or trainer.stopped:
+                    row.update(_scalar_eval(trainer.evaluate(seeds[i])))
+                pending[i].append(row)
+                if callback is not None:
+                    callback(row)
+                if bar is not None:
+                    bar.update(1)
+                    if "eval/cost" in row and n == 1:
+                        bar.set_postfix(cost=f"{row['eval/cost']:.4g}")
+                if trainer.k % cfg.run.checkpoint_every == 0:
+                    checkpoint(i)
+                if stop_after is not None and trainer.k >= stop_after:
+                    checkpoint(i)
+                    interrupted[i] = True
     finally:
         if bar is not None:
             bar.close()
-    checkpoint()
-    if board is not None:
-        board.close()
-    rows = run.read_metrics() if run is not None else memory_rows
-    results = summarize(trainer, rows, elapsed, seeds)
-    if run is not None:
-        run.write_csv()
-        run.write_results(results)
-    else:
-        results["metrics"] = memory_rows
-    return results
+    out: list[dict[str, Any]] = []
+    for i, trainer in enumerate(trainers):
+        if interrupted[i]:
+            if boards[i] is not None:
+                boards[i].close()
+            out.append({"interrupted_at": trainer.k})
+            continue
+        checkpoint(i)
+        if boards[i] is not None:
+            boards[i].close()
+        rows_i = runs[i].read_metrics() if runs[i] is not None else memory_rows[i]
+        results = summarize(trainer, rows_i, elapsed[i], seeds[i])
+        if n > 1:
+            results["batch_size_runs"] = n
+        if runs[i] is not None:
+            runs[i].write_csv()
+            runs[i].write_results(results)
+        else:
+            results["metrics"] = memory_rows[i]
+        out.append(results)
+    return out
 
 
 def summarize(trainer: Any, rows: list[dict[str, Any]], elapsed: float, seeds: list[int]) -> dict[str, Any]:

@@ -1,12 +1,15 @@
-"""Learning-rate schedule shared by Algorithm 2 (:mod:`mixedrl.algorithms.agpi`) and DDPG."""
+"""The optimiser steps of Algorithm 2 (:func:`descend`, one run or many stacked) and the learning-rate
+schedule shared by Algorithm 2 (:mod:`mixedrl.algorithms.agpi`) and DDPG."""
 
 from __future__ import annotations
 
 import torch
 
+from typing import Sequence
+
 from mixedrl.config import TrainConfig
 
-__all__ = ["lr_factor", "set_learning_rates"]
+__all__ = ["lr_factor", "set_learning_rates", "descend"]
 
 
 def lr_factor(config: TrainConfig, k: int) -> float:
@@ -60,3 +63,44 @@ def set_learning_rates(config: TrainConfig, k: int, critic_opt: torch.optim.Opti
         group["lr"] = config.algorithm.critic_lr * factor
     for group in actor_opt.param_groups:
         group["lr"] = config.algorithm.actor_lr * factor
+
+
+def descend(loss: torch.Tensor, leaves: Sequence[torch.Tensor], run_params: Sequence[Sequence[torch.Tensor]],
+            optimizers: Sequence[torch.optim.Optimizer], grad_clips: Sequence[float],
+            active: Sequence[int] | None = None) -> None:
+    """One gradient step per run: ``theta_r <- theta_r - step(dJ_r / dtheta_r)`` (clipped, then each run's own optimiser).
+
+    Parameters
+    ----------
+    loss : torch.Tensor
+        Shape () for one run (``leaves`` are then its parameters), or (R,) for ``R`` stacked runs
+        (``leaves`` are the stacked parameters, shape ``(R, ...)`` each, and run ``r``'s loss depends on
+        slice ``r`` only).
+    leaves : sequence of torch.Tensor
+        The tensors the gradient is taken with respect to.
+    run_params : sequence of sequences of torch.Tensor
+        Per run, its parameters in the order of ``leaves`` (for stacked runs views of slice ``r``).
+    optimizers : sequence of torch.optim.Optimizer
+        Per run, the optimiser over ``run_params[r]`` (its learning rate, state and step count).
+    grad_clips : sequence of float
+        Per run, the largest gradient norm (:func:`torch.nn.utils.clip_grad_norm_`).
+    active : sequence of int, optional
+        The runs that step (default all); the others keep their parameters and optimiser state.
+
+    Raises
+    ------
+    ValueError
+        ``loss`` has neither shape () nor (R,) with ``R = len(optimizers)``.
+    """
+    runs = len(optimizers)
+    if not (loss.ndim == 0 and runs == 1) and tuple(loss.shape) != (runs,):
+        raise ValueError(f"loss: expected shape () for one run or ({runs},), got {tuple(loss.shape)}")
+    grads = torch.autograd.grad(loss if loss.ndim == 0 else loss.sum(), list(leaves))
+    for r in range(runs) if active is None else active:
+        params = run_params[r]
+        for p, g in zip(params, grads):
+            p.grad = g if loss.ndim == 0 else g[r]
+        torch.nn.utils.clip_grad_norm_(params, grad_clips[r])
+        optimizers[r].step()
+        for p in params:
+            p.grad = None

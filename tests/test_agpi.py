@@ -367,14 +367,14 @@ def test_iteration_plans_with_the_current_ibe_posterior() -> None:
         twins[name] = AGPI(task, cfg)
         twins[name].load_state_dict(copy.deepcopy(ag.state_dict()))  # Adam's state is shared otherwise
     calls: list[tuple[str, torch.Tensor]] = []
-    for step in ("pev", "pim"):
-        original = getattr(ag, step)
+    for step in ("pev", "pim"):  # the steps of the iteration's engine (this run alone as a batch)
+        original = getattr(ag.engine, step)
 
-        def spy(s, offsets, weights, original=original, step=step):  # noqa: ANN001
+        def spy(s, offsets, weights, active, original=original, step=step):  # noqa: ANN001
             calls.append((step, offsets.clone()))
-            return original(s, offsets, weights)
+            return original(s, offsets, weights, active)
 
-        setattr(ag, step, spy)
+        setattr(ag.engine, step, spy)
     count_before = ag.noise.count
     metrics = ag.iteration()
     # the planning nodes of every step are those of the posterior at the start of the iteration
@@ -425,13 +425,13 @@ def test_inner_loop_takes_extra_pim_steps_while_the_mvc_fails() -> None:
                       mvc_check="all"), sampler="true_copies")
     ag = AGPI(task, cfg, noise_source=JumpingNoise())
     calls: list[torch.Tensor] = []
-    original = ag.pim
+    original = ag.engine.pim  # the PIM step of the iteration's engine (this run alone as a batch)
 
-    def spy(s, offsets, weights):  # noqa: ANN001
+    def spy(s, offsets, weights, active):  # noqa: ANN001
         calls.append(offsets.clone())
-        return original(s, offsets, weights)
+        return original(s, offsets, weights, active)
 
-    ag.pim = spy
+    ag.engine.pim = spy
     for _ in range(2):
         calls.clear()
         metrics = ag.iteration()

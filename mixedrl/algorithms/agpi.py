@@ -13,7 +13,8 @@ One outer iteration ``k`` of :class:`AGPI` (see :meth:`AGPI.iteration`) is
 3. **PIM** (eqs. 51-52, :func:`mixedrl.pim.actor_step`): one gradient step of the actor
    ``pi(x; theta)`` under ``xi_hat_k``, gradients through the model ``f``;
 4. **IBE** (eq. 20): the noise source absorbs the residuals: ``xi_hat_k -> xi_hat_{k+1}``;
-5. **MVC loop** (eqs. 37-39, :func:`mixedrl.pim.mvc_check`): while the maximum variation condition
+5. **MVC loop** (eqs. 37-39, :func:`mixedrl.pim.mvc_check`, masked per run in
+   :class:`mixedrl.algorithms.batched.BatchedAGPI`): while the maximum variation condition
    fails on the batch, one more PIM step (``j <- j + 1``), until it holds or ``j = j_max``;
 6. the stopping test ``|V^{k+1} - V^k| <= eps`` and ``|pi^{k+1} - pi^k| <= eps``.
 
@@ -51,7 +52,6 @@ from mixedrl.networks import Actor, AffineActor, Critic, QuadraticCritic
 from mixedrl.noise import make_noise_source
 from mixedrl.pev import critic_loss, critic_step
 from mixedrl.pim import MVCResult, actor_objective, actor_step, mvc_check
-from mixedrl.schedule import set_learning_rates
 from mixedrl.tasks import CourseSampler, Task, check_task
 
 __all__ = [
@@ -161,6 +161,7 @@ class AGPI:
         self.sampler = sampler_class(task, config, self.generator) if sampler_class is not None else None
         #: The Polyak (EMA) average of the actor's weights (``config.algorithm.actor_average > 0``), else ``None``.
         self.actor_avg: AveragedModel | None = None
+        self._solo: Any = None  # the batched engine of this run alone (iteration)
         if config.algorithm.actor_average > 0:
             self.actor_avg = AveragedModel(self.actor, multi_avg_fn=get_ema_multi_avg_fn(config.algorithm.actor_average),
                                            use_buffers=True)
@@ -332,48 +333,6 @@ class AGPI:
         else:
             self.noise.update(residuals.numpy())
 
-    def mvc_loop(self, s: torch.Tensor, u_old: torch.Tensor, nodes_k: tuple[torch.Tensor, torch.Tensor],
-                 nodes_next: tuple[torch.Tensor, torch.Tensor]) -> tuple[MVCResult, int, torch.Tensor]:
-        """Implements the AGPI inner loop: PIM steps under ``xi_hat_k`` until the MVC (eq. 38) holds.
-
-        .. math::
-            h(x, u^{k+1}, \\hat\\xi_{k+1}) - h(x, u^{k+1}, \\hat\\xi_k) \\le e_k(x)
-            = h(x, u^k, \\hat\\xi_k) - h(x, u^{k+1}, \\hat\\xi_k)
-
-        Parameters
-        ----------
-        s : torch.Tensor, shape (B, state_dim)
-            The batch.
-        u_old : torch.Tensor, shape (B, action_dim)
-            ``u^k = pi^k(x)``.
-        nodes_k, nodes_next : tuple of torch.Tensor
-            Quadratures (offsets, weights) of ``xi_hat_k`` and ``xi_hat_{k+1}``.
-
-        Returns
-        -------
-        mvc : MVCResult
-            The last check (it held, or ``j = j_max``).
-        j : int
-            Number of extra PIM steps taken.
-        u_new : torch.Tensor, shape (B, action_dim)
-            ``u^{k+1} = pi^{k+1}(x)`` after them.
-        """
-        task, cfg = self.task, self.config
-        obs = task.observe(s)
-        with torch.no_grad():
-            h_old_cur = h_value(task, self.critic, s, u_old, *nodes_k)
-        j = 0
-        while True:
-            with torch.no_grad():
-                u_new = self.actor(obs)
-                h_new_cur = h_value(task, self.critic, s, u_new, *nodes_k)
-                h_new_next = h_value(task, self.critic, s, u_new, *nodes_next)
-            mvc = mvc_check(h_new_next, h_new_cur, h_old_cur, cfg.algorithm.mvc_check)
-            if mvc.held or j >= cfg.algorithm.j_max:
-                return mvc, j, u_new
-            self.pim(s, *nodes_k)
-            j += 1
-
     def iteration(self) -> dict[str, float]:
         """Implements Algorithm 2, one outer iteration ``k``: data, PEV, PIM, IBE, MVC loop, stopping test.
 
@@ -385,29 +344,30 @@ class AGPI:
         Notes
         -----
         See the class Notes for the order of the steps and :func:`mixedrl.pim.mvc_check` for the batch
-        form of the MVC.
+        form of the MVC. The iteration is :class:`mixedrl.algorithms.batched.BatchedAGPI`'s with this one
+        run (``R = 1``): one implementation for a run alone and for many runs at once.
         """
-        cfg, task = self.config, self.task
-        set_learning_rates(cfg, self.k, self.critic_opt, self.actor_opt)
-        s, residuals = self.collect()
-        obs = task.observe(s)
-        with torch.no_grad():
-            v_before = self.critic(obs)
-            u_old = self.actor(obs)
-        # xi_hat_k: the current IBE posterior (the prior only before any data)
-        nodes_k = self.nodes(*self.planning_moments(s, u_old))
-        # PEV with xi_hat_k
-        critic_loss_value = self.pev(s, *nodes_k)
-        # PIM with xi_hat_k
-        actor_obj = self.pim(s, *nodes_k)
-        # IBE: xi_hat_k -> xi_hat_{k+1}
-        self.ibe(residuals)
-        nodes_next = self.nodes(*self.planning_moments(s, u_old))
-        # AGPI inner loop: repeat PIM until the MVC holds or j = j_max
-        mvc, j, u_new = self.mvc_loop(s, u_old, nodes_k, nodes_next)
+        return self.engine.iteration()[0]
+
+    @property
+    def engine(self) -> Any:
+        """This run alone as a batch: the :class:`mixedrl.algorithms.batched.BatchedAGPI` of ``[self]``
+        that :meth:`iteration` runs (built on first use)."""
+        if self._solo is None:
+            from mixedrl.algorithms.batched import BatchedAGPI
+
+            self._solo = BatchedAGPI([self])
+        return self._solo
+
+    def _finish_iteration(self, s: torch.Tensor, residuals: torch.Tensor, v_before: torch.Tensor,
+                          v_after: torch.Tensor, u_old: torch.Tensor, u_new: torch.Tensor, mvc: MVCResult, j: int,
+                          critic_loss_value: float, actor_obj: float) -> dict[str, float]:
+        """The end of iteration ``k`` (after the MVC loop): the stopping test, the actor average, ``k + 1``
+        and the metrics row (:meth:`iteration`; the batched engine calls it per run)."""
+        cfg = self.config
         # stopping test: |V^{k+1} - V^k| <= eps and |pi^{k+1} - pi^k| <= eps on the batch
         with torch.no_grad():
-            dv = float((self.critic(obs) - v_before).abs().mean() / (v_before.abs().mean() + 1e-12))
+            dv = float((v_after - v_before).abs().mean() / (v_before.abs().mean() + 1e-12))
             dpi = float(((u_new - u_old) / self.actor_bound_tensor()).abs().mean())
         if cfg.algorithm.stop_epsilon > 0 and dv <= cfg.algorithm.stop_epsilon and dpi <= cfg.algorithm.stop_epsilon:
             self.stop_count += 1

@@ -1,0 +1,80 @@
+"""Side-by-side table of the batched engine (mixedrl.algorithms.batched): one run alone against R runs in one batch.
+
+    python benchmarks/batched_table.py [--iterations N] [--sizes 1 5 15 50] [--out FILE.json]
+
+For each size ``R`` (seeds x mixed / model / oracle at the double lane change's defaults) it builds the
+runs, times ``N`` iterations of the batch after 3 warm-up iterations, and reports the wall time per
+batch iteration, the iterations per second of all runs together (``R / time``), the ratio to one run
+alone, and the peak resident memory of a fresh process (each size runs in its own subprocess, so the
+peaks do not mix). Evaluation and start-up are not in the per-iteration times; ``--full`` adds one
+whole ``mixedrl train`` run (start-up and evaluation included).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import resource
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+METHODS = ("mixed", "model", "oracle")
+
+
+def measure(size: int, iterations: int, threads: int) -> dict[str, float]:
+    """Time ``iterations`` batch iterations of ``size`` runs in this process."""
+    import torch
+
+    from mixedrl.algorithms.batched import BatchedAGPI
+    from mixedrl.config import TrainConfig
+    from mixedrl.runs import make_trainer
+
+    torch.set_num_threads(threads)
+    t0 = time.perf_counter()
+    trainers = [make_trainer(TrainConfig(method=METHODS[i % 3], seed=i // 3)) for i in range(size)]
+    engine = BatchedAGPI(trainers)
+    build = time.perf_counter() - t0
+    for _ in range(3):
+        engine.iteration()
+    t0 = time.perf_counter()
+    for _ in range(iterations):
+        engine.iteration()
+    per_iteration = (time.perf_counter() - t0) / iterations
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024 ** 2  # KiB -> GiB
+    return {"runs": size, "build_s": build, "s_per_iteration": per_iteration,
+            "run_iterations_per_s": size / per_iteration, "peak_gib": peak}
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--iterations", type=int, default=20)
+    p.add_argument("--sizes", type=int, nargs="+", default=[1, 5, 15, 50])
+    p.add_argument("--threads", type=int, default=1)
+    p.add_argument("--out", type=Path, default=None)
+    p.add_argument("--one", type=int, default=None, help=argparse.SUPPRESS)
+    args = p.parse_args(argv)
+    if args.one is not None:
+        print(json.dumps(measure(args.one, args.iterations, args.threads)))
+        return 0
+    rows = []
+    for size in args.sizes:
+        out = subprocess.run([sys.executable, __file__, "--one", str(size), "--iterations", str(args.iterations),
+                              "--threads", str(args.threads)], capture_output=True, text=True, check=True)
+        rows.append(json.loads(out.stdout.strip().splitlines()[-1]))
+    base = next((r for r in rows if r["runs"] == 1), rows[0])
+    print(f"{'R':>4} {'s / batch it':>13} {'x one run':>10} {'run-its / s':>12} {'vs R x alone':>13} {'peak GiB':>9}")
+    for r in rows:
+        ratio = r["s_per_iteration"] / base["s_per_iteration"]
+        print(f"{r['runs']:>4} {r['s_per_iteration']:>13.4f} {ratio:>10.2f} {r['run_iterations_per_s']:>12.1f} "
+              f"{r['runs'] / ratio:>12.2f}x {r['peak_gib']:>9.2f}")
+        r["ratio_to_one_run"] = ratio
+    if args.out is not None:
+        args.out.write_text(json.dumps({"threads": args.threads, "iterations": args.iterations, "rows": rows},
+                                       indent=2) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,346 @@
+"""Many runs of Algorithm 2 as one computation: :class:`BatchedAGPI`.
+
+``R`` runs (seeds x methods x config variants with the same network shapes and batch size) are
+trained together. Each run stays an :class:`~mixedrl.algorithms.agpi.AGPI` object with its own task,
+config, generator, noise source (its IBE), sampler, optimisers, learning-rate schedule, counters,
+checkpoint format and run directory; what is shared is the arithmetic:
+
+* the critics and the actors of the ``R`` runs are stacked (:func:`torch.func.stack_module_state`)
+  and evaluated as one batched function (:func:`torch.func.vmap` over :func:`torch.func.functional_call`,
+  :class:`StackedNetwork`); each run's modules keep working unchanged (evaluation, saving, the
+  sampler), because their parameters are rebound to views of the stacked tensors;
+* the ``R`` batches are concatenated (``R B`` states, run ``r`` in rows ``r B .. (r + 1) B - 1``) and
+  PEV (eq. 49), PIM (eq. 51) and the three ``h`` of the MVC (eqs. 37-39) are evaluated once for all
+  runs, with each run's own quadrature of its own ``xi_hat_k`` (per-state offsets and weights,
+  summed node by node: :func:`mixedrl.expectation.weighted_sum`);
+* the losses are per run (``runs=R`` of :func:`mixedrl.pev.critic_loss` and
+  :func:`mixedrl.pim.actor_objective`) and each run takes its own clipped Adam step
+  (:func:`mixedrl.schedule.descend`); the MVC inner loop is masked: a run whose condition holds (or
+  whose ``j`` reached ``j_max``) takes no more steps while the others do.
+
+Everything a run draws at random (its sampler's rollouts and true transitions, sampled quadrature) comes
+from its own generator, in the order of a run alone. ``R = 1`` is the single run: the member's own
+modules are called (no ``vmap``) and :meth:`AGPI.iteration` is ``BatchedAGPI([run]).iteration()[0]``.
+
+Reproducibility (measured, ``tests/test_batched.py``): for ``R >= 2`` the batched kernels give every run
+the same bits whatever else shares the batch (the same config and seed give the same weights in any
+composition of two or more runs); ``R = 1`` calls the unbatched kernels, whose results differ from the
+batched ones in the last bit of some float32 operations, so a run alone and the same run in a batch
+agree to rounding at the first iteration and then drift apart as any two float32 runs do. Which path a
+run took is recorded (``batch_size_runs`` in its ``results.json``).
+"""
+
+from __future__ import annotations
+
+import copy
+from typing import Any, Sequence
+
+#: A member of a batch: an :class:`mixedrl.algorithms.agpi.AGPI` run (not imported: agpi imports this module).
+AGPI = Any
+
+import torch
+from torch.func import functional_call, stack_module_state, vmap
+
+from mixedrl.expectation import h_value
+from mixedrl.pev import critic_loss
+from mixedrl.pim import actor_objective, mvc_check
+from mixedrl.schedule import descend, set_learning_rates
+
+__all__ = ["BatchedAGPI", "StackedNetwork", "SHARED_FIELDS", "batch_key"]
+
+#: The ``algorithm`` fields the runs of one batch must share (network shapes, batch size, the form of
+#: the losses and of the quadrature); every other field (method, seed, budget, learning rates, IBE,
+#: sampler, MVC settings, ...) may differ between them.
+SHARED_FIELDS = ("batch_size", "hidden_sizes", "activation", "value_output", "bellman_steps", "batch_weighting",
+                 "batch_weight_offset", "expectation", "noise_samples")
+
+
+def batch_key(config: Any) -> tuple[Any, ...] | None:
+    """What runs must share to be trained in one batch: the task and :data:`SHARED_FIELDS`; ``None`` for DDPG.
+
+    Parameters
+    ----------
+    config : TrainConfig
+
+    Returns
+    -------
+    tuple or None
+        Equal keys can share a batch; ``None``: the method is not Algorithm 2 (DDPG trains alone).
+    """
+    if config.method == "ddpg":
+        return None
+    return (repr(config.task), config.run.num_threads) + tuple(repr(getattr(config.algorithm, f))
+                                                                for f in SHARED_FIELDS)
+
+
+class StackedNetwork:
+    """``R`` modules of one architecture as one function of ``R`` runs' inputs.
+
+    Parameters
+    ----------
+    modules : sequence of torch.nn.Module
+        The runs' networks (identical structure).
+    batch : int
+        States per run, ``B``: an input of ``N = K R B`` rows holds ``K`` blocks of ``R B`` rows, run
+        ``r``'s rows ``r B .. (r + 1) B - 1`` of each block (the layout of :func:`mixedrl.expectation.expect`,
+        whose points are ordered node-major).
+
+    Notes
+    -----
+    For ``R = 1`` the call is the module itself. For ``R > 1`` the stacked parameters are leaves of shape
+    ``(R, ...)`` (:attr:`leaves`) and each module's parameters are rebound to their views, so a step on
+    the stacked tensors is a step of every module and the modules stay usable on their own.
+    """
+
+    def __init__(self, modules: Sequence[torch.nn.Module], batch: int) -> None:
+        self.modules = list(modules)
+        self.runs = len(self.modules)
+        self.batch = int(batch)
+        if self.runs == 1:
+            self.leaves = list(self.modules[0].parameters())
+            return
+        params, self.buffers = stack_module_state(self.modules)
+        self.params = dict(params)
+        for r, module in enumerate(self.modules):
+            for name, p in module.named_parameters():
+                p.data = self.params[name].data[r]
+        self.leaves = list(self.params.values())
+        base = copy.deepcopy(self.modules[0]).to("meta")
+
+        def call(params: dict[str, torch.Tensor], buffers: dict[str, torch.Tensor], x: torch.Tensor) -> torch.Tensor:
+            return functional_call(base, (params, buffers), (x,))
+
+        self._call = vmap(call)
+
+    def run_params(self) -> list[list[torch.Tensor]]:
+        """Per run, its parameters in the order of :attr:`leaves`."""
+        if self.runs == 1:
+            return [self.leaves]
+        return [[dict(m.named_parameters())[name] for name in self.params] for m in self.modules]
+
+    def __call__(self, x: torch.Tensor, frozen: bool = False) -> torch.Tensor:
+        """Evaluate on ``x`` of shape ``(K R B, d)``; ``frozen``: no gradient to the parameters."""
+        if self.runs == 1:
+            return self.modules[0](x)
+        n, rest = x.shape[0], x.shape[1:]
+        k = n // (self.runs * self.batch)
+        if k * self.runs * self.batch != n:
+            raise ValueError(f"x: {n} rows is not a multiple of runs x batch = {self.runs} x {self.batch}")
+        xs = x.reshape(k, self.runs, self.batch, *rest).transpose(0, 1).reshape(self.runs, k * self.batch, *rest)
+        params = {name: p.detach() for name, p in self.params.items()} if frozen else self.params
+        out = self._call(params, self.buffers, xs)
+        tail = out.shape[2:]
+        return out.reshape(self.runs, k, self.batch, *tail).transpose(0, 1).reshape(n, *tail)
+
+    def frozen(self) -> Any:
+        """The same function without gradient to the parameters (the critic inside PIM)."""
+        return self.modules[0] if self.runs == 1 else (lambda x: self(x, frozen=True))
+
+
+def _check_members(members: Sequence[AGPI]) -> None:
+    if len(members) == 0:
+        raise ValueError("members: expected at least one AGPI run, got none")
+    for i, m in enumerate(members):
+        if not all(hasattr(m, a) for a in ("critic_opt", "actor_opt", "collect", "nodes", "_finish_iteration")):
+            raise ValueError(f"members: entry {i} is a {type(m).__name__}, not an AGPI run (DDPG trains alone)")
+    first = members[0]
+    for i, m in enumerate(members[1:], start=1):
+        if m.architecture != first.architecture or type(m.task) is not type(first.task) or \
+                m.config.task != first.config.task:
+            raise ValueError(f"members: run {i} ({m.config.method}, seed {m.config.seed}) has another task or "
+                             f"architecture than run 0; a batch shares one task")
+        for f in SHARED_FIELDS:
+            if getattr(m.config.algorithm, f) != getattr(first.config.algorithm, f):
+                raise ValueError(f"members: run {i} has algorithm.{f} = {getattr(m.config.algorithm, f)!r}, run 0 "
+                                 f"{getattr(first.config.algorithm, f)!r}; the runs of a batch share "
+                                 f"{', '.join(SHARED_FIELDS)}")
+    if len({id(m) for m in members}) != len(members):
+        raise ValueError("members: the same run appears twice")
+
+
+class BatchedAGPI:
+    """Algorithm 2 for ``R`` runs at once (see the module docstring).
+
+    Parameters
+    ----------
+    members : sequence of AGPI
+        The runs (built, possibly restored from checkpoints). They must share the task and
+        :data:`SHARED_FIELDS`; the batch rebinds their network parameters to views of stacked tensors.
+
+    Raises
+    ------
+    ValueError
+        No runs, a run that is not an :class:`AGPI`, or runs that differ in a shared field.
+    """
+
+    def __init__(self, members: Sequence[AGPI]) -> None:
+        _check_members(members)
+        self.members = list(members)
+        self.runs = len(self.members)
+        self.batch = self.members[0].config.algorithm.batch_size
+        self.task = self.members[0].task
+        self.critic = StackedNetwork([m.critic for m in self.members], self.batch)
+        self.actor = StackedNetwork([m.actor for m in self.members], self.batch)
+        self._critic_params = self.critic.run_params()
+        self._actor_params = self.actor.run_params()
+        algo = self.members[0].config.algorithm
+        self.steps = algo.bellman_steps
+        self._filler: torch.Tensor | None = None
+
+    # -------------------------------------------------------------------------------------- helpers
+    def _placeholder(self, m: AGPI) -> torch.Tensor:
+        """A batch for a run that does not iterate (its last batch): it fills its rows, its results are unused."""
+        if m.last_batch is not None:
+            return m.last_batch
+        if self._filler is None:
+            self._filler = self.task.sample_initial(self.batch, torch.Generator().manual_seed(0)).float()
+        return self._filler
+
+    def _join(self, nodes: list[tuple[torch.Tensor, torch.Tensor]]) -> tuple[torch.Tensor, torch.Tensor]:
+        """The runs' quadratures as one, per state: offsets (P, R B, n) and weights (P, R B), run ``r``'s
+        nodes on its rows; a run with fewer nodes than ``P`` repeats its first node with weight 0."""
+        if self.runs == 1:
+            return nodes[0]
+        size = max(off.shape[0] for off, _ in nodes)
+        offsets, weights = [], []
+        for off, w in nodes:
+            off = off if off.ndim == 3 else off[:, None, :].expand(off.shape[0], self.batch, off.shape[-1])
+            pad = size - off.shape[0]
+            if pad:
+                off = torch.cat([off, off[:1].expand(pad, *off.shape[1:])])
+                w = torch.cat([w, w.new_zeros(pad)])
+            offsets.append(off)
+            weights.append(w[:, None].expand(size, self.batch))
+        return torch.cat(offsets, dim=1), torch.cat(weights, dim=1)
+
+    def _slice(self, r: int) -> slice:
+        return slice(r * self.batch, (r + 1) * self.batch)
+
+    def pev(self, s: torch.Tensor, offsets: torch.Tensor, weights: torch.Tensor, active: list[int]) -> list[float]:
+        """Eqs. (49)-(50) for every run: one semi-gradient step of each active run's critic (its own Adam)."""
+        with torch.no_grad():
+            u = self.actor(self.task.observe(s))
+        rel = self.members[0].relative_offset
+        loss = critic_loss(self.task, self.critic, s, u, offsets, weights, rel, self.actor, self.steps, self.runs)
+        # w^{k+1} = w^k - alpha dJ_critic/dw   (Adam, per run)
+        descend(loss, self.critic.leaves, self._critic_params, [m.critic_opt for m in self.members],
+                [m.config.algorithm.grad_clip for m in self.members], active)
+        return [float(v) for v in loss.detach().reshape(-1)]
+
+    def pim(self, s: torch.Tensor, offsets: torch.Tensor, weights: torch.Tensor, active: list[int]) -> list[float]:
+        """Eqs. (51)-(52) for every run: one gradient step of each active run's actor, critics frozen."""
+        rel = self.members[0].relative_offset
+        if self.runs == 1:
+            for p in self.critic.leaves:
+                p.requires_grad_(False)
+        try:
+            obj = actor_objective(self.task, self.critic.frozen(), self.actor, s, offsets, weights, rel, self.steps,
+                                  self.runs)
+            # theta^{k+1} = theta^k - beta dJ_actor/dtheta   (Adam, per run)
+            descend(obj, self.actor.leaves, self._actor_params, [m.actor_opt for m in self.members],
+                    [m.config.algorithm.grad_clip for m in self.members], active)
+        finally:
+            if self.runs == 1:
+                for p in self.critic.leaves:
+                    p.requires_grad_(True)
+        return [float(v) for v in obj.detach().reshape(-1)]
+
+    # -------------------------------------------------------------------------------------- the iteration
+    def iteration(self, active: Sequence[bool] | None = None) -> list[dict[str, float] | None]:
+        """Implements Algorithm 2, one outer iteration of every active run (see :meth:`AGPI.iteration`).
+
+        Parameters
+        ----------
+        active : sequence of bool, optional
+            Which runs iterate (default: all). An inactive run (budget reached, stopped) draws nothing,
+            takes no step and returns ``None``.
+
+        Returns
+        -------
+        list
+            Per run its metrics row (the keys of :meth:`AGPI.iteration`), or ``None`` if inactive.
+        """
+        flags = [True] * self.runs if active is None else [bool(a) for a in active]
+        if len(flags) != self.runs:
+            raise ValueError(f"active: expected {self.runs} flags, got {len(flags)}")
+        on = [r for r in range(self.runs) if flags[r]]
+        if not on:
+            return [None] * self.runs
+        task = self.task
+        batches: list[torch.Tensor] = []
+        residuals: list[torch.Tensor | None] = []
+        for r, m in enumerate(self.members):
+            if flags[r]:
+                set_learning_rates(m.config, m.k, m.critic_opt, m.actor_opt)
+                s_r, xi_r = m.collect()
+                batches.append(s_r)
+                residuals.append(xi_r)
+            else:
+                batches.append(self._placeholder(m))
+                residuals.append(None)
+        s = batches[0] if self.runs == 1 else torch.cat(batches)
+        obs = task.observe(s)
+        with torch.no_grad():
+            v_before = self.critic(obs)
+            u_old = self.actor(obs)
+        u_runs = [u_old[self._slice(r)] for r in range(self.runs)]
+
+        def quadrature() -> tuple[torch.Tensor, torch.Tensor]:
+            nodes = [m.nodes(*m.planning_moments(batches[r], u_runs[r])) if flags[r] else None
+                     for r, m in enumerate(self.members)]
+            fill = nodes[on[0]]
+            return self._join([n if n is not None else fill for n in nodes])
+
+        # xi_hat_k: each run's current IBE posterior (the prior only before any data)
+        nodes_k = quadrature()
+        # PEV with xi_hat_k
+        critic_losses = self.pev(s, *nodes_k, on)
+        # PIM with xi_hat_k
+        actor_objs = self.pim(s, *nodes_k, on)
+        # IBE: xi_hat_k -> xi_hat_{k+1}
+        for r in on:
+            self.members[r].ibe(residuals[r])
+        nodes_next = quadrature()
+        # AGPI inner loop: repeat PIM (masked per run) until the MVC holds or j = j_max
+        outcome = self._mvc_loop(s, u_old, nodes_k, nodes_next, on)
+        with torch.no_grad():
+            v_after = self.critic(obs)
+        rows: list[dict[str, float] | None] = [None] * self.runs
+        for r in on:
+            m, sl = self.members[r], self._slice(r)
+            mvc, j, u_new = outcome[r]
+            rows[r] = m._finish_iteration(batches[r], residuals[r], v_before[sl], v_after[sl], u_runs[r], u_new,
+                                          mvc, j, critic_losses[r if self.runs > 1 else 0],
+                                          actor_objs[r if self.runs > 1 else 0])
+        return rows
+
+    def _mvc_loop(self, s: torch.Tensor, u_old: torch.Tensor, nodes_k: tuple[torch.Tensor, torch.Tensor],
+                  nodes_next: tuple[torch.Tensor, torch.Tensor], on: list[int]) -> dict[int, tuple[Any, int, torch.Tensor]]:
+        """The MVC inner loop (eqs. 37-39, :meth:`AGPI.mvc_loop`) for every active run, masked per run."""
+        task = self.task
+        obs = task.observe(s)
+        critic = self.critic.frozen()
+        with torch.no_grad():
+            h_old_cur = h_value(task, critic, s, u_old, *nodes_k)
+        j = {r: 0 for r in on}
+        pending = list(on)
+        done: dict[int, tuple[Any, int, torch.Tensor]] = {}
+        while True:
+            with torch.no_grad():
+                u_new = self.actor(obs)
+                h_new_cur = h_value(task, critic, s, u_new, *nodes_k)
+                h_new_next = h_value(task, critic, s, u_new, *nodes_next)
+            still: list[int] = []
+            for r in pending:
+                sl, cfg = self._slice(r), self.members[r].config
+                mvc = mvc_check(h_new_next[sl], h_new_cur[sl], h_old_cur[sl], cfg.algorithm.mvc_check)
+                if mvc.held or j[r] >= cfg.algorithm.j_max:
+                    done[r] = (mvc, j[r], u_new[sl])
+                else:
+                    still.append(r)
+            if not still:
+                return done
+            self.pim(s, *nodes_k, still)
+            for r in still:
+                j[r] += 1
+            pending = still
