@@ -19,7 +19,7 @@ from typing import Any, Callable
 import numpy as np
 import torch
 
-from mixedrl.checks import as_vector, check_covariance, check_number
+from mixedrl.checks import as_vector, check_covariance, check_number, check_positive_int
 from mixedrl.expectation import h_value, weighted_sum
 from mixedrl.schedule import descend
 from mixedrl.quadratic import AffinePolicy, LinearDynamics, QuadraticCost, QuadraticValue, check_problem, lyapunov_solve
@@ -375,8 +375,9 @@ def critic_loss(task: Any, critic: torch.nn.Module, s: torch.Tensor, u: torch.Te
 
 def check_runs(runs: int, batch: int) -> int:
     """Return ``runs`` if it is an integer ``>= 1`` that divides ``batch``; else a ``ValueError`` naming ``runs``."""
-    if isinstance(runs, bool) or not isinstance(runs, int) or runs < 1 or batch % runs:
-        raise ValueError(f"runs: expected an integer >= 1 that divides the batch ({batch}), got {runs!r}")
+    runs = check_positive_int(runs, "runs")
+    if batch % runs:
+        raise ValueError(f"runs: {runs} does not divide the batch of {batch} states")
     return runs
 
 

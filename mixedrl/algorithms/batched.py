@@ -35,9 +35,6 @@ from __future__ import annotations
 import copy
 from typing import Any, Sequence
 
-#: A member of a batch: an :class:`mixedrl.algorithms.agpi.AGPI` run (not imported: agpi imports this module).
-AGPI = Any
-
 import torch
 from torch.func import functional_call, stack_module_state, vmap
 
@@ -47,6 +44,9 @@ from mixedrl.pim import actor_objective, mvc_check
 from mixedrl.schedule import descend, set_learning_rates
 
 __all__ = ["BatchedAGPI", "StackedNetwork", "SHARED_FIELDS", "batch_key"]
+
+#: A member of a batch: an :class:`mixedrl.algorithms.agpi.AGPI` run (not imported: agpi imports this module).
+AGPI = Any
 
 #: The ``algorithm`` fields the runs of one batch must share (network shapes, batch size, the form of
 #: the losses and of the quadrature); every other field (method, seed, budget, learning rates, IBE,
@@ -116,7 +116,8 @@ class StackedNetwork:
         """Per run, its parameters in the order of :attr:`leaves`."""
         if self.runs == 1:
             return [self.leaves]
-        return [[dict(m.named_parameters())[name] for name in self.params] for m in self.modules]
+        named = [dict(m.named_parameters()) for m in self.modules]
+        return [[params[name] for name in self.params] for params in named]
 
     def __call__(self, x: torch.Tensor, frozen: bool = False) -> torch.Tensor:
         """Evaluate on ``x`` of shape ``(K R B, d)``; ``frozen``: no gradient to the parameters."""
@@ -302,7 +303,7 @@ class BatchedAGPI:
             self.members[r].ibe(residuals[r])
         nodes_next = quadrature()
         # AGPI inner loop: repeat PIM (masked per run) until the MVC holds or j = j_max
-        outcome = self._mvc_loop(s, u_old, nodes_k, nodes_next, on)
+        outcome = self._mvc_loop(s, obs, u_old, nodes_k, nodes_next, on)
         with torch.no_grad():
             v_after = self.critic(obs)
         rows: list[dict[str, float] | None] = [None] * self.runs
@@ -310,15 +311,23 @@ class BatchedAGPI:
             m, sl = self.members[r], self._slice(r)
             mvc, j, u_new = outcome[r]
             rows[r] = m._finish_iteration(batches[r], residuals[r], v_before[sl], v_after[sl], u_runs[r], u_new,
-                                          mvc, j, critic_losses[r if self.runs > 1 else 0],
-                                          actor_objs[r if self.runs > 1 else 0])
+                                          mvc, j, critic_losses[r], actor_objs[r])
         return rows
 
-    def _mvc_loop(self, s: torch.Tensor, u_old: torch.Tensor, nodes_k: tuple[torch.Tensor, torch.Tensor],
-                  nodes_next: tuple[torch.Tensor, torch.Tensor], on: list[int]) -> dict[int, tuple[Any, int, torch.Tensor]]:
-        """The MVC inner loop (eqs. 37-39, :meth:`AGPI.mvc_loop`) for every active run, masked per run."""
+    def _mvc_loop(self, s: torch.Tensor, obs: torch.Tensor, u_old: torch.Tensor,
+                  nodes_k: tuple[torch.Tensor, torch.Tensor], nodes_next: tuple[torch.Tensor, torch.Tensor],
+                  on: list[int]) -> dict[int, tuple[Any, int, torch.Tensor]]:
+        """Implements the AGPI inner loop for every active run, masked per run: PIM steps under ``xi_hat_k``
+        until the MVC (eq. 38) holds or ``j = j_max``.
+
+        .. math::
+            h(x, u^{k+1}, \\hat\\xi_{k+1}) - h(x, u^{k+1}, \\hat\\xi_k) \\le e_k(x)
+            = h(x, u^k, \\hat\\xi_k) - h(x, u^{k+1}, \\hat\\xi_k)
+
+        Returns, per active run, ``(mvc, j, u_new)``: the last check, the extra PIM steps taken and
+        ``u^{k+1} = pi^{k+1}(x)`` on its batch.
+        """
         task = self.task
-        obs = task.observe(s)
         critic = self.critic.frozen()
         with torch.no_grad():
             h_old_cur = h_value(task, critic, s, u_old, *nodes_k)
