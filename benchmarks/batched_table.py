@@ -6,8 +6,11 @@ For each size ``R`` (seeds x mixed / model / oracle at the double lane change's 
 runs, times ``N`` iterations of the batch after 3 warm-up iterations, and reports the wall time per
 batch iteration, the iterations per second of all runs together (``R / time``), the ratio to one run
 alone, and the peak resident memory of a fresh process (each size runs in its own subprocess, so the
-peaks do not mix). Evaluation and start-up are not in the per-iteration times; ``--full`` adds one
-whole ``mixedrl train`` run (start-up and evaluation included).
+peaks do not mix). Evaluation and start-up are not in the per-iteration times.
+
+``--reproduction`` instead times ``mixedrl reproduce --quick`` (2 seeds at the paper's budget, 2 workers)
+twice, side by side in this invocation: batched (``--batch 16``, the default) and every run alone
+(``--batch 1``), each in a fresh directory, and prints both wall times and their ratio.
 """
 
 from __future__ import annotations
@@ -47,6 +50,30 @@ def measure(size: int, iterations: int, threads: int) -> dict[str, float]:
             "run_iterations_per_s": size / per_iteration, "peak_gib": peak}
 
 
+def reproduction(out: Path | None) -> int:
+    """``mixedrl reproduce --quick`` with ``--batch 16`` and ``--batch 1``, one after the other."""
+    import tempfile
+
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for batch in (16, 1):
+            t0 = time.perf_counter()
+            subprocess.run([sys.executable, "-m", "mixedrl.cli", "reproduce", "--quick", "--out",
+                            str(Path(tmp) / f"batch{batch}"), "--batch", str(batch), "--no-progress"],
+                           check=True, capture_output=True, text=True)
+            wall = time.perf_counter() - t0
+            res = json.loads((Path(tmp) / f"batch{batch}" / "results.json").read_text())
+            rows.append({"batch": batch, "wall_s": wall, "batches": res["sweep"]["batches"],
+                         "mixed_train_s": res["mixed"]["train_seconds_mean"]})
+    print(f"{'--batch':>8} {'wall s':>8} {'tasks':>6} {'mixed train s':>14}")
+    for r in rows:
+        print(f"{r['batch']:>8} {r['wall_s']:>8.1f} {r['batches']:>6} {r['mixed_train_s']:>14.1f}")
+    print(f"batched / alone: {rows[0]['wall_s'] / rows[1]['wall_s']:.2f}")
+    if out is not None:
+        out.write_text(json.dumps({"reproduction_quick": rows}, indent=2) + "\n")
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--iterations", type=int, default=20)
@@ -54,7 +81,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--threads", type=int, default=1)
     p.add_argument("--out", type=Path, default=None)
     p.add_argument("--one", type=int, default=None, help=argparse.SUPPRESS)
+    p.add_argument("--reproduction", action="store_true", help="time mixedrl reproduce --quick, batched and not")
     args = p.parse_args(argv)
+    if args.reproduction:
+        return reproduction(args.out)
     if args.one is not None:
         print(json.dumps(measure(args.one, args.iterations, args.threads)))
         return 0

@@ -163,7 +163,8 @@ def _sweep(args: argparse.Namespace) -> int:
     spec or arguments, or ``--address`` without Ray (the message says which extra to install)."""
     try:
         doc = run_sweep(load_spec(args.spec), args.out, address=args.address, num_cpus=args.num_cpus,
-                        resume=args.resume, progress=not args.no_progress, workers=args.workers)
+                        resume=args.resume, progress=not args.no_progress, workers=args.workers,
+                        batch=args.batch)
     except (ImportError, ValueError) as exc:
         print(f"mixedrl sweep: error: {exc}", file=sys.stderr)
         return 2

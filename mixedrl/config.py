@@ -19,11 +19,12 @@ The task configuration is one of two nested dataclasses, chosen by its ``name``:
   nested :class:`GaussianNoiseConfig` (``task.disturbance``).
 
 A section that is not given takes the task's experiment configuration (:data:`PRESETS`): the double
-lane change registers :data:`mixedrl.tasks.DLC_EXPERIMENT` (the reproduction of Table I: its course
-sampler :class:`mixedrl.tasks.CourseSampler`, the learning-rate decay over 1500 iterations, the relative
-batch weighting; both live with the task in :mod:`mixedrl.tasks` and stay importable from here); any
-other task gets the library defaults of the section classes (model rollouts from the task's start
-distribution, the decay tied to the budget, the paper's uniform batch mean).
+lane change registers :data:`mixedrl.envs.dlc_task.DLC_EXPERIMENT` (the reproduction of Table I: its
+course sampler :class:`mixedrl.envs.dlc_task.CourseSampler`, the learning-rate decay over 1500
+iterations, the relative batch weighting; both live with the task in :mod:`mixedrl.envs.dlc_task` and
+stay importable from here and from :mod:`mixedrl.tasks`); any other task gets the library defaults of
+the section classes (model rollouts from the task's start distribution, the decay tied to the budget,
+the paper's uniform batch mean).
 
 Dotted keys address nested fields, the same way on the command line, in :func:`apply_overrides` and in
 sweep specifications::
@@ -96,7 +97,7 @@ METHODS = ("mixed", "model", "oracle", "ddpg")
 #: :func:`register_task` (the pendulum, a user's own) are listed by :func:`task_names`.
 TASKS = ("dlc", "linear")
 #: Where the course copies of the double lane change's sampler restart
-#: (:attr:`mixedrl.tasks.CourseSampler.course_starts`).
+#: (:attr:`mixedrl.envs.dlc_task.CourseSampler.course_starts`).
 MODEL_COURSE_STARTS = ("start", "along", "loop")
 #: How Algorithm 2 weights the states of its batch (``AlgorithmConfig.batch_weighting``).
 BATCH_WEIGHTINGS = ("uniform", "relative")
@@ -184,7 +185,7 @@ def _rows(matrix: np.ndarray) -> tuple[tuple[float, ...], ...]:
 
 @dataclass
 class LinearTaskConfig:
-    """The linear test bed :class:`mixedrl.tasks.LinearTask`: ``s' = A s + B u + xi``, utility
+    """The linear test bed :class:`mixedrl.linear_task.LinearTask`: ``s' = A s + B u + xi``, utility
     ``s'^T Q s' + u^T R u`` (a sampled double integrator, ``dt = 0.1``, the noise on the velocity, by
     default). Dotted keys: ``task.<field>``; ``n`` = ``A``'s size, ``m`` = ``B``'s columns.
 
@@ -606,7 +607,7 @@ register_sampler(TrueCopiesSampler)
 register_sampler(ModelRolloutsSampler)
 
 #: The configuration of a run's sampler: one of the registered classes (:data:`SAMPLERS`), by ``name``
-#: (these two, or a task's own, such as the double lane change's :class:`mixedrl.tasks.CourseSampler`).
+#: (these two, or a task's own, such as the double lane change's :class:`mixedrl.envs.dlc_task.CourseSampler`).
 SamplerConfig = Union[TrueCopiesSampler, ModelRolloutsSampler]
 
 
@@ -658,7 +659,7 @@ def register_preset(task: str, sections: dict[str, dict[str, Any]]) -> None:
 
 def __getattr__(name: str) -> Any:
     """``CourseSampler`` and ``DLC_EXPERIMENT``, which the double lane change registers
-    (:mod:`mixedrl.tasks`, imported with the package), stay readable here: the options class of its
+    (:mod:`mixedrl.envs.dlc_task`, imported with the package), stay readable here: the options class of its
     sampler (``SAMPLERS["dlc_course"]``) and its preset (``PRESETS["dlc"]``)."""
     if name == "CourseSampler" and "dlc_course" in SAMPLERS:
         return SAMPLERS["dlc_course"]
@@ -846,7 +847,13 @@ def apply_overrides(data: dict[str, Any], overrides: dict[str, Any]) -> dict[str
             if name is not None:
                 moved["sampler"]["name"] = name
         flat = {f"{s}.{k}": v for s, sec in moved.items() for k, v in sec.items()}
-        overrides = {**{k: v for k, v in overrides.items() if k not in LEGACY_KEYS}, **flat}
+        # in the overrides' order: a moved key takes its old key's place, so a later dotted key still wins
+        pos = {k: i for i, k in enumerate(overrides)}
+        origin = {LEGACY_KEYS[k]: pos[k] for k in legacy}
+        last = max(pos[k] for k in legacy)
+        entries = [(pos[k], k, v) for k, v in overrides.items() if k not in LEGACY_KEYS]
+        entries += [(origin.get(k, last), k, v) for k, v in flat.items()]
+        overrides = {k: v for _, k, v in sorted(entries, key=lambda e: e[0])}
     for key, value in overrides.items():
         parts = str(key).split(".")
         if any(not p for p in parts):
@@ -873,10 +880,10 @@ class TrainConfig:
     """Configuration of one training run (Algorithm 2 or DDPG), in sections.
 
     A section left out (or given as a partial dict) takes the run's task's experiment configuration
-    (:data:`PRESETS`, registered by the task; the double lane change's is :data:`mixedrl.tasks.DLC_EXPERIMENT`) over
-    the library defaults of the section's class. Old flat keyword arguments (``iterations=3``,
-    ``model_box=2.0``; :data:`LEGACY_KEYS`) are accepted and moved to their sections. ``to_dict`` /
-    ``from_dict`` round-trip exactly through JSON.
+    (:data:`PRESETS`, registered by the task; the double lane change's is
+    :data:`mixedrl.envs.dlc_task.DLC_EXPERIMENT`) over the library defaults of the section's class. Old
+    flat keyword arguments (``iterations=3``, ``model_box=2.0``; :data:`LEGACY_KEYS`) are accepted and
+    moved to their sections. ``to_dict`` / ``from_dict`` round-trip exactly through JSON.
     """
 
     method: str
@@ -898,7 +905,7 @@ class TrainConfig:
     sampler: SamplerConfig
     """Where Algorithm 2's PEV/PIM states come from, chosen by ``sampler.name`` (:data:`SAMPLERS`):
     :class:`TrueCopiesSampler`, :class:`ModelRolloutsSampler` (the library default) or the double lane
-    change's :class:`mixedrl.tasks.CourseSampler`."""
+    change's :class:`mixedrl.envs.dlc_task.CourseSampler`."""
 
     ddpg: DDPGConfig
     """What only DDPG has (:class:`DDPGConfig`)."""

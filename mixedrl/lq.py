@@ -5,8 +5,8 @@ the next state ``l(x', u) = x'^T Q x' + u^T R u`` (eq. 2), discount ``gamma``, a
 ``N(mu_M, K_M)`` on the noise (eq. 8). One :class:`LQProblem` holds it; the other faces of the same
 problem are views of it:
 
-* :class:`mixedrl.tasks.LinearTask` (the problem as a :class:`~mixedrl.tasks.Task` for Algorithm 2) holds
-  one (``task.problem``) and builds from one (:meth:`~mixedrl.tasks.LinearTask.from_problem`);
+* :class:`mixedrl.linear_task.LinearTask` (the problem as a :class:`~mixedrl.tasks.Task` for Algorithm 2) holds
+  one (``task.problem``) and builds from one (:meth:`~mixedrl.linear_task.LinearTask.from_problem`);
 * :class:`mixedrl.config.LinearTaskConfig` (a run's ``task`` section, JSON) validates through one and
   returns it (:meth:`~mixedrl.config.LinearTaskConfig.problem`);
 * :attr:`LQProblem.dynamics` and :attr:`LQProblem.cost` are the :mod:`mixedrl.quadratic` pieces the exact

@@ -51,7 +51,7 @@ import socket
 import sys
 import time
 from pathlib import Path
-from typing import Any, Callable, Iterator
+from typing import Any, Callable, Iterator, Protocol
 
 import numpy as np
 import torch
@@ -83,6 +83,8 @@ __all__ = [
     "config_record",
     "train",
     "train_batch",
+    "IterationObserver",
+    "check_run_directory",
     "make_trainer",
     "CONVERGENCE_RTOL",
 ]
@@ -431,6 +433,18 @@ def _config_conflicts(saved: dict[str, Any], requested: dict[str, Any]) -> list[
     return out
 
 
+def check_run_directory(run: RunDirectory, config: TrainConfig, resume: bool = False) -> None:
+    """Whether :func:`train` would accept ``run`` for ``config`` (reads only, changes nothing).
+
+    Raises
+    ------
+    ValueError
+        As :func:`train` would: ``run`` holds a run or other files and ``resume`` is false; with
+        ``resume`` a config that contradicts the saved one, a corrupted checkpoint, or files but no checkpoint.
+    """
+    _open_run(run, config, resume)
+
+
 def _open_run(run: RunDirectory, cfg: TrainConfig, resume: bool, task: Any = None) -> dict[str, Any] | None:
     """Validate ``run`` for training ``cfg`` (creating nothing) and return the checkpoint to resume from.
 
@@ -464,9 +478,24 @@ def _open_run(run: RunDirectory, cfg: TrainConfig, resume: bool, task: Any = Non
     return state
 
 
+class IterationObserver(Protocol):
+    """What :func:`train` calls around every iteration of a run (for example the empirical checks of the
+    paper's theorems, :class:`validation.reproduce.TheoryObserver`).
+
+    ``before(trainer)`` is called just before the iteration and returns anything (a snapshot of what the
+    check needs, or ``None`` to skip this iteration); ``after(trainer, token, row)`` just after it, with
+    that token and the iteration's metrics row, and returns extra metrics for the row (or ``None``). An
+    observer only reads the trainer: it must not draw from the run's generator or change its state.
+    """
+
+    def before(self, trainer: Any) -> Any: ...
+
+    def after(self, trainer: Any, token: Any, row: dict[str, float]) -> dict[str, float] | None: ...
+
+
 def train(trainer: Any, run: RunDirectory | None = None, resume: bool = False, progress: bool | None = None,
           stop_after: int | None = None, callback: Callable[[dict[str, Any]], None] | None = None,
-          tensorboard: bool = False) -> dict[str, Any]:
+          tensorboard: bool = False, observer: IterationObserver | None = None) -> dict[str, Any]:
     """Run ``trainer`` to its budget (or its stopping test), with checkpoints, metrics and results.
 
     A run directory has one writer: the run holds :meth:`RunDirectory.lock` from its validation to its
@@ -495,6 +524,9 @@ def train(trainer: Any, run: RunDirectory | None = None, resume: bool = False, p
     tensorboard : bool
         Also write the metrics rows as TensorBoard scalars into ``<run>/tb/`` (:mod:`mixedrl.tensorboard`;
         needs ``run`` and the optional extra ``tensorboard``).
+    observer : IterationObserver, optional
+        Called around every iteration (:class:`IterationObserver`); the metrics it returns join the
+        iteration's row (the theory checks of ``mixedrl reproduce`` are one).
 
     Returns
     -------
@@ -515,13 +547,15 @@ def train(trainer: Any, run: RunDirectory | None = None, resume: bool = False, p
     ImportError
         ``tensorboard`` without the optional extra.
     """
-    return train_batch([trainer], [run], resume, progress, stop_after, callback, tensorboard)[0]
+    return train_batch([trainer], [run], resume, progress, stop_after, callback, tensorboard,
+                       None if observer is None else [observer])[0]
 
 
 def train_batch(trainers: list[Any], runs: list[RunDirectory | None] | None = None, resume: bool = False,
                 progress: bool | None = None, stop_after: int | None = None,
                 callback: Callable[[dict[str, Any]], None] | None = None,
-                tensorboard: bool = False) -> list[dict[str, Any]]:
+                tensorboard: bool = False,
+                observers: list[IterationObserver | None] | None = None) -> list[dict[str, Any]]:
     """Train several runs as one computation (:class:`mixedrl.algorithms.batched.BatchedAGPI`), each into its own directory.
 
     :func:`train` is this function with one run. Every run keeps what a run alone has: its directory
@@ -539,6 +573,8 @@ def train_batch(trainers: list[Any], runs: list[RunDirectory | None] | None = No
     resume, progress, stop_after, callback, tensorboard
         As for :func:`train`, per run (``callback`` gets every run's rows; ``train_seconds`` and
         ``time/elapsed_s`` are the batch's wall time while the run was in it).
+    observers : list of IterationObserver or None, optional
+        One per trainer (``None`` entries: none), as ``observer`` of :func:`train`.
 
     Returns
     -------
@@ -560,6 +596,13 @@ def train_batch(trainers: list[Any], runs: list[RunDirectory | None] | None = No
     runs = [None] * len(trainers) if runs is None else list(runs)
     if len(runs) != len(trainers):
         raise ValueError(f"runs: {len(runs)} directories for {len(trainers)} trainers")
+    observers = [None] * len(trainers) if observers is None else list(observers)
+    if len(observers) != len(trainers):
+        raise ValueError(f"observers: {len(observers)} observers for {len(trainers)} trainers")
+    for i, obs in enumerate(observers):
+        if obs is not None and not (callable(getattr(obs, "before", None)) and callable(getattr(obs, "after", None))):
+            raise ValueError(f"observers: entry {i} ({type(obs).__name__}) has no before(trainer) and "
+                             f"after(trainer, token, row) methods")
     paths = [str(Path(r.path).resolve()) for r in runs if r is not None]
     if len(set(paths)) != len(paths):
         raise ValueError("runs: two runs of the batch write the same directory")
@@ -582,7 +625,7 @@ def train_batch(trainers: list[Any], runs: list[RunDirectory | None] | None = No
         states = [None if run is None else _open_run(run, t.config, resume, getattr(t, "task", None))
                   for t, run in zip(trainers, runs)]
         boards = [TensorBoardLogger(run.path / TB_DIR) if tensorboard and run is not None else None for run in runs]
-        return _train(trainers, engine, runs, states, progress, stop_after, callback, boards)
+        return _train(trainers, engine, runs, states, progress, stop_after, callback, boards, observers)
 
 
 def _engine(trainers: list[Any]) -> Callable[[list[bool]], list[dict[str, float] | None]]:
@@ -609,7 +652,8 @@ def _engine(trainers: list[Any]) -> Callable[[list[bool]], list[dict[str, float]
 def _train(trainers: list[Any], engine: Callable[[list[bool]], list[dict[str, float] | None]],
            runs: list[RunDirectory | None], states: list[dict[str, Any] | None], progress: bool | None,
            stop_after: int | None, callback: Callable[[dict[str, Any]], None] | None,
-           boards: list[TensorBoardLogger | None]) -> list[dict[str, Any]]:
+           boards: list[TensorBoardLogger | None],
+           observers: list[IterationObserver | None]) -> list[dict[str, Any]]:
     """The loop of :func:`train_batch` on validated (and locked) ``runs``, each from its ``state`` if given."""
     torch.set_num_threads(trainers[0].config.run.num_threads)
     n = len(trainers)
@@ -655,13 +699,16 @@ def _train(trainers: list[Any], engine: Callable[[list[bool]], list[dict[str, fl
             active = [running(i) for i in range(n)]
             if not any(active):
                 break
+            tokens = [obs.before(trainers[i]) if obs is not None and active[i] else None
+                      for i, obs in enumerate(observers)]
             t0 = time.perf_counter()
             rows = engine(active)
             dt = time.perf_counter() - t0
             for i in (i for i in range(n) if active[i]):
                 trainer, cfg = trainers[i], trainers[i].config
                 elapsed[i] += dt
-                row = {"iteration": trainer.k, **rows[i], "time/elapsed_s": elapsed[i]}
+                extra = observers[i].after(trainer, tokens[i], rows[i]) if observers[i] is not None else None
+                row = {"iteration": trainer.k, **rows[i], **(extra or {}), "time/elapsed_s": elapsed[i]}
                 if trainer.k % cfg.run.eval_every == 0 or trainer.k == cfg.algorithm.iterations or trainer.stopped:
                     row.update(_scalar_eval(trainer.evaluate(seeds[i])))
                 pending[i].append(row)

@@ -3,7 +3,8 @@ process pool or on Ray.
 
 ::
 
-    mixedrl sweep SPEC.toml --out DIR [--workers N] [--address ADDR] [--num-cpus N] [--resume] [--no-progress]
+    mixedrl sweep SPEC.toml --out DIR [--workers N] [--batch N] [--address ADDR] [--num-cpus N] [--resume]
+                  [--no-progress]
 
 A spec is a small TOML file::
 
@@ -24,11 +25,17 @@ A spec is a small TOML file::
     horizon = 32
     seeds = [0]                           # a variant may have its own methods / seeds lists
 
+and optionally ``observer = "module:function"`` (top level): ``function(config)`` returns the
+:class:`mixedrl.runs.IterationObserver` of each run (the reproduction's theory checks).
+
 It expands to ``len(variants or [one]) x len(grid product) x len(methods) x len(seeds)`` runs (a variant's own
 ``methods`` / ``seeds`` replace the spec's for its runs). Every run is an
 ordinary run directory (:class:`mixedrl.runs.RunDirectory`) under ``DIR/runs/``, trained by
-:func:`mixedrl.runs.make_trainer` and :func:`mixedrl.runs.train`, the code path of ``mixedrl train``: a run
-of a sweep ends with exactly the weights and metrics of the same config trained alone.
+:func:`mixedrl.runs.make_trainer` and :func:`mixedrl.runs.train_batch`. The Algorithm-2 runs are trained in
+batches (:func:`plan_batches`: runs with equal :func:`mixedrl.algorithms.batched.batch_key`, at most
+``--batch`` per batch, default :data:`DEFAULT_BATCH`; DDPG alone): a run of a batch ends with exactly the
+weights and metrics of the same config in any other batch of two or more, and with ``--batch 1`` every run
+trains alone, with exactly the weights and metrics of ``mixedrl train``.
 
 Before anything starts, the spec is checked (TOML syntax, top-level keys, non-empty lists without
 duplicates, variant tables) and the :class:`~mixedrl.config.TrainConfig` of **every** run is built; any error
@@ -38,22 +45,24 @@ Engines (the same outputs from each):
 
 * **local process pool** (default): ``--workers N`` processes (default ``os.cpu_count()``;
   :class:`concurrent.futures.ProcessPoolExecutor` with the ``spawn`` start method, so each worker is a fresh
-  interpreter). ``--workers 1`` trains the runs one after the other in this process. ``--num-cpus`` without
-  ``--address`` is the older name of ``--workers``.
-* **Ray** (the optional extra ``sweep``) when ``--address`` is given: one Ray task per run (``num_cpus=1``),
+  interpreter), one batch per task, the longest first. ``--workers 1`` trains the batches one after the
+  other in this process. ``--num-cpus`` without ``--address`` is the older name of ``--workers``.
+* **Ray** (the optional extra ``sweep``) when ``--address`` is given: one Ray task per batch (``num_cpus=1``),
   gathered with ``ray.wait``. ``--address local`` starts a local cluster of ``--num-cpus`` CPUs (default
   all); any other address joins an existing cluster (``DIR`` must then be a path every node sees).
 
-Each run sets its own ``torch.set_num_threads(config.run.num_threads)``. A failed run is recorded with its
-error and does not stop the others.
+Each batch sets ``torch.set_num_threads(config.run.num_threads)``. A failed run is recorded with its
+error and does not stop the others (a run whose directory is refused fails alone; a batch that raises
+fails with its runs).
 
 Outputs in ``DIR``:
 
 * ``spec.toml``: a copy of the spec;
 * ``runs/<name>/``: one run directory per run, ``<name>`` made of the variant, the grid values, method and
   seed (:func:`run_name`);
-* ``sweep.json``: the spec (``methods``, ``seeds``, ``base``, ``grid``, ``variants`` when it has them), the
-  engine (``engine`` ``"local"`` or ``"ray"``, ``workers`` or ``ray_version``, ``address``), ``failed``,
+* ``sweep.json``: the spec (``methods``, ``seeds``, ``base``, ``grid``, ``variants`` and ``observer`` when it
+  has them), the engine (``engine`` ``"local"`` or ``"ray"``, ``workers`` or ``ray_version``, ``address``),
+  ``batch`` and ``batches``, ``failed``,
   ``finished``, ``wall_seconds``, ``runs`` and ``summary``; rewritten atomically after every finished run.
   ``runs`` holds **one row per run** (the one result schema of every study):
 
@@ -68,7 +77,7 @@ Outputs in ``DIR``:
   * ``metrics``: every top-level number of ``results.json`` (``lateral_mae``, ``speed_mae``, ``cost``,
     ``iterations_to_converge``, ...) but the columns above and the times
   * ``train_seconds``: training time (``results.json``)
-  * ``wall_seconds``: the run's wall time in its worker: start-up, training and evaluation
+  * ``wall_seconds``: the wall time of the run's batch in its worker: start-up, training and evaluation
   * ``run_dir``: ``runs/<name>``, relative to ``DIR``
   * ``error``: ``null``, or the failed run's exception (``Type: message``)
   * ``results``: the figures of :data:`RESULT_KEYS` and ``run_dir`` (``null`` for a failed or unfinished run;
@@ -82,8 +91,8 @@ Outputs in ``DIR``:
 * ``figures/cost_vs_<first grid key>.png`` when matplotlib is installed.
 
 ``--resume`` skips runs whose ``results.json`` exists and resumes interrupted runs from their
-checkpoints (``train(..., resume=True)``), so a resumed sweep ends with the results of an uninterrupted
-one.
+checkpoints in their batches (``train_batch(..., resume=True)``), so a resumed sweep ends with the results
+of an uninterrupted one.
 
 The statistics and CSV helpers are :mod:`mixedrl.tables`, shared with the studies' scripts."""
 
@@ -94,6 +103,7 @@ import concurrent.futures
 import dataclasses
 import functools
 import hashlib
+import importlib
 import io
 import itertools
 import json
@@ -109,7 +119,9 @@ from typing import Any, Iterator, Sequence
 import numpy as np
 
 from mixedrl.config import TrainConfig, apply_overrides, flatten_table
-from mixedrl.runs import RunDirectory, atomic_write_bytes, atomic_write_text, make_trainer, train
+from mixedrl.algorithms.batched import batch_key
+from mixedrl.runs import (RunDirectory, atomic_write_bytes, atomic_write_text, check_run_directory, load_checkpoint,
+                          make_trainer, train_batch)
 from mixedrl.tables import bootstrap_interval, csv_text, mean_std
 
 __all__ = [
@@ -127,6 +139,10 @@ __all__ = [
     "config_hash",
     "csv_rows",
     "run_point",
+    "run_points",
+    "plan_batches",
+    "resolve_observer",
+    "DEFAULT_BATCH",
     "run_sweep",
     "summarize",
     "make_figure",
@@ -139,7 +155,10 @@ __all__ = [
 logger = logging.getLogger(__name__)
 
 #: Top-level keys a spec may have (``methods`` and ``seeds`` are required).
-SPEC_KEYS = ("methods", "seeds", "base", "grid", "variants")
+SPEC_KEYS = ("methods", "seeds", "base", "grid", "variants", "observer")
+#: Most runs trained as one computation (:func:`mixedrl.runs.train_batch`) by default: at 15 runs a batch
+#: already makes 1.7x the run-iterations per second of the runs one by one (``benchmarks/batched_table.py``).
+DEFAULT_BATCH = 16
 #: The figures of each run copied into ``sweep.json`` (``None`` when a run does not report one).
 RESULT_KEYS = ("lateral_mae", "speed_mae", "cost", "true_transitions", "train_seconds")
 #: Figures of ``results.json`` that are columns of their own in a sweep's row, not ``metrics``.
@@ -182,6 +201,10 @@ class SweepSpec:
         Variant name -> its dotted-key overrides (applied over ``base``), and optionally ``methods`` /
         ``seeds``: the variant's own lists; empty for a spec without ``[variants.NAME]`` tables. The runs
         cover variants x grid points x methods x seeds.
+    observer : str or None
+        ``"module:function"``: ``function(config)`` returns the :class:`mixedrl.runs.IterationObserver` of a
+        run (or ``None``), for example ``"validation.reproduce:theory_observer"`` (the theory checks);
+        resolved when the spec is parsed.
     """
 
     methods: tuple[str, ...]
@@ -190,6 +213,7 @@ class SweepSpec:
     grid: dict[str, tuple[Any, ...]]
     text: str = ""
     variants: dict[str, dict[str, Any]] = dataclasses.field(default_factory=dict)
+    observer: str | None = None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -265,10 +289,35 @@ def parse_spec(text: str, source: str = "spec") -> SweepSpec:
         if key in tables["base"]:
             raise ValueError(f"grid.{key}: also set in [base]; set it in one place")
     variants = _parse_variants(data.get("variants", {}), grid)
+    observer = data.get("observer")
+    if observer is not None:
+        resolve_observer(observer)
     spec = SweepSpec(methods=tuple(methods), seeds=tuple(seeds), base=tables["base"], grid=grid, text=text,
-                     variants=variants)
+                     variants=variants, observer=observer)
     expand(spec)  # builds (and so validates) the config of every run before anything starts
     return spec
+
+
+def resolve_observer(name: Any) -> Any:
+    """The observer factory a spec names: ``"module:function"`` imported, ``function(config)`` callable.
+
+    Raises
+    ------
+    ValueError
+        ``name`` is not a ``"module:function"`` string, the module does not import, or it has no such
+        callable (the message starts with ``observer``).
+    """
+    if not isinstance(name, str) or not re.fullmatch(r"[A-Za-z_][\w.]*:[A-Za-z_]\w*", name):
+        raise ValueError(f"observer: expected \"module:function\", got {name!r}")
+    module_name, attr = name.split(":")
+    try:
+        module = importlib.import_module(module_name)
+    except ImportError as exc:
+        raise ValueError(f"observer: cannot import {module_name!r} ({exc})") from None
+    factory = getattr(module, attr, None)
+    if not callable(factory):
+        raise ValueError(f"observer: {module_name} has no callable {attr!r}")
+    return factory
 
 
 def _parse_variants(table: Any, grid: dict[str, Any]) -> dict[str, dict[str, Any]]:
@@ -406,10 +455,7 @@ def config_hash(config: TrainConfig | dict[str, Any]) -> str:
 
 
 def run_point(config: dict[str, Any], path: str, resume: bool = False) -> dict[str, Any]:
-    """Train one run of a sweep into ``path``; the body of its pool or Ray task.
-
-    Exactly ``mixedrl train``: :func:`mixedrl.runs.make_trainer` then :func:`mixedrl.runs.train` (which
-    sets ``torch.set_num_threads(config.run.num_threads)``).
+    """Train one run of a sweep into ``path`` alone: exactly ``mixedrl train`` (``--batch 1``).
 
     Parameters
     ----------
@@ -430,20 +476,149 @@ def run_point(config: dict[str, Any], path: str, resume: bool = False) -> dict[s
     ValueError
         ``resume`` and the run directory holds a different config.
     """
-    cfg = TrainConfig.from_dict(config)
-    run_dir = RunDirectory(path)
-    if resume and run_dir.results_path.is_file():
-        if run_dir.read_config().to_dict() != cfg.to_dict():
-            raise ValueError(f"config: differs from the saved {run_dir.config_path}; resume with the same spec")
-        return run_dir.read_results()
-    return train(make_trainer(cfg), run_dir, resume=resume, progress=False)
+    return run_points([config], [path], resume)[0]
 
 
-def _timed_run_point(config: dict[str, Any], path: str, resume: bool) -> tuple[dict[str, Any], float]:
-    """:func:`run_point` and its wall time in seconds (start-up, training and evaluation)."""
+def run_points(configs: list[dict[str, Any]], paths: list[str], resume: bool = False,
+               observer: str | None = None) -> list[dict[str, Any]]:
+    """Train the runs of one batch of a sweep, each into its path; the body of a pool or Ray task.
+
+    :func:`mixedrl.runs.make_trainer` for each run, then :func:`mixedrl.runs.train_batch` (one run:
+    :func:`mixedrl.runs.train`, which is ``mixedrl train``), which sets
+    ``torch.set_num_threads(config.run.num_threads)``.
+
+    Parameters
+    ----------
+    configs : list of dict
+        ``TrainConfig.to_dict()`` of each run (several: they must share a
+        :func:`mixedrl.algorithms.batched.batch_key`).
+    paths : list of str
+        The run directories.
+    resume : bool
+        A run with ``results.json`` is returned without training; the others continue from their
+        checkpoints, in one batch. When a single run of a batch is left, the batch's last finished run
+        is restored from its checkpoint beside it (in memory, not rewritten) so that it keeps the
+        batched arithmetic of the uninterrupted sweep.
+    observer : str, optional
+        The spec's ``observer`` (:func:`resolve_observer`).
+
+    Returns
+    -------
+    list of dict
+        Per run its results (the content of its ``results.json``).
+
+    Raises
+    ------
+    ValueError
+        A run directory is refused (``resume`` and another config, or foreign files; the others of the
+        batch have trained), or ``configs`` and ``paths`` of different lengths.
+    """
+    outcomes = _train_points(configs, paths, resume, observer)
+    for results, error in outcomes:
+        if error is not None:
+            raise ValueError(error)
+    return [results for results, _ in outcomes]
+
+
+def _train_points(configs: list[dict[str, Any]], paths: list[str], resume: bool,
+                  observer: str | None) -> list[tuple[dict[str, Any] | None, str | None]]:
+    """:func:`run_points`, per run ``(results, None)`` or ``(None, error text)``: a run whose directory is
+    refused (another config, foreign files) fails alone, the others of its batch train."""
+    if len(configs) != len(paths):
+        raise ValueError(f"paths: {len(paths)} paths for {len(configs)} configs")
+    cfgs = [TrainConfig.from_dict(c) for c in configs]
+    dirs = [RunDirectory(p) for p in paths]
+    outcomes: list[tuple[dict[str, Any] | None, str | None]] = [(None, None)] * len(cfgs)
+    todo, finished = [], []
+    for i, (cfg, run_dir) in enumerate(zip(cfgs, dirs)):
+        try:
+            if resume and run_dir.results_path.is_file():
+                if run_dir.read_config().to_dict() != cfg.to_dict():
+                    raise ValueError(f"config: differs from the saved {run_dir.config_path}; resume with the same "
+                                     f"spec")
+                outcomes[i] = (run_dir.read_results(), None)
+                finished.append(i)
+            else:
+                check_run_directory(run_dir, cfg, resume)
+                todo.append(i)
+        except Exception as exc:  # noqa: BLE001 - this run fails, the batch's others train
+            outcomes[i] = (None, _error_text(exc))
+    if not todo:
+        return outcomes
+    factory = None if observer is None else resolve_observer(observer)
+    trainers = [make_trainer(cfgs[i]) for i in todo]
+    run_dirs: list[RunDirectory | None] = [dirs[i] for i in todo]
+    observers = [None if factory is None else factory(cfgs[i]) for i in todo]
+    if len(todo) == 1 and finished:
+        # the batch's other runs finished: one of them, restored and inactive, keeps this run batched
+        j = finished[0]
+        companion = make_trainer(cfgs[j])
+        companion.load_state_dict(load_checkpoint(dirs[j].checkpoint_path)["trainer"])
+        trainers.append(companion)
+        run_dirs.append(None)
+        observers.append(None)
+    trained = train_batch(trainers, run_dirs, resume=resume, progress=False, observers=observers)
+    for i, res in zip(todo, trained):
+        outcomes[i] = (res, None)
+    return outcomes
+
+
+def _timed_run_points(configs: list[dict[str, Any]], paths: list[str], resume: bool,
+                      observer: str | None) -> tuple[list[tuple[dict[str, Any] | None, str | None]], float]:
+    """:func:`_train_points` and its wall time in seconds (start-up, training and evaluation of the batch)."""
     t0 = time.perf_counter()
-    results = run_point(config, path, resume)
-    return results, time.perf_counter() - t0
+    outcomes = _train_points(configs, paths, resume, observer)
+    return outcomes, time.perf_counter() - t0
+
+
+def plan_batches(runs: Sequence[SweepRun], batch: int = DEFAULT_BATCH, workers: int = 1) -> list[list[int]]:
+    """Group a sweep's runs into batches trained as one computation each.
+
+    Runs with equal :func:`mixedrl.algorithms.batched.batch_key` (the task, the network shapes and batch
+    size; method, seed, budget and learning rates may differ) form a group; DDPG runs train alone. A
+    group of ``n`` runs is split into ``c`` batches of near-equal size, ``c`` the smallest number with at
+    most ``batch`` runs each, raised up to ``workers`` while every batch keeps two runs or more (so
+    that the workers share the work). A batch never holds a single run of a larger group: a run's bits
+    then depend only on whether its group has one run (or ``batch = 1``: every run alone, as
+    ``mixedrl train``), not on ``batch`` or ``workers`` (the batched engine gives a run the same bits in
+    any batch of two or more, :mod:`mixedrl.algorithms.batched`).
+
+    Parameters
+    ----------
+    runs : sequence of SweepRun
+    batch : int
+        Most runs per batch (``>= 1``).
+    workers : int
+        Processes that will train the batches.
+
+    Returns
+    -------
+    list of list of int
+        Indices into ``runs``, each batch in the runs' order, batches in the order of their first run.
+    """
+    _check_count(batch, "batch")
+    _check_count(workers, "workers")
+    groups: dict[Any, list[int]] = {}
+    alone: list[list[int]] = []
+    for i, r in enumerate(runs):
+        key = batch_key(r.config) if batch > 1 else None
+        if key is None:
+            alone.append([i])
+        else:
+            groups.setdefault(key, []).append(i)
+    batches = list(alone)
+    for members in groups.values():
+        n = len(members)
+        count = max(-(-n // batch), min(workers, n // 2)) if n > 1 else 1
+        while count > 1 and n // count < 2:
+            count -= 1
+        size, extra = divmod(n, count)
+        start = 0
+        for c in range(count):
+            stop = start + size + (1 if c < extra else 0)
+            batches.append(members[start:stop])
+            start = stop
+    return sorted(batches, key=lambda b: b[0])
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -501,6 +676,8 @@ def _spec_doc(spec: SweepSpec) -> dict[str, Any]:
            "grid": {k: list(v) for k, v in spec.grid.items()}}
     if spec.variants:
         doc["variants"] = spec.variants
+    if spec.observer is not None:
+        doc["observer"] = spec.observer
     return doc
 
 
@@ -664,42 +841,45 @@ def _error_text(exc: BaseException) -> str:
     return f"{type(err).__name__}: {err}"
 
 
-#: A finished run as the executors report it: (index, results or None, error text or None, wall seconds).
-_Done = tuple[int, "dict[str, Any] | None", "str | None", "float | None"]
+#: A job: one batch of runs, ``(configs, paths, resume, observer)`` (the arguments of :func:`run_points`).
+_Job = tuple[list[dict[str, Any]], list[str], bool, "str | None"]
+#: A finished job as the executors report it: (index, per run (results, error text) or None, error text of
+#: the whole batch or None, wall seconds).
+_Done = tuple[int, "list[tuple[dict[str, Any] | None, str | None]] | None", "str | None", "float | None"]
 
 
-def _run_here(jobs: list[tuple[dict[str, Any], str, bool]]) -> Iterator[_Done]:
+def _run_here(jobs: list[_Job]) -> Iterator[_Done]:
     """Run the jobs one after the other in this process (``workers=1``)."""
     for i, job in enumerate(jobs):
         try:
-            results, wall = _timed_run_point(*job)
+            results, wall = _timed_run_points(*job)
             yield i, results, None, wall
-        except Exception as exc:  # noqa: BLE001 - one failed run must not stop the others
+        except Exception as exc:  # noqa: BLE001 - one failed batch must not stop the others
             yield i, None, _error_text(exc), None
 
 
-def _run_pool(jobs: list[tuple[dict[str, Any], str, bool]], workers: int) -> Iterator[_Done]:
+def _run_pool(jobs: list[_Job], workers: int) -> Iterator[_Done]:
     """Run the jobs on a local pool of ``workers`` processes (``spawn``: a fresh interpreter each, no state
     inherited from this one), yielding them as they finish."""
     context = multiprocessing.get_context("spawn")
     with concurrent.futures.ProcessPoolExecutor(max_workers=workers, mp_context=context) as pool:
-        futures = {pool.submit(_timed_run_point, *job): i for i, job in enumerate(jobs)}
+        futures = {pool.submit(_timed_run_points, *job): i for i, job in enumerate(jobs)}
         try:
             for future in concurrent.futures.as_completed(futures):
                 try:
                     results, wall = future.result()
                     yield futures[future], results, None, wall
-                except Exception as exc:  # noqa: BLE001 - one failed run must not stop the others
+                except Exception as exc:  # noqa: BLE001 - one failed batch must not stop the others
                     yield futures[future], None, _error_text(exc), None
         finally:
             for future in futures:
                 future.cancel()
 
 
-def _run_ray(jobs: list[tuple[dict[str, Any], str, bool]], ray: Any) -> Iterator[_Done]:
-    """Run the jobs as Ray tasks (``num_cpus=1`` each) on the initialised cluster, yielding them as they
-    finish (``ray.wait``)."""
-    task = ray.remote(num_cpus=1)(_timed_run_point)
+def _run_ray(jobs: list[_Job], ray: Any) -> Iterator[_Done]:
+    """Run the jobs as Ray tasks (one task per batch, ``num_cpus=1`` each) on the initialised cluster,
+    yielding them as they finish (``ray.wait``)."""
+    task = ray.remote(num_cpus=1)(_timed_run_points)
     refs = {task.remote(*job): i for i, job in enumerate(jobs)}
     pending = list(refs)
     while pending:
@@ -707,7 +887,7 @@ def _run_ray(jobs: list[tuple[dict[str, Any], str, bool]], ray: Any) -> Iterator
         try:
             results, wall = ray.get(done[0])
             yield refs[done[0]], results, None, wall
-        except Exception as exc:  # noqa: BLE001 - one failed run must not stop the others
+        except Exception as exc:  # noqa: BLE001 - one failed batch must not stop the others
             yield refs[done[0]], None, _error_text(exc), None
 
 
@@ -717,7 +897,8 @@ def _check_count(value: Any, name: str) -> None:
 
 
 def run_sweep(spec: SweepSpec, out: str | Path, address: str | None = None, num_cpus: int | None = None,
-              resume: bool = False, progress: bool = True, workers: int | None = None) -> dict[str, Any]:
+              resume: bool = False, progress: bool = True, workers: int | None = None,
+              batch: int = DEFAULT_BATCH) -> dict[str, Any]:
     """Run every run of ``spec`` (on a local process pool, or on Ray with ``address``) and write the sweep's
     outputs into ``out``.
 
@@ -741,8 +922,11 @@ def run_sweep(spec: SweepSpec, out: str | Path, address: str | None = None, num_
         tqdm progress bar over runs.
     workers : int, optional
         Processes of the local pool (default ``os.cpu_count()``; each run is single-threaded unless its
-        config sets ``run.num_threads``). ``1`` runs the runs one after the other in this process, exactly
-        as ``mixedrl train`` would. Not used with ``address``.
+        config sets ``run.num_threads``). ``1`` runs the batches one after the other in this process. Not
+        used with ``address``.
+    batch : int
+        Most runs trained as one computation (:func:`plan_batches`; on Ray a task is a batch). ``1``:
+        every run alone, exactly as ``mixedrl train`` would.
 
     Returns
     -------
@@ -758,12 +942,13 @@ def run_sweep(spec: SweepSpec, out: str | Path, address: str | None = None, num_
         ``out/spec.toml`` or ``out/sweep.json``, ``out`` holds files that are not this sweep's (anything
         but :data:`SWEEP_FILES`, or a run directory the spec does not name), ``num_cpus`` or ``workers``
         not a positive integer, ``workers`` with ``address``, or ``workers`` and ``num_cpus`` that differ
-        without ``address``. Nothing is started or written.
+        without ``address``, ``batch`` not a positive integer. Nothing is started or written.
     """
     out = Path(out).resolve()
     runs = expand(spec)
     _check_count(num_cpus, "num_cpus")
     _check_count(workers, "workers")
+    _check_count(batch, "batch")
     if address is not None and workers is not None:
         raise ValueError("workers: the local process pool's size; with address the runs go to Ray (use num_cpus "
                          "for a local Ray cluster)")
@@ -791,7 +976,12 @@ def run_sweep(spec: SweepSpec, out: str | Path, address: str | None = None, num_
         (out / "runs").mkdir(parents=True, exist_ok=True)
         atomic_write_text(saved_spec, spec.text)
         t0 = time.perf_counter()
-        jobs = [(r.config.to_dict(), str(out / "runs" / r.name), resume) for r in runs]
+        parallel = (int(ray.cluster_resources().get("CPU", 1)) if ray is not None else n_workers)
+        batches = plan_batches(runs, batch, max(1, parallel))
+        # the longest first (the largest budget, then the largest batch), so that no long job starts last
+        batches.sort(key=lambda b: (-max(runs[i].config.algorithm.iterations for i in b), -len(b), b[0]))
+        jobs: list[_Job] = [([runs[i].config.to_dict() for i in b], [str(out / "runs" / runs[i].name) for i in b],
+                             resume, spec.observer) for b in batches]
         records: list[dict[str, Any] | None] = [None] * len(runs)
         if ray is not None:
             extra: dict[str, Any] = {"engine": "ray", "ray_version": ray.__version__, "address": address}
@@ -800,6 +990,7 @@ def run_sweep(spec: SweepSpec, out: str | Path, address: str | None = None, num_
             n_workers = min(n_workers, len(jobs))
             extra = {"engine": "local", "workers": n_workers, "address": None}
             finished = _run_here(jobs) if n_workers == 1 else _run_pool(jobs, n_workers)
+        extra.update({"batch": batch, "batches": len(batches)})
 
         def current() -> list[dict[str, Any]]:
             return [rec if rec is not None else _record(r, None, None) for rec, r in zip(records, runs)]
@@ -811,15 +1002,20 @@ def run_sweep(spec: SweepSpec, out: str | Path, address: str | None = None, num_
             bar = tqdm(total=len(runs), desc="sweep (runs)")
         failed = 0
         try:
-            for i, results, error, wall in finished:
+            for j, outcomes, error, wall in finished:
                 if error is not None:
-                    failed += 1
-                    logger.error("run %s failed: %s", runs[i].name, error)
-                records[i] = _record(runs[i], results, error, wall)
+                    logger.error("batch of %s failed: %s", ", ".join(runs[i].name for i in batches[j]), error)
+                for k, i in enumerate(batches[j]):
+                    results, run_error = (None, error) if outcomes is None else outcomes[k]
+                    if run_error is not None:
+                        failed += 1
+                        if outcomes is not None:
+                            logger.error("run %s failed: %s", runs[i].name, run_error)
+                    records[i] = _record(runs[i], results, run_error, None if results is None else wall)
                 _write_outputs(out, spec, current(), {**extra, "failed": failed, "finished": False,
                                                        "wall_seconds": time.perf_counter() - t0})
                 if bar is not None:
-                    bar.update(1)
+                    bar.update(len(batches[j]))
                     if failed:
                         bar.set_postfix(failed=failed)
         finally:
@@ -851,13 +1047,16 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def add_engine_arguments(p: argparse.ArgumentParser) -> None:
     """The engine's options shared by ``mixedrl sweep`` and the study drivers: ``--address``, ``--num-cpus``,
-    ``--resume``, ``--no-progress``."""
+    ``--batch``, ``--resume``, ``--no-progress``."""
     p.add_argument("--address", default=None,
                    help="run on Ray: join a cluster (e.g. 'auto' or HOST:6379) or 'local' to start one; "
                         "default: the local process pool")
     p.add_argument("--num-cpus", type=int, default=None,
                    help="CPUs of the local Ray cluster of --address local (default: all); without --address, "
                         "the processes of the local pool")
+    p.add_argument("--batch", type=int, default=DEFAULT_BATCH,
+                   help=f"most runs trained as one computation (default {DEFAULT_BATCH}; 1: every run alone, "
+                        f"as mixedrl train)")
     p.add_argument("--resume", action="store_true", help="skip finished runs, resume interrupted ones")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
 

@@ -4,6 +4,8 @@ validation share.
 * :func:`mean_std`: mean and sample standard deviation of a figure over seeds;
 * :func:`bootstrap_interval`: a seeded percentile-bootstrap confidence interval of the mean
   (:func:`scipy.stats.bootstrap`);
+* :func:`paired_interval`: the same for a paired comparison of two methods over the same seeds (mean
+  difference or ratio of means, seeds resampled together);
 * :func:`csv_text`: CSV of dict rows (columns: the union of their keys, in order of appearance).
 """
 
@@ -15,7 +17,7 @@ from typing import Any, Iterable, Sequence
 
 import numpy as np
 
-__all__ = ["mean_std", "bootstrap_interval", "csv_text"]
+__all__ = ["mean_std", "bootstrap_interval", "paired_interval", "csv_text"]
 
 
 def mean_std(values: Sequence[float], one: float | None = 0.0) -> tuple[float | None, float | None]:
@@ -78,6 +80,59 @@ def bootstrap_interval(values: Sequence[float], confidence: float = 0.95, n_resa
     res = bootstrap((arr,), np.mean, confidence_level=confidence, n_resamples=n_resamples, method="percentile",
                     random_state=np.random.default_rng(seed))
     return float(res.confidence_interval.low), float(res.confidence_interval.high)
+
+
+def paired_interval(a: Sequence[float], b: Sequence[float], statistic: str = "difference",
+                    confidence: float = 0.95, n_resamples: int = 9999,
+                    seed: int = 0) -> tuple[float, float | None, float | None]:
+    """A paired comparison of ``a`` and ``b`` (one value per seed each, the same seeds in the same order)
+    and its percentile-bootstrap interval (:func:`scipy.stats.bootstrap` with ``paired=True``: the seeds
+    are resampled, each with both its values).
+
+    Parameters
+    ----------
+    a, b : sequence of float, shape (n,)
+    statistic : {"difference", "ratio"}
+        ``mean(a - b)``, or ``mean(a) / mean(b)``.
+    confidence, n_resamples, seed
+        As for :func:`bootstrap_interval`.
+
+    Returns
+    -------
+    (float, float or None, float or None)
+        The statistic and ``(low, high)``; no interval (``None``) for fewer than two seeds.
+
+    Raises
+    ------
+    ValueError
+        ``a`` and ``b`` of different lengths or empty, a non-finite value, an unknown ``statistic``, or
+        ``confidence`` not in (0, 1).
+    """
+    if not 0.0 < confidence < 1.0:
+        raise ValueError(f"confidence: expected a number in (0, 1), got {confidence!r}")
+    x, y = np.asarray(list(a), dtype=float), np.asarray(list(b), dtype=float)
+    if x.ndim != 1 or x.shape != y.shape or x.size == 0:
+        raise ValueError(f"b: expected as many values as a ({x.size}), got {y.size}")
+    if not (np.isfinite(x).all() and np.isfinite(y).all()):
+        raise ValueError("a, b: non-finite value")
+    if statistic == "difference":
+        def stat(u: np.ndarray, v: np.ndarray, axis: int = -1) -> np.ndarray:
+            return np.mean(u - v, axis=axis)
+    elif statistic == "ratio":
+        def stat(u: np.ndarray, v: np.ndarray, axis: int = -1) -> np.ndarray:
+            return np.mean(u, axis=axis) / np.mean(v, axis=axis)
+    else:
+        raise ValueError(f"statistic: expected 'difference' or 'ratio', got {statistic!r}")
+    value = float(stat(x, y))
+    if x.size < 2:
+        return value, None, None
+    if np.all(x - y == (x - y)[0]) and statistic == "difference":
+        return value, value, value
+    from scipy.stats import bootstrap
+
+    res = bootstrap((x, y), stat, paired=True, vectorized=True, confidence_level=confidence,
+                    n_resamples=n_resamples, method="percentile", random_state=np.random.default_rng(seed))
+    return value, float(res.confidence_interval.low), float(res.confidence_interval.high)
 
 
 def csv_text(rows: Iterable[dict[str, Any]], columns: Sequence[str] = ()) -> str:

@@ -9,8 +9,9 @@ Four subcommands (run from the repository root with ``PYTHONPATH=.`` or the pack
     mixedrl sweep studies/sample_efficiency.toml --out runs/sample_efficiency
     python scripts/sample_efficiency.py from-sweep runs/sample_efficiency
     # or record the runs of a reproduction instead of training them again (mixed, model, oracle, and
-    # DDPG's longer runs as 'ddpg'); the shipped study does this with runs/reproduce/runs
-    python scripts/sample_efficiency.py from-reproduction runs/reproduce/runs
+    # DDPG's longer runs as 'ddpg'); the shipped study did this with runs/reproduce/runs (the layout of
+    # reproductions before they trained through mixedrl sweep; today's: runs/reproduce)
+    python scripts/sample_efficiency.py from-reproduction runs/reproduce
     # table (summary.csv, summary.json) and figures (curves_transitions.png, curves_wall.png)
     python scripts/sample_efficiency.py summary
 

@@ -11,7 +11,9 @@ Usage::
 
     PYTHONPATH=. python scripts/ship_reproduction.py [--seeds 5] [--out runs/reproduce] [--resume]
 
-About 6-10 minutes on 2 cores for 5 seeds (see ``docs/reproduction.rst``).
+About 18 minutes on this 2-core machine for 5 seeds (1060 s measured with other jobs running; see
+``docs/reproduction.rst``): the Algorithm-2 runs train in batches, the five long DDPG runs (not batched)
+are most of it.
 """
 
 from __future__ import annotations

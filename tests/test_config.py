@@ -137,6 +137,15 @@ def test_apply_overrides_dotted_keys() -> None:
         TrainConfig.from_dict(apply_overrides(full, {"task.disturbance.meen": 1}))
 
 
+def test_an_old_flat_key_and_its_dotted_name_the_later_one_wins() -> None:
+    # a sweep's [base] with the old name and a variant with the dotted one: the variant's value (measured
+    # before the fix: the old key was moved after every dotted key and won)
+    assert apply_overrides({}, {"batch_size": 32, "algorithm.batch_size": 16}) == {"algorithm": {"batch_size": 16}}
+    assert apply_overrides({}, {"algorithm.batch_size": 16, "batch_size": 32}) == {"algorithm": {"batch_size": 32}}
+    out = apply_overrides({}, {"iterations": 5, "algorithm.iterations": 7, "critic_lr": 0.1})
+    assert out == {"algorithm": {"iterations": 7, "critic_lr": 0.1}}
+
+
 def test_replace_accepts_dotted_keys_and_task_objects() -> None:
     cfg = TrainConfig().replace(**{"task.prior_force_mean": 200.0}, seed=4)
     assert (cfg.task.prior_force_mean, cfg.seed, cfg.task.prior_force_std) == (200.0, 4, 4.0)

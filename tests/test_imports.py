@@ -48,3 +48,84 @@ def test_core_imports_neither_theory_nor_validation() -> None:
 
 def test_no_private_name_imported_across_modules() -> None:
     assert PRIVATE == [], "\n".join(f"{m}: from {s} import {n}" for m, s, n in PRIVATE)
+
+
+#: The task interface and the two built-in tasks: :mod:`mixedrl.tasks` (the public face) imports them.
+TASK_MODULES = ("mixedrl.task_base", "mixedrl.linear_task", "mixedrl.envs.dlc_task")
+
+
+def _reachable(start: str) -> set[str]:
+    """The modules ``start`` imports, directly or not (per :data:`EDGES`), ``start`` included."""
+    seen, todo = {start}, [start]
+    while todo:
+        for b in EDGES.get(todo.pop(), ()):
+            if b not in seen:
+                seen.add(b)
+                todo.append(b)
+    return seen
+
+
+def test_the_task_modules_do_not_import_the_public_face_back() -> None:
+    """No cycle through mixedrl.tasks, not even a hidden one: the task modules (and all they import) import
+    neither mixedrl.tasks nor importlib, and mixedrl.tasks imports them with plain statements."""
+    mods = GRAPH.modules(ROOT)
+    assert {"mixedrl.task_base", "mixedrl.linear_task", "mixedrl.envs.dlc_task"} <= EDGES["mixedrl.tasks"]
+    assert "importlib" not in mods["mixedrl.tasks"].read_text()
+    for start in TASK_MODULES:
+        reached = _reachable(start)
+        assert "mixedrl.tasks" not in reached, start
+        for mod in sorted(reached):
+            assert "importlib" not in mods[mod].read_text(), f"{start} -> ... -> {mod} uses importlib"
+
+
+_SPY = r"""
+import builtins, importlib, json, sys
+
+edges = []
+real_import, real_import_module = builtins.__import__, importlib.import_module
+
+def spy_import(name, globals=None, locals=None, fromlist=(), level=0):
+    importer = (globals or {}).get("__name__", "")
+    if importer.startswith("mixedrl") and level == 0 and name.startswith("mixedrl"):
+        edges.append((importer, name, list(fromlist or ())))
+    return real_import(name, globals, locals, fromlist, level)
+
+def spy_import_module(name, package=None):
+    edges.append((sys._getframe(1).f_globals.get("__name__", ""), name, []))
+    return real_import_module(name, package)
+
+builtins.__import__, importlib.import_module = spy_import, spy_import_module
+import mixedrl.tasks as tasks
+tasks.make_task("linear"), tasks.make_task("dlc"), tasks.task_from_config("linear"), tasks.task_from_config("dlc")
+for name in tasks.__all__:
+    getattr(tasks, name)
+builtins.__import__, importlib.import_module = real_import, real_import_module
+out = set()
+for importer, name, fromlist in edges:
+    if not importer.startswith("mixedrl"):
+        continue
+    subs = [f"{name}.{item}" for item in fromlist if f"{name}.{item}" in sys.modules]
+    for target in subs or [name]:
+        if target != importer:
+            out.add((importer, target))
+print(json.dumps(sorted(out)))
+"""
+
+
+def test_no_import_cycle_at_run_time() -> None:
+    """In a fresh interpreter, every import mixedrl's modules make while ``mixedrl.tasks`` is imported and
+    its tasks are built -- import statements, lazy ones and ``importlib.import_module`` alike -- forms an
+    acyclic graph (the static scan above cannot see ``importlib``)."""
+    import json
+    import os
+    import subprocess
+
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}
+    done = subprocess.run([sys.executable, "-c", _SPY], capture_output=True, text=True, cwd=ROOT, env=env,
+                          check=False)
+    assert done.returncode == 0, done.stderr
+    runtime: dict[str, set[str]] = {}
+    for a, b in json.loads(done.stdout.strip().splitlines()[-1]):
+        runtime.setdefault(a, set()).add(b)
+    assert "mixedrl.task_base" in runtime["mixedrl.tasks"]  # the spy sees the imports
+    assert GRAPH.cycles(runtime) == []

@@ -222,6 +222,20 @@ def test_records_from_a_reproduction_folder(tmp_path: Path) -> None:
     with pytest.raises(FileNotFoundError, match="runs_dir"):
         records_from_reproduction(tmp_path / "nothing")
 
+    # a reproduction trained through mixedrl sweep: DIR/sweep, labels from method and variant
+    from mixedrl.sweep import parse_spec, run_sweep
+
+    text = ('methods = ["mixed", "ddpg"]\nseeds = [1]\n[base]\n"algorithm.iterations" = 6\n'
+            '"algorithm.batch_size" = 16\n"ddpg.warmup" = 16\n"run.eval_every" = 3\n"run.eval_seeds" = 1\n'
+            '"run.checkpoint_every" = 6\n[variants.paper]\n[variants.ddpg_long]\nmethods = ["ddpg"]\n')
+    run_sweep(parse_spec(text), tmp_path / "repro" / "sweep", workers=1, progress=False)
+    for where in (tmp_path / "repro", tmp_path / "repro" / "sweep"):
+        records = records_from_reproduction(where)
+        assert sorted((r["method"], r["seed"]) for r in records) == [("ddpg", 1), ("mixed", 1)]
+        by = {r["method"]: r for r in records}
+        assert by["ddpg"]["overrides"]["source"].endswith("variant=ddpg_long__ddpg_seed1")
+        assert by["mixed"]["rows"][-1]["cost"] == by["mixed"]["final"]["cost"]
+
 
 def test_rows_from_metrics_mapping() -> None:
     metrics = [{"iteration": 1, "data/true_transitions": 16.0, "time/elapsed_s": 0.5},

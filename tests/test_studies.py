@@ -20,6 +20,7 @@ import numpy as np
 import pytest
 
 from mixedrl.config import TrainConfig
+from mixedrl.runs import RunDirectory
 from mixedrl.sweep import expand, load_spec, parse_spec, run_sweep
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -174,25 +175,75 @@ def test_reproduction_spec_is_the_reproductions_run_config() -> None:
     assert sorted(set(labels)) == ["ddpg", "ddpg_long", "mixed", "model", "oracle"]
 
 
-def test_a_sweep_run_has_the_numbers_of_the_reproductions_run(tmp_path: Path) -> None:
-    """On a reduced config (the reproduction's quick budget, cut to 60 iterations): the reproduction's own
-    worker (with its theory probe) and the sweep's give the same per-run numbers, bit for bit."""
-    from validation.reproduce import run_config, run_one
+def test_the_reproductions_spec_is_the_shipped_spec_with_the_theory_observer() -> None:
+    from validation.reproduce import reproduction_spec, run_config
+
+    shipped = load_spec(ROOT / "studies" / "reproduction.toml")
+    ours = reproduction_spec(5)
+    assert [(r.name, r.config) for r in expand(ours)] == [(r.name, r.config) for r in expand(shipped)]
+    assert ours.observer == shipped.observer == "validation.reproduce:theory_observer"
+    quick = reproduction_spec(2, quick=True)
+    assert quick.observer == "validation.reproduce:quick_theory_observer"
+    for run in expand(quick):
+        label = "ddpg_long" if run.point["variant"] == "ddpg_long" else run.config.method
+        assert run.config == run_config(label, run.config.seed, quick=True), run.name
+
+
+def test_the_theory_observer_reads_the_run_and_changes_none_of_its_numbers(tmp_path: Path) -> None:
+    """A batch of two runs (the reproduction's quick config cut to 60 iterations) with the theory observer
+    and without: the same rows bit for bit, plus the theory checks every 50th iteration."""
+    from validation.reproduce import run_config
 
     config = run_config("mixed", 0, quick=True).replace(iterations=60, eval_every=30, checkpoint_every=30)
-    ours = run_one({"config": config.to_dict(), "path": str(tmp_path / "reproduce"), "resume": False,
-                    "theory_every": 30, "label": "mixed"})
-    text = 'methods = ["mixed"]\nseeds = [0]\n[base]\n' + "".join(
+    text = 'methods = ["mixed", "oracle"]\nseeds = [0]\n[base]\n' + "".join(
         f'"{k}" = {json.dumps(v)}\n' for k, v in {"algorithm.iterations": 60, "run.eval_every": 30,
                                                   "run.checkpoint_every": 30, "run.eval_seeds": 1,
                                                   "ddpg.warmup": 500}.items())
-    spec = parse_spec(text)
-    (run,) = expand(spec)
-    assert run.config == config
-    (row,) = run_sweep(spec, tmp_path / "sweep", workers=1, progress=False)["runs"]
-    for key in ("lateral_mae", "speed_mae", "cost", "iterations_to_converge", "mvc_held_fraction"):
-        assert row["metrics"][key] == ours[key], key
-    assert row["true_transitions"] == ours["true_transitions"]
+    plain = parse_spec(text)
+    observed = parse_spec('observer = "validation.reproduce:quick_theory_observer"\n' + text)
+    assert expand(plain)[0].config == config
+    docs = [run_sweep(spec, tmp_path / name, workers=1, progress=False)
+            for name, spec in (("plain", plain), ("observed", observed))]
+    for a, b in zip(*(d["runs"] for d in docs)):
+        rows_a = RunDirectory(tmp_path / "plain" / a["run_dir"]).read_metrics()
+        rows_b = RunDirectory(tmp_path / "observed" / b["run_dir"]).read_metrics()
+        theory = [r["iteration"] for r in rows_b if "theory/lyapunov" in r]
+        assert theory == [1, 51]  # before iterations k = 0 and 50
+        strip = [{k: v for k, v in r.items() if not k.startswith(("theory/", "time/"))} for r in rows_b]
+        assert strip == [{k: v for k, v in r.items() if not k.startswith("time/")} for r in rows_a]
+        for key in ("lateral_mae", "speed_mae", "cost", "iterations_to_converge", "mvc_held_fraction"):
+            assert a["metrics"][key] == b["metrics"][key], key
+    with pytest.raises(ValueError, match="^observer: .*no callable 'nothing'"):
+        parse_spec('observer = "validation.reproduce:nothing"\n' + text)
+    with pytest.raises(ValueError, match="^observer: cannot import"):
+        parse_spec('observer = "no_such_module:f"\n' + text)
+    with pytest.raises(ValueError, match="^observer: expected"):
+        parse_spec('observer = 3\n' + text)
+
+
+def test_long_training_spec_and_its_observer_only_reads_the_runs() -> None:
+    from validation.long_training import LongTrainingObserver
+    from mixedrl.runs import make_trainer, train_batch
+
+    runs = expand(load_spec(ROOT / "studies" / "long_training.toml"))
+    assert [(r.config.method, r.config.seed, r.config.algorithm.iterations) for r in runs] == \
+        [("mixed", 0, 10000), ("oracle", 0, 10000)]
+    # the old script's config: TrainConfig(method, seed=0, iterations=10000, eval_every=10000)
+    for r in runs:
+        old = TrainConfig(method=r.config.method, seed=0, iterations=10000, eval_every=10000)
+        assert r.config.replace(checkpoint_every=old.run.checkpoint_every) == old
+    small = [r.config.replace(iterations=6, eval_every=100, checkpoint_every=100, eval_seeds=1, batch_size=64)
+             for r in runs]
+    plain = train_batch([make_trainer(c) for c in small], progress=False)
+    seen = train_batch([make_trainer(c) for c in small], progress=False,
+                       observers=[LongTrainingObserver(3), LongTrainingObserver(3)])
+    for a, b in zip(plain, seen):
+        recorded = [r["iteration"] for r in b["metrics"] if "long/J_train" in r]
+        assert recorded == [3, 6]
+        assert all(np.isfinite(r["long/J_train"]) and "long/dax_de_y" in r for r in b["metrics"] if "long/J_train" in r)
+        strip = [{k: v for k, v in r.items() if not k.startswith(("long/", "time/"))} for r in b["metrics"]]
+        assert strip == [{k: v for k, v in r.items() if not k.startswith("time/")} for r in a["metrics"]]
+        assert a["final"] == b["final"]
 
 
 def _old_precision_config(method: str, seed: int, bellman_steps: int, iterations: int = 1500) -> TrainConfig:

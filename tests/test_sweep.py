@@ -15,7 +15,7 @@ import pytest
 import torch
 
 from mixedrl.config import TrainConfig
-from mixedrl.runs import RunDirectory, load_checkpoint, make_trainer, train
+from mixedrl.runs import RunDirectory, load_checkpoint, make_trainer, train, train_batch
 from mixedrl.sweep import (
     INSTALL_HINT,
     add_parser,
@@ -25,6 +25,7 @@ from mixedrl.sweep import (
     load_spec,
     make_figure,
     parse_spec,
+    plan_batches,
     run_name,
     run_sweep,
     summarize,
@@ -260,6 +261,11 @@ def test_add_parser_and_num_cpus() -> None:
         run_sweep(parse_spec(SPEC), "unused", workers=2, address="auto")
     with pytest.raises(ValueError, match="^num_cpus: without address it is the older name of workers"):
         run_sweep(parse_spec(SPEC), "unused", workers=2, num_cpus=3)
+    args = parser.parse_args(["sweep", "s.toml", "--out", "d", "--batch", "4"])
+    assert args.batch == 4 and parser.parse_args(["sweep", "s.toml", "--out", "d"]).batch == 16
+    for bad in (0, -2, True, 2.0):
+        with pytest.raises(ValueError, match="^batch: expected a positive integer"):
+            run_sweep(parse_spec(SPEC), "unused", batch=bad)
     assert not Path("unused").exists()
 
 
@@ -355,7 +361,8 @@ def test_sweep_on_the_local_pool_equals_train_alone_and_resumes(pool_sweep, tmp_
     assert [r["name"] for r in doc["runs"]] == [r.name for r in runs] == \
         ["critic_lr=0.001__mixed_seed0", "critic_lr=0.003__mixed_seed0"]
     assert doc["failed"] == 0 and doc["finished"] is True
-    assert (doc["engine"], doc["workers"], doc["address"]) == ("local", 2, None)
+    # the two runs share a batch key: one batch, so one worker of the two asked for
+    assert (doc["engine"], doc["workers"], doc["address"], doc["batch"], doc["batches"]) == ("local", 1, None, 16, 1)
     for rec, sweep_run in zip(doc["runs"], runs):
         assert rec["config"] == sweep_run.config.to_dict() and rec["error"] is None
         results = RunDirectory(full / rec["results"]["run_dir"]).read_results()
@@ -364,6 +371,7 @@ def test_sweep_on_the_local_pool_equals_train_alone_and_resumes(pool_sweep, tmp_
             assert rec["results"][key] == results[key]
         assert rec["results"]["lateral_mae"] is None  # the linear task has no course
         assert rec["results"]["true_transitions"] == results.get("true_transitions")
+        assert rec["metrics"]["batch_size_runs"] == 2
     assert (full / "spec.toml").read_text() == SPEC
     assert (full / "figures" / "cost_vs_critic_lr.png").is_file()
     with open(full / "sweep.csv") as fh:
@@ -375,33 +383,71 @@ def test_sweep_on_the_local_pool_equals_train_alone_and_resumes(pool_sweep, tmp_
     assert [(s["critic_lr"], s["method"], s["runs"]) for s in summary] == [("0.001", "mixed", "1"),
                                                                            ("0.003", "mixed", "1")]
 
-    # a run of the sweep is exactly the same config trained alone with ``mixedrl train``
+    # a batch of the sweep is exactly the same configs trained by train_batch
+    together = [RunDirectory(tmp_path / "together" / r.name) for r in runs]
+    train_batch([make_trainer(r.config) for r in runs], together, progress=False)
+    for r, d in zip(runs, together):
+        swept = full / "runs" / r.name
+        assert _same_weights(swept, d.path)
+        assert _without_time(RunDirectory(swept).read_metrics()) == _without_time(d.read_metrics())
+
+    # with --batch 1 a run of the sweep is exactly the same config trained alone with ``mixedrl train``
+    single = tmp_path / "single"
+    assert main([str(spec_path), "--out", str(single), "--batch", "1", "--workers", "1", "--no-progress"]) == 0
     first = runs[0]
     alone = tmp_path / "alone"
     (tmp_path / "config.json").write_text(json.dumps(first.config.to_dict()))
     assert cli_main(["train", "--method", "mixed", "--seed", "0", "--out", str(alone), "--config",
                      str(tmp_path / "config.json"), "--no-progress"]) == 0
-    swept = full / "runs" / first.name
+    swept = single / "runs" / first.name
     assert _same_weights(swept, alone)
     assert RunDirectory(swept).read_results()["final"] == RunDirectory(alone).read_results()["final"]
     assert _without_time(RunDirectory(swept).read_metrics()) == _without_time(RunDirectory(alone).read_metrics())
+    assert json.loads((single / "sweep.json").read_text())["batches"] == 2
 
-    # resume (in this process, workers=1): the first run interrupted after 10 of 20 iterations, the second
-    # finished
+    # resume (in this process, workers=1): the batch interrupted after 10 of 20 iterations, then the second
+    # run replaced by its finished copy: the first continues beside it (restored, inactive) and ends with
+    # the bits of the uninterrupted batch
     resumed = tmp_path / "resumed"
-    train(make_trainer(first.config), RunDirectory(resumed / "runs" / first.name), stop_after=10)
-    partial = RunDirectory(resumed / "runs" / first.name).read_metrics()
+    cut = [RunDirectory(resumed / "runs" / r.name) for r in runs]
+    train_batch([make_trainer(r.config) for r in runs], cut, progress=False, stop_after=10)
+    partial = cut[0].read_metrics()
     assert [r["iteration"] for r in partial] == list(range(1, 11))
-    shutil.copytree(full / "runs" / runs[1].name, resumed / "runs" / runs[1].name)
-    finished_results = resumed / "runs" / runs[1].name / "results.json"
+    shutil.rmtree(cut[1].path)
+    shutil.copytree(full / "runs" / runs[1].name, cut[1].path)
+    finished_results = cut[1].results_path
     stamp = finished_results.stat().st_mtime_ns
     doc2 = run_sweep(load_spec(spec_path), resumed, resume=True, progress=False, workers=1)
     assert finished_results.stat().st_mtime_ns == stamp  # skipped, not retrained
-    rows2 = RunDirectory(resumed / "runs" / first.name).read_metrics()
+    rows2 = cut[0].read_metrics()
     assert rows2[:10] == partial  # continued from the checkpoint (a restart would rewrite the times)
-    assert _same_weights(resumed / "runs" / first.name, swept)
+    assert _same_weights(cut[0].path, full / "runs" / runs[0].name)
     assert [_timeless(a) for a in doc2["runs"]] == [_timeless(b) for b in doc["runs"]]
     assert doc2["failed"] == 0 and doc2["workers"] == 1
+
+
+def test_plan_batches_groups_by_shape_spreads_over_workers_and_never_leaves_a_run_alone() -> None:
+    text = ('methods = ["mixed", "model", "oracle", "ddpg"]\nseeds = [0, 1, 2, 3, 4]\n' + BASE +
+            '\n[variants.a]\n[variants.b]\n"algorithm.batch_size" = 16\nseeds = [0]\nmethods = ["mixed"]\n')
+    runs = expand(parse_spec(text))
+    assert len(runs) == 21
+    ddpg = [i for i, r in enumerate(runs) if r.config.method == "ddpg"]
+    algo2 = [i for i, r in enumerate(runs) if r.config.method != "ddpg" and r.point["variant"] == "a"]
+    lone = [i for i, r in enumerate(runs) if r.point["variant"] == "b"]
+    assert (len(ddpg), len(algo2), len(lone)) == (5, 15, 1)
+    for workers, batch, sizes in ((1, 16, [15]), (2, 16, [8, 7]), (4, 16, [4, 4, 4, 3]), (1, 4, [4, 4, 4, 3]),
+                                  (8, 16, [2, 2, 2, 2, 2, 2, 3]), (1, 14, [8, 7])):
+        batches = plan_batches(runs, batch, workers)
+        assert sorted(i for b in batches for i in b) == list(range(21))
+        assert [b for b in batches if b[0] in ddpg] == [[i] for i in ddpg]  # DDPG trains alone
+        assert lone in batches  # another batch size: its own group, of one
+        grouped = [b for b in batches if b[0] in algo2]
+        assert sorted(len(b) for b in grouped) == sorted(sizes), (workers, batch)
+        assert all(len(b) >= 2 for b in grouped)
+        assert all(runs[i].config.algorithm.batch_size == 32 for b in grouped for i in b)
+    assert plan_batches(runs, 1, 2) == [[i] for i in range(21)]
+    with pytest.raises(ValueError, match="batch"):
+        plan_batches(runs, 0)
 
 
 def test_one_row_per_run_schema(pool_sweep) -> None:

@@ -8,7 +8,7 @@ import io
 import numpy as np
 import pytest
 
-from mixedrl.tables import bootstrap_interval, csv_text, mean_std
+from mixedrl.tables import bootstrap_interval, csv_text, mean_std, paired_interval
 
 
 def test_mean_std_is_the_mean_and_sample_std() -> None:
@@ -40,6 +40,34 @@ def test_bootstrap_interval_edge_cases() -> None:
     assert 1.0 <= low < np.mean(values) < high <= 8.0
     with pytest.raises(ValueError, match="^confidence"):
         bootstrap_interval(values, confidence=1.0)
+
+
+def test_paired_interval_resamples_seeds_with_both_values() -> None:
+    # a shared per-seed effect (the seed's difficulty) far larger than the difference: unpaired intervals
+    # of the two means overlap, the paired interval of the difference excludes 0
+    rng = np.random.default_rng(3)
+    seed_effect = rng.normal(0.0, 1.0, size=20)
+    a = 5.0 + seed_effect + rng.normal(0.0, 0.05, size=20)
+    b = a + 0.2 + rng.normal(0.0, 0.05, size=20)
+    diff, low, high = paired_interval(a, b)
+    assert diff == pytest.approx(np.mean(a - b)) and low < diff < high < 0.0
+    la, ha = bootstrap_interval(a)
+    lb, hb = bootstrap_interval(b)
+    assert lb < ha  # the unpaired intervals overlap
+    ratio, rl, rh = paired_interval(b, a, statistic="ratio")
+    assert ratio == pytest.approx(np.mean(b) / np.mean(a)) and 1.0 < rl < ratio < rh
+    assert paired_interval(a, b) == paired_interval(a, b)  # seeded
+    # breaking the pairing (b's seeds shuffled) loses it
+    _, low_u, high_u = paired_interval(a, rng.permutation(b))
+    assert low_u < 0.0 < high_u
+    assert paired_interval([1.0], [2.0]) == (-1.0, None, None)
+    assert paired_interval([1.0, 2.0], [0.0, 1.0]) == (1.0, 1.0, 1.0)
+    with pytest.raises(ValueError, match="^b: expected as many"):
+        paired_interval([1.0, 2.0], [1.0])
+    with pytest.raises(ValueError, match="non-finite"):
+        paired_interval([1.0, np.nan], [1.0, 2.0])
+    with pytest.raises(ValueError, match="^statistic"):
+        paired_interval([1.0, 2.0], [1.0, 2.0], statistic="median")
 
 
 def test_csv_text_unions_the_keys_and_round_trips_floats() -> None:

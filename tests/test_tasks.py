@@ -206,6 +206,25 @@ def test_the_course_sampler_and_the_preset_are_registered_by_the_task() -> None:
         config.CourseSamplr  # noqa: B018
 
 
+def test_the_built_in_tasks_live_in_their_modules_and_stay_importable_from_tasks() -> None:
+    """LinearTask (mixedrl.linear_task) and the double lane change's task, sampler and preset
+    (mixedrl.envs.dlc_task) are the same objects through mixedrl.tasks, which builds them by name."""
+    import mixedrl.tasks as tasks
+    from mixedrl.envs import dlc_task
+    from mixedrl import linear_task
+
+    assert tasks.LinearTask is linear_task.LinearTask is LinearTask
+    for name in ("DoubleLaneChangeTask", "CourseSampler", "DLC_EXPERIMENT"):
+        assert getattr(tasks, name) is getattr(dlc_task, name), name
+        assert name in dir(tasks) and name in tasks.__all__
+    assert type(make_task("linear")) is linear_task.LinearTask
+    assert type(make_task("dlc")) is dlc_task.DoubleLaneChangeTask
+    with pytest.raises(AttributeError, match="no attribute 'LinearTsk'"):
+        tasks.LinearTsk  # noqa: B018
+    with pytest.raises(ValueError, match=r"^name: expected one of \('dlc', 'linear'"):
+        make_task("lineer")
+
+
 def test_the_lq_problem_has_one_representation() -> None:
     """LinearTask, LinearTaskConfig and validation.lq share mixedrl.lq.LQProblem; the optimum of the
     task's problem is the one the validation computes."""

@@ -56,7 +56,7 @@ import torch
 from mixedrl.config import TrainConfig
 from mixedrl.tables import csv_text, mean_std
 from mixedrl.runs import atomic_write_bytes, atomic_write_text, load_checkpoint, make_trainer
-from mixedrl.sweep import SweepSpec, add_engine_arguments, format_summary, load_spec, parse_spec, run_sweep
+from mixedrl.sweep import DEFAULT_BATCH, SweepSpec, add_engine_arguments, format_summary, load_spec, parse_spec, run_sweep
 from mixedrl.tasks import task_from_config
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -194,7 +194,7 @@ def study_parts(spec: SweepSpec, shared: dict[str, str]) -> dict[str, SweepSpec]
 # ----------------------------------------------------------------------------------------------------
 def run_study(name: str, out: Path, reduced: bool = False, share: bool = True, address: str | None = None,
               num_cpus: int | None = None, resume: bool = False, progress: bool = True,
-              seeds: list[int] | None = None) -> dict[str, Any]:
+              seeds: list[int] | None = None, batch: int = DEFAULT_BATCH) -> dict[str, Any]:
     """Train the study ``name`` into ``out`` (its parts, in order); return ``{part: sweep.json}``.
 
     ``seeds`` (optional) trains only those seeds of the spec (:func:`subset_seeds`); ``study.json`` records
@@ -229,7 +229,7 @@ def run_study(name: str, out: Path, reduced: bool = False, share: bool = True, a
     docs = {}
     for part, part_spec in parts.items():  # the engine of mixedrl sweep: the local pool, or Ray with address
         docs[part] = run_sweep(part_spec, out / part, address=address, num_cpus=num_cpus, resume=resume,
-                               progress=progress)
+                               progress=progress, batch=batch)
     return docs
 
 
@@ -839,7 +839,7 @@ def main(argv: list[str] | None = None) -> int:
             t0 = time.perf_counter()
             docs = run_study(args.study, out, reduced=args.reduced, share=not args.no_share, address=args.address,
                              num_cpus=args.num_cpus, resume=args.resume, progress=not args.no_progress,
-                             seeds=args.seeds)
+                             seeds=args.seeds, batch=args.batch)
             for part, doc in docs.items():
                 print(f"[{part}]")
                 print(format_summary(doc, out / part))

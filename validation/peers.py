@@ -6,7 +6,7 @@
 termination) and, every ``eval_every`` true transitions, evaluates the deterministic policy on the full
 course exactly as a mixedrl run is evaluated:
 
-* the same function: :meth:`mixedrl.tasks.DoubleLaneChangeTask.evaluate` (what
+* the same function: :meth:`mixedrl.envs.dlc_task.DoubleLaneChangeTask.evaluate` (what
   ``trainer.evaluate(eval_seeds(config))`` calls, :func:`mixedrl.envs.evaluate_tracking` once per seed),
   on the task of ``TrainConfig(seed=seed, eval_seeds=eval_seeds)``, with that run's evaluation seeds
   :func:`mixedrl.runs.eval_seeds`;
@@ -276,7 +276,7 @@ def train_peer(algo: str, *, seed: int = 0, transitions: int = 100_000, eval_eve
     After every ``eval_every`` true transitions (and at the end) the deterministic policy
     (``model.predict(obs, deterministic=True)``) drives the full course once per evaluation seed of
     ``TrainConfig(seed=seed, eval_seeds=eval_seeds)``, through
-    :meth:`mixedrl.tasks.DoubleLaneChangeTask.evaluate` with :class:`PhysicalPolicy`. An evaluation takes
+    :meth:`mixedrl.envs.dlc_task.DoubleLaneChangeTask.evaluate` with :class:`PhysicalPolicy`. An evaluation takes
     place where SB3 starts a new rollout, i.e. after the gradient steps on the data so far, so the policy
     evaluated at ``n`` transitions has learnt from exactly those ``n``.
 

@@ -9,17 +9,20 @@ What it does, top to bottom:
 
 1. For every method -- mixed RL (Algorithm 2 with the IBE), model-driven RL (Algorithm 2 on the prior,
    eq. 55), DDPG (data only) and the oracle (Algorithm 2 with the true noise) -- and every seed, train
-   one run into ``DIR/runs/<method>_seed<S>/`` with **the same** :class:`mixedrl.config.TrainConfig`
-   (networks, optimiser, learning rates, batch, iteration budget); only ``method`` and ``seed`` differ.
-   Runs go to ``workers`` parallel processes (one torch thread each). ``--resume`` reuses finished runs
-   and resumes interrupted ones from their checkpoints.
-2. During the Algorithm-2 runs, every ``theory_every`` iterations a :class:`TheoryProbe` applies the
-   ``theory`` checks to the iteration just made, on its batch of states: value decrease (eqs. 29/42),
-   the pointwise MVC (eq. 38, with ``e_k >= 0`` of eq. 39), Lyapunov decrease (eq. 41) and the IBE
-   shift (eq. 45).
+   one run with **the same** :class:`mixedrl.config.TrainConfig` (networks, optimiser, learning rates,
+   batch, iteration budget); only ``method`` and ``seed`` differ. The runs are the sweep
+   :func:`reproduction_spec` (``studies/reproduction.toml`` for 5 seeds), trained by ``mixedrl sweep``'s
+   engine into ``DIR/sweep/runs/<name>/``: the Algorithm-2 runs in batches
+   (:mod:`mixedrl.algorithms.batched`), DDPG alone, on ``workers`` processes (one torch thread each).
+   ``--resume`` reuses finished runs and resumes interrupted ones from their checkpoints.
+2. During the Algorithm-2 runs, every 250th iteration (50th with ``--quick``) a :class:`TheoryObserver`
+   (the spec's ``observer``) applies the ``theory`` checks to the iteration just made, on its batch of
+   states: value decrease (eqs. 29/42), the pointwise MVC (eq. 38, with ``e_k >= 0`` of eq. 39),
+   Lyapunov decrease (eq. 41) and the IBE shift (eq. 45).
 3. Each final policy drives the full course (:func:`mixedrl.envs.evaluate_tracking`) with the run's
    evaluation seeds; Table I reports the mean absolute lateral and speed errors, mean ± std over seeds,
-   beside the paper's numbers.
+   beside the paper's numbers. Each method's first seed drives the course once more for Figs. 5-7
+   (``DIR/trajectories/``, from its final checkpoint).
 4. ``DIR/results.json`` (per method a list of runs ``{"seed", "lateral_mae", "speed_mae",
    "iterations_to_converge", "train_seconds"}`` and the means; the paper's values under ``"paper"``; the
    theory summary; the targets and whether each was met; the task configuration under ``"task"``) and
@@ -39,10 +42,10 @@ from __future__ import annotations
 
 import argparse
 import copy
+import io
 import json
 import logging
 import math
-import multiprocessing as mp
 import os
 import sys
 import time
@@ -52,18 +55,19 @@ from typing import Any, Sequence
 
 import numpy as np
 import torch
-from tqdm.auto import tqdm
 
 import theory
 from mixedrl.config import DoubleLaneChangeTaskConfig, TrainConfig, task_config
 from mixedrl.gaussian import sample_gaussian
 from mixedrl.ibe import UnknownCovarianceIBE
 from mixedrl.tables import mean_std
-from mixedrl.runs import RunDirectory, atomic_write_text, eval_seeds, make_trainer, train
+from mixedrl.runs import RunDirectory, atomic_write_bytes, atomic_write_text, eval_seeds, load_checkpoint, make_trainer
+from mixedrl.sweep import DEFAULT_BATCH, SweepSpec, expand, parse_spec, run_sweep
 from validation.nmpc import REFERENCE_SETTINGS
 from mixedrl.tasks import DoubleLaneChangeTask, task_from_config
 
-__all__ = ["PAPER", "METHODS", "reproduce", "format_table", "format_references", "run_config", "TheoryProbe", "make_figures", "main",
+__all__ = ["PAPER", "METHODS", "reproduce", "reproduction_spec", "format_table", "format_references", "run_config",
+           "TheoryObserver", "TheoryProbe", "theory_observer", "quick_theory_observer", "make_figures", "main",
            "register", "add_arguments", "run_command"]
 
 logger = logging.getLogger(__name__)
@@ -80,12 +84,16 @@ METHODS = ("mixed", "model", "ddpg", "oracle")
 EXTRA = ("ddpg_long",)
 DDPG_LONG_FACTOR = 16
 #: The same in quick mode.
-QUICK_DDPG_LONG_FACTOR = 4
+QUICK_DDPG_LONG_FACTOR = 2
 LABELS = {"mixed": "Mixed RL", "model": "Model-driven RL", "ddpg": "Data-driven RL (DDPG)",
           "oracle": "Oracle (true noise)", "ddpg_long": "DDPG, longer budget"}
-#: Quick mode (the test suite): iterations per run, evaluation period, at most this many seeds.
-QUICK = {"iterations": 600, "eval_every": 150, "eval_seeds": 1, "checkpoint_every": 300, "ddpg_warmup": 500}
+#: Quick mode (the test suite): the paper's budget (1500 iterations: at 600 the model-based training has
+#: not converged and the ordering inverts), one evaluation course, DDPG's longer budget 2x instead of
+#: 16x; at most this many seeds.
+QUICK = {"eval_every": 150, "eval_seeds": 1, "ddpg_warmup": 500}
 QUICK_MAX_SEEDS = 2
+#: The spec of the reproduction's runs (``mixedrl sweep studies/reproduction.toml`` trains the same).
+SPEC_PATH = Path(__file__).resolve().parent.parent / "studies" / "reproduction.toml"
 
 
 def run_config(label: str, seed: int, quick: bool = False) -> TrainConfig:
@@ -118,9 +126,10 @@ class _StateNoise:
         self.cov = E @ cov @ E.T
 
 
-class TheoryProbe:
-    """Wraps an :class:`~mixedrl.algorithms.agpi.AGPI` trainer; every ``every`` iterations, checks the
-    iteration just made with the ``theory`` package on its batch of states.
+class TheoryObserver:
+    """Every ``every`` iterations of an :class:`~mixedrl.algorithms.agpi.AGPI` run, checks the iteration just
+    made with the ``theory`` package on its batch of states (an :class:`mixedrl.runs.IterationObserver`:
+    it works on a run alone and inside a batch).
 
     Metrics added to that iteration's row: ``theory/value_decrease`` (fraction of states with
     ``V^{k+1}(x) <= V^k(x)``, eq. 29/42), ``theory/mvc_pointwise`` (fraction with eq. 38 pointwise),
@@ -129,23 +138,23 @@ class TheoryProbe:
     eq. 41), ``theory/ibe_kl`` (eq. 45).
 
     Expectations use the ``theory`` package's default rule (sigma points), in float64 on the same
-    ``f``, ``l`` and networks.
+    ``f``, ``l`` and networks. The observer only reads the run (copies of its networks and moments).
     """
 
-    def __init__(self, trainer: Any, every: int) -> None:
-        self.trainer = trainer
-        self.every = int(every)
+    def __init__(self, every: int) -> None:
+        if isinstance(every, bool) or not isinstance(every, int) or every < 1:
+            raise ValueError(f"every: expected a positive integer, got {every!r}")
+        self.every = every
 
-    def __getattr__(self, name: str) -> Any:
-        return getattr(self.trainer, name)
-
-    def iteration(self) -> dict[str, float]:
-        tr = self.trainer
+    def before(self, tr: Any) -> Any:
         if tr.k % self.every != 0:
-            return tr.iteration()
-        critic_k, actor_k = copy.deepcopy(tr.critic), copy.deepcopy(tr.actor)
-        mean_k, cov_k = tr.noise_moments()
-        row = tr.iteration()
+            return None
+        return copy.deepcopy(tr.critic), copy.deepcopy(tr.actor), tr.noise_moments()
+
+    def after(self, tr: Any, token: Any, row: dict[str, float]) -> dict[str, float] | None:
+        if token is None:
+            return None
+        critic_k, actor_k, (mean_k, cov_k) = token
         task = tr.task
         E = task.noise_matrix.double().numpy()
         noise_k = _StateNoise(mean_k, cov_k, E)
@@ -172,14 +181,42 @@ class TheoryProbe:
                         states)
         ly = theory.lyapunov_decrease(vk, on_states(tr.actor), f, noise_k1, states)
         kl = theory.ibe_shift(noise_k, noise_k1)
-        row.update({
+        return {
             "theory/value_decrease": vd.held_fraction,
             "theory/mvc_pointwise": mv.held_fraction,
             "theory/mvc_batch_mean": float(mv.extra["held_on_batch_mean"]),
             "theory/e_nonnegative": float(mv.extra["e_nonnegative_fraction"]),
             "theory/lyapunov": ly.held_fraction,
             "theory/ibe_kl": float(kl.kl),
-        })
+        }
+
+
+def theory_observer(config: TrainConfig, every: int = 250) -> TheoryObserver | None:
+    """The observer of a reproduction run: :class:`TheoryObserver` for Algorithm 2, none for DDPG (the
+    ``observer`` of ``studies/reproduction.toml``)."""
+    return None if config.method == "ddpg" else TheoryObserver(every)
+
+
+def quick_theory_observer(config: TrainConfig) -> TheoryObserver | None:
+    """:func:`theory_observer` every 50 iterations (``--quick``)."""
+    return theory_observer(config, 50)
+
+
+class TheoryProbe:
+    """A trainer whose :meth:`iteration` is the trainer's with the :class:`TheoryObserver` checks added
+    (for use outside :func:`mixedrl.runs.train`)."""
+
+    def __init__(self, trainer: Any, every: int) -> None:
+        self.trainer = trainer
+        self.observer = TheoryObserver(every)
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self.trainer, name)
+
+    def iteration(self) -> dict[str, float]:
+        token = self.observer.before(self.trainer)
+        row = self.trainer.iteration()
+        row.update(self.observer.after(self.trainer, token, row) or {})
         return row
 
 
@@ -195,27 +232,56 @@ def _trajectory(trainer: Any, seed: int) -> dict[str, np.ndarray]:
             "lateral_error": r.lateral_error, "speed_error": r.speed_error, "actions": r.actions}
 
 
-def run_one(job: dict[str, Any]) -> dict[str, Any]:
-    """Train (or reuse / resume) one run; returns its summary. Executed in a worker process."""
-    config = TrainConfig.from_dict(job["config"])
-    torch.set_num_threads(config.run.num_threads)
-    run = RunDirectory(job["path"])
-    if job["resume"] and run.results_path.is_file() and run.config_path.is_file() \
-            and run.read_config().to_dict() == config.to_dict() and (run.path / "trajectory.npz").is_file():
-        return {**run.read_results(), "label": job["label"]}
+def reproduction_spec(seeds: int = 5, quick: bool = False) -> SweepSpec:
+    """The sweep of the reproduction: every label of :data:`METHODS` and :data:`EXTRA` over seeds
+    ``0 .. seeds-1``, each run's config :func:`run_config`, with the theory checks as its observer.
+
+    For ``seeds=5`` (not quick) it expands to the runs of ``studies/reproduction.toml`` (tested).
+    """
+    base = run_config("mixed", 0, quick).to_dict()
+    default = TrainConfig().to_dict()
+    long_cfg = run_config("ddpg_long", 0, quick)
+
+    def dotted(cfg: dict[str, Any], ref: dict[str, Any]) -> dict[str, Any]:
+        return {f"{sec}.{k}": v for sec in ("algorithm", "run", "ddpg", "sampler") for k, v in cfg[sec].items()
+                if v != ref[sec][k]}
+
+    lines = [f"# mixedrl reproduce{' --quick' if quick else ''} --seeds {seeds} (validation.reproduce.reproduction_spec)",
+             f"methods = {json.dumps(list(METHODS))}", f"seeds = {json.dumps(list(range(seeds)))}",
+             f'observer = "validation.reproduce:{"quick_theory_observer" if quick else "theory_observer"}"', "",
+             "[base]"]
+    lines += [f'"{k}" = {json.dumps(v)}' for k, v in dotted(base, default).items()]
+    lines += ["", "[variants.paper]", "", "[variants.ddpg_long]", 'methods = ["ddpg"]']
+    lines += [f'"{k}" = {json.dumps(v)}' for k, v in dotted(long_cfg.to_dict(), base).items()]
+    return parse_spec("\n".join(lines) + "\n", "reproduction_spec")
+
+
+def _label(record: dict[str, Any]) -> str:
+    """The table row of a sweep row: ``ddpg_long`` for that variant, else the method."""
+    return "ddpg_long" if record["point"].get("variant") == "ddpg_long" else record["method"]
+
+
+def _trajectory_path(out: Path, label: str, seed: int) -> Path:
+    return out / "trajectories" / f"{label}_seed{seed}.npz"
+
+
+def _save_trajectory(out: Path, run: RunDirectory, label: str) -> None:
+    """The course of a finished run's final policy with its first evaluation seed (Figs. 5-7), from its
+    checkpoint (evaluation only)."""
+    config = run.read_config()
+    path = _trajectory_path(out, label, config.seed)
+    if path.is_file():
+        return
     trainer = make_trainer(config)
-    if config.method != "ddpg":
-        trainer = TheoryProbe(trainer, job["theory_every"])
-    results = train(trainer, run, resume=job["resume"], progress=False)
-    traj = _trajectory(trainer, eval_seeds(config)[0])
-    np.savez(run.path / "trajectory.npz", **traj)
-    results["label"] = job["label"]
-    run.write_results(results)
-    return results
+    trainer.load_state_dict(load_checkpoint(run.checkpoint_path)["trainer"])
+    buffer = io.BytesIO()
+    np.savez(buffer, **_trajectory(trainer, eval_seeds(config)[0]))
+    path.parent.mkdir(parents=True, exist_ok=True)
+    atomic_write_bytes(path, buffer.getvalue())
 
 
 def _summary_of_run(res: dict[str, Any]) -> dict[str, Any]:
-    return {"seed": res["seed"], "lateral_mae": res["lateral_mae"], "speed_mae": res["speed_mae"],
+    return {"seed": res["seed"], "run_dir": res.get("run_dir"), "lateral_mae": res["lateral_mae"], "speed_mae": res["speed_mae"],
             "iterations_to_converge": res["iterations_to_converge"], "train_seconds": res["train_seconds"],
             "cost": res.get("cost"), "left_road": res.get("final", {}).get("terminated"),
             "true_transitions": res.get("true_transitions"),
@@ -250,8 +316,14 @@ def _finite_or_str(x: float) -> float | str:
 
 
 def reproduce(out: str | Path, seeds: int = 5, quick: bool = False, resume: bool = False, workers: int | None = None,
-              progress: bool = True, references: str | Path | None = None) -> dict[str, Any]:
+              progress: bool = True, references: str | Path | None = None,
+              batch: int = DEFAULT_BATCH) -> dict[str, Any]:
     """Train every method over ``seeds`` seeds, write ``results.json`` and the figures; return the results.
+
+    The runs are the sweep :func:`reproduction_spec`, trained by :func:`mixedrl.sweep.run_sweep` into
+    ``out/sweep`` (the Algorithm-2 runs batched, :mod:`mixedrl.algorithms.batched`); then the course of
+    each label's first seed is driven for Figs. 5-7 (``out/trajectories``), and the table and figures
+    are written.
 
     Parameters
     ----------
@@ -260,7 +332,7 @@ def reproduce(out: str | Path, seeds: int = 5, quick: bool = False, resume: bool
     seeds : int
         Number of seeds ``0 .. seeds-1`` per method (quick mode: at most 2).
     quick : bool
-        Reduced budget (:data:`QUICK`) for the test suite.
+        Reduced run (:data:`QUICK`) for the test suite.
     resume : bool
         Reuse finished runs, resume interrupted ones.
     workers : int, optional
@@ -271,6 +343,8 @@ def reproduce(out: str | Path, seeds: int = 5, quick: bool = False, resume: bool
         A directory written by ``scripts/references.py`` (``references.json`` and ``trajectories.npz``,
         shipped in ``docs/_static/references``): the trajectory and error figures overlay the reference
         controllers' seed-0 courses (measured, not re-run here).
+    batch : int
+        Most runs trained as one computation (``mixedrl sweep --batch``; 1: every run alone).
 
     Returns
     -------
@@ -280,7 +354,10 @@ def reproduce(out: str | Path, seeds: int = 5, quick: bool = False, resume: bool
     Raises
     ------
     ValueError
-        ``seeds`` or ``workers`` not a positive integer.
+        ``seeds``, ``workers`` or ``batch`` not a positive integer; ``out`` holds a reproduction and
+        ``resume`` is false.
+    RuntimeError
+        A run failed (its error is in ``out/sweep/sweep.json``).
     """
     if isinstance(seeds, bool) or not isinstance(seeds, int) or seeds < 1:
         raise ValueError(f"seeds: expected a positive integer, got {seeds!r}")
@@ -290,42 +367,42 @@ def reproduce(out: str | Path, seeds: int = 5, quick: bool = False, resume: bool
     if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
         raise ValueError(f"workers: expected a positive integer, got {workers!r}")
     out = Path(out)
-    (out / "runs").mkdir(parents=True, exist_ok=True)
-    theory_every = 50 if quick else 250
-    jobs = [{"config": run_config(m, s, quick).to_dict(), "path": str(out / "runs" / f"{m}_seed{s}"),
-             "resume": resume, "theory_every": theory_every, "label": m}
-            for m in EXTRA + METHODS for s in range(seeds)]  # the longest runs first
+    spec = reproduction_spec(seeds, quick)
     t0 = time.perf_counter()
-    bar = None
-    if progress:
-        bar = tqdm(total=len(jobs), desc="reproduce (runs)")
+    doc = run_sweep(spec, out / "sweep", resume=resume, progress=progress, workers=workers, batch=batch)
+    if doc["failed"]:
+        errors = "; ".join(f"{r['name']}: {r['error']}" for r in doc["runs"] if r["error"])
+        raise RuntimeError(f"{doc['failed']} run(s) of the reproduction failed: {errors}")
     finished: list[dict[str, Any]] = []
-    if workers == 1:
-        for job in jobs:
-            finished.append(run_one(job))
-            if bar is not None:
-                bar.update(1)
-    else:
-        ctx = mp.get_context("spawn")
-        with ctx.Pool(workers) as pool:
-            for res in pool.imap_unordered(run_one, jobs):
-                finished.append(res)
-                if bar is not None:
-                    bar.update(1)
-    if bar is not None:
-        bar.close()
+    first_seed: dict[str, int] = {}
+    for rec in doc["runs"]:
+        label = _label(rec)
+        run = RunDirectory(out / "sweep" / rec["run_dir"])
+        results = {**run.read_results(), "label": label, "run_dir": str(Path("sweep") / rec["run_dir"])}
+        finished.append(results)
+        first_seed[label] = min(first_seed.get(label, results["seed"]), results["seed"])
+    for rec in doc["runs"]:
+        label = _label(rec)
+        if rec["seed"] == first_seed[label]:
+            _save_trajectory(out, RunDirectory(out / "sweep" / rec["run_dir"]), label)
     wall = time.perf_counter() - t0
     previous = out / "results.json"
     if resume and previous.is_file():
         # the wall time of a resumed reproduction includes the interrupted invocation's
         wall += float(json.loads(previous.read_text()).get("wall_seconds", 0.0))
-    results = aggregate(out, finished, wall, quick, task=jobs[0]["config"]["task"])
+    results = aggregate(out, finished, wall, quick, task=spec_task(spec))
+    results["sweep"] = {k: doc.get(k) for k in ("engine", "workers", "batch", "batches", "wall_seconds")}
     atomic_write_text(out / "results.json", json.dumps(results, indent=2, sort_keys=True) + "\n")
     try:
         make_figures(out, results, references=references)
     except ImportError:  # pragma: no cover - matplotlib is an optional extra
         logger.warning("matplotlib not installed: no figures")
     return results
+
+
+def spec_task(spec: SweepSpec) -> dict[str, Any]:
+    """The task configuration (as a dict) the runs of ``spec`` share."""
+    return expand(spec)[0].config.to_dict()["task"]
 
 
 def aggregate(out: Path, finished: list[dict[str, Any]], wall: float, quick: bool,
@@ -352,7 +429,7 @@ def aggregate(out: Path, finished: list[dict[str, Any]], wall: float, quick: boo
         if method != "ddpg":
             rows = []
             for r in runs:
-                rows += RunDirectory(out / "runs" / f"{method}_seed{r['seed']}").read_metrics()
+                rows += _run_dir(out, method, r).read_metrics()
             entry["theory"] = _theory_summary(rows)
         if method == "mixed":
             entry["final_ibe_mean"] = [r["final_ibe_mean"] for r in runs]
@@ -364,6 +441,13 @@ def aggregate(out: Path, finished: list[dict[str, Any]], wall: float, quick: boo
         results[method] = entry
     results["targets"] = check_targets(results)
     return results
+
+
+def _run_dir(out: Path, label: str, run: dict[str, Any]) -> RunDirectory:
+    """A run of the results: its ``run_dir`` (under ``out``), or ``runs/<label>_seed<S>`` (reproductions
+    written before the runs went through ``mixedrl sweep``)."""
+    rel = run.get("run_dir")
+    return RunDirectory(out / rel if rel else out / "runs" / f"{label}_seed{run['seed']}")
 
 
 def _dlc_task(results: dict[str, Any]) -> tuple[DoubleLaneChangeTaskConfig, DoubleLaneChangeTask]:
@@ -424,7 +508,7 @@ def format_table(results: dict[str, Any]) -> str:
     """Table I with the paper's numbers beside ours (mean ± std over seeds) as plain text."""
     n = len(results["mixed"]["runs"]) if "mixed" in results else 0
     lines = [f"Table I -- mean absolute tracking errors on the double lane change ({n} seeds, mean ± std)"
-             + ("  [QUICK: reduced budget]" if results.get("quick") else ""), ""]
+             + ("  [QUICK: at most 2 seeds, 1 evaluation course, DDPG's longer budget 2x]" if results.get("quick") else ""), ""]
     head = f"{'method':<24}{'lateral [m] ours':>20}{'paper':>8}{'speed [m/s] ours':>22}{'paper':>8}" \
            f"{'iters to converge':>20}{'paper':>8}{'train s':>9}{'course cost':>17}{'true trans.':>13}"
     lines += [head, "-" * len(head)]
@@ -548,8 +632,8 @@ def make_figures(out: str | Path, results: dict[str, Any], references: str | Pat
     paths = []
     methods = [m for m in METHODS if m in results]
 
-    def metrics(method: str, seed: int) -> list[dict[str, Any]]:
-        return RunDirectory(out / "runs" / f"{method}_seed{seed}").read_metrics()
+    def metrics(method: str, run: dict[str, Any]) -> list[dict[str, Any]]:
+        return _run_dir(out, method, run).read_metrics()
 
     # Fig. 4: convergence (evaluation cost of the course against iterations, mean and range over seeds)
     fig, ax = plt.subplots(figsize=(6, 4))
@@ -557,7 +641,7 @@ def make_figures(out: str | Path, results: dict[str, Any], references: str | Pat
     for m in methods + [e for e in EXTRA if e in results]:
         curves = []
         for r in results[m]["runs"]:
-            rows = [row for row in metrics(m, r["seed"]) if "eval/cost" in row]
+            rows = [row for row in metrics(m, r) if "eval/cost" in row]
             curves.append(([row["iteration"] for row in rows], [row["eval/cost"] for row in rows]))
         its = curves[0][0]
         vals = np.array([c[1] for c in curves if len(c[1]) == len(its)])
@@ -572,8 +656,12 @@ def make_figures(out: str | Path, results: dict[str, Any], references: str | Pat
     ax.legend()
     paths.append(_save(fig, fig_dir / "fig4_convergence.png"))
 
-    trajs = {m: np.load(out / "runs" / f"{m}_seed{results[m]['runs'][0]['seed']}" / "trajectory.npz")
-             for m in methods}
+    def trajectory(m: str) -> Any:
+        seed = results[m]["runs"][0]["seed"]
+        path = _trajectory_path(out, m, seed)
+        return np.load(path if path.is_file() else out / "runs" / f"{m}_seed{seed}" / "trajectory.npz")
+
+    trajs = {m: trajectory(m) for m in methods}
     # Fig. 5: trajectory
     fig, ax = plt.subplots(figsize=(7, 3))
     first = trajs[methods[0]]
@@ -627,7 +715,7 @@ def make_figures(out: str | Path, results: dict[str, Any], references: str | Pat
         ax1.set_ylabel("F_dis [N]")
         ax1.legend(fontsize=7)
         for r in results["mixed"]["runs"]:
-            rows = [row for row in metrics("mixed", r["seed"]) if f"ibe/mean_{vx}" in row]
+            rows = [row for row in metrics("mixed", r) if f"ibe/mean_{vx}" in row]
             ax2.plot([0] + [row["iteration"] for row in rows],
                      [prior_force] + [force(row[f"ibe/mean_{vx}"]) for row in rows],
                      color="C0", lw=1)
@@ -652,9 +740,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     """The options of the reproduction (shared by ``mixedrl reproduce`` and ``python -m validation.reproduce``)."""
     parser.add_argument("--seeds", type=int, default=5)
     parser.add_argument("--out", type=Path, default=Path("runs/reproduce"))
-    parser.add_argument("--quick", action="store_true", help="reduced budget (<= 3 minutes), for the test suite")
+    parser.add_argument("--quick", action="store_true",
+                        help="reduced run (2 seeds at the paper's budget, about 2-3 minutes), for the test suite")
     parser.add_argument("--resume", action="store_true", help="reuse finished runs and resume interrupted ones")
     parser.add_argument("--workers", type=int, default=None, help="parallel training processes (default: 2)")
+    parser.add_argument("--batch", type=int, default=DEFAULT_BATCH,
+                        help=f"most runs trained as one computation (default {DEFAULT_BATCH}; 1: every run alone)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")
     parser.add_argument("--references", type=Path, default=None,
                         help="directory of measured references (docs/_static/references) to overlay on Figs. 5-7")
@@ -663,7 +754,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run_command(args: argparse.Namespace) -> int:
     """Handler of the command: run :func:`reproduce`, print Table I and where the files are; exit status 0."""
     results = reproduce(args.out, seeds=args.seeds, quick=args.quick, resume=args.resume, workers=args.workers,
-                        progress=not args.no_progress, references=args.references)
+                        progress=not args.no_progress, references=args.references, batch=args.batch)
     print(format_table(results))
     print(f"\nresults: {Path(args.out) / 'results.json'}   figures: {Path(args.out) / 'figures'}")
     return 0

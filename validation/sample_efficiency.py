@@ -276,10 +276,13 @@ def records_from_reproduction(runs_dir: str | Path) -> list[dict[str, Any]]:
     Parameters
     ----------
     runs_dir : str or pathlib.Path
-        The ``runs`` folder of a reproduction: ``<label>_seed<n>/`` with ``config.json``, ``metrics.jsonl``
-        and ``results.json``. Labels ``mixed``, ``model``, ``oracle`` and ``ddpg_long`` (DDPG with the longer
-        budget, recorded as method ``ddpg``) are read; the 1500-iteration ``ddpg`` runs are a prefix of
-        nothing (their learning rates decay over 1500 iterations) and are skipped.
+        A reproduction's directory (``mixedrl reproduce --out DIR``: its sweep ``DIR/sweep``, whose rows
+        name each run's label by method and variant), its ``sweep`` folder, or the ``runs`` folder of a
+        reproduction written before it trained through ``mixedrl sweep`` (``<label>_seed<n>/``). Each run
+        has ``config.json``, ``metrics.jsonl`` and ``results.json``. Labels ``mixed``, ``model``,
+        ``oracle`` and ``ddpg_long`` (DDPG with the longer budget, recorded as method ``ddpg``) are read;
+        the 1500-iteration ``ddpg`` runs are a prefix of nothing (their learning rates decay over 1500
+        iterations) and are skipped.
 
     Returns
     -------
@@ -295,8 +298,14 @@ def records_from_reproduction(runs_dir: str | Path) -> list[dict[str, Any]]:
     """
     root = Path(runs_dir)
     records = []
-    for path in sorted(root.glob("*_seed*")):
-        label, _, seed = path.name.rpartition("_seed")
+    sweep_json = next((p for p in (root / "sweep.json", root / "sweep" / "sweep.json") if p.is_file()), None)
+    if sweep_json is not None:
+        rows = json.loads(sweep_json.read_text())["runs"]
+        found = [("ddpg_long" if r["point"].get("variant") == "ddpg_long" else r["method"], r["seed"],
+                  sweep_json.parent / r["run_dir"]) for r in rows if r["error"] is None]
+    else:
+        found = [(p.name.rpartition("_seed")[0], p.name.rpartition("_seed")[2], p) for p in sorted(root.glob("*_seed*"))]
+    for label, seed, path in found:
         if label not in REPRODUCTION_LABELS or not (path / "results.json").is_file():
             continue
         run = RunDirectory(path)

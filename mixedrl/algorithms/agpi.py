@@ -47,12 +47,13 @@ from torch.optim.swa_utils import AveragedModel, get_ema_multi_avg_fn
 
 from mixedrl.config import TrainConfig
 from mixedrl.algorithms.model_data import SAMPLER_CLASSES, has_course
+from mixedrl.envs.dlc_task import CourseSampler
 from mixedrl.expectation import expectation_nodes, h_value
 from mixedrl.networks import Actor, AffineActor, Critic, QuadraticCritic
 from mixedrl.noise import make_noise_source
 from mixedrl.pev import critic_loss, critic_step
 from mixedrl.pim import MVCResult, actor_objective, actor_step, mvc_check
-from mixedrl.tasks import CourseSampler, Task, check_task
+from mixedrl.tasks import Task, check_task
 
 __all__ = [
     "AGPI",

@@ -18,7 +18,7 @@ only to collect the residuals ``xi^D`` (eq. 10) that the IBE consumes, at the ra
 
 With ``"model_rollouts"`` every rollout restarts from the task's training distribution
 (:class:`mixedrl.config.ModelRolloutsSampler`). The double lane change's ``"dlc_course"``
-(:class:`mixedrl.tasks.CourseSampler`; a departure from the paper, which does not say how its states
+(:class:`mixedrl.envs.dlc_task.CourseSampler`; a departure from the paper, which does not say how its states
 were drawn; applied identically to every method) has two kinds of rollouts:
 
 * *course* copies (a fraction ``course_fraction`` of the batch) drive the course from its start
@@ -46,8 +46,9 @@ import numpy as np
 import torch
 
 from mixedrl.config import ModelRolloutsSampler, TrainConfig
+from mixedrl.envs.dlc_task import CourseSampler
 from mixedrl.gaussian import sample_gaussian
-from mixedrl.tasks import CourseSampler, Task
+from mixedrl.tasks import Task
 
 __all__ = ["ModelStateSampler", "SAMPLER_CLASSES", "course_starts", "has_course"]
 
@@ -87,7 +88,7 @@ class ModelStateSampler:
         Model ``f``, ``observe``, ``noise_matrix``, start distributions, the true environment.
     config : TrainConfig
         ``algorithm.batch_size``, ``algorithm.horizon`` and the sampler's options ``config.sampler``
-        (:class:`~mixedrl.config.ModelRolloutsSampler` or :class:`~mixedrl.tasks.CourseSampler`).
+        (:class:`~mixedrl.config.ModelRolloutsSampler` or :class:`~mixedrl.envs.dlc_task.CourseSampler`).
     generator : torch.Generator
         The run's generator (every draw of the sampler comes from it, so a run is reproducible and
         resumable).

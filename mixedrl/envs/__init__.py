@@ -12,6 +12,10 @@ a run's ``task``), with the true force :class:`~mixedrl.envs.disturbance.Disturb
 :class:`~mixedrl.envs.vector_env.DoubleLaneChangeVectorEnv` (same ``f`` plus the true noise) or the
 Gymnasium env; Table I metrics: :func:`~mixedrl.envs.evaluation.evaluate_tracking`.
 :mod:`mixedrl.envs.tracking` gathers these names (and says how the reference enters).
+
+The task the algorithms train on, :class:`~mixedrl.envs.dlc_task.DoubleLaneChangeTask` (with its course
+sampler and preset), is in :mod:`mixedrl.envs.dlc_task`, which this package does not import (it builds
+on :mod:`mixedrl.task_base`; importing :mod:`mixedrl` imports it, through :mod:`mixedrl.tasks`).
 """
 
 import gymnasium as gym

@@ -205,7 +205,7 @@ class DoubleLaneChangeTaskConfig(DoubleLaneChangeConfig):
     adds. A run's ``task`` section (``name = "dlc"``); dotted keys ``task.<field>``. The prior of
     eq. (55) is given in force units and acts on ``v_x`` (EQUATIONS.md, point 6):
     ``mu_M = prior_force_mean T / m``, ``K_M = (prior_force_std T / m)^2`` on ``v_x``, ``1e-20`` on the
-    other four components of ``xi`` (:class:`mixedrl.tasks.DoubleLaneChangeTask`).
+    other four components of ``xi`` (:class:`mixedrl.envs.dlc_task.DoubleLaneChangeTask`).
 
     Attributes
     ----------
@@ -221,7 +221,7 @@ class DoubleLaneChangeTaskConfig(DoubleLaneChangeConfig):
         The observation's typical magnitudes (the task's ``obs_scale``: the networks' input scaling, the
         model sampler's box and kicks), ``5 + len(preview_distances)`` positive numbers. ``None`` (the
         default): ``(0.3, 0.2, 0.5, 0.1, 0.5)`` and 2 m for every preview column
-        (:class:`mixedrl.tasks.DoubleLaneChangeTask`); a run's ``config.json`` omits it then.
+        (:class:`mixedrl.envs.dlc_task.DoubleLaneChangeTask`); a run's ``config.json`` omits it then.
 
     Raises
     ------

@@ -322,10 +322,10 @@ class DoubleLaneChangeModel:
         N(mean, variance)``), where ``f`` is :meth:`step`, ``E`` the unit vector of ``v_x``
         (:meth:`noise_vector`) and the force is drawn at the state *before* the step
         (:meth:`sample_force`, so a road grade and the law are honoured).
-        This is the one true-environment step of the package: :meth:`mixedrl.tasks.DoubleLaneChangeTask.true_step`
-        (training), :class:`DoubleLaneChangeVectorEnv`, the Gymnasium env
-        :class:`~mixedrl.envs.dlc_env.DoubleLaneChangeEnv` and hence :func:`~mixedrl.envs.evaluate_tracking`
-        all call it.
+        This is the one true-environment step of the package:
+        :meth:`mixedrl.envs.dlc_task.DoubleLaneChangeTask.true_step` (training),
+        :class:`DoubleLaneChangeVectorEnv`, the Gymnasium env :class:`~mixedrl.envs.dlc_env.DoubleLaneChangeEnv`
+        and hence :func:`~mixedrl.envs.evaluate_tracking` all call it.
 
         Parameters
         ----------

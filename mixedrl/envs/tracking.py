@@ -21,7 +21,7 @@ difference is the additive noise ``xi = F_dis T / m`` on ``v_x`` (index :data:`N
 One true step
 -------------
 The true environment, ``s' = f(s, u) + E xi`` (eq. 1 for this task), is written once:
-:meth:`DoubleLaneChangeModel.true_step`. Training (:meth:`mixedrl.tasks.DoubleLaneChangeTask.true_step`),
+:meth:`DoubleLaneChangeModel.true_step`. Training (:meth:`mixedrl.envs.dlc_task.DoubleLaneChangeTask.true_step`),
 :class:`DoubleLaneChangeVectorEnv`, the Gymnasium env (:mod:`mixedrl.envs.dlc_env`) and the Table I
 evaluation (:func:`~mixedrl.envs.evaluate_tracking`, which drives the Gymnasium env) all call it; each
 keeps its own random stream (see the method's Notes).

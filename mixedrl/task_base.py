@@ -1,0 +1,489 @@
+"""The interface between the learning algorithms and a controlled system: :class:`Task` (defined here).
+
+The base class :class:`Task`, the rest point and the LQ problem it linearises to (:class:`Equilibrium`,
+:class:`Linearisation`, :func:`cost_hessian`) and the one-shot check :func:`check_task`. Every task
+builds on this module: the built-in ones (:mod:`mixedrl.linear_task`, :mod:`mixedrl.envs.dlc_task`) and the
+pendulum. It imports none of them (nor :mod:`mixedrl.tasks`, the public face that imports them all and
+re-exports these names: ``from mixedrl.tasks import Task`` is the usual import), so there is no import
+cycle between the interface and its implementations.
+
+The true system is eq. (1) with the noise entering through a fixed matrix ``E``:
+
+.. math::
+
+    s_{t+1} = f(s_t, u_t) + E\\, \\xi_t, \\qquad \\xi_t \\sim N(\\mu, K),
+
+where ``s`` is the simulator state (``state_dim``), ``xi`` the additive uncertainty of the paper
+(``noise_dim``; for the vehicle the five components of eq. 53) and ``E`` (``state_dim x noise_dim``) a
+selection matrix. The residual of eq. (10) is ``xi = E^T (s' - f(s, u))``. The policy and the critic see
+the observation ``observe(s)``; the utility is charged on the next state, ``l(s', u)`` (eq. 2).
+"""
+
+from __future__ import annotations
+
+import abc
+from dataclasses import dataclass, field
+from typing import Any, Callable
+
+import numpy as np
+import torch
+
+from mixedrl.checks import check_positive_int
+from mixedrl.gaussian import sample_gaussian
+
+__all__ = ["EQUILIBRIUM_ATOL", "Equilibrium", "Linearisation", "Task", "check_task", "cost_hessian"]
+
+
+#: Largest ``|f(s*, u*) - s*|`` and ``|grad l|`` (relative to the state's and the cost's scale) accepted at an
+#: equilibrium by :meth:`Task.linearisation` (float64 round-off of the model and the cost).
+EQUILIBRIUM_ATOL = 1e-9
+
+
+@dataclass(frozen=True)
+class Equilibrium:
+    """A rest point of the noise-free model: ``f(state, action) = state`` (:meth:`Task.equilibrium`).
+
+    Attributes
+    ----------
+    state : numpy.ndarray, shape (state_dim,)
+        ``s*``, float64.
+    action : numpy.ndarray, shape (action_dim,)
+        ``u*``, float64.
+    """
+
+    state: np.ndarray
+    action: np.ndarray
+
+
+@dataclass(frozen=True)
+class Linearisation:
+    """The discounted LQ problem of a task at an equilibrium (:meth:`Task.linearisation`).
+
+    In the coordinates ``x`` of the linearisation (``x = s - s*`` unless the task says otherwise) and
+    ``v = u - u*``,
+
+    .. math:: x' = A x + B v + E \\xi, \\qquad l(x', v) = x'^\\top Q x' + v^\\top R v,\\qquad \\gamma,
+
+    the next-state convention of eq. (2) (EQUATIONS.md, last section). The item access ``lin["A"]``
+    (keys ``A``, ``B``, ``Q``, ``R``, ``E``, ``gamma``) is kept for the callers of the former dict of
+    :meth:`mixedrl.envs.pendulum.PendulumTask.linearisation`.
+
+    Attributes
+    ----------
+    A : numpy.ndarray, shape (n, n)
+    B : numpy.ndarray, shape (n, action_dim)
+    Q : numpy.ndarray, shape (n, n)
+        Symmetric PSD.
+    R : numpy.ndarray, shape (action_dim, action_dim)
+        Symmetric positive definite.
+    E : numpy.ndarray, shape (n, noise_dim)
+        How the noise ``xi`` enters ``x``.
+    gamma : float
+        The task's discount.
+    state : numpy.ndarray, shape (state_dim,)
+        The task state at ``x = 0`` (``s*``).
+    action : numpy.ndarray, shape (action_dim,)
+        ``u*``.
+    embed : callable, optional
+        ``x`` (B, n) torch float64 -> task states (B, state_dim); default ``s* + x`` (then ``n = state_dim``).
+    """
+
+    A: np.ndarray
+    B: np.ndarray
+    Q: np.ndarray
+    R: np.ndarray
+    E: np.ndarray
+    gamma: float
+    state: np.ndarray
+    action: np.ndarray
+    embed: Callable[[torch.Tensor], torch.Tensor] | None = field(default=None, compare=False)
+
+    _KEYS = ("A", "B", "Q", "R", "E", "gamma")
+
+    def __getitem__(self, key: str) -> Any:
+        if key not in self._KEYS:
+            raise KeyError(f"key: expected one of {list(self._KEYS)}, got {key!r}")
+        return getattr(self, key)
+
+    def to_state(self, x: torch.Tensor) -> torch.Tensor:
+        """Task states of the coordinates ``x`` (B, n) -> (B, state_dim), float64 (differentiable)."""
+        if self.embed is not None:
+            return self.embed(x)
+        return torch.as_tensor(self.state, dtype=torch.float64) + x
+
+
+def cost_hessian(cost: Callable[[torch.Tensor, torch.Tensor], torch.Tensor], x0: torch.Tensor, u0: torch.Tensor,
+                 name: str, scale: float) -> tuple[np.ndarray, np.ndarray]:
+    """``Q = l_xx / 2``, ``R = l_uu / 2`` of a batched cost ``l(x', u)`` at ``(x0, u0)`` (float64, ``torch.func``),
+    after checking that the gradient and the cross term ``l_xu`` vanish there (see :meth:`Task.linearisation`).
+
+    The quadratic part of the LQ problem of a linearisation: :meth:`Task.linearisation` and the double lane
+    change's own :meth:`~mixedrl.envs.dlc_task.DoubleLaneChangeTask.linearisation` call it.
+
+    Parameters
+    ----------
+    cost : callable
+        ``l(x', u)``: next states (B, n) and actions (B, m), torch float64 -> (B,); differentiable.
+    x0 : torch.Tensor, shape (n,)
+        The next state of the expansion point, float64.
+    u0 : torch.Tensor, shape (m,)
+        The action of the expansion point, float64.
+    name : str
+        The task class's name, for the error messages.
+    scale : float
+        Typical magnitude of the state (``1 + max |s*|``); the tolerances are :data:`EQUILIBRIUM_ATOL` times
+        ``1 + max |H| * scale``.
+
+    Returns
+    -------
+    Q : numpy.ndarray, shape (n, n)
+        Half the (symmetrised) Hessian in ``x'``.
+    R : numpy.ndarray, shape (m, m)
+        Half the (symmetrised) Hessian in ``u``.
+
+    Raises
+    ------
+    ValueError
+        The gradient of the cost at ``(x0, u0)`` is not zero, or the Hessian couples ``x'`` and ``u``; the
+        message starts with ``cost:`` and names ``name.cost``.
+    """
+    n = x0.shape[0]
+
+    def stage(z: torch.Tensor) -> torch.Tensor:
+        return cost(z[None, :n], z[None, n:])[0]
+
+    z0 = torch.cat([x0, u0])
+    grad = torch.func.jacrev(stage)(z0)
+    H = torch.func.hessian(stage)(z0)
+    H = 0.5 * (H + H.T)
+    cost_scale = 1.0 + float(H.abs().max()) * scale
+    if float(grad.abs().max()) > EQUILIBRIUM_ATOL * cost_scale:
+        raise ValueError(f"cost: {name}.cost has a nonzero gradient {grad.tolist()} at the equilibrium (the LQ "
+                         f"yardstick needs the cost's minimum there)")
+    if float(H[:n, n:].abs().max()) > EQUILIBRIUM_ATOL * cost_scale:
+        raise ValueError(f"cost: {name}.cost couples the next state and the action at the equilibrium (the LQ form "
+                         f"l = x'^T Q x' + u^T R u has no cross term)")
+    return 0.5 * H[:n, :n].numpy(), 0.5 * H[n:, n:].numpy()
+
+
+class Task(abc.ABC):
+    """A controlled system with a known deterministic part ``f`` and additive Gaussian noise (eq. 1).
+
+    Subclasses set the attributes below in ``__init__`` and implement the abstract methods. Every
+    tensor method is batched over the first dimension and differentiable in torch.
+
+    Attributes
+    ----------
+    state_dim, obs_dim, action_dim, noise_dim : int
+        Sizes of ``s``, ``observe(s)``, ``u`` and ``xi``.
+    gamma : float
+        Discount factor of eq. (2).
+    noise_matrix : torch.Tensor, shape (state_dim, noise_dim)
+        ``E``: a 0/1 selection matrix, how ``xi`` enters the state.
+    prior_mean, prior_cov : numpy.ndarray, shapes (noise_dim,), (noise_dim, noise_dim)
+        The designer's prior ``mu_M``, ``K_M`` (eq. 8).
+    true_mean, true_cov : numpy.ndarray, shapes (noise_dim,), (noise_dim, noise_dim)
+        The true noise (used only by the true environment and by the oracle baseline).
+    action_bound : torch.Tensor, shape (action_dim,)
+        Symmetric bounds of the actor's output.
+    obs_scale : torch.Tensor, shape (obs_dim,)
+        Typical magnitude of each observation component (the networks divide by it).
+    value_scale : float
+        Typical magnitude of the value (the critic's output is multiplied by it).
+    true_mean_varies : bool
+        Whether the true noise mean depends on the state (:meth:`true_mean_at`); ``False`` by default.
+    name : str
+        The task's name in a run's results (``results["task"]``); the class name unless the subclass sets it.
+    eval_horizon : int
+        Steps of each rollout of the default :meth:`evaluate` (200 unless the subclass sets it).
+    eval_starts : int
+        Start states per evaluation seed of the default :meth:`evaluate` (64 unless the subclass sets it).
+    """
+
+    state_dim: int
+    obs_dim: int
+    action_dim: int
+    noise_dim: int
+    gamma: float
+    noise_matrix: torch.Tensor
+    prior_mean: np.ndarray
+    prior_cov: np.ndarray
+    true_mean: np.ndarray
+    true_cov: np.ndarray
+    action_bound: torch.Tensor
+    obs_scale: torch.Tensor
+    value_scale: float = 1.0
+    true_mean_varies: bool = False
+    name: str
+    eval_horizon: int = 200
+    eval_starts: int = 64
+
+    def __init_subclass__(cls, **kwargs: Any) -> None:
+        super().__init_subclass__(**kwargs)
+        if "name" not in cls.__dict__:
+            cls.name = cls.__name__
+
+    @abc.abstractmethod
+    def f(self, s: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+        """Deterministic part of the dynamics; ``s`` (B, state_dim), ``u`` (B, action_dim) -> (B, state_dim)."""
+
+    @abc.abstractmethod
+    def observe(self, s: torch.Tensor) -> torch.Tensor:
+        """Observation of the policy and the critic; (B, state_dim) -> (B, obs_dim)."""
+
+    @abc.abstractmethod
+    def cost(self, s_next: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+        """Utility ``l(s', u)`` charged on the next state (eq. 2); returns (B,)."""
+
+    @abc.abstractmethod
+    def sample_initial(self, n: int, generator: torch.Generator) -> torch.Tensor:
+        """``n`` initial states of the training environments, float64, (n, state_dim)."""
+
+    def is_terminal(self, s: torch.Tensor) -> torch.Tensor:
+        """Boolean (B,): the episode of this copy ends (left the domain, course finished, not finite)."""
+        return ~torch.isfinite(s).all(dim=-1)
+
+    def equilibrium(self) -> Equilibrium | None:
+        """A rest point ``f(s*, u*) = s*`` of the noise-free model where the precision yardstick
+        (:mod:`mixedrl.precision`) is taken; ``None`` here (a task without one has no ``policy_gap``).
+
+        Subclasses with an equilibrium override it (:class:`~mixedrl.linear_task.LinearTask`, the pendulum: the
+        origin; :class:`~mixedrl.envs.dlc_task.DoubleLaneChangeTask`: on the reference at the desired speed).
+        """
+        return None
+
+    def linearisation(self) -> Linearisation | None:
+        """The discounted LQ problem at :meth:`equilibrium` (``None`` without one).
+
+        By default ``x = s - s*``, ``v = u - u*`` and
+
+        .. math::
+
+            A = \\frac{\\partial f}{\\partial s}(s^*, u^*),\\quad B = \\frac{\\partial f}{\\partial u}(s^*, u^*),\\quad
+            Q = \\tfrac12 \\frac{\\partial^2 l}{\\partial s'^2},\\quad R = \\tfrac12 \\frac{\\partial^2 l}{\\partial u^2}
+            \\ \\text{at } (s', u) = (s^*, u^*),\\qquad E = \\text{noise\\_matrix},
+
+        from :func:`torch.func.jacrev` and :func:`torch.func.hessian` of :meth:`f` and :meth:`cost` in
+        float64 (exact for a linear ``f`` and a quadratic ``l``, the second-order model otherwise).
+
+        Returns
+        -------
+        Linearisation or None
+
+        Raises
+        ------
+        ValueError
+            ``f(s*, u*) != s*`` (not a rest point), the cost's gradient at ``(s*, u*)`` is not zero (the
+            equilibrium is not the cost's minimum: the LQ problem would need linear terms), or its Hessian
+            couples ``s'`` and ``u`` (the LQ form has no cross term); the message names ``equilibrium`` or
+            ``cost``.
+        """
+        eq = self.equilibrium()
+        if eq is None:
+            return None
+        s0 = torch.as_tensor(np.asarray(eq.state, dtype=np.float64))
+        u0 = torch.as_tensor(np.asarray(eq.action, dtype=np.float64))
+        name = type(self).__name__
+
+        def step(s: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+            return self.f(s[None], u[None])[0]
+
+        with torch.no_grad():
+            drift = float((step(s0, u0) - s0).abs().max())
+        scale = 1.0 + float(s0.abs().max())
+        if drift > EQUILIBRIUM_ATOL * scale:
+            raise ValueError(f"equilibrium: {name}.f(state, action) differs from state by {drift:.3g} (not a rest "
+                             f"point of the model; override {name}.linearisation)")
+        A, B = torch.func.jacrev(step, argnums=(0, 1))(s0, u0)
+        Q, R = cost_hessian(lambda x, u: self.cost(x, u), s0, u0, name, scale)
+        return Linearisation(A=A.numpy(), B=B.numpy(), Q=Q, R=R, E=self.noise_matrix.double().numpy(),
+                             gamma=float(self.gamma),
+                             state=s0.numpy(), action=u0.numpy())
+
+    def true_step(self, s: torch.Tensor, u: torch.Tensor, generator: torch.Generator) -> torch.Tensor:
+        """One step of the *true* environment, eq. (1): ``f(s, u) + E xi``, ``xi ~ N(true_mean, true_cov)``.
+
+        Parameters
+        ----------
+        s : torch.Tensor, shape (B, state_dim)
+            States (float64).
+        u : torch.Tensor, shape (B, action_dim)
+            Actions.
+        generator : torch.Generator
+            Source of the noise.
+
+        Returns
+        -------
+        torch.Tensor, shape (B, state_dim)
+            Next states, dtype of ``s``.
+        """
+        xi = sample_gaussian(self.true_mean, self.true_cov, s.shape[0], generator).to(s.dtype)
+        return self.f(s, u.to(s.dtype)) + xi @ self.noise_matrix.to(s.dtype).T
+
+    def true_mean_at(self, s: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+        """The true noise mean at each state, (B, noise_dim) float64: ``true_mean`` on every row here
+        (subclasses whose mean depends on the state override it and set ``true_mean_varies``)."""
+        return torch.as_tensor(self.true_mean, dtype=torch.float64).expand(s.shape[0], -1).clone()
+
+    def mean_features(self, s: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+        """Features ``g(x, u)`` of the Case-3 mean ``phi = W^T g`` (eq. 19, :class:`mixedrl.ibe.LinearFeatureIBE`),
+        (B, p) float64, the first column the constant 1.
+
+        Raises
+        ------
+        NotImplementedError
+            The task defines no features (subclasses implement them).
+        """
+        raise NotImplementedError(f"{type(self).__name__}.mean_features is not implemented (Case 3 of the IBE "
+                                  f"needs it)")
+
+    def residuals(self, s: torch.Tensor, u: torch.Tensor, s_next: torch.Tensor) -> torch.Tensor:
+        """Eq. (10) in noise coordinates: ``xi = E^T (s' - f(s, u))``, (B, noise_dim)."""
+        with torch.no_grad():
+            return (s_next - self.f(s, u.to(s.dtype))) @ self.noise_matrix.to(s.dtype)
+
+    def evaluate(self, policy: torch.nn.Module, seeds: list[int], horizon: int | None = None) -> dict[str, Any]:
+        """Seeded rollouts of the *true* environment (:meth:`true_step`) under ``policy`` from fixed starts.
+
+        For each seed, a generator seeded with it draws :attr:`eval_starts` start states from
+        :meth:`sample_initial` and then the noise of ``horizon`` steps; the action is
+        ``policy(observe(s))`` (float32 observations, as in training). A copy that reaches a terminal state
+        (:meth:`is_terminal`) stops: no cost, no state counted from then on. Subclasses with a
+        task-specific evaluation (a course, a reference trajectory) override this method.
+
+        Parameters
+        ----------
+        policy : torch.nn.Module
+            The actor: observations (B, obs_dim) float32 -> actions (B, action_dim).
+        seeds : list of int
+            One set of starts and one noise realisation per seed.
+        horizon : int, optional
+            Steps per rollout; :attr:`eval_horizon` by default.
+
+        Returns
+        -------
+        dict
+            Means over the seeds and starts:
+
+            - ``"cost"``: discounted cost ``sum_t gamma^t l(s_{t+1}, u_t)`` of a rollout;
+            - ``"mean_abs_state"``: ``|s|`` averaged over the second half of the rollout and the state's
+              components (the steady offset from the origin, with the noise's spread);
+            - ``"mean_abs_state_<i>"``, ``"mean_state_<i>"``: per state component ``i``, ``|s_i|`` and the
+              signed ``s_i`` over the second half (the latter is the steady offset a constant bias leaves);
+            - ``"terminated_fraction"``: rollouts that reached a terminal state.
+
+        Raises
+        ------
+        ValueError
+            ``seeds`` empty, or ``horizon`` not a positive integer.
+        """
+        horizon = self.eval_horizon if horizon is None else horizon
+        horizon = check_positive_int(horizon, "horizon")
+        if len(seeds) == 0:
+            raise ValueError("seeds: expected at least one evaluation seed, got none")
+        n, half = int(self.eval_starts), int(horizon) // 2
+        costs, terminated, abs_sums, sums, counts = [], [], [], [], []
+        with torch.no_grad():
+            for seed in seeds:
+                gen = torch.Generator().manual_seed(int(seed))
+                s = self.sample_initial(n, gen).to(torch.float64)
+                alive = torch.ones(n, dtype=torch.bool)
+                total = torch.zeros(n, dtype=torch.float64)
+                abs_sum = torch.zeros(self.state_dim, dtype=torch.float64)
+                signed_sum = torch.zeros(self.state_dim, dtype=torch.float64)
+                count = 0.0
+                for t in range(int(horizon)):
+                    u = policy(self.observe(s.float())).double()
+                    s_next = self.true_step(s, u, gen)
+                    step_cost = self.cost(s_next, u).double()
+                    total += torch.where(alive, self.gamma**t * step_cost, torch.zeros_like(total))
+                    alive = alive & ~self.is_terminal(s_next)
+                    s = torch.where(alive[:, None], s_next, s)
+                    if t >= half:
+                        kept = s[alive]
+                        abs_sum += kept.abs().sum(dim=0)
+                        signed_sum += kept.sum(dim=0)
+                        count += kept.shape[0]
+                costs.append(float(total.mean()))
+                terminated.append(float((~alive).double().mean()))
+                abs_sums.append(abs_sum)
+                sums.append(signed_sum)
+                counts.append(count)
+        count = max(sum(counts), 1.0)
+        mean_abs = (torch.stack(abs_sums).sum(dim=0) / count).tolist()
+        mean = (torch.stack(sums).sum(dim=0) / count).tolist()
+        out: dict[str, Any] = {"cost": float(np.mean(costs)), "mean_abs_state": float(np.mean(mean_abs)),
+                               "terminated_fraction": float(np.mean(terminated))}
+        out.update({f"mean_abs_state_{i}": v for i, v in enumerate(mean_abs)})
+        out.update({f"mean_state_{i}": v for i, v in enumerate(mean)})
+        return out
+
+
+def _check_output(value: Any, task: Task, fn: str, shape: tuple[int, ...], dtype: torch.dtype | None) -> None:
+    """Raise ``ValueError`` naming ``Task.fn`` unless ``value`` is a finite float tensor of ``shape`` (``dtype``)."""
+    where = f"{type(task).__name__}.{fn}"
+    if not isinstance(value, torch.Tensor):
+        raise ValueError(f"{where}: expected a torch.Tensor of shape {shape}, returned {type(value).__name__}")
+    if tuple(value.shape) != shape:
+        raise ValueError(f"{where}: expected shape {shape}, returned shape {tuple(value.shape)}")
+    if not value.is_floating_point() or (dtype is not None and value.dtype != dtype):
+        expected = "a floating dtype" if dtype is None else str(dtype)
+        raise ValueError(f"{where}: expected dtype {expected}, returned {value.dtype}")
+    if not bool(torch.isfinite(value).all()):
+        raise ValueError(f"{where}: returned NaN or inf values (on states from sample_initial, zero actions)")
+
+
+def check_task(task: Task, batch: int = 3) -> None:
+    """Check a task's sizes and its functions' outputs once, with errors that name the function.
+
+    Calls :meth:`Task.sample_initial` (own generator, seed 0), :meth:`Task.observe`, :meth:`Task.f` and
+    :meth:`Task.cost` on ``batch`` states with zero and bound actions, in float32 and float64 (training uses
+    both); nothing of the task or of a trainer's random streams is touched.
+
+    Parameters
+    ----------
+    task : Task
+        The task to check.
+    batch : int, optional
+        Number of states to probe with.
+
+    Raises
+    ------
+    ValueError
+        A size attribute is not a positive integer, an array attribute has the wrong shape, or a function
+        returns the wrong shape, dtype or non-finite values; the message names the task class, the
+        attribute or function (``cost``, ``f``, ...), the expected and the returned shape.
+    """
+    name = type(task).__name__
+    for attr in ("state_dim", "obs_dim", "action_dim", "noise_dim"):
+        check_positive_int(getattr(task, attr, None), f"{name}.{attr}")
+    n, m, o, d = task.state_dim, task.action_dim, task.obs_dim, task.noise_dim
+    gamma = getattr(task, "gamma", None)
+    if not isinstance(gamma, (float, int, np.floating)) or not 0.0 < float(gamma) < 1.0:
+        raise ValueError(f"{name}.gamma: expected a discount factor in (0, 1), got {gamma!r}")
+    for attr, shape in (("noise_matrix", (n, d)), ("prior_mean", (d,)), ("prior_cov", (d, d)),
+                        ("true_mean", (d,)), ("true_cov", (d, d)), ("action_bound", (m,)), ("obs_scale", (o,))):
+        v = getattr(task, attr, None)
+        if v is None:
+            raise ValueError(f"{name}.{attr}: not set (expected shape {shape})")
+        arr = np.asarray(v.detach() if isinstance(v, torch.Tensor) else v, dtype=np.float64)
+        if arr.shape != shape:
+            raise ValueError(f"{name}.{attr}: expected shape {shape}, got shape {arr.shape}")
+        if not np.isfinite(arr).all():
+            raise ValueError(f"{name}.{attr}: contains NaN or inf")
+        if attr in ("action_bound", "obs_scale") and not (arr > 0).all():
+            raise ValueError(f"{name}.{attr}: expected positive values, got {arr.tolist()}")
+    s = task.sample_initial(batch, torch.Generator().manual_seed(0))
+    _check_output(s, task, "sample_initial", (batch, n), torch.float64)
+    bound = torch.as_tensor(task.action_bound, dtype=torch.float64)
+    for dtype in (torch.float32, torch.float64):
+        x = s.to(dtype)
+        _check_output(task.observe(x), task, "observe", (batch, o), None)
+        for u in (torch.zeros(batch, m, dtype=dtype), bound.to(dtype).expand(batch, m).clone()):
+            u.requires_grad_(True)
+            s_next = task.f(x, u)
+            _check_output(s_next, task, "f", (batch, n), dtype)
+            if not s_next.requires_grad:
+                raise ValueError(f"{name}.f: the output does not depend differentiably on u (a detached or "
+                                 f"numpy computation?); the policy improvement differentiates through f")
+            _check_output(task.cost(s_next, u), task, "cost", (batch,), None)

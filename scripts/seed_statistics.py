@@ -1,0 +1,229 @@
+"""Per-seed statistics of Table I's Algorithm-2 rows: intervals, paired differences, win counts, the
+precision yardstick, and the targets of the precision issue, from a finished sweep.
+
+Reads a sweep directory of ``mixedrl sweep`` (``sweep.json`` and each run's ``results.json``; for
+example ``studies/table1_seeds20.toml``) and writes into ``--dest``:
+
+* ``per_seed.csv``: one row per method and seed (lateral and speed errors, course cost, the action error
+  at the equilibrium against the discounted LQ optimum for the method's own noise mean, ``policy_gap``);
+* ``summary.json``: per method mean, sample std and 95% percentile-bootstrap interval of the mean of each
+  figure (:func:`mixedrl.tables.bootstrap_interval`); per pair of methods (mixed - model-driven, mixed -
+  oracle) the paired mean difference with its 95% interval (seeds resampled with both values,
+  :func:`mixedrl.tables.paired_interval`), the ratio of means with its interval, and the seeds on which
+  the first is better; the issue's targets, each with its measured figure and whether it is met;
+* ``table.txt``: the same as text;
+* ``per_seed.png``: every seed visible, mixed RL against model-driven RL and the oracle (needs matplotlib).
+
+Usage::
+
+    python scripts/seed_statistics.py runs/table1_seeds20 --dest docs/_static/seeds20
+"""
+
+from __future__ import annotations
+
+import argparse
+import io
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from mixedrl.runs import RunDirectory, atomic_write_bytes, atomic_write_text
+from mixedrl.tables import bootstrap_interval, csv_text, mean_std, paired_interval
+
+METHODS = ("mixed", "model", "oracle")
+LABELS = {"mixed": "Mixed RL", "model": "Model-driven RL", "oracle": "Oracle (true noise)"}
+FIGURES = ("lateral_mae", "speed_mae", "cost", "ax_error", "delta_error")
+UNITS = {"lateral_mae": "m", "speed_mae": "m/s", "cost": "", "ax_error": "m/s^2", "delta_error": "rad"}
+#: The pairs compared seed by seed: (first, second); "better" = the first's figure is smaller.
+PAIRS = (("mixed", "model"), ("mixed", "oracle"), ("oracle", "model"))
+
+
+def load_rows(sweep: Path) -> dict[str, list[dict[str, Any]]]:
+    """Per method, its finished runs sorted by seed: the figures of :data:`FIGURES`."""
+    doc = json.loads((sweep / "sweep.json").read_text())
+    rows: dict[str, list[dict[str, Any]]] = {}
+    for rec in doc["runs"]:
+        if rec["error"] is not None or rec["method"] not in METHODS:
+            continue
+        res = RunDirectory(sweep / rec["run_dir"]).read_results()
+        gap = res.get("policy_gap") or {}
+        err = gap.get("action_error") or [None, None]
+        rows.setdefault(rec["method"], []).append({
+            "method": rec["method"], "seed": rec["seed"], "lateral_mae": res["lateral_mae"],
+            "speed_mae": res["speed_mae"], "cost": res["cost"],
+            "ax_error": None if err[1] is None else abs(err[1]),
+            "delta_error": None if err[0] is None else abs(err[0]),
+            "ax": (gap.get("action") or [None, None])[1], "ax_optimum": (gap.get("optimum_action") or [None, None])[1],
+            "left_road": res.get("final", {}).get("terminated"), "iterations": res["iterations"],
+            "batch_size_runs": res.get("batch_size_runs", 1)})
+    return {m: sorted(v, key=lambda r: r["seed"]) for m, v in rows.items()}
+
+
+def statistics(rows: dict[str, list[dict[str, Any]]]) -> dict[str, Any]:
+    """The content of ``summary.json`` (see the module docstring)."""
+    out: dict[str, Any] = {"methods": {}, "pairs": {}}
+    for m, runs in rows.items():
+        entry: dict[str, Any] = {"seeds": [r["seed"] for r in runs]}
+        for f in FIGURES:
+            vals = [r[f] for r in runs if r[f] is not None]
+            mean, std = mean_std(vals)
+            low, high = bootstrap_interval(vals)
+            entry[f] = {"mean": mean, "std": std, "ci_low": low, "ci_high": high,
+                        "min": float(np.min(vals)) if vals else None, "max": float(np.max(vals)) if vals else None}
+        out["methods"][m] = entry
+    for a, b in PAIRS:
+        if a not in rows or b not in rows:
+            continue
+        common = sorted(set(r["seed"] for r in rows[a]) & set(r["seed"] for r in rows[b]))
+        ra = {r["seed"]: r for r in rows[a]}
+        rb = {r["seed"]: r for r in rows[b]}
+        pair: dict[str, Any] = {"seeds": common}
+        for f in FIGURES:
+            xa = [ra[s][f] for s in common]
+            xb = [rb[s][f] for s in common]
+            if any(v is None for v in xa + xb):
+                continue
+            diff, dl, dh = paired_interval(xa, xb)
+            ratio, rl, rh = paired_interval(xb, xa, statistic="ratio")
+            pair[f] = {"difference": diff, "difference_ci": [dl, dh], f"{b}_over_{a}": ratio,
+                       "ratio_ci": [rl, rh], "wins": int(sum(x < y for x, y in zip(xa, xb))), "n": len(common)}
+        out["pairs"][f"{a}-{b}"] = pair
+    out["targets"] = targets(rows, out)
+    return out
+
+
+def targets(rows: dict[str, list[dict[str, Any]]], stats: dict[str, Any]) -> dict[str, Any]:
+    """The precision issue's targets (its numbers), each ``{"measured": ..., "met": bool}``."""
+    t: dict[str, Any] = {}
+    mixed = rows.get("mixed", [])
+    if mixed:
+        worst_ax = max(r["ax_error"] for r in rows["mixed"])
+        t["mixed_action_at_origin_le_0.01_every_seed"] = {"measured": worst_ax, "met": worst_ax <= 0.01}
+        worst_v = max(r["speed_mae"] for r in mixed)
+        worst_y = max(r["lateral_mae"] for r in mixed)
+        t["mixed_speed_le_0.010_every_seed"] = {"measured": worst_v, "met": worst_v <= 0.010}
+        t["mixed_speed_le_0.0072_every_seed (stretch)"] = {"measured": worst_v, "met": worst_v <= 0.0072}
+        t["mixed_lateral_le_0.151_every_seed"] = {"measured": worst_y, "met": worst_y <= 0.151}
+    for m in ("model", "oracle"):
+        if m in rows:
+            worst = max(r["ax_error"] for r in rows[m])
+            t[f"{m}_action_at_origin_le_0.01_every_seed"] = {"measured": worst, "met": worst <= 0.01}
+    pair = stats["pairs"].get("mixed-model", {}).get("speed_mae")
+    if pair:
+        t["model_over_mixed_speed_ge_1.5"] = {"measured": pair["model_over_mixed"], "met": pair["model_over_mixed"] >= 1.5}
+        lo, hi = pair["difference_ci"]
+        t["paired_speed_difference_ci_excludes_0"] = {"measured": [lo, hi], "met": hi is not None and hi < 0.0}
+        t["mixed_better_on_speed_on_ge_90pct_of_seeds"] = {"measured": f"{pair['wins']} of {pair['n']}",
+                                                           "met": pair["wins"] >= 0.9 * pair["n"]}
+    cost = stats["pairs"].get("mixed-oracle", {}).get("cost")
+    if cost:
+        ratio = 1.0 / cost["oracle_over_mixed"]
+        # mixed / oracle: invert the interval of oracle / mixed
+        lo, hi = cost["ratio_ci"]
+        t["mixed_cost_within_5pct_of_oracle"] = {"measured": {"mixed_over_oracle": ratio,
+                                                              "ci": [1.0 / hi, 1.0 / lo] if lo and hi else None},
+                                                 "met": hi is not None and lo is not None and 1.0 / lo <= 1.05}
+    return t
+
+
+def format_table(rows: dict[str, list[dict[str, Any]]], stats: dict[str, Any]) -> str:
+    """``table.txt``."""
+    n = max((len(v) for v in rows.values()), default=0)
+    lines = [f"Table I, Algorithm-2 rows over {n} seeds: mean ± sample std [95% bootstrap interval of the mean]", ""]
+    head = f"{'method':<22}" + "".join(f"{f + (' [' + UNITS[f] + ']' if UNITS[f] else ''):>36}" for f in FIGURES[:3])
+    lines += [head, "-" * len(head)]
+    for m in METHODS:
+        if m not in stats["methods"]:
+            continue
+        e = stats["methods"][m]
+        cells = "".join(f"{e[f]['mean']:>12.4g} ± {e[f]['std']:<7.2g}[{e[f]['ci_low']:.4g}, {e[f]['ci_high']:.4g}]"
+                        .rjust(36) for f in FIGURES[:3])
+        lines.append(f"{LABELS[m]:<22}{cells}")
+    lines += ["", "Action at the equilibrium against the discounted LQ optimum for the method's own noise mean "
+              "(|a - a*|, policy_gap): mean ± std [interval], worst seed"]
+    for m in METHODS:
+        if m in stats["methods"]:
+            e = stats["methods"][m]
+            lines.append(f"  {LABELS[m]:<22} a_x {e['ax_error']['mean']:.4f} ± {e['ax_error']['std']:.4f} "
+                         f"[{e['ax_error']['ci_low']:.4f}, {e['ax_error']['ci_high']:.4f}], worst "
+                         f"{e['ax_error']['max']:.4f} m/s^2;  delta {e['delta_error']['mean']:.5f}, worst "
+                         f"{e['delta_error']['max']:.5f} rad")
+    lines += ["", "Paired over the same seeds (first - second; wins: seeds where the first is smaller):"]
+    for key, pair in stats["pairs"].items():
+        a, b = key.split("-")
+        for f in ("lateral_mae", "speed_mae", "cost", "ax_error"):
+            if f not in pair:
+                continue
+            p = pair[f]
+            lo, hi = p["difference_ci"]
+            rlo, rhi = p["ratio_ci"]
+            lines.append(f"  {a} - {b:<7} {f:<12} diff {p['difference']:+.4g} [{lo:+.4g}, {hi:+.4g}]   "
+                         f"{b}/{a} {p[f'{b}_over_{a}']:.3f} [{rlo:.3f}, {rhi:.3f}]   {a} better on "
+                         f"{p['wins']} of {p['n']}")
+    lines += ["", "Targets of the precision issue:"]
+    for name, tgt in stats["targets"].items():
+        lines.append(f"  {name}: {'met' if tgt['met'] else 'MISSED'} (measured {_fmt(tgt['measured'])})")
+    return "\n".join(lines)
+
+
+def _fmt(v: Any) -> str:
+    if isinstance(v, float):
+        return f"{v:.4g}"
+    if isinstance(v, list):
+        return "[" + ", ".join(_fmt(x) for x in v) + "]"
+    if isinstance(v, dict):
+        return ", ".join(f"{k} {_fmt(x)}" for k, x in v.items())
+    return str(v)
+
+
+def make_figure(rows: dict[str, list[dict[str, Any]]], path: Path) -> Path | None:
+    """``per_seed.png``: per figure, every seed's value for each method, seeds on the x axis."""
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:  # pragma: no cover - optional extra
+        return None
+    fig, axes = plt.subplots(1, 4, figsize=(15, 3.4))
+    colors = {"mixed": "C0", "model": "C1", "oracle": "k"}
+    for ax, f in zip(axes, ("speed_mae", "lateral_mae", "cost", "ax_error")):
+        for m in METHODS:
+            if m in rows:
+                ax.plot([r["seed"] for r in rows[m]], [r[f] for r in rows[m]], "o", ms=4, color=colors[m],
+                        label=LABELS[m], alpha=0.8)
+        ax.set_xlabel("seed")
+        ax.set_title(f + (f" [{UNITS[f]}]" if UNITS[f] else ""))
+        ax.set_yscale("log" if f in ("cost", "ax_error") else "linear")
+    axes[0].legend(fontsize=7)
+    fig.tight_layout()
+    buffer = io.BytesIO()
+    fig.savefig(buffer, format="png", dpi=110)
+    plt.close(fig)
+    atomic_write_bytes(path, buffer.getvalue())
+    return path
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("sweep", type=Path, help="a finished sweep directory (sweep.json)")
+    parser.add_argument("--dest", type=Path, required=True, help="where to write the tables and the figure")
+    args = parser.parse_args(argv)
+    rows = load_rows(args.sweep)
+    if not rows:
+        parser.error(f"{args.sweep}: no finished run of {', '.join(METHODS)}")
+    stats = statistics(rows)
+    args.dest.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(args.dest / "per_seed.csv", csv_text([r for m in METHODS for r in rows.get(m, [])]))
+    atomic_write_text(args.dest / "summary.json", json.dumps(stats, indent=2) + "\n")
+    table = format_table(rows, stats)
+    atomic_write_text(args.dest / "table.txt", table + "\n")
+    make_figure(rows, args.dest / "per_seed.png")
+    print(table)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
