@@ -120,6 +120,7 @@ import numpy as np
 
 from mixedrl.config import TrainConfig, apply_overrides, flatten_table
 from mixedrl.algorithms.batched import batch_key
+from mixedrl.checks import check_positive_int
 from mixedrl.runs import (RunDirectory, atomic_write_bytes, atomic_write_text, check_run_directory, load_checkpoint,
                           make_trainer, train_batch)
 from mixedrl.tables import bootstrap_interval, csv_text, mean_std
@@ -892,8 +893,9 @@ def _run_ray(jobs: list[_Job], ray: Any) -> Iterator[_Done]:
 
 
 def _check_count(value: Any, name: str) -> None:
-    if value is not None and (isinstance(value, bool) or not isinstance(value, int) or value < 1):
-        raise ValueError(f"{name}: expected a positive integer, got {value!r}")
+    """:func:`mixedrl.checks.check_positive_int`, ``None`` allowed (the option's default)."""
+    if value is not None:
+        check_positive_int(value, name)
 
 
 def run_sweep(spec: SweepSpec, out: str | Path, address: str | None = None, num_cpus: int | None = None,

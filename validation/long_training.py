@@ -20,6 +20,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from mixedrl.checks import check_positive_int
 from mixedrl.config import TrainConfig
 
 __all__ = ["LongTrainingObserver", "long_training_observer", "discounted_cost", "policy_at_origin", "OBS_NAMES",
@@ -69,9 +70,7 @@ class LongTrainingObserver:
     """
 
     def __init__(self, every: int = EVERY) -> None:
-        if isinstance(every, bool) or not isinstance(every, int) or every < 1:
-            raise ValueError(f"every: expected a positive integer, got {every!r}")
-        self.every = every
+        self.every = check_positive_int(every, "every")
         self._starts: torch.Tensor | None = None
 
     def before(self, trainer: Any) -> Any:

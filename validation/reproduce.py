@@ -57,6 +57,7 @@ import numpy as np
 import torch
 
 import theory
+from mixedrl.checks import check_positive_int
 from mixedrl.config import DoubleLaneChangeTaskConfig, TrainConfig, task_config
 from mixedrl.gaussian import sample_gaussian
 from mixedrl.ibe import UnknownCovarianceIBE
@@ -142,9 +143,7 @@ class TheoryObserver:
     """
 
     def __init__(self, every: int) -> None:
-        if isinstance(every, bool) or not isinstance(every, int) or every < 1:
-            raise ValueError(f"every: expected a positive integer, got {every!r}")
-        self.every = every
+        self.every = check_positive_int(every, "every")
 
     def before(self, tr: Any) -> Any:
         if tr.k % self.every != 0:
@@ -359,13 +358,10 @@ def reproduce(out: str | Path, seeds: int = 5, quick: bool = False, resume: bool
     RuntimeError
         A run failed (its error is in ``out/sweep/sweep.json``).
     """
-    if isinstance(seeds, bool) or not isinstance(seeds, int) or seeds < 1:
-        raise ValueError(f"seeds: expected a positive integer, got {seeds!r}")
+    seeds = check_positive_int(seeds, "seeds")
     if quick:
         seeds = min(seeds, QUICK_MAX_SEEDS)
-    workers = workers if workers is not None else min(2, os.cpu_count() or 1)
-    if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
-        raise ValueError(f"workers: expected a positive integer, got {workers!r}")
+    workers = check_positive_int(workers if workers is not None else min(2, os.cpu_count() or 1), "workers")
     out = Path(out)
     spec = reproduction_spec(seeds, quick)
     t0 = time.perf_counter()
@@ -374,23 +370,18 @@ def reproduce(out: str | Path, seeds: int = 5, quick: bool = False, resume: bool
         errors = "; ".join(f"{r['name']}: {r['error']}" for r in doc["runs"] if r["error"])
         raise RuntimeError(f"{doc['failed']} run(s) of the reproduction failed: {errors}")
     finished: list[dict[str, Any]] = []
-    first_seed: dict[str, int] = {}
-    for rec in doc["runs"]:
+    for rec in sorted(doc["runs"], key=lambda r: r["seed"]):
         label = _label(rec)
         run = RunDirectory(out / "sweep" / rec["run_dir"])
-        results = {**run.read_results(), "label": label, "run_dir": str(Path("sweep") / rec["run_dir"])}
-        finished.append(results)
-        first_seed[label] = min(first_seed.get(label, results["seed"]), results["seed"])
-    for rec in doc["runs"]:
-        label = _label(rec)
-        if rec["seed"] == first_seed[label]:
-            _save_trajectory(out, RunDirectory(out / "sweep" / rec["run_dir"]), label)
+        if all(r["label"] != label for r in finished):  # the label's first seed drives Figs. 5-7
+            _save_trajectory(out, run, label)
+        finished.append({**run.read_results(), "label": label, "run_dir": str(Path("sweep") / rec["run_dir"])})
     wall = time.perf_counter() - t0
     previous = out / "results.json"
     if resume and previous.is_file():
         # the wall time of a resumed reproduction includes the interrupted invocation's
         wall += float(json.loads(previous.read_text()).get("wall_seconds", 0.0))
-    results = aggregate(out, finished, wall, quick, task=spec_task(spec))
+    results = aggregate(out, finished, wall, quick, task=expand(spec)[0].config.to_dict()["task"])
     results["sweep"] = {k: doc.get(k) for k in ("engine", "workers", "batch", "batches", "wall_seconds")}
     atomic_write_text(out / "results.json", json.dumps(results, indent=2, sort_keys=True) + "\n")
     try:
@@ -398,11 +389,6 @@ def reproduce(out: str | Path, seeds: int = 5, quick: bool = False, resume: bool
     except ImportError:  # pragma: no cover - matplotlib is an optional extra
         logger.warning("matplotlib not installed: no figures")
     return results
-
-
-def spec_task(spec: SweepSpec) -> dict[str, Any]:
-    """The task configuration (as a dict) the runs of ``spec`` share."""
-    return expand(spec)[0].config.to_dict()["task"]
 
 
 def aggregate(out: Path, finished: list[dict[str, Any]], wall: float, quick: bool,
