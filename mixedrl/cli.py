@@ -51,9 +51,9 @@ from importlib.metadata import EntryPoint, entry_points
 from pathlib import Path
 from typing import Any, Sequence
 
-from mixedrl.config import METHODS, TrainConfig, apply_overrides
-from mixedrl.precision import format_policy_gap, gap_summary, run_policy_gap
-from mixedrl.runs import RunDirectory, eval_seeds, load_checkpoint, make_trainer, train
+from mixedrl.config import FEEDFORWARDS, METHODS, TrainConfig, apply_overrides
+from mixedrl.precision import format_policy_gap, gap_summary
+from mixedrl.runs import RunDirectory, evaluate_run, make_trainer, train
 from mixedrl.sweep import add_parser as add_sweep_parser
 from mixedrl.sweep import flatten_table, format_summary, load_spec, run_sweep
 
@@ -149,6 +149,10 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("evaluate", help="evaluate a run's final policy on its task")
     p.add_argument("run_dir", type=Path)
     p.add_argument("--seeds", type=int, default=None, help="number of noise seeds (default: the run's)")
+    p.add_argument("--feedforward", choices=FEEDFORWARDS, default=None,
+                   help="evaluate with this algorithm.feedforward instead of the run's ('lq': the actor shifted "
+                        "to the LQ optimum's action at the equilibrium for the method's own noise mean; 'lq_train' "
+                        "changes training and is only accepted for a run trained with it)")
     p.set_defaults(handler=_evaluate)
 
     add_sweep_parser(sub)  # mixedrl sweep SPEC --out DIR (mixedrl.sweep; Ray is imported only when it runs)
@@ -237,21 +241,13 @@ def _train(args: argparse.Namespace) -> int:
 
 
 def _evaluate(args: argparse.Namespace) -> int:
-    run = RunDirectory(args.run_dir)
-    if not run.path.is_dir():
-        raise ValueError(f"run_dir: {run.path} is not a directory" if run.path.exists()
-                         else f"run_dir: {run.path} does not exist")
-    config = run.read_config()
-    if args.seeds is not None:
-        config = config.replace(**{"run.eval_seeds": args.seeds})
-    trainer = make_trainer(config)
-    trainer.load_state_dict(load_checkpoint(run.checkpoint_path)["trainer"])
-    metrics = trainer.evaluate(eval_seeds(config))
-    gap, reason = run_policy_gap(trainer)
-    print(json.dumps({"run": str(run.path), "method": config.method, "seed": config.seed, "iteration": trainer.k,
+    out = evaluate_run(args.run_dir, seeds=args.seeds, feedforward=args.feedforward)
+    config, metrics, gap = out["config"], out["metrics"], out["policy_gap"]
+    print(json.dumps({"run": str(args.run_dir), "method": config.method, "seed": config.seed,
+                      "iteration": out["iteration"], "feedforward": config.algorithm.feedforward,
                       **{k: v for k, v in metrics.items() if isinstance(v, (int, float))},
                       "policy_gap": gap_summary(gap)}, indent=2))
-    print(format_policy_gap(gap, reason), file=sys.stderr)
+    print(format_policy_gap(gap, out["policy_gap_reason"]), file=sys.stderr)
     return 0
 
 

@@ -102,6 +102,9 @@ MODEL_COURSE_STARTS = ("start", "along", "loop")
 #: How Algorithm 2 weights the states of its batch (``AlgorithmConfig.batch_weighting``).
 BATCH_WEIGHTINGS = ("uniform", "relative")
 
+#: Where the policy takes its action at the equilibrium (``algorithm.feedforward``).
+FEEDFORWARDS = ("learned", "lq", "lq_train")
+
 
 def _law(value: Any, name: str) -> str:
     if value not in DISTURBANCE_LAWS:
@@ -451,6 +454,24 @@ class AlgorithmConfig:
     after them (:func:`mixedrl.pev.h_steps`; the actor's gradient back-propagated through the rollout).
     The same for every method; the MVC (eq. 38) keeps the one-step ``h``."""
 
+    feedforward: str = "learned"
+    """Departure (precision add-on): where the run's policy takes its action at the task's equilibrium.
+    ``"learned"`` (the default, the paper's) = the actor's own. ``"lq"`` = the actor shifted by a constant so
+    that at the equilibrium it takes the discounted LQ optimum's action for the method's own noise mean,
+    ``pi_ff(o) = pi(o) - pi(o(s*)) + u* - l0(E mu)`` (:class:`mixedrl.precision.FeedForwardPolicy`; the
+    mean is the IBE posterior for mixed RL, the prior for model-driven RL, the truth for the oracle).
+    Training is unchanged (the same bits); the shifted actor is what is evaluated and deployed
+    (:attr:`mixedrl.algorithms.agpi.AGPI.policy`). ``"lq_train"`` = the same anchor as the actor's policy
+    class *during training*: ``u(o) = u_bar tanh(MLP(o) - MLP(o*) + atanh(clip(u_ff / u_bar, -0.999, 0.999)))``
+    (:class:`mixedrl.networks.AnchoredActor`; smooth, bounded, ``u(o*) = u_ff``), ``u_ff`` the LQ optimum's
+    action for the run's current own noise moments, refreshed at the start of every iteration (before the
+    data collection, PEV, PIM and the MVC use the actor); the trained actor is what is evaluated and
+    deployed. A departure from the paper too, off by default, the same for mixed, model and oracle
+    (only the noise moments differ); needs ``architecture="mlp"``; runs with ``"lq_train"`` and runs without
+    it are trained in separate batches (:func:`mixedrl.algorithms.batched.batch_key`). Algorithm 2 only
+    (DDPG has no noise model to take the mean from; it refuses ``"lq"`` and ``"lq_train"``), and only for
+    a task with an equilibrium."""
+
     def __post_init__(self) -> None:
         w = "algorithm"
         for name in ("iterations", "batch_size", "horizon", "noise_samples", "j_max", "stop_patience",
@@ -467,6 +488,7 @@ class AlgorithmConfig:
         _choice(self.mvc_check, f"{w}.mvc_check", ("mean", "all"))
         _choice(self.ibe_recursion, f"{w}.ibe_recursion", ("exact", "paper"))
         _choice(self.batch_weighting, f"{w}.batch_weighting", BATCH_WEIGHTINGS)
+        _choice(self.feedforward, f"{w}.feedforward", FEEDFORWARDS)
         if check_int(self.ibe_case, f"{w}.ibe_case") not in (1, 2, 3):
             raise ValueError(f"{w}.ibe_case: expected 1, 2 or 3 (the IBE's Case), got {self.ibe_case!r}")
         if self.ibe_case != 2 and self.ibe_recursion != "exact":
@@ -928,6 +950,9 @@ class TrainConfig:
         for name, value in (("algorithm", algorithm), ("ddpg", ddpg), ("run", run)):
             setattr(self, name, _section(_SECTION_CLASSES[name], value, preset.get(name, {}), name))
         self.sampler = _sampler(sampler, preset.get("sampler", {}), self.task.name)
+        if self.method == "ddpg" and self.algorithm.feedforward != "learned":
+            raise ValueError(f"algorithm.feedforward: {self.algorithm.feedforward!r} takes the feed-forward from "
+                             f"the method's noise model; method 'ddpg' has none (use 'learned')")
 
     @classmethod
     def for_task(cls, task: Any = "dlc", **fields: Any) -> "TrainConfig":

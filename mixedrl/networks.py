@@ -13,7 +13,7 @@ from typing import Sequence
 import torch
 from torch import nn
 
-__all__ = ["MLP", "Critic", "Actor", "QCritic", "QuadraticCritic", "AffineActor", "init_uniform_"]
+__all__ = ["MLP", "Critic", "Actor", "AnchoredActor", "QCritic", "QuadraticCritic", "AffineActor", "init_uniform_"]
 
 _ACTIVATIONS = {"elu": nn.ELU, "tanh": nn.Tanh, "relu": nn.ReLU}
 
@@ -159,6 +159,48 @@ class Actor(nn.Module):
 
     def forward(self, obs: torch.Tensor) -> torch.Tensor:
         return self.action_bound * torch.tanh(self.net(obs))
+
+
+#: How close to the bound an anchored action may be (``atanh`` of it stays finite).
+ANCHOR_CLAMP = 0.999
+
+
+class AnchoredActor(Actor):
+    """An :class:`Actor` that takes a given action at a given observation (``algorithm.feedforward = "lq_train"``).
+
+    .. math:: u(o) = \\bar u \\tanh\\big(\\mathrm{MLP}(o) - \\mathrm{MLP}(o^*) + z^*\\big),
+        \\quad z^* = \\operatorname{atanh}\\big(\\operatorname{clip}(u_{ff} / \\bar u, -0.999, 0.999)\\big)
+
+    so ``u(o*) = u_ff`` (within float32 and the clip): smooth, bounded, the same parameters as the
+    :class:`Actor`. ``o*`` and ``z*`` are buffers (``anchor_obs``, shape (obs_dim,); ``anchor_z``, shape
+    (action_dim,)), part of the state dict; :meth:`set_anchor_action` changes ``z*`` in place (so a
+    stacked copy bound to the buffer, :class:`mixedrl.algorithms.batched.StackedNetwork`, follows).
+
+    Parameters
+    ----------
+    anchor_obs : torch.Tensor, shape (obs_dim,)
+        ``o*``.
+    *args, **kwargs
+        As :class:`Actor`. The anchored action starts at 0.
+    """
+
+    def __init__(self, *args: object, anchor_obs: torch.Tensor, **kwargs: object) -> None:
+        super().__init__(*args, **kwargs)
+        obs = torch.as_tensor(anchor_obs, dtype=torch.float32).reshape(-1)
+        if obs.shape != (self.net.input_scale.shape[0],) or not bool(torch.isfinite(obs).all()):
+            raise ValueError(f"anchor_obs: expected {self.net.input_scale.shape[0]} finite numbers, got "
+                             f"{tuple(obs.shape)}")
+        self.register_buffer("anchor_obs", obs.clone())
+        self.register_buffer("anchor_z", torch.zeros_like(self.action_bound))
+
+    def set_anchor_action(self, action: torch.Tensor) -> None:
+        """Make ``u(o*) = action`` (clipped to 0.999 of the bound), in place; shape (action_dim,)."""
+        a = torch.as_tensor(action, dtype=torch.float32).reshape(self.anchor_z.shape)
+        with torch.no_grad():
+            self.anchor_z.copy_(torch.atanh((a / self.action_bound).clamp(-ANCHOR_CLAMP, ANCHOR_CLAMP)))
+
+    def forward(self, obs: torch.Tensor) -> torch.Tensor:
+        return self.action_bound * torch.tanh(self.net(obs) - self.net(self.anchor_obs) + self.anchor_z)
 
 
 class QCritic(nn.Module):

@@ -32,8 +32,9 @@ from mixedrl.lq import LQSolution, discounted_lq_optimum
 from mixedrl.quadratic import AffinePolicy, LinearDynamics, QuadraticCost
 from mixedrl.tasks import Linearisation, Task
 
-__all__ = ["LQReference", "lq_reference", "policy_gap", "run_policy_gap", "gap_summary", "format_policy_gap",
-           "VALUE_NOTE"]
+__all__ = ["LQReference", "lq_reference", "policy_gap", "run_policy_gap", "own_noise", "FeedForwardPolicy",
+           "feedforward_policy", "equilibrium_observation",
+           "feedforward_action", "gap_summary", "format_policy_gap", "VALUE_NOTE"]
 
 #: What the ``value`` entries of :func:`policy_gap` compare (also in ``results.json``).
 VALUE_NOTE = ("value: the critic at the equilibrium (V(x*), for DDPG Q(x*, pi(x*))) on the nonlinear model; "
@@ -221,7 +222,122 @@ def policy_gap(task: Task, policy: torch.nn.Module, noise_mean: Any, noise_cov: 
     }
 
 
-def run_policy_gap(trainer: Any) -> tuple[dict[str, Any] | None, str | None]:
+def own_noise(trainer: Any, lin: Linearisation, policy: torch.nn.Module | None = None
+              ) -> tuple[np.ndarray | None, np.ndarray]:
+    """The noise moments a trainer planned with at the end, at the equilibrium of ``lin``.
+
+    With a noise source (Algorithm 2: mixed, model, oracle) the planning moments
+    (:meth:`~mixedrl.algorithms.agpi.AGPI.noise_moments`; for a state-dependent source
+    :meth:`~mixedrl.algorithms.agpi.AGPI.planning_moments` at the equilibrium, with ``policy``'s action
+    there, default the trainer's learned policy); without one (DDPG) ``(None, task.true_cov)``: the caller
+    takes the true mean.
+
+    Returns
+    -------
+    mean : numpy.ndarray, shape (noise_dim,), or None
+    cov : numpy.ndarray, shape (noise_dim, noise_dim)
+    """
+    noise = getattr(trainer, "noise", None)
+    if noise is None:
+        return None, np.asarray(trainer.task.true_cov, dtype=np.float64)
+    if getattr(noise, "state_dependent", False):
+        policy = getattr(trainer, "learned_policy", trainer.policy) if policy is None else policy
+        s = torch.as_tensor(np.asarray(lin.state, dtype=np.float64))[None].float()
+        with torch.no_grad():
+            m, cov = trainer.planning_moments(s, policy(trainer.task.observe(s)))
+        return np.asarray(m[0], dtype=np.float64), np.asarray(cov, dtype=np.float64)
+    mean, cov = trainer.noise_moments()
+    return np.asarray(mean, dtype=np.float64), np.asarray(cov, dtype=np.float64)
+
+
+class FeedForwardPolicy(torch.nn.Module):
+    """A policy shifted by a constant so that it takes a given action at the equilibrium.
+
+    .. math:: \\pi_{ff}(o) = \\operatorname{clip}\\big(\\pi(o) - \\pi(o^*) + u_{ff},\\ -\\bar u,\\ \\bar u\\big)
+
+    with ``o* = o(s*)`` the equilibrium's observation and ``u_ff`` the action wanted there
+    (``algorithm.feedforward = "lq"``: the discounted LQ optimum's ``u* - l0(E mu)`` for the method's own
+    noise mean, :func:`feedforward_policy`). The shift is recomputed from ``policy`` at every call, so the
+    wrapper follows the wrapped module's weights; it has no parameters of its own.
+
+    Parameters
+    ----------
+    policy : torch.nn.Module
+        Observations (B, obs_dim) float32 -> actions (B, action_dim).
+    observation : torch.Tensor, shape (obs_dim,)
+        ``o(s*)``.
+    action : torch.Tensor, shape (action_dim,)
+        ``u_ff``.
+    bound : torch.Tensor, shape (action_dim,), optional
+        The action bound ``u_bar`` (the actor's); default none.
+    """
+
+    def __init__(self, policy: torch.nn.Module, observation: torch.Tensor, action: torch.Tensor,
+                 bound: torch.Tensor | None = None) -> None:
+        super().__init__()
+        self.policy = policy
+        self.register_buffer("observation", torch.as_tensor(observation, dtype=torch.float32).reshape(1, -1).clone())
+        self.register_buffer("action", torch.as_tensor(action, dtype=torch.float32).reshape(-1).clone())
+        self.bound = None if bound is None else torch.as_tensor(bound, dtype=torch.float32)
+
+    def forward(self, obs: torch.Tensor) -> torch.Tensor:
+        u = self.policy(obs) + (self.action - self.policy(self.observation)[0])
+        return u if self.bound is None else torch.maximum(torch.minimum(u, self.bound), -self.bound)
+
+
+def feedforward_policy(trainer: Any, policy: torch.nn.Module, lin: Linearisation | None = None
+                       ) -> FeedForwardPolicy:
+    """``policy`` shifted to the LQ optimum's action at the equilibrium for the trainer's own noise mean.
+
+    ``algorithm.feedforward = "lq"`` (a departure from the paper, docs page ``precision.rst``): the
+    equilibrium's action ``u* - l0(E mu)`` of :func:`lq_reference` on the task's linearisation, with ``mu``
+    the method's own noise mean (:func:`own_noise`: mixed RL's IBE posterior, model-driven RL's prior, the
+    oracle's truth).
+
+    Parameters
+    ----------
+    trainer : AGPI
+        Has ``task`` and a noise source.
+    policy : torch.nn.Module
+        The learned policy.
+    lin : Linearisation, optional
+        Instead of ``trainer.task.linearisation()``.
+
+    Raises
+    ------
+    ValueError
+        If the task has no equilibrium (naming ``algorithm.feedforward``), or as :func:`lq_reference`.
+    """
+    task: Task = trainer.task
+    lin = task.linearisation() if lin is None else lin
+    if lin is None:
+        raise ValueError(f"algorithm.feedforward: 'lq' needs a task with an equilibrium (Task.equilibrium); "
+                         f"task {getattr(task, 'name', type(task).__name__)!r} defines none")
+    return FeedForwardPolicy(policy, equilibrium_observation(task, lin), feedforward_action(trainer, lin, policy),
+                             getattr(policy, "action_bound", None))
+
+
+def equilibrium_observation(task: Task, lin: Linearisation) -> torch.Tensor:
+    """``o* = task.observe(s*)`` at the equilibrium of ``lin``, shape (obs_dim,) float32."""
+    return task.observe(lin.to_state(torch.zeros(1, lin.A.shape[0], dtype=torch.float64)).float())[0]
+
+
+def feedforward_action(trainer: Any, lin: Linearisation, policy: torch.nn.Module | None = None) -> torch.Tensor:
+    """The feed-forward ``u_ff = u* - l0(E mu)`` of :func:`lq_reference` for the trainer's own noise
+    (:func:`own_noise`; ``policy`` as there), shape (action_dim,) float64.
+
+    Raises
+    ------
+    ValueError
+        If the trainer has no noise model (naming ``algorithm.feedforward``), or as :func:`lq_reference`.
+    """
+    mean, cov = own_noise(trainer, lin, policy)
+    if mean is None:
+        raise ValueError("algorithm.feedforward: 'lq' needs the method's noise model; this trainer has none")
+    return torch.as_tensor(lq_reference(lin, mean, cov).action)
+
+
+def run_policy_gap(trainer: Any, policy: torch.nn.Module | None = None) -> tuple[dict[str, Any] | None, str | None]:
     """:func:`policy_gap` of a trainer's policy for the method's own noise mean, or ``(None, reason)``.
 
     The method's own noise: with a noise source (Algorithm 2: mixed, model, oracle) the planning moments
@@ -234,6 +350,10 @@ def run_policy_gap(trainer: Any) -> tuple[dict[str, Any] | None, str | None]:
     ----------
     trainer : AGPI or DDPG
         Anything with ``task``, ``policy`` and ``critic``.
+    policy : torch.nn.Module, optional
+        The policy to measure; default ``trainer.policy`` (what is evaluated: with ``algorithm.feedforward
+        = "lq"`` the shifted actor, whose action error is 0 by construction; pass
+        ``trainer.learned_policy`` for the actor's own).
 
     Returns
     -------
@@ -245,7 +365,7 @@ def run_policy_gap(trainer: Any) -> tuple[dict[str, Any] | None, str | None]:
         its results.
     """
     task: Task = trainer.task
-    policy = trainer.policy
+    policy = trainer.policy if policy is None else policy
     try:
         lin = task.linearisation()
     except (ValueError, RuntimeError) as exc:  # RuntimeError: f or cost not differentiable by torch.func
@@ -253,18 +373,10 @@ def run_policy_gap(trainer: Any) -> tuple[dict[str, Any] | None, str | None]:
     if lin is None:
         return None, f"task {getattr(task, 'name', type(task).__name__)!r} defines no equilibrium (Task.equilibrium)"
     critic = getattr(trainer, "critic", None)
-    noise = getattr(trainer, "noise", None)
-    if noise is None:
-        mean, cov = None, np.asarray(task.true_cov, dtype=np.float64)
+    mean, cov = own_noise(trainer, lin, policy)
+    if getattr(trainer, "noise", None) is None:
         value = None if critic is None else (lambda o: critic(o, policy(o)))
     else:
-        if getattr(noise, "state_dependent", False):
-            s = torch.as_tensor(np.asarray(lin.state, dtype=np.float64))[None].float()
-            with torch.no_grad():
-                m, cov = trainer.planning_moments(s, policy(task.observe(s)))
-            mean = m[0]
-        else:
-            mean, cov = trainer.noise_moments()
         value = critic
     if mean is None:
         s_star = torch.as_tensor(np.asarray(lin.state, dtype=np.float64))[None]

@@ -61,6 +61,7 @@ from mixedrl.algorithms.ddpg import DDPG
 from mixedrl.checkpoint import (atomic_write_bytes, atomic_write_text, convert_checkpoint, default_file_mode,
                                 digest_path, is_temporary, load_checkpoint, save_checkpoint, verify_digest,
                                 write_with_digest)
+from mixedrl.checks import check_positive_int
 from mixedrl.config import TrainConfig, flatten_table, task_names
 from mixedrl.precision import run_policy_gap
 from mixedrl.tasks import Task, task_from_config
@@ -80,6 +81,8 @@ __all__ = [
     "RUN_FILES",
     "iterations_to_converge",
     "eval_seeds",
+    "evaluate_run",
+    "PeriodicObserver",
     "config_record",
     "train",
     "train_batch",
@@ -415,6 +418,56 @@ def make_trainer(config: TrainConfig, task: Task | None = None) -> AGPI | DDPG:
     return AGPI(task, config)
 
 
+def evaluate_run(path: str | Path, *, seeds: int | None = None, feedforward: str | None = None,
+                 task: Task | None = None) -> dict[str, Any]:
+    """Evaluate a run directory's final policy on its task (``mixedrl evaluate``); reads only.
+
+    Parameters
+    ----------
+    path : str or Path
+        A run directory with ``config.json`` and a checkpoint.
+    seeds : int, optional
+        Number of noise seeds (default the run's ``run.eval_seeds``; the seeds are :func:`eval_seeds`).
+    feedforward : str, optional
+        Evaluate with this ``algorithm.feedforward`` instead of the run's (``"lq"``: the actor shifted to
+        the LQ optimum's action at the equilibrium for the method's own noise mean). Training does not
+        read ``"lq"``, so this evaluates what the run would have deployed with it; ``"lq_train"`` changes
+        training and is refused unless it is the run's own.
+    task : Task, optional
+        The task object of a user's own task (not rebuilt from the config).
+
+    Returns
+    -------
+    dict
+        ``config`` (the :class:`TrainConfig` evaluated), ``iteration``, ``metrics`` (the task's
+        evaluation), ``policy_gap`` and ``policy_gap_reason`` (:func:`mixedrl.precision.run_policy_gap`).
+
+    Raises
+    ------
+    ValueError
+        If ``path`` is not a run directory, or as :class:`TrainConfig` for a bad ``feedforward``.
+    """
+    run = RunDirectory(path)
+    if not run.path.is_dir():
+        raise ValueError(f"run_dir: {run.path} is not a directory" if run.path.exists()
+                         else f"run_dir: {run.path} does not exist")
+    config = run.read_config()
+    if seeds is not None:
+        config = config.replace(**{"run.eval_seeds": seeds})
+    if feedforward is not None:
+        if "lq_train" in (feedforward, config.algorithm.feedforward) and feedforward != config.algorithm.feedforward:
+            raise ValueError(f"feedforward: 'lq_train' is a training-time policy class (the anchored actor); the run "
+                             f"was trained with algorithm.feedforward = {config.algorithm.feedforward!r}, it cannot be "
+                             f"evaluated with {feedforward!r}")
+        config = config.replace(**{"algorithm.feedforward": feedforward})
+    trainer = make_trainer(config, task)
+    trainer.load_state_dict(load_checkpoint(run.checkpoint_path)["trainer"])
+    metrics = trainer.evaluate(eval_seeds(config))
+    gap, reason = run_policy_gap(trainer)
+    return {"config": config, "iteration": int(trainer.k), "metrics": metrics, "policy_gap": gap,
+            "policy_gap_reason": reason}
+
+
 def _scalar_eval(ev: dict[str, Any]) -> dict[str, float]:
     return {f"eval/{k}": float(v) for k, v in ev.items() if isinstance(v, (int, float, np.floating))}
 
@@ -491,6 +544,33 @@ class IterationObserver(Protocol):
     def before(self, trainer: Any) -> Any: ...
 
     def after(self, trainer: Any, token: Any, row: dict[str, float]) -> dict[str, float] | None: ...
+
+
+class PeriodicObserver:
+    """An :class:`IterationObserver` that records every ``every`` iterations: after the iteration ``k`` with
+    ``k % every == 0`` it returns :meth:`record` ``(trainer)`` as extra metrics of the row; nothing before
+    the iteration. Subclasses implement :meth:`record` (reading the trainer only).
+
+    Parameters
+    ----------
+    every : int
+        Iterations between records.
+    """
+
+    def __init__(self, every: int) -> None:
+        self.every = check_positive_int(every, "every")
+
+    def before(self, trainer: Any) -> Any:
+        """Nothing to snapshot: the records are read after the iteration."""
+        return None
+
+    def after(self, trainer: Any, token: Any, row: dict[str, float]) -> dict[str, float] | None:
+        """:meth:`record` after every ``every``-th iteration, else ``None``."""
+        return self.record(trainer) if trainer.k % self.every == 0 else None
+
+    def record(self, trainer: Any) -> dict[str, float]:
+        """The metrics of one record (override)."""
+        raise NotImplementedError
 
 
 def train(trainer: Any, run: RunDirectory | None = None, resume: bool = False, progress: bool | None = None,
@@ -791,4 +871,10 @@ def summarize(trainer: Any, rows: list[dict[str, Any]], elapsed: float, seeds: l
     results["policy_gap"], reason = run_policy_gap(trainer)
     if reason is not None:
         results["policy_gap_reason"] = reason
+    feedforward = getattr(cfg.algorithm, "feedforward", "learned")
+    if feedforward != "learned":
+        # the evaluated policy's action at the equilibrium is the LQ optimum's by construction
+        results["feedforward"] = feedforward
+    if feedforward == "lq":  # ... and the trained actor's own, before the shift
+        results["policy_gap_learned"], _ = run_policy_gap(trainer, trainer.learned_policy)
     return results

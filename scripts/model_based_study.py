@@ -20,7 +20,11 @@ diagnostics that a sweep directory does not record.)
 
 Other commands: ``summary`` (the tables from the per-run files), ``budgets`` (figure), ``reference``,
 ``objective``, ``origin``, ``own-model DIR`` (every run of a design of a sweep driven in the prior's world
-too) and ``positions`` (trains one run per design from the spec, recording where the course copies are).
+too) and ``positions DIR`` (where the course copies are, from the observer's metrics of a sweep of
+``studies/course_positions.toml``)::
+
+    mixedrl sweep studies/course_positions.toml --out runs/course_positions --batch 1
+    PYTHONPATH=. python scripts/model_based_study.py positions runs/course_positions [--dest DIR]
 """
 
 from __future__ import annotations
@@ -36,7 +40,6 @@ import torch
 
 from mixedrl.config import TrainConfig
 from mixedrl.runs import RunDirectory, atomic_write_bytes, atomic_write_text, eval_seeds, load_checkpoint, make_trainer
-from mixedrl.sweep import expand, load_spec
 from mixedrl.tables import csv_text
 from mixedrl.tasks import task_from_config
 
@@ -46,6 +49,8 @@ HELD_OUT = 5
 
 #: The study's spec: every design a variant (docs/model_based.rst).
 SPEC = Path(__file__).resolve().parents[1] / "studies" / "model_based.toml"
+#: The spec of ``positions``: designs M and S with the observer of :mod:`validation.course_positions`.
+POSITIONS_SPEC = SPEC.parent / "course_positions.toml"
 #: One line per design, for the table of docs/model_based.rst (``designs.csv``).
 DESIGN_NOTES = {
     "A": "50% course rollouts from iteration 0, box 4, no kicks",
@@ -76,14 +81,6 @@ def policy_at_origin(actor: torch.nn.Module) -> dict[str, list[float]]:
     with torch.no_grad():
         u0 = actor(torch.zeros(1, 5))[0]
     return {"u0": u0.tolist(), "gain": jac.tolist()}
-
-
-def design_config(design: str, method: str, seed: int) -> TrainConfig:
-    """The config of one run of the study: variant ``design`` of :data:`SPEC`."""
-    for run in expand(load_spec(SPEC)):
-        if run.point["variant"] == design and run.config.method == method and run.config.seed == seed:
-            return run.config
-    raise ValueError(f"design: {design!r} x {method} x seed {seed} is not a run of {SPEC}")
 
 
 def _load_policy(run_dir: Path, cfg: TrainConfig) -> Any:
@@ -117,10 +114,11 @@ def per_run_record(sweep_dir: Path, row: dict[str, Any]) -> dict[str, Any]:
     return out
 
 
-def _finished_rows(sweep_dir: Path) -> list[dict[str, Any]]:
+def _finished_rows(sweep_dir: Path, spec: Path = SPEC) -> list[dict[str, Any]]:
     doc_path = sweep_dir / "sweep.json"
     if not doc_path.is_file():
-        raise SystemExit(f"ship: {doc_path} does not exist; run: mixedrl sweep {SPEC.name} --out {sweep_dir}")
+        raise SystemExit(f"{doc_path} does not exist; run: mixedrl sweep {spec.relative_to(spec.parents[1])} "
+                         f"--out {sweep_dir}")
     return [r for r in json.loads(doc_path.read_text())["runs"] if r["error"] is None and r["results"] is not None]
 
 
@@ -353,28 +351,31 @@ def origin(_: argparse.Namespace) -> None:
 
 
 def positions(args: argparse.Namespace) -> None:
-    """Where along the course are the course copies of the batch? Train one run per design (seed
-    ``--seed``) and record, every 100 iterations, the quantiles of ``X`` of the course copies and the
-    fraction of them in each part of the course (straight 0-20 m, first lane change 20-52 m, second
-    52-85 m, last straight 85-120 m). Writes ``course_positions.csv``."""
+    """Where along the course are the course copies of the batch? From the finished sweep
+    ``args.sweep_dir`` of ``studies/course_positions.toml`` (one run per design, its observer
+    :mod:`validation.course_positions` records every 100 iterations the quantiles of ``X`` of the course
+    copies and the fraction of them in each part of the course: straight 0-20 m, first lane change
+    20-52 m, second 52-85 m, last straight 85-120 m). Writes ``course_positions.csv`` into ``--dest``."""
+    from validation.course_positions import PARTS, share_key
+
     rows = []
-    parts = ((0.0, 20.0), (20.0, 52.0), (52.0, 85.0), (85.0, 120.0))
-    for tag in args.tags.split(","):
-        torch.set_num_threads(1)
-        cfg = design_config(tag, "mixed", args.seed)
-        trainer = make_trainer(cfg)
-        for k in range(1, cfg.algorithm.iterations + 1):
-            trainer.iteration()
-            if k % 100 == 0:
-                X = trainer.sampler.states[trainer.sampler.course, 5]
-                q = np.quantile(X.numpy(), [0.1, 0.5, 0.9])
-                row = {"design": tag, "seed": args.seed, "iteration": k, "X q10 [m]": f"{q[0]:.1f}",
-                       "X median [m]": f"{q[1]:.1f}", "X q90 [m]": f"{q[2]:.1f}"}
-                for a, b in parts:
-                    row[f"share {a:.0f}-{b:.0f} m"] = f"{float(((X >= a) & (X < b)).double().mean()):.2f}"
-                rows.append(row)
-                print(row, flush=True)
-    atomic_write_text(OUT / "course_positions.csv", csv_text(rows))
+    for row in _finished_rows(args.sweep_dir, POSITIONS_SPEC):
+        run = RunDirectory(args.sweep_dir / row["run_dir"])
+        cfg = run.read_config()
+        for r in run.read_metrics():
+            if "positions/X_median" not in r:
+                continue
+            out = {"design": row["point"]["variant"], "seed": cfg.seed, "iteration": int(r["iteration"]),
+                   "X q10 [m]": f"{r['positions/X_q10']:.1f}", "X median [m]": f"{r['positions/X_median']:.1f}",
+                   "X q90 [m]": f"{r['positions/X_q90']:.1f}"}
+            for a, b in PARTS:
+                out[f"share {a:.0f}-{b:.0f} m"] = f"{r[share_key(a, b)]:.2f}"
+            rows.append(out)
+    if not rows:
+        raise SystemExit(f"positions: no positions/ metrics in {args.sweep_dir} (a sweep of {POSITIONS_SPEC.name}?)")
+    args.dest.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(args.dest / "course_positions.csv", csv_text(rows))
+    print(f"{args.dest / 'course_positions.csv'}: {len(rows)} rows")
 
 
 def prior_world_task(cfg: TrainConfig) -> Any:
@@ -419,9 +420,9 @@ def main(argv: list[str] | None = None) -> None:
     sub.add_parser("reference")
     sub.add_parser("objective")
     sub.add_parser("origin")
-    p = sub.add_parser("positions")
-    p.add_argument("--tags", default="M,S,T")
-    p.add_argument("--seed", type=int, default=0)
+    p = sub.add_parser("positions", help="course_positions.csv from a sweep of studies/course_positions.toml")
+    p.add_argument("sweep_dir", type=Path)
+    p.add_argument("--dest", type=Path, default=OUT)
     p = sub.add_parser("own-model")
     p.add_argument("sweep_dir", type=Path)
     p.add_argument("--tag", default="S")

@@ -34,11 +34,14 @@ from typing import Any
 
 import numpy as np
 import torch
+from tqdm import tqdm
 
 from mixedrl.algorithms.agpi import AGPI
 from mixedrl.envs.pendulum import PendulumTask
 from mixedrl.expectation import h_value
-from mixedrl.runs import RunDirectory, atomic_write_text, load_checkpoint, make_trainer
+from mixedrl.config import FEEDFORWARDS
+from mixedrl.runs import RunDirectory, atomic_write_text, evaluate_run, load_checkpoint, make_trainer
+from mixedrl.tables import paired_interval
 from validation.lq import LQProblem, optimal_solution
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -92,19 +95,25 @@ def own_steady_state(agent: AGPI) -> torch.Tensor:
     return torch.cat(tail).mean(0, keepdim=True).float()
 
 
-def analyse(run_dir: Path, variant: str = "") -> dict[str, Any]:
+def analyse(run_dir: Path, variant: str = "", feedforward: str | None = None) -> dict[str, Any]:
     """The row of one finished pendulum run: its final evaluation (``results.json``) and the actions of its
-    final checkpoint at the upright and at its own steady state, against the LQR on the linearisation."""
+    final checkpoint at the upright and at its own steady state, against the LQR on the linearisation.
+
+    With ``feedforward`` the policy is the run's final actor with ``algorithm.feedforward = feedforward``
+    (``"lq"``: shifted to the LQR's action at the upright for the method's own noise mean), evaluated again
+    on the run's evaluation seeds (:func:`mixedrl.runs.evaluate_run`)."""
     run = RunDirectory(run_dir)
     config = run.read_config()
     res = run.read_results()
+    if feedforward is not None:
+        config = config.replace(**{"algorithm.feedforward": feedforward})
     agent = make_trainer(config)
     if not isinstance(agent, AGPI) or not isinstance(agent.task, PendulumTask):
         raise ValueError(f"run_dir: {run_dir} is not an Algorithm 2 run on the pendulum (task.name = "
                          f"{config.task.name!r}, method = {config.method!r})")
     agent.load_state_dict(load_checkpoint(run.path / "checkpoint.pt")["trainer"])
     task = agent.task
-    ev = res["final"]
+    ev = res["final"] if feedforward is None else evaluate_run(run_dir, feedforward=feedforward)["metrics"]
     zero = torch.zeros(1, 2)
     mean, _ = agent.noise_moments()
     L, l0, lqr_theta = lqr(task, mean)
@@ -116,7 +125,8 @@ def analyse(run_dir: Path, variant: str = "") -> dict[str, Any]:
         uss = float(agent.policy(task.observe(ss))[0, 0])
     uhs, gs = critic_argmin(agent, ss)
     ulqr_ss = float((-(L @ ss.double().numpy()[0]) - l0)[0])
-    return dict(variant=variant, method=config.method, seed=config.seed, iterations=res["iterations"],
+    return dict(variant=variant, feedforward=config.algorithm.feedforward, method=config.method, seed=config.seed,
+                iterations=res["iterations"],
                 bellman_steps=config.algorithm.bellman_steps, cost=ev["cost"], theta=ev["mean_state_0"],
                 terminated=ev["terminated_fraction"], u0=u0, u_lqr0=float(-l0[0]), u_h0=uh0, dhdu0=g0,
                 lqr_theta=lqr_theta, tau_hat=float(task.torque_from_xi(mean[0])), s_star=float(ss[0, 0]),
@@ -132,6 +142,66 @@ def format_row(r: dict[str, Any]) -> str:
         f"{r['tau_hat']:.3f}", f"{r['seconds']:.0f}"))
 
 
+#: The generality target of issue 21: mixed RL's steady offset within ``REL`` of the LQR-with-feed-forward's
+#: (true mean) plus ``ABS`` rad.
+TARGET_REL, TARGET_ABS = 0.1, 1e-3
+
+
+def summarize_rows(rows: list[dict[str, Any]], task: PendulumTask | None = None) -> dict[str, Any]:
+    """Per method: the steady offsets ``theta*`` over seeds (mean, std, min, max), their distance to the
+    LQR with the true mean's feed-forward, and the seeds within the target ``TARGET_REL |theta_lqr| +
+    TARGET_ABS``; the same for the cost; per seed the paired cost difference mixed - model-driven."""
+    task = PendulumTask() if task is None else task
+    _, l0_true, theta_true = lqr(task, task.true_mean)
+    _, _, theta_prior = lqr(task, task.prior_mean)
+    tol = TARGET_REL * abs(theta_true) + TARGET_ABS
+    out: dict[str, Any] = {"lqr_theta_true_mean": theta_true, "lqr_theta_prior_mean": theta_prior,
+                           "lqr_u0_true_mean": float(-l0_true[0]), "tolerance": tol, "methods": {}}
+    by_method: dict[str, dict[int, dict[str, Any]]] = {}
+    for r in rows:
+        by_method.setdefault(r["method"], {})[r["seed"]] = r
+    for m, runs in by_method.items():
+        theta = np.array([runs[k]["theta"] for k in sorted(runs)])
+        cost = np.array([runs[k]["cost"] for k in sorted(runs)])
+        dist = np.abs(theta - theta_true)
+        out["methods"][m] = {"seeds": sorted(runs), "theta_mean": float(theta.mean()),
+                             "theta_std": float(theta.std(ddof=1)) if len(theta) > 1 else 0.0,
+                             "theta_min": float(theta.min()), "theta_max": float(theta.max()),
+                             "distance_to_lqr_mean": float(dist.mean()), "distance_to_lqr_max": float(dist.max()),
+                             "within_target": int((dist <= tol).sum()), "n": len(theta),
+                             "cost_mean": float(cost.mean()), "cost_max": float(cost.max())}
+    if "mixed" in by_method and "model" in by_method:
+        common = sorted(set(by_method["mixed"]) & set(by_method["model"]))
+        a = [by_method["mixed"][k]["cost"] for k in common]
+        b = [by_method["model"][k]["cost"] for k in common]
+        diff, lo, hi = paired_interval(a, b)
+        da = [abs(by_method["mixed"][k]["theta"] - theta_true) for k in common]
+        db = [abs(by_method["model"][k]["theta"] - theta_true) for k in common]
+        out["mixed_minus_model"] = {"cost_difference": diff, "cost_difference_ci": [lo, hi],
+                                    "cost_wins": int(sum(x < y for x, y in zip(a, b))),
+                                    "offset_wins": int(sum(x < y for x, y in zip(da, db))), "n": len(common)}
+    return out
+
+
+def format_summary(summary: dict[str, Any]) -> list[str]:
+    """Text lines of :func:`summarize_rows`."""
+    lines = [f"LQR with the true mean's feed-forward holds theta* = {summary['lqr_theta_true_mean']:+.4f} rad "
+             f"(u(0) = {summary['lqr_u0_true_mean']:+.3f} N m); with the prior's {summary['lqr_theta_prior_mean']:+.4f}. "
+             f"Target: |theta* - {summary['lqr_theta_true_mean']:+.4f}| <= {summary['tolerance']:.4f} rad.", ""]
+    for m, e in summary["methods"].items():
+        lines.append(f"  {m:<7} theta* {e['theta_mean']:+.4f} ± {e['theta_std']:.4f} [{e['theta_min']:+.4f}, "
+                     f"{e['theta_max']:+.4f}] rad; |theta* - LQR| mean {e['distance_to_lqr_mean']:.4f}, worst "
+                     f"{e['distance_to_lqr_max']:.4f}; within target on {e['within_target']} of {e['n']}; cost mean "
+                     f"{e['cost_mean']:.3f}, worst {e['cost_max']:.3f}")
+    pair = summary.get("mixed_minus_model")
+    if pair:
+        lo, hi = pair["cost_difference_ci"]
+        ci = "n/a" if lo is None or hi is None else f"{lo:+.3f}, {hi:+.3f}"
+        lines.append(f"  mixed - model cost {pair['cost_difference']:+.3f} [{ci}]; mixed better on cost "
+                     f"on {pair['cost_wins']} of {pair['n']}, closer to the LQR's offset on {pair['offset_wins']}")
+    return lines
+
+
 def ship(args: argparse.Namespace) -> None:
     """Analyse every finished run of the sweep ``args.sweep_dir``; print the table, write ``rows.json`` and
     ``table.md`` to ``args.dest``."""
@@ -141,11 +211,19 @@ def ship(args: argparse.Namespace) -> None:
                          f"--out {args.sweep_dir}")
     torch.set_num_threads(1)
     finished = [r for r in json.loads(doc_path.read_text())["runs"] if r["error"] is None and r["results"] is not None]
-    rows = [analyse(args.sweep_dir / r["run_dir"], r["point"].get("variant", "")) for r in finished]
+    rows = [analyse(args.sweep_dir / r["run_dir"], r["point"].get("variant", ""), args.feedforward)
+            for r in tqdm(finished, desc="analyse", disable=None)]
     lines = [" | ".join(HEADER), " | ".join("---" for _ in HEADER)] + [format_row(r) for r in rows]
+    variants = sorted({r["variant"] for r in rows})
+    summaries = {v: summarize_rows([r for r in rows if r["variant"] == v]) for v in variants}
+    for v in variants:
+        lines += ["", f"Summary{' of variant ' + v if v else ''}"
+                      f"{' (feedforward = ' + args.feedforward + ')' if args.feedforward else ''}:"]
+        lines += format_summary(summaries[v])
     print("\n".join(lines))
     args.dest.mkdir(parents=True, exist_ok=True)
     atomic_write_text(args.dest / "rows.json", json.dumps(rows, indent=1) + "\n")
+    atomic_write_text(args.dest / "summary.json", json.dumps(summaries, indent=1) + "\n")
     atomic_write_text(args.dest / "table.md", "\n".join(lines) + "\n")
 
 
@@ -155,6 +233,8 @@ def main(argv: list[str] | None = None) -> None:
     p = sub.add_parser("ship", help="analyse the runs of a sweep of studies/precision_pendulum.toml")
     p.add_argument("sweep_dir", type=Path)
     p.add_argument("--dest", type=Path, default=OUT)
+    p.add_argument("--feedforward", choices=FEEDFORWARDS, default=None,
+                   help="analyse each final actor with this algorithm.feedforward (evaluated again)")
     p.set_defaults(func=ship)
     args = parser.parse_args(argv)
     args.func(args)

@@ -17,6 +17,12 @@ example ``studies/table1_seeds20.toml``) and writes into ``--dest``:
 Usage::
 
     python scripts/seed_statistics.py runs/table1_seeds20 --dest docs/_static/seeds20
+    python scripts/seed_statistics.py runs/table1_seeds20 --feedforward lq --dest docs/_static/feedforward
+
+With ``--feedforward lq`` every run's final checkpoint is evaluated again with ``algorithm.feedforward =
+"lq"`` (the same trained actor shifted to the discounted LQ optimum's action at the equilibrium for the
+method's own noise mean; docs page ``precision.rst``) on the run's own evaluation seeds: a paired
+comparison of the two policies each run would deploy.
 """
 
 from __future__ import annotations
@@ -29,7 +35,10 @@ from typing import Any
 
 import numpy as np
 
-from mixedrl.runs import RunDirectory, atomic_write_bytes, atomic_write_text
+from tqdm import tqdm
+
+from mixedrl.config import FEEDFORWARDS
+from mixedrl.runs import RunDirectory, atomic_write_bytes, atomic_write_text, evaluate_run
 from mixedrl.tables import bootstrap_interval, csv_text, mean_std, paired_interval
 
 METHODS = ("mixed", "model", "oracle")
@@ -40,14 +49,35 @@ UNITS = {"lateral_mae": "m", "speed_mae": "m/s", "cost": "", "ax_error": "m/s^2"
 PAIRS = (("mixed", "model"), ("mixed", "oracle"), ("oracle", "model"))
 
 
-def load_rows(sweep: Path) -> dict[str, list[dict[str, Any]]]:
-    """Per method, its finished runs sorted by seed: the figures of :data:`FIGURES`."""
+def _evaluated(path: Path, feedforward: str) -> dict[str, Any]:
+    """A run's final policy evaluated with ``algorithm.feedforward = feedforward`` (:func:`evaluate_run`), in
+    the keys of ``results.json`` that :func:`load_rows` reads."""
+    out = evaluate_run(path, feedforward=feedforward)
+    m = out["metrics"]
+    return {"lateral_mae": float(m["lateral_mae"]), "speed_mae": float(m["speed_mae"]), "cost": float(m["cost"]),
+            "final": {"terminated": m.get("terminated")}, "iterations": out["iteration"],
+            "policy_gap": out["policy_gap"]}
+
+
+def load_rows(sweep: Path, feedforward: str | None = None) -> dict[str, list[dict[str, Any]]]:
+    """Per method, its finished runs sorted by seed: the figures of :data:`FIGURES`.
+
+    With ``feedforward`` (``"lq"``) each run's final checkpoint is evaluated again with
+    ``algorithm.feedforward = feedforward`` (:func:`mixedrl.runs.evaluate_run`: the same trained actor,
+    shifted to the LQ optimum's action at the equilibrium for the method's own noise mean; the same
+    evaluation seeds), and ``action_error_learned`` keeps the actor's own error from ``results.json``.
+    """
     doc = json.loads((sweep / "sweep.json").read_text())
     rows: dict[str, list[dict[str, Any]]] = {}
-    for rec in doc["runs"]:
-        if rec["error"] is not None or rec["method"] not in METHODS:
-            continue
+    records = [r for r in doc["runs"] if r["error"] is None and r["method"] in METHODS]
+    for rec in tqdm(records, desc=f"evaluate (feedforward={feedforward})", disable=feedforward is None):
         res = RunDirectory(sweep / rec["run_dir"]).read_results()
+        if "lateral_mae" not in res:
+            raise ValueError(f"{sweep / rec['run_dir']}: task {res.get('task')!r} has no course errors; this "
+                             f"analysis is for the double lane change (Table I)")
+        learned_err = ((res.get("policy_gap") or {}).get("action_error") or [None, None])[1]
+        if feedforward is not None:
+            res = {**res, **_evaluated(sweep / rec["run_dir"], feedforward)}
         gap = res.get("policy_gap") or {}
         err = gap.get("action_error") or [None, None]
         rows.setdefault(rec["method"], []).append({
@@ -56,6 +86,8 @@ def load_rows(sweep: Path) -> dict[str, list[dict[str, Any]]]:
             "ax_error": None if err[1] is None else abs(err[1]),
             "delta_error": None if err[0] is None else abs(err[0]),
             "ax": (gap.get("action") or [None, None])[1], "ax_optimum": (gap.get("optimum_action") or [None, None])[1],
+            "ax_error_learned": None if learned_err is None else abs(learned_err),
+            "trained_feedforward": res.get("feedforward", "learned"),
             "left_road": res.get("final", {}).get("terminated"), "iterations": res["iterations"],
             "batch_size_runs": res.get("batch_size_runs", 1)})
     return {m: sorted(v, key=lambda r: r["seed"]) for m, v in rows.items()}
@@ -128,10 +160,18 @@ def targets(rows: dict[str, list[dict[str, Any]]], stats: dict[str, Any]) -> dic
     return t
 
 
-def format_table(rows: dict[str, list[dict[str, Any]]], stats: dict[str, Any]) -> str:
+def format_table(rows: dict[str, list[dict[str, Any]]], stats: dict[str, Any], feedforward: str | None = None) -> str:
     """``table.txt``."""
     n = max((len(v) for v in rows.values()), default=0)
-    lines = [f"Table I, Algorithm-2 rows over {n} seeds: mean ± sample std [95% bootstrap interval of the mean]", ""]
+    lines = [f"Table I, Algorithm-2 rows over {n} seeds: mean ± sample std [95% bootstrap interval of the mean]"]
+    if feedforward is not None:
+        lines.append(f"Policies evaluated with algorithm.feedforward = {feedforward!r} (the same trained actors, "
+                     f"shifted to the LQ optimum's action at the equilibrium for each method's own noise mean)")
+    trained = sorted({r["trained_feedforward"] for runs in rows.values() for r in runs} - {"learned"})
+    if trained:
+        lines.append(f"Runs trained with algorithm.feedforward = {', '.join(map(repr, trained))} ('lq_train': the actor "
+                     f"anchored at the LQ optimum's action at the equilibrium during training)")
+    lines.append("")
     head = f"{'method':<22}" + "".join(f"{f + (' [' + UNITS[f] + ']' if UNITS[f] else ''):>36}" for f in FIGURES[:3])
     lines += [head, "-" * len(head)]
     for m in METHODS:
@@ -150,6 +190,10 @@ def format_table(rows: dict[str, list[dict[str, Any]]], stats: dict[str, Any]) -
                          f"[{e['ax_error']['ci_low']:.4f}, {e['ax_error']['ci_high']:.4f}], worst "
                          f"{e['ax_error']['max']:.4f} m/s^2;  delta {e['delta_error']['mean']:.5f}, worst "
                          f"{e['delta_error']['max']:.5f} rad")
+            if feedforward is not None:
+                own = [r["ax_error_learned"] for r in rows[m] if r["ax_error_learned"] is not None]
+                lines.append(f"  {'':<22} (the learned actor's own a_x error: {np.mean(own):.4f}, worst "
+                             f"{np.max(own):.4f} m/s^2)")
     lines += ["", "Paired over the same seeds (first - second; wins: seeds where the first is smaller):"]
     for key, pair in stats["pairs"].items():
         a, b = key.split("-")
@@ -178,8 +222,9 @@ def _fmt(v: Any) -> str:
     return str(v)
 
 
-def make_figure(rows: dict[str, list[dict[str, Any]]], path: Path) -> Path | None:
-    """``per_seed.png``: per figure, every seed's value for each method, seeds on the x axis."""
+def make_figure(rows: dict[str, list[dict[str, Any]]], path: Path, feedforward: str | None = None) -> Path | None:
+    """``per_seed.png``: per figure, every seed's value for each method, seeds on the x axis (with
+    ``feedforward`` the last panel is the learned actor's own action error, the evaluated one's being 0)."""
     try:
         import matplotlib
 
@@ -189,14 +234,18 @@ def make_figure(rows: dict[str, list[dict[str, Any]]], path: Path) -> Path | Non
         return None
     fig, axes = plt.subplots(1, 4, figsize=(15, 3.4))
     colors = {"mixed": "C0", "model": "C1", "oracle": "k"}
-    for ax, f in zip(axes, ("speed_mae", "lateral_mae", "cost", "ax_error")):
+    last = "ax_error" if feedforward is None else "ax_error_learned"
+    for ax, f in zip(axes, ("speed_mae", "lateral_mae", "cost", last)):
         for m in METHODS:
             if m in rows:
                 ax.plot([r["seed"] for r in rows[m]], [r[f] for r in rows[m]], "o", ms=4, color=colors[m],
                         label=LABELS[m], alpha=0.8)
         ax.set_xlabel("seed")
-        ax.set_title(f + (f" [{UNITS[f]}]" if UNITS[f] else ""))
-        ax.set_yscale("log" if f in ("cost", "ax_error") else "linear")
+        unit = UNITS.get(f, UNITS["ax_error"])
+        ax.set_title(("learned actor's ax_error" if f == "ax_error_learned" else f) + (f" [{unit}]" if unit else ""))
+        ax.set_yscale("log" if f in ("cost", last) else "linear")
+    if feedforward is not None:
+        fig.suptitle(f"algorithm.feedforward = {feedforward!r} (the same trained actors)", fontsize=9)
     axes[0].legend(fontsize=7)
     fig.tight_layout()
     buffer = io.BytesIO()
@@ -210,17 +259,23 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("sweep", type=Path, help="a finished sweep directory (sweep.json)")
     parser.add_argument("--dest", type=Path, required=True, help="where to write the tables and the figure")
+    parser.add_argument("--feedforward", choices=FEEDFORWARDS, default=None,
+                        help="evaluate each run's final checkpoint again with this algorithm.feedforward "
+                             "('lq': the actor shifted to the LQ optimum's action at the equilibrium)")
     args = parser.parse_args(argv)
-    rows = load_rows(args.sweep)
+    try:
+        rows = load_rows(args.sweep, args.feedforward)
+    except ValueError as exc:
+        parser.error(str(exc))
     if not rows:
         parser.error(f"{args.sweep}: no finished run of {', '.join(METHODS)}")
     stats = statistics(rows)
     args.dest.mkdir(parents=True, exist_ok=True)
     atomic_write_text(args.dest / "per_seed.csv", csv_text([r for m in METHODS for r in rows.get(m, [])]))
     atomic_write_text(args.dest / "summary.json", json.dumps(stats, indent=2) + "\n")
-    table = format_table(rows, stats)
+    table = format_table(rows, stats, args.feedforward)
     atomic_write_text(args.dest / "table.txt", table + "\n")
-    make_figure(rows, args.dest / "per_seed.png")
+    make_figure(rows, args.dest / "per_seed.png", args.feedforward)
     print(table)
     return 0
 

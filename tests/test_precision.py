@@ -303,3 +303,94 @@ def test_train_and_evaluate_print_the_policy_gap(tmp_path: Path, capsys: pytest.
     assert captured.err.startswith("policy_gap: action - LQ optimum at the equilibrium [")
     assert main(["evaluate", str(out)]) == 0
     assert json.loads(capsys.readouterr().out)["policy_gap"]["action_error"] == pytest.approx(saved["action_error"])
+
+
+# ------------------------------------------------------------------ algorithm.feedforward = "lq" (a departure)
+def _ff(method: str) -> TrainConfig:
+    return TrainConfig(method=method, task="linear", seed=0,
+                       algorithm={"batch_size": 16, "hidden_sizes": (8,), "feedforward": "lq"})
+
+
+def test_feedforward_policy_takes_the_action_at_the_equilibrium_and_shifts_by_a_constant() -> None:
+    from mixedrl.precision import FeedForwardPolicy
+
+    torch.manual_seed(0)
+    net = torch.nn.Sequential(torch.nn.Linear(3, 5), torch.nn.Tanh(), torch.nn.Linear(5, 2))
+    o_star, u_ff = torch.tensor([0.2, -0.1, 0.4]), torch.tensor([0.3, -0.7])
+    pol = FeedForwardPolicy(net, o_star, u_ff)
+    with torch.no_grad():
+        assert pol(o_star[None])[0].tolist() == pytest.approx(u_ff.tolist(), abs=ACTION_ATOL)
+        obs = torch.randn(7, 3)
+        shift = pol(obs) - net(obs)
+        assert torch.allclose(shift, (u_ff - net(o_star[None])[0]).expand(7, 2), atol=1e-6)
+        clipped = FeedForwardPolicy(net, o_star, torch.tensor([5.0, -5.0]), bound=torch.tensor([1.0, 2.0]))
+        assert clipped(obs).abs().max(dim=0).values.tolist() <= [1.0, 2.0]
+        assert clipped(o_star[None])[0].tolist() == [1.0, -2.0]
+
+
+@pytest.mark.parametrize("method, mean", [("model", "prior_mean"), ("oracle", "true_mean")])
+def test_feedforward_lq_anchors_at_the_optimum_for_the_methods_own_mean(method: str, mean: str) -> None:
+    """The action at the equilibrium is the LQ optimum's for the method's own mean (not the other mean),
+    derived here from scipy's DARE; away from it the policy is the actor shifted by that constant."""
+    task = LinearTask()
+    trainer = AGPI(task, _ff(method))
+    lin = task.linearisation()
+    _, l0 = scipy_optimum(lin.A, lin.B, lin.Q, lin.R, lin.gamma, lin.E @ getattr(task, mean))
+    with torch.no_grad():
+        u0 = trainer.policy(torch.zeros(1, 2))[0].numpy()
+        learned0 = trainer.learned_policy(torch.zeros(1, 2))[0].numpy()
+        x = torch.tensor([[0.5, -1.0]])
+        shifted = (trainer.policy(x) - trainer.learned_policy(x))[0].numpy()
+    assert u0 == pytest.approx(-l0, abs=ACTION_ATOL)
+    _, l0_other = scipy_optimum(lin.A, lin.B, lin.Q, lin.R, lin.gamma,
+                                lin.E @ getattr(task, "true_mean" if mean == "prior_mean" else "prior_mean"))
+    assert abs(float(l0[0] - l0_other[0])) > 0.1  # the two means give different feed-forwards here
+    assert shifted == pytest.approx(-l0 - learned0, abs=ACTION_ATOL)
+    gap, _ = run_policy_gap(trainer)
+    assert max(abs(e) for e in gap["action_error"]) < ACTION_ATOL
+
+
+def test_feedforward_lq_follows_the_ibe_and_leaves_training_unchanged() -> None:
+    """Mixed RL's feed-forward is the IBE posterior's; the option changes no weight of training."""
+    a = AGPI(LinearTask(), TrainConfig(method="mixed", task="linear", seed=0,
+                                       algorithm={"batch_size": 16, "hidden_sizes": (8,)}))
+    b = AGPI(LinearTask(), _ff("mixed"))
+    for _ in range(5):
+        a.iteration()
+        b.iteration()
+    for pa, pb in zip(list(a.actor.parameters()) + list(a.critic.parameters()),
+                      list(b.actor.parameters()) + list(b.critic.parameters())):
+        assert torch.equal(pa, pb)
+    task, lin = b.task, b.task.linearisation()
+    mean, cov = b.noise_moments()
+    assert abs(float(mean[1] - task.prior_mean[1])) > 0.1  # the IBE has moved away from the prior
+    with torch.no_grad():
+        u0 = b.policy(torch.zeros(1, 2))[0].numpy()
+    assert u0 == pytest.approx(lq_reference(lin, mean, cov).action, abs=ACTION_ATOL)
+
+
+def test_feedforward_lq_errors_name_the_option(tmp_path: Path) -> None:
+    with pytest.raises(ValueError, match=r"algorithm.feedforward: 'lq' .* method 'ddpg' has none"):
+        TrainConfig(method="ddpg", task="linear", algorithm={"feedforward": "lq"})
+    with pytest.raises(ValueError, match=r"algorithm.feedforward: expected one of"):
+        TrainConfig(task="linear", algorithm={"feedforward": "affine"})
+    with pytest.raises(ValueError, match=r"algorithm.feedforward: 'lq' needs a task with an equilibrium"):
+        AGPI(_NoEquilibrium(), _ff("model"))
+
+
+def test_evaluate_with_feedforward_lq_reports_both_gaps(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    from mixedrl.cli import main
+
+    out = tmp_path / "run"
+    assert main(["train", "--method", "model", "--out", str(out), "--iterations", "2", "--no-progress", "--set",
+                 "task.name=linear", "algorithm.batch_size=16", "algorithm.hidden_sizes=[8]", "run.eval_seeds=1",
+                 "algorithm.feedforward=lq"]) == 0
+    results = json.loads((out / "results.json").read_text())
+    assert results["feedforward"] == "lq"
+    assert abs(results["policy_gap"]["action_error"][0]) < ACTION_ATOL
+    assert abs(results["policy_gap_learned"]["action_error"][0]) > 1e-3
+    capsys.readouterr()
+    assert main(["evaluate", str(out), "--feedforward", "learned"]) == 0
+    printed = json.loads(capsys.readouterr().out)
+    assert printed["feedforward"] == "learned"
+    assert printed["policy_gap"]["action_error"] == pytest.approx(results["policy_gap_learned"]["action_error"])

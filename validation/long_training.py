@@ -20,8 +20,8 @@ from typing import Any
 import numpy as np
 import torch
 
-from mixedrl.checks import check_positive_int
 from mixedrl.config import TrainConfig
+from mixedrl.runs import PeriodicObserver
 
 __all__ = ["LongTrainingObserver", "long_training_observer", "discounted_cost", "policy_at_origin", "OBS_NAMES",
            "EVAL_SEEDS", "EVERY"]
@@ -59,9 +59,9 @@ def policy_at_origin(actor: torch.nn.Module, obs_dim: int) -> tuple[np.ndarray, 
     return u0.numpy().astype(float), jac.numpy().astype(float)
 
 
-class LongTrainingObserver:
+class LongTrainingObserver(PeriodicObserver):
     """The records of the module docstring every ``every`` iterations, as ``long/...`` metrics of the row
-    (an :class:`mixedrl.runs.IterationObserver`).
+    (a :class:`mixedrl.runs.PeriodicObserver`).
 
     Parameters
     ----------
@@ -70,15 +70,11 @@ class LongTrainingObserver:
     """
 
     def __init__(self, every: int = EVERY) -> None:
-        self.every = check_positive_int(every, "every")
+        super().__init__(every)
         self._starts: torch.Tensor | None = None
 
-    def before(self, trainer: Any) -> Any:
-        return None
-
-    def after(self, trainer: Any, token: Any, row: dict[str, float]) -> dict[str, float] | None:
-        if trainer.k % self.every != 0:
-            return None
+    def record(self, trainer: Any) -> dict[str, float]:
+        """The records after iteration ``trainer.k``."""
         task = trainer.task
         if self._starts is None:
             self._starts = task.sample_initial(1024, torch.Generator().manual_seed(12345))

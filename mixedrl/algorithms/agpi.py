@@ -49,11 +49,12 @@ from mixedrl.config import TrainConfig
 from mixedrl.algorithms.model_data import SAMPLER_CLASSES, has_course
 from mixedrl.envs.dlc_task import CourseSampler
 from mixedrl.expectation import expectation_nodes, h_value
-from mixedrl.networks import Actor, AffineActor, Critic, QuadraticCritic
+from mixedrl.networks import Actor, AffineActor, AnchoredActor, Critic, QuadraticCritic
 from mixedrl.noise import make_noise_source
 from mixedrl.pev import critic_loss, critic_step
 from mixedrl.pim import MVCResult, actor_objective, actor_step, mvc_check
 from mixedrl.tasks import Task, check_task
+from mixedrl.precision import equilibrium_observation, feedforward_action, feedforward_policy
 
 __all__ = [
     "AGPI",
@@ -73,13 +74,14 @@ logger = logging.getLogger(__name__)
 # ----------------------------------------------------------------------------------------------------
 # Algorithm 2
 # ----------------------------------------------------------------------------------------------------
-def build_networks(task: Task, config: TrainConfig, generator: torch.Generator, architecture: str = "mlp"
-                   ) -> tuple[torch.nn.Module, torch.nn.Module]:
+def build_networks(task: Task, config: TrainConfig, generator: torch.Generator, architecture: str = "mlp",
+                   anchor_obs: torch.Tensor | None = None) -> tuple[torch.nn.Module, torch.nn.Module]:
     """Critic ``V(x; w)`` and actor ``pi(x; theta)`` of eq. (48) for ``task``.
 
     ``architecture="mlp"``: :class:`~mixedrl.networks.Critic` and :class:`~mixedrl.networks.Actor`
-    (the same for every method); ``"quadratic"``: the exact LQ classes
-    :class:`~mixedrl.networks.QuadraticCritic` and :class:`~mixedrl.networks.AffineActor`.
+    (the same for every method; with ``anchor_obs`` the :class:`~mixedrl.networks.AnchoredActor` anchored
+    there, ``algorithm.feedforward = "lq_train"``, same parameters and draws); ``"quadratic"``: the exact LQ
+    classes :class:`~mixedrl.networks.QuadraticCritic` and :class:`~mixedrl.networks.AffineActor`.
     """
     if architecture == "quadratic":
         return (QuadraticCritic(task.obs_dim, generator), AffineActor(task.obs_dim, task.action_dim, generator))
@@ -87,8 +89,9 @@ def build_networks(task: Task, config: TrainConfig, generator: torch.Generator, 
         raise ValueError(f"architecture: expected 'mlp' or 'quadratic', got {architecture!r}")
     critic = Critic(task.obs_dim, config.algorithm.hidden_sizes, config.algorithm.activation, generator, task.obs_scale,
                     task.value_scale, config.algorithm.value_output)
-    actor = Actor(task.obs_dim, task.action_dim, config.algorithm.hidden_sizes, config.algorithm.activation, generator,
-                  task.action_bound, task.obs_scale)
+    args = (task.obs_dim, task.action_dim, config.algorithm.hidden_sizes, config.algorithm.activation, generator,
+            task.action_bound, task.obs_scale)
+    actor = Actor(*args) if anchor_obs is None else AnchoredActor(*args, anchor_obs=anchor_obs)
     return critic, actor
 
 
@@ -135,7 +138,21 @@ class AGPI:
         self.config = config
         self.architecture = architecture
         self.generator = torch.Generator().manual_seed(config.seed)
-        self.critic, self.actor = build_networks(task, config, self.generator, architecture)
+        # algorithm.feedforward "lq" / "lq_train": the equilibrium's LQ problem, checked here (a task without
+        # one is an error); "lq_train" trains the AnchoredActor (refresh_anchor)
+        feedforward = config.algorithm.feedforward
+        self._linearisation = None
+        if feedforward == "lq_train" and architecture != "mlp":
+            raise ValueError(f"algorithm.feedforward: 'lq_train' anchors the MLP actor; architecture "
+                             f"{architecture!r} has none (use architecture 'mlp', or feedforward 'learned' or 'lq')")
+        if feedforward != "learned":
+            self._linearisation = task.linearisation()
+            if self._linearisation is None:
+                raise ValueError(f"algorithm.feedforward: {feedforward!r} needs a task with an equilibrium "
+                                 f"(Task.equilibrium); task {getattr(task, 'name', type(task).__name__)!r} "
+                                 f"defines none")
+        anchor = equilibrium_observation(task, self._linearisation) if feedforward == "lq_train" else None
+        self.critic, self.actor = build_networks(task, config, self.generator, architecture, anchor)
         self.critic_opt = torch.optim.Adam(self.critic.parameters(), lr=config.algorithm.critic_lr)
         self.actor_opt = torch.optim.Adam(self.actor.parameters(), lr=config.algorithm.actor_lr)
         # Case 1 / 2 / 3 of the IBE (config.algorithm.ibe_case; mixed RL only)
@@ -166,6 +183,7 @@ class AGPI:
         if config.algorithm.actor_average > 0:
             self.actor_avg = AveragedModel(self.actor, multi_avg_fn=get_ema_multi_avg_fn(config.algorithm.actor_average),
                                            use_buffers=True)
+        self.refresh_anchor()
 
     # -------------------------------------------------------------------------------------- helpers
     @property
@@ -174,10 +192,34 @@ class AGPI:
         return self.config.algorithm.batch_weight_offset if self.config.algorithm.batch_weighting == "relative" else None
 
     @property
-    def policy(self) -> torch.nn.Module:
-        """The run's policy as a module on observations: the actor ``pi(x; theta)``, or its weight average
-        ``pi(x; theta_bar)`` when ``config.algorithm.actor_average > 0`` (what is evaluated, saved and deployed)."""
+    def learned_policy(self) -> torch.nn.Module:
+        """The learned policy: the actor ``pi(x; theta)``, or its weight average ``pi(x; theta_bar)`` when
+        ``config.algorithm.actor_average > 0``."""
         return self.actor_avg.module if self.actor_avg is not None else self.actor
+
+    def refresh_anchor(self) -> None:
+        """``algorithm.feedforward = "lq_train"``: anchor the actor (and its average) at the LQ optimum's
+        action ``u_ff`` for the current own noise moments (:func:`mixedrl.precision.feedforward_action`:
+        the IBE posterior, the prior or the truth); in place, so a batch's stacked buffers follow. Called at
+        construction, at the start of every iteration (before the actor is used) and at its end (so the
+        evaluated policy is anchored at the moments the next iteration plans with). Otherwise nothing."""
+        if not isinstance(self.actor, AnchoredActor):
+            return
+        u_ff = feedforward_action(self, self._linearisation, self.actor)
+        self.actor.set_anchor_action(u_ff)
+        if self.actor_avg is not None:
+            self.actor_avg.module.set_anchor_action(u_ff)
+
+    @property
+    def policy(self) -> torch.nn.Module:
+        """The run's policy as a module on observations (what is evaluated and deployed): the
+        :attr:`learned_policy`, or, with ``config.algorithm.feedforward = "lq"``, that policy shifted to the
+        discounted LQ optimum's action at the equilibrium for the current noise mean
+        (:func:`mixedrl.precision.feedforward_policy`); with ``"lq_train"`` the learned policy is the
+        anchored actor itself (:meth:`refresh_anchor`)."""
+        if self.config.algorithm.feedforward == "lq":
+            return feedforward_policy(self, self.learned_policy, self._linearisation)
+        return self.learned_policy
 
     def nodes(self, mean: np.ndarray, cov: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
         """Quadrature of ``N(mean, cov)`` with this run's rule (:func:`mixedrl.expectation.expectation_nodes`).
@@ -377,6 +419,7 @@ class AGPI:
         self.stopped = cfg.algorithm.stop_epsilon > 0 and self.stop_count >= cfg.algorithm.stop_patience
         if self.actor_avg is not None:  # theta_bar <- beta theta_bar + (1 - beta) theta^{k+1}
             self.actor_avg.update_parameters(self.actor)
+        self.refresh_anchor()
         self.k += 1
         self.last_batch = s
         metrics = {

@@ -69,8 +69,13 @@ def batch_key(config: Any) -> tuple[Any, ...] | None:
     """
     if config.method == "ddpg":
         return None
-    return (repr(config.task), config.run.num_threads) + tuple(repr(getattr(config.algorithm, f))
-                                                                for f in SHARED_FIELDS)
+    return (repr(config.task), config.run.num_threads, _anchored(config)) + tuple(
+        repr(getattr(config.algorithm, f)) for f in SHARED_FIELDS)
+
+
+def _anchored(config: Any) -> bool:
+    """Whether the run trains the anchored actor (``algorithm.feedforward = "lq_train"``: other buffers)."""
+    return config.algorithm.feedforward == "lq_train"
 
 
 class StackedNetwork:
@@ -89,7 +94,10 @@ class StackedNetwork:
     -----
     For ``R = 1`` the call is the module itself. For ``R > 1`` the stacked parameters are leaves of shape
     ``(R, ...)`` (:attr:`leaves`) and each module's parameters are rebound to their views, so a step on
-    the stacked tensors is a step of every module and the modules stay usable on their own.
+    the stacked tensors is a step of every module and the modules stay usable on their own. The buffers
+    are stacked too (:attr:`buffers`) and each module's buffers rebound to their views, so a change of a
+    module's buffer in place (the anchor of :class:`mixedrl.networks.AnchoredActor`) reaches the stacked
+    call.
     """
 
     def __init__(self, modules: Sequence[torch.nn.Module], batch: int) -> None:
@@ -105,6 +113,9 @@ class StackedNetwork:
             for name, p in module.named_parameters():
                 p.data = self.params[name].data[r]
         self.leaves = list(self.params.values())
+        for r, module in enumerate(self.modules):
+            for name, b in module.named_buffers():
+                b.data = self.buffers[name].data[r]
         base = copy.deepcopy(self.modules[0]).to("meta")
 
         def call(params: dict[str, torch.Tensor], buffers: dict[str, torch.Tensor], x: torch.Tensor) -> torch.Tensor:
@@ -155,6 +166,10 @@ def _check_members(members: Sequence[AGPI]) -> None:
                 raise ValueError(f"members: run {i} has algorithm.{f} = {getattr(m.config.algorithm, f)!r}, run 0 "
                                  f"{getattr(first.config.algorithm, f)!r}; the runs of a batch share "
                                  f"{', '.join(SHARED_FIELDS)}")
+        if _anchored(m.config) != _anchored(first.config):
+            raise ValueError(f"members: run {i} has algorithm.feedforward = {m.config.algorithm.feedforward!r}, run 0 "
+                             f"{first.config.algorithm.feedforward!r}; runs with 'lq_train' (the anchored actor) and "
+                             f"without it train in separate batches")
     if len({id(m) for m in members}) != len(members):
         raise ValueError("members: the same run appears twice")
 
@@ -272,6 +287,7 @@ class BatchedAGPI:
         residuals: list[torch.Tensor | None] = []
         for r, m in enumerate(self.members):
             if flags[r]:
+                m.refresh_anchor()  # algorithm.feedforward = "lq_train": u_ff of xi_hat_k, before the actor is used
                 set_learning_rates(m.config, m.k, m.critic_opt, m.actor_opt)
                 s_r, xi_r = m.collect()
                 batches.append(s_r)
