@@ -333,7 +333,8 @@ def feedforward_action(trainer: Any, lin: Linearisation, policy: torch.nn.Module
     """
     mean, cov = own_noise(trainer, lin, policy)
     if mean is None:
-        raise ValueError("algorithm.feedforward: 'lq' needs the method's noise model; this trainer has none")
+        raise ValueError("algorithm.feedforward: the LQ feed-forward needs the method's noise model; this trainer "
+                         "has none")
     return torch.as_tensor(lq_reference(lin, mean, cov).action)
 
 

@@ -871,7 +871,7 @@ def summarize(trainer: Any, rows: list[dict[str, Any]], elapsed: float, seeds: l
     results["policy_gap"], reason = run_policy_gap(trainer)
     if reason is not None:
         results["policy_gap_reason"] = reason
-    feedforward = getattr(cfg.algorithm, "feedforward", "learned")
+    feedforward = cfg.algorithm.feedforward
     if feedforward != "learned":
         # the evaluated policy's action at the equilibrium is the LQ optimum's by construction
         results["feedforward"] = feedforward

@@ -40,7 +40,7 @@ from mixedrl.algorithms.agpi import AGPI
 from mixedrl.envs.pendulum import PendulumTask
 from mixedrl.expectation import h_value
 from mixedrl.config import FEEDFORWARDS
-from mixedrl.runs import RunDirectory, atomic_write_text, evaluate_run, load_checkpoint, make_trainer
+from mixedrl.runs import RunDirectory, atomic_write_text, eval_seeds, load_checkpoint, make_trainer
 from mixedrl.tables import paired_interval
 from validation.lq import LQProblem, optimal_solution
 
@@ -101,7 +101,7 @@ def analyse(run_dir: Path, variant: str = "", feedforward: str | None = None) ->
 
     With ``feedforward`` the policy is the run's final actor with ``algorithm.feedforward = feedforward``
     (``"lq"``: shifted to the LQR's action at the upright for the method's own noise mean), evaluated again
-    on the run's evaluation seeds (:func:`mixedrl.runs.evaluate_run`)."""
+    on the run's evaluation seeds (:func:`mixedrl.runs.eval_seeds`, as :func:`mixedrl.runs.evaluate_run` does)."""
     run = RunDirectory(run_dir)
     config = run.read_config()
     res = run.read_results()
@@ -113,7 +113,7 @@ def analyse(run_dir: Path, variant: str = "", feedforward: str | None = None) ->
                          f"{config.task.name!r}, method = {config.method!r})")
     agent.load_state_dict(load_checkpoint(run.path / "checkpoint.pt")["trainer"])
     task = agent.task
-    ev = res["final"] if feedforward is None else evaluate_run(run_dir, feedforward=feedforward)["metrics"]
+    ev = res["final"] if feedforward is None else agent.evaluate(eval_seeds(config))
     zero = torch.zeros(1, 2)
     mean, _ = agent.noise_moments()
     L, l0, lqr_theta = lqr(task, mean)

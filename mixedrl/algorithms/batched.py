@@ -112,10 +112,9 @@ class StackedNetwork:
         for r, module in enumerate(self.modules):
             for name, p in module.named_parameters():
                 p.data = self.params[name].data[r]
-        self.leaves = list(self.params.values())
-        for r, module in enumerate(self.modules):
             for name, b in module.named_buffers():
                 b.data = self.buffers[name].data[r]
+        self.leaves = list(self.params.values())
         base = copy.deepcopy(self.modules[0]).to("meta")
 
         def call(params: dict[str, torch.Tensor], buffers: dict[str, torch.Tensor], x: torch.Tensor) -> torch.Tensor:
