@@ -103,7 +103,10 @@ MODEL_COURSE_STARTS = ("start", "along", "loop")
 BATCH_WEIGHTINGS = ("uniform", "relative")
 
 #: Where the policy takes its action at the equilibrium (``algorithm.feedforward``).
-FEEDFORWARDS = ("learned", "lq", "lq_train")
+FEEDFORWARDS = ("learned", "lq", "lq_train", "lq_affine")
+
+#: The ``algorithm.feedforward`` values that change the actor's class during training.
+ANCHORED_FEEDFORWARDS = ("lq_train", "lq_affine")
 
 
 def _law(value: Any, name: str) -> str:
@@ -469,8 +472,13 @@ class AlgorithmConfig:
     deployed. A departure from the paper too, off by default, the same for mixed, model and oracle
     (only the noise moments differ); needs ``architecture="mlp"``; runs with ``"lq_train"`` and runs without
     it are trained in separate batches (:func:`mixedrl.algorithms.batched.batch_key`). Algorithm 2 only
-    (DDPG has no noise model to take the mean from; it refuses ``"lq"`` and ``"lq_train"``), and only for
-    a task with an equilibrium."""
+    (DDPG has no noise model to take the mean from; it refuses every value but ``"learned"``), and only for
+    a task with an equilibrium. ``"lq_affine"`` = ``"lq_train"`` with the LQ optimum's feedback gain too:
+    ``u(o) = u_bar tanh(z* + G_z (o - o*) + MLP(o) - MLP(o*) - J_MLP(o*) (o - o*))``
+    (:class:`mixedrl.networks.AffineAnchoredActor`), so the policy is the discounted LQ optimum's affine
+    policy to first order at the equilibrium (``u(o*) = u_ff``, ``du/dx = -L``,
+    :func:`mixedrl.precision.equilibrium_gain`) and training shapes only the terms of second and higher
+    order; it needs observations that determine the linearisation's coordinates there."""
 
     def __post_init__(self) -> None:
         w = "algorithm"

@@ -33,7 +33,7 @@ from mixedrl.quadratic import AffinePolicy, LinearDynamics, QuadraticCost
 from mixedrl.tasks import Linearisation, Task
 
 __all__ = ["LQReference", "lq_reference", "policy_gap", "run_policy_gap", "own_noise", "FeedForwardPolicy",
-           "feedforward_policy", "equilibrium_observation",
+           "feedforward_policy", "equilibrium_observation", "equilibrium_gain",
            "feedforward_action", "gap_summary", "format_policy_gap", "VALUE_NOTE"]
 
 #: What the ``value`` entries of :func:`policy_gap` compare (also in ``results.json``).
@@ -163,7 +163,9 @@ def policy_gap(task: Task, policy: torch.nn.Module, noise_mean: Any, noise_cov: 
     dict or None
         ``None`` if the task has no equilibrium; else JSON-ready lists and floats:
         ``action``, ``optimum_action``, ``action_error``, ``optimum_action_true_mean``,
-        ``action_error_true_mean`` (each (action_dim,)), ``max_abs_action_error``, ``noise_mean``,
+        ``action_error_true_mean`` (each (action_dim,)), ``max_abs_action_error``, ``gain`` (the policy's
+        ``du/dx`` at ``x = 0``, (action_dim, n)), ``optimum_gain`` (``-L``), ``gain_error_rel``
+        (``||gain + L|| / ||L||``, Frobenius), ``noise_mean``,
         ``true_mean``, ``optimum_steady_state`` (the optimum's ``x_ss``), ``state`` and ``observation`` at
         the equilibrium, ``value``, ``optimum_value``, ``linearised_policy_value``, ``value_regret``
         (``None`` where not available, e.g. a linearised policy that does not stabilise the LQ problem),
@@ -213,6 +215,9 @@ def policy_gap(task: Task, policy: torch.nn.Module, noise_mean: Any, noise_cov: 
         "optimum_action_true_mean": truth.action.tolist(),
         "action_error_true_mean": err_true.tolist(),
         "max_abs_action_error": float(np.max(np.abs(err))),
+        "gain": J.tolist(),
+        "optimum_gain": (-own.solution.gain).tolist(),
+        "gain_error_rel": float(np.linalg.norm(J + own.solution.gain) / max(np.linalg.norm(own.solution.gain), 1e-300)),
         "optimum_steady_state": own.steady_state.tolist(),
         "value": v,
         "optimum_value": c if math.isfinite(c) else None,
@@ -320,6 +325,36 @@ def feedforward_policy(trainer: Any, policy: torch.nn.Module, lin: Linearisation
 def equilibrium_observation(task: Task, lin: Linearisation) -> torch.Tensor:
     """``o* = task.observe(s*)`` at the equilibrium of ``lin``, shape (obs_dim,) float32."""
     return task.observe(lin.to_state(torch.zeros(1, lin.A.shape[0], dtype=torch.float64)).float())[0]
+
+
+def equilibrium_gain(task: Task, lin: Linearisation) -> torch.Tensor:
+    """The LQ optimum's feedback gain in observation coordinates at the equilibrium (``"lq_affine"``).
+
+    .. math:: G = -L\\, J_o^{+}, \\qquad J_o = \\frac{\\partial\\, o(s(x))}{\\partial x}\\Big|_{x=0}
+
+    (``L`` of :func:`lq_reference`, which does not depend on the noise; ``J_o^+`` the pseudo-inverse), so
+    a policy with ``du/do (o*) = G`` has ``du/dx (0) = G J_o = -L``: the optimum's gain, when the
+    observation determines the coordinates to first order (``J_o`` of full column rank).
+
+    Returns
+    -------
+    torch.Tensor, shape (action_dim, obs_dim), float64
+
+    Raises
+    ------
+    ValueError
+        If ``J_o`` is not of full column rank (the message names ``algorithm.feedforward``), or as
+        :func:`lq_reference`.
+    """
+    n = lin.A.shape[0]
+    J_o = torch.func.jacrev(lambda x: task.observe(lin.to_state(x[None]))[0])(
+        torch.zeros(n, dtype=torch.float64)).detach().double().numpy()
+    if np.linalg.matrix_rank(J_o) < n:
+        raise ValueError(f"algorithm.feedforward: 'lq_affine' needs observations that determine the "
+                         f"linearisation's {n} coordinates at the equilibrium; d o / d x there has rank "
+                         f"{np.linalg.matrix_rank(J_o)}")
+    L = lq_reference(lin, np.zeros(lin.E.shape[1])).solution.gain
+    return torch.as_tensor(-L @ np.linalg.pinv(J_o))
 
 
 def feedforward_action(trainer: Any, lin: Linearisation, policy: torch.nn.Module | None = None) -> torch.Tensor:

@@ -62,7 +62,7 @@ from mixedrl.checkpoint import (atomic_write_bytes, atomic_write_text, convert_c
                                 digest_path, is_temporary, load_checkpoint, save_checkpoint, verify_digest,
                                 write_with_digest)
 from mixedrl.checks import check_positive_int
-from mixedrl.config import TrainConfig, flatten_table, task_names
+from mixedrl.config import ANCHORED_FEEDFORWARDS, TrainConfig, flatten_table, task_names
 from mixedrl.precision import run_policy_gap
 from mixedrl.tasks import Task, task_from_config
 from mixedrl.tensorboard import TB_DIR, TensorBoardLogger
@@ -431,8 +431,8 @@ def evaluate_run(path: str | Path, *, seeds: int | None = None, feedforward: str
     feedforward : str, optional
         Evaluate with this ``algorithm.feedforward`` instead of the run's (``"lq"``: the actor shifted to
         the LQ optimum's action at the equilibrium for the method's own noise mean). Training does not
-        read ``"lq"``, so this evaluates what the run would have deployed with it; ``"lq_train"`` changes
-        training and is refused unless it is the run's own.
+        read ``"lq"``, so this evaluates what the run would have deployed with it; ``"lq_train"`` and
+        ``"lq_affine"`` change training and are refused unless they are the run's own.
     task : Task, optional
         The task object of a user's own task (not rebuilt from the config).
 
@@ -455,8 +455,10 @@ def evaluate_run(path: str | Path, *, seeds: int | None = None, feedforward: str
     if seeds is not None:
         config = config.replace(**{"run.eval_seeds": seeds})
     if feedforward is not None:
-        if "lq_train" in (feedforward, config.algorithm.feedforward) and feedforward != config.algorithm.feedforward:
-            raise ValueError(f"feedforward: 'lq_train' is a training-time policy class (the anchored actor); the run "
+        trained = {feedforward, config.algorithm.feedforward} & set(ANCHORED_FEEDFORWARDS)
+        if trained and feedforward != config.algorithm.feedforward:
+            raise ValueError(f"feedforward: {sorted(trained)[0]!r} is a training-time policy class (an anchored "
+                             f"actor); the run "
                              f"was trained with algorithm.feedforward = {config.algorithm.feedforward!r}, it cannot be "
                              f"evaluated with {feedforward!r}")
         config = config.replace(**{"algorithm.feedforward": feedforward})

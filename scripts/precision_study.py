@@ -40,6 +40,7 @@ from mixedrl.algorithms.agpi import AGPI
 from mixedrl.envs.pendulum import PendulumTask
 from mixedrl.expectation import h_value
 from mixedrl.config import FEEDFORWARDS
+from mixedrl.precision import equilibrium_gain, equilibrium_observation, lq_reference
 from mixedrl.runs import RunDirectory, atomic_write_text, eval_seeds, load_checkpoint, make_trainer
 from mixedrl.tables import paired_interval
 from validation.lq import LQProblem, optimal_solution
@@ -130,7 +131,8 @@ def analyse(run_dir: Path, variant: str = "", feedforward: str | None = None) ->
                 bellman_steps=config.algorithm.bellman_steps, cost=ev["cost"], theta=ev["mean_state_0"],
                 terminated=ev["terminated_fraction"], u0=u0, u_lqr0=float(-l0[0]), u_h0=uh0, dhdu0=g0,
                 lqr_theta=lqr_theta, tau_hat=float(task.torque_from_xi(mean[0])), s_star=float(ss[0, 0]),
-                u_ss=uss, u_h_ss=uhs, dhdu_ss=gs, u_lqr_ss=ulqr_ss, seconds=res["train_seconds"])
+                u_ss=uss, u_h_ss=uhs, dhdu_ss=gs, u_lqr_ss=ulqr_ss, seconds=res["train_seconds"],
+                gain_error_rel=(res.get("policy_gap") or {}).get("gain_error_rel"))
 
 
 def format_row(r: dict[str, Any]) -> str:
@@ -170,6 +172,10 @@ def summarize_rows(rows: list[dict[str, Any]], task: PendulumTask | None = None)
                              "distance_to_lqr_mean": float(dist.mean()), "distance_to_lqr_max": float(dist.max()),
                              "within_target": int((dist <= tol).sum()), "n": len(theta),
                              "cost_mean": float(cost.mean()), "cost_max": float(cost.max())}
+        gains = [runs[k].get("gain_error_rel") for k in sorted(runs)]
+        if all(g is not None for g in gains):  # runs written before policy_gap reported the gain have none
+            out["methods"][m]["gain_error_rel_mean"] = float(np.mean(gains))
+            out["methods"][m]["gain_error_rel_max"] = float(np.max(gains))
     if "mixed" in by_method and "model" in by_method:
         common = sorted(set(by_method["mixed"]) & set(by_method["model"]))
         a = [by_method["mixed"][k]["cost"] for k in common]
@@ -192,13 +198,84 @@ def format_summary(summary: dict[str, Any]) -> list[str]:
         lines.append(f"  {m:<7} theta* {e['theta_mean']:+.4f} ± {e['theta_std']:.4f} [{e['theta_min']:+.4f}, "
                      f"{e['theta_max']:+.4f}] rad; |theta* - LQR| mean {e['distance_to_lqr_mean']:.4f}, worst "
                      f"{e['distance_to_lqr_max']:.4f}; within target on {e['within_target']} of {e['n']}; cost mean "
-                     f"{e['cost_mean']:.3f}, worst {e['cost_max']:.3f}")
+                     f"{e['cost_mean']:.3f}, worst {e['cost_max']:.3f}"
+                     + (f"; gain ||du/dx + L|| / ||L|| mean {e['gain_error_rel_mean']:.3f}, worst "
+                        f"{e['gain_error_rel_max']:.3f}" if "gain_error_rel_mean" in e else ""))
     pair = summary.get("mixed_minus_model")
     if pair:
         lo, hi = pair["cost_difference_ci"]
         ci = "n/a" if lo is None or hi is None else f"{lo:+.3f}, {hi:+.3f}"
         lines.append(f"  mixed - model cost {pair['cost_difference']:+.3f} [{ci}]; mixed better on cost "
                      f"on {pair['cost_wins']} of {pair['n']}, closer to the LQR's offset on {pair['offset_wins']}")
+    return lines
+
+
+class LQRPolicy(torch.nn.Module):
+    """The discounted LQR on the linearisation with a noise mean's feed-forward, as a policy on observations:
+    ``u = u_ff + G (o - o*)`` clipped to the bound (``u_ff``, ``G``: :func:`mixedrl.precision.lq_reference`,
+    :func:`mixedrl.precision.equilibrium_gain`); the first-order part of ``algorithm.feedforward =
+    "lq_affine"``'s actor, without its remainder (the MLP's terms and the ``tanh``'s curvature)."""
+
+    def __init__(self, task: PendulumTask, mean: np.ndarray) -> None:
+        super().__init__()
+        lin = task.linearisation()
+        self.register_buffer("u_ff", torch.as_tensor(lq_reference(lin, mean).action, dtype=torch.float32))
+        self.register_buffer("gain", equilibrium_gain(task, lin).float())
+        self.register_buffer("o_star", equilibrium_observation(task, lin))
+        self.register_buffer("bound", torch.as_tensor(task.action_bound, dtype=torch.float32))
+
+    def forward(self, obs: torch.Tensor) -> torch.Tensor:
+        u = self.u_ff + (obs - self.o_star) @ self.gain.T
+        return torch.maximum(torch.minimum(u, self.bound), -self.bound)
+
+
+def lqr_yardstick(run_dir: Path) -> dict[str, Any]:
+    """The LQR with the true mean and with the prior's (:class:`LQRPolicy`) evaluated like the run
+    (its task and evaluation seeds, which depend on the run's seed): cost and steady offset ``theta*`` by
+    the same evaluator."""
+    config = RunDirectory(run_dir).read_config()
+    task = make_trainer(config).task
+    out = {}
+    for name, mean in (("true_mean", task.true_mean), ("prior_mean", task.prior_mean)):
+        ev = task.evaluate(LQRPolicy(task, np.asarray(mean, dtype=np.float64)), eval_seeds(config))
+        out[name] = {"cost": ev["cost"], "theta": ev["mean_state_0"], "terminated": ev["terminated_fraction"]}
+    return out
+
+
+def lqr_summary(rows: list[dict[str, Any]]) -> dict[str, Any]:
+    """Over the runs' evaluation seeds: the two LQRs' mean cost and ``theta*``, and per method the paired
+    cost difference method - LQR (true mean, then prior mean) with its interval and the seeds where the
+    method is cheaper."""
+    seeds = sorted({r["seed"] for r in rows})
+    first = {r["seed"]: r["lqr_evaluated"] for r in rows}
+    out: dict[str, Any] = {k: {"cost_mean": float(np.mean([first[s][k]["cost"] for s in seeds])),
+                               "theta_mean": float(np.mean([first[s][k]["theta"] for s in seeds])),
+                               "terminated_max": float(np.max([first[s][k]["terminated"] for s in seeds]))}
+                           for k in ("true_mean", "prior_mean")}
+    out["methods"] = {}
+    for m in sorted({r["method"] for r in rows}):
+        runs = sorted((r for r in rows if r["method"] == m), key=lambda r: r["seed"])
+        entry = {}
+        for k in ("true_mean", "prior_mean"):
+            a = [r["cost"] for r in runs]
+            b = [r["lqr_evaluated"][k]["cost"] for r in runs]
+            diff, lo, hi = paired_interval(a, b)
+            entry[k] = {"cost_difference": diff, "cost_difference_ci": [lo, hi],
+                        "cheaper": int(sum(x < y for x, y in zip(a, b))), "n": len(a)}
+        out["methods"][m] = entry
+    return out
+
+
+def format_lqr_summary(yard: dict[str, Any]) -> list[str]:
+    """Text lines of :func:`lqr_summary`."""
+    lines = [f"  LQR evaluated like the runs (each run's evaluation seeds), {k.replace('_', ' ')}: cost "
+             f"{yard[k]['cost_mean']:.3f}, theta* {yard[k]['theta_mean']:+.4f} rad, fell at most "
+             f"{yard[k]['terminated_max']:.2f}" for k in ("true_mean", "prior_mean")]
+    for m, e in yard["methods"].items():
+        lines.append(f"  {m:<7} cost - LQR(true mean) " + ", ".join(
+            f"{'' if k == 'true_mean' else 'LQR(prior mean) '}{e[k]['cost_difference']:+.3f} "
+            f"[{e[k]['cost_difference_ci'][0]:+.3f}, {e[k]['cost_difference_ci'][1]:+.3f}], cheaper on "
+            f"{e[k]['cheaper']} of {e[k]['n']}" for k in ("true_mean", "prior_mean")))
     return lines
 
 
@@ -216,10 +293,16 @@ def ship(args: argparse.Namespace) -> None:
     lines = [" | ".join(HEADER), " | ".join("---" for _ in HEADER)] + [format_row(r) for r in rows]
     variants = sorted({r["variant"] for r in rows})
     summaries = {v: summarize_rows([r for r in rows if r["variant"] == v]) for v in variants}
+    if args.lqr:  # per run: the LQRs on that run's evaluation seeds (they depend on the run's seed)
+        for rec, row in zip(finished, rows):
+            row["lqr_evaluated"] = lqr_yardstick(args.sweep_dir / rec["run_dir"])
     for v in variants:
         lines += ["", f"Summary{' of variant ' + v if v else ''}"
                       f"{' (feedforward = ' + args.feedforward + ')' if args.feedforward else ''}:"]
         lines += format_summary(summaries[v])
+        if args.lqr:
+            summaries[v]["lqr_evaluated"] = yard = lqr_summary([r for r in rows if r["variant"] == v])
+            lines += format_lqr_summary(yard)
     print("\n".join(lines))
     args.dest.mkdir(parents=True, exist_ok=True)
     atomic_write_text(args.dest / "rows.json", json.dumps(rows, indent=1) + "\n")
@@ -235,6 +318,9 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--dest", type=Path, default=OUT)
     p.add_argument("--feedforward", choices=FEEDFORWARDS, default=None,
                    help="analyse each final actor with this algorithm.feedforward (evaluated again)")
+    p.add_argument("--lqr", action="store_true",
+                   help="also evaluate the LQR with the true and the prior mean like the runs (summary "
+                        "'lqr_evaluated')")
     p.set_defaults(func=ship)
     args = parser.parse_args(argv)
     args.func(args)

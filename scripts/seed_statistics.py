@@ -87,6 +87,7 @@ def load_rows(sweep: Path, feedforward: str | None = None) -> dict[str, list[dic
             "delta_error": None if err[0] is None else abs(err[0]),
             "ax": (gap.get("action") or [None, None])[1], "ax_optimum": (gap.get("optimum_action") or [None, None])[1],
             "ax_error_learned": None if learned_err is None else abs(learned_err),
+            "gain_error_rel": gap.get("gain_error_rel"),
             "trained_feedforward": res.get("feedforward", "learned"),
             "left_road": res.get("final", {}).get("terminated"), "iterations": res["iterations"],
             "batch_size_runs": res.get("batch_size_runs", 1)})
@@ -170,7 +171,8 @@ def format_table(rows: dict[str, list[dict[str, Any]]], stats: dict[str, Any], f
     trained = sorted({r["trained_feedforward"] for runs in rows.values() for r in runs} - {"learned"})
     if trained:
         lines.append(f"Runs trained with algorithm.feedforward = {', '.join(map(repr, trained))} ('lq_train': the actor "
-                     f"anchored at the LQ optimum's action at the equilibrium during training)")
+                     f"anchored at the LQ optimum's action at the equilibrium during training; 'lq_affine': at its "
+                     f"action and gain)")
     lines.append("")
     head = f"{'method':<22}" + "".join(f"{f + (' [' + UNITS[f] + ']' if UNITS[f] else ''):>36}" for f in FIGURES[:3])
     lines += [head, "-" * len(head)]
@@ -194,6 +196,11 @@ def format_table(rows: dict[str, list[dict[str, Any]]], stats: dict[str, Any], f
                 own = [r["ax_error_learned"] for r in rows[m] if r["ax_error_learned"] is not None]
                 lines.append(f"  {'':<22} (the learned actor's own a_x error: {np.mean(own):.4f}, worst "
                              f"{np.max(own):.4f} m/s^2)")
+    gains = {m: [r["gain_error_rel"] for r in rows[m]] for m in METHODS if m in rows}
+    if gains and all(v is not None for vals in gains.values() for v in vals):
+        lines += ["", "Gain at the equilibrium against the LQ optimum's (||du/dx + L|| / ||L||, policy_gap): "
+                  "mean, worst seed"]
+        lines += [f"  {LABELS[m]:<22} {np.mean(v):.4f}, worst {np.max(v):.4f}" for m, v in gains.items()]
     lines += ["", "Paired over the same seeds (first - second; wins: seeds where the first is smaller):"]
     for key, pair in stats["pairs"].items():
         a, b = key.split("-")

@@ -1,4 +1,4 @@
-"""``algorithm.feedforward = "lq_train"`` (a departure): the anchored actor as the policy class of training.
+"""``algorithm.feedforward = "lq_train"`` / ``"lq_affine"`` (departures): anchored actors as the policy class of training.
 
 ``u(o) = u_bar tanh(MLP(o) - MLP(o*) + atanh(u_ff / u_bar))`` with ``u_ff`` the discounted LQ optimum's action
 for the run's own noise moments, refreshed at the start of every iteration. What is checked: the anchor holds
@@ -27,9 +27,13 @@ from mixedrl.tasks import LinearTask
 ATOL = 1e-5
 
 
-def _cfg(method: str, seed: int = 0, **algorithm: object) -> TrainConfig:
+#: The anchored policy classes (``"lq_affine"`` adds the LQ gain; tests/test_lq_affine.py checks the gain).
+ANCHORED = ["lq_train", "lq_affine"]
+
+
+def _cfg(method: str, seed: int = 0, feedforward: str = "lq_train", **algorithm: object) -> TrainConfig:
     return TrainConfig(method=method, task="linear", seed=seed,
-                       algorithm={"batch_size": 16, "hidden_sizes": (8,), "feedforward": "lq_train", **algorithm},
+                       algorithm={"batch_size": 16, "hidden_sizes": (8,), "feedforward": feedforward, **algorithm},
                        run={"eval_every": 1000, "checkpoint_every": 1000, "eval_seeds": 1})
 
 
@@ -54,9 +58,10 @@ def _record_at_collect(trainer: AGPI, log: list[tuple[np.ndarray, np.ndarray, np
     trainer.collect = wrapped  # type: ignore[method-assign]
 
 
+@pytest.mark.parametrize("feedforward", ANCHORED)
 @pytest.mark.parametrize("method", ["mixed", "model", "oracle"])
-def test_the_actor_takes_the_lq_action_of_each_iterations_moments(method: str) -> None:
-    trainer = make_trainer(_cfg(method))
+def test_the_actor_takes_the_lq_action_of_each_iterations_moments(method: str, feedforward: str) -> None:
+    trainer = make_trainer(_cfg(method, feedforward=feedforward))
     assert isinstance(trainer.actor, AnchoredActor) and trainer.policy is trainer.actor
     log: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
     _record_at_collect(trainer, log)
@@ -100,15 +105,16 @@ def test_the_anchored_actor_is_smooth_bounded_and_draws_like_the_actor() -> None
     assert set(anchored.state_dict()) == set(plain.state_dict()) | {"anchor_obs", "anchor_z"}
 
 
-def test_a_batch_anchors_each_run_at_its_own_noise_and_keeps_the_bits() -> None:
+@pytest.mark.parametrize("feedforward", ANCHORED)
+def test_a_batch_anchors_each_run_at_its_own_noise_and_keeps_the_bits(feedforward: str) -> None:
     """Three methods in one batch (R = 3): the stacked anchors follow each run's refresh; a run has the
     same bits in two compositions (as a plain run does, tests/test_batched.py)."""
-    runs = [make_trainer(_cfg(m, seed)) for m, seed in (("mixed", 0), ("model", 1), ("oracle", 2))]
+    runs = [make_trainer(_cfg(m, seed, feedforward)) for m, seed in (("mixed", 0), ("model", 1), ("oracle", 2))]
     logs: list[list] = [[] for _ in runs]
     for t, log in zip(runs, logs):
         _record_at_collect(t, log)
     engine = BatchedAGPI(runs)
-    other = BatchedAGPI([make_trainer(_cfg("oracle", 5)), make_trainer(_cfg("mixed", 0))])
+    other = BatchedAGPI([make_trainer(_cfg("oracle", 5, feedforward)), make_trainer(_cfg("mixed", 0, feedforward))])
     o = equilibrium_observation(runs[0].task, runs[0].task.linearisation())
     for _ in range(4):
         engine.iteration()
@@ -133,13 +139,17 @@ def test_lq_train_and_other_runs_train_in_separate_batches() -> None:
     lq = plain.replace(**{"algorithm.feedforward": "lq"})
     assert batch_key(plain) == batch_key(lq) != batch_key(_cfg("mixed"))
     assert batch_key(_cfg("mixed")) == batch_key(_cfg("model", 3))
+    affine = _cfg("mixed", feedforward="lq_affine")
+    assert batch_key(affine) == batch_key(_cfg("oracle", 2, "lq_affine")) not in (batch_key(plain), batch_key(_cfg("mixed")))
     with pytest.raises(ValueError, match="algorithm.feedforward = 'lq_train'"):
         BatchedAGPI([make_trainer(plain), make_trainer(_cfg("mixed", 1))])
+    with pytest.raises(ValueError, match="train in batches of their own kind"):
+        BatchedAGPI([make_trainer(_cfg("mixed", 1)), make_trainer(affine)])
 
 
-@pytest.mark.parametrize("method", ["mixed", "model"])
-def test_resume_equals_uninterrupted(tmp_path: Path, method: str) -> None:
-    cfg = _cfg(method, iterations=12).replace(**{"run.checkpoint_every": 4})
+@pytest.mark.parametrize("method,feedforward", [("mixed", "lq_train"), ("model", "lq_train"), ("mixed", "lq_affine")])
+def test_resume_equals_uninterrupted(tmp_path: Path, method: str, feedforward: str) -> None:
+    cfg = _cfg(method, feedforward=feedforward, iterations=12).replace(**{"run.checkpoint_every": 4})
     full = make_trainer(cfg)
     train(full, RunDirectory(tmp_path / "full"), progress=False)
     out = train(make_trainer(cfg), RunDirectory(tmp_path / "cut"), stop_after=7, progress=False)
@@ -155,7 +165,7 @@ def test_resume_equals_uninterrupted(tmp_path: Path, method: str) -> None:
                      for r in RunDirectory(tmp_path / "cut").read_metrics()]
     results = evaluate_run(tmp_path / "cut")
     assert max(abs(e) for e in results["policy_gap"]["action_error"]) < ATOL
-    with pytest.raises(ValueError, match="'lq_train' is a training-time"):
+    with pytest.raises(ValueError, match=f"'{feedforward}' is a training-time"):
         evaluate_run(tmp_path / "cut", feedforward="lq")
 
 

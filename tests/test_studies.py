@@ -335,3 +335,41 @@ def test_analyses_with_the_lq_feedforward_evaluate_the_same_checkpoints_again(tm
         assert float(b["ax_error"]) < 1e-5 < float(a["ax_error"]) == float(b["ax_error_learned"])
         assert b["lateral_mae"] != a["lateral_mae"]  # evaluated again, with the shifted policy
     assert "algorithm.feedforward = 'lq'" in (tmp_path / "stats2" / "table.txt").read_text()
+
+
+def _run_script(name: str, *args: object) -> subprocess.CompletedProcess:
+    """``python scripts/NAME ARGS`` from the repository root, with the repository on the path."""
+    return subprocess.run([sys.executable, str(ROOT / "scripts" / name), *map(str, args)], capture_output=True,
+                          text=True, cwd=ROOT, env={**os.environ, "PYTHONPATH": str(ROOT)}, timeout=600)
+
+
+def test_precision_study_lqr_yardstick_is_the_lq_optimums_affine_policy(tmp_path: Path) -> None:
+    """precision_study.py ship --lqr on an "lq_affine" pendulum sweep: the LQR is evaluated on each run's own
+    evaluation seeds and summarised per method; the yardstick policy has the optimum's action and gain at
+    the equilibrium; the gain of every lq_affine run is the LQR's."""
+    spec = parse_spec('methods = ["mixed", "oracle"]\nseeds = [0, 1]\n[base]\n"task.name" = "pendulum"\n'
+                      '"algorithm.feedforward" = "lq_affine"\n"algorithm.iterations" = 2\n"algorithm.batch_size" = 16\n'
+                      '"run.eval_every" = 2\n"run.eval_seeds" = 1\n')
+    run_sweep(spec, tmp_path / "sweep", workers=1, progress=False)
+    proc = _run_script("precision_study.py", "ship", tmp_path / "sweep", "--lqr", "--dest", tmp_path / "pend")
+    assert proc.returncode == 0, proc.stderr
+    rows = json.loads((tmp_path / "pend" / "rows.json").read_text())
+    yard = json.loads((tmp_path / "pend" / "summary.json").read_text())[""]["lqr_evaluated"]
+    by_seed = {r["seed"]: r["lqr_evaluated"]["true_mean"]["cost"] for r in rows}
+    assert by_seed[0] != by_seed[1]  # each run's own evaluation seeds
+    assert yard["true_mean"]["cost_mean"] == pytest.approx(np.mean(list(by_seed.values())), rel=1e-12)
+    assert yard["methods"].keys() == {"mixed", "oracle"} and yard["methods"]["oracle"]["true_mean"]["n"] == 2
+    for r in rows:
+        assert r["gain_error_rel"] < 1e-5
+    # the yardstick policy is the LQ optimum's affine policy: its action and gain at the equilibrium
+    import importlib.util
+    mod_spec = importlib.util.spec_from_file_location("precision_study", ROOT / "scripts" / "precision_study.py")
+    mod = importlib.util.module_from_spec(mod_spec)
+    mod_spec.loader.exec_module(mod)
+    from mixedrl.envs.pendulum import PendulumTask
+    from mixedrl.precision import policy_gap
+    task = PendulumTask()
+    gap = policy_gap(task, mod.LQRPolicy(task, task.true_mean), task.true_mean)
+    assert max(abs(e) for e in gap["action_error"]) < 1e-6 and gap["gain_error_rel"] < 1e-6
+    prior = policy_gap(task, mod.LQRPolicy(task, task.prior_mean), task.true_mean)
+    assert max(abs(e) for e in prior["action_error"]) > 0.1  # the prior's LQR has another feed-forward

@@ -45,16 +45,16 @@ import numpy as np
 import torch
 from torch.optim.swa_utils import AveragedModel, get_ema_multi_avg_fn
 
-from mixedrl.config import TrainConfig
+from mixedrl.config import ANCHORED_FEEDFORWARDS, TrainConfig
 from mixedrl.algorithms.model_data import SAMPLER_CLASSES, has_course
 from mixedrl.envs.dlc_task import CourseSampler
 from mixedrl.expectation import expectation_nodes, h_value
-from mixedrl.networks import Actor, AffineActor, AnchoredActor, Critic, QuadraticCritic
+from mixedrl.networks import Actor, AffineActor, AffineAnchoredActor, AnchoredActor, Critic, QuadraticCritic
 from mixedrl.noise import make_noise_source
 from mixedrl.pev import critic_loss, critic_step
 from mixedrl.pim import MVCResult, actor_objective, actor_step, mvc_check
 from mixedrl.tasks import Task, check_task
-from mixedrl.precision import equilibrium_observation, feedforward_action, feedforward_policy
+from mixedrl.precision import equilibrium_gain, equilibrium_observation, feedforward_action, feedforward_policy
 
 __all__ = [
     "AGPI",
@@ -75,12 +75,14 @@ logger = logging.getLogger(__name__)
 # Algorithm 2
 # ----------------------------------------------------------------------------------------------------
 def build_networks(task: Task, config: TrainConfig, generator: torch.Generator, architecture: str = "mlp",
-                   anchor_obs: torch.Tensor | None = None) -> tuple[torch.nn.Module, torch.nn.Module]:
+                   anchor_obs: torch.Tensor | None = None, anchor_gain: torch.Tensor | None = None
+                   ) -> tuple[torch.nn.Module, torch.nn.Module]:
     """Critic ``V(x; w)`` and actor ``pi(x; theta)`` of eq. (48) for ``task``.
 
     ``architecture="mlp"``: :class:`~mixedrl.networks.Critic` and :class:`~mixedrl.networks.Actor`
     (the same for every method; with ``anchor_obs`` the :class:`~mixedrl.networks.AnchoredActor` anchored
-    there, ``algorithm.feedforward = "lq_train"``, same parameters and draws); ``"quadratic"``: the exact LQ
+    there, ``algorithm.feedforward = "lq_train"``, same parameters and draws; with ``anchor_gain`` too the
+    :class:`~mixedrl.networks.AffineAnchoredActor`, ``"lq_affine"``); ``"quadratic"``: the exact LQ
     classes :class:`~mixedrl.networks.QuadraticCritic` and :class:`~mixedrl.networks.AffineActor`.
     """
     if architecture == "quadratic":
@@ -91,7 +93,12 @@ def build_networks(task: Task, config: TrainConfig, generator: torch.Generator, 
                     task.value_scale, config.algorithm.value_output)
     args = (task.obs_dim, task.action_dim, config.algorithm.hidden_sizes, config.algorithm.activation, generator,
             task.action_bound, task.obs_scale)
-    actor = Actor(*args) if anchor_obs is None else AnchoredActor(*args, anchor_obs=anchor_obs)
+    if anchor_obs is None:
+        actor: torch.nn.Module = Actor(*args)
+    elif anchor_gain is None:
+        actor = AnchoredActor(*args, anchor_obs=anchor_obs)
+    else:
+        actor = AffineAnchoredActor(*args, anchor_obs=anchor_obs, gain=anchor_gain)
     return critic, actor
 
 
@@ -138,12 +145,13 @@ class AGPI:
         self.config = config
         self.architecture = architecture
         self.generator = torch.Generator().manual_seed(config.seed)
-        # algorithm.feedforward "lq" / "lq_train": the equilibrium's LQ problem, checked here (a task without
-        # one is an error); "lq_train" trains the AnchoredActor (refresh_anchor)
+        # algorithm.feedforward "lq" / "lq_train" / "lq_affine": the equilibrium's LQ problem, checked here (a
+        # task without one is an error); "lq_train" trains the AnchoredActor, "lq_affine" the
+        # AffineAnchoredActor (refresh_anchor)
         feedforward = config.algorithm.feedforward
         self._linearisation = None
-        if feedforward == "lq_train" and architecture != "mlp":
-            raise ValueError(f"algorithm.feedforward: 'lq_train' anchors the MLP actor; architecture "
+        if feedforward in ANCHORED_FEEDFORWARDS and architecture != "mlp":
+            raise ValueError(f"algorithm.feedforward: {feedforward!r} anchors the MLP actor; architecture "
                              f"{architecture!r} has none (use architecture 'mlp', or feedforward 'learned' or 'lq')")
         if feedforward != "learned":
             self._linearisation = task.linearisation()
@@ -151,8 +159,10 @@ class AGPI:
                 raise ValueError(f"algorithm.feedforward: {feedforward!r} needs a task with an equilibrium "
                                  f"(Task.equilibrium); task {getattr(task, 'name', type(task).__name__)!r} "
                                  f"defines none")
-        anchor = equilibrium_observation(task, self._linearisation) if feedforward == "lq_train" else None
-        self.critic, self.actor = build_networks(task, config, self.generator, architecture, anchor)
+        anchor = (equilibrium_observation(task, self._linearisation) if feedforward in ANCHORED_FEEDFORWARDS
+                  else None)
+        gain = equilibrium_gain(task, self._linearisation) if feedforward == "lq_affine" else None
+        self.critic, self.actor = build_networks(task, config, self.generator, architecture, anchor, gain)
         self.critic_opt = torch.optim.Adam(self.critic.parameters(), lr=config.algorithm.critic_lr)
         self.actor_opt = torch.optim.Adam(self.actor.parameters(), lr=config.algorithm.actor_lr)
         # Case 1 / 2 / 3 of the IBE (config.algorithm.ibe_case; mixed RL only)
@@ -198,8 +208,8 @@ class AGPI:
         return self.actor_avg.module if self.actor_avg is not None else self.actor
 
     def refresh_anchor(self) -> None:
-        """``algorithm.feedforward = "lq_train"``: anchor the actor (and its average) at the LQ optimum's
-        action ``u_ff`` for the current own noise moments (:func:`mixedrl.precision.feedforward_action`:
+        """``algorithm.feedforward = "lq_train"`` or ``"lq_affine"``: anchor the actor (and its average) at
+        the LQ optimum's action ``u_ff`` (for ``"lq_affine"`` also its gain ``-L``) for the current own noise moments (:func:`mixedrl.precision.feedforward_action`:
         the IBE posterior, the prior or the truth); in place, so a batch's stacked buffers follow. Called at
         construction, at the start of every iteration (before the actor is used) and at its end (so the
         evaluated policy is anchored at the moments the next iteration plans with). Otherwise nothing."""
@@ -215,8 +225,8 @@ class AGPI:
         """The run's policy as a module on observations (what is evaluated and deployed): the
         :attr:`learned_policy`, or, with ``config.algorithm.feedforward = "lq"``, that policy shifted to the
         discounted LQ optimum's action at the equilibrium for the current noise mean
-        (:func:`mixedrl.precision.feedforward_policy`); with ``"lq_train"`` the learned policy is the
-        anchored actor itself (:meth:`refresh_anchor`)."""
+        (:func:`mixedrl.precision.feedforward_policy`); with ``"lq_train"`` and ``"lq_affine"`` the learned
+        policy is the anchored actor itself (:meth:`refresh_anchor`)."""
         if self.config.algorithm.feedforward == "lq":
             return feedforward_policy(self, self.learned_policy, self._linearisation)
         return self.learned_policy

@@ -38,6 +38,7 @@ from typing import Any, Sequence
 import torch
 from torch.func import functional_call, stack_module_state, vmap
 
+from mixedrl.config import ANCHORED_FEEDFORWARDS
 from mixedrl.expectation import h_value
 from mixedrl.pev import critic_loss
 from mixedrl.pim import actor_objective, mvc_check
@@ -74,8 +75,10 @@ def batch_key(config: Any) -> tuple[Any, ...] | None:
 
 
 def _anchored(config: Any) -> bool:
-    """Whether the run trains the anchored actor (``algorithm.feedforward = "lq_train"``: other buffers)."""
-    return config.algorithm.feedforward == "lq_train"
+    """The anchored actor class the run trains (``algorithm.feedforward`` ``"lq_train"`` or ``"lq_affine"``:
+    other buffers, another forward), else ``""``."""
+    ff = config.algorithm.feedforward
+    return ff if ff in ANCHORED_FEEDFORWARDS else ""
 
 
 class StackedNetwork:
@@ -167,8 +170,8 @@ def _check_members(members: Sequence[AGPI]) -> None:
                                  f"{', '.join(SHARED_FIELDS)}")
         if _anchored(m.config) != _anchored(first.config):
             raise ValueError(f"members: run {i} has algorithm.feedforward = {m.config.algorithm.feedforward!r}, run 0 "
-                             f"{first.config.algorithm.feedforward!r}; runs with 'lq_train' (the anchored actor) and "
-                             f"without it train in separate batches")
+                             f"{first.config.algorithm.feedforward!r}; runs with 'lq_train' or 'lq_affine' (anchored "
+                             f"actors) train in batches of their own kind")
     if len({id(m) for m in members}) != len(members):
         raise ValueError("members: the same run appears twice")
 
