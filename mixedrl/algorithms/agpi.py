@@ -209,10 +209,11 @@ class AGPI:
 
     def refresh_anchor(self) -> None:
         """``algorithm.feedforward = "lq_train"`` or ``"lq_affine"``: anchor the actor (and its average) at
-        the LQ optimum's action ``u_ff`` (for ``"lq_affine"`` also its gain ``-L``) for the current own noise moments (:func:`mixedrl.precision.feedforward_action`:
-        the IBE posterior, the prior or the truth); in place, so a batch's stacked buffers follow. Called at
-        construction, at the start of every iteration (before the actor is used) and at its end (so the
-        evaluated policy is anchored at the moments the next iteration plans with). Otherwise nothing."""
+        the LQ optimum's action ``u_ff`` (for ``"lq_affine"`` also its gain ``-L``) for the current own noise
+        moments (:func:`mixedrl.precision.feedforward_action`: the IBE posterior, the prior or the truth); in
+        place, so a batch's stacked buffers follow. Called at construction, at the start of every iteration
+        (before the actor is used) and at its end (so the evaluated policy is anchored at the moments the next
+        iteration plans with). Otherwise nothing."""
         if not isinstance(self.actor, AnchoredActor):
             return
         u_ff = feedforward_action(self, self._linearisation, self.actor)
