@@ -43,6 +43,7 @@ from mixedrl.config import FEEDFORWARDS
 from mixedrl.precision import equilibrium_gain, equilibrium_observation, lq_reference
 from mixedrl.runs import RunDirectory, atomic_write_text, eval_seeds, load_checkpoint, make_trainer
 from mixedrl.tables import paired_interval
+from mixedrl.tasks import task_from_config
 from validation.lq import LQProblem, optimal_solution
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -234,7 +235,7 @@ def lqr_yardstick(run_dir: Path) -> dict[str, Any]:
     (its task and evaluation seeds, which depend on the run's seed): cost and steady offset ``theta*`` by
     the same evaluator."""
     config = RunDirectory(run_dir).read_config()
-    task = make_trainer(config).task
+    task = task_from_config(config.task)
     out = {}
     for name, mean in (("true_mean", task.true_mean), ("prior_mean", task.prior_mean)):
         ev = task.evaluate(LQRPolicy(task, np.asarray(mean, dtype=np.float64)), eval_seeds(config))
