@@ -248,8 +248,11 @@ class LinearTaskConfig:
         # the noise's mean / cov is wrong)
         problem = _lq_problem(self, mean, cov)
         self.disturbance = _build(GaussianNoiseConfig, dist, "task.disturbance")
-        self.A, self.B, self.Q, self.R = (_rows(getattr(problem, k)) for k in ("A", "B", "Q", "R"))
-        self.prior_mean, self.prior_cov = tuple(problem.prior_mean.tolist()), _rows(problem.prior_cov)
+        for name in _problem_fields():  # the validated values, as JSON (tuples)
+            value = getattr(problem, name)
+            if isinstance(value, np.ndarray):
+                value = _rows(value) if value.ndim == 2 else tuple(value.tolist())
+            setattr(self, name, value)
         self.init_box = check_number(self.init_box, "task.init_box", positive=True)
         self.action_bound = check_number(self.action_bound, "task.action_bound", positive=True)
 
@@ -264,12 +267,17 @@ class LinearTaskConfig:
 _PROBLEM_KEYS = {"noise_mean": "disturbance.mean", "noise_cov": "disturbance.cov"}
 
 
+def _problem_fields() -> tuple[str, ...]:
+    """:class:`mixedrl.lq.LQProblem`'s fields that :class:`LinearTaskConfig` holds under the same name (every
+    field but the true noise, which is ``task.disturbance``)."""
+    return tuple(f.name for f in dataclasses.fields(LQProblem) if f.name not in _PROBLEM_KEYS)
+
+
 def _lq_problem(cfg: LinearTaskConfig, mean: Any, cov: Any) -> LQProblem:
     """:class:`mixedrl.lq.LQProblem` of ``cfg`` with the true noise ``N(mean, cov)``; its errors name the
     dotted key (``task.A``, ``task.disturbance.mean``, ...)."""
     try:
-        return LQProblem(A=cfg.A, B=cfg.B, Q=cfg.Q, R=cfg.R, gamma=cfg.gamma, noise_mean=mean, noise_cov=cov,
-                         prior_mean=cfg.prior_mean, prior_cov=cfg.prior_cov)
+        return LQProblem(**{name: getattr(cfg, name) for name in _problem_fields()}, noise_mean=mean, noise_cov=cov)
     except ValueError as exc:
         name, _, rest = str(exc).partition(":")
         raise ValueError(f"task.{_PROBLEM_KEYS.get(name, name)}:{rest}") from None

@@ -8,6 +8,7 @@ import json
 import math
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from mixedrl.envs import DoubleLaneChangeConfig
@@ -295,3 +296,24 @@ def test_dlc_obs_scale_override() -> None:
         TrainConfig(task={"preview_distances": [2.0], "obs_scale": scales[:5]})
     with pytest.raises(ValueError, match=r"task\.obs_scale"):
         TrainConfig(task={"obs_scale": [0.3, 0.2, 0.5, 0.1, -0.5]})
+
+
+def test_linear_task_config_holds_every_field_of_the_lq_problem():
+    """The LQ problem has one representation (mixedrl.lq.LQProblem); its JSON face names each of its fields
+    (or maps it to task.disturbance), and a value set on the face reaches the problem unchanged."""
+    from mixedrl.config import _PROBLEM_KEYS
+    from mixedrl.lq import LQProblem
+
+    face = {f.name for f in dataclasses.fields(LinearTaskConfig)}
+    for f in dataclasses.fields(LQProblem):
+        assert f.name in face or f.name in _PROBLEM_KEYS, f"LinearTaskConfig lacks LQProblem.{f.name}"
+    cfg = LinearTaskConfig(gamma=0.8, prior_mean=(0.1, -0.2), R=((0.3,),),
+                           disturbance={"mean": (0.0, 0.4), "cov": ((0.0, 0.0), (0.0, 0.02))})
+    problem = cfg.problem()
+    np.testing.assert_array_equal(problem.prior_mean, [0.1, -0.2])
+    np.testing.assert_array_equal(problem.R, [[0.3]])
+    np.testing.assert_array_equal(problem.noise_mean, [0.0, 0.4])
+    assert problem.gamma == 0.8
+    assert cfg.prior_mean == (0.1, -0.2) and cfg.R == ((0.3,),)  # JSON face: tuples
+    with pytest.raises(ValueError, match=r"task\.disturbance\.cov"):
+        LinearTaskConfig(disturbance={"mean": (0.0, 0.4), "cov": ((0.0, 1.0), (0.0, 0.02))})

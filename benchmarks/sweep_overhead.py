@@ -21,7 +21,7 @@ engines' start-up and hand-over, robust to a change of load that slows the runs 
 ratio ``wall_ray / wall_pool - 1`` (with and without ``ray.init``); the load average before and after; and
 checks that both engines gave bit-identical results (same final evaluation).
 
-Usage: ``python scripts/sweep_overhead.py [--runs 8] [--iterations 150] [--workers 2] [--repeats 1] [--out DIR]``
+Usage: ``python benchmarks/sweep_overhead.py [--runs 8] [--iterations 150] [--workers 2] [--repeats 1] [--out DIR]``
 (needs the extra ``sweep``; about 2 x (runs / workers) x the time of one run).
 """
 
