@@ -82,6 +82,7 @@ __all__ = [
     "iterations_to_converge",
     "eval_seeds",
     "evaluate_run",
+    "evaluate_together",
     "PeriodicObserver",
     "config_record",
     "train",
@@ -470,6 +471,67 @@ def evaluate_run(path: str | Path, *, seeds: int | None = None, feedforward: str
             "policy_gap_reason": reason}
 
 
+def _evaluation_due(trainer: Any) -> bool:
+    """Whether ``trainer`` is evaluated after its current iteration: every ``run.eval_every`` iterations,
+    at the budget and when it stopped."""
+    cfg = trainer.config
+    return trainer.k % cfg.run.eval_every == 0 or trainer.k == cfg.algorithm.iterations or bool(trainer.stopped)
+
+
+def _shared_task(trainers: list[Any]) -> Any:
+    """The task all ``trainers`` evaluate on (a built-in task of one configuration, or one task object),
+    or ``None`` when they have none in common or a trainer evaluates otherwise than AGPI and DDPG do."""
+    # a trainer's own evaluate() might do something else: only AGPI's and DDPG's (the task's evaluate of
+    # the policy) are batched
+    if not all(type(t).evaluate in (AGPI.evaluate, DDPG.evaluate) for t in trainers):
+        return None
+    first = trainers[0]
+    for t in trainers[1:]:
+        same_builtin = (type(t.task) is type(first.task) and getattr(t.task, "name", None) == t.config.task.name
+                        and getattr(first.task, "name", None) == first.config.task.name
+                        and t.config.task == first.config.task)
+        if t.task is not first.task and not same_builtin:
+            return None
+    return first.task if hasattr(first.task, "evaluate_many") else None
+
+
+def evaluate_together(trainers: list[Any], seeds: list[list[int]]) -> list[dict[str, Any]]:
+    """The periodic evaluations of several runs at once: their policies on their seeds, in one call of the
+    task's :meth:`~mixedrl.tasks.Task.evaluate_many` (``exact=False``: the courses in lock step, the
+    policies called once per step on all their courses).
+
+    This is the monitor of training (the ``eval/*`` metrics rows and ``iterations_to_converge``): its
+    numbers may differ from :meth:`evaluate`'s in the float32 last bits of a batched policy call (about 1e-8
+    relative, docs/reproduction.rst). The final evaluation (:func:`summarize`, ``results.json``) is the
+    trainer's own :meth:`evaluate`, exact. Trainers without a common task are evaluated one by one.
+
+    Parameters
+    ----------
+    trainers : list of AGPI or DDPG
+        The runs (any trainer with ``evaluate(seeds)``; AGPI and DDPG runs on one task are batched).
+    seeds : list of list of int
+        Each run's evaluation seeds (:func:`eval_seeds`).
+
+    Returns
+    -------
+    list of dict
+        Per run, the task's evaluation.
+
+    Raises
+    ------
+    ValueError
+        ``seeds`` not one list per trainer.
+    """
+    if len(seeds) != len(trainers):
+        raise ValueError(f"seeds: {len(seeds)} lists of seeds for {len(trainers)} trainers")
+    if not trainers:
+        return []
+    task = _shared_task(trainers)
+    if task is None:
+        return [t.evaluate(s) for t, s in zip(trainers, seeds)]
+    return task.evaluate_many([t.policy for t in trainers], [list(s) for s in seeds], exact=False)
+
+
 def _scalar_eval(ev: dict[str, Any]) -> dict[str, float]:
     return {f"eval/{k}": float(v) for k, v in ev.items() if isinstance(v, (int, float, np.floating))}
 
@@ -786,13 +848,16 @@ def _train(trainers: list[Any], engine: Callable[[list[bool]], list[dict[str, fl
             t0 = time.perf_counter()
             rows = engine(active)
             dt = time.perf_counter() - t0
+            # the evaluations due at this iteration, of every run of the batch at once (a monitor: batched)
+            due = [i for i in range(n) if active[i] and _evaluation_due(trainers[i])]
+            evaluations = dict(zip(due, evaluate_together([trainers[i] for i in due], [seeds[i] for i in due])))
             for i in (i for i in range(n) if active[i]):
                 trainer, cfg = trainers[i], trainers[i].config
                 elapsed[i] += dt
                 extra = observers[i].after(trainer, tokens[i], rows[i]) if observers[i] is not None else None
                 row = {"iteration": trainer.k, **rows[i], **(extra or {}), "time/elapsed_s": elapsed[i]}
-                if trainer.k % cfg.run.eval_every == 0 or trainer.k == cfg.algorithm.iterations or trainer.stopped:
-                    row.update(_scalar_eval(trainer.evaluate(seeds[i])))
+                if i in evaluations:
+                    row.update(_scalar_eval(evaluations[i]))
                 pending[i].append(row)
                 if callback is not None:
                     callback(row)
