@@ -474,8 +474,12 @@ def evaluate_run(path: str | Path, *, seeds: int | None = None, feedforward: str
 def _evaluation_due(trainer: Any) -> bool:
     """Whether ``trainer`` is evaluated after its current iteration: every ``run.eval_every`` iterations,
     at the budget and when it stopped."""
-    cfg = trainer.config
-    return trainer.k % cfg.run.eval_every == 0 or trainer.k == cfg.algorithm.iterations or bool(trainer.stopped)
+    return trainer.k % trainer.config.run.eval_every == 0 or _finished(trainer)
+
+
+def _finished(trainer: Any) -> bool:
+    """Whether ``trainer`` has reached its budget or stopped (its evaluation now is its final one)."""
+    return trainer.k >= trainer.config.algorithm.iterations or bool(trainer.stopped)
 
 
 def _shared_task(trainers: list[Any]) -> Any:
@@ -495,15 +499,16 @@ def _shared_task(trainers: list[Any]) -> Any:
     return first.task if hasattr(first.task, "evaluate_many") else None
 
 
-def evaluate_together(trainers: list[Any], seeds: list[list[int]]) -> list[dict[str, Any]]:
-    """The periodic evaluations of several runs at once: their policies on their seeds, in one call of the
-    task's :meth:`~mixedrl.tasks.Task.evaluate_many` (``exact=False``: the courses in lock step, the
-    policies called once per step on all their courses).
+def evaluate_together(trainers: list[Any], seeds: list[list[int]], *, exact: bool = False) -> list[dict[str, Any]]:
+    """The evaluations of several runs at once: their policies on their seeds, in one call of the task's
+    :meth:`~mixedrl.tasks.Task.evaluate_many` (the courses in lock step).
 
-    This is the monitor of training (the ``eval/*`` metrics rows and ``iterations_to_converge``): its
-    numbers may differ from :meth:`evaluate`'s in the float32 last bits of a batched policy call (about 1e-8
-    relative, docs/reproduction.rst). The final evaluation (:func:`summarize`, ``results.json``) is the
-    trainer's own :meth:`evaluate`, exact. Trainers without a common task are evaluated one by one.
+    With ``exact=False`` (the periodic evaluations of training: the ``eval/*`` metrics rows, a monitor, and
+    ``iterations_to_converge``) the policies are called once per step on all their courses, and the
+    numbers may differ from the trainer's own ``evaluate`` in the float32 last bits of a batched policy
+    call (about 1e-8 relative, docs/reproduction.rst). With ``exact=True`` (a run's last iteration, whose
+    evaluation is also its final one in ``results.json``) each equals ``trainer.evaluate(seeds)`` bit for
+    bit. Trainers without a common task are evaluated one by one with their own ``evaluate``.
 
     Parameters
     ----------
@@ -511,6 +516,8 @@ def evaluate_together(trainers: list[Any], seeds: list[list[int]]) -> list[dict[
         The runs (any trainer with ``evaluate(seeds)``; AGPI and DDPG runs on one task are batched).
     seeds : list of list of int
         Each run's evaluation seeds (:func:`eval_seeds`).
+    exact : bool, optional
+        Bit-identical to each trainer's ``evaluate`` (per-course policy calls) or not (batched calls).
 
     Returns
     -------
@@ -529,7 +536,7 @@ def evaluate_together(trainers: list[Any], seeds: list[list[int]]) -> list[dict[
     task = _shared_task(trainers)
     if task is None:
         return [t.evaluate(s) for t, s in zip(trainers, seeds)]
-    return task.evaluate_many([t.policy for t in trainers], [list(s) for s in seeds], exact=False)
+    return task.evaluate_many([t.policy for t in trainers], [list(s) for s in seeds], exact=exact)
 
 
 def _scalar_eval(ev: dict[str, Any]) -> dict[str, float]:
@@ -816,6 +823,7 @@ def _train(trainers: list[Any], engine: Callable[[list[bool]], list[dict[str, fl
     seeds = [eval_seeds(t.config) for t in trainers]
     pending: list[list[dict[str, Any]]] = [[] for _ in range(n)]
     interrupted = [False] * n
+    finals: dict[int, dict[str, Any]] = {}  # the exact evaluation of a run's last iteration (for summarize)
 
     def checkpoint(i: int) -> None:
         if runs[i] is not None:
@@ -848,9 +856,17 @@ def _train(trainers: list[Any], engine: Callable[[list[bool]], list[dict[str, fl
             t0 = time.perf_counter()
             rows = engine(active)
             dt = time.perf_counter() - t0
-            # the evaluations due at this iteration, of every run of the batch at once (a monitor: batched)
-            due = [i for i in range(n) if active[i] and _evaluation_due(trainers[i])]
-            evaluations = dict(zip(due, evaluate_together([trainers[i] for i in due], [seeds[i] for i in due])))
+            # the evaluations due at this iteration, of every run of the batch at once: the periodic ones (a
+            # monitor) with batched policy calls, a run's last one exact (it is also its final evaluation)
+            evaluations: dict[int, dict[str, Any]] = {}
+            for exact in (False, True):
+                due = [i for i in range(n)
+                       if active[i] and _evaluation_due(trainers[i]) and _finished(trainers[i]) == exact]
+                if due:
+                    evaluations.update(zip(due, evaluate_together([trainers[i] for i in due],
+                                                                  [seeds[i] for i in due], exact=exact)))
+                if exact:
+                    finals.update((i, evaluations[i]) for i in due)
             for i in (i for i in range(n) if active[i]):
                 trainer, cfg = trainers[i], trainers[i].config
                 elapsed[i] += dt
@@ -884,7 +900,7 @@ def _train(trainers: list[Any], engine: Callable[[list[bool]], list[dict[str, fl
         if boards[i] is not None:
             boards[i].close()
         rows_i = runs[i].read_metrics() if runs[i] is not None else memory_rows[i]
-        results = summarize(trainer, rows_i, elapsed[i], seeds[i])
+        results = summarize(trainer, rows_i, elapsed[i], seeds[i], finals.get(i))
         if n > 1:
             results["batch_size_runs"] = n
         if runs[i] is not None:
@@ -896,15 +912,20 @@ def _train(trainers: list[Any], engine: Callable[[list[bool]], list[dict[str, fl
     return out
 
 
-def summarize(trainer: Any, rows: list[dict[str, Any]], elapsed: float, seeds: list[int]) -> dict[str, Any]:
+def summarize(trainer: Any, rows: list[dict[str, Any]], elapsed: float, seeds: list[int],
+              final: dict[str, Any] | None = None) -> dict[str, Any]:
     """Final evaluation and convergence figures of a finished run (the content of ``results.json``).
+
+    ``final`` is the trainer's exact evaluation on ``seeds`` when the caller already has it (the training
+    loop evaluates a run's last iteration exactly); otherwise ``trainer.evaluate(seeds)`` is called.
 
     ``policy_gap`` is the policy at the task's equilibrium against the discounted LQ optimum for the
     method's own noise mean (:func:`mixedrl.precision.run_policy_gap`), ``null`` with ``policy_gap_reason``
     when the task has no equilibrium.
     """
     cfg: TrainConfig = trainer.config
-    final = trainer.evaluate(seeds)
+    if final is None:
+        final = trainer.evaluate(seeds)
     evals = [(r["iteration"], r["eval/cost"]) for r in rows if "eval/cost" in r]
     results: dict[str, Any] = {
         "method": cfg.method,

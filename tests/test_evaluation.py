@@ -23,7 +23,7 @@ import pytest
 import torch
 
 from mixedrl.config import TrainConfig
-from mixedrl.envs import DoubleLaneChangeModel, evaluate_courses, evaluate_tracking
+from mixedrl.envs import DoubleLaneChangeModel, evaluate_courses, evaluate_tracking, make_config
 from mixedrl.envs.evaluation import NUMPY_MIN_ROWS, _stacked_call
 from mixedrl.envs.libm import elementwise
 from mixedrl.networks import Actor
@@ -119,6 +119,21 @@ def test_courses_in_lock_step_equal_the_sequential_drives_bit_for_bit(stepper: s
     assert any(r.terminated for r in out[1]) and not any(r.terminated for r in out[0])
 
 
+@pytest.mark.parametrize("overrides", [
+    {"preview_distances": (5.0, 12.0)},
+    {"disturbance": {"law": "student_t", "dof": 4.0}},
+    {"disturbance": {"law": "bumps"}},
+    {"disturbance": {"grade_amplitude": 0.05, "grade_wavelength": 30.0}},
+], ids=["preview", "student_t", "bumps", "grade"])
+def test_every_configured_course_is_reproduced_bit_for_bit(overrides: dict) -> None:
+    cfg = make_config(None, **overrides)
+    policies = [feedback(0.1, 1.0), constant(0.1)]
+    out = evaluate_courses(policies, cfg, seeds=[[1, 2], [3]], max_steps=300, stepper="numpy")
+    for p, seeds in enumerate([[1, 2], [3]]):
+        for j, seed in enumerate(seeds):
+            assert_same(out[p][j], evaluate_tracking(policies[p], cfg, seed=seed, max_steps=300))
+
+
 def test_a_full_course_of_a_float32_actor_is_bit_identical_with_exact_policy_calls() -> None:
     policies = [actor(0), actor(1)]
     out = evaluate_courses(policies, seeds=[[11], [12]], stepper="numpy")
@@ -178,7 +193,7 @@ def test_a_batch_of_runs_evaluated_at_once_gives_each_run_its_own_numbers(tmp_pa
     seeds = [eval_seeds(c) for c in configs]
     alone = [t.evaluate(s) for t, s in zip(trainers, seeds)]
     together = evaluate_together(trainers, seeds)
-    exact = trainers[0].task.evaluate_many([t.policy for t in trainers], seeds, exact=True)
+    exact = evaluate_together(trainers, seeds, exact=True)
     for a, b, e in zip(alone, together, exact):
         assert e == a  # exact: bit for bit
         assert b.keys() == a.keys()
@@ -186,13 +201,36 @@ def test_a_batch_of_runs_evaluated_at_once_gives_each_run_its_own_numbers(tmp_pa
             assert b[key] == pytest.approx(a[key], rel=1e-6), key
     assert len({a["cost"] for a in alone}) == 3  # three different policies: a swap would be seen
 
-    # in training: the final evaluation (results.json) is each trainer's own, exact
+    # in training: the final evaluation (results.json, and the last metrics row) is each trainer's own,
+    # exact; the periodic one before it is batched
     results = train_batch(trainers, progress=False)
     for t, s, r in zip(trainers, seeds, results):
         final = t.evaluate(s)
+        assert r["final"] == {k: v for k, v in final.items()}
         assert r["cost"] == final["cost"] and r["lateral_mae"] == final["lateral_mae"]
-        last = r["metrics"][-1]
-        assert last["eval/cost"] == pytest.approx(final["cost"], rel=1e-6)
+        first, last = r["metrics"]
+        assert last["eval/cost"] == final["cost"] and last["eval/speed_mae"] == final["speed_mae"]
+        assert "eval/cost" in first
+
+
+def test_the_last_evaluation_of_a_run_is_exact_and_is_its_final_one(monkeypatch) -> None:
+    # the final evaluation of a finished run is taken at its last iteration (exact) and reused by summarize
+    import mixedrl.runs as runs
+
+    calls = []
+    original = runs.evaluate_together
+
+    def spy(trainers, seeds, *, exact=False):
+        calls.append((len(trainers), exact))
+        return original(trainers, seeds, exact=exact)
+
+    monkeypatch.setattr(runs, "evaluate_together", spy)
+    config = TrainConfig(method="mixed", seed=0).replace(**{"algorithm.iterations": 3, "run.eval_every": 2,
+                                                            "task.course_length": 6.0})
+    trainer = make_trainer(config)
+    result = runs.train(trainer, progress=False)
+    assert calls == [(1, False), (1, True)]  # iteration 2 (periodic), iteration 3 (the last: exact)
+    assert result["final"] == trainer.evaluate(eval_seeds(config))
 
 
 def test_the_generic_task_evaluates_many_policies_one_by_one() -> None:

@@ -481,8 +481,15 @@ def evaluate_courses(policies: Sequence[Callable[[np.ndarray], Any] | torch.nn.M
         # u_k = pi_p(o_k): per course (exact), or per policy / stacked over the policies on all rows
         # (fixed shapes: a course's action does not depend on which others are still running)
         if exact:
-            u = np.stack([_checked_actions(calls[owner[i]](obs[i]), 1, f"policies: entry {owner[i]} (seed "
-                                           f"{row_seeds[i]})")[0] for i in idx])
+            raw = [calls[owner[i]](obs[i]) for i in idx]
+            try:
+                u = np.asarray(raw, dtype=np.float64).reshape(idx.size, 2)
+                bad = not np.isfinite(u).all()
+            except ValueError:  # ragged or wrong sizes
+                bad = True
+            if bad:  # find the course, and let _checked_actions name it
+                for i, out in zip(idx, raw):
+                    _checked_actions(out, 1, f"policies: entry {owner[i]} (seed {row_seeds[i]})")
         else:
             full = np.empty((n_rows, 2))
             if stacked is not None:
