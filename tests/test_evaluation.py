@@ -26,7 +26,7 @@ from mixedrl.config import TrainConfig
 from mixedrl.envs import DoubleLaneChangeModel, evaluate_courses, evaluate_tracking, make_config
 from mixedrl.envs.evaluation import NUMPY_MIN_ROWS, _stacked_call
 from mixedrl.envs.libm import elementwise
-from mixedrl.networks import Actor
+from mixedrl.networks import Actor, stacked_actors
 from mixedrl.runs import eval_seeds, evaluate_together, make_trainer, train_batch
 from mixedrl.tasks import DoubleLaneChangeTask, make_task
 
@@ -172,12 +172,36 @@ def test_batched_policy_calls_agree_to_float32_rounding() -> None:
         assert_same(ok[j], evaluate_tracking(feedback(0.1, 1.0), seed=j + 1, max_steps=300))
 
 
+def test_stacked_actors_and_the_vmap_of_other_modules_agree_with_each_module() -> None:
+    obs = torch.randn(3, 4, 5, generator=torch.Generator().manual_seed(0))
+    actors = [actor(0), actor(1), actor(2)]
+    fast = stacked_actors(actors)
+    assert fast is not None
+    expected = torch.stack([a(obs[p]) for p, a in enumerate(actors)]).detach()
+    torch.testing.assert_close(fast(obs), expected, rtol=1e-6, atol=1e-6)
+    np.testing.assert_allclose(_stacked_call(actors)(obs.numpy()), expected.numpy(), rtol=1e-6, atol=1e-6)
+    torch.manual_seed(0)
+    nets = [torch.nn.Sequential(torch.nn.Linear(5, 8), torch.nn.ELU(), torch.nn.Linear(8, 2)) for _ in range(3)]
+    assert stacked_actors(nets) is None  # not actors: the vmap path
+    expected = torch.stack([n(obs[p]) for p, n in enumerate(nets)]).detach().numpy()
+    np.testing.assert_allclose(_stacked_call(nets)(obs.numpy()), expected, rtol=1e-6, atol=1e-6)
+    out = evaluate_courses(nets, seeds=[1, 2], max_steps=200, exact=False)
+    for p, net in enumerate(nets):
+        for j, seed in enumerate((1, 2)):
+            alone = evaluate_tracking(net, seed=seed, max_steps=200)
+            assert out[p][j].n_steps == alone.n_steps
+            assert out[p][j].total_cost == pytest.approx(alone.total_cost, rel=1e-6)
+    other = Actor(5, 2, (16,), "elu", torch.Generator().manual_seed(0), torch.tensor([0.4, 4.0]))
+    assert stacked_actors([actor(0), other]) is None and stacked_actors([]) is None
+
+
 def test_stacking_is_refused_for_modules_it_cannot_represent() -> None:
     assert _stacked_call([actor(0)]) is None
     assert _stacked_call([actor(0), torch.nn.Linear(5, 2)]) is None
     other = Actor(5, 2, (16,), "elu", torch.Generator().manual_seed(0), torch.tensor([0.4, 4.0]))
     assert _stacked_call([actor(0), other]) is None
-    a, b = actor(0), actor(1)
+    a, b = (torch.nn.Sequential(torch.nn.Linear(5, 2)) for _ in range(2))
+    assert _stacked_call([a, b]) is not None
     a.extra, b.extra = torch.zeros(2), torch.ones(2)  # a plain tensor attribute each: not in the stacked state
     assert _stacked_call([a, b]) is None
 

@@ -21,6 +21,7 @@ from mixedrl.envs.dlc_config import DoubleLaneChangeConfig
 from mixedrl.envs.libm import elementwise
 from mixedrl.envs.model import DoubleLaneChangeModel
 from mixedrl.envs.reference import LibmReference
+from mixedrl.networks import stacked_actors
 
 __all__ = ["TrackingResult", "evaluate_tracking", "evaluate_courses"]
 
@@ -218,12 +219,19 @@ class _RowColumns:
 
 
 def _stacked_call(policies: Sequence[Any]) -> Callable[[np.ndarray], np.ndarray] | None:
-    """One :func:`torch.func.vmap` call of ``P`` modules of one architecture on ``(P, S, obs_dim)`` rows,
-    or ``None`` when the policies cannot be stacked (not modules of one type with the same parameter and
-    buffer shapes, or holding tensors outside their parameters and buffers, which a stacked call would
-    not see). The stacked state is a copy: the modules are not changed."""
+    """One call of ``P`` modules of one architecture on ``(P, S, obs_dim)`` rows
+    (:func:`mixedrl.networks.stacked_actors` for plain actors, else :func:`torch.func.vmap`), or ``None``
+    when the policies cannot be stacked (not modules of one type with the same parameter and buffer
+    shapes, or holding tensors outside their parameters and buffers, which a stacked call would not
+    see). The stacked state is a copy: the modules are not changed."""
     if len(policies) < 2 or not all(isinstance(p, torch.nn.Module) for p in policies):
         return None
+    actors = stacked_actors(policies)  # plain actors: one batched product per layer, cheaper than vmap
+    if actors is not None:
+        def call_actors(obs: np.ndarray) -> np.ndarray:
+            with torch.no_grad():
+                return actors(torch.as_tensor(obs, dtype=torch.float32)).numpy()
+        return call_actors
     first = policies[0]
     if any(type(p) is not type(first) for p in policies):
         return None
