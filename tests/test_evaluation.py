@@ -293,10 +293,12 @@ def test_bad_input_names_the_argument() -> None:
         evaluate_courses([good], seeds=[0], start_state=np.zeros(5))
     bad_shape = lambda obs: np.zeros(3)  # noqa: E731
     for exact in (True, False):
-        with pytest.raises(ValueError, match=r"^policies: entry 1.*shape"):
-            evaluate_courses([good, bad_shape], seeds=[0], exact=exact, max_steps=5)
-    with pytest.raises(ValueError, match=r"^policies: entry 0 \(seed 7\) returned NaN"):
-        evaluate_courses([lambda obs: np.array([np.nan, 0.0])], seeds=[7], max_steps=5)
+        for stepper in ("env", "numpy"):
+            with pytest.raises(ValueError, match=r"^policies: entry 1.*shape"):
+                evaluate_courses([good, bad_shape], seeds=[0], exact=exact, max_steps=5, stepper=stepper)
+    for stepper in ("env", "numpy"):
+        with pytest.raises(ValueError, match=r"^policies: entry 0 \(seed 7\) returned .*NaN"):
+            evaluate_courses([lambda obs: np.array([np.nan, 0.0])], seeds=[7], max_steps=5, stepper=stepper)
     model = DoubleLaneChangeModel()
     with pytest.raises(ValueError, match="^x:"):
         model.dynamics.step_rows(np.zeros((3, 4)), np.zeros((3, 2)))

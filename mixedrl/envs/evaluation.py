@@ -436,7 +436,8 @@ def evaluate_courses(policies: Sequence[Callable[[np.ndarray], Any] | torch.nn.M
     stepper : {"auto", "numpy", "env"}, optional
         How the vehicles are stepped, with the same numbers either way: ``"numpy"``, float64 rows of one
         array (:meth:`~mixedrl.envs.VehicleDynamics.step_rows`); ``"env"``, each course's own Gymnasium
-        environment on Python floats; ``"auto"`` (default), numpy from :data:`NUMPY_MIN_ROWS` courses on.
+        environment on Python floats (with ``exact`` this is :func:`evaluate_tracking` course by course:
+        nothing is shared then); ``"auto"`` (default), numpy from :data:`NUMPY_MIN_ROWS` courses on.
 
     Returns
     -------
@@ -475,6 +476,17 @@ def evaluate_courses(policies: Sequence[Callable[[np.ndarray], Any] | torch.nn.M
     row_seeds = [seed for s in seed_lists for seed in s]
     n_rows = len(row_seeds)
     use_numpy = stepper == "numpy" or (stepper == "auto" and n_rows >= NUMPY_MIN_ROWS)
+    if exact and not use_numpy:
+        # per-course policy calls and per-course environments: that is the sequential drive itself
+        results: list[list[TrackingResult]] = [[] for _ in policies]
+        for p, (policy, s) in enumerate(zip(policies, seed_lists)):
+            for seed in s:
+                try:
+                    results[p].append(evaluate_tracking(policy, cfg, seed=seed, start_state=start_state,
+                                                        max_steps=max_steps, normalized_actions=normalized_actions))
+                except (ValueError, TypeError) as exc:  # the policy's action, refused by the environment
+                    raise ValueError(f"policies: entry {p} (seed {seed}) returned a bad action ({exc})") from exc
+        return results
     rows: _EnvRows | _NumpyRows = (_NumpyRows(cfg, row_seeds, start_state, normalized_actions, n_max) if use_numpy
                                    else _EnvRows(cfg, row_seeds, start_state, normalized_actions))
     calls = [_as_numpy_policy(policy) for policy in policies]
@@ -508,7 +520,7 @@ def evaluate_courses(policies: Sequence[Callable[[np.ndarray], Any] | torch.nn.M
                     full[block] = _checked_actions(calls[p](obs[block]), block.size, f"policies: entry {p}")
             u = full[idx]
         alive[idx[rows.step(idx, u)]] = False
-    results: list[list[TrackingResult]] = [[] for _ in policies]
+    results = [[] for _ in policies]
     for i in range(n_rows):
         results[owner[i]].append(rows.result(i, cfg.dt))
     return results
