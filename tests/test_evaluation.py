@@ -172,6 +172,26 @@ def test_batched_policy_calls_agree_to_float32_rounding() -> None:
         assert_same(ok[j], evaluate_tracking(feedback(0.1, 1.0), seed=j + 1, max_steps=300))
 
 
+def test_a_finished_course_is_masked_in_batched_calls_too() -> None:
+    # off the road the policy returns NaN: only a finished course sees such an observation, and its action
+    # is computed (fixed batch shapes) but neither checked nor used
+    def leaves_then_nan(obs: np.ndarray) -> np.ndarray:
+        out = np.broadcast_to(np.array([0.1, 0.0]), np.shape(obs)[:-1] + (2,)).copy()
+        out[np.abs(obs[..., 4]) > 3.0] = np.nan
+        return out
+
+    for stepper in ("env", "numpy"):
+        out = evaluate_courses([leaves_then_nan, feedback(0.1, 1.0)], seeds=[[1, 2], [3, 4]], max_steps=400,
+                               exact=False, stepper=stepper)
+        for j, seed in enumerate((1, 2)):
+            alone = evaluate_tracking(leaves_then_nan, seed=seed, max_steps=400)
+            assert alone.terminated and alone.n_steps < 400
+            assert_same(out[0][j], alone)
+        with pytest.raises(ValueError, match=r"^policies: entry 1 \(seed 3\) returned NaN"):
+            evaluate_courses([feedback(0.1, 1.0), lambda obs: np.full(np.shape(obs)[:-1] + (2,), np.nan)],
+                             seeds=[[1, 2], [3, 4]], exact=False, max_steps=5, stepper=stepper)
+
+
 def test_stacked_actors_and_the_vmap_of_other_modules_agree_with_each_module() -> None:
     obs = torch.randn(3, 4, 5, generator=torch.Generator().manual_seed(0))
     actors = [actor(0), actor(1), actor(2)]
@@ -196,7 +216,7 @@ def test_stacked_actors_and_the_vmap_of_other_modules_agree_with_each_module() -
 
 
 def test_stacking_is_refused_for_modules_it_cannot_represent() -> None:
-    assert _stacked_call([actor(0)]) is None
+    assert _stacked_call([torch.nn.Linear(5, 2)]) is None  # one module that is not an actor: its own call
     assert _stacked_call([actor(0), torch.nn.Linear(5, 2)]) is None
     other = Actor(5, 2, (16,), "elu", torch.Generator().manual_seed(0), torch.tensor([0.4, 4.0]))
     assert _stacked_call([actor(0), other]) is None

@@ -224,14 +224,17 @@ def _stacked_call(policies: Sequence[Any]) -> Callable[[np.ndarray], np.ndarray]
     when the policies cannot be stacked (not modules of one type with the same parameter and buffer
     shapes, or holding tensors outside their parameters and buffers, which a stacked call would not
     see). The stacked state is a copy: the modules are not changed."""
-    if len(policies) < 2 or not all(isinstance(p, torch.nn.Module) for p in policies):
+    if not all(isinstance(p, torch.nn.Module) for p in policies):
         return None
-    actors = stacked_actors(policies)  # plain actors: one batched product per layer, cheaper than vmap
+    # plain actors (even one): one batched product per layer, cheaper than vmap and than the modules' calls
+    actors = stacked_actors(policies)
     if actors is not None:
         def call_actors(obs: np.ndarray) -> np.ndarray:
             with torch.no_grad():
                 return actors(torch.as_tensor(obs, dtype=torch.float32)).numpy()
         return call_actors
+    if len(policies) < 2:
+        return None
     first = policies[0]
     if any(type(p) is not type(first) for p in policies):
         return None
@@ -261,13 +264,14 @@ def _stacked_call(policies: Sequence[Any]) -> Callable[[np.ndarray], np.ndarray]
     return call
 
 
-def _checked_actions(actions: Any, rows: int, what: str) -> np.ndarray:
-    """A policy's output as float64 ``(rows, 2)``, finite (the checks of the environment's step)."""
+def _checked_actions(actions: Any, rows: int, what: str, finite: bool = True) -> np.ndarray:
+    """A policy's output as float64 ``(rows, 2)``, with ``finite`` also checked finite (the checks of the
+    environment's step)."""
     a = np.asarray(actions, dtype=np.float64)
     if a.size != rows * 2:
         raise ValueError(f"{what} returned an action of shape {a.shape}, expected {(rows, 2) if rows > 1 else (2,)}")
     a = a.reshape(rows, 2)
-    if not np.isfinite(a).all():
+    if finite and not np.isfinite(a).all():
         raise ValueError(f"{what} returned NaN or inf")
     return a
 
@@ -429,8 +433,10 @@ def evaluate_courses(policies: Sequence[Callable[[np.ndarray], Any] | torch.nn.M
         True (default): each course's policy is called on that course's observation alone, a 1-D array
         as in :func:`evaluate_tracking`, so every number equals the sequential evaluation's bit for bit.
         False: each step is one call per policy on all its courses' observations ``(S_p, obs_dim)``, or
-        one :func:`torch.func.vmap` call over the policies when they are modules of one architecture
-        with equally many seeds. Faster; a float32 network then gives outputs that may differ in the last
+        one call of the stacked policies when they are modules of one architecture with equally many
+        seeds (:func:`mixedrl.networks.stacked_actors` for plain actors, else :func:`torch.func.vmap`);
+        finished courses stay in the batch (fixed shapes: a course's action does not depend on which
+        others still run). Faster; a float32 network then gives outputs that may differ in the last
         bits from its single-row outputs (a batched matrix product sums in another order), and so do the
         metrics, by about 1e-8 relative (docs/reproduction.rst).
     stepper : {"auto", "numpy", "env"}, optional
@@ -499,7 +505,6 @@ def evaluate_courses(policies: Sequence[Callable[[np.ndarray], Any] | torch.nn.M
             break
         obs = rows.obs
         # u_k = pi_p(o_k): per course (exact), or per policy / stacked over the policies on all rows
-        # (fixed shapes: a course's action does not depend on which others are still running)
         if exact:
             raw = [calls[owner[i]](obs[i]) for i in idx]
             try:
@@ -511,14 +516,20 @@ def evaluate_courses(policies: Sequence[Callable[[np.ndarray], Any] | torch.nn.M
                 for i, out in zip(idx, raw):
                     _checked_actions(out, 1, f"policies: entry {owner[i]} (seed {row_seeds[i]})")
         else:
+            # a finished course's row is still computed (its last observation) but not checked or used
             full = np.empty((n_rows, 2))
             if stacked is not None:
                 full[:] = _checked_actions(stacked(obs.reshape(len(policies), -1, obs.shape[1])), n_rows,
-                                           "policies (stacked)")
+                                           "policies (stacked)", finite=False)
             else:
                 for p, block in enumerate(blocks):
-                    full[block] = _checked_actions(calls[p](obs[block]), block.size, f"policies: entry {p}")
+                    full[block] = _checked_actions(calls[p](obs[block]), block.size, f"policies: entry {p}",
+                                                   finite=False)
             u = full[idx]
+            bad = np.flatnonzero(~np.isfinite(u).all(axis=1))
+            if bad.size:
+                i = idx[bad[0]]
+                raise ValueError(f"policies: entry {owner[i]} (seed {row_seeds[i]}) returned NaN or inf")
         alive[idx[rows.step(idx, u)]] = False
     results = [[] for _ in policies]
     for i in range(n_rows):
