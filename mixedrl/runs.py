@@ -28,7 +28,9 @@ Metric keys (every row has ``iteration``):
   ``mvc/lhs_mean``, ``mvc/e_mean``, ``mvc/e_nonnegative``, ``mvc/inner_steps`` (Algorithm 2 only);
 * ``ibe/mean_<i>``, ``ibe/cov_<i><i>``, ``ibe/mean_error`` (max abs error of the mean against the true
   noise), ``ibe/mean_rel_error``, ``ibe/count`` (Algorithm 2 only);
-* ``eval/cost``, ``eval/lateral_mae``, ``eval/speed_mae``, ... every ``eval_every`` iterations;
+* ``eval/cost``, ``eval/lateral_mae``, ``eval/speed_mae``, ... every ``eval_every`` iterations (all runs
+  of a batch at once, :func:`evaluate_together`: the periodic ones with batched policy calls, which may
+  differ in the float32 last bits; the last one exact, and it is the final evaluation of ``results.json``);
 * ``time/elapsed_s`` (wall time of the run so far, excluding evaluations).
 
 :func:`train` drives any trainer with the small interface of :class:`mixedrl.algorithms.agpi.AGPI`

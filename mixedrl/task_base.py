@@ -31,7 +31,8 @@ import torch
 from mixedrl.checks import check_positive_int, check_seed_lists
 from mixedrl.gaussian import sample_gaussian
 
-__all__ = ["EQUILIBRIUM_ATOL", "Equilibrium", "Linearisation", "Task", "check_policies_and_seeds", "check_task", "cost_hessian"]
+__all__ = ["EQUILIBRIUM_ATOL", "Equilibrium", "Linearisation", "Task", "check_policies_and_seeds", "check_task",
+           "cost_hessian"]
 
 
 #: Largest ``|f(s*, u*) - s*|`` and ``|grad l|`` (relative to the state's and the cost's scale) accepted at an
@@ -418,7 +419,6 @@ class Task(abc.ABC):
         out.update({f"mean_state_{i}": v for i, v in enumerate(mean)})
         return out
 
-
     def evaluate_many(self, policies: list[torch.nn.Module], seeds: list[list[int]], *, exact: bool = False
                       ) -> list[dict[str, Any]]:
         """:meth:`evaluate` of several policies, each on its own seeds: ``[evaluate(p, s) for p, s in ...]``.
@@ -464,6 +464,7 @@ def check_policies_and_seeds(policies: Any, seeds: Any) -> list[list[int]]:
     if isinstance(policies, torch.nn.Module) or not isinstance(policies, (list, tuple)) or not policies:
         raise ValueError(f"policies: expected a non-empty list of policies, got {type(policies).__name__}")
     return check_seed_lists(seeds, len(policies))
+
 
 def _check_output(value: Any, task: Task, fn: str, shape: tuple[int, ...], dtype: torch.dtype | None) -> None:
     """Raise ``ValueError`` naming ``Task.fn`` unless ``value`` is a finite float tensor of ``shape`` (``dtype``)."""

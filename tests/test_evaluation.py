@@ -155,9 +155,10 @@ def test_normalised_actions_and_a_start_state_are_honoured_exactly() -> None:
 def test_batched_policy_calls_agree_to_float32_rounding() -> None:
     policies = [actor(0), actor(1), actor(2)]
     seeds = [[21, 22], [23, 24], [25, 26]]
-    assert _stacked_call(policies) is not None  # the stacked (vmap) path is the one taken
+    assert _stacked_call(policies) is not None  # the stacked path is the one taken
     out = evaluate_courses(policies, seeds=seeds, max_steps=600, exact=False)
-    per_policy = evaluate_courses(policies, seeds=[[21, 22], [23, 24], [25]], max_steps=600, exact=False)  # unequal: no vmap
+    # unequal numbers of seeds: no stacking, one call per policy
+    per_policy = evaluate_courses(policies, seeds=[[21, 22], [23, 24], [25]], max_steps=600, exact=False)
     for p, policy in enumerate(policies):
         for j, seed in enumerate(seeds[p]):
             alone = evaluate_tracking(policy, seed=seed, max_steps=600)

@@ -239,8 +239,14 @@ class DoubleLaneChangeTask(Task):
         Returns ``lateral_mae`` [m], ``speed_mae`` [m/s], ``lateral_max``, ``speed_max``, ``cost`` (total
         eq. 54 cost of the course), ``terminated`` (fraction of runs that left the road); with
         ``keep_trajectory`` also ``trajectories`` (the :class:`~mixedrl.envs.TrackingResult` objects).
-        The courses are driven in lock step (:func:`mixedrl.envs.evaluate_courses` with ``exact=True``):
-        the numbers are those of :func:`~mixedrl.envs.evaluate_tracking` per seed, bit for bit.
+        The courses are driven by :func:`mixedrl.envs.evaluate_courses` with ``exact=True`` (in lock step
+        from :data:`~mixedrl.envs.evaluation.NUMPY_MIN_ROWS` seeds on, else one after the other): the
+        numbers are those of :func:`~mixedrl.envs.evaluate_tracking` per seed, bit for bit.
+
+        Raises
+        ------
+        ValueError
+            ``seeds`` empty or not ints.
         """
         runs = evaluate_courses([policy], self.model.config, seeds=[list(seeds)], exact=True)[0]
         return _course_metrics(runs, keep_trajectory)
@@ -251,8 +257,8 @@ class DoubleLaneChangeTask(Task):
         courses (:func:`mixedrl.envs.evaluate_courses`).
 
         With ``exact=False`` (default) the policies are called once per step on all their courses (a batch
-        of rows, or one :func:`torch.func.vmap` call over stacked policies): the metrics may differ from
-        :meth:`evaluate`'s in the float32 last bits of the policy (about 1e-8 relative; docs/reproduction.rst).
+        of rows, or one call of the stacked policies): the metrics may differ from :meth:`evaluate`'s in
+        the float32 last bits of the policy (about 1e-8 relative; docs/reproduction.rst).
         With ``exact=True`` each is bit-identical to :meth:`evaluate`.
 
         Raises
