@@ -1,12 +1,20 @@
 """Side-by-side table of the batched engine (mixedrl.algorithms.batched): one run alone against R runs in one batch.
 
     python benchmarks/batched_table.py [--iterations N] [--sizes 1 5 15 50] [--out FILE.json]
+    python benchmarks/batched_table.py --evaluation [--sizes 1 15] [--run RUN_DIR] [--repeats K]
 
 For each size ``R`` (seeds x mixed / model / oracle at the double lane change's defaults) it builds the
 runs, times ``N`` iterations of the batch after 3 warm-up iterations, and reports the wall time per
 batch iteration, the iterations per second of all runs together (``R / time``), the ratio to one run
 alone, and the peak resident memory of a fresh process (each size runs in its own subprocess, so the
 peaks do not mix). Evaluation and start-up are not in the per-iteration times.
+
+``--evaluation`` instead times the course evaluations of ``R`` runs x their 2 seeds (``--sizes``, default
+1 and 15), side by side in this invocation: sequential (:func:`mixedrl.envs.evaluate_tracking` per course,
+the evaluation before it was batched), in lock step with exact per-course policy calls (the final
+evaluation, bit-identical) and in lock step with batched policy calls (the periodic evaluations of
+training, :func:`mixedrl.runs.evaluate_together`). ``--run DIR`` loads that run's checkpoint into every
+policy (a trained policy drives the whole course; fresh ones leave the road after about 1200 steps).
 
 ``--reproduction`` instead times ``mixedrl reproduce --quick`` (2 seeds at the paper's budget, 2 workers)
 twice, side by side in this invocation: batched (``--batch 16``, the default) and every run alone
@@ -50,6 +58,62 @@ def measure(size: int, iterations: int, threads: int) -> dict[str, float]:
             "run_iterations_per_s": size / per_iteration, "peak_gib": peak}
 
 
+def evaluation(sizes: list[int], run: Path | None, repeats: int, threads: int, out: Path | None) -> int:
+    """Seconds per evaluation of ``R`` runs x their seeds: sequential, lock step exact, lock step batched."""
+    import numpy as np
+    import torch
+
+    from mixedrl.config import TrainConfig
+    from mixedrl.envs import evaluate_tracking
+    from mixedrl.runs import RunDirectory, eval_seeds, evaluate_together, load_checkpoint, make_trainer
+
+    torch.set_num_threads(threads)
+    state = None if run is None else load_checkpoint(RunDirectory(run).checkpoint_path)["trainer"]
+    rows = []
+    for size in sizes:
+        trainers = [make_trainer(TrainConfig(method=METHODS[i % 3], seed=i // 3)) for i in range(size)]
+        if state is not None:
+            for t in trainers:
+                t.actor.load_state_dict(state["actor"])
+        seeds = [eval_seeds(t.config) for t in trainers]
+        task = trainers[0].task
+        config = task.model.config
+
+        def sequential() -> list[float]:
+            return [float(np.mean([evaluate_tracking(t.policy, config, seed=s).total_cost for s in ss]))
+                    for t, ss in zip(trainers, seeds)]
+
+        def exact() -> list[float]:
+            return [e["cost"] for e in task.evaluate_many([t.policy for t in trainers], seeds, exact=True)]
+
+        def batched() -> list[float]:
+            return [e["cost"] for e in evaluate_together(trainers, seeds)]
+
+        times, costs = {}, {}
+        for name, fn in (("sequential", sequential), ("lock step exact", exact), ("lock step batched", batched)):
+            best = float("inf")
+            for _ in range(repeats):
+                t0 = time.perf_counter()
+                costs[name] = fn()
+                best = min(best, time.perf_counter() - t0)
+            times[name] = best
+        rel = max(abs(a - b) / abs(a) for a, b in zip(costs["sequential"], costs["lock step batched"]))
+        rows.append({"runs": size, "courses": sum(len(s) for s in seeds), **{f"{k} s": v for k, v in times.items()},
+                     "exact bit-identical": costs["sequential"] == costs["lock step exact"],
+                     "batched max rel cost diff": rel})
+    print(f"{'R x seeds':>10} {'sequential s':>13} {'exact s':>9} {'x':>6} {'batched s':>10} {'x':>6} "
+          f"{'exact bits':>11} {'batched rel':>12}")
+    for r in rows:
+        seq = r["sequential s"]
+        print(f"{r['runs']:>5} x {r['courses'] // r['runs']:<2} {seq:>13.2f} {r['lock step exact s']:>9.2f} "
+              f"{seq / r['lock step exact s']:>6.2f} {r['lock step batched s']:>10.2f} "
+              f"{seq / r['lock step batched s']:>6.2f} {str(r['exact bit-identical']):>11} "
+              f"{r['batched max rel cost diff']:>12.1e}")
+    if out is not None:
+        out.write_text(json.dumps({"evaluation": rows, "threads": threads, "run": str(run)}, indent=2) + "\n")
+    return 0
+
+
 def reproduction(out: Path | None) -> int:
     """``mixedrl reproduce --quick`` with ``--batch 16`` and ``--batch 1``, one after the other."""
     import tempfile
@@ -77,19 +141,25 @@ def reproduction(out: Path | None) -> int:
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--iterations", type=int, default=20)
-    p.add_argument("--sizes", type=int, nargs="+", default=[1, 5, 15, 50])
+    p.add_argument("--sizes", type=int, nargs="+", default=None, help="R (default 1 5 15 50; --evaluation: 1 15)")
     p.add_argument("--threads", type=int, default=1)
     p.add_argument("--out", type=Path, default=None)
     p.add_argument("--one", type=int, default=None, help=argparse.SUPPRESS)
     p.add_argument("--reproduction", action="store_true", help="time mixedrl reproduce --quick, batched and not")
+    p.add_argument("--evaluation", action="store_true",
+                   help="time the course evaluations of R runs: sequential, lock step exact and batched")
+    p.add_argument("--run", type=Path, default=None, help="with --evaluation: load this run's policy into every run")
+    p.add_argument("--repeats", type=int, default=1, help="with --evaluation: best of this many timings")
     args = p.parse_args(argv)
+    if args.evaluation:
+        return evaluation(args.sizes or [1, 15], args.run, args.repeats, args.threads, args.out)
     if args.reproduction:
         return reproduction(args.out)
     if args.one is not None:
         print(json.dumps(measure(args.one, args.iterations, args.threads)))
         return 0
     rows = []
-    for size in args.sizes:
+    for size in args.sizes or [1, 5, 15, 50]:
         out = subprocess.run([sys.executable, __file__, "--one", str(size), "--iterations", str(args.iterations),
                               "--threads", str(args.threads)], capture_output=True, text=True, check=True)
         rows.append(json.loads(out.stdout.strip().splitlines()[-1]))

@@ -29,6 +29,7 @@ __all__ = [
     "check_positive_int",
     "check_unknown_keys",
     "check_number",
+    "check_seed_lists",
 ]
 
 SYMMETRY_RTOL = 1e-10
@@ -185,3 +186,30 @@ def check_fraction(value: Any, name: str, *, low_open: bool = False, high_open: 
         lo, hi = "(" if low_open else "[", ")" if high_open else "]"
         raise ValueError(f"{name}: expected a number in {lo}0, 1{hi}, got {value!r}")
     return v
+
+
+def check_seed_lists(seeds: Any, n: int, name: str = "seeds") -> list[list[int]]:
+    """``seeds`` as ``n`` non-empty lists of ints, one per policy; a flat list of ints is every policy's.
+
+    Raises
+    ------
+    ValueError
+        ``seeds`` empty, not ints, or not ``n`` lists (the message starts with ``name`` and names the entry).
+    """
+
+    def is_int(v: Any) -> bool:
+        return isinstance(v, (int, np.integer)) and not isinstance(v, bool)
+
+    def is_list(v: Any) -> bool:
+        return isinstance(v, (list, tuple, np.ndarray)) and len(v) > 0
+
+    if not is_list(seeds):
+        raise ValueError(f"{name}: expected a non-empty list of seeds (or one list per policy), got {seeds!r:.80}")
+    if all(is_int(s) for s in seeds):
+        return [[int(s) for s in seeds] for _ in range(n)]
+    if len(seeds) != n:
+        raise ValueError(f"{name}: expected one list of seeds per policy ({n}), got {len(seeds)} entries")
+    for p, entry in enumerate(seeds):
+        if not is_list(entry) or not all(is_int(s) for s in entry):
+            raise ValueError(f"{name}: entry {p} (policy {p}) must be a non-empty list of ints, got {entry!r:.80}")
+    return [[int(s) for s in entry] for entry in seeds]

@@ -28,7 +28,9 @@ Metric keys (every row has ``iteration``):
   ``mvc/lhs_mean``, ``mvc/e_mean``, ``mvc/e_nonnegative``, ``mvc/inner_steps`` (Algorithm 2 only);
 * ``ibe/mean_<i>``, ``ibe/cov_<i><i>``, ``ibe/mean_error`` (max abs error of the mean against the true
   noise), ``ibe/mean_rel_error``, ``ibe/count`` (Algorithm 2 only);
-* ``eval/cost``, ``eval/lateral_mae``, ``eval/speed_mae``, ... every ``eval_every`` iterations;
+* ``eval/cost``, ``eval/lateral_mae``, ``eval/speed_mae``, ... every ``eval_every`` iterations (all runs
+  of a batch at once, :func:`evaluate_together`: the periodic ones with batched policy calls, which may
+  differ in the float32 last bits; the last one exact, and it is the final evaluation of ``results.json``);
 * ``time/elapsed_s`` (wall time of the run so far, excluding evaluations).
 
 :func:`train` drives any trainer with the small interface of :class:`mixedrl.algorithms.agpi.AGPI`
@@ -82,6 +84,7 @@ __all__ = [
     "iterations_to_converge",
     "eval_seeds",
     "evaluate_run",
+    "evaluate_together",
     "PeriodicObserver",
     "config_record",
     "train",
@@ -470,6 +473,74 @@ def evaluate_run(path: str | Path, *, seeds: int | None = None, feedforward: str
             "policy_gap_reason": reason}
 
 
+def _evaluation_due(trainer: Any) -> bool:
+    """Whether ``trainer`` is evaluated after its current iteration: every ``run.eval_every`` iterations,
+    at the budget and when it stopped."""
+    return trainer.k % trainer.config.run.eval_every == 0 or _finished(trainer)
+
+
+def _finished(trainer: Any) -> bool:
+    """Whether ``trainer`` has reached its budget or stopped (its evaluation now is its final one)."""
+    return trainer.k >= trainer.config.algorithm.iterations or bool(trainer.stopped)
+
+
+def _shared_task(trainers: list[Any]) -> Any:
+    """The task all ``trainers`` evaluate on (a built-in task of one configuration, or one task object),
+    or ``None`` when they have none in common or a trainer evaluates otherwise than AGPI and DDPG do."""
+    # a trainer's own evaluate() might do something else: only AGPI's and DDPG's (the task's evaluate of
+    # the policy) are batched
+    if not all(type(t).evaluate in (AGPI.evaluate, DDPG.evaluate) for t in trainers):
+        return None
+    first = trainers[0]
+    for t in trainers[1:]:
+        same_builtin = (type(t.task) is type(first.task) and getattr(t.task, "name", None) == t.config.task.name
+                        and getattr(first.task, "name", None) == first.config.task.name
+                        and t.config.task == first.config.task)
+        if t.task is not first.task and not same_builtin:
+            return None
+    return first.task if hasattr(first.task, "evaluate_many") else None
+
+
+def evaluate_together(trainers: list[Any], seeds: list[list[int]], *, exact: bool = False) -> list[dict[str, Any]]:
+    """The evaluations of several runs at once: their policies on their seeds, in one call of the task's
+    :meth:`~mixedrl.tasks.Task.evaluate_many` (the courses in lock step).
+
+    With ``exact=False`` (the periodic evaluations of training: the ``eval/*`` metrics rows, a monitor, and
+    ``iterations_to_converge``) the policies are called once per step on all their courses, and the
+    numbers may differ from the trainer's own ``evaluate`` in the float32 last bits of a batched policy
+    call (about 1e-8 relative, docs/reproduction.rst). With ``exact=True`` (a run's last iteration, whose
+    evaluation is also its final one in ``results.json``) each equals ``trainer.evaluate(seeds)`` bit for
+    bit. Trainers without a common task are evaluated one by one with their own ``evaluate``.
+
+    Parameters
+    ----------
+    trainers : list of AGPI or DDPG
+        The runs (any trainer with ``evaluate(seeds)``; AGPI and DDPG runs on one task are batched).
+    seeds : list of list of int
+        Each run's evaluation seeds (:func:`eval_seeds`).
+    exact : bool, optional
+        Bit-identical to each trainer's ``evaluate`` (per-course policy calls) or not (batched calls).
+
+    Returns
+    -------
+    list of dict
+        Per run, the task's evaluation.
+
+    Raises
+    ------
+    ValueError
+        ``seeds`` not one list per trainer.
+    """
+    if len(seeds) != len(trainers):
+        raise ValueError(f"seeds: {len(seeds)} lists of seeds for {len(trainers)} trainers")
+    if not trainers:
+        return []
+    task = _shared_task(trainers)
+    if task is None:
+        return [t.evaluate(s) for t, s in zip(trainers, seeds)]
+    return task.evaluate_many([t.policy for t in trainers], [list(s) for s in seeds], exact=exact)
+
+
 def _scalar_eval(ev: dict[str, Any]) -> dict[str, float]:
     return {f"eval/{k}": float(v) for k, v in ev.items() if isinstance(v, (int, float, np.floating))}
 
@@ -754,6 +825,7 @@ def _train(trainers: list[Any], engine: Callable[[list[bool]], list[dict[str, fl
     seeds = [eval_seeds(t.config) for t in trainers]
     pending: list[list[dict[str, Any]]] = [[] for _ in range(n)]
     interrupted = [False] * n
+    finals: dict[int, dict[str, Any]] = {}  # the exact evaluation of a run's last iteration (for summarize)
 
     def checkpoint(i: int) -> None:
         if runs[i] is not None:
@@ -786,13 +858,24 @@ def _train(trainers: list[Any], engine: Callable[[list[bool]], list[dict[str, fl
             t0 = time.perf_counter()
             rows = engine(active)
             dt = time.perf_counter() - t0
+            # the evaluations due at this iteration, of every run of the batch at once: the periodic ones (a
+            # monitor) with batched policy calls, a run's last one exact (it is also its final evaluation)
+            evaluations: dict[int, dict[str, Any]] = {}
+            for exact in (False, True):
+                due = [i for i in range(n)
+                       if active[i] and _evaluation_due(trainers[i]) and _finished(trainers[i]) == exact]
+                if due:
+                    evaluations.update(zip(due, evaluate_together([trainers[i] for i in due],
+                                                                  [seeds[i] for i in due], exact=exact)))
+                if exact:
+                    finals.update((i, evaluations[i]) for i in due)
             for i in (i for i in range(n) if active[i]):
                 trainer, cfg = trainers[i], trainers[i].config
                 elapsed[i] += dt
                 extra = observers[i].after(trainer, tokens[i], rows[i]) if observers[i] is not None else None
                 row = {"iteration": trainer.k, **rows[i], **(extra or {}), "time/elapsed_s": elapsed[i]}
-                if trainer.k % cfg.run.eval_every == 0 or trainer.k == cfg.algorithm.iterations or trainer.stopped:
-                    row.update(_scalar_eval(trainer.evaluate(seeds[i])))
+                if i in evaluations:
+                    row.update(_scalar_eval(evaluations[i]))
                 pending[i].append(row)
                 if callback is not None:
                     callback(row)
@@ -819,7 +902,7 @@ def _train(trainers: list[Any], engine: Callable[[list[bool]], list[dict[str, fl
         if boards[i] is not None:
             boards[i].close()
         rows_i = runs[i].read_metrics() if runs[i] is not None else memory_rows[i]
-        results = summarize(trainer, rows_i, elapsed[i], seeds[i])
+        results = summarize(trainer, rows_i, elapsed[i], seeds[i], finals.get(i))
         if n > 1:
             results["batch_size_runs"] = n
         if runs[i] is not None:
@@ -831,15 +914,20 @@ def _train(trainers: list[Any], engine: Callable[[list[bool]], list[dict[str, fl
     return out
 
 
-def summarize(trainer: Any, rows: list[dict[str, Any]], elapsed: float, seeds: list[int]) -> dict[str, Any]:
+def summarize(trainer: Any, rows: list[dict[str, Any]], elapsed: float, seeds: list[int],
+              final: dict[str, Any] | None = None) -> dict[str, Any]:
     """Final evaluation and convergence figures of a finished run (the content of ``results.json``).
+
+    ``final`` is the trainer's exact evaluation on ``seeds`` when the caller already has it (the training
+    loop evaluates a run's last iteration exactly); otherwise ``trainer.evaluate(seeds)`` is called.
 
     ``policy_gap`` is the policy at the task's equilibrium against the discounted LQ optimum for the
     method's own noise mean (:func:`mixedrl.precision.run_policy_gap`), ``null`` with ``policy_gap_reason``
     when the task has no equilibrium.
     """
     cfg: TrainConfig = trainer.config
-    final = trainer.evaluate(seeds)
+    if final is None:
+        final = trainer.evaluate(seeds)
     evals = [(r["iteration"], r["eval/cost"]) for r in rows if "eval/cost" in r]
     results: dict[str, Any] = {
         "method": cfg.method,

@@ -28,10 +28,11 @@ from typing import Any, Callable
 import numpy as np
 import torch
 
-from mixedrl.checks import check_positive_int
+from mixedrl.checks import check_positive_int, check_seed_lists
 from mixedrl.gaussian import sample_gaussian
 
-__all__ = ["EQUILIBRIUM_ATOL", "Equilibrium", "Linearisation", "Task", "check_task", "cost_hessian"]
+__all__ = ["EQUILIBRIUM_ATOL", "Equilibrium", "Linearisation", "Task", "check_policies_and_seeds", "check_task",
+           "cost_hessian"]
 
 
 #: Largest ``|f(s*, u*) - s*|`` and ``|grad l|`` (relative to the state's and the cost's scale) accepted at an
@@ -417,6 +418,52 @@ class Task(abc.ABC):
         out.update({f"mean_abs_state_{i}": v for i, v in enumerate(mean_abs)})
         out.update({f"mean_state_{i}": v for i, v in enumerate(mean)})
         return out
+
+    def evaluate_many(self, policies: list[torch.nn.Module], seeds: list[list[int]], *, exact: bool = False
+                      ) -> list[dict[str, Any]]:
+        """:meth:`evaluate` of several policies, each on its own seeds: ``[evaluate(p, s) for p, s in ...]``.
+
+        Training evaluates all the runs of a batch that are due at one iteration with one call
+        (:func:`mixedrl.runs.train_batch`). A task may override it to drive all the rollouts at once
+        (:class:`~mixedrl.tasks.DoubleLaneChangeTask` does); this default evaluates them one after the
+        other, so it is exact whatever ``exact`` says.
+
+        Parameters
+        ----------
+        policies : list of torch.nn.Module
+            The runs' policies.
+        seeds : list of list of int
+            One non-empty list of evaluation seeds per policy.
+        exact : bool, optional
+            Whether each result must equal :meth:`evaluate`'s bit for bit (False allows a batched policy
+            call, whose float32 outputs may differ in the last bits).
+
+        Returns
+        -------
+        list of dict
+            Per policy, what :meth:`evaluate` returns.
+
+        Raises
+        ------
+        ValueError
+            ``policies`` not a list, or ``seeds`` not one non-empty list of ints per policy.
+        """
+        seeds = check_policies_and_seeds(policies, seeds)
+        return [self.evaluate(policy, s) for policy, s in zip(policies, seeds)]
+
+
+def check_policies_and_seeds(policies: Any, seeds: Any) -> list[list[int]]:
+    """``seeds`` as one list per policy (:func:`mixedrl.checks.check_seed_lists`), after checking that
+    ``policies`` is a non-empty list (:meth:`Task.evaluate_many`).
+
+    Raises
+    ------
+    ValueError
+        Naming ``policies`` or ``seeds``.
+    """
+    if isinstance(policies, torch.nn.Module) or not isinstance(policies, (list, tuple)) or not policies:
+        raise ValueError(f"policies: expected a non-empty list of policies, got {type(policies).__name__}")
+    return check_seed_lists(seeds, len(policies))
 
 
 def _check_output(value: Any, task: Task, fn: str, shape: tuple[int, ...], dtype: torch.dtype | None) -> None:

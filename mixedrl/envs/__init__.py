@@ -10,7 +10,8 @@ a run's ``task``), with the true force :class:`~mixedrl.envs.disturbance.Disturb
 :class:`~mixedrl.envs.model.DoubleLaneChangeModel` (``step`` = the shared deterministic ``f``,
 ``observe``, ``cost``, ``reset_states``, ``NOISE_INDEX``); data collection:
 :class:`~mixedrl.envs.vector_env.DoubleLaneChangeVectorEnv` (same ``f`` plus the true noise) or the
-Gymnasium env; Table I metrics: :func:`~mixedrl.envs.evaluation.evaluate_tracking`.
+Gymnasium env; Table I metrics: :func:`~mixedrl.envs.evaluation.evaluate_tracking` (many courses in lock step:
+:func:`~mixedrl.envs.evaluation.evaluate_courses`).
 :mod:`mixedrl.envs.tracking` gathers these names (and says how the reference enters).
 
 The task the algorithms train on, :class:`~mixedrl.envs.dlc_task.DoubleLaneChangeTask` (with its course
@@ -23,7 +24,7 @@ import gymnasium as gym
 from mixedrl.envs.disturbance import Disturbance
 from mixedrl.envs.dlc_config import CostWeights, DoubleLaneChangeConfig, DoubleLaneChangeTaskConfig, make_config
 from mixedrl.envs.dlc_env import DoubleLaneChangeEnv
-from mixedrl.envs.evaluation import TrackingResult, evaluate_tracking
+from mixedrl.envs.evaluation import TrackingResult, evaluate_courses, evaluate_tracking
 from mixedrl.envs.model import ACTION_DIM, NOISE_INDEX, STATE_DIM, DoubleLaneChangeModel
 from mixedrl.envs.reference import DoubleLaneChangeReference
 from mixedrl.envs.vector_env import DoubleLaneChangeVectorEnv
@@ -46,6 +47,7 @@ __all__ = [
     "VehicleDynamics",
     "VehicleParams",
     "evaluate_tracking",
+    "evaluate_courses",
     "fiala_lateral_force",
     "make_config",
 ]

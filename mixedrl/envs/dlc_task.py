@@ -24,9 +24,9 @@ from mixedrl.checks import check_fraction, check_nonnegative_int, check_number, 
 from mixedrl.config import (MODEL_COURSE_STARTS, DoubleLaneChangeTaskConfig, ModelRolloutsSampler, register_preset,
                             register_sampler)
 from mixedrl.envs.dlc_config import make_config
-from mixedrl.envs.evaluation import evaluate_tracking
+from mixedrl.envs.evaluation import TrackingResult, evaluate_courses
 from mixedrl.envs.model import DoubleLaneChangeModel
-from mixedrl.task_base import Equilibrium, Linearisation, Task, cost_hessian
+from mixedrl.task_base import Equilibrium, Linearisation, Task, check_policies_and_seeds, cost_hessian
 
 __all__ = ["DoubleLaneChangeTask", "CourseSampler", "DLC_EXPERIMENT"]
 
@@ -239,19 +239,51 @@ class DoubleLaneChangeTask(Task):
         Returns ``lateral_mae`` [m], ``speed_mae`` [m/s], ``lateral_max``, ``speed_max``, ``cost`` (total
         eq. 54 cost of the course), ``terminated`` (fraction of runs that left the road); with
         ``keep_trajectory`` also ``trajectories`` (the :class:`~mixedrl.envs.TrackingResult` objects).
+        The courses are driven by :func:`mixedrl.envs.evaluate_courses` with ``exact=True`` (in lock step
+        from :data:`~mixedrl.envs.evaluation.NUMPY_MIN_ROWS` seeds on, else one after the other): the
+        numbers are those of :func:`~mixedrl.envs.evaluate_tracking` per seed, bit for bit.
+
+        Raises
+        ------
+        ValueError
+            ``seeds`` empty or not ints.
         """
-        runs = [evaluate_tracking(policy, self.model.config, seed=int(seed)) for seed in seeds]
-        out: dict[str, Any] = {
-            "lateral_mae": float(np.mean([r.mean_abs_lateral_error for r in runs])),
-            "speed_mae": float(np.mean([r.mean_abs_speed_error for r in runs])),
-            "lateral_max": float(np.mean([r.max_abs_lateral_error for r in runs])),
-            "speed_max": float(np.mean([r.max_abs_speed_error for r in runs])),
-            "cost": float(np.mean([r.total_cost for r in runs])),
-            "terminated": float(np.mean([r.terminated for r in runs])),
-        }
-        if keep_trajectory:
-            out["trajectories"] = runs
-        return out
+        runs = evaluate_courses([policy], self.model.config, seeds=[list(seeds)], exact=True)[0]
+        return _course_metrics(runs, keep_trajectory)
+
+    def evaluate_many(self, policies: list[torch.nn.Module], seeds: list[list[int]], *, exact: bool = False
+                      ) -> list[dict[str, Any]]:
+        """:meth:`evaluate` of several policies, each on its own seeds, in one lock-step drive of all the
+        courses (:func:`mixedrl.envs.evaluate_courses`).
+
+        With ``exact=False`` (default) the policies are called once per step on all their courses (a batch
+        of rows, or one call of the stacked policies): the metrics may differ from :meth:`evaluate`'s in
+        the float32 last bits of the policy (about 1e-8 relative; docs/reproduction.rst).
+        With ``exact=True`` each is bit-identical to :meth:`evaluate`.
+
+        Raises
+        ------
+        ValueError
+            As :func:`mixedrl.envs.evaluate_courses` (e.g. ``seeds`` not one non-empty list per policy).
+        """
+        seeds = check_policies_and_seeds(policies, seeds)
+        runs = evaluate_courses(list(policies), self.model.config, seeds=seeds, exact=exact)
+        return [_course_metrics(r, False) for r in runs]
+
+
+def _course_metrics(runs: list[TrackingResult], keep_trajectory: bool) -> dict[str, Any]:
+    """The task's evaluation dict (:meth:`DoubleLaneChangeTask.evaluate`) of one policy's courses."""
+    out: dict[str, Any] = {
+        "lateral_mae": float(np.mean([r.mean_abs_lateral_error for r in runs])),
+        "speed_mae": float(np.mean([r.mean_abs_speed_error for r in runs])),
+        "lateral_max": float(np.mean([r.max_abs_lateral_error for r in runs])),
+        "speed_max": float(np.mean([r.max_abs_speed_error for r in runs])),
+        "cost": float(np.mean([r.total_cost for r in runs])),
+        "terminated": float(np.mean([r.terminated for r in runs])),
+    }
+    if keep_trajectory:
+        out["trajectories"] = runs
+    return out
 
 
 # ----------------------------------------------------------------------------------------------------

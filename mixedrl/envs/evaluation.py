@@ -1,18 +1,29 @@
-"""Table I metrics: drive the double lane change with a policy and measure the tracking errors."""
+"""Table I metrics: drive the double lane change with a policy and measure the tracking errors.
+
+:func:`evaluate_tracking` drives one course with one policy through the Gymnasium environment;
+:func:`evaluate_courses` drives many courses (evaluation seeds) of many policies in lock step, with the
+vehicle vectorised over the courses, and gives the same numbers (bit for bit with ``exact=True``).
+"""
 
 from __future__ import annotations
 
+import copy
 from dataclasses import dataclass
-from typing import Any, Callable
+from typing import Any, Callable, Sequence
 
 import numpy as np
 import torch
 
-from mixedrl.checks import as_vector, check_positive_int
+from mixedrl.checks import as_vector, check_positive_int, check_seed_lists
+from mixedrl.envs.columns import observation_from_errors, stage_cost
 from mixedrl.envs.dlc_env import DoubleLaneChangeEnv
 from mixedrl.envs.dlc_config import DoubleLaneChangeConfig
+from mixedrl.envs.libm import elementwise
+from mixedrl.envs.model import DoubleLaneChangeModel
+from mixedrl.envs.reference import LibmReference
+from mixedrl.networks import stacked_actors
 
-__all__ = ["TrackingResult", "evaluate_tracking"]
+__all__ = ["TrackingResult", "evaluate_tracking", "evaluate_courses"]
 
 
 @dataclass(frozen=True)
@@ -145,10 +156,7 @@ def evaluate_tracking(policy: Callable[[np.ndarray], Any] | torch.nn.Module,
     """
     env = DoubleLaneChangeEnv(config)
     cfg = env.config
-    if start_state is None:
-        ref = cfg.reference
-        start_state = np.array([0.0, 0.0, cfg.v_des, ref.heading(0.0), ref.lateral(0.0), 0.0])
-    start_state = as_vector(start_state, "start_state", 6)
+    start_state = _start_state(cfg, start_state)
     n_max = cfg.max_steps if max_steps is None else check_positive_int(max_steps, "max_steps")
     call = _as_numpy_policy(policy)
     obs, info = env.reset(seed=seed, options={"state": start_state})
@@ -170,15 +178,360 @@ def evaluate_tracking(policy: Callable[[np.ndarray], Any] | torch.nn.Module,
         spd.append(info["speed_error"])
         if terminated or truncated:
             break
-    lat_a, spd_a = np.asarray(lat), np.asarray(spd)
     n = len(actions)
+    return _tracking_result(cfg.dt, np.asarray(states), np.asarray(observations), np.asarray(actions).reshape(n, 2),
+                            np.asarray(forces), np.asarray(costs), np.asarray(lat), np.asarray(spd), terminated)
+
+
+def _tracking_result(dt: float, states: np.ndarray, observations: np.ndarray, actions: np.ndarray,
+                     forces: np.ndarray, costs: np.ndarray, lat: np.ndarray, spd: np.ndarray,
+                     terminated: bool) -> TrackingResult:
+    """The :class:`TrackingResult` of one course from its contiguous per-step arrays (one place, so the
+    sequential and the batched evaluation reduce the same arrays in the same way)."""
+    n = actions.shape[0]
     return TrackingResult(
-        mean_abs_lateral_error=float(np.mean(np.abs(lat_a[1:]))),
-        mean_abs_speed_error=float(np.mean(np.abs(spd_a[1:]))),
-        max_abs_lateral_error=float(np.max(np.abs(lat_a[1:]))),
-        max_abs_speed_error=float(np.max(np.abs(spd_a[1:]))),
+        mean_abs_lateral_error=float(np.mean(np.abs(lat[1:]))),
+        mean_abs_speed_error=float(np.mean(np.abs(spd[1:]))),
+        max_abs_lateral_error=float(np.max(np.abs(lat[1:]))),
+        max_abs_speed_error=float(np.max(np.abs(spd[1:]))),
         total_cost=float(np.sum(costs)), terminated=bool(terminated), n_steps=n,
-        time=np.arange(n + 1) * cfg.dt, states=np.asarray(states), observations=np.asarray(observations),
-        actions=np.asarray(actions).reshape(n, 2), lateral_error=lat_a, speed_error=spd_a,
-        disturbance=np.asarray(forces), costs=np.asarray(costs),
+        time=np.arange(n + 1) * dt, states=states, observations=observations, actions=actions,
+        lateral_error=lat, speed_error=spd, disturbance=forces, costs=costs,
     )
+
+
+def _start_state(cfg: DoubleLaneChangeConfig, start_state: np.ndarray | None) -> np.ndarray:
+    """``start_state`` checked, or the deterministic default: on the reference at ``X = 0``, ``v_des``."""
+    if start_state is None:
+        ref = cfg.reference
+        start_state = np.array([0.0, 0.0, cfg.v_des, ref.heading(0.0), ref.lateral(0.0), 0.0])
+    return as_vector(start_state, "start_state", 6)
+
+
+@dataclass(frozen=True)
+class _RowColumns:
+    """The fields :func:`mixedrl.envs.columns.observation_from_errors` reads, with the reference on float64
+    rows (:class:`~mixedrl.envs.reference.LibmReference`: bit-identical to the Python-float reference)."""
+
+    v_des: float
+    preview_distances: tuple[float, ...]
+    reference: LibmReference
+
+
+def _stacked_call(policies: Sequence[Any]) -> Callable[[np.ndarray], np.ndarray] | None:
+    """One call of ``P`` modules of one architecture on ``(P, S, obs_dim)`` rows
+    (:func:`mixedrl.networks.stacked_actors` for plain actors, else :func:`torch.func.vmap`), or ``None``
+    when the policies cannot be stacked (not modules of one type with the same parameter and buffer
+    shapes, or holding tensors outside their parameters and buffers, which a stacked call would not
+    see). The stacked state is a copy: the modules are not changed."""
+    if not all(isinstance(p, torch.nn.Module) for p in policies):
+        return None
+    # plain actors (even one): one batched product per layer, cheaper than vmap and than the modules' calls
+    actors = stacked_actors(policies)
+    if actors is not None:
+        def call_actors(obs: np.ndarray) -> np.ndarray:
+            with torch.no_grad():
+                return actors(torch.as_tensor(obs, dtype=torch.float32)).numpy()
+        return call_actors
+    if len(policies) < 2:
+        return None
+    first = policies[0]
+    if any(type(p) is not type(first) for p in policies):
+        return None
+
+    def signature(module: torch.nn.Module) -> list[tuple[str, tuple[int, ...], torch.dtype]]:
+        return [(k, tuple(v.shape), v.dtype) for k, v in module.state_dict().items()]
+
+    if any(signature(p) != signature(first) for p in policies):
+        return None
+    for p in policies:
+        for sub in p.modules():
+            if any(isinstance(v, torch.Tensor) for v in vars(sub).values()):
+                return None  # a plain tensor attribute: each module's own value would be lost
+    params, buffers = torch.func.stack_module_state(list(policies))
+    params = {k: v.detach() for k, v in params.items()}
+    base = copy.deepcopy(first).to("meta")
+    dtype = next(iter(params.values())).dtype if params else torch.float32
+
+    def one(p: dict[str, torch.Tensor], b: dict[str, torch.Tensor], x: torch.Tensor) -> torch.Tensor:
+        return torch.func.functional_call(base, (p, b), (x,))
+
+    batched = torch.func.vmap(one)
+
+    def call(obs: np.ndarray) -> np.ndarray:
+        with torch.no_grad():
+            return batched(params, buffers, torch.as_tensor(obs, dtype=dtype)).cpu().numpy()
+    return call
+
+
+def _checked_actions(actions: Any, rows: int, what: str, finite: bool = True) -> np.ndarray:
+    """A policy's output as float64 ``(rows, 2)``, with ``finite`` also checked finite (the checks of the
+    environment's step)."""
+    a = np.asarray(actions, dtype=np.float64)
+    if a.size != rows * 2:
+        raise ValueError(f"{what} returned an action of shape {a.shape}, expected {(rows, 2) if rows > 1 else (2,)}")
+    a = a.reshape(rows, 2)
+    if finite and not np.isfinite(a).all():
+        raise ValueError(f"{what} returned NaN or inf")
+    return a
+
+
+#: From this many courses on, :func:`evaluate_courses` steps the vehicles as numpy rows (``stepper="auto"``);
+#: below it each course's own Gymnasium environment is faster (a numpy call costs about a microsecond
+#: whatever its length, a Python-float step of one car about 15; measured on 2 cores, AMD EPYC).
+NUMPY_MIN_ROWS = 6
+
+
+class _EnvRows:
+    """Courses stepped by their own Gymnasium environments (Python floats): the sequential step itself."""
+
+    def __init__(self, cfg: DoubleLaneChangeConfig, row_seeds: list[int], start_state: np.ndarray,
+                 normalized_actions: bool) -> None:
+        self.envs = [DoubleLaneChangeEnv(cfg) for _ in row_seeds]
+        self.normalized = normalized_actions
+        self.records: list[dict[str, list[Any]]] = []
+        obs = []
+        for env, seed in zip(self.envs, row_seeds):
+            o, info = env.reset(seed=seed, options={"state": start_state})
+            obs.append(o)
+            self.records.append({"states": [info["state"]], "observations": [o], "actions": [], "forces": [],
+                                 "costs": [], "lat": [info["lateral_error"]], "spd": [info["speed_error"]]})
+        self.obs = np.array(obs)
+        self.terminated = np.zeros(len(row_seeds), dtype=bool)
+
+    def step(self, idx: np.ndarray, u: np.ndarray) -> np.ndarray:
+        """Step the courses ``idx`` with the actions ``u`` (len(idx), 2); True where a course ended."""
+        ended = np.zeros(idx.size, dtype=bool)
+        for j, i in enumerate(idx):
+            env, rec = self.envs[i], self.records[i]
+            step = env.step if self.normalized else env.step_physical
+            obs, reward, terminated, truncated, info = step(u[j])
+            self.obs[i] = obs
+            rec["states"].append(info["state"])
+            rec["observations"].append(obs)
+            rec["actions"].append(info["action"])
+            rec["forces"].append(info["disturbance"])
+            rec["costs"].append(-reward)
+            rec["lat"].append(info["lateral_error"])
+            rec["spd"].append(info["speed_error"])
+            self.terminated[i] = terminated
+            ended[j] = terminated or truncated
+        return ended
+
+    def result(self, i: int, dt: float) -> TrackingResult:
+        rec = self.records[i]
+        n = len(rec["actions"])
+        return _tracking_result(dt, np.asarray(rec["states"]), np.asarray(rec["observations"]),
+                                np.asarray(rec["actions"]).reshape(n, 2), np.asarray(rec["forces"]),
+                                np.asarray(rec["costs"]), np.asarray(rec["lat"]), np.asarray(rec["spd"]),
+                                bool(self.terminated[i]))
+
+
+class _NumpyRows:
+    """Courses stepped as float64 numpy rows, bit-identical to :class:`_EnvRows` (:func:`evaluate_courses`, Notes)."""
+
+    def __init__(self, cfg: DoubleLaneChangeConfig, row_seeds: list[int], start_state: np.ndarray,
+                 normalized_actions: bool, n_max: int) -> None:
+        self.cfg, self.normalized = cfg, normalized_actions
+        self.model = DoubleLaneChangeModel(cfg)
+        env = DoubleLaneChangeEnv(cfg)
+        n, obs_dim = len(row_seeds), self.model.obs_dim
+        # each course's generator is the one its environment seeds; all its draws at once (the same numbers)
+        self.z = np.empty((n_max, n))
+        obs0, info0 = env.reset(seed=0, options={"state": start_state})
+        for i, seed in enumerate(row_seeds):
+            env.reset(seed=seed, options={"state": start_state})
+            self.z[:, i] = cfg.disturbance.standard_noise(env.np_random, (n_max,))
+        self.states = np.full((n_max + 1, n, 6), np.nan)
+        self.observations = np.full((n_max + 1, n, obs_dim), np.nan)
+        self.actions = np.full((n_max, n, 2), np.nan)
+        self.forces = np.full((n_max, n), np.nan)
+        self.costs = np.full((n_max, n), np.nan)
+        self.lat = np.full((n_max + 1, n), np.nan)
+        self.spd = np.full((n_max + 1, n), np.nan)
+        self.states[0], self.observations[0] = info0["state"], obs0
+        self.lat[0], self.spd[0] = info0["lateral_error"], info0["speed_error"]
+        self.state = np.array(np.broadcast_to(start_state, (n, 6)))
+        self.obs = np.array(np.broadcast_to(obs0, (n, obs_dim)))
+        self.n_steps = np.zeros(n, dtype=int)
+        self.terminated = np.zeros(n, dtype=bool)
+        self.columns = _RowColumns(cfg.v_des, tuple(cfg.preview_distances), cfg.reference.rows())
+        dist, m, g = cfg.disturbance, cfg.params.m, cfg.params.g
+        self.mean_force = elementwise(lambda X: dist.mean_force(X, m, g))
+        self.bound = np.array([cfg.delta_max, cfg.ax_max])
+
+    def step(self, idx: np.ndarray, u: np.ndarray) -> np.ndarray:
+        """Step the courses ``idx`` with the actions ``u`` (len(idx), 2); True where a course ended."""
+        cfg, model, k = self.cfg, self.model, int(self.n_steps[idx[0]])
+        rows = slice(None) if idx.size == self.state.shape[0] else idx
+        # the environment's clip to the action box (normalised actions: to [-1, 1], then scaled)
+        u = np.clip(u, -1.0, 1.0) * self.bound if self.normalized else np.clip(u, -self.bound, self.bound)
+        s = self.state[rows]
+        # F_dis = mean(X) + std z at the current state ;  xi = F_dis T / m
+        force = self.mean_force(s[:, 5]) + cfg.disturbance.std * self.z[k, rows]
+        # s' = f(s, u) + xi e_vx   (eq. 54): the one true step, on rows
+        vy, r, vx, phi, Y, X = model.dynamics.step_rows(s, u)
+        vx = vx + model.xi_from_force(force)
+        y_ref, psi_ref = self.columns.reference.lateral_and_heading(X)
+        e_y = Y - y_ref
+        obs = np.stack(observation_from_errors(self.columns, vy, r, vx, phi - psi_ref, e_y, X, y_ref), axis=1)
+        s_next = np.stack([vy, r, vx, phi, Y, X], axis=1)
+        with np.errstate(invalid="ignore"):
+            terminated = (~np.isfinite(s_next).all(axis=1) | ~(np.abs(e_y) <= cfg.max_lateral_error)
+                          | ~(vx >= cfg.min_speed))
+        self.state[rows], self.obs[rows] = s_next, obs
+        self.states[k + 1, rows], self.observations[k + 1, rows], self.actions[k, rows] = s_next, obs, u
+        self.forces[k, rows] = force
+        self.costs[k, rows] = stage_cost(cfg, vx - cfg.v_des, e_y, u[:, 0], u[:, 1])
+        self.lat[k + 1, rows], self.spd[k + 1, rows] = e_y, vx - cfg.v_des
+        self.n_steps[rows] = k + 1
+        self.terminated[rows] = terminated
+        # ended: terminated, or truncated at the course's end (the environment's time limit)
+        return terminated | (k + 1 >= cfg.max_steps)
+
+    def result(self, i: int, dt: float) -> TrackingResult:
+        n = int(self.n_steps[i])
+
+        def row(a: np.ndarray, length: int) -> np.ndarray:
+            return np.ascontiguousarray(a[:length, i])
+
+        return _tracking_result(dt, row(self.states, n + 1), row(self.observations, n + 1), row(self.actions, n),
+                                row(self.forces, n), row(self.costs, n), row(self.lat, n + 1),
+                                row(self.spd, n + 1), bool(self.terminated[i]))
+
+
+def evaluate_courses(policies: Sequence[Callable[[np.ndarray], Any] | torch.nn.Module],
+                     config: DoubleLaneChangeConfig | dict[str, Any] | None = None, *,
+                     seeds: Sequence[int] | Sequence[Sequence[int]], start_state: np.ndarray | None = None,
+                     max_steps: int | None = None, normalized_actions: bool = False,
+                     exact: bool = True, stepper: str = "auto") -> list[list[TrackingResult]]:
+    """Drive the double lane change with several policies on several seeds at once: every course of
+    :func:`evaluate_tracking` in lock step.
+
+    Implements the same evaluation as :func:`evaluate_tracking` (the Table I metrics, eq. 54's cost) for
+    ``N = sum_p S_p`` courses: step ``k`` calls the policies on the courses' observations, then steps
+    every course still running, ``s_{k+1} = f(s_k, u_k) + \\xi_k e_{v_x}``, the disturbance of course
+    ``(p, j)`` drawn from the generator the environment seeds with ``seeds[p][j]``. A course that
+    terminates (left the road, too slow, non-finite) or reaches the end is masked from then on: its
+    record ends where the sequential drive ends.
+
+    Parameters
+    ----------
+    policies : sequence of callable or torch.nn.Module, length P
+        Each as ``policy`` of :func:`evaluate_tracking`.
+    config : DoubleLaneChangeConfig or dict, optional
+        The task (default: the paper's).
+    seeds : sequence of int, or sequence of P sequences of int
+        The evaluation seeds: one list shared by every policy, or one (non-empty) list per policy.
+    start_state : numpy.ndarray, shape (6,), optional
+        As for :func:`evaluate_tracking` (the same start for every course).
+    max_steps : int, optional
+        As for :func:`evaluate_tracking`.
+    normalized_actions : bool, optional
+        As for :func:`evaluate_tracking`.
+    exact : bool, optional
+        True (default): each course's policy is called on that course's observation alone, a 1-D array
+        as in :func:`evaluate_tracking`, so every number equals the sequential evaluation's bit for bit.
+        False: each step is one call per policy on all its courses' observations ``(S_p, obs_dim)``, or
+        one call of the stacked policies when they are modules of one architecture with equally many
+        seeds (:func:`mixedrl.networks.stacked_actors` for plain actors, else :func:`torch.func.vmap`);
+        finished courses stay in the batch (fixed shapes: a course's action does not depend on which
+        others still run). Faster; a float32 network then gives outputs that may differ in the last
+        bits from its single-row outputs (a batched matrix product sums in another order), and so do the
+        metrics, by about 1e-8 relative (docs/reproduction.rst).
+    stepper : {"auto", "numpy", "env"}, optional
+        How the vehicles are stepped, with the same numbers either way: ``"numpy"``, float64 rows of one
+        array (:meth:`~mixedrl.envs.VehicleDynamics.step_rows`); ``"env"``, each course's own Gymnasium
+        environment on Python floats (with ``exact`` this is :func:`evaluate_tracking` course by course:
+        nothing is shared then); ``"auto"`` (default), numpy from :data:`NUMPY_MIN_ROWS` courses on.
+
+    Returns
+    -------
+    list of list of TrackingResult
+        ``out[p][j]``: policy ``p`` on its ``j``-th seed, as :func:`evaluate_tracking` returns it.
+
+    Raises
+    ------
+    ValueError
+        ``policies`` empty or not callable; ``seeds`` empty, not ints, or not one list per policy;
+        unknown ``stepper``; bad ``start_state`` or ``max_steps``; a policy returns an action of the
+        wrong shape or with NaN (the message names the policy, and with ``exact`` the seed).
+
+    Notes
+    -----
+    Why the numpy rows are bit-identical to the environment's Python floats: ``+ - * /``, ``abs`` and
+    clipping are correctly rounded on every backend, in the same order of operations (one formula,
+    :mod:`mixedrl.envs.vehicle`), and the transcendental functions (``tanh``, ``atan``, ``atan2``,
+    ``tan``, ``sin``, ``cos``) are :mod:`math`'s, element by element (:class:`mixedrl.envs.libm.LibmOps`);
+    numpy's own vectorised versions differ in the last bit for some arguments. A course's disturbance
+    draws are made in one call of its generator, which gives the numbers of one draw per step.
+    """
+    if isinstance(policies, (torch.nn.Module, str, bytes)) or not isinstance(policies, Sequence) \
+            or len(policies) == 0:
+        raise ValueError(f"policies: expected a non-empty list of policies, got {type(policies).__name__}")
+    for p, policy in enumerate(policies):
+        if not callable(policy):
+            raise ValueError(f"policies: entry {p} is a {type(policy).__name__}, not callable")
+    if stepper not in ("auto", "numpy", "env"):
+        raise ValueError(f"stepper: expected 'auto', 'numpy' or 'env', got {stepper!r}")
+    seed_lists = check_seed_lists(seeds, len(policies))
+    cfg = DoubleLaneChangeEnv(config).config
+    start_state = _start_state(cfg, start_state)
+    n_max = cfg.max_steps if max_steps is None else check_positive_int(max_steps, "max_steps")
+    owner = np.array([p for p, s in enumerate(seed_lists) for _ in s])
+    row_seeds = [seed for s in seed_lists for seed in s]
+    n_rows = len(row_seeds)
+    use_numpy = stepper == "numpy" or (stepper == "auto" and n_rows >= NUMPY_MIN_ROWS)
+    if exact and not use_numpy:
+        # per-course policy calls and per-course environments: that is the sequential drive itself
+        results: list[list[TrackingResult]] = [[] for _ in policies]
+        for p, (policy, s) in enumerate(zip(policies, seed_lists)):
+            for seed in s:
+                try:
+                    results[p].append(evaluate_tracking(policy, cfg, seed=seed, start_state=start_state,
+                                                        max_steps=max_steps, normalized_actions=normalized_actions))
+                except (ValueError, TypeError) as exc:  # the policy's action, refused by the environment
+                    raise ValueError(f"policies: entry {p} (seed {seed}) returned a bad action ({exc})") from exc
+        return results
+    rows: _EnvRows | _NumpyRows = (_NumpyRows(cfg, row_seeds, start_state, normalized_actions, n_max) if use_numpy
+                                   else _EnvRows(cfg, row_seeds, start_state, normalized_actions))
+    calls = [_as_numpy_policy(policy) for policy in policies]
+    blocks = [np.flatnonzero(owner == p) for p in range(len(policies))]
+    stacked = _stacked_call(policies) if not exact and len({len(s) for s in seed_lists}) == 1 else None
+    alive = np.ones(n_rows, dtype=bool)
+    for _ in range(n_max):
+        idx = np.flatnonzero(alive)
+        if idx.size == 0:
+            break
+        obs = rows.obs
+        # u_k = pi_p(o_k): per course (exact), or per policy / stacked over the policies on all rows
+        if exact:
+            raw = [calls[owner[i]](obs[i]) for i in idx]
+            try:
+                u = np.asarray(raw, dtype=np.float64).reshape(idx.size, 2)
+                bad = not np.isfinite(u).all()
+            except ValueError:  # ragged or wrong sizes
+                bad = True
+            if bad:  # find the course, and let _checked_actions name it
+                for i, out in zip(idx, raw):
+                    _checked_actions(out, 1, f"policies: entry {owner[i]} (seed {row_seeds[i]})")
+        else:
+            # a finished course's row is still computed (its last observation) but not checked or used
+            full = np.empty((n_rows, 2))
+            if stacked is not None:
+                full[:] = _checked_actions(stacked(obs.reshape(len(policies), -1, obs.shape[1])), n_rows,
+                                           "policies (stacked)", finite=False)
+            else:
+                for p, block in enumerate(blocks):
+                    full[block] = _checked_actions(calls[p](obs[block]), block.size, f"policies: entry {p}",
+                                                   finite=False)
+            u = full[idx]
+            bad = np.flatnonzero(~np.isfinite(u).all(axis=1))
+            if bad.size:
+                i = idx[bad[0]]
+                raise ValueError(f"policies: entry {owner[i]} (seed {row_seeds[i]}) returned NaN or inf")
+        alive[idx[rows.step(idx, u)]] = False
+    results = [[] for _ in policies]
+    for i in range(n_rows):
+        results[owner[i]].append(rows.result(i, cfg.dt))
+    return results

@@ -23,8 +23,9 @@ import numpy as np
 import torch
 
 from mixedrl.checks import check_number
+from mixedrl.envs.libm import LibmOps
 
-__all__ = ["DoubleLaneChangeReference"]
+__all__ = ["DoubleLaneChangeReference", "LibmReference"]
 
 
 class _MathOps:
@@ -96,8 +97,8 @@ class DoubleLaneChangeReference:
             value = getattr(self, f.name)
             object.__setattr__(self, f.name, check_number(value, f.name, positive=f.name in ("len1", "len2", "shape")))
 
-    def _tanh_terms(self, X: Any) -> tuple[Any, Any, Any]:
-        ops = _ops_for(X)
+    def _tanh_terms(self, X: Any, ops: Any = None) -> tuple[Any, Any, Any]:
+        ops = _ops_for(X) if ops is None else ops
         k1 = self.shape / self.len1
         k2 = self.shape / self.len2
         # z1 = 2.4/25 (X - 27.19) - 1.2 ;  z2 = 2.4/21.95 (X - 56.46) - 1.2
@@ -152,6 +153,11 @@ class DoubleLaneChangeReference:
         ops, th1, th2 = self._tanh_terms(X)
         return self._lateral_from(th1, th2), ops.atan(self._slope_from(th1, th2))
 
+    def rows(self) -> "LibmReference":
+        """This reference on float64 arrays, bit-identical to its Python-float values element by element
+        (:class:`LibmReference`; the batched course evaluation uses it)."""
+        return LibmReference(self)
+
     def heading(self, X: Any) -> Any:
         """Reference heading ``psi_ref(X) = atan(dY_ref/dX)`` [rad].
 
@@ -166,3 +172,29 @@ class DoubleLaneChangeReference:
             Reference heading, same type and shape as ``X``.
         """
         return _ops_for(X).atan(self.slope(X))
+
+
+class LibmReference:
+    """A :class:`DoubleLaneChangeReference` evaluated on float64 arrays with :mod:`math`'s ``tanh`` and
+    ``atan`` element by element (:class:`mixedrl.envs.libm.LibmOps`): each element equals the reference's
+    value at that Python float exactly (numpy's vectorised ``tanh`` and ``arctan`` may differ in the last
+    bit). It has the reference's :meth:`lateral` and :meth:`lateral_and_heading`, so it can stand in for
+    it in :mod:`mixedrl.envs.columns`.
+
+    Parameters
+    ----------
+    reference : DoubleLaneChangeReference
+    """
+
+    def __init__(self, reference: DoubleLaneChangeReference) -> None:
+        self.reference = reference
+
+    def lateral(self, X: np.ndarray) -> np.ndarray:
+        """``Y_ref(X)`` [m], shape of ``X``."""
+        _, th1, th2 = self.reference._tanh_terms(X, LibmOps)
+        return self.reference._lateral_from(th1, th2)
+
+    def lateral_and_heading(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``(Y_ref(X), psi_ref(X))``, each of the shape of ``X``."""
+        _, th1, th2 = self.reference._tanh_terms(X, LibmOps)
+        return self.reference._lateral_from(th1, th2), LibmOps.atan(self.reference._slope_from(th1, th2))

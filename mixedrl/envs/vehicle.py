@@ -28,6 +28,7 @@ import numpy as np
 import torch
 
 from mixedrl.checks import check_finite, check_number
+from mixedrl.envs.libm import LibmOps
 
 __all__ = [
     "VehicleParams",
@@ -499,6 +500,37 @@ class VehicleDynamics:
         if len(x) not in (5, 6) or len(u) != 2:
             raise ValueError(f"x: expected 5 or 6 floats and u 2 floats, got {len(x)} and {len(u)}")
         return self._step_cols(_MathOps, tuple(x), u[0], u[1])
+
+    def step_rows(self, x: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, ...]:
+        """Deterministic step ``f`` on float64 rows, bit-identical to :meth:`step_scalar` on each row.
+
+        Implements eq. (53) discretised as in :meth:`__call__`, with the transcendental functions of
+        :mod:`math` applied element by element (:class:`mixedrl.envs.libm.LibmOps`) and the rest
+        vectorised: the batched evaluation of the course (:func:`mixedrl.envs.evaluate_courses`) steps many
+        cars at once and still reproduces the Gymnasium environment's Python-float step exactly.
+
+        Parameters
+        ----------
+        x : numpy.ndarray, shape (N, 5) or (N, 6), float64
+            States or tracking states (see :meth:`derivatives`).
+        u : numpy.ndarray, shape (N, 2), float64
+            Inputs ``[delta, a_x]``.
+
+        Returns
+        -------
+        tuple of numpy.ndarray
+            The 5 or 6 columns of ``f(x, u)``, each shape (N,).
+
+        Raises
+        ------
+        ValueError
+            Wrong shapes. (No NaN scan: callers validate.)
+        """
+        if not isinstance(x, np.ndarray) or x.ndim != 2 or x.shape[1] not in (5, 6):
+            raise ValueError(f"x: expected a numpy array of shape (N, 5) or (N, 6), got {np.shape(x)}")
+        if not isinstance(u, np.ndarray) or u.shape != (x.shape[0], 2):
+            raise ValueError(f"u: expected a numpy array of shape ({x.shape[0]}, 2), got {np.shape(u)}")
+        return self._step_cols(LibmOps, tuple(x[:, i] for i in range(x.shape[1])), u[:, 0], u[:, 1])
 
     @overload
     def __call__(self, x: torch.Tensor, u: torch.Tensor) -> torch.Tensor: ...
