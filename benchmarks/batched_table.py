@@ -1,12 +1,16 @@
 """Side-by-side table of the batched engine (mixedrl.algorithms.batched): one run alone against R runs in one batch.
 
-    python benchmarks/batched_table.py [--iterations N] [--sizes 1 5 15 50] [--out FILE.json]
+    python benchmarks/batched_table.py [--iterations N] [--sizes 1 5 15 50] [--ddpg] [--out FILE.json]
 
 For each size ``R`` (seeds x mixed / model / oracle at the double lane change's defaults) it builds the
 runs, times ``N`` iterations of the batch after 3 warm-up iterations, and reports the wall time per
 batch iteration, the iterations per second of all runs together (``R / time``), the ratio to one run
 alone, and the peak resident memory of a fresh process (each size runs in its own subprocess, so the
 peaks do not mix). Evaluation and start-up are not in the per-iteration times.
+
+``--ddpg`` does the same for DDPG runs (seeds 0 .. R-1 at the double lane change's defaults, one
+:class:`mixedrl.algorithms.batched_ddpg.BatchedDDPG`; ``R = 1`` is :meth:`DDPG.iteration`, a run alone).
+The warm-up iterations include the first, which fills the replay buffer to ``ddpg.warmup``.
 
 ``--reproduction`` instead times ``mixedrl reproduce --quick`` (2 seeds at the paper's budget, 2 workers)
 twice, side by side in this invocation: batched (``--batch 16``, the default) and every run alone
@@ -26,18 +30,21 @@ from pathlib import Path
 METHODS = ("mixed", "model", "oracle")
 
 
-def measure(size: int, iterations: int, threads: int) -> dict[str, float]:
-    """Time ``iterations`` batch iterations of ``size`` runs in this process."""
+def measure(size: int, iterations: int, threads: int, ddpg: bool = False) -> dict[str, float]:
+    """Time ``iterations`` batch iterations of ``size`` runs in this process (``ddpg``: DDPG runs)."""
     import torch
 
     from mixedrl.algorithms.batched import BatchedAGPI
+    from mixedrl.algorithms.batched_ddpg import BatchedDDPG
     from mixedrl.config import TrainConfig
     from mixedrl.runs import make_trainer
 
     torch.set_num_threads(threads)
     t0 = time.perf_counter()
-    trainers = [make_trainer(TrainConfig(method=METHODS[i % 3], seed=i // 3)) for i in range(size)]
-    engine = BatchedAGPI(trainers)
+    if ddpg:
+        engine = BatchedDDPG([make_trainer(TrainConfig(method="ddpg", seed=i)) for i in range(size)])
+    else:
+        engine = BatchedAGPI([make_trainer(TrainConfig(method=METHODS[i % 3], seed=i // 3)) for i in range(size)])
     build = time.perf_counter() - t0
     for _ in range(3):
         engine.iteration()
@@ -81,17 +88,19 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--threads", type=int, default=1)
     p.add_argument("--out", type=Path, default=None)
     p.add_argument("--one", type=int, default=None, help=argparse.SUPPRESS)
+    p.add_argument("--ddpg", action="store_true", help="DDPG runs (BatchedDDPG) instead of Algorithm 2")
     p.add_argument("--reproduction", action="store_true", help="time mixedrl reproduce --quick, batched and not")
     args = p.parse_args(argv)
     if args.reproduction:
         return reproduction(args.out)
     if args.one is not None:
-        print(json.dumps(measure(args.one, args.iterations, args.threads)))
+        print(json.dumps(measure(args.one, args.iterations, args.threads, args.ddpg)))
         return 0
     rows = []
     for size in args.sizes:
         out = subprocess.run([sys.executable, __file__, "--one", str(size), "--iterations", str(args.iterations),
-                              "--threads", str(args.threads)], capture_output=True, text=True, check=True)
+                              "--threads", str(args.threads)] + (["--ddpg"] if args.ddpg else []),
+                             capture_output=True, text=True, check=True)
         rows.append(json.loads(out.stdout.strip().splitlines()[-1]))
     base = next((r for r in rows if r["runs"] == 1), rows[0])
     print(f"{'R':>4} {'s / batch it':>13} {'x one run':>10} {'run-its / s':>12} {'vs R x alone':>13} {'peak GiB':>9}")
@@ -101,8 +110,8 @@ def main(argv: list[str] | None = None) -> int:
               f"{r['runs'] / ratio:>12.2f}x {r['peak_gib']:>9.2f}")
         r["ratio_to_one_run"] = ratio
     if args.out is not None:
-        args.out.write_text(json.dumps({"threads": args.threads, "iterations": args.iterations, "rows": rows},
-                                       indent=2) + "\n")
+        args.out.write_text(json.dumps({"method": "ddpg" if args.ddpg else "algorithm2", "threads": args.threads,
+                                        "iterations": args.iterations, "rows": rows}, indent=2) + "\n")
     return 0
 
 
