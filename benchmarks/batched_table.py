@@ -4,7 +4,8 @@
 
 For each size ``R`` (seeds x mixed / model / oracle at the double lane change's defaults) it builds the
 runs, times ``N`` iterations of the batch after 3 warm-up iterations, and reports the wall time per
-batch iteration, the iterations per second of all runs together (``R / time``), the ratio to one run
+batch iteration (wall and CPU time of the process: the CPU time is less disturbed by other jobs on a
+shared machine), the iterations per second of all runs together (``R / time``), the ratio to one run
 alone, and the peak resident memory of a fresh process (each size runs in its own subprocess, so the
 peaks do not mix). Evaluation and start-up are not in the per-iteration times.
 
@@ -48,12 +49,13 @@ def measure(size: int, iterations: int, threads: int, ddpg: bool = False) -> dic
     build = time.perf_counter() - t0
     for _ in range(3):
         engine.iteration()
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     for _ in range(iterations):
         engine.iteration()
     per_iteration = (time.perf_counter() - t0) / iterations
+    cpu = (time.process_time() - c0) / iterations  # less sensitive than the wall time to other jobs' load
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024 ** 2  # KiB -> GiB
-    return {"runs": size, "build_s": build, "s_per_iteration": per_iteration,
+    return {"runs": size, "build_s": build, "s_per_iteration": per_iteration, "cpu_s_per_iteration": cpu,
             "run_iterations_per_s": size / per_iteration, "peak_gib": peak}
 
 
@@ -103,11 +105,14 @@ def main(argv: list[str] | None = None) -> int:
                              capture_output=True, text=True, check=True)
         rows.append(json.loads(out.stdout.strip().splitlines()[-1]))
     base = next((r for r in rows if r["runs"] == 1), rows[0])
-    print(f"{'R':>4} {'s / batch it':>13} {'x one run':>10} {'run-its / s':>12} {'vs R x alone':>13} {'peak GiB':>9}")
+    print(f"{'R':>4} {'s / batch it':>13} {'x one run':>10} {'run-its / s':>12} {'vs R x alone':>13} "
+          f"{'cpu s / it':>11} {'cpu vs alone':>13} {'peak GiB':>9}")
     for r in rows:
         ratio = r["s_per_iteration"] / base["s_per_iteration"]
+        cpu_ratio = r["cpu_s_per_iteration"] / base["cpu_s_per_iteration"]
         print(f"{r['runs']:>4} {r['s_per_iteration']:>13.4f} {ratio:>10.2f} {r['run_iterations_per_s']:>12.1f} "
-              f"{r['runs'] / ratio:>12.2f}x {r['peak_gib']:>9.2f}")
+              f"{r['runs'] / ratio:>12.2f}x {r['cpu_s_per_iteration']:>11.4f} {r['runs'] / cpu_ratio:>12.2f}x "
+              f"{r['peak_gib']:>9.2f}")
         r["ratio_to_one_run"] = ratio
     if args.out is not None:
         args.out.write_text(json.dumps({"method": "ddpg" if args.ddpg else "algorithm2", "threads": args.threads,
