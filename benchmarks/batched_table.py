@@ -1,6 +1,6 @@
 """Side-by-side table of the batched engine (mixedrl.algorithms.batched): one run alone against R runs in one batch.
 
-    python benchmarks/batched_table.py [--iterations N] [--sizes 1 5 15 50] [--ddpg] [--out FILE.json]
+    python benchmarks/batched_table.py [--iterations N] [--sizes 1 5 15 50] [--ddpg] [--interleave] [--out FILE.json]
 
 For each size ``R`` (seeds x mixed / model / oracle at the double lane change's defaults) it builds the
 runs, times ``N`` iterations of the batch after 3 warm-up iterations, and reports the wall time per
@@ -12,6 +12,9 @@ peaks do not mix). Evaluation and start-up are not in the per-iteration times.
 ``--ddpg`` does the same for DDPG runs (seeds 0 .. R-1 at the double lane change's defaults, one
 :class:`mixedrl.algorithms.batched_ddpg.BatchedDDPG`; ``R = 1`` is :meth:`DDPG.iteration`, a run alone).
 The warm-up iterations include the first, which fills the replay buffer to ``ddpg.warmup``.
+
+``--interleave`` times all sizes in one process instead, in alternating blocks of 10 iterations, so that
+each sees the same load from other jobs on a shared machine (the peak memory is then of all together).
 
 ``--reproduction`` instead times ``mixedrl reproduce --quick`` (2 seeds at the paper's budget, 2 workers)
 twice, side by side in this invocation: batched (``--batch 16``, the default) and every run alone
@@ -27,6 +30,7 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 METHODS = ("mixed", "model", "oracle")
 
@@ -35,17 +39,9 @@ def measure(size: int, iterations: int, threads: int, ddpg: bool = False) -> dic
     """Time ``iterations`` batch iterations of ``size`` runs in this process (``ddpg``: DDPG runs)."""
     import torch
 
-    from mixedrl.algorithms.batched import BatchedAGPI
-    from mixedrl.algorithms.batched_ddpg import BatchedDDPG
-    from mixedrl.config import TrainConfig
-    from mixedrl.runs import make_trainer
-
     torch.set_num_threads(threads)
     t0 = time.perf_counter()
-    if ddpg:
-        engine = BatchedDDPG([make_trainer(TrainConfig(method="ddpg", seed=i)) for i in range(size)])
-    else:
-        engine = BatchedAGPI([make_trainer(TrainConfig(method=METHODS[i % 3], seed=i // 3)) for i in range(size)])
+    engine = _engine(size, ddpg)
     build = time.perf_counter() - t0
     for _ in range(3):
         engine.iteration()
@@ -57,6 +53,44 @@ def measure(size: int, iterations: int, threads: int, ddpg: bool = False) -> dic
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024 ** 2  # KiB -> GiB
     return {"runs": size, "build_s": build, "s_per_iteration": per_iteration, "cpu_s_per_iteration": cpu,
             "run_iterations_per_s": size / per_iteration, "peak_gib": peak}
+
+
+def _engine(size: int, ddpg: bool, first_seed: int = 0) -> Any:
+    """The engine of ``size`` runs at the double lane change's defaults (seeds from ``first_seed``)."""
+    from mixedrl.algorithms.batched import BatchedAGPI
+    from mixedrl.algorithms.batched_ddpg import BatchedDDPG
+    from mixedrl.config import TrainConfig
+    from mixedrl.runs import make_trainer
+
+    if ddpg:
+        return BatchedDDPG([make_trainer(TrainConfig(method="ddpg", seed=first_seed + i)) for i in range(size)])
+    return BatchedAGPI([make_trainer(TrainConfig(method=METHODS[i % 3], seed=first_seed + i // 3))
+                        for i in range(size)])
+
+
+def interleaved(sizes: list[int], iterations: int, threads: int, ddpg: bool) -> list[dict[str, float]]:
+    """Time the sizes in one process, in alternating blocks of 10 iterations (``iterations`` per size in all),
+    so that every size sees the same load from other jobs on a shared machine."""
+    import torch
+
+    torch.set_num_threads(threads)
+    engines = [_engine(size, ddpg, first_seed=100 * j) for j, size in enumerate(sizes)]
+    for engine in engines:
+        for _ in range(3):
+            engine.iteration()
+    wall, cpu = [0.0] * len(sizes), [0.0] * len(sizes)
+    for block in range(max(1, iterations // 10)):
+        order = range(len(sizes)) if block % 2 == 0 else reversed(range(len(sizes)))
+        for j in order:
+            t0, c0 = time.perf_counter(), time.process_time()
+            for _ in range(10):
+                engines[j].iteration()
+            wall[j] += time.perf_counter() - t0
+            cpu[j] += time.process_time() - c0
+    n = 10 * max(1, iterations // 10)
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024 ** 2  # of all sizes together
+    return [{"runs": size, "build_s": float("nan"), "s_per_iteration": wall[j] / n, "cpu_s_per_iteration": cpu[j] / n,
+             "run_iterations_per_s": size * n / wall[j], "peak_gib": peak} for j, size in enumerate(sizes)]
 
 
 def reproduction(out: Path | None) -> int:
@@ -91,6 +125,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--out", type=Path, default=None)
     p.add_argument("--one", type=int, default=None, help=argparse.SUPPRESS)
     p.add_argument("--ddpg", action="store_true", help="DDPG runs (BatchedDDPG) instead of Algorithm 2")
+    p.add_argument("--interleave", action="store_true",
+                   help="time all sizes in one process, alternating blocks (the same load for each; peak memory "
+                        "of all together)")
     p.add_argument("--reproduction", action="store_true", help="time mixedrl reproduce --quick, batched and not")
     args = p.parse_args(argv)
     if args.reproduction:
@@ -98,8 +135,8 @@ def main(argv: list[str] | None = None) -> int:
     if args.one is not None:
         print(json.dumps(measure(args.one, args.iterations, args.threads, args.ddpg)))
         return 0
-    rows = []
-    for size in args.sizes:
+    rows = interleaved(args.sizes, args.iterations, args.threads, args.ddpg) if args.interleave else []
+    for size in [] if args.interleave else args.sizes:
         out = subprocess.run([sys.executable, __file__, "--one", str(size), "--iterations", str(args.iterations),
                               "--threads", str(args.threads)] + (["--ddpg"] if args.ddpg else []),
                              capture_output=True, text=True, check=True)
