@@ -1,16 +1,17 @@
 """Many DDPG runs as one computation: :class:`BatchedDDPG`.
 
-``R`` runs of the data-driven baseline (:class:`~mixedrl.algorithms.ddpg.DDPG`; seeds and config variants
-with the same task, network shapes and minibatch size, :data:`~mixedrl.algorithms.batched.DDPG_SHARED_FIELDS`)
-are trained together. Each run stays a :class:`DDPG` object with its own environment copies, replay
-buffer, generator (its exploration noise, its environments' noise and resets, its minibatch draws), Adam
-states, learning-rate schedule, budget, counters (``true_transitions``), checkpoint format and run
-directory; what is shared is the arithmetic of the updates:
+``R`` runs of the data-driven baseline (:class:`~mixedrl.algorithms.ddpg.DDPG`; seeds and config
+variants with the same task, network shapes and minibatch size,
+:data:`~mixedrl.algorithms.batched.DDPG_SHARED_FIELDS`) are trained together. Each run stays a
+:class:`~mixedrl.algorithms.ddpg.DDPG` object with its own environment copies, replay buffer, generator
+(its exploration noise, its environments' noise and resets, its minibatch draws), Adam states,
+learning-rate schedule, budget, counters (``true_transitions``), checkpoint format and run directory;
+what is shared is the arithmetic of the updates:
 
 * the critics, the actors and their target networks are stacked
-  (:class:`~mixedrl.algorithms.batched.StackedNetwork`, the class of :class:`~mixedrl.algorithms.batched.BatchedAGPI`)
-  and each run's modules are rebound to views of the stacked tensors, so they keep working alone
-  (exploration, evaluation, saving, the soft target updates);
+  (:class:`~mixedrl.algorithms.batched.StackedNetwork`, as in
+  :class:`~mixedrl.algorithms.batched.BatchedAGPI`) and each run's modules are rebound to views of the
+  stacked tensors, so they keep working alone (exploration, evaluation, saving, the soft target updates);
 * each run draws its minibatch from its own buffer; the ``R`` minibatches are concatenated (run ``r`` in
   rows ``r B .. (r + 1) B - 1``) and the TD targets, the critic loss and the actor loss are evaluated
   once for all runs, one loss per run;
@@ -18,31 +19,37 @@ directory; what is shared is the arithmetic of the updates:
   update (on its own modules' views).
 
 The data stay per run: a run's environment steps, exploration noise and warm-up are
-:meth:`DDPG.explore` on its own modules and generator, in the order of the run alone, so a run draws
-exactly what it draws alone. An inactive run (budget reached) draws nothing, takes no step and keeps its
-targets and counters.
+:meth:`~mixedrl.algorithms.ddpg.DDPG.explore` on its own modules and generator, in the order of the run
+alone, so a run draws exactly what it draws alone. An inactive run (budget reached) draws nothing, takes
+no step and keeps its targets and counters.
 
-Reproducibility (measured, ``tests/test_batched_ddpg.py``): for ``R >= 2`` a run gets the same bits in any
-batch of two or more runs (the same config and seed give the same weights, targets, buffer and metrics
-rows whatever else shares the batch); ``R = 1`` calls the run's own modules (the unbatched kernels) and
-is :meth:`DDPG.iteration`, bit for bit the DDPG of the shipped Table I. The batched and the unbatched
-kernels differ in the last bit of some float32 results, so the same run alone and in a batch agree to
-rounding at the first iteration and then drift apart as two float32 runs do (as for Algorithm 2,
-:mod:`mixedrl.algorithms.batched`); ``results.json`` records ``batch_size_runs`` for a run trained in a
-batch.
+Reproducibility (measured, ``tests/test_batched_ddpg.py``): for ``R >= 2`` a run gets the same bits in
+any batch of two or more runs (the same config and seed give the same weights, targets, buffer and
+metrics rows whatever else shares the batch); ``R = 1`` calls the run's own modules (the unbatched
+kernels) and is :meth:`~mixedrl.algorithms.ddpg.DDPG.iteration`, bit for bit the DDPG of the shipped
+Table I. The batched and the unbatched kernels differ in the last bit of some float32 results, so the
+same run alone and in a batch agree to rounding at the first iteration and then drift apart as two
+float32 runs do (as for Algorithm 2, :mod:`mixedrl.algorithms.batched`); ``results.json`` records
+``batch_size_runs`` for a run trained in a batch.
 """
 
 from __future__ import annotations
 
-from typing import Sequence
+from typing import Any, Sequence
 
 import torch
 
 from mixedrl.algorithms.batched import DDPG_SHARED_FIELDS, BatchedRuns, StackedNetwork, check_shared
-from mixedrl.algorithms.ddpg import DDPG
 from mixedrl.pev import run_mean
 
 __all__ = ["BatchedDDPG"]
+
+#: A member of a batch: a :class:`mixedrl.algorithms.ddpg.DDPG` run (not imported: ddpg imports this module).
+DDPG = Any
+
+#: What a DDPG run has and an Algorithm-2 run has not (checked instead of the class, see :data:`DDPG`).
+_DDPG_INTERFACE = ("explore", "finish_iteration", "buffer", "critic_target", "actor_target", "critic_opt",
+                   "actor_opt")
 
 
 def _check_members(members: Sequence[DDPG]) -> None:
@@ -50,7 +57,7 @@ def _check_members(members: Sequence[DDPG]) -> None:
     if len(members) == 0:
         raise ValueError("members: expected at least one DDPG run, got none")
     for i, m in enumerate(members):
-        if not isinstance(m, DDPG):
+        if not all(hasattr(m, a) for a in _DDPG_INTERFACE):
             method = getattr(getattr(m, "config", None), "method", "?")
             raise ValueError(f"members: entry {i} is a {type(m).__name__} ({method}), not a DDPG run; Algorithm-2 "
                              f"and DDPG runs train in batches of their own kind")
@@ -70,8 +77,8 @@ class BatchedDDPG(BatchedRuns):
     Raises
     ------
     ValueError
-        No runs, a run that is not a :class:`DDPG`, runs that differ in the task or a shared field, or
-        the same run twice.
+        No runs, a run that is not a :class:`~mixedrl.algorithms.ddpg.DDPG`, runs that differ in the task or
+        a shared field, or the same run twice.
     """
 
     #: Refuse members that cannot share a batch (raises the ``ValueError`` of the constructor).
@@ -149,9 +156,9 @@ class BatchedDDPG(BatchedRuns):
         return self.descend_actors(lambda critic: run_mean(critic(obs, self.actor(obs)), self.runs) / scale, active)
 
     def iteration(self, active: Sequence[bool] | None = None) -> list[dict[str, float] | None]:
-        """One DDPG iteration of every active run (see :meth:`DDPG.iteration`): its environment steps and
-        minibatch (:meth:`DDPG.explore`), :meth:`critic_step`, :meth:`actor_step`, its soft target updates
-        (:meth:`DDPG.finish_iteration`).
+        """One DDPG iteration of every active run (see :meth:`~mixedrl.algorithms.ddpg.DDPG.iteration`): its
+        environment steps and minibatch (:meth:`~mixedrl.algorithms.ddpg.DDPG.explore`), :meth:`critic_step`,
+        :meth:`actor_step`, its soft target updates (:meth:`~mixedrl.algorithms.ddpg.DDPG.finish_iteration`).
 
         Parameters
         ----------
@@ -162,7 +169,8 @@ class BatchedDDPG(BatchedRuns):
         Returns
         -------
         list
-            Per run its metrics row (the keys of :meth:`DDPG.iteration`), or ``None`` if inactive.
+            Per run its metrics row (the keys of :meth:`~mixedrl.algorithms.ddpg.DDPG.iteration`), or ``None``
+            if inactive.
 
         Raises
         ------
