@@ -709,7 +709,8 @@ def train_batch(trainers: list[Any], runs: list[RunDirectory | None] | None = No
                 callback: Callable[[dict[str, Any]], None] | None = None,
                 tensorboard: bool = False,
                 observers: list[IterationObserver | None] | None = None) -> list[dict[str, Any]]:
-    """Train several runs as one computation (:class:`mixedrl.algorithms.batched.BatchedAGPI`), each into its own directory.
+    """Train several runs as one computation (:class:`mixedrl.algorithms.batched.BatchedAGPI` or
+    :class:`mixedrl.algorithms.batched_ddpg.BatchedDDPG`), each into its own directory.
 
     :func:`train` is this function with one run. Every run keeps what a run alone has: its directory
     (the same layout), its lock (all are taken before anything is written, so a batch never shares a
@@ -720,7 +721,9 @@ def train_batch(trainers: list[Any], runs: list[RunDirectory | None] | None = No
     ----------
     trainers : list of AGPI or DDPG
         Freshly built trainers. Several must all be Algorithm 2 (:class:`~mixedrl.algorithms.agpi.AGPI`)
-        and share the task and :data:`mixedrl.algorithms.batched.SHARED_FIELDS`; DDPG trains alone.
+        sharing the task and :data:`mixedrl.algorithms.batched.SHARED_FIELDS`, or all DDPG
+        (:class:`~mixedrl.algorithms.ddpg.DDPG`) sharing the task and
+        :data:`mixedrl.algorithms.batched.DDPG_SHARED_FIELDS`.
     runs : list of RunDirectory or None, optional
         One per trainer (``None`` entries, or ``runs=None``, keep that run in memory).
     resume, progress, stop_after, callback, tensorboard
@@ -741,7 +744,8 @@ def train_batch(trainers: list[Any], runs: list[RunDirectory | None] | None = No
         Another process is writing one of the directories (nothing is written into any of them).
     ValueError
         As for :func:`train` (for any run: nothing is then written into any of them); ``runs`` of another
-        length than ``trainers``; two runs on one directory; several trainers that cannot share a batch.
+        length than ``trainers``; two runs on one directory; several trainers that cannot share a batch
+        (Algorithm-2 and DDPG runs mixed, another task or a shared field that differs).
     """
     trainers = list(trainers)
     if not trainers:
@@ -786,17 +790,25 @@ def _engine(trainers: list[Any]) -> Callable[[list[bool]], list[dict[str, float]
     if len(trainers) == 1:
         trainer = trainers[0]
         return lambda active: [trainer.iteration() if active[0] else None]
+    kind = AGPI if isinstance(trainers[0], AGPI) else DDPG
     for i, t in enumerate(trainers):
-        if not isinstance(t, AGPI):
-            raise ValueError(f"trainers: entry {i} is {type(t).__name__} ({t.config.method}); only Algorithm 2 "
-                             f"runs train in a batch (train DDPG alone)")
+        if not isinstance(t, (AGPI, DDPG)):
+            raise ValueError(f"trainers: entry {i} is a {type(t).__name__}; only Algorithm-2 (AGPI) or DDPG runs "
+                             f"train in a batch")
+        if not isinstance(t, kind):
+            raise ValueError(f"trainers: entry {i} is {type(t).__name__} ({t.config.method}), entry 0 "
+                             f"{kind.__name__} ({trainers[0].config.method}); Algorithm-2 and DDPG runs train in "
+                             f"batches of their own kind")
     from mixedrl.algorithms.batched import BatchedAGPI
+    from mixedrl.algorithms.batched_ddpg import BatchedDDPG
 
-    batch: list[BatchedAGPI] = []
+    engine_class = BatchedAGPI if kind is AGPI else BatchedDDPG
+    engine_class.check_members(trainers)  # a mismatched batch is refused before any directory is touched
+    batch: list[Any] = []
 
     def iteration(active: list[bool]) -> list[dict[str, float] | None]:
         if not batch:  # built after the checkpoints are loaded
-            batch.append(BatchedAGPI(trainers))
+            batch.append(engine_class(trainers))
         return batch[0].iteration(active)
 
     return iteration

@@ -31,11 +31,12 @@ and optionally ``observer = "module:function"`` (top level): ``function(config)`
 It expands to ``len(variants or [one]) x len(grid product) x len(methods) x len(seeds)`` runs (a variant's own
 ``methods`` / ``seeds`` replace the spec's for its runs). Every run is an
 ordinary run directory (:class:`mixedrl.runs.RunDirectory`) under ``DIR/runs/``, trained by
-:func:`mixedrl.runs.make_trainer` and :func:`mixedrl.runs.train_batch`. The Algorithm-2 runs are trained in
-batches (:func:`plan_batches`: runs with equal :func:`mixedrl.algorithms.batched.batch_key`, at most
-``--batch`` per batch, default :data:`DEFAULT_BATCH`; DDPG alone): a run of a batch ends with exactly the
-weights and metrics of the same config in any other batch of two or more, and with ``--batch 1`` every run
-trains alone, with exactly the weights and metrics of ``mixedrl train``.
+:func:`mixedrl.runs.make_trainer` and :func:`mixedrl.runs.train_batch`. The runs are trained in batches
+(:func:`plan_batches`: runs with equal :func:`mixedrl.algorithms.batched.batch_key`, at most ``--batch`` per
+batch, default :data:`DEFAULT_BATCH`; Algorithm-2 runs in :class:`~mixedrl.algorithms.batched.BatchedAGPI`,
+DDPG runs in :class:`~mixedrl.algorithms.batched_ddpg.BatchedDDPG`, never together): a run of a batch ends
+with exactly the weights and metrics of the same config in any other batch of two or more, and with
+``--batch 1`` every run trains alone, with exactly the weights and metrics of ``mixedrl train``.
 
 Before anything starts, the spec is checked (TOML syntax, top-level keys, non-empty lists without
 duplicates, variant tables) and the :class:`~mixedrl.config.TrainConfig` of **every** run is built; any error
@@ -575,14 +576,15 @@ def _timed_run_points(configs: list[dict[str, Any]], paths: list[str], resume: b
 def plan_batches(runs: Sequence[SweepRun], batch: int = DEFAULT_BATCH, workers: int = 1) -> list[list[int]]:
     """Group a sweep's runs into batches trained as one computation each.
 
-    Runs with equal :func:`mixedrl.algorithms.batched.batch_key` (the task, the network shapes and batch
-    size; method, seed, budget and learning rates may differ) form a group; DDPG runs train alone. A
+    Runs with equal :func:`mixedrl.algorithms.batched.batch_key` (the kind of algorithm, Algorithm 2 or
+    DDPG, the task, the network shapes and batch size; method, seed, budget and learning rates may differ)
+    form a group. A
     group of ``n`` runs is split into ``c`` batches of near-equal size, ``c`` the smallest number with at
     most ``batch`` runs each, raised up to ``workers`` while every batch keeps two runs or more (so
     that the workers share the work). A batch never holds a single run of a larger group: a run's bits
     then depend only on whether its group has one run (or ``batch = 1``: every run alone, as
     ``mixedrl train``), not on ``batch`` or ``workers`` (the batched engine gives a run the same bits in
-    any batch of two or more, :mod:`mixedrl.algorithms.batched`).
+    any batch of two or more, :mod:`mixedrl.algorithms.batched`, :mod:`mixedrl.algorithms.batched_ddpg`).
 
     Parameters
     ----------

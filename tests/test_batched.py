@@ -153,4 +153,5 @@ def test_bad_batches_are_refused() -> None:
 def test_batch_key_groups_by_shape_not_by_seed_or_method() -> None:
     assert batch_key(config("mixed", 0)) == batch_key(config("oracle", 7, critic_lr=1e-3, iterations=9))
     assert batch_key(config("mixed", 0)) != batch_key(config("mixed", 0, batch_size=64))
-    assert batch_key(TrainConfig(method="ddpg")) is None
+    ddpg = batch_key(TrainConfig(method="ddpg"))  # DDPG batches of its own (mixedrl.algorithms.batched_ddpg)
+    assert ddpg[0] == "ddpg" and ddpg != batch_key(TrainConfig(method="mixed"))

@@ -33,7 +33,7 @@ run took is recorded (``batch_size_runs`` in its ``results.json``).
 from __future__ import annotations
 
 import copy
-from typing import Any, Sequence
+from typing import Any, Callable, Sequence
 
 import torch
 from torch.func import functional_call, stack_module_state, vmap
@@ -44,7 +44,7 @@ from mixedrl.pev import critic_loss
 from mixedrl.pim import actor_objective, mvc_check
 from mixedrl.schedule import descend, set_learning_rates
 
-__all__ = ["BatchedAGPI", "StackedNetwork", "SHARED_FIELDS", "batch_key"]
+__all__ = ["BatchedAGPI", "BatchedRuns", "StackedNetwork", "SHARED_FIELDS", "DDPG_SHARED_FIELDS", "batch_key"]
 
 #: A member of a batch: an :class:`mixedrl.algorithms.agpi.AGPI` run (not imported: agpi imports this module).
 AGPI = Any
@@ -55,9 +55,16 @@ AGPI = Any
 SHARED_FIELDS = ("batch_size", "hidden_sizes", "activation", "value_output", "bellman_steps", "batch_weighting",
                  "batch_weight_offset", "expectation", "noise_samples")
 
+#: The ``algorithm`` fields the DDPG runs of one batch (:class:`mixedrl.algorithms.batched_ddpg.BatchedDDPG`)
+#: must share: the network shapes and the minibatch size. Everything else (seed, budget, learning rates and
+#: their decay, gradient clip, and every ``ddpg.*`` field: environment copies, buffer, warm-up, ``tau``,
+#: exploration noise) may differ between them.
+DDPG_SHARED_FIELDS = ("batch_size", "hidden_sizes", "activation", "value_output")
 
-def batch_key(config: Any) -> tuple[Any, ...] | None:
-    """What runs must share to be trained in one batch: the task and :data:`SHARED_FIELDS`; ``None`` for DDPG.
+
+def batch_key(config: Any) -> tuple[Any, ...]:
+    """What runs must share to be trained in one batch: the task and :data:`SHARED_FIELDS` (Algorithm 2) or
+    :data:`DDPG_SHARED_FIELDS` (DDPG).
 
     Parameters
     ----------
@@ -65,11 +72,13 @@ def batch_key(config: Any) -> tuple[Any, ...] | None:
 
     Returns
     -------
-    tuple or None
-        Equal keys can share a batch; ``None``: the method is not Algorithm 2 (DDPG trains alone).
+    tuple
+        Equal keys can share a batch. Algorithm-2 and DDPG runs never have equal keys (the key of a DDPG
+        run starts with ``"ddpg"``): they train in batches of their own kind.
     """
     if config.method == "ddpg":
-        return None
+        return ("ddpg", repr(config.task), config.run.num_threads) + tuple(
+            repr(getattr(config.algorithm, f)) for f in DDPG_SHARED_FIELDS)
     return (repr(config.task), config.run.num_threads, _anchored(config)) + tuple(
         repr(getattr(config.algorithm, f)) for f in SHARED_FIELDS)
 
@@ -120,8 +129,8 @@ class StackedNetwork:
         self.leaves = list(self.params.values())
         base = copy.deepcopy(self.modules[0]).to("meta")
 
-        def call(params: dict[str, torch.Tensor], buffers: dict[str, torch.Tensor], x: torch.Tensor) -> torch.Tensor:
-            return functional_call(base, (params, buffers), (x,))
+        def call(params: dict[str, torch.Tensor], buffers: dict[str, torch.Tensor], *x: torch.Tensor) -> torch.Tensor:
+            return functional_call(base, (params, buffers), x)
 
         self._call = vmap(call)
 
@@ -132,23 +141,27 @@ class StackedNetwork:
         named = [dict(m.named_parameters()) for m in self.modules]
         return [[params[name] for name in self.params] for params in named]
 
-    def __call__(self, x: torch.Tensor, frozen: bool = False) -> torch.Tensor:
-        """Evaluate on ``x`` of shape ``(K R B, d)``; ``frozen``: no gradient to the parameters."""
+    def __call__(self, *x: torch.Tensor, frozen: bool = False) -> torch.Tensor:
+        """Evaluate on the inputs ``x`` (one or more, as the module's ``forward`` takes them: an observation,
+        or an observation and an action for :class:`mixedrl.networks.QCritic`), each of shape ``(K R B, d)``;
+        ``frozen``: no gradient to the parameters."""
         if self.runs == 1:
-            return self.modules[0](x)
-        n, rest = x.shape[0], x.shape[1:]
+            return self.modules[0](*x)
+        n = x[0].shape[0]
         k = n // (self.runs * self.batch)
-        if k * self.runs * self.batch != n:
-            raise ValueError(f"x: {n} rows is not a multiple of runs x batch = {self.runs} x {self.batch}")
-        xs = x.reshape(k, self.runs, self.batch, *rest).transpose(0, 1).reshape(self.runs, k * self.batch, *rest)
+        if k * self.runs * self.batch != n or any(t.shape[0] != n for t in x):
+            raise ValueError(f"x: {[t.shape[0] for t in x]} rows, expected one multiple of runs x batch = "
+                             f"{self.runs} x {self.batch}")
+        xs = [t.reshape(k, self.runs, self.batch, *t.shape[1:]).transpose(0, 1).reshape(
+            self.runs, k * self.batch, *t.shape[1:]) for t in x]
         params = {name: p.detach() for name, p in self.params.items()} if frozen else self.params
-        out = self._call(params, self.buffers, xs)
+        out = self._call(params, self.buffers, *xs)
         tail = out.shape[2:]
         return out.reshape(self.runs, k, self.batch, *tail).transpose(0, 1).reshape(n, *tail)
 
     def frozen(self) -> Any:
         """The same function without gradient to the parameters (the critic inside PIM)."""
-        return self.modules[0] if self.runs == 1 else (lambda x: self(x, frozen=True))
+        return self.modules[0] if self.runs == 1 else (lambda *x: self(*x, frozen=True))
 
 
 def _check_members(members: Sequence[AGPI]) -> None:
@@ -156,27 +169,114 @@ def _check_members(members: Sequence[AGPI]) -> None:
         raise ValueError("members: expected at least one AGPI run, got none")
     for i, m in enumerate(members):
         if not all(hasattr(m, a) for a in ("critic_opt", "actor_opt", "collect", "nodes", "_finish_iteration")):
-            raise ValueError(f"members: entry {i} is a {type(m).__name__}, not an AGPI run (DDPG trains alone)")
+            raise ValueError(f"members: entry {i} is a {type(m).__name__}, not an AGPI run (DDPG runs train in a "
+                             f"BatchedDDPG)")
+    check_shared(members, SHARED_FIELDS)
     first = members[0]
     for i, m in enumerate(members[1:], start=1):
-        if m.architecture != first.architecture or type(m.task) is not type(first.task) or \
-                m.config.task != first.config.task:
-            raise ValueError(f"members: run {i} ({m.config.method}, seed {m.config.seed}) has another task or "
-                             f"architecture than run 0; a batch shares one task")
-        for f in SHARED_FIELDS:
-            if getattr(m.config.algorithm, f) != getattr(first.config.algorithm, f):
-                raise ValueError(f"members: run {i} has algorithm.{f} = {getattr(m.config.algorithm, f)!r}, run 0 "
-                                 f"{getattr(first.config.algorithm, f)!r}; the runs of a batch share "
-                                 f"{', '.join(SHARED_FIELDS)}")
         if _anchored(m.config) != _anchored(first.config):
             raise ValueError(f"members: run {i} has algorithm.feedforward = {m.config.algorithm.feedforward!r}, run 0 "
                              f"{first.config.algorithm.feedforward!r}; runs with 'lq_train' or 'lq_affine' (anchored "
                              f"actors) train in batches of their own kind")
+
+
+def check_shared(members: Sequence[Any], fields: Sequence[str]) -> None:
+    """Refuse runs that cannot share a batch: another task or architecture than run 0, an ``algorithm``
+    field of ``fields`` that differs from run 0's, or the same run twice (the checks common to
+    :class:`BatchedAGPI` and :class:`mixedrl.algorithms.batched_ddpg.BatchedDDPG`).
+
+    Parameters
+    ----------
+    members : sequence of AGPI or DDPG
+        The runs, at least one, all of one kind.
+    fields : sequence of str
+        The ``algorithm`` fields they must share (:data:`SHARED_FIELDS` or :data:`DDPG_SHARED_FIELDS`).
+
+    Raises
+    ------
+    ValueError
+        ``members: ...`` naming the run and the field.
+    """
+    first = members[0]
+    for i, m in enumerate(members[1:], start=1):
+        if getattr(m, "architecture", None) != getattr(first, "architecture", None) or \
+                type(m.task) is not type(first.task) or m.config.task != first.config.task:
+            raise ValueError(f"members: run {i} ({m.config.method}, seed {m.config.seed}) has another task or "
+                             f"architecture than run 0; a batch shares one task")
+        for f in fields:
+            if getattr(m.config.algorithm, f) != getattr(first.config.algorithm, f):
+                raise ValueError(f"members: run {i} has algorithm.{f} = {getattr(m.config.algorithm, f)!r}, run 0 "
+                                 f"{getattr(first.config.algorithm, f)!r}; the runs of a batch share "
+                                 f"{', '.join(fields)}")
     if len({id(m) for m in members}) != len(members):
         raise ValueError("members: the same run appears twice")
 
 
-class BatchedAGPI:
+class BatchedRuns:
+    """What the engines of many runs share (:class:`BatchedAGPI`, :class:`mixedrl.algorithms.batched_ddpg.BatchedDDPG`):
+    the checked members, ``R`` (:attr:`runs`), the minibatch size ``B`` (:attr:`batch`), the task, and the
+    runs' critics and actors as :class:`StackedNetwork` with each run's parameters (:meth:`StackedNetwork.run_params`).
+
+    Parameters
+    ----------
+    members : sequence
+        The runs; :meth:`check_members` (of the subclass) refuses those that cannot share a batch.
+    """
+
+    @staticmethod
+    def check_members(members: Sequence[Any]) -> None:
+        """Refuse members that cannot share a batch (the subclass's rules)."""
+        raise NotImplementedError
+
+    def __init__(self, members: Sequence[Any]) -> None:
+        self.check_members(members)
+        self.members = list(members)
+        self.runs = len(self.members)
+        self.batch = self.members[0].config.algorithm.batch_size
+        self.task = self.members[0].task
+        self.critic = StackedNetwork([m.critic for m in self.members], self.batch)
+        self.actor = StackedNetwork([m.actor for m in self.members], self.batch)
+        self._critic_params = self.critic.run_params()
+        self._actor_params = self.actor.run_params()
+
+    def active_runs(self, active: Sequence[bool] | None) -> tuple[list[bool], list[int]]:
+        """The ``active`` flags of an iteration (default: all runs) and the indices of the active runs.
+
+        Raises
+        ------
+        ValueError
+            ``active`` does not hold one flag per run.
+        """
+        flags = [True] * self.runs if active is None else [bool(a) for a in active]
+        if len(flags) != self.runs:
+            raise ValueError(f"active: expected {self.runs} flags, got {len(flags)}")
+        return flags, [r for r in range(self.runs) if flags[r]]
+
+    def descend_critics(self, loss: torch.Tensor, active: list[int]) -> None:
+        """Each active run's clipped Adam step of its critic on its loss (shape () for one run, (R,) for
+        ``R``; :func:`mixedrl.schedule.descend`)."""
+        descend(loss, self.critic.leaves, self._critic_params, [m.critic_opt for m in self.members],
+                [m.config.algorithm.grad_clip for m in self.members], active)
+
+    def descend_actors(self, objective: Callable[[Any], torch.Tensor], active: list[int]) -> torch.Tensor:
+        """Each active run's clipped Adam step of its actor on ``objective(critic)``, the critics frozen
+        (``critic`` is :meth:`StackedNetwork.frozen`; for one run its parameters are also set not to
+        require a gradient while the step is taken). Returns the objective before the step, detached."""
+        if self.runs == 1:
+            for p in self.critic.leaves:
+                p.requires_grad_(False)
+        try:
+            loss = objective(self.critic.frozen())
+            descend(loss, self.actor.leaves, self._actor_params, [m.actor_opt for m in self.members],
+                    [m.config.algorithm.grad_clip for m in self.members], active)
+        finally:
+            if self.runs == 1:
+                for p in self.critic.leaves:
+                    p.requires_grad_(True)
+        return loss.detach()
+
+
+class BatchedAGPI(BatchedRuns):
     """Algorithm 2 for ``R`` runs at once (see the module docstring).
 
     Parameters
@@ -191,16 +291,11 @@ class BatchedAGPI:
         No runs, a run that is not an :class:`AGPI`, or runs that differ in a shared field.
     """
 
+    #: Refuse members that cannot share a batch (raises the ``ValueError`` of the constructor).
+    check_members = staticmethod(_check_members)
+
     def __init__(self, members: Sequence[AGPI]) -> None:
-        _check_members(members)
-        self.members = list(members)
-        self.runs = len(self.members)
-        self.batch = self.members[0].config.algorithm.batch_size
-        self.task = self.members[0].task
-        self.critic = StackedNetwork([m.critic for m in self.members], self.batch)
-        self.actor = StackedNetwork([m.actor for m in self.members], self.batch)
-        self._critic_params = self.critic.run_params()
-        self._actor_params = self.actor.run_params()
+        super().__init__(members)
         algo = self.members[0].config.algorithm
         self.steps = algo.bellman_steps
         self._filler: torch.Tensor | None = None
@@ -241,27 +336,16 @@ class BatchedAGPI:
         rel = self.members[0].relative_offset
         loss = critic_loss(self.task, self.critic, s, u, offsets, weights, rel, self.actor, self.steps, self.runs)
         # w^{k+1} = w^k - alpha dJ_critic/dw   (Adam, per run)
-        descend(loss, self.critic.leaves, self._critic_params, [m.critic_opt for m in self.members],
-                [m.config.algorithm.grad_clip for m in self.members], active)
+        self.descend_critics(loss, active)
         return [float(v) for v in loss.detach().reshape(-1)]
 
     def pim(self, s: torch.Tensor, offsets: torch.Tensor, weights: torch.Tensor, active: list[int]) -> list[float]:
         """Eqs. (51)-(52) for every run: one gradient step of each active run's actor, critics frozen."""
         rel = self.members[0].relative_offset
-        if self.runs == 1:
-            for p in self.critic.leaves:
-                p.requires_grad_(False)
-        try:
-            obj = actor_objective(self.task, self.critic.frozen(), self.actor, s, offsets, weights, rel, self.steps,
-                                  self.runs)
-            # theta^{k+1} = theta^k - beta dJ_actor/dtheta   (Adam, per run)
-            descend(obj, self.actor.leaves, self._actor_params, [m.actor_opt for m in self.members],
-                    [m.config.algorithm.grad_clip for m in self.members], active)
-        finally:
-            if self.runs == 1:
-                for p in self.critic.leaves:
-                    p.requires_grad_(True)
-        return [float(v) for v in obj.detach().reshape(-1)]
+        # theta^{k+1} = theta^k - beta dJ_actor/dtheta   (Adam, per run)
+        obj = self.descend_actors(lambda critic: actor_objective(self.task, critic, self.actor, s, offsets, weights,
+                                                                 rel, self.steps, self.runs), active)
+        return [float(v) for v in obj.reshape(-1)]
 
     # -------------------------------------------------------------------------------------- the iteration
     def iteration(self, active: Sequence[bool] | None = None) -> list[dict[str, float] | None]:
@@ -278,10 +362,7 @@ class BatchedAGPI:
         list
             Per run its metrics row (the keys of :meth:`AGPI.iteration`), or ``None`` if inactive.
         """
-        flags = [True] * self.runs if active is None else [bool(a) for a in active]
-        if len(flags) != self.runs:
-            raise ValueError(f"active: expected {self.runs} flags, got {len(flags)}")
-        on = [r for r in range(self.runs) if flags[r]]
+        flags, on = self.active_runs(active)
         if not on:
             return [None] * self.runs
         task = self.task

@@ -125,6 +125,7 @@ class DDPG:
         #: True-environment transitions taken so far (warm-up and exploration included), counted in :meth:`collect`
         #: (``None`` after loading a checkpoint that predates the counter).
         self.true_transitions: int | None = 0
+        self._solo: Any = None
 
     @property
     def policy(self) -> torch.nn.Module:
@@ -164,42 +165,56 @@ class DDPG:
                 # w' <- tau w + (1 - tau) w'
                 pt.mul_(1.0 - tau).add_(ps, alpha=tau)
 
-    def iteration(self) -> dict[str, float]:
-        """One DDPG iteration: environment steps, one critic update, one actor update, target updates."""
-        cfg, task = self.config, self.task
+    def explore(self) -> tuple[float, tuple[torch.Tensor, ...]]:
+        """The data of iteration ``k``: this iteration's learning rates, one exploratory step of every
+        environment copy (:meth:`collect`), more until the buffer holds ``ddpg.warmup`` transitions, then a
+        minibatch drawn from the buffer with the run's generator.
+
+        Returns
+        -------
+        mean_cost : float
+            The mean cost of the first step (``train/env_cost``).
+        minibatch : tuple of torch.Tensor
+            ``(obs, action, cost, next_obs, terminal)``, shapes (B, obs_dim), (B, action_dim), (B,),
+            (B, obs_dim), (B,) with ``B = algorithm.batch_size``.
+        """
+        cfg = self.config
         set_learning_rates(cfg, self.k, self.critic_opt, self.actor_opt)
         mean_cost = self.collect()
         while self.buffer.size < cfg.ddpg.warmup:
             self.collect()
-        obs, act, cost, next_obs, terminal = self.buffer.sample(cfg.algorithm.batch_size, self.generator)
-        scale = float(task.value_scale)
-        with torch.no_grad():
-            # y = l + gamma (1 - terminal) Q'(x', pi'(x'))
-            target = cost + task.gamma * (1.0 - terminal) * self.critic_target(next_obs, self.actor_target(next_obs))
-        q = self.critic(obs, act)
-        critic_loss = 0.5 * ((q - target) / scale).pow(2).mean()
-        self.critic_opt.zero_grad(set_to_none=True)
-        critic_loss.backward()
-        torch.nn.utils.clip_grad_norm_(self.critic.parameters(), cfg.algorithm.grad_clip)
-        self.critic_opt.step()
-        for p in self.critic.parameters():
-            p.requires_grad_(False)
-        try:
-            # minimise Q(x, pi(x)): the cost-to-go of the deterministic policy
-            actor_loss = self.critic(obs, self.actor(obs)).mean() / scale
-            self.actor_opt.zero_grad(set_to_none=True)
-            actor_loss.backward()
-            torch.nn.utils.clip_grad_norm_(self.actor.parameters(), cfg.algorithm.grad_clip)
-            self.actor_opt.step()
-        finally:
-            for p in self.critic.parameters():
-                p.requires_grad_(True)
+        return mean_cost, self.buffer.sample(cfg.algorithm.batch_size, self.generator)
+
+    def finish_iteration(self, critic_loss: float, actor_loss: float, value_mean: float,
+                         mean_cost: float) -> dict[str, float]:
+        """The end of iteration ``k`` (after the critic and the actor stepped): the soft target updates,
+        ``k + 1``, and the metrics row (its losses and mean ``Q`` computed by the caller)."""
         self._soft_update(self.critic_target, self.critic)
         self._soft_update(self.actor_target, self.actor)
         self.k += 1
-        return {"train/critic_loss": float(critic_loss.detach()), "train/actor_loss": float(actor_loss.detach()),
-                "train/value_mean": float(q.detach().mean()), "train/env_cost": mean_cost,
-                "train/buffer_size": float(self.buffer.size), "data/true_transitions": float(self.true_transitions if self.true_transitions is not None else "nan")}
+        count = self.true_transitions
+        return {"train/critic_loss": critic_loss, "train/actor_loss": actor_loss, "train/value_mean": value_mean,
+                "train/env_cost": mean_cost, "train/buffer_size": float(self.buffer.size),
+                "data/true_transitions": float(count if count is not None else "nan")}
+
+    def iteration(self) -> dict[str, float]:
+        """One DDPG iteration: environment steps, one critic update, one actor update, target updates.
+
+        The iteration is :class:`mixedrl.algorithms.batched_ddpg.BatchedDDPG`'s with this one run
+        (``R = 1``, which calls this run's own modules: the unbatched kernels): one implementation for a
+        run alone and for many runs at once.
+        """
+        return self.engine.iteration()[0]
+
+    @property
+    def engine(self) -> Any:
+        """This run alone as a batch: the :class:`mixedrl.algorithms.batched_ddpg.BatchedDDPG` of ``[self]``
+        that :meth:`iteration` runs (built on first use)."""
+        if self._solo is None:
+            from mixedrl.algorithms.batched_ddpg import BatchedDDPG
+
+            self._solo = BatchedDDPG([self])
+        return self._solo
 
     def evaluate(self, seeds: list[int]) -> dict[str, Any]:
         """Evaluate the deterministic actor (no exploration noise) on the task."""
