@@ -168,7 +168,7 @@ def _sweep(args: argparse.Namespace) -> int:
     try:
         doc = run_sweep(load_spec(args.spec), args.out, address=args.address, num_cpus=args.num_cpus,
                         resume=args.resume, progress=not args.no_progress, workers=args.workers,
-                        batch=args.batch)
+                        batch=args.batch, batch_ddpg=args.batch_ddpg)
     except (ImportError, ValueError) as exc:
         print(f"mixedrl sweep: error: {exc}", file=sys.stderr)
         return 2

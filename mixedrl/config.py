@@ -23,8 +23,9 @@ lane change registers :data:`mixedrl.envs.dlc_task.DLC_EXPERIMENT` (the reproduc
 course sampler :class:`mixedrl.envs.dlc_task.CourseSampler`, the learning-rate decay over 1500
 iterations, the relative batch weighting; both live with the task in :mod:`mixedrl.envs.dlc_task` and
 stay importable from here and from :mod:`mixedrl.tasks`); any other task gets the library defaults of
-the section classes (model rollouts from the task's start distribution, the decay tied to the budget,
-the paper's uniform batch mean).
+the section classes (model rollouts from the task's start distribution restarted outside 3 x ``obs_scale``,
+the decay tied to the budget, the relative batch weighting; docs/tuning.rst gives the measurement behind
+them).
 
 Dotted keys address nested fields, the same way on the command line, in :func:`apply_overrides` and in
 sweep specifications::
@@ -363,9 +364,10 @@ class AlgorithmConfig:
     """The training algorithm shared by every method: Algorithm 2 (mixed, model, oracle) and the networks,
     optimiser and budget DDPG uses too. Dotted keys: ``algorithm.<field>``.
 
-    The last three fields (``batch_weighting``, ``batch_weight_offset``, ``actor_average``) are tuning
-    add-ons, departures from the paper's Algorithm 2 (docs/algorithm2.rst); their defaults here are the
-    paper's (off); the double lane change's experiment configuration turns them on.
+    ``batch_weighting``, ``batch_weight_offset`` and ``actor_average`` are tuning add-ons, departures from
+    the paper's Algorithm 2 (docs/algorithm2.rst). ``batch_weighting`` defaults to ``"relative"``, measured
+    over the pendulum and the linear test bed (``studies/custom_defaults.toml``, docs/tuning.rst); the paper's
+    plain batch mean is ``"uniform"``. ``actor_average`` is off by default.
     """
 
     iterations: int = 1500
@@ -439,9 +441,9 @@ class AlgorithmConfig:
     (eq. 19, :class:`mixedrl.ibe.LinearFeatureIBE`). Only ``method = "mixed"`` reads it;
     ``ibe_recursion`` must be ``"exact"`` unless it is 2."""
 
-    batch_weighting: str = "uniform"
+    batch_weighting: str = "relative"
     """Departure (tuning add-on): how the states of the batch are weighted in PEV and PIM (eqs. 50 and
-    52): ``"uniform"`` = the plain batch mean (the paper's); ``"relative"`` = each state by its relative
+    52): ``"uniform"`` = the plain batch mean (the paper's); ``"relative"`` (the default) = each state by its relative
     error: PEV squares the relative TD error ``(V - V_target) / (|V_target| + c)`` and PIM weights state
     ``x`` by ``1 / (V(x) + c)`` (batch mean 1), ``c = batch_weight_offset``
     (:func:`mixedrl.pev.critic_loss`, :func:`mixedrl.pim.actor_objective`)."""
@@ -615,9 +617,9 @@ class ModelRolloutsSampler:
     name: str = "model_rollouts"
     """Always ``"model_rollouts"`` for this class."""
 
-    box: float = math.inf
+    box: float = 3.0
     """A rollout restarts when a component of its observation exceeds ``box`` times the task's
-    ``obs_scale`` (``math.inf``, the default, disables it)."""
+    ``obs_scale`` (``math.inf`` disables it: the planning model may then drive a rollout anywhere)."""
 
     true_envs: int = 1
     """Mixed RL: true-environment copies driven at each collection."""

@@ -33,8 +33,9 @@ It expands to ``len(variants or [one]) x len(grid product) x len(methods) x len(
 ordinary run directory (:class:`mixedrl.runs.RunDirectory`) under ``DIR/runs/``, trained by
 :func:`mixedrl.runs.make_trainer` and :func:`mixedrl.runs.train_batch`. The runs are trained in batches
 (:func:`plan_batches`: runs with equal :func:`mixedrl.algorithms.batched.batch_key`, at most ``--batch`` per
-batch, default :data:`DEFAULT_BATCH`; Algorithm-2 runs in :class:`~mixedrl.algorithms.batched.BatchedAGPI`,
-DDPG runs in :class:`~mixedrl.algorithms.batched_ddpg.BatchedDDPG`, never together): a run of a batch ends
+batch, default :data:`DEFAULT_BATCH`; Algorithm-2 runs in :class:`~mixedrl.algorithms.batched.BatchedAGPI`;
+DDPG runs alone, or with ``--batch-ddpg`` in :class:`~mixedrl.algorithms.batched_ddpg.BatchedDDPG`, never
+with Algorithm-2 runs): a run of a batch ends
 with exactly the weights and metrics of the same config in any other batch of two or more, and with
 ``--batch 1`` every run trains alone, with exactly the weights and metrics of ``mixedrl train``.
 
@@ -573,12 +574,15 @@ def _timed_run_points(configs: list[dict[str, Any]], paths: list[str], resume: b
     return outcomes, time.perf_counter() - t0
 
 
-def plan_batches(runs: Sequence[SweepRun], batch: int = DEFAULT_BATCH, workers: int = 1) -> list[list[int]]:
+def plan_batches(runs: Sequence[SweepRun], batch: int = DEFAULT_BATCH, workers: int = 1,
+                 ddpg: bool = False) -> list[list[int]]:
     """Group a sweep's runs into batches trained as one computation each.
 
     Runs with equal :func:`mixedrl.algorithms.batched.batch_key` (the kind of algorithm, Algorithm 2 or
     DDPG, the task, the network shapes and batch size; method, seed, budget and learning rates may differ)
-    form a group. A
+    form a group; DDPG runs only with ``ddpg=True``, otherwise each trains alone (measured on 2 cores, five
+    DDPG runs in one batch do 1.01-1.12 times the work per second of five alone, and a batch of the long
+    runs on one worker would leave the other idle: docs/algorithm2.rst). A
     group of ``n`` runs is split into ``c`` batches of near-equal size, ``c`` the smallest number with at
     most ``batch`` runs each, raised up to ``workers`` while every batch keeps two runs or more (so
     that the workers share the work). A batch never holds a single run of a larger group: a run's bits
@@ -593,6 +597,8 @@ def plan_batches(runs: Sequence[SweepRun], batch: int = DEFAULT_BATCH, workers: 
         Most runs per batch (``>= 1``).
     workers : int
         Processes that will train the batches.
+    ddpg : bool
+        Batch the DDPG runs too (:class:`mixedrl.algorithms.batched_ddpg.BatchedDDPG`); default: each alone.
 
     Returns
     -------
@@ -604,7 +610,7 @@ def plan_batches(runs: Sequence[SweepRun], batch: int = DEFAULT_BATCH, workers: 
     groups: dict[Any, list[int]] = {}
     alone: list[list[int]] = []
     for i, r in enumerate(runs):
-        key = batch_key(r.config) if batch > 1 else None
+        key = batch_key(r.config) if batch > 1 and (ddpg or r.config.method != "ddpg") else None
         if key is None:
             alone.append([i])
         else:
@@ -902,7 +908,7 @@ def _check_count(value: Any, name: str) -> None:
 
 def run_sweep(spec: SweepSpec, out: str | Path, address: str | None = None, num_cpus: int | None = None,
               resume: bool = False, progress: bool = True, workers: int | None = None,
-              batch: int = DEFAULT_BATCH) -> dict[str, Any]:
+              batch: int = DEFAULT_BATCH, batch_ddpg: bool = False) -> dict[str, Any]:
     """Run every run of ``spec`` (on a local process pool, or on Ray with ``address``) and write the sweep's
     outputs into ``out``.
 
@@ -931,6 +937,8 @@ def run_sweep(spec: SweepSpec, out: str | Path, address: str | None = None, num_
     batch : int
         Most runs trained as one computation (:func:`plan_batches`; on Ray a task is a batch). ``1``:
         every run alone, exactly as ``mixedrl train`` would.
+    batch_ddpg : bool
+        Batch the DDPG runs too (``ddpg`` of :func:`plan_batches`); default: each DDPG run alone.
 
     Returns
     -------
@@ -981,7 +989,7 @@ def run_sweep(spec: SweepSpec, out: str | Path, address: str | None = None, num_
         atomic_write_text(saved_spec, spec.text)
         t0 = time.perf_counter()
         parallel = (int(ray.cluster_resources().get("CPU", 1)) if ray is not None else n_workers)
-        batches = plan_batches(runs, batch, max(1, parallel))
+        batches = plan_batches(runs, batch, max(1, parallel), ddpg=batch_ddpg)
         # the longest first (the largest budget, then the largest batch), so that no long job starts last
         batches.sort(key=lambda b: (-max(runs[i].config.algorithm.iterations for i in b), -len(b), b[0]))
         jobs: list[_Job] = [([runs[i].config.to_dict() for i in b], [str(out / "runs" / runs[i].name) for i in b],
@@ -1061,6 +1069,8 @@ def add_engine_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--batch", type=int, default=DEFAULT_BATCH,
                    help=f"most runs trained as one computation (default {DEFAULT_BATCH}; 1: every run alone, "
                         f"as mixedrl train)")
+    p.add_argument("--batch-ddpg", action="store_true",
+                   help="batch the DDPG runs too (default: each DDPG run alone; docs: Sweeps)")
     p.add_argument("--resume", action="store_true", help="skip finished runs, resume interrupted ones")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
 

@@ -12,8 +12,8 @@ Usage::
     PYTHONPATH=. python scripts/ship_reproduction.py [--seeds 5] [--out runs/reproduce] [--resume]
 
 About 18 minutes on this 2-core machine for 5 seeds (1060 s measured with other jobs running; see
-``docs/reproduction.rst``, measured before the DDPG runs were batched): the Algorithm-2 runs train in
-batches, the five long DDPG runs are most of it (now one batch of five, :mod:`mixedrl.algorithms.batched_ddpg`).
+``docs/reproduction.rst``): the Algorithm-2 runs train in batches, the five long DDPG runs (not batched)
+are most of it.
 """
 
 from __future__ import annotations

@@ -11,6 +11,7 @@ checkpoint is an ordinary DDPG run's; plan_batches groups DDPG runs; bad batches
 
 from __future__ import annotations
 
+import json
 import math
 from pathlib import Path
 
@@ -244,13 +245,14 @@ def test_plan_batches_groups_ddpg_runs_in_batches_of_their_own() -> None:
     assert len(ddpg) == 6 and len(wide) == 1
     assert batch_key(runs[ddpg[0]].config) == batch_key(runs[ddpg[-1]].config)  # budgets may differ
     for workers, batch, sizes in ((1, 16, [6]), (2, 16, [3, 3]), (1, 4, [3, 3]), (4, 16, [2, 2, 2])):
-        batches = plan_batches(runs, batch, workers)
+        assert all([i] in plan_batches(runs, batch, workers) for i in ddpg)  # by default each DDPG run alone
+        batches = plan_batches(runs, batch, workers, ddpg=True)
         assert sorted(i for b in batches for i in b) == list(range(len(runs)))
         for b in batches:  # Algorithm-2 and DDPG runs never share a batch
             assert len({runs[i].config.method == "ddpg" for i in b}) == 1
         assert sorted(len(b) for b in batches if b[0] in ddpg) == sizes, (workers, batch)
         assert wide in batches  # another minibatch size: its own group, of one
-    assert plan_batches(runs, 1, 2) == [[i] for i in range(len(runs))]
+    assert plan_batches(runs, 1, 2, ddpg=True) == [[i] for i in range(len(runs))]
 
 
 def test_bad_batches_are_refused_by_name(tmp_path: Path) -> None:
@@ -275,3 +277,18 @@ def test_bad_batches_are_refused_by_name(tmp_path: Path) -> None:
     with pytest.raises(ValueError, match="algorithm.batch_size"):
         train_batch([make_trainer(config(0)), make_trainer(config(1, batch_size=16))], dirs, progress=False)
     assert not any(d.path.exists() for d in dirs)
+
+
+def test_mixedrl_sweep_batches_ddpg_only_when_asked(tmp_path: Path) -> None:
+    """``mixedrl sweep`` trains DDPG runs alone by default (the shipped Table I's bits) and in one batch with
+    ``--batch-ddpg``."""
+    from mixedrl.cli import main
+
+    spec = tmp_path / "spec.toml"
+    spec.write_text('methods = ["ddpg"]\nseeds = [0, 1]\n[base]\n"task.name" = "linear"\n"algorithm.iterations" = 3\n'
+                    '"algorithm.batch_size" = 16\n"ddpg.warmup" = 16\n"run.eval_every" = 3\n"run.eval_seeds" = 1\n')
+    for flag, size in (([], 1), (["--batch-ddpg"], 2)):
+        out = tmp_path / f"out{size}"
+        assert main(["sweep", str(spec), "--out", str(out), "--workers", "1", "--no-progress", *flag]) == 0
+        doc = json.loads((out / "sweep.json").read_text())
+        assert [r["metrics"].get("batch_size_runs", 1) for r in doc["runs"]] == [size, size]

@@ -187,9 +187,11 @@ def test_the_dlc_task_supplies_its_experiment_configuration() -> None:
 
 def test_a_task_without_a_preset_gets_generic_defaults() -> None:
     cfg = TrainConfig(task="linear")
-    assert cfg.sampler.name == "model_rollouts" and cfg.sampler.box == float("inf")
+    # the measured generic defaults (studies/custom_defaults.toml): rollouts restarted outside 3 x obs_scale,
+    # the relative batch weighting
+    assert cfg.sampler.name == "model_rollouts" and cfg.sampler.box == 3.0
     assert cfg.algorithm.lr_decay_iterations == 0  # the decay is tied to the budget
-    assert cfg.algorithm.batch_weighting == "uniform" and cfg.algorithm.actor_average == 0.0
+    assert cfg.algorithm.batch_weighting == "relative" and cfg.algorithm.actor_average == 0.0
     assert not hasattr(cfg.sampler, "kick_prob")
 
 

@@ -151,11 +151,10 @@ def test_reproduce_quick_end_to_end(tmp_path: Path, capsys: pytest.CaptureFixtur
         assert abs(mean[vx] - true_mean) <= 0.02 * true_mean
     assert res["targets"]["ibe_mean_within_2pct"]
     assert res["mixed"]["theory"]["mvc_held_after_inner_loop"] >= 0.5
-    # trained as a sweep: the Algorithm-2 runs in batches (2 workers: 2 batches of 3), the 4 DDPG runs in
-    # batches of their own (2 batches of 2)
+    # trained as a sweep: the Algorithm-2 runs in batches (2 workers: 2 batches of 3), DDPG alone
     sweep = json.loads((out / "sweep" / "sweep.json").read_text())
-    assert (sweep["batch"], sweep["batches"], res["sweep"]["batches"]) == (16, 2 + 2, 4)
-    assert sorted(r["metrics"].get("batch_size_runs", 1) for r in sweep["runs"]) == [2] * 4 + [3] * 6
+    assert (sweep["batch"], sweep["batches"], res["sweep"]["batches"]) == (16, 2 + 4, 6)
+    assert sorted(r["metrics"].get("batch_size_runs", 1) for r in sweep["runs"]) == [1] * 4 + [3] * 6
     for name in ("fig3_ibe_effect", "fig4_convergence", "fig5_trajectory", "fig6_speed_error",
                  "fig7_lateral_error"):
         assert (out / "figures" / f"{name}.png").stat().st_size > 1000

@@ -373,3 +373,33 @@ def test_precision_study_lqr_yardstick_is_the_lq_optimums_affine_policy(tmp_path
     assert max(abs(e) for e in gap["action_error"]) < 1e-6 and gap["gain_error_rel"] < 1e-6
     prior = policy_gap(task, mod.LQRPolicy(task, task.prior_mean), task.true_mean)
     assert max(abs(e) for e in prior["action_error"]) > 0.1  # the prior's LQR has another feed-forward
+
+
+def test_custom_defaults_spec_varies_only_the_two_settings_and_its_script_ships_the_table(tmp_path: Path) -> None:
+    """studies/custom_defaults.toml: each variant differs from the generic defaults of its task only in
+    algorithm.batch_weighting and sampler.box; scripts/custom_defaults.py turns a tiny sweep of that form into
+    the table (per variant and method, the paired difference against uniform_inf)."""
+    runs = expand(load_spec(ROOT / "studies" / "custom_defaults.toml"))
+    assert len(runs) == 80
+    for r in runs:
+        generic = TrainConfig(method=r.config.method, seed=r.config.seed, task=r.config.task.name,
+                              algorithm={"batch_weighting": r.config.algorithm.batch_weighting},
+                              sampler={"box": r.config.sampler.box}, run={"eval_every": 300})
+        assert r.config.to_dict() == generic.to_dict(), r.name
+    spec = parse_spec('methods = ["mixed"]\nseeds = [0, 1]\n[base]\n"task.name" = "pendulum"\n'
+                      '"algorithm.iterations" = 2\n"algorithm.batch_size" = 16\n"run.eval_every" = 2\n'
+                      '"run.eval_seeds" = 1\n[variants.pendulum_uniform_inf]\n"algorithm.batch_weighting" = "uniform"\n'
+                      '"sampler.box" = "inf"\n[variants.pendulum_relative_box3]\n')
+    doc = run_sweep(spec, tmp_path / "sweep", workers=1, progress=False)
+    proc = _run_script("custom_defaults.py", tmp_path / "sweep", "--dest", tmp_path / "ship")
+    assert proc.returncode == 0, proc.stderr
+    rows = json.loads((tmp_path / "ship" / "rows.json").read_text())
+    assert sorted((r["variant"], r["seed"]) for r in rows) == [("relative_box3", 0), ("relative_box3", 1),
+                                                              ("uniform_inf", 0), ("uniform_inf", 1)]
+    costs = {(r["point"]["variant"], r["seed"]): r["metrics"]["cost"] for r in doc["runs"]}
+    for r in rows:
+        assert r["cost"] == costs[(f"pendulum_{r['variant']}", r["seed"])]
+    lines = (tmp_path / "ship" / "table.md").read_text().splitlines()
+    assert lines[2].startswith("| pendulum | mixed | relative_box3 |") and "/2 |" in lines[2]  # paired: 2 seeds
+    assert lines[3].startswith("| pendulum | mixed | uniform_inf |") and lines[3].endswith("| - | - |")
+    assert _run_script("custom_defaults.py", tmp_path / "nothing").returncode == 2

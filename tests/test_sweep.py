@@ -439,7 +439,9 @@ def test_plan_batches_groups_by_shape_spreads_over_workers_and_never_leaves_a_ru
                                   (8, 16, [2, 2, 2, 2, 2, 2, 3]), (1, 14, [8, 7])):
         batches = plan_batches(runs, batch, workers)
         assert sorted(i for b in batches for i in b) == list(range(21))
-        ddpg_batches = [b for b in batches if b[0] in ddpg]  # DDPG in batches of its own, as Algorithm 2
+        assert [b for b in batches if b[0] in ddpg] == [[i] for i in ddpg]  # DDPG trains alone by default
+        ddpg_batches = [b for b in plan_batches(runs, batch, workers, ddpg=True) if b[0] in ddpg]
+        # with ddpg=True: DDPG in batches of its own, as Algorithm 2
         assert sorted(i for b in ddpg_batches for i in b) == ddpg and all(len(b) >= 2 for b in ddpg_batches)
         assert len(ddpg_batches) == (1 if workers == 1 and batch >= 5 else 2)
         assert lone in batches  # another batch size: its own group, of one

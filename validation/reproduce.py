@@ -13,8 +13,8 @@ What it does, top to bottom:
    batch, iteration budget); only ``method`` and ``seed`` differ. The runs are the sweep
    :func:`reproduction_spec` (``studies/reproduction.toml`` for 5 seeds), trained by ``mixedrl sweep``'s
    engine into ``DIR/sweep/runs/<name>/``: the Algorithm-2 runs in batches
-   (:mod:`mixedrl.algorithms.batched`), the DDPG runs in batches of their own
-   (:mod:`mixedrl.algorithms.batched_ddpg`), on ``workers`` processes (one torch thread each).
+   (:mod:`mixedrl.algorithms.batched`), DDPG alone (batching DDPG does not pay on 2 cores:
+   :func:`mixedrl.sweep.plan_batches`), on ``workers`` processes (one torch thread each).
    ``--resume`` reuses finished runs and resumes interrupted ones from their checkpoints.
 2. During the Algorithm-2 runs, every 250th iteration (50th with ``--quick``) a :class:`TheoryObserver`
    (the spec's ``observer``) applies the ``theory`` checks to the iteration just made, on its batch of
