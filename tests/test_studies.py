@@ -403,3 +403,15 @@ def test_custom_defaults_spec_varies_only_the_two_settings_and_its_script_ships_
     assert lines[2].startswith("| pendulum | mixed | relative_box3 |") and "/2 |" in lines[2]  # paired: 2 seeds
     assert lines[3].startswith("| pendulum | mixed | uniform_inf |") and lines[3].endswith("| - | - |")
     assert _run_script("custom_defaults.py", tmp_path / "nothing").returncode == 2
+
+
+def test_ddpg_seeds20_spec_is_the_reproductions_ddpg_on_more_seeds() -> None:
+    """studies/table1_seeds20_ddpg.toml: its runs of seeds 0-4 are exactly the reproduction's DDPG runs (so the
+    shipped Table I's DDPG rows are five of its twenty seeds), and seeds 0-19 each once per variant."""
+    ours = expand(load_spec(ROOT / "studies" / "table1_seeds20_ddpg.toml"))
+    repro = [r for r in expand(load_spec(ROOT / "studies" / "reproduction.toml")) if r.config.method == "ddpg"]
+    assert len(ours) == 40 and len(repro) == 10
+    key = {(r.point["variant"], r.config.seed): r.config.to_dict() for r in ours}
+    assert sorted(s for v, s in key if v == "ddpg_long") == list(range(20))
+    for r in repro:
+        assert key[(r.point["variant"], r.config.seed)] == r.config.to_dict(), r.name
