@@ -187,7 +187,6 @@ class Actor(nn.Module):
         return self.action_bound * torch.tanh(self.net(obs))
 
 
-
 def stacked_actors(actors: Sequence[nn.Module]) -> Callable[[torch.Tensor], torch.Tensor] | None:
     """``P`` plain :class:`Actor` modules of one architecture as one batched function (a batched matrix
     product per layer), or ``None`` when they are not (another class, other shapes or activations).

@@ -849,8 +849,7 @@ def _train(trainers: list[Any], engine: Callable[[list[bool]], list[dict[str, fl
         pending[i].clear()
 
     def running(i: int) -> bool:
-        t = trainers[i]
-        return not interrupted[i] and t.k < t.config.algorithm.iterations and not t.stopped
+        return not interrupted[i] and not _finished(trainers[i])
 
     bar = None
     if progress or (progress is None and sys.stderr.isatty()):
@@ -872,15 +871,14 @@ def _train(trainers: list[Any], engine: Callable[[list[bool]], list[dict[str, fl
             dt = time.perf_counter() - t0
             # the evaluations due at this iteration, of every run of the batch at once: the periodic ones (a
             # monitor) with batched policy calls, a run's last one exact (it is also its final evaluation)
+            due = [i for i in range(n) if active[i] and _evaluation_due(trainers[i])]
+            last = [i for i in due if _finished(trainers[i])]
             evaluations: dict[int, dict[str, Any]] = {}
-            for exact in (False, True):
-                due = [i for i in range(n)
-                       if active[i] and _evaluation_due(trainers[i]) and _finished(trainers[i]) == exact]
-                if due:
-                    evaluations.update(zip(due, evaluate_together([trainers[i] for i in due],
-                                                                  [seeds[i] for i in due], exact=exact)))
-                if exact:
-                    finals.update((i, evaluations[i]) for i in due)
+            for group, exact in (([i for i in due if i not in last], False), (last, True)):
+                if group:
+                    evaluations.update(zip(group, evaluate_together([trainers[i] for i in group],
+                                                                    [seeds[i] for i in group], exact=exact)))
+            finals.update((i, evaluations[i]) for i in last)
             for i in (i for i in range(n) if active[i]):
                 trainer, cfg = trainers[i], trainers[i].config
                 elapsed[i] += dt
