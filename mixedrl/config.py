@@ -104,10 +104,12 @@ MODEL_COURSE_STARTS = ("start", "along", "loop")
 BATCH_WEIGHTINGS = ("uniform", "relative")
 
 #: Where the policy takes its action at the equilibrium (``algorithm.feedforward``).
-FEEDFORWARDS = ("learned", "lq", "lq_train", "lq_affine")
+FEEDFORWARDS = ("learned", "lq", "lq_train", "lq_affine", "lq_affine_ss")
 
 #: The ``algorithm.feedforward`` values that change the actor's class during training.
-ANCHORED_FEEDFORWARDS = ("lq_train", "lq_affine")
+ANCHORED_FEEDFORWARDS = ("lq_train", "lq_affine", "lq_affine_ss")
+#: The ``algorithm.feedforward`` values whose actor has the LQ optimum's gain as its first-order part.
+AFFINE_FEEDFORWARDS = ("lq_affine", "lq_affine_ss")
 
 
 def _law(value: Any, name: str) -> str:
@@ -488,7 +490,13 @@ class AlgorithmConfig:
     (:class:`mixedrl.networks.AffineAnchoredActor`), so the policy is the discounted LQ optimum's affine
     policy to first order at the equilibrium (``u(o*) = u_ff``, ``du/dx = -L``,
     :func:`mixedrl.precision.equilibrium_gain`) and training shapes only the terms of second and higher
-    order; it needs observations that determine the linearisation's coordinates there."""
+    order; it needs observations that determine the linearisation's coordinates there. ``"lq_affine_ss"``
+    = ``"lq_affine"`` expanded about the LQ optimum's steady state ``x_ss`` for the own noise mean instead
+    of the equilibrium: ``o*`` = the observation of ``x_ss`` and ``u(o*)`` = the optimum's action there,
+    both refreshed with the noise moments (:func:`mixedrl.precision.steady_anchor`), so the learned
+    remainder vanishes, with its slope, where the closed loop comes to rest (with ``"lq_affine"`` it
+    vanishes at the equilibrium, and at ``x_ss`` the remainder and the tanh's curvature shift the resting
+    point)."""
 
     def __post_init__(self) -> None:
         w = "algorithm"

@@ -259,6 +259,22 @@ class AnchoredActor(Actor):
         self.register_buffer("anchor_obs", obs.clone())
         self.register_buffer("anchor_z", torch.zeros_like(self.action_bound))
 
+    def set_anchor(self, obs: torch.Tensor, action: torch.Tensor) -> None:
+        """Move the anchor to ``o* = obs`` (shape (obs_dim,)) and make ``u(o*) = action`` there
+        (:meth:`set_anchor_action`), in place (``algorithm.feedforward = "lq_affine_ss"``).
+
+        Raises
+        ------
+        ValueError
+            If ``obs`` has the wrong size or is not finite (the anchor is left as it was).
+        """
+        o = torch.as_tensor(obs, dtype=torch.float32).reshape(-1)
+        if o.shape != self.anchor_obs.shape or not bool(torch.isfinite(o).all()):
+            raise ValueError(f"obs: expected {self.anchor_obs.shape[0]} finite numbers, got {tuple(o.shape)}")
+        with torch.no_grad():
+            self.anchor_obs.copy_(o)
+        self.set_anchor_action(action)
+
     def set_anchor_action(self, action: torch.Tensor) -> None:
         """Make ``u(o*) = action`` (clipped to 0.999 of the bound), in place; shape (action_dim,)."""
         a = torch.as_tensor(action, dtype=torch.float32).reshape(self.anchor_z.shape)
@@ -271,8 +287,9 @@ class AnchoredActor(Actor):
 
 class AffineAnchoredActor(AnchoredActor):
     """An :class:`AnchoredActor` whose first-order part at the anchor is a given gain
-    (``algorithm.feedforward = "lq_affine"``): the affine policy of the LQ optimum plus a learned
-    remainder of second order.
+    (``algorithm.feedforward = "lq_affine"``; ``"lq_affine_ss"`` moves ``o*`` to the optimum's steady state,
+    :meth:`AnchoredActor.set_anchor`): the affine policy of the LQ optimum plus a learned remainder of
+    second order.
 
     .. math::
 

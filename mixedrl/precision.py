@@ -33,7 +33,7 @@ from mixedrl.quadratic import AffinePolicy, LinearDynamics, QuadraticCost
 from mixedrl.tasks import Linearisation, Task
 
 __all__ = ["LQReference", "lq_reference", "policy_gap", "run_policy_gap", "own_noise", "FeedForwardPolicy",
-           "feedforward_policy", "equilibrium_observation", "equilibrium_gain",
+           "feedforward_policy", "equilibrium_observation", "equilibrium_gain", "steady_anchor",
            "feedforward_action", "gap_summary", "format_policy_gap", "VALUE_NOTE"]
 
 #: What the ``value`` entries of :func:`policy_gap` compare (also in ``results.json``).
@@ -350,7 +350,7 @@ def equilibrium_gain(task: Task, lin: Linearisation) -> torch.Tensor:
     J_o = torch.func.jacrev(lambda x: task.observe(lin.to_state(x[None]))[0])(
         torch.zeros(n, dtype=torch.float64)).detach().double().numpy()
     if np.linalg.matrix_rank(J_o) < n:
-        raise ValueError(f"algorithm.feedforward: 'lq_affine' needs observations that determine the "
+        raise ValueError(f"algorithm.feedforward: 'lq_affine' and 'lq_affine_ss' need observations that determine the "
                          f"linearisation's {n} coordinates at the equilibrium; d o / d x there has rank "
                          f"{np.linalg.matrix_rank(J_o)}")
     L = lq_reference(lin, np.zeros(lin.E.shape[1])).solution.gain
@@ -371,6 +371,39 @@ def feedforward_action(trainer: Any, lin: Linearisation, policy: torch.nn.Module
         raise ValueError("algorithm.feedforward: the LQ feed-forward needs the method's noise model; this trainer "
                          "has none")
     return torch.as_tensor(lq_reference(lin, mean, cov).action)
+
+
+def steady_anchor(trainer: Any, lin: Linearisation, policy: torch.nn.Module | None = None
+                  ) -> tuple[torch.Tensor, torch.Tensor]:
+    """The anchor of ``algorithm.feedforward = "lq_affine_ss"``: the observation of the LQ optimum's steady
+    state for the trainer's own noise (:func:`own_noise`; ``policy`` as there) and the optimum's action
+    there (:attr:`LQReference.steady_state`, :attr:`LQReference.steady_action`).
+
+    .. math:: o^* = o\big(s(x_{ss})\big), \qquad u(o^*) = u^* - L x_{ss} - l_0
+
+    The optimum's affine policy ``u* - l0 - L x`` takes this action at ``x_ss``, and its gain there is
+    ``-L`` as everywhere, so the :class:`~mixedrl.networks.AffineAnchoredActor` anchored here equals it to
+    first order about the state its closed loop holds (where an observation is affine in the coordinates,
+    as on the pendulum, ``G = -L J_o^+`` of :func:`equilibrium_gain` is its gain at ``x_ss`` too).
+
+    Returns
+    -------
+    obs : torch.Tensor, shape (obs_dim,), float32
+    action : torch.Tensor, shape (action_dim,), float64
+
+    Raises
+    ------
+    ValueError
+        As :func:`feedforward_action`.
+    """
+    mean, cov = own_noise(trainer, lin, policy)
+    if mean is None:
+        raise ValueError("algorithm.feedforward: the LQ feed-forward needs the method's noise model; this trainer "
+                         "has none")
+    ref = lq_reference(lin, mean, cov)
+    x_ss = torch.as_tensor(ref.steady_state, dtype=torch.float64)[None]
+    obs = trainer.task.observe(lin.to_state(x_ss).float())[0]
+    return obs, torch.as_tensor(ref.steady_action)
 
 
 def run_policy_gap(trainer: Any, policy: torch.nn.Module | None = None) -> tuple[dict[str, Any] | None, str | None]:

@@ -434,8 +434,8 @@ def evaluate_run(path: str | Path, *, seeds: int | None = None, feedforward: str
     feedforward : str, optional
         Evaluate with this ``algorithm.feedforward`` instead of the run's (``"lq"``: the actor shifted to
         the LQ optimum's action at the equilibrium for the method's own noise mean). Training does not
-        read ``"lq"``, so this evaluates what the run would have deployed with it; ``"lq_train"`` and
-        ``"lq_affine"`` change training and are refused unless they are the run's own.
+        read ``"lq"``, so this evaluates what the run would have deployed with it; ``"lq_train"``,
+        ``"lq_affine"`` and ``"lq_affine_ss"`` change training and are refused unless they are the run's own.
     task : Task, optional
         The task object of a user's own task (not rebuilt from the config).
 

@@ -1,14 +1,18 @@
 """Per-seed statistics of Table I's Algorithm-2 rows: intervals, paired differences, win counts, the
 precision yardstick, and the targets of the precision issue, from a finished sweep.
 
-Reads a sweep directory of ``mixedrl sweep`` (``sweep.json`` and each run's ``results.json``; for
-example ``studies/table1_seeds20.toml``) and writes into ``--dest``:
+Reads one or more sources and writes into ``--dest``. A source is a sweep directory of ``mixedrl sweep``
+(``sweep.json`` and each run's ``results.json``; for example ``studies/table1_seeds20.toml``) or the
+``per_seed.csv`` of an earlier analysis by this script (its rows as they were measured). A row of the
+tables is a method, or ``method[variant]`` for the runs of a spec's ``[variants.NAME]`` (for example
+``ddpg[paper]`` and ``ddpg[ddpg_long]`` of ``studies/table1_seeds20_ddpg.toml``); two sources may not
+give the same row.
 
 * ``per_seed.csv``: one row per method and seed (lateral and speed errors, course cost, the action error
   at the equilibrium against the discounted LQ optimum for the method's own noise mean, ``policy_gap``);
-* ``summary.json``: per method mean, sample std and 95% percentile-bootstrap interval of the mean of each
+* ``summary.json``: per row mean, sample std and 95% percentile-bootstrap interval of the mean of each
   figure (:func:`mixedrl.tables.bootstrap_interval`); per pair of methods (mixed - model-driven, mixed -
-  oracle) the paired mean difference with its 95% interval (seeds resampled with both values,
+  oracle, and mixed RL against every further row such as DDPG's) the paired mean difference with its 95% interval (seeds resampled with both values,
   :func:`mixedrl.tables.paired_interval`), the ratio of means with its interval, and the seeds on which
   the first is better; the issue's targets, each with its measured figure and whether it is met;
 * ``table.txt``: the same as text;
@@ -18,16 +22,19 @@ Usage::
 
     python scripts/seed_statistics.py runs/table1_seeds20 --dest docs/_static/seeds20
     python scripts/seed_statistics.py runs/table1_seeds20 --feedforward lq --dest docs/_static/feedforward
+    python scripts/seed_statistics.py docs/_static/seeds20/per_seed.csv runs/table1_seeds20_ddpg \
+        --dest docs/_static/seeds20_ddpg
 
 With ``--feedforward lq`` every run's final checkpoint is evaluated again with ``algorithm.feedforward =
 "lq"`` (the same trained actor shifted to the discounted LQ optimum's action at the equilibrium for the
 method's own noise mean; docs page ``precision.rst``) on the run's own evaluation seeds: a paired
-comparison of the two policies each run would deploy.
+comparison of the two policies each run would deploy (sweep directories only).
 """
 
 from __future__ import annotations
 
 import argparse
+import csv
 import io
 import json
 from pathlib import Path
@@ -45,8 +52,39 @@ METHODS = ("mixed", "model", "oracle")
 LABELS = {"mixed": "Mixed RL", "model": "Model-driven RL", "oracle": "Oracle (true noise)"}
 FIGURES = ("lateral_mae", "speed_mae", "cost", "ax_error", "delta_error")
 UNITS = {"lateral_mae": "m", "speed_mae": "m/s", "cost": "", "ax_error": "m/s^2", "delta_error": "rad"}
-#: The pairs compared seed by seed: (first, second); "better" = the first's figure is smaller.
+#: The pairs compared seed by seed: (first, second); "better" = the first's figure is smaller. Mixed RL is
+#: also compared with every further row (:func:`pairs`).
 PAIRS = (("mixed", "model"), ("mixed", "oracle"), ("oracle", "model"))
+#: Labels of the rows of other methods' variants (``method[variant]``); others are labelled by their key.
+VARIANT_LABELS = {"ddpg[paper]": "DDPG, paper budget", "ddpg[ddpg_long]": "DDPG, 16x budget"}
+#: The columns of ``per_seed.csv`` read back as numbers (:func:`load_csv_rows`); the others stay strings.
+NUMERIC = ("lateral_mae", "speed_mae", "cost", "ax_error", "delta_error", "ax", "ax_optimum", "ax_error_learned",
+           "gain_error_rel", "left_road")
+INTEGER = ("seed", "iterations", "batch_size_runs")
+
+
+def row_key(method: str, variant: str | None) -> str:
+    """The table row of a run: its method, or ``method[variant]`` for a spec's variant."""
+    return method if not variant else f"{method}[{variant}]"
+
+
+def label(key: str) -> str:
+    """The printed name of a row."""
+    return LABELS.get(key) or VARIANT_LABELS.get(key) or key
+
+
+def ordered(keys: Any) -> list[str]:
+    """Rows in print order: :data:`METHODS` first, then the others sorted."""
+    keys = set(keys)
+    return [m for m in METHODS if m in keys] + sorted(keys - set(METHODS))
+
+
+def pairs(keys: Any) -> list[tuple[str, str]]:
+    """The pairs compared seed by seed among the rows ``keys``: :data:`PAIRS`, then mixed RL against every
+    further row."""
+    keys = set(keys)
+    extra = [("mixed", k) for k in ordered(keys) if k not in METHODS]
+    return [(a, b) for a, b in [*PAIRS, *extra] if a in keys and b in keys]
 
 
 def _evaluated(path: Path, feedforward: str) -> dict[str, Any]:
@@ -60,7 +98,7 @@ def _evaluated(path: Path, feedforward: str) -> dict[str, Any]:
 
 
 def load_rows(sweep: Path, feedforward: str | None = None) -> dict[str, list[dict[str, Any]]]:
-    """Per method, its finished runs sorted by seed: the figures of :data:`FIGURES`.
+    """Per row (:func:`row_key`), the sweep's finished runs sorted by seed: the figures of :data:`FIGURES`.
 
     With ``feedforward`` (``"lq"``) each run's final checkpoint is evaluated again with
     ``algorithm.feedforward = feedforward`` (:func:`mixedrl.runs.evaluate_run`: the same trained actor,
@@ -69,7 +107,7 @@ def load_rows(sweep: Path, feedforward: str | None = None) -> dict[str, list[dic
     """
     doc = json.loads((sweep / "sweep.json").read_text())
     rows: dict[str, list[dict[str, Any]]] = {}
-    records = [r for r in doc["runs"] if r["error"] is None and r["method"] in METHODS]
+    records = [r for r in doc["runs"] if r["error"] is None]
     for rec in tqdm(records, desc=f"evaluate (feedforward={feedforward})", disable=feedforward is None):
         res = RunDirectory(sweep / rec["run_dir"]).read_results()
         if "lateral_mae" not in res:
@@ -80,8 +118,10 @@ def load_rows(sweep: Path, feedforward: str | None = None) -> dict[str, list[dic
             res = {**res, **_evaluated(sweep / rec["run_dir"], feedforward)}
         gap = res.get("policy_gap") or {}
         err = gap.get("action_error") or [None, None]
-        rows.setdefault(rec["method"], []).append({
-            "method": rec["method"], "seed": rec["seed"], "lateral_mae": res["lateral_mae"],
+        variant = (rec.get("point") or {}).get("variant")
+        rows.setdefault(row_key(rec["method"], variant), []).append({
+            "method": rec["method"], **({"variant": variant} if variant else {}), "seed": rec["seed"],
+            "lateral_mae": res["lateral_mae"],
             "speed_mae": res["speed_mae"], "cost": res["cost"],
             "ax_error": None if err[1] is None else abs(err[1]),
             "delta_error": None if err[0] is None else abs(err[0]),
@@ -92,6 +132,64 @@ def load_rows(sweep: Path, feedforward: str | None = None) -> dict[str, list[dic
             "left_road": res.get("final", {}).get("terminated"), "iterations": res["iterations"],
             "batch_size_runs": res.get("batch_size_runs", 1)})
     return {m: sorted(v, key=lambda r: r["seed"]) for m, v in rows.items()}
+
+
+def load_csv_rows(path: Path) -> dict[str, list[dict[str, Any]]]:
+    """Per row, the rows of a ``per_seed.csv`` written by this script (empty cells are ``None``).
+
+    Raises
+    ------
+    ValueError
+        If the file lacks a column :func:`load_rows` writes or a cell of a numeric column is not a number.
+    """
+    with open(path, newline="") as fh:
+        records = list(csv.DictReader(fh))
+    missing = [c for c in ("method", "seed", *FIGURES) if records and c not in records[0]]
+    if not records or missing:
+        raise ValueError(f"{path}: not a per_seed.csv of this script ("
+                         + (f"missing columns {missing})" if records else "no rows)"))
+    rows: dict[str, list[dict[str, Any]]] = {}
+    for i, rec in enumerate(records, start=2):
+        row: dict[str, Any] = {}
+        for key, cell in rec.items():
+            try:
+                row[key] = (None if cell == "" else int(cell) if key in INTEGER
+                            else float(cell) if key in NUMERIC else cell)
+            except ValueError:
+                raise ValueError(f"{path}, line {i}: column {key!r} is {cell!r}, not a number") from None
+        rows.setdefault(row_key(row["method"], row.get("variant")), []).append(row)
+    return {m: sorted(v, key=lambda r: r["seed"]) for m, v in rows.items()}
+
+
+def load_sources(sources: list[Path], feedforward: str | None = None
+                 ) -> tuple[dict[str, list[dict[str, Any]]], dict[str, list[str]]]:
+    """The rows of every source (a sweep directory or a ``per_seed.csv``), merged, and per source the rows
+    it gave.
+
+    Raises
+    ------
+    ValueError
+        If two sources give the same row, ``feedforward`` is asked of a ``per_seed.csv``, or a source is
+        neither a sweep directory nor a file.
+    """
+    rows: dict[str, list[dict[str, Any]]] = {}
+    given: dict[str, list[str]] = {}
+    for src in sources:
+        if src.is_dir():
+            got = load_rows(src, feedforward)
+        elif src.is_file():
+            if feedforward is not None:
+                raise ValueError(f"{src}: --feedforward evaluates checkpoints again; it needs sweep directories, "
+                                 f"not a per_seed.csv")
+            got = load_csv_rows(src)
+        else:
+            raise ValueError(f"{src}: no such sweep directory or per_seed.csv")
+        twice = sorted(set(got) & set(rows))
+        if twice:
+            raise ValueError(f"{src}: rows {twice} also come from an earlier source")
+        rows.update(got)
+        given[str(src)] = ordered(got)
+    return rows, given
 
 
 def statistics(rows: dict[str, list[dict[str, Any]]]) -> dict[str, Any]:
@@ -106,9 +204,7 @@ def statistics(rows: dict[str, list[dict[str, Any]]]) -> dict[str, Any]:
             entry[f] = {"mean": mean, "std": std, "ci_low": low, "ci_high": high,
                         "min": float(np.min(vals)) if vals else None, "max": float(np.max(vals)) if vals else None}
         out["methods"][m] = entry
-    for a, b in PAIRS:
-        if a not in rows or b not in rows:
-            continue
+    for a, b in pairs(rows):
         common = sorted(set(r["seed"] for r in rows[a]) & set(r["seed"] for r in rows[b]))
         ra = {r["seed"]: r for r in rows[a]}
         rb = {r["seed"]: r for r in rows[b]}
@@ -161,14 +257,18 @@ def targets(rows: dict[str, list[dict[str, Any]]], stats: dict[str, Any]) -> dic
     return t
 
 
-def format_table(rows: dict[str, list[dict[str, Any]]], stats: dict[str, Any], feedforward: str | None = None) -> str:
-    """``table.txt``."""
+def format_table(rows: dict[str, list[dict[str, Any]]], stats: dict[str, Any], feedforward: str | None = None,
+                 sources: dict[str, list[str]] | None = None) -> str:
+    """``table.txt`` (with ``sources``, from more than one, a line naming each source's rows)."""
     n = max((len(v) for v in rows.values()), default=0)
-    lines = [f"Table I, Algorithm-2 rows over {n} seeds: mean ± sample std [95% bootstrap interval of the mean]"]
+    what = "Algorithm-2 rows" if set(rows) <= set(METHODS) else "rows"
+    lines = [f"Table I, {what} over {n} seeds: mean ± sample std [95% bootstrap interval of the mean]"]
+    if sources and len(sources) > 1:
+        lines += [f"Rows from {src}: {', '.join(keys)}" for src, keys in sources.items()]
     if feedforward is not None:
         lines.append(f"Policies evaluated with algorithm.feedforward = {feedforward!r} (the same trained actors, "
                      f"shifted to the LQ optimum's action at the equilibrium for each method's own noise mean)")
-    trained = sorted({r["trained_feedforward"] for runs in rows.values() for r in runs} - {"learned"})
+    trained = sorted({r.get("trained_feedforward") or "learned" for runs in rows.values() for r in runs} - {"learned"})
     if trained:
         lines.append(f"Runs trained with algorithm.feedforward = {', '.join(map(repr, trained))} ('lq_train': the actor "
                      f"anchored at the LQ optimum's action at the equilibrium during training; 'lq_affine': at its "
@@ -176,19 +276,17 @@ def format_table(rows: dict[str, list[dict[str, Any]]], stats: dict[str, Any], f
     lines.append("")
     head = f"{'method':<22}" + "".join(f"{f + (' [' + UNITS[f] + ']' if UNITS[f] else ''):>36}" for f in FIGURES[:3])
     lines += [head, "-" * len(head)]
-    for m in METHODS:
-        if m not in stats["methods"]:
-            continue
+    for m in ordered(stats["methods"]):
         e = stats["methods"][m]
         cells = "".join(f"{e[f]['mean']:>12.4g} ± {e[f]['std']:<7.2g}[{e[f]['ci_low']:.4g}, {e[f]['ci_high']:.4g}]"
                         .rjust(36) for f in FIGURES[:3])
-        lines.append(f"{LABELS[m]:<22}{cells}")
+        lines.append(f"{label(m):<22}{cells}")
     lines += ["", "Action at the equilibrium against the discounted LQ optimum for the method's own noise mean "
               "(|a - a*|, policy_gap): mean ± std [interval], worst seed"]
-    for m in METHODS:
+    for m in ordered(stats["methods"]):
         if m in stats["methods"]:
             e = stats["methods"][m]
-            lines.append(f"  {LABELS[m]:<22} a_x {e['ax_error']['mean']:.4f} ± {e['ax_error']['std']:.4f} "
+            lines.append(f"  {label(m):<22} a_x {e['ax_error']['mean']:.4f} ± {e['ax_error']['std']:.4f} "
                          f"[{e['ax_error']['ci_low']:.4f}, {e['ax_error']['ci_high']:.4f}], worst "
                          f"{e['ax_error']['max']:.4f} m/s^2;  delta {e['delta_error']['mean']:.5f}, worst "
                          f"{e['delta_error']['max']:.5f} rad")
@@ -196,14 +294,14 @@ def format_table(rows: dict[str, list[dict[str, Any]]], stats: dict[str, Any], f
                 own = [r["ax_error_learned"] for r in rows[m] if r["ax_error_learned"] is not None]
                 lines.append(f"  {'':<22} (the learned actor's own a_x error: {np.mean(own):.4f}, worst "
                              f"{np.max(own):.4f} m/s^2)")
-    gains = {m: [r["gain_error_rel"] for r in rows[m]] for m in METHODS if m in rows}
+    gains = {m: [r.get("gain_error_rel") for r in rows[m]] for m in ordered(rows)}
     if gains and all(v is not None for vals in gains.values() for v in vals):
         lines += ["", "Gain at the equilibrium against the LQ optimum's (||du/dx + L|| / ||L||, policy_gap): "
                   "mean, worst seed"]
-        lines += [f"  {LABELS[m]:<22} {np.mean(v):.4f}, worst {np.max(v):.4f}" for m, v in gains.items()]
+        lines += [f"  {label(m):<22} {np.mean(v):.4f}, worst {np.max(v):.4f}" for m, v in gains.items()]
     lines += ["", "Paired over the same seeds (first - second; wins: seeds where the first is smaller):"]
     for key, pair in stats["pairs"].items():
-        a, b = key.split("-")
+        a, b = key.split("-", 1)
         for f in ("lateral_mae", "speed_mae", "cost", "ax_error"):
             if f not in pair:
                 continue
@@ -241,12 +339,13 @@ def make_figure(rows: dict[str, list[dict[str, Any]]], path: Path, feedforward: 
         return None
     fig, axes = plt.subplots(1, 4, figsize=(15, 3.4))
     colors = {"mixed": "C0", "model": "C1", "oracle": "k"}
+    extra = iter(("C2", "C3", "C4", "C5", "C6", "C8", "C9"))
+    colors.update({m: next(extra, "C7") for m in ordered(rows) if m not in colors})
     last = "ax_error" if feedforward is None else "ax_error_learned"
     for ax, f in zip(axes, ("speed_mae", "lateral_mae", "cost", last)):
-        for m in METHODS:
-            if m in rows:
-                ax.plot([r["seed"] for r in rows[m]], [r[f] for r in rows[m]], "o", ms=4, color=colors[m],
-                        label=LABELS[m], alpha=0.8)
+        for m in ordered(rows):
+            ax.plot([r["seed"] for r in rows[m]], [r[f] for r in rows[m]], "o", ms=4, color=colors[m],
+                    label=label(m), alpha=0.8)
         ax.set_xlabel("seed")
         unit = UNITS.get(f, UNITS["ax_error"])
         ax.set_title(("learned actor's ax_error" if f == "ax_error_learned" else f) + (f" [{unit}]" if unit else ""))
@@ -264,23 +363,24 @@ def make_figure(rows: dict[str, list[dict[str, Any]]], path: Path, feedforward: 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("sweep", type=Path, help="a finished sweep directory (sweep.json)")
+    parser.add_argument("sources", type=Path, nargs="+",
+                        help="finished sweep directories (sweep.json) or per_seed.csv files of this script")
     parser.add_argument("--dest", type=Path, required=True, help="where to write the tables and the figure")
     parser.add_argument("--feedforward", choices=FEEDFORWARDS, default=None,
                         help="evaluate each run's final checkpoint again with this algorithm.feedforward "
                              "('lq': the actor shifted to the LQ optimum's action at the equilibrium)")
     args = parser.parse_args(argv)
     try:
-        rows = load_rows(args.sweep, args.feedforward)
+        rows, sources = load_sources(args.sources, args.feedforward)
     except ValueError as exc:
         parser.error(str(exc))
     if not rows:
-        parser.error(f"{args.sweep}: no finished run of {', '.join(METHODS)}")
+        parser.error(f"{', '.join(map(str, args.sources))}: no finished run")
     stats = statistics(rows)
     args.dest.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(args.dest / "per_seed.csv", csv_text([r for m in METHODS for r in rows.get(m, [])]))
+    atomic_write_text(args.dest / "per_seed.csv", csv_text([r for m in ordered(rows) for r in rows[m]]))
     atomic_write_text(args.dest / "summary.json", json.dumps(stats, indent=2) + "\n")
-    table = format_table(rows, stats, args.feedforward)
+    table = format_table(rows, stats, args.feedforward, sources)
     atomic_write_text(args.dest / "table.txt", table + "\n")
     make_figure(rows, args.dest / "per_seed.png", args.feedforward)
     print(table)

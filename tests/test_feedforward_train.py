@@ -1,4 +1,4 @@
-"""``algorithm.feedforward = "lq_train"`` / ``"lq_affine"`` (departures): anchored actors as the policy class of training.
+"""``algorithm.feedforward = "lq_train"`` / ``"lq_affine"`` / ``"lq_affine_ss"`` (departures): anchored actors as the policy class of training.
 
 ``u(o) = u_bar tanh(MLP(o) - MLP(o*) + atanh(u_ff / u_bar))`` with ``u_ff`` the discounted LQ optimum's action
 for the run's own noise moments, refreshed at the start of every iteration. What is checked: the anchor holds
@@ -27,8 +27,9 @@ from mixedrl.tasks import LinearTask
 ATOL = 1e-5
 
 
-#: The anchored policy classes (``"lq_affine"`` adds the LQ gain; tests/test_lq_affine.py checks the gain).
-ANCHORED = ["lq_train", "lq_affine"]
+#: The anchored policy classes (``"lq_affine"`` adds the LQ gain, ``"lq_affine_ss"`` anchors at the optimum's
+#: steady state; tests/test_lq_affine.py checks the gain and the steady state).
+ANCHORED = ["lq_train", "lq_affine", "lq_affine_ss"]
 
 
 def _cfg(method: str, seed: int = 0, feedforward: str = "lq_train", **algorithm: object) -> TrainConfig:
@@ -37,14 +38,24 @@ def _cfg(method: str, seed: int = 0, feedforward: str = "lq_train", **algorithm:
                        run={"eval_every": 1000, "checkpoint_every": 1000, "eval_seeds": 1})
 
 
+def _anchor_obs(trainer: AGPI) -> torch.Tensor:
+    """Where the actor should take :func:`_wanted`: the equilibrium's observation, or (``"lq_affine_ss"``)
+    that of the LQ optimum's steady state for the trainer's current own noise."""
+    lin = trainer.task.linearisation()
+    if trainer.config.algorithm.feedforward != "lq_affine_ss":
+        return equilibrium_observation(trainer.task, lin)
+    x_ss = lq_reference(lin, *trainer.noise_moments()).steady_state
+    return trainer.task.observe(lin.to_state(torch.as_tensor(x_ss)[None]).float())[0]
+
+
 def _at_anchor(trainer: AGPI) -> np.ndarray:
-    o = equilibrium_observation(trainer.task, trainer.task.linearisation())
     with torch.no_grad():
-        return trainer.actor(o[None])[0].double().numpy()
+        return trainer.actor(_anchor_obs(trainer)[None])[0].double().numpy()
 
 
 def _wanted(trainer: AGPI) -> np.ndarray:
-    return lq_reference(trainer.task.linearisation(), *trainer.noise_moments()).action
+    ref = lq_reference(trainer.task.linearisation(), *trainer.noise_moments())
+    return ref.steady_action if trainer.config.algorithm.feedforward == "lq_affine_ss" else ref.action
 
 
 def _record_at_collect(trainer: AGPI, log: list[tuple[np.ndarray, np.ndarray, np.ndarray]]) -> None:
@@ -115,12 +126,13 @@ def test_a_batch_anchors_each_run_at_its_own_noise_and_keeps_the_bits(feedforwar
         _record_at_collect(t, log)
     engine = BatchedAGPI(runs)
     other = BatchedAGPI([make_trainer(_cfg("oracle", 5, feedforward)), make_trainer(_cfg("mixed", 0, feedforward))])
-    o = equilibrium_observation(runs[0].task, runs[0].task.linearisation())
     for _ in range(4):
         engine.iteration()
         other.iteration()
-        with torch.no_grad():  # the stacked (vmapped) call, every run's rows at o*
-            stacked = engine.actor(o[None].expand(3 * engine.batch, -1).contiguous())
+        # the stacked (vmapped) call, every run's rows at its own o*
+        o = torch.cat([_anchor_obs(t)[None].expand(engine.batch, -1) for t in runs]).contiguous()
+        with torch.no_grad():
+            stacked = engine.actor(o)
         for r, t in enumerate(runs):
             assert _at_anchor(t) == pytest.approx(_wanted(t), abs=ATOL)
             assert stacked[r * engine.batch].double().numpy() == pytest.approx(_wanted(t), abs=ATOL)
@@ -142,13 +154,16 @@ def test_lq_train_and_other_runs_train_in_separate_batches() -> None:
     affine = _cfg("mixed", feedforward="lq_affine")
     assert batch_key(affine) == batch_key(_cfg("oracle", 2, "lq_affine"))
     assert batch_key(affine) not in (batch_key(plain), batch_key(_cfg("mixed")))
+    steady = _cfg("mixed", feedforward="lq_affine_ss")
+    assert batch_key(steady) == batch_key(_cfg("model", 1, "lq_affine_ss")) != batch_key(affine)
     with pytest.raises(ValueError, match="algorithm.feedforward = 'lq_train'"):
         BatchedAGPI([make_trainer(plain), make_trainer(_cfg("mixed", 1))])
     with pytest.raises(ValueError, match="train in batches of their own kind"):
         BatchedAGPI([make_trainer(_cfg("mixed", 1)), make_trainer(affine)])
 
 
-@pytest.mark.parametrize("method,feedforward", [("mixed", "lq_train"), ("model", "lq_train"), ("mixed", "lq_affine")])
+@pytest.mark.parametrize("method,feedforward", [("mixed", "lq_train"), ("model", "lq_train"), ("mixed", "lq_affine"),
+                                               ("mixed", "lq_affine_ss")])
 def test_resume_equals_uninterrupted(tmp_path: Path, method: str, feedforward: str) -> None:
     cfg = _cfg(method, feedforward=feedforward, iterations=12).replace(**{"run.checkpoint_every": 4})
     full = make_trainer(cfg)
@@ -165,7 +180,8 @@ def test_resume_equals_uninterrupted(tmp_path: Path, method: str, feedforward: s
     assert strip == [{k: v for k, v in r.items() if not k.startswith("time/")}
                      for r in RunDirectory(tmp_path / "cut").read_metrics()]
     results = evaluate_run(tmp_path / "cut")
-    assert max(abs(e) for e in results["policy_gap"]["action_error"]) < ATOL
+    if feedforward != "lq_affine_ss":  # (its anchor is the steady state, not the equilibrium policy_gap reads)
+        assert max(abs(e) for e in results["policy_gap"]["action_error"]) < ATOL
     with pytest.raises(ValueError, match=f"'{feedforward}' is a training-time"):
         evaluate_run(tmp_path / "cut", feedforward="lq")
 

@@ -125,7 +125,7 @@ class _Blind(LinearTask):
 
 def test_an_observation_that_misses_a_coordinate_is_an_error() -> None:
     task = _Blind()
-    with pytest.raises(ValueError, match=r"algorithm.feedforward: 'lq_affine' needs observations .* rank 1"):
+    with pytest.raises(ValueError, match=r"algorithm.feedforward: 'lq_affine' and 'lq_affine_ss' need observations .* rank 1"):
         equilibrium_gain(task, task.linearisation())
 
 
@@ -135,3 +135,41 @@ def test_gain_errors_name_the_argument() -> None:
         AffineAnchoredActor(*args, anchor_obs=torch.zeros(2), gain=torch.zeros(2, 1))
     with pytest.raises(ValueError, match="gain: expected a finite"):
         AffineAnchoredActor(*args, anchor_obs=torch.zeros(2), gain=torch.tensor([[float("nan"), 0.0]]))
+    actor = AffineAnchoredActor(*args, anchor_obs=torch.zeros(2), gain=torch.ones(1, 2))
+    before = {k: v.clone() for k, v in actor.state_dict().items()}
+    for bad in (torch.zeros(3), torch.tensor([0.0, float("inf")])):
+        with pytest.raises(ValueError, match="obs: expected 2 finite numbers"):
+            actor.set_anchor(bad, torch.tensor([0.5]))
+    assert all(torch.equal(v, actor.state_dict()[k]) for k, v in before.items())  # left as it was
+
+
+@pytest.mark.parametrize("method", ["mixed", "oracle"])  # (the prior's mean is 0 here: x_ss = 0 for "model")
+def test_lq_affine_ss_holds_the_optimums_steady_state_exactly(method: str) -> None:
+    """``"lq_affine_ss"``: the anchor is the LQ optimum's steady state ``x_ss`` for the run's own noise, so on
+    the (exactly linear) task the mean closed loop under the run's own noise mean has ``x_ss`` as its fixed
+    point, whatever the remainder's weights: ``A x_ss + B (u(x_ss) - u*) + E mu = x_ss``; the gain there is
+    ``-L``. With ``"lq_affine"`` (anchored at the equilibrium) the remainder moves the fixed point."""
+    errors = {}
+    for ff in ("lq_affine_ss", "lq_affine"):
+        trainer = make_trainer(_cfg(method).replace(**{"algorithm.feedforward": ff}))
+        for _ in range(5):
+            trainer.iteration()
+        lin = trainer.task.linearisation()
+        mean, cov = trainer.noise_moments()
+        ref = lq_reference(lin, mean, cov)
+        x_ss = torch.as_tensor(ref.steady_state)[None]
+
+        def act(x: torch.Tensor) -> torch.Tensor:
+            return trainer.actor(trainer.task.observe(lin.to_state(x).float()))[0].double()
+
+        with torch.no_grad():
+            u = act(x_ss).numpy()
+        nxt = lin.A @ ref.steady_state + lin.B @ (u - lin.action) + lin.E @ np.asarray(mean)
+        errors[ff] = float(np.abs(nxt - ref.steady_state).max())
+        if ff == "lq_affine_ss":
+            assert np.abs(ref.steady_state).max() > 0.1  # the anchor is away from the equilibrium
+            assert np.allclose(trainer.actor.anchor_obs.double().numpy(),
+                               trainer.task.observe(lin.to_state(x_ss)).numpy()[0], atol=1e-6)
+            gain = torch.func.jacrev(lambda x: act(x[None]))(x_ss[0]).detach().numpy()
+            assert np.allclose(gain, -ref.solution.gain, atol=1e-4)
+    assert errors["lq_affine_ss"] < 1e-5 < 100 * 1e-5 < errors["lq_affine"], errors

@@ -415,3 +415,119 @@ def test_ddpg_seeds20_spec_is_the_reproductions_ddpg_on_more_seeds() -> None:
     assert sorted(s for v, s in key if v == "ddpg_long") == list(range(20))
     for r in repro:
         assert key[(r.point["variant"], r.config.seed)] == r.config.to_dict(), r.name
+
+
+def test_seed_statistics_keys_variants_apart_and_reads_its_own_csv_back(tmp_path: Path) -> None:
+    """seed_statistics.py: a sweep's variants are separate rows (``ddpg[paper]``, not one merged ``ddpg``),
+    mixed RL is paired with each of them seed by seed, and a shipped ``per_seed.csv`` read back as a source
+    gives the same figures as the sweep it came from (the 20-seed DDPG rows beside the shipped Algorithm-2
+    rows)."""
+    algo2 = parse_spec('methods = ["mixed"]\nseeds = [0, 1]\n[base]\n"algorithm.iterations" = 2\n'
+                       '"algorithm.batch_size" = 16\n"run.eval_every" = 2\n"run.eval_seeds" = 1\n')
+    ddpg = parse_spec('methods = ["ddpg"]\nseeds = [0, 1]\n[base]\n"algorithm.iterations" = 2\n"ddpg.envs" = 2\n'
+                      '"ddpg.warmup" = 8\n"algorithm.batch_size" = 8\n"run.eval_every" = 2\n"run.eval_seeds" = 1\n'
+                      '[variants.short]\n[variants.longer]\n"algorithm.iterations" = 3\n')
+    run_sweep(algo2, tmp_path / "a2", workers=1, progress=False)
+    doc = run_sweep(ddpg, tmp_path / "ddpg", workers=1, progress=False)
+    assert _run_script("seed_statistics.py", tmp_path / "a2", "--dest", tmp_path / "first").returncode == 0
+    proc = _run_script("seed_statistics.py", tmp_path / "first" / "per_seed.csv", tmp_path / "ddpg",
+                       "--dest", tmp_path / "both")
+    assert proc.returncode == 0, proc.stderr
+    first = json.loads((tmp_path / "first" / "summary.json").read_text())
+    both = json.loads((tmp_path / "both" / "summary.json").read_text())
+    assert both["methods"]["mixed"] == first["methods"]["mixed"]  # the csv round trip is exact
+    assert set(both["methods"]) == {"mixed", "ddpg[short]", "ddpg[longer]"}
+    cost = {(r["point"]["variant"], r["seed"]): r["metrics"]["cost"] for r in doc["runs"]}
+    mixed = {int(r["seed"]): float(r["cost"]) for r in csv.DictReader((tmp_path / "first" / "per_seed.csv").open())}
+    for variant in ("short", "longer"):
+        assert both["methods"][f"ddpg[{variant}]"]["cost"]["mean"] == pytest.approx(
+            np.mean([cost[(variant, s)] for s in (0, 1)]), rel=1e-12)
+        pair = both["pairs"][f"mixed-ddpg[{variant}]"]["cost"]
+        assert pair["wins"] == sum(mixed[s] < cost[(variant, s)] for s in (0, 1))
+        assert pair["difference"] == pytest.approx(np.mean([mixed[s] - cost[(variant, s)] for s in (0, 1)]), rel=1e-12)
+    assert f"Rows from {tmp_path / 'ddpg'}: ddpg[longer], ddpg[short]" in proc.stdout
+    again = _run_script("seed_statistics.py", tmp_path / "first" / "per_seed.csv", tmp_path / "a2",
+                        "--dest", tmp_path / "x")
+    assert again.returncode == 2 and "also come from an earlier source" in again.stderr
+
+
+def _per_seed_csv(path: Path, iterations: int, costs: dict[str, list[float]], left: dict[str, list[int]] = {},
+                  speed: dict[str, list[float]] = {}) -> Path:
+    """A ``per_seed.csv`` as seed_statistics.py writes it, with the given course costs (and speed errors) per
+    method and seed."""
+    rows = [{"method": m, "seed": s, "lateral_mae": 0.1, "speed_mae": speed[m][s] if m in speed else 0.01,
+             "cost": c, "ax_error": 0.0,
+             "delta_error": 0.0, "left_road": float(s in left.get(m, [])), "iterations": iterations}
+            for m, cs in costs.items() for s, c in enumerate(cs)]
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with path.open("w", newline="") as fh:
+        writer = csv.DictWriter(fh, fieldnames=list(rows[0]))
+        writer.writeheader()
+        writer.writerows(rows)
+    return path
+
+
+def test_budget_plateau_measures_the_rise_of_the_mean_and_the_diverged_seeds(tmp_path: Path) -> None:
+    """budget_plateau.py: the ratio of mean costs from one budget to the next (paired over the seeds), the
+    5% target met or missed on it, a seed whose cost rose by more than 50% or that left the road named as
+    diverged, and errors for sources it cannot order."""
+    a = _per_seed_csv(tmp_path / "a" / "per_seed.csv", 1500, {"mixed": [20.0, 22.0, 24.0, 26.0],
+                                                              "model": [30.0, 30.0, 30.0, 30.0]})
+    b = _per_seed_csv(tmp_path / "b" / "per_seed.csv", 4000, {"mixed": [20.0, 22.0, 24.0, 26.0 * 1.6],
+                                                              "model": [31.0, 31.0, 31.0, 31.0]})
+    c = _per_seed_csv(tmp_path / "c" / "per_seed.csv", 10000, {"mixed": [20.0, 22.0, 24.0, 26.0 * 1.6],
+                                                               "model": [31.0, 31.0, 31.0, 31.0]},
+                      left={"model": [2]})
+    proc = _run_script("budget_plateau.py", b, a, c, "--dest", tmp_path / "out")  # any order: sorted by budget
+    assert proc.returncode == 0, proc.stderr
+    doc = json.loads((tmp_path / "out" / "budgets.json").read_text())
+    assert doc["budgets"] == [1500, 4000, 10000] and list(doc["rows"]) == ["mixed", "model"]
+    mixed, model = doc["rows"]["mixed"]["steps"], doc["rows"]["model"]["steps"]
+    assert mixed[0]["mean_ratio"] == pytest.approx((20 + 22 + 24 + 41.6) / 92.0, rel=1e-12)
+    assert (mixed[0]["diverged_seeds"], mixed[0]["plateau_met"]) == ([3], False)  # +17% mean, seed 3 +60%
+    assert (mixed[1]["mean_ratio"], mixed[1]["diverged_seeds"], mixed[1]["plateau_met"]) == (1.0, [], True)
+    assert (model[0]["mean_ratio"], model[0]["rose_on"], model[0]["plateau_met"]) == (pytest.approx(31 / 30), 4, True)
+    assert (model[1]["diverged_seeds"], model[1]["plateau_met"]) == ([2], False)  # left the road
+    assert doc["rows"]["mixed"]["per_budget"]["4000"]["worst_seed"] == 3
+    assert "MISSED" in proc.stdout and "diverged [3]" in proc.stdout
+    twice = _run_script("budget_plateau.py", a, a, "--dest", tmp_path / "x")
+    assert twice.returncode == 2 and "a second source for the budget of 1500" in twice.stderr
+    assert _run_script("budget_plateau.py", a, "--dest", tmp_path / "x").returncode == 2
+
+
+def test_win_odds_is_the_normal_model_of_the_paired_speed_difference(tmp_path: Path) -> None:
+    """win_odds.py: p = Phi(mean(d) / std(d)) of d = model - mixed, P(Binomial(20, p) >= 18), and mixed RL's
+    mean + 1.8675 std, computed here from the definitions on hand-made figures."""
+    from scipy import stats
+
+    mixed = [0.010, 0.012, 0.009, 0.011, 0.008]
+    model = [0.014, 0.013, 0.015, 0.010, 0.016]
+    path = _per_seed_csv(tmp_path / "s" / "per_seed.csv", 1500, {"mixed": [1.0] * 5, "model": [1.0] * 5},
+                         speed={"mixed": mixed, "model": model})
+    proc = _run_script("win_odds.py", path, "--out", tmp_path / "odds.txt")
+    assert proc.returncode == 0, proc.stderr
+    d = np.subtract(model, mixed)
+    p = stats.norm.cdf(d.mean() / d.std(ddof=1))
+    worst = np.mean(mixed) + 1.8675 * np.std(mixed, ddof=1)
+    text = (tmp_path / "odds.txt").read_text()
+    assert f"wins 4 of 5   p {p:.3f}   P18 {stats.binom.sf(17, 20, p):.2f}" in text
+    assert f"expected worst of 20 {worst:.4f}" in text
+    only = _per_seed_csv(tmp_path / "m" / "per_seed.csv", 1500, {"mixed": [1.0] * 5})
+    bad = _run_script("win_odds.py", only, "--out", tmp_path / "x.txt")
+    assert bad.returncode == 2 and "needs the rows of mixed and model-driven RL" in bad.stderr
+
+
+@pytest.mark.parametrize("spec,sibling,changed", [
+    ("pendulum_seeds10_lq_affine_ss", "pendulum_seeds10_lq_affine", {"algorithm.feedforward": "lq_affine_ss"}),
+    ("table1_seeds20_lq_train_n10000", "table1_seeds20_lq_train_n4000",
+     {"algorithm.iterations": 10000, "run.eval_every": 2000, "run.checkpoint_every": 2000}),
+])
+def test_a_spec_is_its_sibling_with_only_the_stated_changes(spec: str, sibling: str, changed: dict) -> None:
+    """The 10,000-iteration budget of the twenty-seed ``lq_train`` runs and the pendulum's ``lq_affine_ss`` runs
+    are their siblings' runs (the same methods, seeds and every other field) with only the stated fields
+    changed, so the tables built from both compare like with like."""
+    ours = {r.name: r.config for r in expand(load_spec(ROOT / "studies" / f"{spec}.toml"))}
+    theirs = {r.name: r.config for r in expand(load_spec(ROOT / "studies" / f"{sibling}.toml"))}
+    assert ours.keys() == theirs.keys() and len(ours) in (30, 60)
+    for name, cfg in theirs.items():
+        assert ours[name].to_dict() == cfg.replace(**changed).to_dict(), name

@@ -45,7 +45,7 @@ import numpy as np
 import torch
 from torch.optim.swa_utils import AveragedModel, get_ema_multi_avg_fn
 
-from mixedrl.config import ANCHORED_FEEDFORWARDS, TrainConfig
+from mixedrl.config import AFFINE_FEEDFORWARDS, ANCHORED_FEEDFORWARDS, TrainConfig
 from mixedrl.algorithms.model_data import SAMPLER_CLASSES, has_course
 from mixedrl.envs.dlc_task import CourseSampler
 from mixedrl.expectation import expectation_nodes, h_value
@@ -54,7 +54,8 @@ from mixedrl.noise import make_noise_source
 from mixedrl.pev import critic_loss, critic_step
 from mixedrl.pim import MVCResult, actor_objective, actor_step, mvc_check
 from mixedrl.tasks import Task, check_task
-from mixedrl.precision import equilibrium_gain, equilibrium_observation, feedforward_action, feedforward_policy
+from mixedrl.precision import (equilibrium_gain, equilibrium_observation, feedforward_action, feedforward_policy,
+                               steady_anchor)
 
 __all__ = [
     "AGPI",
@@ -145,9 +146,9 @@ class AGPI:
         self.config = config
         self.architecture = architecture
         self.generator = torch.Generator().manual_seed(config.seed)
-        # algorithm.feedforward "lq" / "lq_train" / "lq_affine": the equilibrium's LQ problem, checked here (a
-        # task without one is an error); "lq_train" trains the AnchoredActor, "lq_affine" the
-        # AffineAnchoredActor (refresh_anchor)
+        # algorithm.feedforward "lq" / "lq_train" / "lq_affine" / "lq_affine_ss": the equilibrium's LQ problem,
+        # checked here (a task without one is an error); "lq_train" trains the AnchoredActor, "lq_affine" and
+        # "lq_affine_ss" the AffineAnchoredActor (refresh_anchor)
         feedforward = config.algorithm.feedforward
         self._linearisation = None
         if feedforward in ANCHORED_FEEDFORWARDS and architecture != "mlp":
@@ -161,7 +162,7 @@ class AGPI:
                                  f"defines none")
         anchor = (equilibrium_observation(task, self._linearisation) if feedforward in ANCHORED_FEEDFORWARDS
                   else None)
-        gain = equilibrium_gain(task, self._linearisation) if feedforward == "lq_affine" else None
+        gain = equilibrium_gain(task, self._linearisation) if feedforward in AFFINE_FEEDFORWARDS else None
         self.critic, self.actor = build_networks(task, config, self.generator, architecture, anchor, gain)
         self.critic_opt = torch.optim.Adam(self.critic.parameters(), lr=config.algorithm.critic_lr)
         self.actor_opt = torch.optim.Adam(self.actor.parameters(), lr=config.algorithm.actor_lr)
@@ -210,11 +211,19 @@ class AGPI:
     def refresh_anchor(self) -> None:
         """``algorithm.feedforward = "lq_train"`` or ``"lq_affine"``: anchor the actor (and its average) at
         the LQ optimum's action ``u_ff`` (for ``"lq_affine"`` also its gain ``-L``) for the current own noise
-        moments (:func:`mixedrl.precision.feedforward_action`: the IBE posterior, the prior or the truth); in
+        moments (:func:`mixedrl.precision.feedforward_action`: the IBE posterior, the prior or the truth);
+        ``"lq_affine_ss"``: at the optimum's steady state and its action there
+        (:func:`mixedrl.precision.steady_anchor`); in
         place, so a batch's stacked buffers follow. Called at construction, at the start of every iteration
         (before the actor is used) and at its end (so the evaluated policy is anchored at the moments the next
         iteration plans with). Otherwise nothing."""
         if not isinstance(self.actor, AnchoredActor):
+            return
+        if self.config.algorithm.feedforward == "lq_affine_ss":
+            obs, u_ss = steady_anchor(self, self._linearisation, self.actor)
+            for actor in (self.actor, None if self.actor_avg is None else self.actor_avg.module):
+                if actor is not None:
+                    actor.set_anchor(obs, u_ss)
             return
         u_ff = feedforward_action(self, self._linearisation, self.actor)
         self.actor.set_anchor_action(u_ff)

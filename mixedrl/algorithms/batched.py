@@ -84,7 +84,7 @@ def batch_key(config: Any) -> tuple[Any, ...]:
 
 
 def _anchored(config: Any) -> bool:
-    """The anchored actor class the run trains (``algorithm.feedforward`` ``"lq_train"`` or ``"lq_affine"``:
+    """The anchored actor class the run trains (``algorithm.feedforward`` ``"lq_train"``, ``"lq_affine"`` or ``"lq_affine_ss"``:
     other buffers, another forward), else ``""``."""
     ff = config.algorithm.feedforward
     return ff if ff in ANCHORED_FEEDFORWARDS else ""
@@ -176,7 +176,7 @@ def _check_members(members: Sequence[AGPI]) -> None:
     for i, m in enumerate(members[1:], start=1):
         if _anchored(m.config) != _anchored(first.config):
             raise ValueError(f"members: run {i} has algorithm.feedforward = {m.config.algorithm.feedforward!r}, run 0 "
-                             f"{first.config.algorithm.feedforward!r}; runs with 'lq_train' or 'lq_affine' (anchored "
+                             f"{first.config.algorithm.feedforward!r}; runs with 'lq_train', 'lq_affine' or 'lq_affine_ss' (anchored "
                              f"actors) train in batches of their own kind")
 
 
