@@ -272,7 +272,8 @@ def format_table(rows: dict[str, list[dict[str, Any]]], stats: dict[str, Any], f
     if trained:
         lines.append(f"Runs trained with algorithm.feedforward = {', '.join(map(repr, trained))} ('lq_train': the actor "
                      f"anchored at the LQ optimum's action at the equilibrium during training; 'lq_affine': at its "
-                     f"action and gain)")
+                     f"action and gain" + ("; 'lq_affine_ss': at its action and gain about its steady state"
+                                           if "lq_affine_ss" in trained else "") + ")")
     lines.append("")
     head = f"{'method':<22}" + "".join(f"{f + (' [' + UNITS[f] + ']' if UNITS[f] else ''):>36}" for f in FIGURES[:3])
     lines += [head, "-" * len(head)]

@@ -519,13 +519,14 @@ def test_win_odds_is_the_normal_model_of_the_paired_speed_difference(tmp_path: P
 
 @pytest.mark.parametrize("spec,sibling,changed", [
     ("pendulum_seeds10_lq_affine_ss", "pendulum_seeds10_lq_affine", {"algorithm.feedforward": "lq_affine_ss"}),
+    ("table1_seeds20_lq_affine_ss", "table1_seeds20_lq_affine", {"algorithm.feedforward": "lq_affine_ss"}),
     ("table1_seeds20_lq_train_n10000", "table1_seeds20_lq_train_n4000",
      {"algorithm.iterations": 10000, "run.eval_every": 2000, "run.checkpoint_every": 2000}),
 ])
 def test_a_spec_is_its_sibling_with_only_the_stated_changes(spec: str, sibling: str, changed: dict) -> None:
-    """The 10,000-iteration budget of the twenty-seed ``lq_train`` runs and the pendulum's ``lq_affine_ss`` runs
-    are their siblings' runs (the same methods, seeds and every other field) with only the stated fields
-    changed, so the tables built from both compare like with like."""
+    """The 10,000-iteration budget of the twenty-seed ``lq_train`` runs and the ``lq_affine_ss`` runs (pendulum,
+    double lane change) are their siblings' runs (the same methods, seeds and every other field) with only the
+    stated fields changed, so the tables built from both compare like with like."""
     ours = {r.name: r.config for r in expand(load_spec(ROOT / "studies" / f"{spec}.toml"))}
     theirs = {r.name: r.config for r in expand(load_spec(ROOT / "studies" / f"{sibling}.toml"))}
     assert ours.keys() == theirs.keys() and len(ours) in (30, 60)
