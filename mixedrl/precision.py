@@ -350,8 +350,8 @@ def equilibrium_gain(task: Task, lin: Linearisation) -> torch.Tensor:
     J_o = torch.func.jacrev(lambda x: task.observe(lin.to_state(x[None]))[0])(
         torch.zeros(n, dtype=torch.float64)).detach().double().numpy()
     if np.linalg.matrix_rank(J_o) < n:
-        raise ValueError(f"algorithm.feedforward: 'lq_affine' and 'lq_affine_ss' need observations that determine the "
-                         f"linearisation's {n} coordinates at the equilibrium; d o / d x there has rank "
+        raise ValueError(f"algorithm.feedforward: 'lq_affine' and 'lq_affine_ss' need observations that "
+                         f"determine the linearisation's {n} coordinates at the equilibrium; d o / d x there has rank "
                          f"{np.linalg.matrix_rank(J_o)}")
     L = lq_reference(lin, np.zeros(lin.E.shape[1])).solution.gain
     return torch.as_tensor(-L @ np.linalg.pinv(J_o))
@@ -366,11 +366,17 @@ def feedforward_action(trainer: Any, lin: Linearisation, policy: torch.nn.Module
     ValueError
         If the trainer has no noise model (naming ``algorithm.feedforward``), or as :func:`lq_reference`.
     """
+    return torch.as_tensor(_own_reference(trainer, lin, policy).action)
+
+
+def _own_reference(trainer: Any, lin: Linearisation, policy: torch.nn.Module | None = None) -> LQReference:
+    """:func:`lq_reference` for the trainer's own noise moments (:func:`own_noise`); an error naming
+    ``algorithm.feedforward`` for a trainer without a noise model."""
     mean, cov = own_noise(trainer, lin, policy)
     if mean is None:
         raise ValueError("algorithm.feedforward: the LQ feed-forward needs the method's noise model; this trainer "
                          "has none")
-    return torch.as_tensor(lq_reference(lin, mean, cov).action)
+    return lq_reference(lin, mean, cov)
 
 
 def steady_anchor(trainer: Any, lin: Linearisation, policy: torch.nn.Module | None = None
@@ -396,11 +402,7 @@ def steady_anchor(trainer: Any, lin: Linearisation, policy: torch.nn.Module | No
     ValueError
         As :func:`feedforward_action`.
     """
-    mean, cov = own_noise(trainer, lin, policy)
-    if mean is None:
-        raise ValueError("algorithm.feedforward: the LQ feed-forward needs the method's noise model; this trainer "
-                         "has none")
-    ref = lq_reference(lin, mean, cov)
+    ref = _own_reference(trainer, lin, policy)
     x_ss = torch.as_tensor(ref.steady_state, dtype=torch.float64)[None]
     obs = trainer.task.observe(lin.to_state(x_ss).float())[0]
     return obs, torch.as_tensor(ref.steady_action)

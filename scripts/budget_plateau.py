@@ -67,7 +67,7 @@ def by_budget(sources: list[Path]) -> dict[int, dict[str, list[dict[str, Any]]]]
 def plateau(budgets: dict[int, dict[str, list[dict[str, Any]]]]) -> dict[str, Any]:
     """The content of ``budgets.json`` (module docstring)."""
     steps = list(budgets)
-    keys = [k for k in ordered(set.intersection(*(set(rows) for rows in budgets.values())))]
+    keys = ordered(set.intersection(*(set(rows) for rows in budgets.values())))
     out: dict[str, Any] = {"budgets": steps, "max_mean_rise": MAX_MEAN_RISE, "diverged_rise": DIVERGED_RISE,
                            "rows": {}}
     for key in keys:

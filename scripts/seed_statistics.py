@@ -12,9 +12,9 @@ give the same row.
   at the equilibrium against the discounted LQ optimum for the method's own noise mean, ``policy_gap``);
 * ``summary.json``: per row mean, sample std and 95% percentile-bootstrap interval of the mean of each
   figure (:func:`mixedrl.tables.bootstrap_interval`); per pair of methods (mixed - model-driven, mixed -
-  oracle, and mixed RL against every further row such as DDPG's) the paired mean difference with its 95% interval (seeds resampled with both values,
-  :func:`mixedrl.tables.paired_interval`), the ratio of means with its interval, and the seeds on which
-  the first is better; the issue's targets, each with its measured figure and whether it is met;
+  oracle, and mixed RL against every further row such as DDPG's) the paired mean difference with its 95%
+  interval (seeds resampled with both values, :func:`mixedrl.tables.paired_interval`), the ratio of means
+  with its interval, and the seeds on which the first is better; the issue's targets, each with its measured figure and whether it is met;
 * ``table.txt``: the same as text;
 * ``per_seed.png``: every seed visible, mixed RL against model-driven RL and the oracle (needs matplotlib).
 
@@ -285,16 +285,15 @@ def format_table(rows: dict[str, list[dict[str, Any]]], stats: dict[str, Any], f
     lines += ["", "Action at the equilibrium against the discounted LQ optimum for the method's own noise mean "
               "(|a - a*|, policy_gap): mean ± std [interval], worst seed"]
     for m in ordered(stats["methods"]):
-        if m in stats["methods"]:
-            e = stats["methods"][m]
-            lines.append(f"  {label(m):<22} a_x {e['ax_error']['mean']:.4f} ± {e['ax_error']['std']:.4f} "
-                         f"[{e['ax_error']['ci_low']:.4f}, {e['ax_error']['ci_high']:.4f}], worst "
-                         f"{e['ax_error']['max']:.4f} m/s^2;  delta {e['delta_error']['mean']:.5f}, worst "
-                         f"{e['delta_error']['max']:.5f} rad")
-            if feedforward is not None:
-                own = [r["ax_error_learned"] for r in rows[m] if r["ax_error_learned"] is not None]
-                lines.append(f"  {'':<22} (the learned actor's own a_x error: {np.mean(own):.4f}, worst "
-                             f"{np.max(own):.4f} m/s^2)")
+        e = stats["methods"][m]
+        lines.append(f"  {label(m):<22} a_x {e['ax_error']['mean']:.4f} ± {e['ax_error']['std']:.4f} "
+                     f"[{e['ax_error']['ci_low']:.4f}, {e['ax_error']['ci_high']:.4f}], worst "
+                     f"{e['ax_error']['max']:.4f} m/s^2;  delta {e['delta_error']['mean']:.5f}, worst "
+                     f"{e['delta_error']['max']:.5f} rad")
+        if feedforward is not None:
+            own = [r["ax_error_learned"] for r in rows[m] if r["ax_error_learned"] is not None]
+            lines.append(f"  {'':<22} (the learned actor's own a_x error: {np.mean(own):.4f}, worst "
+                         f"{np.max(own):.4f} m/s^2)")
     gains = {m: [r.get("gain_error_rel") for r in rows[m]] for m in ordered(rows)}
     if gains and all(v is not None for vals in gains.values() for v in vals):
         lines += ["", "Gain at the equilibrium against the LQ optimum's (||du/dx + L|| / ||L||, policy_gap): "

@@ -82,7 +82,8 @@ def main(argv: list[str] | None = None) -> int:
         except (ValueError, OSError) as exc:
             parser.error(str(exc))
         lines += [f"{path.parent.name}:",
-                  f"  d {o['diff_mean']:+.4f} ± {o['diff_std']:.4f}   wins {o['wins']} of {o['n']}   p {o['p_win']:.3f}   "
+                  f"  d {o['diff_mean']:+.4f} ± {o['diff_std']:.4f}   wins {o['wins']} of {o['n']}   "
+                  f"p {o['p_win']:.3f}   "
                   f"P18 {o['p_18_of_20']:.2f}   std for 0.9: {o['diff_std_for_0.9']:.4f}   robust: p "
                   f"{o['p_win_robust']:.3f}, P18 {o['p_18_of_20_robust']:.2f}",
                   f"  mixed {o['mixed_mean']:.4f} ± {o['mixed_std']:.4f}   worst {o['mixed_max']:.4f}   "

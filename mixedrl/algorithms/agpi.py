@@ -219,16 +219,15 @@ class AGPI:
         iteration plans with). Otherwise nothing."""
         if not isinstance(self.actor, AnchoredActor):
             return
+        actors = [self.actor] + ([] if self.actor_avg is None else [self.actor_avg.module])
         if self.config.algorithm.feedforward == "lq_affine_ss":
             obs, u_ss = steady_anchor(self, self._linearisation, self.actor)
-            for actor in (self.actor, None if self.actor_avg is None else self.actor_avg.module):
-                if actor is not None:
-                    actor.set_anchor(obs, u_ss)
-            return
-        u_ff = feedforward_action(self, self._linearisation, self.actor)
-        self.actor.set_anchor_action(u_ff)
-        if self.actor_avg is not None:
-            self.actor_avg.module.set_anchor_action(u_ff)
+            for actor in actors:
+                actor.set_anchor(obs, u_ss)
+        else:
+            u_ff = feedforward_action(self, self._linearisation, self.actor)
+            for actor in actors:
+                actor.set_anchor_action(u_ff)
 
     @property
     def policy(self) -> torch.nn.Module:

@@ -84,8 +84,8 @@ def batch_key(config: Any) -> tuple[Any, ...]:
 
 
 def _anchored(config: Any) -> bool:
-    """The anchored actor class the run trains (``algorithm.feedforward`` ``"lq_train"``, ``"lq_affine"`` or ``"lq_affine_ss"``:
-    other buffers, another forward), else ``""``."""
+    """The anchored actor class the run trains (``algorithm.feedforward`` in
+    :data:`~mixedrl.config.ANCHORED_FEEDFORWARDS`: other buffers, another forward), else ``""``."""
     ff = config.algorithm.feedforward
     return ff if ff in ANCHORED_FEEDFORWARDS else ""
 
@@ -176,8 +176,8 @@ def _check_members(members: Sequence[AGPI]) -> None:
     for i, m in enumerate(members[1:], start=1):
         if _anchored(m.config) != _anchored(first.config):
             raise ValueError(f"members: run {i} has algorithm.feedforward = {m.config.algorithm.feedforward!r}, run 0 "
-                             f"{first.config.algorithm.feedforward!r}; runs with 'lq_train', 'lq_affine' or 'lq_affine_ss' (anchored "
-                             f"actors) train in batches of their own kind")
+                             f"{first.config.algorithm.feedforward!r}; runs with 'lq_train', 'lq_affine' or "
+                             f"'lq_affine_ss' (anchored actors) train in batches of their own kind")
 
 
 def check_shared(members: Sequence[Any], fields: Sequence[str]) -> None:
