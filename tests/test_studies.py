@@ -532,3 +532,46 @@ def test_a_spec_is_its_sibling_with_only_the_stated_changes(spec: str, sibling: 
     assert ours.keys() == theirs.keys() and len(ours) in (30, 60)
     for name, cfg in theirs.items():
         assert ours[name].to_dict() == cfg.replace(**changed).to_dict(), name
+
+
+def _course_run(root: Path, method: str, seed: int, losses: list[float], speed: dict[int, float],
+                start: int = 4) -> None:
+    """A run directory as a sweep leaves it, with the given critic losses (iterations 1, 2, ...) and
+    evaluations, its course sampler switching at ``start``."""
+    run = root / "runs" / f"{method}_seed{seed}"
+    run.mkdir(parents=True)
+    (run / "config.json").write_text(json.dumps({"method": method, "seed": seed,
+                                                 "sampler": {"name": "dlc_course", "course_start": start}}))
+    with (run / "metrics.csv").open("w", newline="") as fh:
+        writer = csv.writer(fh)
+        writer.writerow(["iteration", "train/critic_loss", "eval/speed_mae"])
+        for k, loss in enumerate(losses, start=1):
+            writer.writerow([k, loss, speed.get(k, "")])
+
+
+def test_course_switch_measures_the_critics_rise_against_the_speed_error(tmp_path: Path) -> None:
+    """course_switch.py: rise = the largest critic loss over the 3 w iterations after course_start over the
+    median of the w before; change = last evaluation - the one at course_start; Spearman's rho of the two
+    (computed here from the definitions); errors naming the run that cannot be measured."""
+    from scipy import stats
+
+    rises = {0: 2.0, 1: 8.0, 2: 4.0, 3: 16.0}
+    changes = {0: 0.001, 1: 0.004, 2: 0.002, 3: 0.010}
+    for s, r in rises.items():  # w = 2: before = median(loss at 3, 4) = 1; the peak r at 7 (9 r at 11: outside)
+        _course_run(tmp_path / "sw", "mixed", s, [5.0, 5.0, 1.0, 1.0, 1.5, 1.0, r, 1.0, 1.0, 1.0, 9.0 * r, 1.0],
+                    {4: 0.01, 12: 0.01 + changes[s]})
+    proc = _run_script("course_switch.py", tmp_path / "sw", "--dest", tmp_path / "out", "--window", "2")
+    assert proc.returncode == 0, proc.stderr
+    doc = json.loads((tmp_path / "out" / "course_switch.json").read_text())
+    got = {r["seed"]: r for r in doc["runs"]}
+    for s in rises:
+        assert (got[s]["rise"], got[s]["peak_iteration"]) == (max(1.5, rises[s]), 7 if rises[s] > 1.5 else 5)
+        assert got[s]["change"] == pytest.approx(changes[s], rel=1e-9)
+    rho = stats.spearmanr([got[s]["rise"] for s in rises], [changes[s] for s in rises]).statistic
+    assert doc["pooled"]["change"]["rho"] == pytest.approx(rho) and rho == pytest.approx(1.0)
+    assert "Mixed RL seed 3" in proc.stdout.splitlines()[-4]  # the worst final speed error listed first
+    _course_run(tmp_path / "bad", "mixed", 0, [1.0] * 10, {6: 0.01, 10: 0.01})
+    _course_run(tmp_path / "bad", "mixed", 1, [1.0] * 10, {4: 0.01, 10: 0.01})
+    _course_run(tmp_path / "bad", "mixed", 2, [1.0] * 10, {4: 0.01, 10: 0.01})
+    bad = _run_script("course_switch.py", tmp_path / "bad", "--dest", tmp_path / "x", "--window", "2")
+    assert bad.returncode == 2 and "mixed_seed0: no evaluation at the course start (iteration 4)" in bad.stderr
