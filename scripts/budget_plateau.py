@@ -14,7 +14,9 @@ iteration budget on the same seeds (for example ``studies/table1_seeds20_lq_trai
 * ``budgets.txt``: the same as text.
 
 A budget is the runs' ``iterations`` (every run of a source must have the same), and only seeds present at
-every budget are compared.
+every budget are compared. A row need not be present at every budget (``--partial``: an unfinished sweep gives
+the rows of its finished runs): it is compared over the budgets where it was measured, and shown as "not run"
+at the others.
 
 Usage::
 
@@ -43,8 +45,8 @@ MAX_MEAN_RISE = 0.05
 DIVERGED_RISE = 0.5
 
 
-def by_budget(sources: list[Path]) -> dict[int, dict[str, list[dict[str, Any]]]]:
-    """Per budget (iterations), the rows of its source.
+def by_budget(sources: list[Path], partial: bool = False) -> dict[int, dict[str, list[dict[str, Any]]]]:
+    """Per budget (iterations), the rows of its source (``partial``: a sweep's finished runs only).
 
     Raises
     ------
@@ -53,7 +55,7 @@ def by_budget(sources: list[Path]) -> dict[int, dict[str, list[dict[str, Any]]]]
     """
     out: dict[int, dict[str, list[dict[str, Any]]]] = {}
     for src in sources:
-        rows, _ = load_sources([src])
+        rows, _ = load_sources([src], partial=partial)
         its = {int(r["iterations"]) for runs in rows.values() for r in runs}
         if len(its) != 1:
             raise ValueError(f"{src}: runs of several budgets {sorted(its)}; give one source per budget")
@@ -66,15 +68,17 @@ def by_budget(sources: list[Path]) -> dict[int, dict[str, list[dict[str, Any]]]]
 
 def plateau(budgets: dict[int, dict[str, list[dict[str, Any]]]]) -> dict[str, Any]:
     """The content of ``budgets.json`` (module docstring)."""
-    steps = list(budgets)
-    keys = ordered(set.intersection(*(set(rows) for rows in budgets.values())))
-    out: dict[str, Any] = {"budgets": steps, "max_mean_rise": MAX_MEAN_RISE, "diverged_rise": DIVERGED_RISE,
+    out: dict[str, Any] = {"budgets": list(budgets), "max_mean_rise": MAX_MEAN_RISE, "diverged_rise": DIVERGED_RISE,
                            "rows": {}}
-    for key in keys:
-        seeds = sorted(set.intersection(*({r["seed"] for r in rows[key]} for rows in budgets.values())))
-        cost = {n: {r["seed"]: float(r["cost"]) for r in rows[key]} for n, rows in budgets.items()}
-        left = {n: [r["seed"] for r in rows[key] if r["seed"] in seeds and (r.get("left_road") or 0.0) > 0.0]
-                for n, rows in budgets.items()}
+    for key in ordered(set().union(*(set(rows) for rows in budgets.values()))):
+        # a row measured at two budgets or more; the steps join its consecutive measured budgets
+        steps = [n for n, rows in budgets.items() if key in rows]
+        if len(steps) < 2:
+            continue
+        seeds = sorted(set.intersection(*({r["seed"] for r in budgets[n][key]} for n in steps)))
+        cost = {n: {r["seed"]: float(r["cost"]) for r in budgets[n][key]} for n in steps}
+        left = {n: [r["seed"] for r in budgets[n][key] if r["seed"] in seeds and (r.get("left_road") or 0.0) > 0.0]
+                for n in steps}
         entry: dict[str, Any] = {"seeds": seeds, "per_budget": {}, "steps": []}
         for n in steps:
             vals = [cost[n][s] for s in seeds]
@@ -98,16 +102,16 @@ def plateau(budgets: dict[int, dict[str, list[dict[str, Any]]]]) -> dict[str, An
 def format_table(doc: dict[str, Any]) -> str:
     """``budgets.txt``."""
     steps = doc["budgets"]
-    lines = [f"Course cost per iteration budget: mean [95% bootstrap interval], worst seed (cost); the same seeds "
-             f"at every budget", ""]
+    lines = [f"Course cost per iteration budget: mean [95% bootstrap interval], worst seed (cost); a row's seeds "
+             f"are the same at each of its budgets", ""]
     head = f"{'method':<22}" + "".join(f"{str(n) + ' it':>34}" for n in steps)
     lines += [head, "-" * len(head)]
     for key, e in doc["rows"].items():
         cells = ""
         for n in steps:
-            b = e["per_budget"][str(n)]
-            cells += (f"{b['cost_mean']:.2f} [{b['ci'][0]:.2f}, {b['ci'][1]:.2f}] s{b['worst_seed']} "
-                      f"({b['worst_cost']:.1f})").rjust(34)
+            b = e["per_budget"].get(str(n))
+            cells += ("not run" if b is None else f"{b['cost_mean']:.2f} [{b['ci'][0]:.2f}, {b['ci'][1]:.2f}] "
+                      f"s{b['worst_seed']} ({b['worst_cost']:.1f})").rjust(34)
         lines.append(f"{label(key):<22}{cells}")
     lines += ["", f"From one budget to the next: ratio of mean costs [paired 95% interval], seeds whose cost rose, "
                   f"seeds that diverged (cost up more than {doc['diverged_rise']:.0%} or off the road); the plateau "
@@ -125,16 +129,18 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("sources", type=Path, nargs="+",
                         help="one per budget: a finished sweep directory or a per_seed.csv of seed_statistics.py")
     parser.add_argument("--dest", type=Path, required=True, help="where to write budgets.json and budgets.txt")
+    parser.add_argument("--partial", action="store_true",
+                        help="read only the finished runs of an unfinished sweep (default: refuse it)")
     args = parser.parse_args(argv)
     if len(args.sources) < 2:
         parser.error("sources: give at least two budgets")
     try:
-        budgets = by_budget(args.sources)
+        budgets = by_budget(args.sources, args.partial)
     except ValueError as exc:
         parser.error(str(exc))
     doc = plateau(budgets)
     if not doc["rows"]:
-        parser.error("sources: no method is present at every budget")
+        parser.error("sources: no method is present at two budgets or more")
     args.dest.mkdir(parents=True, exist_ok=True)
     atomic_write_text(args.dest / "budgets.json", json.dumps(doc, indent=2) + "\n")
     table = format_table(doc)

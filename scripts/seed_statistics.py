@@ -97,8 +97,11 @@ def _evaluated(path: Path, feedforward: str) -> dict[str, Any]:
             "policy_gap": out["policy_gap"]}
 
 
-def load_rows(sweep: Path, feedforward: str | None = None) -> dict[str, list[dict[str, Any]]]:
+def load_rows(sweep: Path, feedforward: str | None = None, partial: bool = False) -> dict[str, list[dict[str, Any]]]:
     """Per row (:func:`row_key`), the sweep's finished runs sorted by seed: the figures of :data:`FIGURES`.
+
+    A sweep with unfinished runs (no results yet) is refused unless ``partial``; with it, only the finished
+    runs are read.
 
     With ``feedforward`` (``"lq"``) each run's final checkpoint is evaluated again with
     ``algorithm.feedforward = feedforward`` (:func:`mixedrl.runs.evaluate_run`: the same trained actor,
@@ -108,6 +111,11 @@ def load_rows(sweep: Path, feedforward: str | None = None) -> dict[str, list[dic
     doc = json.loads((sweep / "sweep.json").read_text())
     rows: dict[str, list[dict[str, Any]]] = {}
     records = [r for r in doc["runs"] if r["error"] is None]
+    unfinished = [r["name"] for r in records if r.get("results") is None]
+    if unfinished and not partial:
+        raise ValueError(f"{sweep}: {len(unfinished)} runs have no results yet ({', '.join(unfinished[:3])}, ...); "
+                         f"finish the sweep (mixedrl sweep --resume) or pass --partial to read the finished ones")
+    records = [r for r in records if r.get("results") is not None]
     for rec in tqdm(records, desc=f"evaluate (feedforward={feedforward})", disable=feedforward is None):
         res = RunDirectory(sweep / rec["run_dir"]).read_results()
         if "lateral_mae" not in res:
@@ -161,10 +169,10 @@ def load_csv_rows(path: Path) -> dict[str, list[dict[str, Any]]]:
     return {m: sorted(v, key=lambda r: r["seed"]) for m, v in rows.items()}
 
 
-def load_sources(sources: list[Path], feedforward: str | None = None
+def load_sources(sources: list[Path], feedforward: str | None = None, partial: bool = False
                  ) -> tuple[dict[str, list[dict[str, Any]]], dict[str, list[str]]]:
     """The rows of every source (a sweep directory or a ``per_seed.csv``), merged, and per source the rows
-    it gave.
+    it gave (``partial``: a sweep's finished runs only, :func:`load_rows`).
 
     Raises
     ------
@@ -176,7 +184,7 @@ def load_sources(sources: list[Path], feedforward: str | None = None
     given: dict[str, list[str]] = {}
     for src in sources:
         if src.is_dir():
-            got = load_rows(src, feedforward)
+            got = load_rows(src, feedforward, partial)
         elif src.is_file():
             if feedforward is not None:
                 raise ValueError(f"{src}: --feedforward evaluates checkpoints again; it needs sweep directories, "
@@ -369,9 +377,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--feedforward", choices=FEEDFORWARDS, default=None,
                         help="evaluate each run's final checkpoint again with this algorithm.feedforward "
                              "('lq': the actor shifted to the LQ optimum's action at the equilibrium)")
+    parser.add_argument("--partial", action="store_true",
+                        help="read only the finished runs of an unfinished sweep (default: refuse it)")
     args = parser.parse_args(argv)
     try:
-        rows, sources = load_sources(args.sources, args.feedforward)
+        rows, sources = load_sources(args.sources, args.feedforward, args.partial)
     except ValueError as exc:
         parser.error(str(exc))
     if not rows:

@@ -575,3 +575,36 @@ def test_course_switch_measures_the_critics_rise_against_the_speed_error(tmp_pat
     _course_run(tmp_path / "bad", "mixed", 2, [1.0] * 10, {4: 0.01, 10: 0.01})
     bad = _run_script("course_switch.py", tmp_path / "bad", "--dest", tmp_path / "x", "--window", "2")
     assert bad.returncode == 2 and "mixed_seed0: no evaluation at the course start (iteration 4)" in bad.stderr
+
+
+def test_budget_plateau_compares_a_row_over_the_budgets_it_was_measured_at(tmp_path: Path) -> None:
+    """budget_plateau.py with a row missing at one budget (an unfinished sweep read with --partial): the row
+    is compared over its measured budgets only and shown as "not run" at the other; the other rows keep
+    every step."""
+    a = _per_seed_csv(tmp_path / "a" / "per_seed.csv", 1500, {"mixed": [20.0, 22.0], "model": [30.0, 30.0]})
+    b = _per_seed_csv(tmp_path / "b" / "per_seed.csv", 4000, {"mixed": [18.0, 20.0], "model": [31.0, 33.0]})
+    c = _per_seed_csv(tmp_path / "c" / "per_seed.csv", 10000, {"mixed": [19.0, 21.0]})
+    proc = _run_script("budget_plateau.py", a, b, c, "--dest", tmp_path / "out")
+    assert proc.returncode == 0, proc.stderr
+    doc = json.loads((tmp_path / "out" / "budgets.json").read_text())
+    mixed, model = doc["rows"]["mixed"], doc["rows"]["model"]
+    assert [(s["from"], s["to"]) for s in mixed["steps"]] == [(1500, 4000), (4000, 10000)]
+    assert mixed["steps"][1]["mean_ratio"] == pytest.approx(40.0 / 38.0, rel=1e-12)
+    assert [(s["from"], s["to"]) for s in model["steps"]] == [(1500, 4000)] and "10000" not in model["per_budget"]
+    assert proc.stdout.splitlines()[5].startswith("Model-driven RL") and proc.stdout.splitlines()[5].endswith("not run")
+
+
+def test_seed_statistics_refuses_an_unfinished_sweep_unless_partial(tmp_path: Path) -> None:
+    """A sweep with runs that have no results yet is refused by name, with the way out (--partial); with
+    --partial the unfinished runs are skipped, not read."""
+    sweep = tmp_path / "sw"
+    sweep.mkdir()
+    runs = [{"name": f"mixed_seed{s}", "method": "mixed", "seed": s, "point": {}, "run_dir": f"runs/mixed_seed{s}",
+             "results": None, "error": None} for s in (0, 1)]
+    (sweep / "sweep.json").write_text(json.dumps({"runs": runs}))
+    proc = _run_script("seed_statistics.py", sweep, "--dest", tmp_path / "out")
+    assert proc.returncode == 2 and "2 runs have no results yet (mixed_seed0, mixed_seed1" in proc.stderr
+    assert "--partial" in proc.stderr
+    partial = _run_script("seed_statistics.py", sweep, "--dest", tmp_path / "out", "--partial")
+    assert partial.returncode == 2 and "no finished run" in partial.stderr  # nothing read, nothing written
+    assert not (tmp_path / "out").exists()
