@@ -45,8 +45,8 @@ from seed_statistics import label, ordered
 WORST = 8
 
 
-def run_record(run: Path, window: int) -> dict[str, Any]:
-    """The measurements of one run directory (see the module docstring).
+def run_record(run: Path, config: dict[str, Any], window: int) -> dict[str, Any]:
+    """The measurements of one run directory, ``config`` its ``config.json`` (see the module docstring).
 
     Raises
     ------
@@ -54,7 +54,6 @@ def run_record(run: Path, window: int) -> dict[str, Any]:
         If the run has no course sampler, too few iterations after ``course_start``, or no evaluation at
         ``course_start``; the message names the run.
     """
-    config = json.loads((run / "config.json").read_text())
     start = config.get("sampler", {}).get("course_start")
     if start is None:
         raise ValueError(f"{run}: sampler {config.get('sampler', {}).get('name')!r} has no course_start")
@@ -72,7 +71,7 @@ def run_record(run: Path, window: int) -> dict[str, Any]:
     if len(after) < 3 * window or len(ahead) < window:
         raise ValueError(f"{run}: the critic loss is not logged over iterations "
                          f"{start - window + 1}-{start + 3 * window}")
-    if start not in speed or not speed:
+    if start not in speed:
         raise ValueError(f"{run}: no evaluation at the course start (iteration {start}); run.eval_every must divide it")
     before = float(np.median(ahead))
     peak_at = max(after, key=lambda k: loss[k])
@@ -97,8 +96,8 @@ def analyse(sweep: Path, window: int) -> dict[str, Any]:
     """Every Algorithm-2 run of the sweep directory, with the correlations pooled and per method."""
     runs = sorted(p for p in (sweep / "runs").iterdir() if (p / "metrics.csv").is_file()) \
         if (sweep / "runs").is_dir() else []
-    records = [run_record(p, window) for p in runs
-               if json.loads((p / "config.json").read_text())["method"] != "ddpg"]
+    configs = {p: json.loads((p / "config.json").read_text()) for p in runs}
+    records = [run_record(p, c, window) for p, c in configs.items() if c["method"] != "ddpg"]
     if len(records) < 3:
         raise ValueError(f"sweep: {sweep} holds {len(records)} Algorithm-2 runs with metrics; need 3 or more")
     methods = ordered({r["method"] for r in records})
