@@ -385,7 +385,7 @@ def steady_anchor(trainer: Any, lin: Linearisation, policy: torch.nn.Module | No
     state for the trainer's own noise (:func:`own_noise`; ``policy`` as there) and the optimum's action
     there (:attr:`LQReference.steady_state`, :attr:`LQReference.steady_action`).
 
-    .. math:: o^* = o\big(s(x_{ss})\big), \qquad u(o^*) = u^* - L x_{ss} - l_0
+    .. math:: o^* = o\\big(s(x_{ss})\\big), \\qquad u(o^*) = u^* - L x_{ss} - l_0
 
     The optimum's affine policy ``u* - l0 - L x`` takes this action at ``x_ss``, and its gain there is
     ``-L`` as everywhere, so the :class:`~mixedrl.networks.AffineAnchoredActor` anchored here equals it to

@@ -8,8 +8,9 @@ the wide training distribution. For each Algorithm-2 run of a finished sweep dir
 evaluations:
 
 * ``before``: the median critic loss over the ``--window`` iterations up to ``course_start``;
-* ``rise``: the largest critic loss over the ``3 --window`` iterations after ``course_start``, over ``before``
-  (and the iteration of that peak);
+* ``rise``: the largest critic loss over the ``sampler.course_ramp + 3 --window`` iterations after
+  ``course_start`` (the switch and the ``3 --window`` iterations after its end), over ``before`` (and the
+  iteration of that peak);
 * ``speed_at_switch``: the evaluated course speed error at iteration ``course_start`` (the run must evaluate
   there: ``run.eval_every`` divides it), ``final``: at the last evaluation, and ``change = final -
   speed_at_switch``;
@@ -39,7 +40,7 @@ import numpy as np
 from scipy import stats
 
 from mixedrl.runs import atomic_write_text
-from seed_statistics import label, ordered
+from seed_statistics import label, ordered, row_key
 
 #: Runs listed in the text, by largest final speed error.
 WORST = 8
@@ -58,6 +59,7 @@ def run_record(run: Path, config: dict[str, Any], window: int) -> dict[str, Any]
     if start is None:
         raise ValueError(f"{run}: sampler {config.get('sampler', {}).get('name')!r} has no course_start")
     start = int(start)
+    ramp = int(config["sampler"].get("course_ramp", 0))
     loss: dict[int, float] = {}
     speed: dict[int, float] = {}
     with (run / "metrics.csv").open(newline="") as fh:
@@ -66,17 +68,19 @@ def run_record(run: Path, config: dict[str, Any], window: int) -> dict[str, Any]
             loss[k] = float(row["train/critic_loss"])
             if row.get("eval/speed_mae"):
                 speed[k] = float(row["eval/speed_mae"])
-    after = [k for k in range(start + 1, start + 3 * window + 1) if k in loss]
+    end = start + ramp + 3 * window
+    after = [k for k in range(start + 1, end + 1) if k in loss]
     ahead = [loss[k] for k in range(start - window + 1, start + 1) if k in loss]
-    if len(after) < 3 * window or len(ahead) < window:
-        raise ValueError(f"{run}: the critic loss is not logged over iterations "
-                         f"{start - window + 1}-{start + 3 * window}")
+    if len(after) < end - start or len(ahead) < window:
+        raise ValueError(f"{run}: the critic loss is not logged over iterations {start - window + 1}-{end}")
     if start not in speed:
         raise ValueError(f"{run}: no evaluation at the course start (iteration {start}); run.eval_every must divide it")
     before = float(np.median(ahead))
     peak_at = max(after, key=lambda k: loss[k])
     last = max(speed)
-    return {"method": config["method"], "seed": int(config["seed"]), "course_start": start, "before": before,
+    variant = run.name.split("__")[0][len("variant="):] if run.name.startswith("variant=") else ""
+    return {"method": config["method"], "seed": int(config["seed"]), "row": row_key(config["method"], variant),
+            "course_start": start, "course_ramp": ramp, "before": before,
             "peak": loss[peak_at], "peak_iteration": peak_at, "rise": loss[peak_at] / before,
             "speed_at_switch": speed[start], "final": speed[last], "final_iteration": last,
             "change": speed[last] - speed[start]}
@@ -100,10 +104,14 @@ def analyse(sweep: Path, window: int) -> dict[str, Any]:
     records = [run_record(p, c, window) for p, c in configs.items() if c["method"] != "ddpg"]
     if len(records) < 3:
         raise ValueError(f"sweep: {sweep} holds {len(records)} Algorithm-2 runs with metrics; need 3 or more")
-    methods = ordered({r["method"] for r in records})
-    per = {m: [r for r in records if r["method"] == m] for m in methods}
+    present = {r["row"] for r in records}
+    variants = sorted({r["row"].partition("[")[2].rstrip("]") for r in records})
+    rows = [row_key(m, v) for v in variants for m in ordered({r["method"] for r in records})
+            if row_key(m, v) in present]
+    per = {m: [r for r in records if r["row"] == m] for m in rows}
     return {"source": str(sweep), "window": window, "runs": records, "pooled": correlations(records),
             "methods": {m: {"median_rise": float(np.median([r["rise"] for r in rs])),
+                            "max_rise": float(np.max([r["rise"] for r in rs])),
                             "correlation": correlations(rs) if len(rs) >= 3 else None}
                         for m, rs in per.items()}}
 
@@ -117,19 +125,20 @@ def _rho(c: dict[str, Any] | None, key: str) -> str:
 def render(doc: dict[str, Any]) -> str:
     w = doc["window"]
     lines = [f"The critic's loss after the course switch against the course speed error ({doc['source']})",
-             f"rise = largest critic loss over the {3 * w} iterations after sampler.course_start / median over the "
-             f"{w} before; change = final speed error - speed error at course_start [m/s]", "",
+             f"rise = largest critic loss over the sampler.course_ramp + {3 * w} iterations after sampler.course_start "
+             f"/ median over the {w} before; change = final speed error - speed error at course_start [m/s]", "",
              "Spearman's rank correlation of the rise with the change and with the final speed error:",
              f"  {'all runs':<22} change {_rho(doc['pooled'], 'change')}   final {_rho(doc['pooled'], 'final')}"]
     for m, d in doc["methods"].items():
         lines.append(f"  {label(m):<22} change {_rho(d['correlation'], 'change')}   "
-                     f"final {_rho(d['correlation'], 'final')}   median rise {d['median_rise']:.1f}")
+                     f"final {_rho(d['correlation'], 'final')}   median rise {d['median_rise']:.1f}, "
+                     f"largest {d['max_rise']:.1f}")
     records = doc["runs"]
     rank = {id(r): i + 1 for i, r in enumerate(sorted(records, key=lambda r: -r["rise"]))}
     lines += ["", f"The {WORST} runs of largest final speed error (rise rank among {len(records)}, 1 = largest):",
               f"  {'run':<26}{'speed at switch':>16}{'final':>9}{'change':>9}{'rise':>7}{'rank':>6}{'peak at':>9}"]
     for r in sorted(records, key=lambda r: -r["final"])[:WORST]:
-        lines.append(f"  {label(r['method']) + ' seed ' + str(r['seed']):<26}{r['speed_at_switch']:>16.4f}"
+        lines.append(f"  {label(r['row']) + ' seed ' + str(r['seed']):<26}{r['speed_at_switch']:>16.4f}"
                      f"{r['final']:>9.4f}{r['change']:>+9.4f}{r['rise']:>7.1f}{rank[id(r)]:>6}{r['peak_iteration']:>9}")
     return "\n".join(lines) + "\n"
 

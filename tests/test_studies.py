@@ -522,6 +522,7 @@ def test_win_odds_is_the_normal_model_of_the_paired_speed_difference(tmp_path: P
     ("table1_seeds20_lq_affine_ss", "table1_seeds20_lq_affine", {"algorithm.feedforward": "lq_affine_ss"}),
     ("table1_seeds20_lq_train_n10000", "table1_seeds20_lq_train_n4000",
      {"algorithm.iterations": 10000, "run.eval_every": 2000, "run.checkpoint_every": 2000}),
+    ("table1_seeds20_lq_affine_ss_ramp", "table1_seeds20_lq_affine_ss", {"sampler.course_ramp": 500}),
 ])
 def test_a_spec_is_its_sibling_with_only_the_stated_changes(spec: str, sibling: str, changed: dict) -> None:
     """The 10,000-iteration budget of the twenty-seed ``lq_train`` runs and the ``lq_affine_ss`` runs (pendulum,
@@ -535,13 +536,14 @@ def test_a_spec_is_its_sibling_with_only_the_stated_changes(spec: str, sibling: 
 
 
 def _course_run(root: Path, method: str, seed: int, losses: list[float], speed: dict[int, float],
-                start: int = 4) -> None:
+                start: int = 4, ramp: int = 0, variant: str = "") -> None:
     """A run directory as a sweep leaves it, with the given critic losses (iterations 1, 2, ...) and
-    evaluations, its course sampler switching at ``start``."""
-    run = root / "runs" / f"{method}_seed{seed}"
+    evaluations, its course sampler switching at ``start`` over ``ramp`` iterations (a spec's ``variant``
+    in its name)."""
+    run = root / "runs" / ((f"variant={variant}__" if variant else "") + f"{method}_seed{seed}")
     run.mkdir(parents=True)
-    (run / "config.json").write_text(json.dumps({"method": method, "seed": seed,
-                                                 "sampler": {"name": "dlc_course", "course_start": start}}))
+    (run / "config.json").write_text(json.dumps({"method": method, "seed": seed, "sampler": {
+        "name": "dlc_course", "course_start": start, "course_ramp": ramp}}))
     with (run / "metrics.csv").open("w", newline="") as fh:
         writer = csv.writer(fh)
         writer.writerow(["iteration", "train/critic_loss", "eval/speed_mae"])
@@ -550,7 +552,7 @@ def _course_run(root: Path, method: str, seed: int, losses: list[float], speed: 
 
 
 def test_course_switch_measures_the_critics_rise_against_the_speed_error(tmp_path: Path) -> None:
-    """course_switch.py: rise = the largest critic loss over the 3 w iterations after course_start over the
+    """course_switch.py: rise = the largest critic loss over the 3 w iterations after course_start (ramp 0) over the
     median of the w before; change = last evaluation - the one at course_start; Spearman's rho of the two
     (computed here from the definitions); errors naming the run that cannot be measured."""
     from scipy import stats
@@ -575,6 +577,24 @@ def test_course_switch_measures_the_critics_rise_against_the_speed_error(tmp_pat
     _course_run(tmp_path / "bad", "mixed", 2, [1.0] * 10, {4: 0.01, 10: 0.01})
     bad = _run_script("course_switch.py", tmp_path / "bad", "--dest", tmp_path / "x", "--window", "2")
     assert bad.returncode == 2 and "mixed_seed0: no evaluation at the course start (iteration 4)" in bad.stderr
+
+
+def test_course_switch_counts_the_ramp_and_keeps_variants_apart(tmp_path: Path) -> None:
+    """With ``sampler.course_ramp = r`` the rise is taken over the r + 3 w iterations after course_start; runs
+    of a spec's variants are separate rows (``method[variant]``) with their median and largest rise."""
+    # w = 2, start 4: before = 1; a peak of 6 at iteration 11 is inside the window only with ramp 2 (4 + 2 + 6)
+    losses = [1.0, 1.0, 1.0, 1.0, 2.0, 1.0, 1.0, 1.0, 1.0, 1.0, 6.0, 1.0]
+    for s in (0, 1, 2):
+        _course_run(tmp_path / "sw", "mixed", s, losses, {4: 0.01, 12: 0.02}, variant="switch")
+        _course_run(tmp_path / "sw", "mixed", s, losses[:-1] + [s + 1.0], {4: 0.01, 12: 0.02}, ramp=2,
+                    variant="ramp")
+    proc = _run_script("course_switch.py", tmp_path / "sw", "--dest", tmp_path / "out", "--window", "2")
+    assert proc.returncode == 0, proc.stderr
+    doc = json.loads((tmp_path / "out" / "course_switch.json").read_text())
+    assert list(doc["methods"]) == ["mixed[ramp]", "mixed[switch]"]
+    assert (doc["methods"]["mixed[switch]"]["median_rise"], doc["methods"]["mixed[switch]"]["max_rise"]) == (2.0, 2.0)
+    assert (doc["methods"]["mixed[ramp]"]["median_rise"], doc["methods"]["mixed[ramp]"]["max_rise"]) == (6.0, 6.0)
+    assert {r["peak_iteration"] for r in doc["runs"] if r["course_ramp"] == 2} == {11}
 
 
 def test_budget_plateau_compares_a_row_over_the_budgets_it_was_measured_at(tmp_path: Path) -> None:

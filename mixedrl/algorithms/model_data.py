@@ -117,6 +117,10 @@ class ModelStateSampler:
         n_course = int(round(getattr(opts, "course_fraction", 0.0) * B))
         #: True for the copies that drive the course from its start.
         self.course = torch.arange(B) < n_course
+        #: The iteration from which each copy, if a course copy, drives the course: ``course_start`` for
+        #: all (``course_ramp = 0``), or spread evenly over ``course_ramp`` iterations after it (copy ``i``
+        #: of ``n`` course copies at ``course_start + floor(i course_ramp / n)``).
+        self.switch = self.course_start + (torch.arange(B) * getattr(opts, "course_ramp", 0)) // max(n_course, 1)
         self.horizons = torch.where(self.course, getattr(opts, "course_horizon", 1), config.algorithm.horizon)
         # start anywhere in the wide distribution, with desynchronised clocks
         self.states = task.sample_initial(B, generator)
@@ -135,9 +139,14 @@ class ModelStateSampler:
         self.course_length = _course_length(task)
 
     # ------------------------------------------------------------------------------------ rollouts
+    def on_course(self) -> torch.Tensor:
+        """The copies that drive the course at the current iteration: the course copies whose
+        :attr:`switch` has passed (all of them from ``course_start + course_ramp`` on); shape (B,), bool."""
+        return self.course & (self.k >= self.switch)
+
     def _restart(self, done: torch.Tensor) -> None:
         """Restart the copies flagged in ``done``: course copies at the course start, wide ones wide."""
-        course = done & self.course if self.k >= self.course_start else torch.zeros_like(done)
+        course = done & self.on_course()
         wide = done & ~course
         if bool(course.any()):
             self.states[course] = course_starts(self.task, int(course.sum()), self.generator, self.along)
@@ -183,10 +192,11 @@ class ModelStateSampler:
             # x' = f(x, pi(x)) + E xi_hat
             s_next = task.f(s, u) + xi @ task.noise_matrix.to(s.dtype).T
         self.steps += 1
-        horizons = self.horizons if self.k >= self.course_start else self.config.algorithm.horizon
+        on_course = self.on_course()
+        horizons = torch.where(on_course, self.horizons, self.config.algorithm.horizon)
         done = task.is_terminal(s_next) | self._outside(s_next) | (self.steps >= horizons)
-        if self.end_restart and self.k >= self.course_start:  # a course copy past the course's end
-            done = done | (self.course & (s_next[:, -1] >= self.course_length))  # (the state's last entry is X)
+        if self.end_restart:  # a course copy past the course's end
+            done = done | (on_course & (s_next[:, -1] >= self.course_length))  # (the state's last entry is X)
         self.states = s_next.clone()
         if bool(done.any()):
             self._restart(done)

@@ -295,7 +295,8 @@ class CourseSampler(ModelRolloutsSampler):
     course; docs/model_based.rst). Model rollouts as :class:`ModelRolloutsSampler`, of two kinds:
 
     * *course* copies (a fraction ``course_fraction`` of the batch) drive the course, from iteration
-      ``course_start`` on, for ``course_horizon`` steps, restarting as ``course_starts`` says, and are
+      ``course_start`` on (spread over ``course_ramp`` iterations), for ``course_horizon`` steps,
+      restarting as ``course_starts`` says, and are
       *kicked* (``kick_prob`` per step, ``kick_scale`` times ``obs_scale``) so that the batch spreads
       around the course trajectory;
     * *wide* copies restart from the training distribution every ``algorithm.horizon`` steps.
@@ -322,6 +323,12 @@ class CourseSampler(ModelRolloutsSampler):
     """Iteration from which the course copies drive the course; before it they restart from the wide
     distribution like the others."""
 
+    course_ramp: int = 0
+    """Iterations over which the course copies switch to the course (a departure, docs/precision.rst): 0 =
+    all at ``course_start`` (the DLC experiment's configuration); ``r > 0`` = copy ``i`` of the ``n``
+    course copies from iteration ``course_start + floor(i r / n)`` on, so the batch moves onto the course
+    gradually, at the same rate for every method."""
+
     course_starts: str = "along"
     """Where a course copy restarts once ``course_start`` has passed: ``"start"`` = at the course start
     (``X = 0``), not at the course's end (a copy drives on past it until its horizon); ``"along"`` = on
@@ -344,6 +351,7 @@ class CourseSampler(ModelRolloutsSampler):
         check_fraction(self.course_fraction, f"{w}.course_fraction")
         check_fraction(self.kick_prob, f"{w}.kick_prob")
         self.course_start = check_nonnegative_int(self.course_start, f"{w}.course_start")
+        self.course_ramp = check_nonnegative_int(self.course_ramp, f"{w}.course_ramp")
         if self.course_starts not in MODEL_COURSE_STARTS:
             raise ValueError(f"{w}.course_starts: expected one of {MODEL_COURSE_STARTS}, got {self.course_starts!r}")
         self.course_horizon = check_positive_int(self.course_horizon, f"{w}.course_horizon")
