@@ -106,8 +106,8 @@ def analyse(sweep: Path, window: int) -> dict[str, Any]:
         raise ValueError(f"sweep: {sweep} holds {len(records)} Algorithm-2 runs with metrics; need 3 or more")
     present = {r["row"] for r in records}
     variants = sorted({r["row"].partition("[")[2].rstrip("]") for r in records})
-    rows = [row_key(m, v) for v in variants for m in ordered({r["method"] for r in records})
-            if row_key(m, v) in present]
+    methods = ordered({r["method"] for r in records})
+    rows = [row_key(m, v) for v in variants for m in methods if row_key(m, v) in present]
     per = {m: [r for r in records if r["row"] == m] for m in rows}
     return {"source": str(sweep), "window": window, "runs": records, "pooled": correlations(records),
             "methods": {m: {"median_rise": float(np.median([r["rise"] for r in rs])),

@@ -144,9 +144,10 @@ class ModelStateSampler:
         :attr:`switch` has passed (all of them from ``course_start + course_ramp`` on); shape (B,), bool."""
         return self.course & (self.k >= self.switch)
 
-    def _restart(self, done: torch.Tensor) -> None:
-        """Restart the copies flagged in ``done``: course copies at the course start, wide ones wide."""
-        course = done & self.on_course()
+    def _restart(self, done: torch.Tensor, on_course: torch.Tensor) -> None:
+        """Restart the copies flagged in ``done``: course copies (``on_course``, :meth:`on_course`) at the
+        course start, wide ones wide."""
+        course = done & on_course
         wide = done & ~course
         if bool(course.any()):
             self.states[course] = course_starts(self.task, int(course.sum()), self.generator, self.along)
@@ -199,7 +200,7 @@ class ModelStateSampler:
             done = done | (on_course & (s_next[:, -1] >= self.course_length))  # (the state's last entry is X)
         self.states = s_next.clone()
         if bool(done.any()):
-            self._restart(done)
+            self._restart(done, on_course)
         if self.kick_prob > 0:
             self._kick(~done & self.course)
         return s.float()
