@@ -523,6 +523,7 @@ def test_win_odds_is_the_normal_model_of_the_paired_speed_difference(tmp_path: P
     ("table1_seeds20_lq_train_n10000", "table1_seeds20_lq_train_n4000",
      {"algorithm.iterations": 10000, "run.eval_every": 2000, "run.checkpoint_every": 2000}),
     ("table1_seeds20_lq_affine_ss_ramp", "table1_seeds20_lq_affine_ss", {"sampler.course_ramp": 500}),
+    ("table1_seeds20_lq_train_n4000_ramp", "table1_seeds20_lq_train_n4000", {"sampler.course_ramp": 500}),
 ])
 def test_a_spec_is_its_sibling_with_only_the_stated_changes(spec: str, sibling: str, changed: dict) -> None:
     """The 10,000-iteration budget of the twenty-seed ``lq_train`` runs and the ``lq_affine_ss`` runs (pendulum,
