@@ -461,6 +461,15 @@ class AlgorithmConfig:
     and the gradient steps. 0 (the default) = no averaging. The window is about ``1 / (1 - beta)``
     iterations."""
 
+    critic_target: float = 0.0
+    """Departure (precision add-on): decay ``beta`` of a target critic for PEV's target. 0 (the default) =
+    eq. (50) as written: ``V_target = l(x', u) + gamma V^k(x'; w)`` with the critic being trained. ``beta > 0``:
+    ``V_target`` takes ``V(x'; w_bar)`` instead, ``w_bar <- beta w_bar + (1 - beta) w`` after every iteration
+    (an exponential moving average of the critic's weights, the target networks of DQN and DDPG;
+    :func:`mixedrl.pev.critic_loss`), so the target moves slowly when the batch's distribution changes.
+    PIM and the MVC keep the critic ``V^k(x; w)`` itself. The same for every method of Algorithm 2; the
+    window is about ``1 / (1 - beta)`` iterations. DDPG has its own (``ddpg.tau``)."""
+
     bellman_steps: int = 1
     """Departure (precision add-on): model steps ``n`` of the Bellman operator in PEV and PIM. 1 (the
     default) = the one-step ``h`` of eq. (37), the paper's Algorithm 2. ``n > 1``: the critic's target
@@ -525,6 +534,7 @@ class AlgorithmConfig:
         check_number(self.grad_clip, f"{w}.grad_clip", positive=True, allow_inf=True)
         check_fraction(self.lr_decay_to, f"{w}.lr_decay_to", low_open=True)
         check_fraction(self.actor_average, f"{w}.actor_average", high_open=True)
+        check_fraction(self.critic_target, f"{w}.critic_target", high_open=True)
         check_number(self.stop_epsilon, f"{w}.stop_epsilon", nonneg=True)
         self.batch_weight_offset = check_number(self.batch_weight_offset, f"{w}.batch_weight_offset", positive=True)
 
@@ -979,6 +989,9 @@ class TrainConfig:
         if self.method == "ddpg" and self.algorithm.feedforward != "learned":
             raise ValueError(f"algorithm.feedforward: {self.algorithm.feedforward!r} takes the feed-forward from "
                              f"the method's noise model; method 'ddpg' has none (use 'learned')")
+        if self.method == "ddpg" and self.algorithm.critic_target != 0.0:
+            raise ValueError(f"algorithm.critic_target: {self.algorithm.critic_target!r} is PEV's target critic "
+                             f"(Algorithm 2); method 'ddpg' has its own target networks (ddpg.tau; use 0)")
 
     @classmethod
     def for_task(cls, task: Any = "dlc", **fields: Any) -> "TrainConfig":

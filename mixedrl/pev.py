@@ -299,7 +299,8 @@ def h_steps(task: Any, critic: torch.nn.Module, actor: torch.nn.Module | None, s
 
 def critic_loss(task: Any, critic: torch.nn.Module, s: torch.Tensor, u: torch.Tensor, offsets: torch.Tensor,
                 weights: torch.Tensor, relative_offset: float | None = None, actor: torch.nn.Module | None = None,
-                steps: int = 1, runs: int = 1) -> torch.Tensor:
+                steps: int = 1, runs: int = 1, target_critic: Callable[[torch.Tensor], torch.Tensor] | None = None
+                ) -> torch.Tensor:
     """Implements eqs. (49)-(50): the PEV loss whose gradient is the critic's semi-gradient.
 
     .. math::
@@ -336,6 +337,9 @@ def critic_loss(task: Any, critic: torch.nn.Module, s: torch.Tensor, u: torch.Te
         ``R >= 1``: the batch holds ``R`` runs' batches one after the other (``s`` of shape ``(R B, n)``,
         ``critic`` and ``actor`` stacked networks, :mod:`mixedrl.algorithms.batched`); the loss is taken
         per run.
+    target_critic : callable, optional
+        ``V(x; w_bar)``, the network inside ``V_target`` (``algorithm.critic_target > 0``: an exponential
+        moving average of the critic's weights). ``None`` (the paper's eq. 50): ``critic`` itself.
 
     Returns
     -------
@@ -363,8 +367,9 @@ def critic_loss(task: Any, critic: torch.nn.Module, s: torch.Tensor, u: torch.Te
         raise ValueError(f"u: batch size {u.shape[0]} differs from s's {s.shape[0]}")
     runs = check_runs(runs, s.shape[0])
     with torch.no_grad():
-        # V_target = l(x', u_theta) + gamma V^k(x'),  x' = f(x, u_theta) + xi_hat   (h of eq. 37; h_n if steps > 1)
-        target = h_steps(task, critic, actor, s, u, offsets, weights, steps)
+        # V_target = l(x', u_theta) + gamma V^k(x'),  x' = f(x, u_theta) + xi_hat   (h of eq. 37; h_n if steps > 1;
+        # V(x'; w_bar) of the target critic instead of V^k(x'; w) when one is given)
+        target = h_steps(task, critic if target_critic is None else target_critic, actor, s, u, offsets, weights, steps)
     value = critic(task.observe(s))
     if relative_offset is not None:
         # relative TD error: a per-state weight 1 / (|E V_target| + c)^2 of the squared error
@@ -389,7 +394,8 @@ def run_mean(values: torch.Tensor, runs: int = 1) -> torch.Tensor:
 
 def critic_step(task: Any, critic: torch.nn.Module, actor: torch.nn.Module, optimizer: torch.optim.Optimizer,
                 s: torch.Tensor, offsets: torch.Tensor, weights: torch.Tensor, grad_clip: float,
-                relative_offset: float | None = None, steps: int = 1) -> float:
+                relative_offset: float | None = None, steps: int = 1,
+                target_critic: Callable[[torch.Tensor], torch.Tensor] | None = None) -> float:
     """Implements eqs. (49)-(50): PEV, one semi-gradient step of the critic under ``xi_hat_k``.
 
     .. math:: w^{k+1} = w^k - \\alpha\\, \\partial J_{\\rm critic} / \\partial w
@@ -414,6 +420,8 @@ def critic_step(task: Any, critic: torch.nn.Module, actor: torch.nn.Module, opti
         See :func:`critic_loss`.
     steps : int, optional
         Model steps of the target (:func:`h_steps`); 1 = eq. (37), the paper's.
+    target_critic : callable, optional
+        See :func:`critic_loss`.
 
     Returns
     -------
@@ -427,7 +435,7 @@ def critic_step(task: Any, critic: torch.nn.Module, actor: torch.nn.Module, opti
     """
     with torch.no_grad():
         u = actor(task.observe(s))
-    loss = critic_loss(task, critic, s, u, offsets, weights, relative_offset, actor, steps)
+    loss = critic_loss(task, critic, s, u, offsets, weights, relative_offset, actor, steps, target_critic=target_critic)
     params = list(critic.parameters())
     # w^{k+1} = w^k - alpha dJ_critic/dw   (Adam)
     descend(loss, params, [params], [optimizer], [grad_clip])

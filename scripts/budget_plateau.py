@@ -1,10 +1,11 @@
 """The budgets check of issue 21 over many seeds: does each method's course cost keep its plateau as the
 iteration budget grows, and does any seed diverge?
 
-Reads one source per budget -- a finished sweep directory of ``mixedrl sweep`` or a ``per_seed.csv`` of
+Reads the sources of each budget -- a finished sweep directory of ``mixedrl sweep`` or a ``per_seed.csv`` of
 ``scripts/seed_statistics.py`` (:func:`seed_statistics.load_sources`) -- each holding the runs of one
 iteration budget on the same seeds (for example ``studies/table1_seeds20_lq_train.toml`` at 1500,
-``..._n4000.toml`` at 4000 and ``..._n10000.toml`` at 10,000 iterations), and writes into ``--dest``:
+``..._n4000.toml`` at 4000 and ``..._n10000.toml`` at 10,000 iterations; several sources may give one
+budget, each its own rows), and writes into ``--dest``:
 
 * ``budgets.json``: per row (method, or ``method[variant]``) and budget the mean course cost with its 95%
   bootstrap interval, the runs that left the road, the worst seed; per step from one budget to the next the
@@ -46,23 +47,28 @@ DIVERGED_RISE = 0.5
 
 
 def by_budget(sources: list[Path], partial: bool = False) -> dict[int, dict[str, list[dict[str, Any]]]]:
-    """Per budget (iterations), the rows of its source (``partial``: a sweep's finished runs only).
+    """Per budget (iterations), the rows of its sources merged (``partial``: a sweep's finished runs only).
+
+    Several sources may give one budget (for example the shipped ``per_seed.csv`` of two methods and the
+    sweep directory of the third), as long as no row comes from two of them.
 
     Raises
     ------
     ValueError
-        If a source's runs have different iteration counts, or two sources have the same.
+        If a source's runs have different iteration counts, or two sources of one budget give the same row.
     """
     out: dict[int, dict[str, list[dict[str, Any]]]] = {}
     for src in sources:
         rows, _ = load_sources([src], partial=partial)
         its = {int(r["iterations"]) for runs in rows.values() for r in runs}
         if len(its) != 1:
-            raise ValueError(f"{src}: runs of several budgets {sorted(its)}; give one source per budget")
+            raise ValueError(f"{src}: runs of several budgets {sorted(its)}; give one budget per source")
         (n,) = its
-        if n in out:
-            raise ValueError(f"{src}: a second source for the budget of {n} iterations")
-        out[n] = rows
+        twice = sorted(set(rows) & set(out.get(n, {})))
+        if twice:
+            raise ValueError(f"{src}: rows {twice} of the budget of {n} iterations also come from an earlier "
+                             f"source")
+        out.setdefault(n, {}).update(rows)
     return dict(sorted(out.items()))
 
 
@@ -127,7 +133,8 @@ def format_table(doc: dict[str, Any]) -> str:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("sources", type=Path, nargs="+",
-                        help="one per budget: a finished sweep directory or a per_seed.csv of seed_statistics.py")
+                        help="a finished sweep directory or a per_seed.csv of seed_statistics.py, each of one "
+                             "budget (several may give one budget, not the same row)")
     parser.add_argument("--dest", type=Path, required=True, help="where to write budgets.json and budgets.txt")
     parser.add_argument("--partial", action="store_true",
                         help="read only the finished runs of an unfinished sweep (default: refuse it)")

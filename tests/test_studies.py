@@ -491,7 +491,7 @@ def test_budget_plateau_measures_the_rise_of_the_mean_and_the_diverged_seeds(tmp
     assert doc["rows"]["mixed"]["per_budget"]["4000"]["worst_seed"] == 3
     assert "MISSED" in proc.stdout and "diverged [3]" in proc.stdout
     twice = _run_script("budget_plateau.py", a, a, "--dest", tmp_path / "x")
-    assert twice.returncode == 2 and "a second source for the budget of 1500" in twice.stderr
+    assert twice.returncode == 2 and "of the budget of 1500 iterations also come from an earlier" in twice.stderr
     assert _run_script("budget_plateau.py", a, "--dest", tmp_path / "x").returncode == 2
 
 
@@ -524,6 +524,7 @@ def test_win_odds_is_the_normal_model_of_the_paired_speed_difference(tmp_path: P
      {"algorithm.iterations": 10000, "run.eval_every": 2000, "run.checkpoint_every": 2000}),
     ("table1_seeds20_lq_affine_ss_ramp", "table1_seeds20_lq_affine_ss", {"sampler.course_ramp": 500}),
     ("table1_seeds20_lq_train_n4000_ramp", "table1_seeds20_lq_train_n4000", {"sampler.course_ramp": 500}),
+    ("table1_seeds20_lq_affine_ss_target90", "table1_seeds20_lq_affine_ss", {"algorithm.critic_target": 0.9}),
 ])
 def test_a_spec_is_its_sibling_with_only_the_stated_changes(spec: str, sibling: str, changed: dict) -> None:
     """The 10,000-iteration budget of the twenty-seed ``lq_train`` runs and the ``lq_affine_ss`` runs (pendulum,
@@ -534,6 +535,38 @@ def test_a_spec_is_its_sibling_with_only_the_stated_changes(spec: str, sibling: 
     assert ours.keys() == theirs.keys() and len(ours) in (30, 60)
     for name, cfg in theirs.items():
         assert ours[name].to_dict() == cfg.replace(**changed).to_dict(), name
+
+
+def test_the_oracles_10000_iteration_sweep_is_the_oracle_part_of_the_budgets_sweep() -> None:
+    """studies/table1_seeds20_lq_train_n10000_oracle.toml holds exactly the oracle runs of
+    studies/table1_seeds20_lq_train_n10000.toml (the same names and configs), so its rows join the shipped rows
+    of the other two methods as if the 60-run sweep had finished."""
+    spec = ROOT / "studies" / "table1_seeds20_lq_train_n10000_oracle.toml"
+    ours = {r.name: r.config for r in expand(load_spec(spec))}
+    full = {r.name: r.config for r in expand(load_spec(ROOT / "studies" / "table1_seeds20_lq_train_n10000.toml"))}
+    oracle = {name: cfg for name, cfg in full.items() if cfg.method == "oracle"}
+    assert len(ours) == 20 and ours.keys() == oracle.keys()
+    for name, cfg in oracle.items():
+        assert ours[name].to_dict() == cfg.to_dict(), name
+
+
+def test_the_target_critics_held_out_study_repeats_the_ramps_control() -> None:
+    """studies/critic_target_heldout.toml: its ``switch`` runs are course_ramp_heldout's (the same configs, so the
+    same bits), and its ``target99`` runs, and critic_target90_heldout's ``target90`` runs, differ from them only in
+    ``algorithm.critic_target``."""
+    ours = {r.name: r.config for r in expand(load_spec(ROOT / "studies" / "critic_target_heldout.toml"))}
+    ramp = {r.name: r.config for r in expand(load_spec(ROOT / "studies" / "course_ramp_heldout.toml"))}
+    controls = {name: cfg for name, cfg in ramp.items() if name.startswith("variant=switch__")}
+    assert len(ours) == 30 and len(controls) == 15
+    for name, cfg in controls.items():
+        assert ours[name].to_dict() == cfg.to_dict(), name
+        target = ours[name.replace("variant=switch__", "variant=target99__")]
+        assert target.to_dict() == cfg.replace(**{"algorithm.critic_target": 0.99}).to_dict(), name
+    follow_up = {r.name: r.config for r in expand(load_spec(ROOT / "studies" / "critic_target90_heldout.toml"))}
+    assert len(follow_up) == 15
+    for name, cfg in follow_up.items():
+        target = ours[name.replace("variant=target90__", "variant=target99__")]
+        assert cfg.to_dict() == target.replace(**{"algorithm.critic_target": 0.9}).to_dict(), name
 
 
 def _course_run(root: Path, method: str, seed: int, losses: list[float], speed: dict[int, float],
@@ -613,6 +646,21 @@ def test_budget_plateau_compares_a_row_over_the_budgets_it_was_measured_at(tmp_p
     assert mixed["steps"][1]["mean_ratio"] == pytest.approx(40.0 / 38.0, rel=1e-12)
     assert [(s["from"], s["to"]) for s in model["steps"]] == [(1500, 4000)] and "10000" not in model["per_budget"]
     assert proc.stdout.splitlines()[5].startswith("Model-driven RL") and proc.stdout.splitlines()[5].endswith("not run")
+
+
+def test_budget_plateau_merges_the_sources_of_one_budget(tmp_path: Path) -> None:
+    """budget_plateau.py with two sources of one budget, each of its own rows (two methods shipped in a
+    per_seed.csv, the third run later): the rows are merged into that budget and compared as if they came
+    from one source."""
+    a = _per_seed_csv(tmp_path / "a" / "per_seed.csv", 1500, {"mixed": [20.0, 22.0], "oracle": [30.0, 30.0]})
+    b = _per_seed_csv(tmp_path / "b" / "per_seed.csv", 4000, {"mixed": [18.0, 20.0]})
+    c = _per_seed_csv(tmp_path / "c" / "per_seed.csv", 4000, {"oracle": [33.0, 31.5]})
+    proc = _run_script("budget_plateau.py", a, b, c, "--dest", tmp_path / "out")
+    assert proc.returncode == 0, proc.stderr
+    doc = json.loads((tmp_path / "out" / "budgets.json").read_text())
+    assert doc["budgets"] == [1500, 4000]
+    assert doc["rows"]["oracle"]["steps"][0]["mean_ratio"] == pytest.approx(64.5 / 60.0, rel=1e-12)
+    assert doc["rows"]["mixed"]["steps"][0]["mean_ratio"] == pytest.approx(38.0 / 42.0, rel=1e-12)
 
 
 def test_seed_statistics_refuses_an_unfinished_sweep_unless_partial(tmp_path: Path) -> None:

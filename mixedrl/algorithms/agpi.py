@@ -194,6 +194,13 @@ class AGPI:
         if config.algorithm.actor_average > 0:
             self.actor_avg = AveragedModel(self.actor, multi_avg_fn=get_ema_multi_avg_fn(config.algorithm.actor_average),
                                            use_buffers=True)
+        #: The target critic ``V(x; w_bar)`` of PEV (``config.algorithm.critic_target > 0``: the EMA of the
+        #: critic's weights), else ``None`` (PEV's target takes the critic itself, eq. 50).
+        self.critic_target: AveragedModel | None = None
+        if config.algorithm.critic_target > 0:
+            ema = get_ema_multi_avg_fn(config.algorithm.critic_target)
+            self.critic_target = AveragedModel(self.critic, multi_avg_fn=ema, use_buffers=True)
+            self.critic_target.requires_grad_(False)
         self.refresh_anchor()
 
     # -------------------------------------------------------------------------------------- helpers
@@ -350,8 +357,10 @@ class AGPI:
             The critic loss before the step (:func:`mixedrl.pev.critic_step`: Adam, learning rate
             ``critic_lr`` decayed linearly, gradient norm clipped at ``grad_clip``).
         """
+        target = None if self.critic_target is None else self.critic_target.module
         return critic_step(self.task, self.critic, self.actor, self.critic_opt, s, offsets, weights,
-                           self.config.algorithm.grad_clip, self.relative_offset, self.config.algorithm.bellman_steps)
+                           self.config.algorithm.grad_clip, self.relative_offset, self.config.algorithm.bellman_steps,
+                           target)
 
     def pim(self, s: torch.Tensor, offsets: torch.Tensor, weights: torch.Tensor) -> float:
         """Implements eqs. (51)-(52): PIM, one gradient step of the actor under ``xi_hat_k``.
@@ -438,6 +447,8 @@ class AGPI:
         self.stopped = cfg.algorithm.stop_epsilon > 0 and self.stop_count >= cfg.algorithm.stop_patience
         if self.actor_avg is not None:  # theta_bar <- beta theta_bar + (1 - beta) theta^{k+1}
             self.actor_avg.update_parameters(self.actor)
+        if self.critic_target is not None:  # w_bar <- beta w_bar + (1 - beta) w^{k+1}   (algorithm.critic_target)
+            self.critic_target.update_parameters(self.critic)
         self.refresh_anchor()
         self.k += 1
         self.last_batch = s
@@ -517,6 +528,7 @@ class AGPI:
             "stopped": self.stopped,
             **({"sampler": self.sampler.state_dict()} if self.sampler is not None else {}),
             **({"actor_avg": self.actor_avg.state_dict()} if self.actor_avg is not None else {}),
+            **({"critic_target": self.critic_target.state_dict()} if self.critic_target is not None else {}),
         }
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
@@ -533,6 +545,8 @@ class AGPI:
             missing.add("sampler")
         if self.actor_avg is not None and "actor_avg" not in state:
             missing.add("actor_avg")
+        if self.critic_target is not None and "critic_target" not in state:
+            missing.add("critic_target")
         if missing:
             raise ValueError(f"state: missing keys {sorted(missing)}")
         if tuple(state["states"].shape) != tuple(self.states.shape):
@@ -547,6 +561,8 @@ class AGPI:
             self.actor_opt.load_state_dict(state["actor_opt"])
             if self.actor_avg is not None:
                 self.actor_avg.load_state_dict(state["actor_avg"])
+            if self.critic_target is not None:
+                self.critic_target.load_state_dict(state["critic_target"])
         except (RuntimeError, KeyError) as exc:
             raise ValueError(f"state: weights do not match the networks ({exc})") from None
         self.generator.set_state(state["generator"])

@@ -53,7 +53,7 @@ AGPI = Any
 #: the losses and of the quadrature); every other field (method, seed, budget, learning rates, IBE,
 #: sampler, MVC settings, ...) may differ between them.
 SHARED_FIELDS = ("batch_size", "hidden_sizes", "activation", "value_output", "bellman_steps", "batch_weighting",
-                 "batch_weight_offset", "expectation", "noise_samples")
+                 "batch_weight_offset", "expectation", "noise_samples", "critic_target")
 
 #: The ``algorithm`` fields the DDPG runs of one batch (:class:`mixedrl.algorithms.batched_ddpg.BatchedDDPG`)
 #: must share: the network shapes and the minibatch size. Everything else (seed, budget, learning rates and
@@ -299,6 +299,11 @@ class BatchedAGPI(BatchedRuns):
         algo = self.members[0].config.algorithm
         self.steps = algo.bellman_steps
         self._filler: torch.Tensor | None = None
+        #: The runs' target critics ``V(x; w_bar)`` stacked (``algorithm.critic_target > 0``), else ``None``.
+        #: The EMA updates each run's target in place (:meth:`AGPI._finish_iteration`), which the stacked
+        #: views follow.
+        self.critic_target = (StackedNetwork([m.critic_target.module for m in self.members], self.batch)
+                              if algo.critic_target > 0 else None)
 
     # -------------------------------------------------------------------------------------- helpers
     def _placeholder(self, m: AGPI) -> torch.Tensor:
@@ -334,7 +339,8 @@ class BatchedAGPI(BatchedRuns):
         with torch.no_grad():
             u = self.actor(self.task.observe(s))
         rel = self.members[0].relative_offset
-        loss = critic_loss(self.task, self.critic, s, u, offsets, weights, rel, self.actor, self.steps, self.runs)
+        loss = critic_loss(self.task, self.critic, s, u, offsets, weights, rel, self.actor, self.steps, self.runs,
+                           self.critic_target)
         # w^{k+1} = w^k - alpha dJ_critic/dw   (Adam, per run)
         self.descend_critics(loss, active)
         return [float(v) for v in loss.detach().reshape(-1)]
