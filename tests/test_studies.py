@@ -525,6 +525,7 @@ def test_win_odds_is_the_normal_model_of_the_paired_speed_difference(tmp_path: P
     ("table1_seeds20_lq_affine_ss_ramp", "table1_seeds20_lq_affine_ss", {"sampler.course_ramp": 500}),
     ("table1_seeds20_lq_train_n4000_ramp", "table1_seeds20_lq_train_n4000", {"sampler.course_ramp": 500}),
     ("table1_seeds20_lq_affine_ss_target90", "table1_seeds20_lq_affine_ss", {"algorithm.critic_target": 0.9}),
+    ("table1_seeds20_lq_affine_ss_ramp_target90", "table1_seeds20_lq_affine_ss_ramp", {"algorithm.critic_target": 0.9}),
 ])
 def test_a_spec_is_its_sibling_with_only_the_stated_changes(spec: str, sibling: str, changed: dict) -> None:
     """The 10,000-iteration budget of the twenty-seed ``lq_train`` runs and the ``lq_affine_ss`` runs (pendulum,
