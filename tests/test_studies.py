@@ -9,6 +9,7 @@ checkpoint_every=n, num_threads=1, **design)``).
 from __future__ import annotations
 
 import csv
+import dataclasses
 import json
 import math
 import os
@@ -538,6 +539,17 @@ def test_a_spec_is_its_sibling_with_only_the_stated_changes(spec: str, sibling: 
         assert ours[name].to_dict() == cfg.replace(**changed).to_dict(), name
 
 
+def test_the_target_critics_4000_iteration_spec_is_the_mixed_part_of_its_1500_iteration_sibling() -> None:
+    """studies/table1_seeds20_lq_affine_ss_target90_n4000.toml: mixed RL's 20 runs of the target critic's
+    1500-iteration table, with only the budget (and when it evaluates and saves) changed."""
+    ours = {r.name: r.config for r in expand(load_spec(ROOT / "studies" / "table1_seeds20_lq_affine_ss_target90_n4000.toml"))}
+    theirs = {r.name: r.config for r in expand(load_spec(ROOT / "studies" / "table1_seeds20_lq_affine_ss_target90.toml"))}
+    assert sorted(ours) == sorted(k for k in theirs if k.startswith("mixed_")) and len(ours) == 20
+    for name, cfg in ours.items():
+        assert cfg.to_dict() == theirs[name].replace(**{"algorithm.iterations": 4000, "run.eval_every": 800,
+                                                        "run.checkpoint_every": 4000}).to_dict(), name
+
+
 def test_the_oracles_10000_iteration_sweep_is_the_oracle_part_of_the_budgets_sweep() -> None:
     """studies/table1_seeds20_lq_train_n10000_oracle.toml holds exactly the oracle runs of
     studies/table1_seeds20_lq_train_n10000.toml (the same names and configs), so its rows join the shipped rows
@@ -678,3 +690,99 @@ def test_seed_statistics_refuses_an_unfinished_sweep_unless_partial(tmp_path: Pa
     partial = _run_script("seed_statistics.py", sweep, "--dest", tmp_path / "out", "--partial")
     assert partial.returncode == 2 and "no finished run" in partial.stderr  # nothing read, nothing written
     assert not (tmp_path / "out").exists()
+
+
+def _speed_anatomy_module() -> Any:
+    import importlib.util
+    sys.path.insert(0, str(ROOT / "scripts"))
+    try:
+        spec = importlib.util.spec_from_file_location("speed_anatomy", ROOT / "scripts" / "speed_anatomy.py")
+        mod = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(mod)
+    finally:
+        sys.path.remove(str(ROOT / "scripts"))
+    return mod
+
+
+def test_speed_anatomy_splits_the_course_mean_by_stretch_and_prices_the_target() -> None:
+    """speed_anatomy.anatomy: the stretches' contributions add up to the course mean |v_x - 12|, each is its
+    stretch's sum over N, the speed part of the cost is T q_v sum dv^2, and target_buys is the share of the
+    cost lost by scaling the speed error down to 0.010 m/s."""
+    from mixedrl.envs import DoubleLaneChangeModel
+    from mixedrl.envs.evaluation import TrackingResult
+    sa = _speed_anatomy_module()
+    cfg = DoubleLaneChangeModel().config
+    n = 120
+    X = np.linspace(0.0, 119.0, n + 1)
+    dv = np.where(X < cfg.reference.x1, 0.01, np.where(X < cfg.reference.x2 + cfg.reference.len2, -0.03, 0.02))
+    states = np.zeros((n + 1, 6))
+    states[:, 5] = X
+    costs = np.full(n, 0.5)
+    r = TrackingResult(0.0, float(np.abs(dv[1:]).mean()), 0.0, 0.0, float(costs.sum()), False, n, X, states,
+                       states[:, :5], np.zeros((n, 2)), np.zeros(n + 1), dv, np.zeros(n), costs)
+    rec = sa.anatomy([r], cfg)
+    d = dv[1:]
+    assert rec["before"] == pytest.approx(0.01 * np.sum(X[1:] < cfg.reference.x1) / n)
+    assert rec["changes"] + rec["before"] + rec["after"] == pytest.approx(rec["speed_mae"])
+    assert rec["speed_mae"] == pytest.approx(np.abs(d).mean()) and rec["speed_mae"] > 0.01
+    assert rec["speed_share"] == pytest.approx(cfg.dt * 45.0 * np.sum(d * d) / 60.0)
+    assert rec["target_buys"] == pytest.approx(rec["speed_share"] * (1 - (0.01 / rec["speed_mae"]) ** 2))
+    small = sa.anatomy([dataclasses.replace(r, speed_error=dv / 10)], cfg)
+    assert small["target_buys"] == 0.0 and small["speed_mae"] < 0.01
+    rows = [{"speed_mae": a + b + c, "before": a, "changes": b, "after": c}
+            for a, b, c in [(1, 2, 3), (1, 5, 3), (2, 1, 4), (1, 7, 2)]]
+    shares = sa._variance_shares(rows)
+    assert sum(shares.values()) == pytest.approx(1.0)
+
+
+def test_speed_anatomy_drives_each_run_again_and_the_lqr_references(tmp_path: Path) -> None:
+    """speed_anatomy.py on a tiny DLC sweep: every run driven again equals its results.json (else it stops), the
+    two LQR references are listed with the LQR's known course speed error, and a bad sweep is refused."""
+    spec = parse_spec('methods = ["mixed", "model"]\nseeds = [0, 1, 2]\n[base]\n"algorithm.iterations" = 2\n'
+                      '"algorithm.batch_size" = 16\n"run.eval_every" = 2\n"run.eval_seeds" = 1\n')
+    doc = run_sweep(spec, tmp_path / "sw", workers=1, progress=False)
+    proc = _run_script("speed_anatomy.py", tmp_path / "sw", "--dest", tmp_path / "out")
+    assert proc.returncode == 0, proc.stderr
+    out = json.loads((tmp_path / "out" / "speed_anatomy.json").read_text())
+    runs = [r for r in out["records"] if r["seed"] is not None]
+    assert len(runs) == 6
+    for r in runs:
+        (row,) = [x for x in doc["runs"] if (x["method"], x["seed"]) == (r["method"], r["seed"])]
+        assert r["speed_mae"] == pytest.approx(row["metrics"]["speed_mae"], rel=1e-12)
+        assert r["before"] + r["changes"] + r["after"] == pytest.approx(r["speed_mae"])
+    refs = {r["method"]: r for r in out["records"] if r["seed"] is None}
+    assert set(refs) == {"LQR, gamma=0.99, true mean", "LQR, gamma=0.99, prior mean"}
+    # docs/_static/references (scripts/references.py, other seeds): 0.0088 and 0.0130 m/s
+    assert refs["LQR, gamma=0.99, true mean"]["speed_mae"] == pytest.approx(0.00876, abs=2e-4)
+    assert refs["LQR, gamma=0.99, prior mean"]["speed_mae"] == pytest.approx(0.01296, abs=2e-4)
+    assert out["summary"]["mixed"]["runs"] == 3 and "Mixed RL" in proc.stdout
+    (tmp_path / "empty").mkdir()
+    bad = _run_script("speed_anatomy.py", tmp_path / "empty", "--dest", tmp_path / "x")
+    assert bad.returncode != 0 and "sweep.json" in bad.stderr
+
+
+def test_target_matrix_reads_each_rows_targets_and_counts_the_seeds_within_the_speed_target(tmp_path: Path) -> None:
+    """target_matrix.py: one line per seed_statistics.py output directory, each target's figure and met / NO as
+    summary.json has it, the seeds within 0.010 m/s counted from per_seed.csv; a directory without them refused."""
+    d = tmp_path / "row_a"
+    d.mkdir()
+    targets = {"mixed_action_at_origin_le_0.01_every_seed": {"measured": 2e-5, "met": True},
+               "mixed_speed_le_0.010_every_seed": {"measured": 0.0131, "met": False},
+               "mixed_lateral_le_0.151_every_seed": {"measured": 0.104, "met": True},
+               "model_over_mixed_speed_ge_1.5": {"measured": 1.42, "met": False},
+               "paired_speed_difference_ci_excludes_0": {"measured": [-0.0048, -0.0033], "met": True},
+               "mixed_better_on_speed_on_ge_90pct_of_seeds": {"measured": "19 of 20", "met": True},
+               "mixed_cost_within_5pct_of_oracle": {"measured": {"mixed_over_oracle": 1.01, "ci": [0.98, 1.04]},
+                                                    "met": True}}
+    (d / "summary.json").write_text(json.dumps({"targets": targets}))
+    speeds = [0.008, 0.0131, 0.0099, 0.0100, 0.011]
+    (d / "per_seed.csv").write_text("method,seed,speed_mae\n" + "".join(f"mixed,{i},{s}\n" for i, s in enumerate(speeds))
+                                    + "model,0,0.001\n")
+    proc = _run_script("target_matrix.py", d, "--out", tmp_path / "t.txt")
+    assert proc.returncode == 0, proc.stderr
+    (line,) = [x for x in (tmp_path / "t.txt").read_text().splitlines() if x.startswith("row_a")]
+    assert "NO 3 of 5, worst 0.0131" in line and "met 0.1040" in line and "NO 1.420" in line
+    assert "met [-0.0048, -0.0033]" in line and "met 19 of 20" in line and "met 1.010 [0.980, 1.040]" in line
+    (tmp_path / "empty").mkdir()
+    bad = _run_script("target_matrix.py", tmp_path / "empty", "--out", tmp_path / "x.txt")
+    assert bad.returncode != 0 and "summary.json does not exist" in bad.stderr
