@@ -41,9 +41,10 @@ import numpy as np
 from tqdm import tqdm
 
 from mixedrl.checkpoint import load_checkpoint
-from mixedrl.envs import DoubleLaneChangeModel
+from mixedrl.envs.columns import stage_cost
 from mixedrl.envs.evaluation import TrackingResult
 from mixedrl.runs import RunDirectory, atomic_write_text, eval_seeds, make_trainer
+from mixedrl.tasks import task_from_config
 from seed_statistics import label, ordered
 from validation.nmpc import drive, straight_lqr
 
@@ -55,7 +56,7 @@ REFERENCES = {"LQR, gamma=0.99, true mean": "true", "LQR, gamma=0.99, prior mean
 
 def anatomy(results: list[TrackingResult], cfg: Any) -> dict[str, float]:
     """The figures of one policy (module docstring), averaged over its courses ``results``."""
-    ref, w = cfg.reference, cfg.cost
+    ref = cfg.reference
     out: dict[str, list[float]] = {k: [] for k in ("speed_mae", *STRETCHES, "cost", "speed_cost")}
     for r in results:
         X = r.states[1:, 5]
@@ -67,7 +68,7 @@ def anatomy(results: list[TrackingResult], cfg: Any) -> dict[str, float]:
             out[k].append(float(np.abs(dv[mask]).sum() / n))
         out["speed_mae"].append(float(np.abs(dv).mean()))
         out["cost"].append(float(r.total_cost))
-        out["speed_cost"].append(float(cfg.dt * w.q_speed * np.sum(dv * dv)))
+        out["speed_cost"].append(float(np.sum(stage_cost(cfg, dv, 0.0, 0.0, 0.0))))  # eq. (54), speed term only
     rec = {k: float(np.mean(v)) for k, v in out.items()}
     rec["speed_share"] = rec["speed_cost"] / rec["cost"]
     s = rec["speed_mae"]
@@ -92,8 +93,7 @@ def run_record(run_dir: Path) -> dict[str, Any]:
 
 def reference_records(config: Any) -> list[dict[str, Any]]:
     """The two LQR references driven on the evaluation seeds of seed 0 of ``config`` (a run's config)."""
-    task = make_trainer(config).task
-    cfg = task.model.config
+    cfg = task_from_config(config.task).model.config
     seeds = eval_seeds(config.replace(seed=0))
     out = []
     for name, force in REFERENCES.items():
@@ -107,8 +107,7 @@ def _variance_shares(rows: list[dict[str, Any]]) -> dict[str, float]:
     var = float(np.var(total))
     if var == 0.0:
         return {k: float("nan") for k in STRETCHES}
-    return {k: float(np.mean((np.array([r[k] for r in rows]) - np.mean([r[k] for r in rows]))
-                             * (total - total.mean())) / var) for k in STRETCHES}
+    return {k: float(np.cov([r[k] for r in rows], total, ddof=0)[0, 1] / var) for k in STRETCHES}
 
 
 def summarise(records: list[dict[str, Any]]) -> dict[str, Any]:
@@ -140,12 +139,9 @@ def text(source: str, records: list[dict[str, Any]], summary: dict[str, Any]) ->
     p(f"{'row':38s}{'speed':>9s}{'before':>9s}{'changes':>9s}{'after':>9s}{'speed share':>13s}{'target buys':>13s}"
       f"{'cost':>8s}")
     for m, s in summary.items():
-        p(f"{label(m):38s}" + "".join(f"{s[k]['mean']:9.4f}" for k in ("speed_mae", *STRETCHES))
-          + f"{s['speed_share']['mean']:13.4f}{s['target_buys']['mean']:13.4f}{s['cost']['mean']:8.2f}   (mean)")
-        p(f"{'':38s}" + "".join(f"{s[k]['std']:9.4f}" for k in ("speed_mae", *STRETCHES))
-          + f"{s['speed_share']['std']:13.4f}{s['target_buys']['std']:13.4f}{s['cost']['std']:8.2f}   (std)")
-        p(f"{'':38s}" + "".join(f"{s[k]['worst']:9.4f}" for k in ("speed_mae", *STRETCHES))
-          + f"{s['speed_share']['worst']:13.4f}{s['target_buys']['worst']:13.4f}{s['cost']['worst']:8.2f}   (worst)")
+        for i, stat in enumerate(("mean", "std", "worst")):
+            p(f"{label(m) if i == 0 else '':38s}" + "".join(f"{s[k][stat]:9.4f}" for k in ("speed_mae", *STRETCHES))
+              + f"{s['speed_share'][stat]:13.4f}{s['target_buys'][stat]:13.4f}{s['cost'][stat]:8.2f}   ({stat})")
     for r in records:
         if r["seed"] is None:
             p(f"{r['method']:38s}" + "".join(f"{r[k]:9.4f}" for k in ("speed_mae", *STRETCHES))
