@@ -6,7 +6,7 @@ NMPC solve (2 s horizon, 400 stages, gamma = 0.99, true mean; the online work of
 default (64, 64) ELU network) on one observation. ``extra_info["ratio_to_actor"]`` on the NMPC row is
 its median over the actor's. Skipped without CasADi (extra ``nmpc``).
 
-The preview policy of docs/references.rst ("Mixed RL with path preview"; scripts/preview_study.py), in the
+The preview policy of docs/references.rst ("Mixed RL with path preview"; experiments/analysis/preview_study.py), in the
 same group and the same run: ``test_preview_actor_inference`` (the torch actor on the 11-dimensional
 preview observation, the shipped seed-0 weights) and ``test_preview_step_numpy`` (the whole online work
 of one control step on a plain-NumPy deployment path: the observation with its six preview distances
@@ -33,7 +33,7 @@ from mixedrl.tasks import DoubleLaneChangeTask  # noqa: E402
 from validation.nmpc import VehicleNMPC  # noqa: E402
 from validation.preview import NumpyActor  # noqa: E402
 
-#: The preview distances of the chosen candidate P12 (scripts/preview_study.py, ``CANDIDATES["P12"]``).
+#: The preview distances of the chosen candidate P12 (experiments/analysis/preview_study.py, ``CANDIDATES["P12"]``).
 PREVIEW_P12 = (2.0, 4.0, 6.0, 8.0, 10.0, 12.0)
 
 from mixedrl.envs.tracking import observation_columns  # noqa: E402
@@ -71,7 +71,7 @@ def _preview_policy() -> tuple[DoubleLaneChangeTask, Actor, str]:
     cfg = TrainConfig()
     actor = Actor(task.obs_dim, task.action_dim, cfg.algorithm.hidden_sizes, cfg.algorithm.activation, torch.Generator().manual_seed(0),
                   task.action_bound, task.obs_scale)
-    path = _ROOT / "docs" / "_static" / "preview" / "per_run" / "S" / "P12" / "mixed_s0.json"
+    path = _ROOT / "experiments" / "results" / "preview" / "per_run" / "S" / "P12" / "mixed_s0.json"
     source = "fresh weights"
     if path.exists():
         weights = json.loads(path.read_text())["actor"]

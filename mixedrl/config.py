@@ -368,7 +368,7 @@ class AlgorithmConfig:
 
     ``batch_weighting``, ``batch_weight_offset`` and ``actor_average`` are tuning add-ons, departures from
     the paper's Algorithm 2 (docs/algorithm2.rst). ``batch_weighting`` defaults to ``"relative"``, measured
-    over the pendulum and the linear test bed (``studies/custom_defaults.toml``, docs/tuning.rst); the paper's
+    over the pendulum and the linear test bed (``experiments/studies/custom_defaults.toml``, docs/tuning.rst); the paper's
     plain batch mean is ``"uniform"``. ``actor_average`` is off by default.
     """
 

@@ -1,4 +1,4 @@
-"""validation.beyond (the command line scripts/beyond_paper.py): the studies beyond the paper (docs/beyond.rst).
+"""experiments.analysis.beyond_paper (the command line experiments/analysis/beyond_paper.py): the studies beyond the paper (docs/beyond.rst).
 
 Without Ray: the study specs (valid, training settings left to TrainConfig's defaults), the split of a
 study into main / shared / witness sweeps (the same runs as the spec, up to the shared key), the reduced
@@ -17,7 +17,7 @@ import pytest
 
 from mixedrl.config import LEGACY_KEYS, TrainConfig
 from mixedrl.sweep import expand, load_spec, parse_spec
-from validation import beyond as BP
+from experiments.analysis import beyond_paper as BP
 
 ROOT = Path(__file__).resolve().parents[1]
 

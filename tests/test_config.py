@@ -257,7 +257,7 @@ def test_every_shipped_run_config_migrates_and_round_trips() -> None:
     is one the new code writes and reads back unchanged, with the flat fields at their new places."""
     from mixedrl.config import LEGACY_KEYS
 
-    root = Path(__file__).resolve().parents[1] / "docs" / "_static"
+    root = Path(__file__).resolve().parents[1] / "experiments" / "results"
     seen = 0
     for path in sorted(root.rglob("*.json")):
         data = json.loads(path.read_text())

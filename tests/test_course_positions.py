@@ -1,5 +1,5 @@
-"""The observer of ``studies/course_positions.toml`` (:mod:`validation.course_positions`): its records, that
-it changes nothing of the run, and that the spec's designs are those of ``studies/model_based.toml``."""
+"""The observer of ``experiments/studies/course_positions.toml`` (:mod:`experiments.analysis.course_positions`): its records, that
+it changes nothing of the run, and that the spec's designs are those of ``experiments/studies/model_based.toml``."""
 
 from __future__ import annotations
 
@@ -12,11 +12,11 @@ import torch
 from mixedrl.config import TrainConfig
 from mixedrl.runs import make_trainer, train
 from mixedrl.sweep import expand, load_spec
-from validation.course_positions import PARTS, CoursePositionsObserver, course_positions_observer, share_key
+from experiments.analysis.course_positions import PARTS, CoursePositionsObserver, course_positions_observer, share_key
 
 ROOT = Path(__file__).resolve().parents[1]
-SPEC = ROOT / "studies" / "course_positions.toml"
-MODEL_BASED = ROOT / "studies" / "model_based.toml"
+SPEC = ROOT / "experiments" / "studies" / "course_positions.toml"
+MODEL_BASED = ROOT / "experiments" / "studies" / "model_based.toml"
 ITERATIONS = 200
 EVERY = 100
 
@@ -76,7 +76,7 @@ def test_factory_and_every() -> None:
 def test_spec_variants_are_those_of_the_model_based_study(variant: str) -> None:
     spec = load_spec(SPEC)
     assert list(spec.methods) == ["mixed"] and list(spec.seeds) == [0]
-    assert spec.observer == "validation.course_positions:course_positions_observer"
+    assert spec.observer == "experiments.analysis.course_positions:course_positions_observer"
     (mine,) = [r for r in expand(spec) if r.point["variant"] == variant]
     (theirs,) = [r for r in expand(load_spec(MODEL_BASED))
                  if r.point["variant"] == variant and r.config.method == "mixed" and r.config.seed == 0]

@@ -1,4 +1,4 @@
-"""Mixed RL with path preview (issue 11, item 4; scripts/preview_study.py, docs/references.rst).
+"""Mixed RL with path preview (issue 11, item 4; experiments/analysis/preview_study.py, docs/references.rst).
 
 The training path with ``task.preview_distances``: the observation has ``5 + len(preview)`` columns and
 its preview columns are ``Y_ref(X + d) - Y_ref(X)``; networks, the model box test, checkpoints, resume and
@@ -33,7 +33,7 @@ FAST = dict(iterations=12, batch_size=32, eval_every=6, checkpoint_every=4, eval
             true_every=3)
 
 
-ROOT_SPEC = ROOT / "studies" / "preview.toml"
+ROOT_SPEC = ROOT / "experiments" / "studies" / "preview.toml"
 
 
 def _tanh_path(X: np.ndarray) -> np.ndarray:
@@ -137,7 +137,7 @@ def test_numpy_actor_equals_the_torch_actor() -> None:
 
 
 def test_study_spec_is_the_default_but_preview() -> None:
-    """The study (studies/preview.toml) changes no training setting but the preview (and the
+    """The study (experiments/studies/preview.toml) changes no training setting but the preview (and the
     reporting/checkpoint periods), on its batch design: S is today's default, M the default when the study
     first ran."""
     def dotted(d: dict) -> dict:

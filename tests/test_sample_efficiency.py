@@ -1,4 +1,4 @@
-"""Tests of validation.sample_efficiency (thresholds, table, figures, rows of our runs) and of the study script's
+"""Tests of experiments.analysis.sample_efficiency_lib (thresholds, table, figures, rows of our runs) and of the study script's
 summary, on synthetic rows; one tiny real run of mixedrl's trainer for the rows."""
 
 from __future__ import annotations
@@ -18,7 +18,7 @@ from hypothesis import strategies as st
 
 from mixedrl.runs import iterations_to_converge
 from mixedrl.sweep import expand, load_spec, parse_spec, run_sweep
-from validation.sample_efficiency import (
+from experiments.analysis.sample_efficiency_lib import (
     THRESHOLD_LATERAL,
     THRESHOLD_SPEED,
     check_rows,
@@ -249,8 +249,8 @@ def test_rows_from_metrics_mapping() -> None:
 
 
 def _script(*argv: str) -> subprocess.CompletedProcess:
-    """``scripts/sample_efficiency.py ARGV`` in a subprocess (tests do not import scripts)."""
-    return subprocess.run([sys.executable, str(ROOT / "scripts" / "sample_efficiency.py"), *argv],
+    """``experiments/analysis/sample_efficiency.py ARGV`` in a subprocess (tests do not import scripts)."""
+    return subprocess.run([sys.executable, str(ROOT / "experiments" / "analysis" / "sample_efficiency.py"), *argv],
                           capture_output=True, text=True, env={**os.environ, "PYTHONPATH": str(ROOT)}, timeout=600)
 
 
@@ -267,8 +267,8 @@ def test_script_summary(tmp_path: Path) -> None:
 
 
 def test_the_spec_is_ours_config() -> None:
-    """studies/sample_efficiency.toml expands to the configs :func:`ours_config` builds at 1500 iterations."""
-    runs = expand(load_spec(ROOT / "studies" / "sample_efficiency.toml"))
+    """experiments/studies/sample_efficiency.toml expands to the configs :func:`ours_config` builds at 1500 iterations."""
+    runs = expand(load_spec(ROOT / "experiments" / "studies" / "sample_efficiency.toml"))
     assert len(runs) == 4 * 5
     for run in runs:
         assert run.config == ours_config(run.config.method, run.config.seed, 1500), run.name

@@ -1,7 +1,7 @@
-"""The study specs under ``studies/``: each is valid, and expands to the configs the studies' old builders
+"""The study specs under ``experiments/studies/``: each is valid, and expands to the configs the studies' old builders
 (Python dicts of flat, pre-section keys in the scripts) trained, so moving a study to a spec changed no run.
 
-The old designs below are copied from ``scripts/model_based_study.py`` as it was before the move (its
+The old designs below are copied from ``experiments/analysis/model_based_study.py`` as it was before the move (its
 ``DESIGNS``; run ``job`` built ``TrainConfig().replace(method, seed, iterations, eval_every=max(100, n // 5),
 checkpoint_every=n, num_threads=1, **design)``).
 """
@@ -26,7 +26,7 @@ from mixedrl.runs import RunDirectory
 from mixedrl.sweep import expand, load_spec, parse_spec, run_sweep
 
 ROOT = Path(__file__).resolve().parents[1]
-STUDIES = sorted((ROOT / "studies").glob("*.toml"))
+STUDIES = sorted((ROOT / "experiments" / "studies").glob("*.toml"))
 
 _MODEL = {"state_source": "model", "model_course_starts": "start", "true_envs": 1, "true_steps": 20,
           "true_every": 10, "model_course_horizon": 2000, "model_kick_scale": 1.0, "batch_weighting": "uniform",
@@ -60,7 +60,7 @@ def _old_config(design: str, method: str, seed: int, iterations: int) -> TrainCo
 
 
 def test_model_based_spec_reproduces_the_old_designs() -> None:
-    runs = {r.name: r for r in expand(load_spec(ROOT / "studies" / "model_based.toml"))}
+    runs = {r.name: r for r in expand(load_spec(ROOT / "experiments" / "studies" / "model_based.toml"))}
     assert len(runs) == 23 * 3 * 5
     checked = 0
     for name, run in runs.items():
@@ -85,7 +85,7 @@ def test_model_based_study_ships_a_sweep_directory(tmp_path: Path) -> None:
                       '[variants.S_n20]\n"sampler.course_starts" = "along"\n"algorithm.iterations" = 20\n')
     doc = run_sweep(spec, tmp_path / "sweep", workers=1, progress=False)
     dest = tmp_path / "ship"
-    proc = subprocess.run([sys.executable, str(ROOT / "scripts" / "model_based_study.py"), "ship",
+    proc = subprocess.run([sys.executable, str(ROOT / "experiments" / "analysis" / "model_based_study.py"), "ship",
                            str(tmp_path / "sweep"), "--dest", str(dest)], capture_output=True, text=True,
                           env={**os.environ, "PYTHONPATH": str(ROOT)}, timeout=600)
     assert proc.returncode == 0, proc.stderr
@@ -101,14 +101,14 @@ def test_model_based_study_ships_a_sweep_directory(tmp_path: Path) -> None:
         ("S", row["iterations"], row["metrics"]["cost"]) for row in doc["runs"]]
 
 
-#: ``scripts/preview_study.py``'s candidates and designs before the move (its ``CANDIDATES``, ``DESIGNS``).
+#: ``experiments/analysis/preview_study.py``'s candidates and designs before the move (its ``CANDIDATES``, ``DESIGNS``).
 OLD_PREVIEW = {"none": [], "P12": [2.0, 4.0, 6.0, 8.0, 10.0, 12.0],
                "P24": [3.0, 6.0, 9.0, 12.0, 15.0, 18.0, 21.0, 24.0], "P6": [1.5, 3.0, 4.5, 6.0]}
 OLD_PREVIEW_DESIGNS = {"M": "start", "S": "along"}
 
 
 def test_preview_spec_reproduces_the_old_config_of() -> None:
-    runs = expand(load_spec(ROOT / "studies" / "preview.toml"))
+    runs = expand(load_spec(ROOT / "experiments" / "studies" / "preview.toml"))
     assert len(runs) == (len(OLD_PREVIEW) * len(OLD_PREVIEW_DESIGNS) + 3 + 1) * 5
     for run in runs:
         design, candidate = run.point["variant"].split("_", 1)
@@ -132,7 +132,7 @@ def test_preview_spec_p12s_is_the_old_patched_obs_scale() -> None:
     from mixedrl.tasks import task_from_config
     from validation.preview import preview_scale
 
-    runs = [r for r in expand(load_spec(ROOT / "studies" / "preview.toml")) if r.point["variant"] == "M_P12s"]
+    runs = [r for r in expand(load_spec(ROOT / "experiments" / "studies" / "preview.toml")) if r.point["variant"] == "M_P12s"]
     assert len(runs) == 5
     for run in runs:
         old = TrainConfig().replace(method=run.config.method, seed=run.config.seed, iterations=1500,
@@ -151,7 +151,7 @@ def test_preview_study_ships_a_sweep_directory(tmp_path: Path) -> None:
                       '"run.eval_seeds" = 1\n[variants.S_P6]\n"task.preview_distances" = [1.5, 3.0, 4.5, 6.0]\n')
     doc = run_sweep(spec, tmp_path / "sweep", workers=1, progress=False)
     dest = tmp_path / "ship"
-    proc = subprocess.run([sys.executable, str(ROOT / "scripts" / "preview_study.py"), "ship", str(tmp_path / "sweep"),
+    proc = subprocess.run([sys.executable, str(ROOT / "experiments" / "analysis" / "preview_study.py"), "ship", str(tmp_path / "sweep"),
                            "--dest", str(dest)], capture_output=True, text=True, cwd=ROOT,
                           env={**os.environ, "PYTHONPATH": str(ROOT)}, timeout=600)
     assert proc.returncode == 0, proc.stderr
@@ -167,7 +167,7 @@ def test_preview_study_ships_a_sweep_directory(tmp_path: Path) -> None:
 def test_reproduction_spec_is_the_reproductions_run_config() -> None:
     from validation.reproduce import run_config
 
-    runs = expand(load_spec(ROOT / "studies" / "reproduction.toml"))
+    runs = expand(load_spec(ROOT / "experiments" / "studies" / "reproduction.toml"))
     assert len(runs) == 5 * 5
     labels = []
     for run in runs:
@@ -180,7 +180,7 @@ def test_reproduction_spec_is_the_reproductions_run_config() -> None:
 def test_the_reproductions_spec_is_the_shipped_spec_with_the_theory_observer() -> None:
     from validation.reproduce import reproduction_spec, run_config
 
-    shipped = load_spec(ROOT / "studies" / "reproduction.toml")
+    shipped = load_spec(ROOT / "experiments" / "studies" / "reproduction.toml")
     ours = reproduction_spec(5)
     assert [(r.name, r.config) for r in expand(ours)] == [(r.name, r.config) for r in expand(shipped)]
     assert ours.observer == shipped.observer == "validation.reproduce:theory_observer"
@@ -224,10 +224,10 @@ def test_the_theory_observer_reads_the_run_and_changes_none_of_its_numbers(tmp_p
 
 
 def test_long_training_spec_and_its_observer_only_reads_the_runs() -> None:
-    from validation.long_training import LongTrainingObserver
+    from experiments.analysis.long_training_observer import LongTrainingObserver
     from mixedrl.runs import make_trainer, train_batch
 
-    runs = expand(load_spec(ROOT / "studies" / "long_training.toml"))
+    runs = expand(load_spec(ROOT / "experiments" / "studies" / "long_training.toml"))
     assert [(r.config.method, r.config.seed, r.config.algorithm.iterations) for r in runs] == \
         [("mixed", 0, 10000), ("oracle", 0, 10000)]
     # the old script's config: TrainConfig(method, seed=0, iterations=10000, eval_every=10000)
@@ -249,7 +249,7 @@ def test_long_training_spec_and_its_observer_only_reads_the_runs() -> None:
 
 
 def _old_precision_config(method: str, seed: int, bellman_steps: int, iterations: int = 1500) -> TrainConfig:
-    """``scripts/precision_study.py``'s ``run`` before the move (``--set algorithm.bellman_steps=N``): the
+    """``experiments/analysis/precision_study.py``'s ``run`` before the move (``--set algorithm.bellman_steps=N``): the
     placeholder ``task="linear"`` config it trained ``PendulumTask()`` with, its task the pendulum's."""
     flat = dict(method=method, task="linear", seed=seed, iterations=iterations, batch_size=256, horizon=100,
                 model_course_fraction=0.0, model_course_horizon=100, model_kick_prob=0.0,
@@ -262,7 +262,7 @@ def test_precision_spec_reproduces_the_old_script_configs() -> None:
     from mixedrl.envs.pendulum import PendulumTask
     from mixedrl.tasks import task_from_config
 
-    runs = expand(load_spec(ROOT / "studies" / "precision_pendulum.toml"))
+    runs = expand(load_spec(ROOT / "experiments" / "studies" / "precision_pendulum.toml"))
     assert len(runs) == 2 * 3 * 3
     seen = set()
     for run in runs:
@@ -283,7 +283,7 @@ def test_precision_study_ships_a_sweep_directory(tmp_path: Path) -> None:
                       '"run.eval_seeds" = 1\n[variants.bellman10]\n"algorithm.bellman_steps" = 10\n')
     doc = run_sweep(spec, tmp_path / "sweep", workers=1, progress=False)
     dest = tmp_path / "ship"
-    proc = subprocess.run([sys.executable, str(ROOT / "scripts" / "precision_study.py"), "ship",
+    proc = subprocess.run([sys.executable, str(ROOT / "experiments" / "analysis" / "precision_study.py"), "ship",
                            str(tmp_path / "sweep"), "--dest", str(dest)], capture_output=True, text=True, cwd=ROOT,
                           env={**os.environ, "PYTHONPATH": str(ROOT)}, timeout=600)
     assert proc.returncode == 0, proc.stderr
@@ -309,7 +309,7 @@ def test_analyses_with_the_lq_feedforward_evaluate_the_same_checkpoints_again(tm
                       '"run.eval_seeds" = 1\n')
     run_sweep(spec, tmp_path / "sweep", workers=1, progress=False)
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
-    proc = subprocess.run([sys.executable, str(ROOT / "scripts" / "precision_study.py"), "ship", str(tmp_path / "sweep"),
+    proc = subprocess.run([sys.executable, str(ROOT / "experiments" / "analysis" / "precision_study.py"), "ship", str(tmp_path / "sweep"),
                            "--feedforward", "lq", "--dest", str(tmp_path / "pend")], capture_output=True, text=True,
                           cwd=ROOT, env=env, timeout=600)
     assert proc.returncode == 0, proc.stderr
@@ -319,7 +319,7 @@ def test_analyses_with_the_lq_feedforward_evaluate_the_same_checkpoints_again(tm
         assert r["u0"] == pytest.approx(r["u_lqr0"], abs=1e-5)  # the LQR's action for the run's own mean
     assert "Summary (feedforward = lq)" in proc.stdout
     assert json.loads((tmp_path / "pend" / "summary.json").read_text())[""]["methods"].keys() == {"mixed", "model"}
-    proc = subprocess.run([sys.executable, str(ROOT / "scripts" / "seed_statistics.py"), str(tmp_path / "sweep"),
+    proc = subprocess.run([sys.executable, str(ROOT / "experiments" / "analysis" / "seed_statistics.py"), str(tmp_path / "sweep"),
                            "--feedforward", "lq", "--dest", str(tmp_path / "stats")], capture_output=True, text=True,
                           cwd=ROOT, env=env, timeout=600)
     assert proc.returncode == 2 and "has no course errors" in proc.stderr  # Table I's analysis, not the pendulum's
@@ -327,7 +327,7 @@ def test_analyses_with_the_lq_feedforward_evaluate_the_same_checkpoints_again(tm
                       '"algorithm.batch_size" = 16\n"run.eval_every" = 2\n"run.eval_seeds" = 1\n')
     run_sweep(spec, tmp_path / "dlc", workers=1, progress=False)
     for ff in ([], ["--feedforward", "lq"]):
-        proc = subprocess.run([sys.executable, str(ROOT / "scripts" / "seed_statistics.py"), str(tmp_path / "dlc"),
+        proc = subprocess.run([sys.executable, str(ROOT / "experiments" / "analysis" / "seed_statistics.py"), str(tmp_path / "dlc"),
                                *ff, "--dest", str(tmp_path / f"stats{len(ff)}")], capture_output=True, text=True,
                               cwd=ROOT, env=env, timeout=600)
         assert proc.returncode == 0, proc.stderr
@@ -339,8 +339,8 @@ def test_analyses_with_the_lq_feedforward_evaluate_the_same_checkpoints_again(tm
 
 
 def _run_script(name: str, *args: object) -> subprocess.CompletedProcess:
-    """``python scripts/NAME ARGS`` from the repository root, with the repository on the path."""
-    return subprocess.run([sys.executable, str(ROOT / "scripts" / name), *map(str, args)], capture_output=True,
+    """``python experiments/analysis/NAME ARGS`` from the repository root, with the repository on the path."""
+    return subprocess.run([sys.executable, str(ROOT / "experiments" / "analysis" / name), *map(str, args)], capture_output=True,
                           text=True, cwd=ROOT, env={**os.environ, "PYTHONPATH": str(ROOT)}, timeout=600)
 
 
@@ -364,7 +364,7 @@ def test_precision_study_lqr_yardstick_is_the_lq_optimums_affine_policy(tmp_path
         assert r["gain_error_rel"] < 1e-5
     # the yardstick policy is the LQ optimum's affine policy: its action and gain at the equilibrium
     import importlib.util
-    mod_spec = importlib.util.spec_from_file_location("precision_study", ROOT / "scripts" / "precision_study.py")
+    mod_spec = importlib.util.spec_from_file_location("precision_study", ROOT / "experiments" / "analysis" / "precision_study.py")
     mod = importlib.util.module_from_spec(mod_spec)
     mod_spec.loader.exec_module(mod)
     from mixedrl.envs.pendulum import PendulumTask
@@ -377,10 +377,10 @@ def test_precision_study_lqr_yardstick_is_the_lq_optimums_affine_policy(tmp_path
 
 
 def test_custom_defaults_spec_varies_only_the_two_settings_and_its_script_ships_the_table(tmp_path: Path) -> None:
-    """studies/custom_defaults.toml: each variant differs from the generic defaults of its task only in
-    algorithm.batch_weighting and sampler.box; scripts/custom_defaults.py turns a tiny sweep of that form into
+    """experiments/studies/custom_defaults.toml: each variant differs from the generic defaults of its task only in
+    algorithm.batch_weighting and sampler.box; experiments/analysis/custom_defaults.py turns a tiny sweep of that form into
     the table (per variant and method, the paired difference against uniform_inf)."""
-    runs = expand(load_spec(ROOT / "studies" / "custom_defaults.toml"))
+    runs = expand(load_spec(ROOT / "experiments" / "studies" / "custom_defaults.toml"))
     assert len(runs) == 80
     for r in runs:
         generic = TrainConfig(method=r.config.method, seed=r.config.seed, task=r.config.task.name,
@@ -407,10 +407,10 @@ def test_custom_defaults_spec_varies_only_the_two_settings_and_its_script_ships_
 
 
 def test_ddpg_seeds20_spec_is_the_reproductions_ddpg_on_more_seeds() -> None:
-    """studies/table1_seeds20_ddpg.toml: its runs of seeds 0-4 are exactly the reproduction's DDPG runs (so the
+    """experiments/studies/table1_seeds20_ddpg.toml: its runs of seeds 0-4 are exactly the reproduction's DDPG runs (so the
     shipped Table I's DDPG rows are five of its twenty seeds), and seeds 0-19 each once per variant."""
-    ours = expand(load_spec(ROOT / "studies" / "table1_seeds20_ddpg.toml"))
-    repro = [r for r in expand(load_spec(ROOT / "studies" / "reproduction.toml")) if r.config.method == "ddpg"]
+    ours = expand(load_spec(ROOT / "experiments" / "studies" / "table1_seeds20_ddpg.toml"))
+    repro = [r for r in expand(load_spec(ROOT / "experiments" / "studies" / "reproduction.toml")) if r.config.method == "ddpg"]
     assert len(ours) == 40 and len(repro) == 10
     key = {(r.point["variant"], r.config.seed): r.config.to_dict() for r in ours}
     assert sorted(s for v, s in key if v == "ddpg_long") == list(range(20))
@@ -532,18 +532,18 @@ def test_a_spec_is_its_sibling_with_only_the_stated_changes(spec: str, sibling: 
     """The 10,000-iteration budget of the twenty-seed ``lq_train`` runs and the ``lq_affine_ss`` runs (pendulum,
     double lane change) are their siblings' runs (the same methods, seeds and every other field) with only the
     stated fields changed, so the tables built from both compare like with like."""
-    ours = {r.name: r.config for r in expand(load_spec(ROOT / "studies" / f"{spec}.toml"))}
-    theirs = {r.name: r.config for r in expand(load_spec(ROOT / "studies" / f"{sibling}.toml"))}
+    ours = {r.name: r.config for r in expand(load_spec(ROOT / "experiments" / "studies" / f"{spec}.toml"))}
+    theirs = {r.name: r.config for r in expand(load_spec(ROOT / "experiments" / "studies" / f"{sibling}.toml"))}
     assert ours.keys() == theirs.keys() and len(ours) in (30, 60)
     for name, cfg in theirs.items():
         assert ours[name].to_dict() == cfg.replace(**changed).to_dict(), name
 
 
 def test_the_target_critics_4000_iteration_spec_is_the_mixed_part_of_its_1500_iteration_sibling() -> None:
-    """studies/table1_seeds20_lq_affine_ss_target90_n4000.toml: mixed RL's 20 runs of the target critic's
+    """experiments/studies/table1_seeds20_lq_affine_ss_target90_n4000.toml: mixed RL's 20 runs of the target critic's
     1500-iteration table, with only the budget (and when it evaluates and saves) changed."""
-    ours = {r.name: r.config for r in expand(load_spec(ROOT / "studies" / "table1_seeds20_lq_affine_ss_target90_n4000.toml"))}
-    theirs = {r.name: r.config for r in expand(load_spec(ROOT / "studies" / "table1_seeds20_lq_affine_ss_target90.toml"))}
+    ours = {r.name: r.config for r in expand(load_spec(ROOT / "experiments" / "studies" / "table1_seeds20_lq_affine_ss_target90_n4000.toml"))}
+    theirs = {r.name: r.config for r in expand(load_spec(ROOT / "experiments" / "studies" / "table1_seeds20_lq_affine_ss_target90.toml"))}
     assert sorted(ours) == sorted(k for k in theirs if k.startswith("mixed_")) and len(ours) == 20
     for name, cfg in ours.items():
         assert cfg.to_dict() == theirs[name].replace(**{"algorithm.iterations": 4000, "run.eval_every": 800,
@@ -551,12 +551,12 @@ def test_the_target_critics_4000_iteration_spec_is_the_mixed_part_of_its_1500_it
 
 
 def test_the_oracles_10000_iteration_sweep_is_the_oracle_part_of_the_budgets_sweep() -> None:
-    """studies/table1_seeds20_lq_train_n10000_oracle.toml holds exactly the oracle runs of
-    studies/table1_seeds20_lq_train_n10000.toml (the same names and configs), so its rows join the shipped rows
+    """experiments/studies/table1_seeds20_lq_train_n10000_oracle.toml holds exactly the oracle runs of
+    experiments/studies/table1_seeds20_lq_train_n10000.toml (the same names and configs), so its rows join the shipped rows
     of the other two methods as if the 60-run sweep had finished."""
-    spec = ROOT / "studies" / "table1_seeds20_lq_train_n10000_oracle.toml"
+    spec = ROOT / "experiments" / "studies" / "table1_seeds20_lq_train_n10000_oracle.toml"
     ours = {r.name: r.config for r in expand(load_spec(spec))}
-    full = {r.name: r.config for r in expand(load_spec(ROOT / "studies" / "table1_seeds20_lq_train_n10000.toml"))}
+    full = {r.name: r.config for r in expand(load_spec(ROOT / "experiments" / "studies" / "table1_seeds20_lq_train_n10000.toml"))}
     oracle = {name: cfg for name, cfg in full.items() if cfg.method == "oracle"}
     assert len(ours) == 20 and ours.keys() == oracle.keys()
     for name, cfg in oracle.items():
@@ -564,18 +564,18 @@ def test_the_oracles_10000_iteration_sweep_is_the_oracle_part_of_the_budgets_swe
 
 
 def test_the_target_critics_held_out_study_repeats_the_ramps_control() -> None:
-    """studies/critic_target_heldout.toml: its ``switch`` runs are course_ramp_heldout's (the same configs, so the
+    """experiments/studies/critic_target_heldout.toml: its ``switch`` runs are course_ramp_heldout's (the same configs, so the
     same bits), and its ``target99`` runs, and critic_target90_heldout's ``target90`` runs, differ from them only in
     ``algorithm.critic_target``."""
-    ours = {r.name: r.config for r in expand(load_spec(ROOT / "studies" / "critic_target_heldout.toml"))}
-    ramp = {r.name: r.config for r in expand(load_spec(ROOT / "studies" / "course_ramp_heldout.toml"))}
+    ours = {r.name: r.config for r in expand(load_spec(ROOT / "experiments" / "studies" / "critic_target_heldout.toml"))}
+    ramp = {r.name: r.config for r in expand(load_spec(ROOT / "experiments" / "studies" / "course_ramp_heldout.toml"))}
     controls = {name: cfg for name, cfg in ramp.items() if name.startswith("variant=switch__")}
     assert len(ours) == 30 and len(controls) == 15
     for name, cfg in controls.items():
         assert ours[name].to_dict() == cfg.to_dict(), name
         target = ours[name.replace("variant=switch__", "variant=target99__")]
         assert target.to_dict() == cfg.replace(**{"algorithm.critic_target": 0.99}).to_dict(), name
-    follow_up = {r.name: r.config for r in expand(load_spec(ROOT / "studies" / "critic_target90_heldout.toml"))}
+    follow_up = {r.name: r.config for r in expand(load_spec(ROOT / "experiments" / "studies" / "critic_target90_heldout.toml"))}
     assert len(follow_up) == 15
     for name, cfg in follow_up.items():
         target = ours[name.replace("variant=target90__", "variant=target99__")]
@@ -694,13 +694,13 @@ def test_seed_statistics_refuses_an_unfinished_sweep_unless_partial(tmp_path: Pa
 
 def _speed_anatomy_module() -> Any:
     import importlib.util
-    sys.path.insert(0, str(ROOT / "scripts"))
+    sys.path.insert(0, str(ROOT / "experiments" / "analysis"))
     try:
-        spec = importlib.util.spec_from_file_location("speed_anatomy", ROOT / "scripts" / "speed_anatomy.py")
+        spec = importlib.util.spec_from_file_location("speed_anatomy", ROOT / "experiments" / "analysis" / "speed_anatomy.py")
         mod = importlib.util.module_from_spec(spec)
         spec.loader.exec_module(mod)
     finally:
-        sys.path.remove(str(ROOT / "scripts"))
+        sys.path.remove(str(ROOT / "experiments" / "analysis"))
     return mod
 
 

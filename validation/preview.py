@@ -1,7 +1,7 @@
 """The preview study's references and tools (docs/references.rst, "Mixed RL with path preview"):
 the NMPC that knows the path only ``reach`` metres ahead (:class:`LimitedPreviewNMPC`), a plain-NumPy copy
 of a run's actor (:class:`NumpyActor`, :func:`actor_weights`) and the per-distance scale of the preview
-columns (:func:`preview_scale`). Used by ``scripts/preview_study.py`` and its tests.
+columns (:func:`preview_scale`). Used by ``experiments/analysis/preview_study.py`` and its tests.
 """
 
 from __future__ import annotations

@@ -11,7 +11,7 @@ What it does, top to bottom:
    eq. 55), DDPG (data only) and the oracle (Algorithm 2 with the true noise) -- and every seed, train
    one run with **the same** :class:`mixedrl.config.TrainConfig` (networks, optimiser, learning rates,
    batch, iteration budget); only ``method`` and ``seed`` differ. The runs are the sweep
-   :func:`reproduction_spec` (``studies/reproduction.toml`` for 5 seeds), trained by ``mixedrl sweep``'s
+   :func:`reproduction_spec` (``experiments/studies/reproduction.toml`` for 5 seeds), trained by ``mixedrl sweep``'s
    engine into ``DIR/sweep/runs/<name>/``: the Algorithm-2 runs in batches
    (:mod:`mixedrl.algorithms.batched`), DDPG alone (batching DDPG does not pay on 2 cores:
    :func:`mixedrl.sweep.plan_batches`), on ``workers`` processes (one torch thread each).
@@ -94,8 +94,8 @@ LABELS = {"mixed": "Mixed RL", "model": "Model-driven RL", "ddpg": "Data-driven 
 #: 16x; at most this many seeds.
 QUICK = {"eval_every": 150, "eval_seeds": 1, "ddpg_warmup": 500}
 QUICK_MAX_SEEDS = 2
-#: The spec of the reproduction's runs (``mixedrl sweep studies/reproduction.toml`` trains the same).
-SPEC_PATH = Path(__file__).resolve().parent.parent / "studies" / "reproduction.toml"
+#: The spec of the reproduction's runs (``mixedrl sweep experiments/studies/reproduction.toml`` trains the same).
+SPEC_PATH = Path(__file__).resolve().parent.parent / "experiments" / "studies" / "reproduction.toml"
 
 
 def run_config(label: str, seed: int, quick: bool = False) -> TrainConfig:
@@ -193,7 +193,7 @@ class TheoryObserver:
 
 def theory_observer(config: TrainConfig, every: int = 250) -> TheoryObserver | None:
     """The observer of a reproduction run: :class:`TheoryObserver` for Algorithm 2, none for DDPG (the
-    ``observer`` of ``studies/reproduction.toml``)."""
+    ``observer`` of ``experiments/studies/reproduction.toml``)."""
     return None if config.method == "ddpg" else TheoryObserver(every)
 
 
@@ -236,7 +236,7 @@ def reproduction_spec(seeds: int = 5, quick: bool = False) -> SweepSpec:
     """The sweep of the reproduction: every label of :data:`METHODS` and :data:`EXTRA` over seeds
     ``0 .. seeds-1``, each run's config :func:`run_config`, with the theory checks as its observer.
 
-    For ``seeds=5`` (not quick) it expands to the runs of ``studies/reproduction.toml`` (tested).
+    For ``seeds=5`` (not quick) it expands to the runs of ``experiments/studies/reproduction.toml`` (tested).
     """
     base = run_config("mixed", 0, quick).to_dict()
     default = TrainConfig().to_dict()

@@ -1,0 +1,283 @@
+"""The results page of the studies (``docs/results.rst``): for each variant of Table I's double-lane-change rows
+(issue 21's precision study), its question, its spec and its measured row, one line each.
+
+Every number on the page is read from the shipped result files under ``experiments/results/table1_seeds20``
+(``summary.json`` and ``per_seed.csv`` of :mod:`seed_statistics`, ``course_switch.json`` of
+:mod:`course_switch`, ``budgets.json`` of :mod:`budget_plateau`); the questions and outcomes below are the only
+words written here, and they hold no numbers. The page is generated, never edited by hand (a test checks that
+the shipped page is this script's output)::
+
+    PYTHONPATH=. python experiments/analysis/results_page.py            # writes docs/results.rst
+    PYTHONPATH=. python experiments/analysis/results_page.py --check    # exit 1 if docs/results.rst differs
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import dataclasses
+import json
+import statistics
+import sys
+from pathlib import Path
+from typing import Any
+
+ROOT = Path(__file__).resolve().parents[2]
+RESULTS = ROOT / "experiments" / "results" / "table1_seeds20"
+STUDIES = ROOT / "experiments" / "studies"
+PAGE = ROOT / "docs" / "results.rst"
+#: The results directory as the page (in ``docs/``) links it.
+LINK = "../experiments/results/table1_seeds20"
+#: The precision issue's per-seed speed target [m/s].
+SPEED_TARGET = 0.010
+
+
+@dataclasses.dataclass(frozen=True)
+class Row:
+    """One shipped row: its directory under :data:`RESULTS`, the specs whose runs it holds (under
+    :data:`STUDIES`), the question it was run to answer and what became of the option."""
+
+    folder: str
+    specs: tuple[str, ...]
+    question: str
+    outcome: str
+    #: ``seed_statistics.py --feedforward``: the checkpoints of the specs evaluated again with it.
+    feedforward: str | None = None
+
+
+#: Table I's Algorithm-2 rows over seeds 0-19 (1500 iterations unless the spec says otherwise), in the order
+#: they were run. Only ``seeds20`` is the default (Algorithm 2 as written, the paper's setting).
+TWENTY_SEEDS = (
+    Row("seeds20", ("table1_seeds20",),
+        "Algorithm 2 as written (the paper's setting): do the paper's claims hold seed by seed?",
+        "The reference row and the default: on the mean yes, seed by seed close to a coin toss."),
+    Row("feedforward", ("table1_seeds20",),
+        "Is the action at the equilibrium what separates the methods? (the same checkpoints, each policy shifted "
+        "to the LQ optimum's action for its own noise mean)",
+        "Every method improves, mostly laterally (the learned actors' steering bias); the per-seed targets are "
+        "still missed. Off by default.", feedforward="lq"),
+    Row("feedforward_lq_train", ("table1_seeds20_lq_train",),
+        "Does anchoring the actor at that action during training resolve the feed-forward and the targets?",
+        "Training becomes reliable for model-driven RL and the oracle; speed is ordered as the physics orders "
+        "it; the targets are missed. Off by default."),
+    Row("feedforward_lq_train_n4000", ("table1_seeds20_lq_train_n4000",),
+        "Does the plateau hold at 4000 iterations, and does mixed RL reach the oracle?",
+        "The plateau holds; mixed RL is the oracle on speed; the per-seed targets are missed."),
+    Row("feedforward_lq_train_n10000", ("table1_seeds20_lq_train_n10000", "table1_seeds20_lq_train_n10000_oracle"),
+        "At 10,000 iterations?",
+        "Every target but speed on every seed is met; the oracle misses that one too. A budget, not a default."),
+    Row("feedforward_lq_affine", ("table1_seeds20_lq_affine",),
+        "Does fixing the gain at the equilibrium too (the LQ optimum's affine part) order the speed error?",
+        "Speed is ordered by the noise estimate; the course gets worse for every method (the gain is the straight "
+        "road's). Off by default."),
+    Row("feedforward_lq_affine_ss", ("table1_seeds20_lq_affine_ss",),
+        "The affine part expanded about the steady state?",
+        "As lq_affine: one speed win more, within the spread, and an outlying seed after the course switch. Off by "
+        "default."),
+    Row("feedforward_lq_affine_ss_ramp", ("table1_seeds20_lq_affine_ss_ramp",),
+        "Does a gradual course switch (sampler.course_ramp = 500) remove the outlying seeds?",
+        "The paired speed targets are met together; the lateral and cost targets are not. Off by default."),
+    Row("feedforward_lq_train_n4000_ramp", ("table1_seeds20_lq_train_n4000_ramp",),
+        "Does the gradual switch help lq_train at 4000 iterations?",
+        "No: it hurts on the worst seed. Not promoted."),
+    Row("feedforward_lq_affine_ss_target90", ("table1_seeds20_lq_affine_ss_target90",),
+        "Does PEV's target critic (algorithm.critic_target = 0.9) cut the seed-to-seed spread?",
+        "The spread collapses for every method; the ratio and speed on every seed are missed. Off by default."),
+    Row("feedforward_lq_affine_ss_ramp_target90", ("table1_seeds20_lq_affine_ss_ramp_target90",),
+        "The gradual switch and the target critic together?",
+        "Worse on speed than either alone. Not promoted."),
+    Row("feedforward_lq_affine_ss_target90_n4000", ("table1_seeds20_lq_affine_ss_target90_n4000",),
+        "Does more training bring mixed RL's speed error within 0.010 m/s on every seed? (mixed RL only)",
+        "No: cost and lateral fall on every seed, speed rises (spent in the lane changes)."),
+)
+
+#: DDPG's rows over the same seeds, paired with mixed RL's shipped ``seeds20`` rows.
+DDPG = Row("seeds20_ddpg", ("table1_seeds20", "table1_seeds20_ddpg"),
+           "Does mixed RL beat DDPG (the paper's budget and 16 times it) seed by seed?",
+           "Yes, on every seed in lateral error, speed error and cost: Table I's ordering.")
+
+#: The held-out seeds 20-24, each option against the plain switch, judged by a training-time criterion
+#: (the critic's rise after the course switch) fixed before the runs.
+HELD_OUT = (
+    Row("course_ramp_heldout", ("course_ramp_heldout",),
+        "Does a gradual course switch lower the critic's rise after the switch (criterion fixed before the runs)?",
+        "Criterion met; the twenty-seed row followed (feedforward_lq_affine_ss_ramp)."),
+    Row("critic_target_heldout", ("critic_target_heldout",),
+        "Does PEV's target critic at 0.99 lower the rise?",
+        "Criterion met, but every target run leaves the road: not promoted, no twenty-seed row."),
+    Row("critic_target90_heldout", ("critic_target90_heldout",),
+        "The faster target critic, 0.9?",
+        "Criterion not met, the course figures improved; the twenty-seed row tested it "
+        "(feedforward_lq_affine_ss_target90)."),
+)
+
+#: The course cost of ``lq_train`` over the budgets 1500, 4000 and 10,000 iterations.
+BUDGETS = Row("budgets_lq_train", ("table1_seeds20_lq_train", "table1_seeds20_lq_train_n4000",
+                                   "table1_seeds20_lq_train_n10000", "table1_seeds20_lq_train_n10000_oracle"),
+              "Does each method keep its course-cost plateau as the budget grows, with no seed diverging?",
+              "Yes for every method at both steps.")
+
+LABELS = {"mixed": "mixed RL", "model": "model-driven RL", "oracle": "oracle"}
+
+
+def per_seed(folder: str) -> list[dict[str, str]]:
+    """The rows of a shipped ``per_seed.csv``."""
+    with (RESULTS / folder / "per_seed.csv").open(newline="") as fh:
+        return list(csv.DictReader(fh))
+
+
+def _load(folder: str, name: str) -> Any:
+    return json.loads((RESULTS / folder / name).read_text())
+
+
+def _g(x: float, digits: int = 3) -> str:
+    return f"{x:.{digits}g}"
+
+
+def _interval(ci: list[float], fmt: str = "{:.3f}") -> str:
+    return "[" + ", ".join(fmt.format(v) for v in ci) + "]"
+
+
+def measured_twenty(row: Row) -> str:
+    """Mixed RL's figures of a 20-seed row and its pairs with model-driven RL and the oracle."""
+    summary = _load(row.folder, "summary.json")
+    m = summary["methods"]["mixed"]
+    speeds = [float(r["speed_mae"]) for r in per_seed(row.folder) if r["method"] == "mixed"]
+    within = sum(v <= SPEED_TARGET for v in speeds)
+    parts = [f"speed {_g(m['speed_mae']['mean'])} ± {_g(m['speed_mae']['std'], 2)} m/s (within 0.010 on {within} "
+             f"of {len(speeds)}, worst {_g(m['speed_mae']['max'])})",
+             f"lateral {_g(m['lateral_mae']['mean'])} m (worst {_g(m['lateral_mae']['max'])})",
+             f"cost {m['cost']['mean']:.1f} ± {m['cost']['std']:.1f}",
+             f"``|a_x - a_x*|`` worst {m['ax_error']['max']:.1e} m/s^2"]
+    pair = summary["pairs"].get("mixed-model", {}).get("speed_mae")
+    if pair:
+        parts.append(f"model / mixed speed {pair['model_over_mixed']:.2f} {_interval(pair['ratio_ci'], '{:.2f}')}, "
+                     f"difference CI {_interval(pair['difference_ci'], '{:+.4f}')}, mixed better on {pair['wins']} "
+                     f"of {pair['n']}")
+    cost = summary["targets"].get("mixed_cost_within_5pct_of_oracle")
+    if cost:
+        parts.append(f"mixed / oracle cost {cost['measured']['mixed_over_oracle']:.3f} "
+                     f"{_interval(cost['measured']['ci'])}")
+    met = sum(t["met"] for k, t in summary["targets"].items() if "stretch" not in k)
+    total = sum("stretch" not in k for k in summary["targets"])
+    parts.append(f"targets met {met} of {total}")
+    return "; ".join(parts)
+
+
+def measured_ddpg(row: Row) -> str:
+    """Mixed RL against each DDPG variant, seed by seed."""
+    summary = _load(row.folder, "summary.json")
+    out = []
+    for key in ("ddpg[paper]", "ddpg[ddpg_long]"):
+        pair = summary["pairs"][f"mixed-{key}"]
+        figs = ", ".join(f"{f.split('_')[0]} {pair[f]['difference']:+.3g} {_interval(pair[f]['difference_ci'], '{:+.3g}')}"
+                         f" ({pair[f]['wins']} of {pair[f]['n']})" for f in ("lateral_mae", "speed_mae", "cost"))
+        out.append(f"mixed RL - {key}: {figs}")
+    return "; ".join(out)
+
+
+def measured_held_out(row: Row) -> str:
+    """Per variant: the critic's median and largest rise over its runs, mixed RL's speed and cost."""
+    switch = _load(row.folder, "course_switch.json")
+    summary = _load(row.folder, "summary.json")
+    variants: dict[str, list[float]] = {}
+    for run in switch["runs"]:
+        variants.setdefault(run["row"].split("[", 1)[1].rstrip("]"), []).append(run["rise"])
+    out = []
+    for variant, rises in variants.items():
+        mixed = summary["methods"][f"mixed[{variant}]"]
+        out.append(f"{variant}: rise median {statistics.median(rises):.2f}, largest {max(rises):.1f} "
+                   f"({len(rises)} runs); mixed RL speed {_g(mixed['speed_mae']['mean'])} m/s, cost "
+                   f"{mixed['cost']['mean']:.1f}")
+    return "; ".join(out)
+
+
+def measured_budgets(row: Row) -> str:
+    """Per method: the ratio of mean costs from one budget to the next, with its interval."""
+    doc = _load(row.folder, "budgets.json")
+    out = []
+    for method, entry in doc["rows"].items():
+        steps = ", ".join(f"{s['from']} -> {s['to']} {s['mean_ratio']:.3f} {_interval(s['ratio_ci'])}"
+                          f"{'' if s['plateau_met'] else ' MISSED'}" for s in entry["steps"])
+        out.append(f"{LABELS.get(method, method)} {steps}")
+    return "; ".join(out)
+
+
+def _spec_links(row: Row) -> str:
+    return ", ".join(f"``{s}.toml``" for s in row.specs) + (
+        f" evaluated with ``--feedforward {row.feedforward}``" if row.feedforward else "")
+
+
+def _table(rows: tuple[Row, ...], measure: Any) -> list[str]:
+    lines = [".. list-table::", "   :header-rows: 1", "   :widths: 14 24 16 34 12", "",
+             "   * - row", "     - question", "     - spec (``experiments/studies/``)", "     - measured",
+             "     - outcome"]
+    for row in rows:
+        files = sorted(p.name for p in (RESULTS / row.folder).iterdir() if p.suffix in (".txt", ".csv", ".json"))
+        links = ", ".join(f":download:`{name} <{LINK}/{row.folder}/{name}>`" for name in files)
+        lines += [f"   * - ``{row.folder}``", f"     - {row.question}", f"     - {_spec_links(row)}",
+                  f"     - {measure(row)} ({links})", f"     - {row.outcome}"]
+    return lines + [""]
+
+
+def render() -> str:
+    """The text of ``docs/results.rst``."""
+    lines = [
+        ".. Generated by experiments/analysis/results_page.py from experiments/results; do not edit.",
+        "",
+        "Results of the studies",
+        "======================",
+        "",
+        "The variants of Table I's double-lane-change rows tried by the precision study (:doc:`precision` draws "
+        "the conclusions). Each row is one shipped directory of ``experiments/results/table1_seeds20``, produced "
+        "from its spec in ``experiments/studies`` by ``mixedrl sweep`` and the analysis scripts of "
+        "``experiments/analysis`` (the commands are at the top of each spec). One option became a default: none. "
+        "Algorithm 2 as written stays Table I's algorithm; each option stays off by default and its result is "
+        "its row here.",
+        "",
+        "Twenty seeds",
+        "------------",
+        "",
+        "Seeds 0-19, none selected; mixed RL's figures (mean ± sample std over the seeds), then the paired "
+        "comparisons with model-driven RL and the oracle (95% paired bootstrap intervals) and the number of the "
+        "precision issue's targets met (``targets.txt`` below lists them).",
+        "",
+    ]
+    lines += _table(TWENTY_SEEDS, measured_twenty)
+    lines += ["DDPG over the same seeds, paired with mixed RL's ``seeds20`` runs: the difference mixed RL - DDPG "
+              "[95% interval] of lateral error, speed error and cost, and the seeds on which mixed RL is better.", ""]
+    lines += _table((DDPG,), measured_ddpg)
+    lines += ["Held-out seeds", "--------------", "",
+              "Seeds 20-24 (no table's), each option beside the plain switch: the rise of the critic's loss after "
+              "the course switch (the criterion, fixed before the runs) over the variant's runs, and mixed RL's "
+              "course figures (looked at after the criterion).", ""]
+    lines += _table(HELD_OUT, measured_held_out)
+    lines += ["Budgets", "-------", "",
+              "The course cost of ``lq_train`` over the budgets: the ratio of mean costs from one budget to the next "
+              "[paired 95% interval] (the plateau target: at most 1.05 and no seed diverged).", ""]
+    lines += _table((BUDGETS,), measured_budgets)
+    lines += ["Every row against the targets", "-----------------------------", "",
+              "``experiments/analysis/target_matrix.py`` over the twenty-seed rows:", "",
+              f".. include:: {LINK}/targets.txt", "   :literal:", "",
+              "The odds of 18 wins of 20 at each row's spread (``experiments/analysis/win_odds.py``):", "",
+              f".. include:: {LINK}/win_odds.txt", "   :literal:", ""]
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--check", action="store_true", help="compare with docs/results.rst instead of writing it")
+    args = parser.parse_args(argv)
+    text = render()
+    if args.check:
+        if PAGE.read_text() != text:
+            print(f"{PAGE} is not this script's output; run: PYTHONPATH=. python {Path(__file__).relative_to(ROOT)}",
+                  file=sys.stderr)
+            return 1
+        return 0
+    PAGE.write_text(text)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,102 @@
+"""The results page of the studies (``docs/results.rst``, ``experiments/analysis/results_page.py``) and the guard
+of the rows it lists: every shipped row of the double lane change's precision study is re-derivable from its spec.
+
+* the shipped page is the script's output (never edited by hand);
+* every shipped row holds exactly the runs its specs expand to (method, variant and seed; the budget and the
+  trained feed-forward of each), so a row is re-trained by ``mixedrl sweep`` of its specs;
+* every shipped ``summary.json`` is the statistics of its shipped ``per_seed.csv`` (``seed_statistics.py``), and the
+  derived files (``budgets_lq_train``, ``targets.txt``, ``win_odds.txt``) are those scripts' outputs on the
+  shipped rows, byte for byte.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from experiments.analysis import results_page as RP
+from experiments.analysis import seed_statistics as SS
+from mixedrl.sweep import expand, load_spec
+
+ROOT = Path(__file__).resolve().parents[1]
+ANALYSIS = ROOT / "experiments" / "analysis"
+ROWS = RP.TWENTY_SEEDS + (RP.DDPG,) + RP.HELD_OUT
+#: The twenty-seed rows of ``targets.txt`` and of ``win_odds.txt``, in their order.
+TARGET_ROWS = ["seeds20", "feedforward", "feedforward_lq_train", "feedforward_lq_train_n4000",
+               "feedforward_lq_train_n10000", "feedforward_lq_affine", "feedforward_lq_affine_ss",
+               "feedforward_lq_affine_ss_ramp", "feedforward_lq_train_n4000_ramp",
+               "feedforward_lq_affine_ss_target90", "feedforward_lq_affine_ss_ramp_target90",
+               "feedforward_lq_affine_ss_target90_n4000"]
+ODDS_ROWS = ["seeds20", "feedforward", "feedforward_lq_train", "feedforward_lq_train_n4000", "feedforward_lq_affine",
+             "feedforward_lq_affine_ss", "feedforward_lq_affine_ss_ramp", "feedforward_lq_train_n10000",
+             "feedforward_lq_train_n4000_ramp", "feedforward_lq_affine_ss_target90",
+             "feedforward_lq_affine_ss_ramp_target90"]
+
+
+def _script(name: str, *args: str, cwd: Path) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, str(ANALYSIS / name), *args], capture_output=True, text=True, cwd=cwd,
+                          env={**os.environ, "PYTHONPATH": str(ROOT)}, timeout=600)
+
+
+def test_the_shipped_results_page_is_the_scripts_output() -> None:
+    assert (ROOT / "docs" / "results.rst").read_text() == RP.render(), \
+        "docs/results.rst is edited or stale: PYTHONPATH=. python experiments/analysis/results_page.py"
+
+
+def test_every_shipped_result_directory_is_on_the_page() -> None:
+    """No row of the study is shipped without its line on the page (and no line without its directory)."""
+    shipped = {p.name for p in RP.RESULTS.iterdir() if p.is_dir()}
+    assert shipped == {r.folder for r in ROWS + (RP.BUDGETS,)}
+
+
+@pytest.mark.parametrize("row", ROWS, ids=lambda r: r.folder)
+def test_every_shipped_row_holds_the_runs_of_its_specs(row: RP.Row) -> None:
+    runs = {}
+    for spec in row.specs:
+        for run in expand(load_spec(RP.STUDIES / f"{spec}.toml")):
+            runs[(SS.row_key(run.config.method, run.point.get("variant")), run.config.seed)] = run.config
+    shipped = RP.per_seed(row.folder)
+    keys = [(SS.row_key(r["method"], r.get("variant")), int(r["seed"])) for r in shipped]
+    assert len(keys) == len(set(keys)) and set(keys) == set(runs), row.folder
+    for key, rec in zip(keys, shipped):
+        cfg = runs[key]
+        assert int(rec["iterations"]) == cfg.algorithm.iterations, (row.folder, key)
+        assert (rec.get("trained_feedforward") or "learned") == cfg.algorithm.feedforward, (row.folder, key)
+
+
+@pytest.mark.parametrize("row", ROWS, ids=lambda r: r.folder)
+def test_every_shipped_summary_is_the_statistics_of_its_per_seed_rows(row: RP.Row) -> None:
+    rows = SS.load_csv_rows(RP.RESULTS / row.folder / "per_seed.csv")
+    stats = json.loads(json.dumps(SS.statistics(rows)))
+    assert stats == json.loads((RP.RESULTS / row.folder / "summary.json").read_text())
+
+
+def test_the_derived_files_are_their_scripts_outputs_on_the_shipped_rows(tmp_path: Path) -> None:
+    """budgets_lq_train from the three budgets' per_seed.csv, targets.txt and win_odds.txt from the rows."""
+    sources = [f"{d}/per_seed.csv" for d in ("feedforward_lq_train", "feedforward_lq_train_n4000",
+                                               "feedforward_lq_train_n10000")]
+    proc = _script("budget_plateau.py", *sources, "--dest", str(tmp_path / "budgets"), cwd=RP.RESULTS)
+    assert proc.returncode == 0, proc.stderr
+    for name in ("budgets.json", "budgets.txt"):
+        assert (tmp_path / "budgets" / name).read_text() == (RP.RESULTS / "budgets_lq_train" / name).read_text()
+    proc = _script("target_matrix.py", *TARGET_ROWS, "--out", str(tmp_path / "targets.txt"), cwd=RP.RESULTS)
+    assert proc.returncode == 0, proc.stderr
+    assert (tmp_path / "targets.txt").read_text() == (RP.RESULTS / "targets.txt").read_text()
+    proc = _script("win_odds.py", *(f"{d}/per_seed.csv" for d in ODDS_ROWS), "--out", str(tmp_path / "odds.txt"),
+                   cwd=RP.RESULTS)
+    assert proc.returncode == 0, proc.stderr
+    assert (tmp_path / "odds.txt").read_text() == (RP.RESULTS / "win_odds.txt").read_text()
+
+
+def test_the_per_seed_speed_counts_on_the_page_are_the_csvs() -> None:
+    """The page's "within 0.010 on k of 20" is counted from per_seed.csv (the figure target_matrix.py shows)."""
+    for row in RP.TWENTY_SEEDS:
+        with (RP.RESULTS / row.folder / "per_seed.csv").open(newline="") as fh:
+            speeds = [float(r["speed_mae"]) for r in csv.DictReader(fh) if r["method"] == "mixed"]
+        assert f"within 0.010 on {sum(v <= 0.010 for v in speeds)} of {len(speeds)}" in RP.measured_twenty(row)
