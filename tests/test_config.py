@@ -187,7 +187,7 @@ def test_the_dlc_task_supplies_its_experiment_configuration() -> None:
 
 def test_a_task_without_a_preset_gets_generic_defaults() -> None:
     cfg = TrainConfig(task="linear")
-    # the measured generic defaults (studies/custom_defaults.toml): rollouts restarted outside 3 x obs_scale,
+    # the measured generic defaults (experiments/studies/custom_defaults.toml): rollouts restarted outside 3 x obs_scale,
     # the relative batch weighting
     assert cfg.sampler.name == "model_rollouts" and cfg.sampler.box == 3.0
     assert cfg.algorithm.lr_decay_iterations == 0  # the decay is tied to the budget

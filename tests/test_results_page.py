@@ -17,6 +17,7 @@ import os
 import subprocess
 import sys
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -100,3 +101,51 @@ def test_the_per_seed_speed_counts_on_the_page_are_the_csvs() -> None:
         with (RP.RESULTS / row.folder / "per_seed.csv").open(newline="") as fh:
             speeds = [float(r["speed_mae"]) for r in csv.DictReader(fh) if r["method"] == "mixed"]
         assert f"within 0.010 on {sum(v <= 0.010 for v in speeds)} of {len(speeds)}" in RP.measured_twenty(row)
+
+
+def _ship() -> Any:
+    import importlib.util
+    spec = importlib.util.spec_from_file_location("ship", ROOT / "experiments" / "ship.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+@pytest.mark.parametrize("spec", sorted((ROOT / "experiments" / "studies").glob("*.toml")), ids=lambda p: p.stem)
+def test_every_spec_names_the_commands_that_ship_it(spec: Path) -> None:
+    """experiments/ship.py SPEC: the header's first command trains the spec itself (``mixedrl sweep`` of it, or
+    the beyond-the-paper runner that drives that sweep), and every script it names exists."""
+    cmds = _ship().commands(spec)
+    assert cmds, spec.name
+    first = cmds[0]
+    assert first[:3] == ["mixedrl", "sweep", f"experiments/studies/{spec.name}"] or \
+        first[1:4] == ["experiments/analysis/beyond_paper.py", "run", spec.stem], first
+    for argv in cmds:
+        assert argv[0] in ("mixedrl", "python"), argv
+        if argv[0] == "python":
+            assert (ROOT / argv[1]).is_file(), argv
+
+
+def test_every_shipped_row_of_the_study_is_written_by_a_specs_commands() -> None:
+    dests = {argv[argv.index("--dest") + 1] for spec in (ROOT / "experiments" / "studies").glob("*.toml")
+             for argv in _ship().commands(spec) if "--dest" in argv}
+    for row in ROWS + (RP.BUDGETS,):
+        assert f"experiments/results/table1_seeds20/{row.folder}" in dests, row.folder
+
+
+@pytest.mark.sweep
+def test_ship_runs_a_specs_header_from_the_repository_root(tmp_path: Path) -> None:
+    """The commands of a (tiny) spec's header, continuation lines included, run in order: the sweep, then the
+    analysis into --dest; --analysis skips the sweep."""
+    spec = tmp_path / "tiny.toml"
+    spec.write_text(f"# A tiny spec.\n#\n#   mixedrl sweep {spec} --out {tmp_path / 'sweep'} --workers 1\n"
+                    f"#   python experiments/analysis/seed_statistics.py {tmp_path / 'sweep'} \\\n"
+                    f"#       --dest {tmp_path / 'out'}\n#\n"
+                    'methods = ["mixed"]\nseeds = [0, 1]\n[base]\n"algorithm.iterations" = 2\n'
+                    '"algorithm.batch_size" = 16\n"run.eval_every" = 2\n"run.eval_seeds" = 1\n')
+    ship = _ship()
+    assert [c[:2] for c in ship.commands(spec)] == [["mixedrl", "sweep"], ["python", "experiments/analysis/seed_statistics.py"]]
+    assert ship.run(spec) == 0
+    assert json.loads((tmp_path / "out" / "summary.json").read_text())["methods"]["mixed"]["seeds"] == [0, 1]
+    (tmp_path / "out" / "summary.json").unlink()
+    assert ship.run(spec, analysis_only=True) == 0 and (tmp_path / "out" / "summary.json").is_file()

@@ -231,7 +231,8 @@ def render() -> str:
         "The variants of Table I's double-lane-change rows tried by the precision study (:doc:`precision` draws "
         "the conclusions). Each row is one shipped directory of ``experiments/results/table1_seeds20``, produced "
         "from its spec in ``experiments/studies`` by ``mixedrl sweep`` and the analysis scripts of "
-        "``experiments/analysis`` (the commands are at the top of each spec). One option became a default: none. "
+        "``experiments/analysis``: the commands at the top of each spec, run by ``python experiments/ship.py SPEC``. "
+        "One option became a default: none. "
         "Algorithm 2 as written stays Table I's algorithm; each option stays off by default and its result is "
         "its row here.",
         "",
@@ -257,7 +258,8 @@ def render() -> str:
               "[paired 95% interval] (the plateau target: at most 1.05 and no seed diverged).", ""]
     lines += _table((BUDGETS,), measured_budgets)
     lines += ["Every row against the targets", "-----------------------------", "",
-              "``experiments/analysis/target_matrix.py`` over the twenty-seed rows:", "",
+              "``experiments/analysis/target_matrix.py`` over the shipped twenty-seed rows (re-derived by the tests, as "
+              "``budgets_lq_train`` and the odds below):", "",
               f".. include:: {LINK}/targets.txt", "   :literal:", "",
               "The odds of 18 wins of 20 at each row's spread (``experiments/analysis/win_odds.py``):", "",
               f".. include:: {LINK}/win_odds.txt", "   :literal:", ""]
