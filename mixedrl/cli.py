@@ -218,10 +218,19 @@ def _requested_config(args: argparse.Namespace, run: RunDirectory) -> TrainConfi
     return TrainConfig.from_dict(base)
 
 
+#: Seeds the generators accept: ``[0, 2**64 - 1]``.
+SEED_RANGE = (0, 2**64 - 1)
+
+
 def _train(args: argparse.Namespace) -> int:
+    if args.seed is not None and not SEED_RANGE[0] <= args.seed <= SEED_RANGE[1]:
+        raise ValueError(f"--seed: {args.seed} is out of range; expected an integer in [0, 2**64 - 1]")
     run = RunDirectory(args.out)
     if args.resume and not run.holds_run():
-        raise ValueError(f"--resume: {run.path} holds no run to resume (no config.json or checkpoint.pt)")
+        names = run.entries()  # what is there instead (a .lock listed here is not the package's)
+        found = f"; it holds {', '.join(names[:3])}, which mixedrl did not write" if names else ""
+        raise ValueError(f"--resume: {run.path} holds no run to resume (no config.json, checkpoint.pt or lock "
+                         f"of a started run{found})")
     config = _requested_config(args, run)
     trainer = make_trainer(config)
     try:

@@ -1,0 +1,286 @@
+"""The holes of issue 43 in run directories, checkpoints, sweeps and the command line: every refusal is one
+line naming the argument or file (exit 2) and changes nothing on disk, and a run killed at any write of
+its protocol resumes to the result of an uninterrupted run."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+from pathlib import Path
+from typing import Any
+
+import pytest
+import torch
+
+import mixedrl.checkpoint
+from mixedrl.cli import main
+from mixedrl.config import TrainConfig
+from mixedrl.runs import RunDirectory, load_checkpoint, make_trainer, save_checkpoint, train
+
+#: A fast run on the linear task (4 iterations, a checkpoint every 2).
+SET = ["--set", 'task="linear"', "algorithm.iterations=4", "algorithm.batch_size=32", "run.eval_every=2",
+       "run.checkpoint_every=2", "run.eval_seeds=1"]
+TRAIN = ["train", "--method", "mixed", "--no-progress"]
+CONFIG = TrainConfig.from_dict({"method": "mixed", "seed": 1, "task": "linear",
+                                "algorithm": {"iterations": 4, "batch_size": 32},
+                                "run": {"eval_every": 2, "checkpoint_every": 2, "eval_seeds": 1}})
+
+
+def snapshot(root: Path) -> dict[str, Any]:
+    """Every path under ``root`` with its bytes (a link: its target; a directory: None)."""
+    out: dict[str, Any] = {}
+    for p in sorted(root.rglob("*")):
+        rel = str(p.relative_to(root))
+        out[rel] = ("->", os.readlink(p)) if p.is_symlink() else None if p.is_dir() else p.read_bytes()
+    return out
+
+
+def refused(args: list[str], capsys: pytest.CaptureFixture[str], root: Path, match: str) -> str:
+    """Run ``mixedrl args``: exit 2, one line on stderr containing ``match``, nothing under ``root`` changed."""
+    capsys.readouterr()
+    before = snapshot(root)
+    rc = main(args)
+    err = capsys.readouterr().err
+    assert rc == 2, err
+    assert len(err.strip().splitlines()) == 1 and match in err, err
+    assert snapshot(root) == before
+    return err
+
+
+@pytest.fixture(scope="module")
+def finished(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    out = tmp_path_factory.mktemp("finished") / "run"
+    assert main([*TRAIN, "--out", str(out), *SET]) == 0
+    return out
+
+
+@pytest.fixture()
+def run_copy(finished: Path, tmp_path: Path) -> Path:
+    out = tmp_path / "run"
+    shutil.copytree(finished, out)
+    return out
+
+
+# ---------------------------------------------------------------------------------------------------
+# item 1: the lock file never follows a link and a directory holding a foreign .lock is not a run
+# ---------------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("resume", [False, True], ids=["train", "resume"])
+@pytest.mark.parametrize("kind", ["symlink", "hardlink", "other-content"])
+def test_planted_lock_destroys_nothing(tmp_path: Path, kind: str, resume: bool,
+                                       capsys: pytest.CaptureFixture[str]) -> None:
+    victim = tmp_path / "victim"
+    victim.write_text("precious\n")
+    out = tmp_path / "x"
+    out.mkdir()
+    if kind == "symlink":
+        (out / ".lock").symlink_to(victim)
+    elif kind == "hardlink":
+        os.link(victim, out / ".lock")
+    else:
+        (out / ".lock").write_text("precious\n")
+    refused([*TRAIN, "--out", str(out), *SET, *(["--resume"] if resume else [])], capsys, tmp_path, ".lock")
+    assert victim.read_text() == "precious\n"
+
+
+def test_lock_left_by_a_killed_run_is_not_foreign(run_copy: Path, tmp_path: Path,
+                                                  capsys: pytest.CaptureFixture[str]) -> None:
+    """The lock a finished (or killed) run leaves is the package's: a new run there starts."""
+    out = tmp_path / "fresh"
+    out.mkdir()
+    shutil.copy(run_copy / ".lock", out / ".lock")
+    assert main([*TRAIN, "--out", str(out), *SET]) == 0
+    assert (out / "results.json").is_file()
+
+
+# ---------------------------------------------------------------------------------------------------
+# item 2: config.json has a digest, verified by evaluate and --resume
+# ---------------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("command", ["evaluate", "resume"])
+def test_edited_config_is_refused(run_copy: Path, command: str, capsys: pytest.CaptureFixture[str]) -> None:
+    path = run_copy / "config.json"
+    record = json.loads(path.read_text())
+    record["task"]["q_lateral"] = 2.0 * record["task"].get("q_lateral", 1.0)
+    path.write_text(json.dumps(record, indent=2, sort_keys=True) + "\n")
+    args = ["evaluate", str(run_copy)] if command == "evaluate" else [*TRAIN, "--out", str(run_copy), "--resume"]
+    refused(args, capsys, run_copy, f"config: {path} is corrupted")
+
+
+# ---------------------------------------------------------------------------------------------------
+# item 3: a kill at any write of the protocol leaves a run that resumes to the uninterrupted result
+# ---------------------------------------------------------------------------------------------------
+class Killed(BaseException):
+    """A simulated kill -9 (not an Exception: nothing catches it)."""
+
+
+def _outcome(path: Path) -> dict[str, Any]:
+    """What an interrupted and resumed run must share with an uninterrupted one (times left out)."""
+    run = RunDirectory(path)
+    results = {k: v for k, v in run.read_results().items() if k != "train_seconds"}
+    rows = [{k: v for k, v in r.items() if k != "time/elapsed_s"} for r in run.read_metrics()]
+    trainer = load_checkpoint(run.checkpoint_path)["trainer"]
+    names = sorted(n for n in os.listdir(path) if not n.endswith(".tmp"))
+    weights = {f"{net}.{name}": t.numpy().tobytes() for net in ("actor", "critic") for name, t in trainer[net].items()}
+    return {"results": results, "rows": rows, "weights": weights, "k": trainer["k"],
+            "config": run.read_record(), "names": names}
+
+
+def _kill_at(n: int, monkeypatch: pytest.MonkeyPatch) -> list[int]:
+    """Make the ``n``-th write of a run (an atomic file write or an append of metrics rows) die half-way:
+    an atomic write leaves its temporary file, an append half of its bytes. Returns the write counter."""
+    count = [0]
+    atomic, append = mixedrl.checkpoint.atomic_write_bytes, RunDirectory.append_metrics
+
+    def atomic_write_bytes(path: str | Path, data: bytes) -> None:
+        count[0] += 1
+        if count[0] == n:
+            path = Path(path)
+            (path.parent / f".{path.name}.killed.tmp").write_bytes(data[: len(data) // 2])
+            raise Killed
+        atomic(path, data)
+
+    def append_metrics(self: RunDirectory, rows: list[dict[str, Any]]) -> None:
+        if rows:
+            count[0] += 1
+            if count[0] == n:
+                text = "".join(json.dumps(r) + "\n" for r in rows)
+                with open(self.metrics_path, "a") as fh:
+                    fh.write(text[: len(text) // 2 + 1])
+                raise Killed
+        append(self, rows)
+
+    monkeypatch.setattr(mixedrl.checkpoint, "atomic_write_bytes", atomic_write_bytes)
+    monkeypatch.setattr(RunDirectory, "append_metrics", append_metrics)
+    return count
+
+
+def test_a_kill_at_every_write_resumes_to_the_uninterrupted_run(tmp_path: Path,
+                                                                 monkeypatch: pytest.MonkeyPatch) -> None:
+    with monkeypatch.context() as m:
+        count = _kill_at(0, m)
+        train(make_trainer(CONFIG), RunDirectory(tmp_path / "whole"), progress=False)
+    writes = count[0]
+    reference = _outcome(tmp_path / "whole")
+    assert writes >= 12  # config, metrics and checkpoints at 2 and 4, csv, results (each with its digest)
+    for n in range(1, writes + 1):
+        out = tmp_path / f"killed{n}"
+        with monkeypatch.context() as m:
+            _kill_at(n, m)
+            with pytest.raises(Killed):
+                train(make_trainer(CONFIG), RunDirectory(out), progress=False)
+        train(make_trainer(CONFIG), RunDirectory(out), resume=True, progress=False)
+        assert _outcome(out) == reference, f"killed at write {n} of {writes}"
+
+
+def test_resume_after_a_kill_before_anything_was_written(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """A run killed right after taking its lock (or while writing its first config.json) resumes from scratch
+    on the command line; an empty directory is still not a run to resume."""
+    out = tmp_path / "run"
+    with pytest.raises(Killed):
+        with RunDirectory(out).lock():
+            (out / ".config.json.sha256.abc_1.tmp").write_text("half")
+            raise Killed
+    assert main([*TRAIN, "--out", str(out), *SET, "--resume"]) == 0
+    assert RunDirectory(out).read_results()["iterations"] == 4
+    (tmp_path / "empty").mkdir()
+    refused([*TRAIN, "--out", str(tmp_path / "empty"), *SET, "--resume"], capsys, tmp_path, "holds no run")
+
+
+def test_metrics_without_their_checkpoint_are_refused(run_copy: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """Rows beyond the first checkpoint without checkpoint.pt: the checkpoint was removed, not never written."""
+    (run_copy / "checkpoint.pt").unlink()
+    (run_copy / "checkpoint.pt.sha256").unlink()
+    (run_copy / "results.json").unlink()
+    (run_copy / "results.json.sha256").unlink()
+    (run_copy / "metrics.csv").unlink()
+    refused([*TRAIN, "--out", str(run_copy), "--resume"], capsys, run_copy, "has no checkpoint.pt")
+
+
+# ---------------------------------------------------------------------------------------------------
+# item 6: a checkpoint's record is checked field by field
+# ---------------------------------------------------------------------------------------------------
+def _edit_k(state: dict) -> None:
+    state["trainer"]["k"] = -5
+
+
+def _drop_trainer(state: dict) -> None:
+    del state["trainer"]
+
+
+def _empty_trainer(state: dict) -> None:
+    state["trainer"] = {}
+
+
+def _list_trainer(state: dict) -> None:
+    state["trainer"] = [1, 2]
+
+
+def _nan_elapsed(state: dict) -> None:
+    state["elapsed"] = float("nan")
+
+
+def _list_weights(state: dict) -> None:
+    state["trainer"]["actor"] = [torch.zeros(2)]
+
+
+def _int_weights(state: dict) -> None:
+    name = next(iter(state["trainer"]["critic"]))
+    state["trainer"]["critic"][name] = state["trainer"]["critic"][name].long()
+
+
+def _k_beyond_budget(state: dict) -> None:
+    state["trainer"]["k"] = 10**6
+
+
+@pytest.mark.parametrize("edit, field", [
+    (_edit_k, "field trainer.k is -5"), (_drop_trainer, "field trainer is missing"),
+    (_empty_trainer, "field trainer.k is None"), (_list_trainer, "field trainer is list"),
+    (_nan_elapsed, "field elapsed is nan"), (_list_weights, "field trainer.actor is a list"),
+    (_int_weights, "field trainer.critic."), (_k_beyond_budget, "field trainer.k is 1000000"),
+], ids=["negative-k", "no-trainer", "empty-trainer", "list-trainer", "nan-elapsed", "list-weights",
+        "int-weights", "k-beyond-budget"])
+@pytest.mark.parametrize("command", ["evaluate", "resume"])
+def test_crafted_checkpoint_is_refused_naming_the_field(run_copy: Path, edit: Any, field: str, command: str,
+                                                        capsys: pytest.CaptureFixture[str]) -> None:
+    path = run_copy / "checkpoint.pt"
+    state = load_checkpoint(path)
+    edit(state)
+    save_checkpoint(path, state)  # a valid sidecar: the digest does not catch it
+    args = ["evaluate", str(run_copy)] if command == "evaluate" else [*TRAIN, "--out", str(run_copy), "--resume"]
+    refused(args, capsys, run_copy, f"checkpoint: {path} {field}")
+
+
+# ---------------------------------------------------------------------------------------------------
+# item 9: one line naming the argument or file, nothing created
+# ---------------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("line, match", [
+    (b"[1, 2]\n", "line 5 is a JSON list"),
+    (b'{"iteration": "5"}\n', "line 5 has iteration '5'"),
+    (b'{"iteration": 5, "x": "\xff"}\n', "line 5 is not UTF-8"),
+], ids=["list", "string-iteration", "invalid-utf8"])
+def test_bad_metrics_rows_are_one_line(run_copy: Path, line: bytes, match: str,
+                                       capsys: pytest.CaptureFixture[str]) -> None:
+    path = run_copy / "metrics.jsonl"
+    with open(path, "ab") as fh:
+        fh.write(line)
+    refused([*TRAIN, "--out", str(run_copy), "--resume", "--iterations", "6"], capsys, run_copy,
+            f"metrics: {path} {match}")
+
+
+def test_checkpoint_link_to_dev_zero(run_copy: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    path = run_copy / "checkpoint.pt"
+    path.unlink()
+    path.symlink_to("/dev/zero")
+    for args in (["evaluate", str(run_copy)], [*TRAIN, "--out", str(run_copy), "--resume"]):
+        refused(args, capsys, run_copy, f"checkpoint: {path} is a symbolic link")
+
+
+def test_out_symlink_loop(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    (tmp_path / "loop").symlink_to("loop")
+    for extra in ([], ["--resume"]):
+        refused([*TRAIN, "--out", str(tmp_path / "loop"), *SET, *extra], capsys, tmp_path, "symbolic link")
+
+
+@pytest.mark.parametrize("seed", ["18446744073709551616", "-1"])
+def test_seed_out_of_range(tmp_path: Path, seed: str, capsys: pytest.CaptureFixture[str]) -> None:
+    refused([*TRAIN, "--out", str(tmp_path / "o"), "--seed", seed, *SET], capsys, tmp_path, "--seed")
