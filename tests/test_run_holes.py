@@ -17,6 +17,7 @@ import mixedrl.checkpoint
 from mixedrl.cli import main
 from mixedrl.config import TrainConfig
 from mixedrl.runs import RunDirectory, load_checkpoint, make_trainer, save_checkpoint, train
+from test_run_safety import refused
 
 #: A fast run on the linear task (4 iterations, a checkpoint every 2).
 SET = ["--set", 'task="linear"', "algorithm.iterations=4", "algorithm.batch_size=32", "run.eval_every=2",
@@ -25,27 +26,6 @@ TRAIN = ["train", "--method", "mixed", "--no-progress"]
 CONFIG = TrainConfig.from_dict({"method": "mixed", "seed": 1, "task": "linear",
                                 "algorithm": {"iterations": 4, "batch_size": 32},
                                 "run": {"eval_every": 2, "checkpoint_every": 2, "eval_seeds": 1}})
-
-
-def snapshot(root: Path) -> dict[str, Any]:
-    """Every path under ``root`` with its bytes (a link: its target; a directory: None)."""
-    out: dict[str, Any] = {}
-    for p in sorted(root.rglob("*")):
-        rel = str(p.relative_to(root))
-        out[rel] = ("->", os.readlink(p)) if p.is_symlink() else None if p.is_dir() else p.read_bytes()
-    return out
-
-
-def refused(args: list[str], capsys: pytest.CaptureFixture[str], root: Path, match: str) -> str:
-    """Run ``mixedrl args``: exit 2, one line on stderr containing ``match``, nothing under ``root`` changed."""
-    capsys.readouterr()
-    before = snapshot(root)
-    rc = main(args)
-    err = capsys.readouterr().err
-    assert rc == 2, err
-    assert len(err.strip().splitlines()) == 1 and match in err, err
-    assert snapshot(root) == before
-    return err
 
 
 @pytest.fixture(scope="module")
