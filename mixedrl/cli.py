@@ -166,7 +166,7 @@ def _sweep(args: argparse.Namespace) -> int:
     """``mixedrl sweep``: 0 if every run finished, 1 if some failed (errors in ``sweep.json``), 2 for an invalid
     spec or arguments, or ``--address`` without Ray (the message says which extra to install)."""
     try:
-        doc = run_sweep(load_spec(args.spec), args.out, address=args.address, num_cpus=args.num_cpus,
+        doc = run_sweep(load_spec(args.spec, force=args.force), args.out, address=args.address, num_cpus=args.num_cpus,
                         resume=args.resume, progress=not args.no_progress, workers=args.workers,
                         batch=args.batch, batch_ddpg=args.batch_ddpg)
     except (ImportError, ValueError) as exc:

@@ -83,6 +83,8 @@ __all__ = [
     "digest_path",
     "RunLockedError",
     "hold_lock",
+    "is_lock_file",
+    "LOCK_NAME",
     "RUN_FILES",
     "iterations_to_converge",
     "eval_seeds",
@@ -130,7 +132,7 @@ _LOCK_WIDTH = 256
 _LOCK_TEXT = re.compile(rb"(pid [0-9]+ on \S+ since \S+\n)? *")
 
 
-def _lock_is_ours(path: Path) -> bool:
+def is_lock_file(path: Path) -> bool:
     """Whether ``path`` is a lock file this package wrote: a regular file of one link holding nothing but a
     holder's line (:data:`_LOCK_TEXT`); a symbolic link, a hard link to another file, or any other content
     is not."""
@@ -273,13 +275,13 @@ class RunDirectory:
         except OSError as exc:
             raise ValueError(f"out: cannot read the directory {self.path} ({exc.strerror})") from None
         return sorted(n for n in names if not _temporary_of_run(n)
-                      and not (n == LOCK_NAME and _lock_is_ours(self.path / n)))
+                      and not (n == LOCK_NAME and is_lock_file(self.path / n)))
 
     def holds_run(self) -> bool:
         """True if a run was started here: any of :data:`RUN_FILES`, a digest of one (a write that was
         killed), or this package's lock file."""
         return (any(name in _STARTED for name in self.entries())
-                or (self.lock_path.exists() and _lock_is_ours(self.lock_path)))
+                or (self.lock_path.exists() and is_lock_file(self.lock_path)))
 
     def check_new(self) -> None:
         """Refuse to start a new run here unless the directory is absent or empty; creates nothing.

@@ -7,6 +7,10 @@ from __future__ import annotations
 import json
 import os
 import shutil
+import signal
+import subprocess
+import sys
+import time
 from pathlib import Path
 from typing import Any
 
@@ -14,9 +18,10 @@ import pytest
 import torch
 
 import mixedrl.checkpoint
+import mixedrl.sweep
 from mixedrl.cli import main
 from mixedrl.config import TrainConfig
-from mixedrl.runs import RunDirectory, load_checkpoint, make_trainer, save_checkpoint, train
+from mixedrl.runs import RunDirectory, hold_lock, load_checkpoint, make_trainer, save_checkpoint, train
 from test_run_safety import refused
 
 #: A fast run on the linear task (4 iterations, a checkpoint every 2).
@@ -264,3 +269,128 @@ def test_out_symlink_loop(tmp_path: Path, capsys: pytest.CaptureFixture[str]) ->
 @pytest.mark.parametrize("seed", ["18446744073709551616", "-1"])
 def test_seed_out_of_range(tmp_path: Path, seed: str, capsys: pytest.CaptureFixture[str]) -> None:
     refused([*TRAIN, "--out", str(tmp_path / "o"), "--seed", seed, *SET], capsys, tmp_path, "--seed")
+
+
+# ---------------------------------------------------------------------------------------------------
+# sweeps: item 8 (grid size, duplicates), item 9 (dates, seeds, a directory as spec), item 4 (one driver)
+# ---------------------------------------------------------------------------------------------------
+SPEC = """methods = ["model"]
+seeds = [0]
+
+[base]
+task = "linear"
+"algorithm.iterations" = 2
+"algorithm.batch_size" = 32
+"run.eval_every" = 2
+"run.eval_seeds" = 1
+"""
+
+
+def _spec(tmp_path: Path, text: str) -> Path:
+    path = tmp_path / "spec.toml"
+    path.write_text(text)
+    return path
+
+
+@pytest.mark.parametrize("tail, match", [
+    ('\n[grid]\n"task.prior_force_mean" = [1979-05-27]\n', "grid.task.prior_force_mean: 1979-05-27 is a TOML date"),
+    ('\n[grid]\n"algorithm.critic_lr" = [1, 1.0]\n', "have the same config"),
+    ('\n[grid]\n"algorithm.actor_lr" = [1, 2]\n"algorithm.critic_lr" = ' + str(list(range(1, 5002))) + "\n",
+     "expands to 10002 runs, more than the 10000"),
+], ids=["toml-date", "int-float-duplicate", "too-many-runs"])
+def test_bad_sweep_grids_are_one_line(tmp_path: Path, tail: str, match: str, capsys: pytest.CaptureFixture[str]) -> None:
+    spec = _spec(tmp_path, SPEC + tail)
+    refused(["sweep", str(spec), "--out", str(tmp_path / "out"), "--workers", "1", "--no-progress"], capsys,
+            tmp_path, match)
+
+
+def test_force_accepts_a_large_grid(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(mixedrl.sweep, "MAX_RUNS", 2)
+    text = SPEC + '\n[grid]\n"algorithm.critic_lr" = [0.001, 0.002, 0.003]\n'
+    with pytest.raises(ValueError, match="^grid: spec expands to 3 runs, more than the 2"):
+        mixedrl.sweep.parse_spec(text)
+    assert len(mixedrl.sweep.expand(mixedrl.sweep.parse_spec(text, force=True))) == 3
+
+
+def test_sweep_argument_errors_are_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    refused(["sweep", str(tmp_path), "--out", str(tmp_path / "out")], capsys, tmp_path, "is a directory")
+    spec = _spec(tmp_path, SPEC.replace("seeds = [0]", "seeds = [18446744073709551616]"))
+    refused(["sweep", str(spec), "--out", str(tmp_path / "out")], capsys, tmp_path, "seeds: 18446744073709551616")
+    (tmp_path / "loop").symlink_to("loop")
+    refused(["sweep", str(_spec(tmp_path, SPEC)), "--out", str(tmp_path / "loop")], capsys, tmp_path,
+            "symbolic link")
+
+
+def test_a_live_sweep_driver_is_the_only_writer(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """A --resume beside a live driver is refused (naming its pid) and writes nothing; a foreign .lock in the
+    sweep directory makes it not a sweep."""
+    spec, out = _spec(tmp_path, SPEC), tmp_path / "out"
+    assert main(["sweep", str(spec), "--out", str(out), "--workers", "1", "--no-progress"]) == 0
+    with hold_lock(out / ".lock"):  # what a running driver holds
+        err = refused(["sweep", str(spec), "--out", str(out), "--workers", "1", "--resume", "--no-progress"],
+                      capsys, tmp_path, "being written by another process")
+        assert f"pid {os.getpid()}" in err
+    assert main(["sweep", str(spec), "--out", str(out), "--workers", "1", "--resume", "--no-progress"]) == 0
+    other = tmp_path / "other"
+    other.mkdir()
+    (other / ".lock").symlink_to(spec)
+    refused(["sweep", str(spec), "--out", str(other), "--workers", "1", "--no-progress"], capsys, tmp_path, ".lock")
+
+
+def _children(pid: int) -> list[int]:
+    """The pids of the processes whose parent is ``pid`` (Linux /proc)."""
+    out = []
+    for entry in os.listdir("/proc"):
+        if entry.isdigit():
+            try:
+                fields = Path(f"/proc/{entry}/stat").read_text().rsplit(")", 1)[1].split()
+            except OSError:
+                continue
+            if int(fields[1]) == pid:
+                out.append(int(entry))
+    return out
+
+
+def _alive(pid: int) -> bool:
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except OSError:
+        return False
+    return state != "Z"
+
+
+@pytest.mark.sweep
+@pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="needs Linux /proc")
+def test_a_killed_sweep_driver_takes_its_workers_with_it(tmp_path: Path) -> None:
+    """kill -9 on the driver alone: the pool's workers end within seconds, and the run and sweep locks are
+    free again (an immediate --resume is not refused)."""
+    spec = _spec(tmp_path, SPEC.replace('"algorithm.iterations" = 2', '"algorithm.iterations" = 100000')
+                 .replace("seeds = [0]", "seeds = [0, 1]"))
+    out = tmp_path / "out"
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(Path(__file__).resolve().parents[1]),
+                                                         os.environ.get("PYTHONPATH", "")]), "OMP_NUM_THREADS": "1"}
+    driver = subprocess.Popen([sys.executable, "-m", "mixedrl.cli", "sweep", str(spec), "--out", str(out),
+                               "--workers", "2", "--batch", "1", "--no-progress"], env=env,
+                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        deadline = time.monotonic() + 120
+        runs = [out / "runs" / f"model_seed{s}" for s in (0, 1)]
+        while not all((r / "config.json").is_file() for r in runs):  # both workers are training
+            assert driver.poll() is None and time.monotonic() < deadline, "the sweep did not start"
+            time.sleep(0.2)
+        workers = [p for p in _children(driver.pid) if _alive(p)]
+        assert len(workers) >= 2
+        driver.kill()
+        driver.wait()
+        deadline = time.monotonic() + 10
+        while any(_alive(p) for p in workers):
+            assert time.monotonic() < deadline, "a pool worker outlived its driver"
+            time.sleep(0.1)
+        with hold_lock(out / ".lock"):
+            for r in runs:
+                with RunDirectory(r).lock():
+                    pass
+    finally:
+        driver.kill()
+        for p in _children(driver.pid):
+            os.kill(p, signal.SIGKILL)
