@@ -372,13 +372,14 @@ def test_a_killed_sweep_driver_takes_its_workers_with_it(tmp_path: Path) -> None
     driver = subprocess.Popen([sys.executable, "-m", "mixedrl.cli", "sweep", str(spec), "--out", str(out),
                                "--workers", "2", "--batch", "1", "--no-progress"], env=env,
                               stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    workers: list[int] = []
     try:
         deadline = time.monotonic() + 120
         runs = [out / "runs" / f"model_seed{s}" for s in (0, 1)]
         while not all((r / "config.json").is_file() for r in runs):  # both workers are training
             assert driver.poll() is None and time.monotonic() < deadline, "the sweep did not start"
             time.sleep(0.2)
-        workers = [p for p in _children(driver.pid) if _alive(p)]
+        workers += [p for p in _children(driver.pid) if _alive(p)]
         assert len(workers) >= 2
         driver.kill()
         driver.wait()
@@ -392,5 +393,7 @@ def test_a_killed_sweep_driver_takes_its_workers_with_it(tmp_path: Path) -> None
                     pass
     finally:
         driver.kill()
-        for p in _children(driver.pid):
-            os.kill(p, signal.SIGKILL)
+        driver.wait()
+        for p in workers:  # this test's own workers, should they have survived
+            if _alive(p):
+                os.kill(p, signal.SIGKILL)
