@@ -12,12 +12,19 @@ A run lives in one directory::
         metrics.jsonl    one JSON object per iteration (namespaced keys, see below)
         metrics.csv      the same table as CSV, written when the run ends
         results.json     final evaluation, convergence, wall time
-        checkpoint.pt.sha256, results.json.sha256
+        config.json.sha256, checkpoint.pt.sha256, results.json.sha256
                          the sha256 of each (sha256sum format), verified on every load
-        .lock            the one-writer lock (fcntl.flock; holds the writer's pid, host, start time)
+        .lock            the one-writer lock (fcntl.flock; holds the writer's pid, host, start time;
+                         created without following links, never truncated: :func:`hold_lock`)
 
-Training never replaces a run: without ``resume`` the directory must be absent or empty; with it the
-saved config must match (a larger ``iterations`` extends the budget) and ``metrics.jsonl`` must be
+The writes come in an order that makes every kill point resumable: ``config.json``; at each checkpoint
+the new ``metrics.jsonl`` rows, then ``checkpoint.pt``; at the end ``metrics.csv`` and ``results.json``;
+each file after its digest (:func:`write_with_digest`). A directory is therefore always *fresh* (the lock,
+``config.json``, rows up to the first checkpoint: resumed from scratch, the rows discarded) or *at
+checkpoint k* (rows beyond ``k`` discarded on resume).
+
+Training never replaces a run: without ``resume`` the directory must be absent or empty (anything the
+package did not write, a planted ``.lock`` included, makes it not a run); with it the saved config must match (a larger ``iterations`` extends the budget) and ``metrics.jsonl`` must be
 complete up to the checkpoint (docs/algorithm2.rst, "Run directories").
 
 Metric keys (every row has ``iteration``):

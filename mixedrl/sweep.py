@@ -3,8 +3,8 @@ process pool or on Ray.
 
 ::
 
-    mixedrl sweep SPEC.toml --out DIR [--workers N] [--batch N] [--address ADDR] [--num-cpus N] [--resume]
-                  [--no-progress]
+    mixedrl sweep SPEC.toml --out DIR [--workers N] [--force] [--batch N] [--address ADDR] [--num-cpus N]
+                  [--resume] [--no-progress]
 
 A spec is a small TOML file::
 
@@ -40,8 +40,12 @@ with exactly the weights and metrics of the same config in any other batch of tw
 ``--batch 1`` every run trains alone, with exactly the weights and metrics of ``mixedrl train``.
 
 Before anything starts, the spec is checked (TOML syntax, top-level keys, non-empty lists without
-duplicates, variant tables) and the :class:`~mixedrl.config.TrainConfig` of **every** run is built; any error
-names the offending key and nothing is started or written.
+duplicates, variant tables, no TOML dates, seeds below ``2**64``, at most :data:`MAX_RUNS` runs unless
+``--force``) and the :class:`~mixedrl.config.TrainConfig` of **every** run is built (two runs with equal
+configs are an error); any error names the offending key and nothing is started or written.
+
+One driver writes a sweep directory: it holds ``DIR/.lock`` (:func:`mixedrl.runs.hold_lock`) from its checks
+to its last write, and its pool workers end when it dies (:func:`_die_with_parent`).
 
 Engines (the same outputs from each):
 
