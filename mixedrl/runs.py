@@ -17,8 +17,8 @@ A run lives in one directory::
         .lock            the one-writer lock (fcntl.flock; holds the writer's pid, host, start time;
                          created without following links, never truncated: :func:`hold_lock`)
 
-The writes come in an order that makes every kill point resumable: ``config.json``; at each checkpoint
-the new ``metrics.jsonl`` rows, then ``checkpoint.pt``; at the end ``metrics.csv`` and ``results.json``;
+The writes come in an order that makes every kill point resumable: at each checkpoint ``config.json``
+(with the first one), the new ``metrics.jsonl`` rows, then ``checkpoint.pt``; at the end ``metrics.csv`` and ``results.json``;
 each file after its digest (:func:`write_with_digest`). A directory is therefore always *fresh* (the lock,
 ``config.json``, rows up to the first checkpoint: resumed from scratch, the rows discarded) or *at
 checkpoint k* (rows beyond ``k`` discarded on resume).
@@ -1086,6 +1086,9 @@ def _train(trainers: list[Any], engine: Callable[[list[bool]], list[dict[str, fl
     n = len(trainers)
     memory_rows: list[list[dict[str, Any]]] = [[] for _ in range(n)]
     elapsed = [0.0] * n
+    # a run started from scratch writes config.json with its first checkpoint: a run that fails before it
+    # (an invalid setting found by the first iteration) leaves its directory empty, free for a plain rerun
+    config_due = [False] * n
     for i, (trainer, run, state) in enumerate(zip(trainers, runs, states)):
         if run is None:
             continue
@@ -1095,9 +1098,10 @@ def _train(trainers: list[Any], engine: Callable[[list[bool]], list[dict[str, fl
             run.truncate_metrics(trainer.k)
         elif run.metrics_path.is_file():  # rows of a run killed before its first checkpoint: it starts again
             run.truncate_metrics(0)
-        record = config_record(trainer.config, getattr(trainer, "task", None))
-        if state is None or record != _saved_record(run):
-            run.write_config(trainer.config, getattr(trainer, "task", None))
+        if state is None:
+            config_due[i] = True
+        elif config_record(trainer.config, getattr(trainer, "task", None)) != _saved_record(run):
+            run.write_config(trainer.config, getattr(trainer, "task", None))  # an extended budget
     seeds = [eval_seeds(t.config) for t in trainers]
     pending: list[list[dict[str, Any]]] = [[] for _ in range(n)]
     interrupted = [False] * n
@@ -1105,6 +1109,9 @@ def _train(trainers: list[Any], engine: Callable[[list[bool]], list[dict[str, fl
 
     def checkpoint(i: int) -> None:
         if runs[i] is not None:
+            if config_due[i]:
+                runs[i].write_config(trainers[i].config, getattr(trainers[i], "task", None))
+                config_due[i] = False
             runs[i].append_metrics(pending[i])
             if boards[i] is not None:
                 boards[i].write(pending[i])
