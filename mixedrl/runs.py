@@ -462,9 +462,10 @@ class RunDirectory:
         Raises
         ------
         ValueError
-            ``results: ...`` naming the file if it is missing, does not match its digest, or is not JSON.
+            ``results: ...`` naming the file if it is missing, not a regular file, does not match its digest,
+            or is not JSON.
         """
-        if not self.results_path.is_file():
+        if not regular_file(self.results_path, "results"):
             raise ValueError(f"results: {self.results_path} does not exist")
         data = self.results_path.read_bytes()
         verify_digest(self.results_path, data, "results")
