@@ -735,6 +735,9 @@ def _open_run(run: RunDirectory, cfg: TrainConfig, resume: bool, task: Any = Non
         if others:
             raise ValueError(f"resume: {run.path} has no checkpoint.pt to resume from but holds "
                              f"{', '.join(others[:4])}; nothing was changed (train into a new directory)")
+    if "checkpoint.pt" in names and "config.json" not in names:
+        raise ValueError(f"resume: {run.path} has a checkpoint.pt but no config.json (it is written before the "
+                         f"first checkpoint: it was removed); nothing was changed (train into a new directory)")
     if "config.json" in names:
         conflicts = _config_conflicts(_saved_record(run), config_record(cfg, task))
         if conflicts:

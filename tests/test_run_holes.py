@@ -181,6 +181,32 @@ def test_metrics_without_their_checkpoint_are_refused(run_copy: Path, capsys: py
     refused([*TRAIN, "--out", str(run_copy), "--resume"], capsys, run_copy, "has no checkpoint.pt")
 
 
+def test_a_checkpoint_without_its_config_is_refused(run_copy: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    (run_copy / "config.json").unlink()
+    refused([*TRAIN, "--out", str(run_copy), *SET, "--resume"], capsys, run_copy, "no config.json")
+
+
+def test_a_sweep_run_killed_in_its_first_checkpoint_resumes(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                                            capsys: pytest.CaptureFixture[str]) -> None:
+    """Inside a sweep: a run killed between its first metrics rows and its checkpoint is resumed by --resume
+    (not failed on every --resume), to the result of an uninterrupted sweep."""
+    spec = _spec(tmp_path, SPEC)
+    args = ["sweep", str(spec), "--workers", "1", "--no-progress"]
+    assert main([*args, "--out", str(tmp_path / "whole")]) == 0
+    with monkeypatch.context() as m:
+        _kill_at(4, m)  # spec.toml, config.json's digest, config.json, then the metrics rows
+        with pytest.raises(Killed):
+            main([*args, "--out", str(tmp_path / "killed")])
+    run = tmp_path / "killed" / "runs" / "model_seed0"
+    assert (run / "metrics.jsonl").is_file() and not (run / "checkpoint.pt").exists()
+    capsys.readouterr()
+    assert main([*args, "--out", str(tmp_path / "killed"), "--resume"]) == 0
+    docs = [json.loads((tmp_path / d / "sweep.json").read_text()) for d in ("whole", "killed")]
+    assert docs[1]["failed"] == 0 and docs[1]["finished"] is True
+    assert [{k: v for k, v in r["metrics"].items()} for r in docs[1]["runs"]] == \
+        [{k: v for k, v in r["metrics"].items()} for r in docs[0]["runs"]]
+
+
 # ---------------------------------------------------------------------------------------------------
 # item 6: a checkpoint's record is checked field by field
 # ---------------------------------------------------------------------------------------------------
