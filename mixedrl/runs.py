@@ -18,14 +18,15 @@ A run lives in one directory::
                          created without following links, never truncated: :func:`hold_lock`)
 
 The writes come in an order that makes every kill point resumable: at each checkpoint ``config.json``
-(with the first one), the new ``metrics.jsonl`` rows, then ``checkpoint.pt``; at the end ``metrics.csv`` and ``results.json``;
-each file after its digest (:func:`write_with_digest`). A directory is therefore always *fresh* (the lock,
-``config.json``, rows up to the first checkpoint: resumed from scratch, the rows discarded) or *at
-checkpoint k* (rows beyond ``k`` discarded on resume).
+(with the first one), the new ``metrics.jsonl`` rows, then ``checkpoint.pt``; at the end ``metrics.csv``
+and ``results.json``; each file after its digest (:func:`write_with_digest`). A directory is therefore
+always *fresh* (the lock, ``config.json``, rows up to the first checkpoint: resumed from scratch, the rows
+discarded) or *at checkpoint k* (rows beyond ``k`` discarded on resume).
 
 Training never replaces a run: without ``resume`` the directory must be absent or empty (anything the
-package did not write, a planted ``.lock`` included, makes it not a run); with it the saved config must match (a larger ``iterations`` extends the budget) and ``metrics.jsonl`` must be
-complete up to the checkpoint (docs/algorithm2.rst, "Run directories").
+package did not write, a planted ``.lock`` included, makes it not a run); with it the saved config must
+match (a larger ``iterations`` extends the budget) and ``metrics.jsonl`` must be complete up to the
+checkpoint (docs/algorithm2.rst, "Run directories").
 
 Metric keys (every row has ``iteration``):
 

@@ -156,6 +156,7 @@ __all__ = [
     "resolve_observer",
     "DEFAULT_BATCH",
     "MAX_RUNS",
+    "SEED_MAX",
     "run_sweep",
     "summarize",
     "make_figure",
@@ -187,8 +188,8 @@ _MAX_NAME = 160
 #: Most runs a spec may expand to without ``force`` (``mixedrl sweep --force``): checking a spec builds every
 #: run's config first (about 2 ms and 2.5 kB each), and a larger sweep is more likely a typo than a plan.
 MAX_RUNS = 10_000
-#: Seeds the generators accept.
-_SEED_MAX = 2**64 - 1
+#: The largest seed the generators accept (``torch.Generator.manual_seed``: 64 bits).
+SEED_MAX = 2**64 - 1
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -340,7 +341,7 @@ def parse_spec(text: str, source: str = "spec", force: bool = False) -> SweepSpe
     variants = _parse_variants(data.get("variants", {}), grid)
     for key, values in [("seeds", seeds)] + [(f"variants.{n}.seeds", v["seeds"]) for n, v in variants.items()
                                              if "seeds" in v]:
-        big = [v for v in values if isinstance(v, int) and v > _SEED_MAX]
+        big = [v for v in values if isinstance(v, int) and v > SEED_MAX]
         if big:
             raise ValueError(f"{key}: {big[0]} is out of range; a seed is an integer in [0, 2**64 - 1]")
     count = _run_count(methods, seeds, grid, variants)

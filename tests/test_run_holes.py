@@ -324,7 +324,8 @@ def _spec(tmp_path: Path, text: str) -> Path:
     ('\n[grid]\n"algorithm.actor_lr" = [1, 2]\n"algorithm.critic_lr" = ' + str(list(range(1, 5002))) + "\n",
      "expands to 10002 runs, more than the 10000"),
 ], ids=["toml-date", "int-float-duplicate", "too-many-runs"])
-def test_bad_sweep_grids_are_one_line(tmp_path: Path, tail: str, match: str, capsys: pytest.CaptureFixture[str]) -> None:
+def test_bad_sweep_grids_are_one_line(tmp_path: Path, tail: str, match: str,
+                                      capsys: pytest.CaptureFixture[str]) -> None:
     spec = _spec(tmp_path, SPEC + tail)
     refused(["sweep", str(spec), "--out", str(tmp_path / "out"), "--workers", "1", "--no-progress"], capsys,
             tmp_path, match)
@@ -425,7 +426,8 @@ def test_a_killed_sweep_driver_takes_its_workers_with_it(tmp_path: Path) -> None
                 os.kill(p, signal.SIGKILL)
 
 
-def test_a_setting_the_first_iteration_rejects_leaves_no_run(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+def test_a_setting_the_first_iteration_rejects_leaves_no_run(tmp_path: Path,
+                                                            capsys: pytest.CaptureFixture[str]) -> None:
     """task.prior_force_mean=1e308 is rejected by the first IBE update: the directory holds no run after it
     (config.json comes with the first checkpoint), so the plain rerun with a valid setting is accepted."""
     out = tmp_path / "run"
