@@ -184,7 +184,7 @@ def hold_lock(path: str | Path, what: str = "out") -> Iterator[None]:
 
     path = Path(path)
     foreign = (f"{what}: {path} is not a lock file mixedrl wrote (a symbolic link, a hard link, a special file or "
-               f"other content); the directory is not a run: choose a new directory")
+               f"other content); the directory is not mixedrl's: choose a new directory")
     flags = os.O_RDWR | os.O_CREAT | getattr(os, "O_NOFOLLOW", 0) | getattr(os, "O_CLOEXEC", 0)
     try:
         fd = os.open(path, flags | getattr(os, "O_NONBLOCK", 0), default_file_mode())
