@@ -403,7 +403,7 @@ def test_a_killed_sweep_driver_takes_its_workers_with_it(tmp_path: Path) -> None
     try:
         deadline = time.monotonic() + 120
         runs = [out / "runs" / f"model_seed{s}" for s in (0, 1)]
-        while not all((r / "config.json").is_file() for r in runs):  # both workers are training
+        while not all((r / ".lock").is_file() and b"pid" in (r / ".lock").read_bytes() for r in runs):  # training
             assert driver.poll() is None and time.monotonic() < deadline, "the sweep did not start"
             time.sleep(0.2)
         workers += [p for p in _children(driver.pid) if _alive(p)]
