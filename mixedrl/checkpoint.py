@@ -6,9 +6,9 @@
   (``checkpoint.pt.sha256``, ``results.json.sha256``, ``sha256sum`` format), verified on every load;
 * :func:`save_checkpoint`, :func:`load_checkpoint`: a checkpoint as plain data (numpy arrays, numpy
   scalars and generators encoded as marked dicts of tensors) read with ``torch.load(weights_only=True)``,
-  so loading a file someone else made runs no code; the CRC-32 of every zip member is verified too;
-* :func:`convert_checkpoint`: the one-off, explicitly trusted conversion of an old
-  ``mixedrl-checkpoint-v1`` file.
+  so loading a file someone else made runs no code; the CRC-32 of every zip member is verified too.
+  A file of the older format ``mixedrl-checkpoint-v1`` is refused with a message naming the release that
+  reads it (:data:`OLD_FORMAT_READER`).
 
 Every public name is also importable from :mod:`mixedrl.runs`.
 """
@@ -21,6 +21,7 @@ import os
 import pickle
 import pickletools
 import re
+import stat
 import tempfile
 import zipfile
 from collections import OrderedDict
@@ -33,7 +34,8 @@ import torch
 __all__ = [
     "save_checkpoint",
     "load_checkpoint",
-    "convert_checkpoint",
+    "regular_file",
+    "OLD_FORMAT_READER",
     "atomic_write_bytes",
     "atomic_write_text",
     "write_with_digest",
@@ -45,8 +47,10 @@ __all__ = [
 
 #: Format tag of the checkpoints written now (plain data; see :func:`save_checkpoint`).
 _FORMAT = "mixedrl-checkpoint-v2"
-#: Older tags: v1 pickled numpy objects as such (see :func:`convert_checkpoint`).
+#: Older tags: v1 pickled numpy objects as such; this version does not read it.
 _OLD_FORMATS = ("mixedrl-checkpoint-v1",)
+#: The release that reads (and converts) a checkpoint of :data:`_OLD_FORMATS`.
+OLD_FORMAT_READER = "mixedrl 0.1.0 from git commit b510485 (mixedrl.checkpoint.convert_checkpoint)"
 
 
 def default_file_mode() -> int:
@@ -95,28 +99,42 @@ def digest_path(path: str | Path) -> Path:
     return path.with_name(path.name + ".sha256")
 
 
-def _sidecar_digests(path: Path) -> list[str] | None:
-    """The digests listed in ``path``'s sidecar (None without a sidecar)."""
+def _sidecar_digests(path: Path, what: str = "digest") -> list[str] | None:
+    """The digests listed in ``path``'s sidecar (None without a sidecar).
+
+    Raises ``ValueError`` (``<what>: ...``) for a sidecar that is a link, not UTF-8, or lists no sha256.
+    """
     sidecar = digest_path(path)
-    if not sidecar.is_file():
+    if not regular_file(sidecar, what):
         return None
-    return [line.split()[0].lower() for line in sidecar.read_text(encoding="utf-8").splitlines() if line.strip()]
+    try:
+        lines = sidecar.read_bytes().decode("utf-8").splitlines()
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ValueError(f"{what}: cannot read {sidecar} ({exc})") from None
+    digests = [line.split()[0].lower() for line in lines if line.strip()]
+    if not digests or not all(re.fullmatch(r"[0-9a-f]{64}", d) for d in digests):
+        raise ValueError(f"{what}: {sidecar} lists no sha256 digest (expected lines '<64 hex digits>  {path.name}')")
+    return digests
 
 
 def write_with_digest(path: str | Path, data: bytes) -> None:
     """Write ``data`` to ``path`` atomically together with its sha256 in the sidecar :func:`digest_path`.
 
-    Crash-safe in every order of events: the sidecar first lists the new digest beside the old file's,
-    then the file is replaced, then the sidecar is rewritten with the new digest only; so at any moment
-    the file on disk matches one digest of its sidecar (each step is an atomic replace).
+    Crash-safe in every order of events: the sidecar first lists the new digest (beside the old file's,
+    if there is one), then the file is replaced, then the sidecar is rewritten with the new digest only;
+    so at any moment the file on disk matches one digest of its sidecar (each step is an atomic replace),
+    and the file never exists without its sidecar (a sidecar without its file is what a write killed
+    before the file was in place leaves).
     """
     path = Path(path)
     new = hashlib.sha256(data).hexdigest()
-    old = _sidecar_digests(path) if path.is_file() else None
-    if old:
-        atomic_write_text(digest_path(path), "".join(f"{d}  {path.name}\n" for d in [new, *old[:1]]))
+    old: list[str] = []
+    if path.is_file():  # a file written before digests existed: its own digest stands for the sidecar's
+        old = _sidecar_digests(path) or [hashlib.sha256(path.read_bytes()).hexdigest()]
+    atomic_write_text(digest_path(path), "".join(f"{d}  {path.name}\n" for d in [new, *old[:1]]))
     atomic_write_bytes(path, data)
-    atomic_write_text(digest_path(path), f"{new}  {path.name}\n")
+    if old:
+        atomic_write_text(digest_path(path), f"{new}  {path.name}\n")
 
 
 def verify_digest(path: str | Path, data: bytes, what: str) -> None:
@@ -128,7 +146,7 @@ def verify_digest(path: str | Path, data: bytes, what: str) -> None:
         ``<what>: <path> is corrupted: its sha256 ... does not match <sidecar>``.
     """
     path = Path(path)
-    digests = _sidecar_digests(path)
+    digests = _sidecar_digests(path, what)
     if digests is None:
         return  # written before digests existed: still loads (documented in docs/run_directories)
     actual = hashlib.sha256(data).hexdigest()
@@ -296,6 +314,50 @@ def save_checkpoint(path: str | Path, state: dict[str, Any]) -> None:
     write_with_digest(path, buffer.getvalue())
 
 
+def regular_file(path: str | Path, what: str) -> bool:
+    """Whether ``path`` exists, as a regular file; a link or a special file there is an error.
+
+    A run's files are regular files its writer created; a symbolic link (to ``/dev/zero``, to a file
+    elsewhere, a loop) or a device is not one of them, and reading through it would read something else.
+
+    Parameters
+    ----------
+    path : str or pathlib.Path
+        The file.
+    what : str
+        The prefix of the error message (``"checkpoint"``, ``"config"``, ...).
+
+    Returns
+    -------
+    bool
+        ``False`` if nothing is at ``path``, ``True`` for a regular file.
+
+    Raises
+    ------
+    ValueError
+        ``<what>: <path> is a symbolic link ...`` or ``... is not a regular file ...``.
+    """
+    path = Path(path)
+    try:
+        mode = os.lstat(path).st_mode
+    except FileNotFoundError:
+        return False
+    except OSError as exc:
+        raise ValueError(f"{what}: cannot read {path} ({exc.strerror})") from None
+    if stat.S_ISLNK(mode):
+        raise ValueError(f"{what}: {path} is a symbolic link; a run's files are regular files (nothing was read "
+                         f"through it)")
+    if not stat.S_ISREG(mode):
+        raise ValueError(f"{what}: {path} is not a regular file (a directory, device or pipe)")
+    return True
+
+
+def _old_format(path: Path, tag: str) -> ValueError:
+    """The error for a checkpoint of an older format (:data:`_OLD_FORMATS`)."""
+    return ValueError(f"checkpoint: {path} is a {tag} file, written by mixedrl before {_FORMAT}; this version does "
+                      f"not read it: read it with {OLD_FORMAT_READER}")
+
+
 def load_checkpoint(path: str | Path) -> dict[str, Any]:
     """Read a checkpoint written by :func:`save_checkpoint`, safely: nothing stored in the file is run.
 
@@ -310,20 +372,14 @@ def load_checkpoint(path: str | Path) -> dict[str, Any]:
     Raises
     ------
     ValueError
-        ``checkpoint: ...`` naming ``path`` if the file is missing, truncated, corrupted (its digest or a
-        zip CRC does not match), not a mixedrl
-        checkpoint, holds pickled objects other than plain data (refused, not run), or is an old
-        ``mixedrl-checkpoint-v1`` file holding numpy objects (convert such a file you trust once with
-        :func:`convert_checkpoint`).
-
-    Notes
-    -----
-    A v1 file (written before checkpoints were plain data) that happens to hold only tensors and plain
-    data loads as it is; one that holds numpy arrays (every Algorithm 2 run: the IBE state) is refused
-    with a message pointing to :func:`convert_checkpoint`.
+        ``checkpoint: ...`` naming ``path`` if the file is missing, not a regular file (a symbolic link, a
+        device), truncated, corrupted (its digest or a zip CRC does not match), not a mixedrl checkpoint,
+        holds pickled objects other than plain data (refused, not run), or is an old
+        ``mixedrl-checkpoint-v1`` file (the message names the release that reads it,
+        :data:`OLD_FORMAT_READER`).
     """
     path = Path(path)
-    if not path.is_file():
+    if not regular_file(path, "checkpoint"):
         raise ValueError(f"checkpoint: {path} does not exist")
     data = path.read_bytes()
     verify_digest(path, data, "checkpoint")
@@ -332,11 +388,8 @@ def load_checkpoint(path: str | Path) -> dict[str, Any]:
         payload = torch.load(io.BytesIO(data), map_location="cpu", weights_only=True)
     except Exception as exc:  # noqa: BLE001 - any failure: explain it without running the file
         tag, refused = _format_tag(path), _refused_global(exc)
-        if tag in _OLD_FORMATS and refused:
-            raise ValueError(
-                f"checkpoint: {path} is an old {tag} file, which can be read only by unpickling arbitrary "
-                f"objects (it holds {refused}); if you made it or trust it, convert it once with "
-                f"mixedrl.checkpoint.convert_checkpoint({str(path)!r}, trust=True)") from None
+        if tag in _OLD_FORMATS:
+            raise _old_format(path, tag) from None
         if refused:
             raise ValueError(
                 f"checkpoint: {path} holds pickled objects that are not plain data ({refused}); refused "
@@ -347,66 +400,7 @@ def load_checkpoint(path: str | Path) -> dict[str, Any]:
     if not isinstance(payload, dict) or "state" not in payload or not isinstance(payload["state"], dict):
         raise ValueError(f"checkpoint: {path} is not a {_FORMAT} file")
     if payload.get("format") in _OLD_FORMATS:
-        return payload["state"]  # plain data already (weights_only accepted it); v1 had no marks
+        raise _old_format(path, payload["format"])
     if payload.get("format") != _FORMAT:
         raise ValueError(f"checkpoint: {path} is not a {_FORMAT} file (format {payload.get('format')!r})")
     return _decode(payload["state"], path)
-
-
-def convert_checkpoint(path: str | Path, *, trust: bool = False, out: str | Path | None = None) -> Path:
-    """One-off conversion of an old ``mixedrl-checkpoint-v1`` file into the current, safe format.
-
-    A v1 checkpoint was written with numpy objects pickled as such, so reading it requires
-    ``torch.load(weights_only=False)``, which runs whatever code the file carries. Call this function
-    explicitly, once, on a file you made or trust; it loads the file that way and rewrites it (atomically)
-    with :func:`save_checkpoint`, after which :func:`load_checkpoint` reads it safely. A file already in
-    the current format is rewritten unchanged in content.
-
-    Parameters
-    ----------
-    path : str or pathlib.Path
-        The old checkpoint (e.g. ``RUN_DIR/checkpoint.pt``).
-    trust : bool
-        Must be True: the explicit statement that the file is trusted.
-    out : str or pathlib.Path, optional
-        Where to write the converted checkpoint (default: replace ``path``).
-
-    Returns
-    -------
-    pathlib.Path
-        The converted file.
-
-    Raises
-    ------
-    ValueError
-        ``trust`` not True (``trust: ...``, nothing is read); ``checkpoint: ...`` if the file is missing,
-        corrupted or not a mixedrl checkpoint; ``state: ...`` if it holds a value a checkpoint cannot
-        store.
-
-    Examples
-    --------
-    >>> from mixedrl.checkpoint import convert_checkpoint
-    >>> convert_checkpoint("old_run/checkpoint.pt", trust=True)  # doctest: +SKIP
-    PosixPath('old_run/checkpoint.pt')
-    """
-    if trust is not True:
-        raise ValueError("trust: converting unpickles the file with weights_only=False, which runs any code "
-                         "stored in it; call convert_checkpoint(path, trust=True) only on a file you trust")
-    path = Path(path)
-    if not path.is_file():
-        raise ValueError(f"checkpoint: {path} does not exist")
-    target = path if out is None else Path(out)
-    try:
-        payload = torch.load(path, map_location="cpu", weights_only=False)
-    except Exception as exc:  # noqa: BLE001 - any unpickling failure means a corrupted file
-        raise ValueError(f"checkpoint: {path} is corrupted or truncated ({type(exc).__name__}: {exc})") from None
-    if not isinstance(payload, dict) or "state" not in payload:
-        raise ValueError(f"checkpoint: {path} is not a mixedrl checkpoint")
-    if payload.get("format") == _FORMAT:
-        state = _decode(payload["state"], path)
-    elif payload.get("format") in _OLD_FORMATS:
-        state = payload["state"]
-    else:
-        raise ValueError(f"checkpoint: {path} is not a mixedrl checkpoint (format {payload.get('format')!r})")
-    save_checkpoint(target, state)
-    return target

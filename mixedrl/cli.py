@@ -5,7 +5,7 @@
     mixedrl train --method {mixed,model,ddpg,oracle} --seed S --out DIR [--iterations N]
                   [--config FILE.json] [--set key=value ...] [--resume] [--no-progress] [--tensorboard]
     mixedrl evaluate RUN_DIR [--seeds N]
-    mixedrl sweep SPEC.toml --out DIR [--address ADDR] [--num-cpus N] [--resume] [--no-progress]
+    mixedrl sweep SPEC.toml --out DIR [--force] [--address ADDR] [--num-cpus N] [--resume] [--no-progress]
     mixedrl reproduce [--seeds 5] [--out DIR] [--quick] [--resume] [--workers W] [--no-progress]
 
 ``train`` writes a run directory (:mod:`mixedrl.runs`); ``--resume`` continues an interrupted run from
@@ -55,7 +55,7 @@ from mixedrl.config import FEEDFORWARDS, METHODS, TrainConfig, apply_overrides
 from mixedrl.precision import format_policy_gap, gap_summary
 from mixedrl.runs import RunDirectory, evaluate_run, make_trainer, train
 from mixedrl.sweep import add_parser as add_sweep_parser
-from mixedrl.sweep import flatten_table, format_summary, load_spec, run_sweep
+from mixedrl.sweep import SEED_MAX, flatten_table, format_summary, load_spec, run_sweep
 
 __all__ = ["main", "build_parser", "parse_overrides", "command_plugins", "COMMAND_GROUP", "Handler"]
 
@@ -166,8 +166,8 @@ def _sweep(args: argparse.Namespace) -> int:
     """``mixedrl sweep``: 0 if every run finished, 1 if some failed (errors in ``sweep.json``), 2 for an invalid
     spec or arguments, or ``--address`` without Ray (the message says which extra to install)."""
     try:
-        doc = run_sweep(load_spec(args.spec), args.out, address=args.address, num_cpus=args.num_cpus,
-                        resume=args.resume, progress=not args.no_progress, workers=args.workers,
+        doc = run_sweep(load_spec(args.spec, force=args.force), args.out, address=args.address,
+                        num_cpus=args.num_cpus, resume=args.resume, progress=not args.no_progress, workers=args.workers,
                         batch=args.batch, batch_ddpg=args.batch_ddpg)
     except (ImportError, ValueError) as exc:
         print(f"mixedrl sweep: error: {exc}", file=sys.stderr)
@@ -219,9 +219,14 @@ def _requested_config(args: argparse.Namespace, run: RunDirectory) -> TrainConfi
 
 
 def _train(args: argparse.Namespace) -> int:
+    if args.seed is not None and not 0 <= args.seed <= SEED_MAX:
+        raise ValueError(f"--seed: {args.seed} is out of range; expected an integer in [0, 2**64 - 1]")
     run = RunDirectory(args.out)
     if args.resume and not run.holds_run():
-        raise ValueError(f"--resume: {run.path} holds no run to resume (no config.json or checkpoint.pt)")
+        names = run.entries()  # what is there instead (a .lock listed here is not the package's)
+        found = f"; it holds {', '.join(names[:3])}, which mixedrl did not write" if names else ""
+        raise ValueError(f"--resume: {run.path} holds no run to resume (no config.json, checkpoint.pt or lock "
+                         f"of a started run{found})")
     config = _requested_config(args, run)
     trainer = make_trainer(config)
     try:

@@ -1,7 +1,7 @@
 """Run directories, metrics, and the training loop shared by every method.
 
 The checkpoint codec, the atomic writes and the sha256 sidecars are :mod:`mixedrl.checkpoint`; their
-names are re-exported here (``mixedrl.runs.save_checkpoint``, ``convert_checkpoint``, ...).
+names are re-exported here (``mixedrl.runs.save_checkpoint``, ``load_checkpoint``, ...).
 
 A run lives in one directory::
 
@@ -12,13 +12,21 @@ A run lives in one directory::
         metrics.jsonl    one JSON object per iteration (namespaced keys, see below)
         metrics.csv      the same table as CSV, written when the run ends
         results.json     final evaluation, convergence, wall time
-        checkpoint.pt.sha256, results.json.sha256
+        config.json.sha256, checkpoint.pt.sha256, results.json.sha256
                          the sha256 of each (sha256sum format), verified on every load
-        .lock            the one-writer lock (fcntl.flock; holds the writer's pid, host, start time)
+        .lock            the one-writer lock (fcntl.flock; holds the writer's pid, host, start time;
+                         created without following links, never truncated: :func:`hold_lock`)
 
-Training never replaces a run: without ``resume`` the directory must be absent or empty; with it the
-saved config must match (a larger ``iterations`` extends the budget) and ``metrics.jsonl`` must be
-complete up to the checkpoint (docs/algorithm2.rst, "Run directories").
+The writes come in an order that makes every kill point resumable: at each checkpoint ``config.json``
+(with the first one), the new ``metrics.jsonl`` rows, then ``checkpoint.pt``; at the end ``metrics.csv``
+and ``results.json``; each file after its digest (:func:`write_with_digest`). A directory is therefore
+always *fresh* (the lock, ``config.json``, rows up to the first checkpoint: resumed from scratch, the rows
+discarded) or *at checkpoint k* (rows beyond ``k`` discarded on resume).
+
+Training never replaces a run: without ``resume`` the directory must be absent or empty (anything the
+package did not write, a planted ``.lock`` included, makes it not a run); with it the saved config must
+match (a larger ``iterations`` extends the budget) and ``metrics.jsonl`` must be complete up to the
+checkpoint (docs/algorithm2.rst, "Run directories").
 
 Metric keys (every row has ``iteration``):
 
@@ -44,12 +52,15 @@ from __future__ import annotations
 
 import contextlib
 import csv
+import errno
 import io
 import json
 import logging
 import math
 import os
+import re
 import socket
+import stat
 import sys
 import time
 from pathlib import Path
@@ -60,8 +71,8 @@ import torch
 
 from mixedrl.algorithms.agpi import AGPI
 from mixedrl.algorithms.ddpg import DDPG
-from mixedrl.checkpoint import (atomic_write_bytes, atomic_write_text, convert_checkpoint, default_file_mode,
-                                digest_path, is_temporary, load_checkpoint, save_checkpoint, verify_digest,
+from mixedrl.checkpoint import (atomic_write_bytes, atomic_write_text, default_file_mode, digest_path,
+                                is_temporary, load_checkpoint, regular_file, save_checkpoint, verify_digest,
                                 write_with_digest)
 from mixedrl.checks import check_positive_int
 from mixedrl.config import ANCHORED_FEEDFORWARDS, TrainConfig, flatten_table, task_names
@@ -73,13 +84,15 @@ __all__ = [
     "RunDirectory",
     "save_checkpoint",
     "load_checkpoint",
-    "convert_checkpoint",
     "atomic_write_bytes",
     "atomic_write_text",
     "write_with_digest",
     "verify_digest",
     "digest_path",
     "RunLockedError",
+    "hold_lock",
+    "is_lock_file",
+    "LOCK_NAME",
     "RUN_FILES",
     "iterations_to_converge",
     "eval_seeds",
@@ -91,6 +104,8 @@ __all__ = [
     "train_batch",
     "IterationObserver",
     "check_run_directory",
+    "check_state",
+    "load_trainer",
     "make_trainer",
     "CONVERGENCE_RTOL",
 ]
@@ -104,10 +119,112 @@ CONVERGENCE_RTOL = 0.10
 RUN_FILES = ("config.json", "checkpoint.pt", "metrics.jsonl", "results.json")
 #: The lock file of a run directory (see :meth:`RunDirectory.lock`).
 LOCK_NAME = ".lock"
+#: Names whose presence means a run was started here: :data:`RUN_FILES` and the digests written before them.
+_STARTED = RUN_FILES + tuple(f"{name}.sha256" for name in ("config.json", "checkpoint.pt", "results.json"))
+
+
+def _temporary_of_run(name: str) -> bool:
+    """True for a temporary file :func:`atomic_write_bytes` leaves when killed while writing a run's file."""
+    stem = name[1:].rsplit(".", 2)[0] if is_temporary(name) and name.count(".") >= 3 else ""
+    return stem in _STARTED + ("metrics.csv",)
 
 
 class RunLockedError(ValueError):
     """Another process holds the run directory's lock (a second writer is refused)."""
+
+
+#: The lock file's content: the holder's line, padded with spaces to this many bytes (so it is rewritten in
+#: place, never truncated).
+_LOCK_WIDTH = 256
+#: What a lock file this package wrote holds: nothing, or a holder's line and padding.
+_LOCK_TEXT = re.compile(rb"(pid [0-9]+ on \S+ since \S+\n)? *")
+
+
+def is_lock_file(path: Path) -> bool:
+    """Whether ``path`` is a lock file this package wrote: a regular file of one link holding nothing but a
+    holder's line (:data:`_LOCK_TEXT`); a symbolic link, a hard link to another file, or any other content
+    is not."""
+    try:
+        st = os.lstat(path)
+        if not stat.S_ISREG(st.st_mode) or st.st_nlink != 1 or st.st_size > _LOCK_WIDTH:
+            return False
+        with open(path, "rb") as fh:
+            return _LOCK_TEXT.fullmatch(fh.read(_LOCK_WIDTH + 1)) is not None
+    except OSError:
+        return False
+
+
+@contextlib.contextmanager
+def hold_lock(path: str | Path, what: str = "out") -> Iterator[None]:
+    """Hold the exclusive lock of the file ``path`` (``fcntl.flock``) for the duration of the ``with`` block.
+
+    The file is created if needed, without following a symbolic link (``O_NOFOLLOW``), and is never
+    truncated: an existing file is used only if it is one this package wrote (a regular file of one link
+    holding a holder's line), and the holder's line (pid, host, start time) is written over it in place,
+    padded to a fixed width. The kernel releases the lock when the holder exits, however it dies, so a lock
+    left by a killed process is recovered by the next holder. The descriptor is not inherited by child
+    processes (``O_CLOEXEC``).
+
+    Parameters
+    ----------
+    path : str or pathlib.Path
+        The lock file (its directory must exist).
+    what : str
+        The prefix of the error messages (the argument that named the directory).
+
+    Raises
+    ------
+    RunLockedError
+        Another process holds the lock (the message names the directory and the holder).
+    ValueError
+        ``path`` is a symbolic link, not a regular file, a hard link or holds something else than a
+        holder's line (nothing is written into it), or the directory cannot be written.
+    """
+    import fcntl
+
+    path = Path(path)
+    foreign = (f"{what}: {path} is not a lock file mixedrl wrote (a symbolic link, a hard link, a special file or "
+               f"other content); the directory is not mixedrl's: choose a new directory")
+    flags = os.O_RDWR | os.O_CREAT | getattr(os, "O_NOFOLLOW", 0) | getattr(os, "O_CLOEXEC", 0)
+    try:
+        fd = os.open(path, flags | getattr(os, "O_NONBLOCK", 0), default_file_mode())
+    except OSError as exc:
+        if exc.errno == errno.ELOOP:
+            raise ValueError(foreign) from None
+        raise ValueError(f"{what}: cannot write in {path.parent} ({exc.strerror})") from None
+    try:
+        st = os.fstat(fd)
+        if not stat.S_ISREG(st.st_mode) or st.st_nlink != 1 or st.st_size > _LOCK_WIDTH:
+            raise ValueError(foreign)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            holder = os.pread(fd, _LOCK_WIDTH, 0).decode("utf-8", "replace").strip() or "unknown"
+            raise RunLockedError(f"{what}: {path.parent} is being written by another process ({holder}); "
+                                 f"one writer per directory") from None
+        if _LOCK_TEXT.fullmatch(os.pread(fd, _LOCK_WIDTH + 1, 0)) is None:
+            raise ValueError(foreign)
+        host = socket.gethostname().replace(" ", "_")[:120] or "unknown"
+        info = f"pid {os.getpid()} on {host} since {time.strftime('%Y-%m-%dT%H:%M:%SZ', time.gmtime())}\n"
+        os.pwrite(fd, info.encode().ljust(_LOCK_WIDTH), 0)
+        yield
+    finally:
+        os.close(fd)  # releases the flock
+
+
+def _metrics_row(line: bytes, number: int, path: Path) -> dict[str, Any]:
+    """One row of ``metrics.jsonl`` (line ``number``): a JSON object with a positive integer ``iteration``."""
+    try:
+        row = json.loads(line.decode("utf-8"))
+    except UnicodeDecodeError as exc:
+        raise ValueError(f"metrics: {path} line {number} is not UTF-8 text ({exc.reason} at byte {exc.start})") \
+            from None
+    if not isinstance(row, dict):
+        raise ValueError(f"metrics: {path} line {number} is a JSON {type(row).__name__}, expected an object")
+    k = row.get("iteration")
+    if type(k) is not int or k < 1:
+        raise ValueError(f"metrics: {path} line {number} has iteration {k!r}, expected a positive integer")
+    return row
 
 
 class RunDirectory:
@@ -129,7 +246,14 @@ class RunDirectory:
     results_path = property(lambda self: self.path / "results.json")
     lock_path = property(lambda self: self.path / LOCK_NAME)
 
+    def _check_link(self) -> None:
+        """Refuse a ``path`` that is a symbolic link leading nowhere (a loop or a missing target)."""
+        if self.path.is_symlink() and not os.path.exists(self.path):
+            raise ValueError(f"out: {self.path} is a symbolic link that does not resolve (a loop or a missing "
+                             f"target)")
+
     def _mkdir(self) -> None:
+        self._check_link()
         try:
             self.path.mkdir(parents=True, exist_ok=True)
         except FileExistsError:
@@ -140,11 +264,16 @@ class RunDirectory:
     def entries(self) -> list[str]:
         """Names in the directory other than its lock and leftover temporary files ([] if it does not exist).
 
+        The lock file is listed when it is not one this package wrote (a symbolic or hard link, other
+        content): such a directory is not a run.
+
         Raises
         ------
         ValueError
-            ``path`` exists and is not a directory, or cannot be listed.
+            ``path`` exists and is not a directory, is a symbolic link that does not resolve, or cannot be
+            listed.
         """
+        self._check_link()
         if not self.path.exists():
             return []
         if not self.path.is_dir():
@@ -153,14 +282,20 @@ class RunDirectory:
             names = os.listdir(self.path)
         except OSError as exc:
             raise ValueError(f"out: cannot read the directory {self.path} ({exc.strerror})") from None
-        return sorted(n for n in names if n != LOCK_NAME and not is_temporary(n))
+        return sorted(n for n in names if not _temporary_of_run(n)
+                      and not (n == LOCK_NAME and is_lock_file(self.path / n)))
 
     def holds_run(self) -> bool:
-        """True if the directory holds any of :data:`RUN_FILES` (a run, finished or not)."""
-        return any(name in RUN_FILES for name in self.entries())
+        """True if a run was started here: any of :data:`RUN_FILES`, a digest of one (a write that was
+        killed), or this package's lock file."""
+        return (any(name in _STARTED for name in self.entries())
+                or (self.lock_path.exists() and is_lock_file(self.lock_path)))
 
     def check_new(self) -> None:
         """Refuse to start a new run here unless the directory is absent or empty; creates nothing.
+
+        Empty means: nothing but this package's lock file and temporary files (a run killed before it wrote
+        anything).
 
         Raises
         ------
@@ -168,7 +303,7 @@ class RunDirectory:
             ``path`` is a file, holds a run (resume it, or choose a new directory), or holds other files.
         """
         names = self.entries()
-        found = [n for n in names if n in RUN_FILES]
+        found = [n for n in names if n in _STARTED]
         if found:
             raise ValueError(f"out: {self.path} already holds a run ({', '.join(found)}); pass --resume "
                              f"(resume=True) to continue it, or choose a new directory")
@@ -179,79 +314,68 @@ class RunDirectory:
 
     @contextlib.contextmanager
     def lock(self) -> Iterator[None]:
-        """Hold the directory's one-writer lock (``<path>/.lock``) for the duration of the ``with`` block.
-
-        The lock is an exclusive ``fcntl.flock`` on the lock file, which records the holder (pid, host,
-        start time). The kernel releases it when the holder exits, however it dies, so a lock left by a
-        killed process is recovered by the next writer. The directory is created if needed.
+        """Hold the directory's one-writer lock (``<path>/.lock``, :func:`hold_lock`) for the duration of the
+        ``with`` block. The directory is created if needed.
 
         Raises
         ------
         RunLockedError
             Another process holds the lock (the message names the directory and the holder).
         ValueError
-            The directory cannot be created or written.
+            The directory cannot be created or written, or its ``.lock`` is not one this package wrote.
         """
-        import fcntl
-
         self._mkdir()
-        try:
-            fd = os.open(self.lock_path, os.O_RDWR | os.O_CREAT, default_file_mode())
-        except OSError as exc:
-            raise ValueError(f"out: cannot write in {self.path} ({exc.strerror})") from None
-        try:
-            try:
-                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-            except BlockingIOError:
-                holder = os.pread(fd, 4096, 0).decode("utf-8", "replace").strip() or "unknown"
-                raise RunLockedError(f"out: {self.path} is being written by another process ({holder}); "
-                                     f"one writer per run directory") from None
-            info = (f"pid {os.getpid()} on {socket.gethostname()} since "
-                    f"{time.strftime('%Y-%m-%dT%H:%M:%SZ', time.gmtime())}\n").encode()
-            os.ftruncate(fd, 0)
-            os.pwrite(fd, info, 0)
-            try:
-                yield
-            finally:
-                os.ftruncate(fd, 0)
-                fcntl.flock(fd, fcntl.LOCK_UN)
-        finally:
-            os.close(fd)
+        with hold_lock(self.lock_path):
+            yield
 
     def write_config(self, config: TrainConfig, task: Any = None) -> None:
         """Save the run's config as ``config.json`` (:func:`config_record`: with the user's own ``task``,
-        its name)."""
+        its name), with its sha256 in ``config.json.sha256``."""
         self._mkdir()
-        atomic_write_text(self.config_path, json.dumps(config_record(config, task), indent=2, sort_keys=True) + "\n")
+        text = json.dumps(config_record(config, task), indent=2, sort_keys=True) + "\n"
+        write_with_digest(self.config_path, text.encode("utf-8"))
 
     def read_config(self) -> TrainConfig:
-        """Load ``config.json`` (unknown keys are an error).
+        """Load ``config.json`` (unknown keys are an error), verified against its sha256 sidecar.
 
         Raises
         ------
         ValueError
-            No ``config.json``, or one that is not a valid config; one recorded for the user's own task
-            (``task.name`` not a built-in or registered task) is refused with a message naming the task: its
-            :class:`~mixedrl.tasks.Task` object is needed (read the raw record with :meth:`read_record`).
+            No ``config.json``, one that does not match its digest, or one that is not a valid config; one
+            recorded for the user's own task (``task.name`` not a built-in or registered task) is refused
+            with a message naming the task: its :class:`~mixedrl.tasks.Task` object is needed (read the raw
+            record with :meth:`read_record`).
         """
         record = self.read_record()
         task = record.get("task")
         if isinstance(task, dict) and set(task) == {"name"} and task["name"] not in task_names():
             raise ValueError(f"config: {self.config_path} records the user's own task {task['name']!r}, which "
                              f"no config can rebuild; build it and pass it to make_trainer(config, task)")
-        return TrainConfig.load(self.config_path)
+        return TrainConfig.from_dict(record)
 
     def read_record(self) -> dict[str, Any]:
-        """The JSON object of ``config.json`` as written (:func:`config_record`), not migrated or validated."""
-        if not self.config_path.is_file():
+        """The JSON object of ``config.json`` as written (:func:`config_record`), not migrated or validated;
+        verified against its sha256 sidecar (``config.json.sha256``) when it has one.
+
+        Raises
+        ------
+        ValueError
+            ``config.json`` is missing, not a regular file, does not match its digest, or is not a JSON object.
+        """
+        if not regular_file(self.config_path, "config"):
             raise ValueError(f"path: {self.path} has no config.json")
         try:
-            data = json.loads(self.config_path.read_text(encoding="utf-8"))
-        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+            data = self.config_path.read_bytes()
+        except OSError as exc:
+            raise ValueError(f"config: cannot read {self.config_path} ({exc.strerror})") from None
+        verify_digest(self.config_path, data, "config")
+        try:
+            record = json.loads(data.decode("utf-8"))
+        except (UnicodeDecodeError, json.JSONDecodeError) as exc:
             raise ValueError(f"config: cannot read {self.config_path} as JSON ({exc})") from None
-        if not isinstance(data, dict):
-            raise ValueError(f"config: {self.config_path} holds a JSON {type(data).__name__}, expected an object")
-        return data
+        if not isinstance(record, dict):
+            raise ValueError(f"config: {self.config_path} holds a JSON {type(record).__name__}, expected an object")
+        return record
 
     def append_metrics(self, rows: list[dict[str, Any]]) -> None:
         """Append rows to ``metrics.jsonl``."""
@@ -263,18 +387,32 @@ class RunDirectory:
                 fh.write(json.dumps(row, allow_nan=True) + "\n")
 
     def read_metrics(self) -> list[dict[str, Any]]:
-        """All rows of ``metrics.jsonl`` (an empty list if there is none)."""
-        if not self.metrics_path.is_file():
+        """All rows of ``metrics.jsonl`` (an empty list if there is none).
+
+        A last line without its newline that is not JSON is the torn row of an interrupted write and is
+        left out.
+
+        Raises
+        ------
+        ValueError
+            ``metrics: ...`` naming the file and the line: the file is not a regular file, a line is not
+            UTF-8, not JSON (other than a torn last line), not an object, or has no positive integer
+            ``iteration``.
+        """
+        if not regular_file(self.metrics_path, "metrics"):
             return []
+        data = self.metrics_path.read_bytes()
+        lines = data.split(b"\n")
         rows = []
-        with open(self.metrics_path) as fh:
-            for line in fh:
-                line = line.strip()
-                if line:
-                    try:
-                        rows.append(json.loads(line))
-                    except json.JSONDecodeError:
-                        break  # a torn last line of an interrupted run
+        for number, line in enumerate(lines, 1):
+            if not line.strip():
+                continue
+            try:
+                rows.append(_metrics_row(line, number, self.metrics_path))
+            except json.JSONDecodeError as exc:
+                if number == len(lines):
+                    break  # a torn last line (no newline yet) of an interrupted run
+                raise ValueError(f"metrics: {self.metrics_path} line {number} is not JSON ({exc})") from None
         return rows
 
     def truncate_metrics(self, k: int) -> None:
@@ -291,7 +429,7 @@ class RunDirectory:
 
     def check_metrics(self, k: int) -> list[dict[str, Any]]:
         """The rows of iterations ``1..k`` of ``metrics.jsonl``, checked complete (see :meth:`truncate_metrics`)."""
-        rows = [r for r in self.read_metrics() if r.get("iteration", k + 1) <= k]
+        rows = [r for r in self.read_metrics() if r["iteration"] <= k]
         if [r["iteration"] for r in rows] != list(range(1, k + 1)):
             state = "is missing" if not self.metrics_path.is_file() else f"has {len(rows)} rows up to iteration {k}"
             raise ValueError(f"metrics: {self.metrics_path} {state}, but the checkpoint is at iteration {k} "
@@ -325,9 +463,10 @@ class RunDirectory:
         Raises
         ------
         ValueError
-            ``results: ...`` naming the file if it is missing, does not match its digest, or is not JSON.
+            ``results: ...`` naming the file if it is missing, not a regular file, does not match its digest,
+            or is not JSON.
         """
-        if not self.results_path.is_file():
+        if not regular_file(self.results_path, "results"):
             raise ValueError(f"results: {self.results_path} does not exist")
         data = self.results_path.read_bytes()
         verify_digest(self.results_path, data, "results")
@@ -466,7 +605,7 @@ def evaluate_run(path: str | Path, *, seeds: int | None = None, feedforward: str
                              f"evaluated with {feedforward!r}")
         config = config.replace(**{"algorithm.feedforward": feedforward})
     trainer = make_trainer(config, task)
-    trainer.load_state_dict(load_checkpoint(run.checkpoint_path)["trainer"])
+    load_trainer(trainer, run.checkpoint_path)
     metrics = trainer.evaluate(eval_seeds(config))
     gap, reason = run_policy_gap(trainer)
     return {"config": config, "iteration": int(trainer.k), "metrics": metrics, "policy_gap": gap,
@@ -566,41 +705,168 @@ def check_run_directory(run: RunDirectory, config: TrainConfig, resume: bool = F
     ------
     ValueError
         As :func:`train` would: ``run`` holds a run or other files and ``resume`` is false; with
-        ``resume`` a config that contradicts the saved one, a corrupted checkpoint, or files but no checkpoint.
+        ``resume`` a config that contradicts the saved one, a corrupted or invalid checkpoint, or files but
+        no checkpoint.
     """
     _open_run(run, config, resume)
 
 
-def _open_run(run: RunDirectory, cfg: TrainConfig, resume: bool, task: Any = None) -> dict[str, Any] | None:
+#: What a run directory may hold without ``checkpoint.pt`` and still be resumed from scratch: a run killed
+#: before its first checkpoint was in place (its metrics rows are discarded).
+_BEFORE_FIRST_CHECKPOINT = ("config.json", "config.json.sha256", "checkpoint.pt.sha256", "metrics.jsonl", TB_DIR)
+
+
+def _open_run(run: RunDirectory, cfg: TrainConfig, resume: bool, task: Any = None,
+              template: dict[str, Any] | None = None) -> dict[str, Any] | None:
     """Validate ``run`` for training ``cfg`` (creating nothing) and return the checkpoint to resume from.
 
     Without ``resume`` the directory must be absent or empty. With ``resume``: a checkpoint (its config
-    must equal ``cfg``, up to a larger ``iterations``: an extension; ``metrics.jsonl`` must hold every
-    iteration up to it), or only ``config.json`` (a run killed before its first checkpoint: it starts
-    again), or nothing at all (a run not started yet).
+    must equal ``cfg``, up to a larger ``iterations``: an extension; its record is checked field by field,
+    against ``template``, a fresh trainer's ``state_dict()``, when given; ``metrics.jsonl`` must hold every
+    iteration up to it), or what a run killed before its first checkpoint leaves (``config.json``, metrics
+    rows of iterations up to the first checkpoint: it starts again, the rows are discarded), or nothing
+    at all (a run not started yet).
     """
     if not resume:
         run.check_new()
         return None
     names = run.entries()
     if "checkpoint.pt" not in names:
-        others = [n for n in names if n not in ("config.json", TB_DIR)]
+        others = [n for n in names if n not in _BEFORE_FIRST_CHECKPOINT]
         if others:
             raise ValueError(f"resume: {run.path} has no checkpoint.pt to resume from but holds "
                              f"{', '.join(others[:4])}; nothing was changed (train into a new directory)")
-        if "config.json" not in names:
-            return None
-    conflicts = _config_conflicts(_saved_record(run), config_record(cfg, task))
-    if conflicts:
-        shown = "; ".join(f"{k} {v!r} (saved: {w!r})" for k, w, v in conflicts[:4])
-        more = f" and {len(conflicts) - 4} more" if len(conflicts) > 4 else ""
-        hint = (" (resume can only extend the budget)" if any(k == _BUDGET for k, _, _ in conflicts) else "")
-        raise ValueError(f"config: {shown}{more} contradict(s) the saved {run.config_path}{hint}; resume with "
-                         f"the run's config, or train into a new directory")
+    if "checkpoint.pt" in names and "config.json" not in names:
+        raise ValueError(f"resume: {run.path} has a checkpoint.pt but no config.json (it is written before the "
+                         f"first checkpoint: it was removed); nothing was changed (train into a new directory)")
+    if "config.json" in names:
+        conflicts = _config_conflicts(_saved_record(run), config_record(cfg, task))
+        if conflicts:
+            shown = "; ".join(f"{k} {v!r} (saved: {w!r})" for k, w, v in conflicts[:4])
+            more = f" and {len(conflicts) - 4} more" if len(conflicts) > 4 else ""
+            hint = (" (resume can only extend the budget)" if any(k == _BUDGET for k, _, _ in conflicts) else "")
+            raise ValueError(f"config: {shown}{more} contradict(s) the saved {run.config_path}{hint}; resume with "
+                             f"the run's config, or train into a new directory")
     if "checkpoint.pt" not in names:
+        last = max((r["iteration"] for r in run.read_metrics()), default=0)
+        if last > cfg.run.checkpoint_every:
+            raise ValueError(f"resume: {run.metrics_path} has rows up to iteration {last}, but {run.path} has no "
+                             f"checkpoint.pt (one was written by iteration {cfg.run.checkpoint_every}: it was "
+                             f"removed); nothing was changed (train into a new directory)")
         return None
     state = load_checkpoint(run.checkpoint_path)
-    run.check_metrics(int(state["trainer"]["k"]))
+    check_state(state, run.checkpoint_path, cfg.algorithm.iterations, template)
+    run.check_metrics(state["trainer"]["k"])
+    return state
+
+
+def _real(value: Any) -> bool:
+    return isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, (bool, np.bool_))
+
+
+def _check_fields(value: Any, template: Any, where: str, path: Path) -> None:
+    """Check ``value`` against ``template`` (what a fresh trainer's ``state_dict()`` holds there): the kind of
+    every field (dict with the template's keys, list, tensor or array of the template's dtype and number of
+    dimensions, bool, integer, real number, string, generator); ``None`` in the template is not checked."""
+    def bad(problem: str) -> ValueError:
+        return ValueError(f"checkpoint: {path} field {where} {problem}")
+
+    if template is None:
+        return
+    if isinstance(template, dict):
+        if not isinstance(value, dict):
+            raise bad(f"is a {type(value).__name__}, expected a dict")
+        for key, sub in template.items():
+            if key not in value:
+                raise bad(f"has no key {key!r}")
+            _check_fields(value[key], sub, f"{where}.{key}", path)
+    elif isinstance(template, (list, tuple)):
+        if not isinstance(value, (list, tuple)):
+            raise bad(f"is a {type(value).__name__}, expected a list")
+        for i, (v, t) in enumerate(zip(value, template)):
+            _check_fields(v, t, f"{where}[{i}]", path)
+    elif isinstance(template, (torch.Tensor, np.ndarray)):
+        if type(value) is not type(template):
+            raise bad(f"is a {type(value).__name__}, expected a {type(template).__name__}")
+        if value.dtype != template.dtype or value.ndim != template.ndim:
+            raise bad(f"has dtype {value.dtype} and {value.ndim} dimension(s), expected {template.dtype} and "
+                      f"{template.ndim}")
+    elif isinstance(template, (bool, np.bool_)):
+        if not isinstance(value, (bool, np.bool_)):
+            raise bad(f"is {value!r}, expected true or false")
+    elif isinstance(template, (int, np.integer)):
+        if not _real(value) or not float(value).is_integer():
+            raise bad(f"is {value!r}, expected an integer")
+    elif _real(template):
+        if not _real(value):
+            raise bad(f"is {value!r}, expected a number")
+    elif not isinstance(value, type(template)):
+        raise bad(f"is a {type(value).__name__}, expected a {type(template).__name__}")
+
+
+def check_state(state: Any, path: str | Path, budget: int | None = None,
+                template: dict[str, Any] | None = None) -> None:
+    """Check a loaded checkpoint's record field by field before it is used (:func:`train`, ``evaluate``).
+
+    Parameters
+    ----------
+    state : Any
+        What :func:`load_checkpoint` returned.
+    path : str or pathlib.Path
+        The checkpoint (named in the errors).
+    budget : int, optional
+        The run's ``algorithm.iterations``: the largest iteration a checkpoint of it can be at.
+    template : dict, optional
+        A fresh trainer's ``state_dict()``: every field of it must be in ``state["trainer"]``, of its kind.
+
+    Raises
+    ------
+    ValueError
+        ``checkpoint: <path> field <name> ...``: ``trainer`` missing or not a dict, ``trainer.k`` not an
+        integer in ``[0, budget]``, ``elapsed`` not a finite number ``>= 0``, ``trainer.stop_count`` not an
+        integer ``>= 0``, or a field of ``template`` missing or of another kind.
+    """
+    path = Path(path)
+    if not isinstance(state, dict) or not isinstance(state.get("trainer"), dict):
+        found = type(state.get("trainer")).__name__ if isinstance(state, dict) and "trainer" in state else "missing"
+        raise ValueError(f"checkpoint: {path} field trainer is {found}, expected a dict (a trainer's state)")
+    trainer = state["trainer"]
+    k, top = trainer.get("k"), "" if budget is None else f", {budget}"
+    if type(k) is not int or k < 0 or (budget is not None and k > budget):
+        raise ValueError(f"checkpoint: {path} field trainer.k is {k!r}, expected an integer in [0{top}]")
+    elapsed = state.get("elapsed", 0.0)
+    if not _real(elapsed) or not math.isfinite(elapsed) or elapsed < 0:
+        raise ValueError(f"checkpoint: {path} field elapsed is {elapsed!r}, expected a finite number >= 0")
+    count = trainer.get("stop_count", 0)
+    if type(count) is not int or count < 0:
+        raise ValueError(f"checkpoint: {path} field trainer.stop_count is {count!r}, expected an integer >= 0")
+    if template is not None:
+        _check_fields(trainer, template, "trainer", path)
+
+
+def load_trainer(trainer: Any, path: str | Path, state: dict[str, Any] | None = None) -> dict[str, Any]:
+    """Restore ``trainer`` from the checkpoint ``path`` (or its already loaded ``state``), checked first
+    (:func:`check_state` against the trainer's own fields and budget).
+
+    Returns
+    -------
+    dict
+        The checkpoint's record.
+
+    Raises
+    ------
+    ValueError
+        ``checkpoint: <path> ...``: unreadable, invalid, or a state the trainer does not accept.
+    """
+    if state is None:
+        state = load_checkpoint(path)
+    check_state(state, path, trainer.config.algorithm.iterations, trainer.state_dict())
+    try:
+        trainer.load_state_dict(state["trainer"])
+    except (ValueError, KeyError, TypeError, IndexError, RuntimeError, AttributeError) as exc:
+        text = " ".join(str(exc).split())[:300]
+        raise ValueError(f"checkpoint: {path} field trainer does not fit the run's trainer "
+                         f"({type(exc).__name__}: {text})") from None
     return state
 
 
@@ -760,7 +1026,7 @@ def train_batch(trainers: list[Any], runs: list[RunDirectory | None] | None = No
         if obs is not None and not (callable(getattr(obs, "before", None)) and callable(getattr(obs, "after", None))):
             raise ValueError(f"observers: entry {i} ({type(obs).__name__}) has no before(trainer) and "
                              f"after(trainer, token, row) methods")
-    paths = [str(Path(r.path).resolve()) for r in runs if r is not None]
+    paths = [os.path.realpath(r.path) for r in runs if r is not None]
     if len(set(paths)) != len(paths):
         raise ValueError("runs: two runs of the batch write the same directory")
     if tensorboard and any(r is None for r in runs):
@@ -768,7 +1034,7 @@ def train_batch(trainers: list[Any], runs: list[RunDirectory | None] | None = No
     engine = _engine(trainers)
     for trainer, run in zip(trainers, runs):  # refuse before creating anything
         if run is not None:
-            _open_run(run, trainer.config, resume, getattr(trainer, "task", None))
+            _open_run(run, trainer.config, resume, getattr(trainer, "task", None), trainer.state_dict())
     if tensorboard:
         try:  # the extra missing: its error (TensorBoardLogger's, naming the extra) before anything is created
             import torch.utils.tensorboard  # noqa: F401
@@ -779,7 +1045,8 @@ def train_batch(trainers: list[Any], runs: list[RunDirectory | None] | None = No
             if run is not None:
                 stack.enter_context(run.lock())
         # again under the locks: the directories may have changed meanwhile
-        states = [None if run is None else _open_run(run, t.config, resume, getattr(t, "task", None))
+        states = [None if run is None else _open_run(run, t.config, resume, getattr(t, "task", None),
+                                                     t.state_dict())
                   for t, run in zip(trainers, runs)]
         boards = [TensorBoardLogger(run.path / TB_DIR) if tensorboard and run is not None else None for run in runs]
         return _train(trainers, engine, runs, states, progress, stop_after, callback, boards, observers)
@@ -824,16 +1091,22 @@ def _train(trainers: list[Any], engine: Callable[[list[bool]], list[dict[str, fl
     n = len(trainers)
     memory_rows: list[list[dict[str, Any]]] = [[] for _ in range(n)]
     elapsed = [0.0] * n
+    # a run started from scratch writes config.json with its first checkpoint: a run that fails before it
+    # (an invalid setting found by the first iteration) leaves its directory empty, free for a plain rerun
+    config_due = [False] * n
     for i, (trainer, run, state) in enumerate(zip(trainers, runs, states)):
         if run is None:
             continue
         if state is not None:
-            trainer.load_state_dict(state["trainer"])
+            load_trainer(trainer, run.checkpoint_path, state)
             elapsed[i] = float(state.get("elapsed", 0.0))
             run.truncate_metrics(trainer.k)
-        record = config_record(trainer.config, getattr(trainer, "task", None))
-        if state is None or record != _saved_record(run):
-            run.write_config(trainer.config, getattr(trainer, "task", None))
+        elif run.metrics_path.is_file():  # rows of a run killed before its first checkpoint: it starts again
+            run.truncate_metrics(0)
+        if state is None:
+            config_due[i] = True
+        elif config_record(trainer.config, getattr(trainer, "task", None)) != _saved_record(run):
+            run.write_config(trainer.config, getattr(trainer, "task", None))  # an extended budget
     seeds = [eval_seeds(t.config) for t in trainers]
     pending: list[list[dict[str, Any]]] = [[] for _ in range(n)]
     interrupted = [False] * n
@@ -841,6 +1114,9 @@ def _train(trainers: list[Any], engine: Callable[[list[bool]], list[dict[str, fl
 
     def checkpoint(i: int) -> None:
         if runs[i] is not None:
+            if config_due[i]:
+                runs[i].write_config(trainers[i].config, getattr(trainers[i], "task", None))
+                config_due[i] = False
             runs[i].append_metrics(pending[i])
             if boards[i] is not None:
                 boards[i].write(pending[i])

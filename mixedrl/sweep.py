@@ -3,8 +3,8 @@ process pool or on Ray.
 
 ::
 
-    mixedrl sweep SPEC.toml --out DIR [--workers N] [--batch N] [--address ADDR] [--num-cpus N] [--resume]
-                  [--no-progress]
+    mixedrl sweep SPEC.toml --out DIR [--workers N] [--force] [--batch N] [--address ADDR] [--num-cpus N]
+                  [--resume] [--no-progress]
 
 A spec is a small TOML file::
 
@@ -40,8 +40,12 @@ with exactly the weights and metrics of the same config in any other batch of tw
 ``--batch 1`` every run trains alone, with exactly the weights and metrics of ``mixedrl train``.
 
 Before anything starts, the spec is checked (TOML syntax, top-level keys, non-empty lists without
-duplicates, variant tables) and the :class:`~mixedrl.config.TrainConfig` of **every** run is built; any error
-names the offending key and nothing is started or written.
+duplicates, variant tables, no TOML dates, seeds below ``2**64``, at most :data:`MAX_RUNS` runs unless
+``--force``) and the :class:`~mixedrl.config.TrainConfig` of **every** run is built (two runs with equal
+configs are an error); any error names the offending key and nothing is started or written.
+
+One driver writes a sweep directory: it holds ``DIR/.lock`` (:func:`mixedrl.runs.hold_lock`) from its checks
+to its last write, and its pool workers end when it dies (:func:`_die_with_parent`).
 
 Engines (the same outputs from each):
 
@@ -102,7 +106,9 @@ from __future__ import annotations
 
 import argparse
 import concurrent.futures
+import ctypes
 import dataclasses
+import datetime
 import functools
 import hashlib
 import importlib
@@ -113,6 +119,9 @@ import logging
 import multiprocessing
 import os
 import re
+import signal
+import sys
+import threading
 import time
 import tomllib
 from pathlib import Path
@@ -123,8 +132,8 @@ import numpy as np
 from mixedrl.config import TrainConfig, apply_overrides, flatten_table
 from mixedrl.algorithms.batched import batch_key
 from mixedrl.checks import check_positive_int
-from mixedrl.runs import (RunDirectory, atomic_write_bytes, atomic_write_text, check_run_directory, load_checkpoint,
-                          make_trainer, train_batch)
+from mixedrl.runs import (LOCK_NAME, RunDirectory, atomic_write_bytes, atomic_write_text, check_run_directory,
+                          hold_lock, is_lock_file, load_trainer, make_trainer, train_batch)
 from mixedrl.tables import bootstrap_interval, csv_text, mean_std
 
 __all__ = [
@@ -146,6 +155,8 @@ __all__ = [
     "plan_batches",
     "resolve_observer",
     "DEFAULT_BATCH",
+    "MAX_RUNS",
+    "SEED_MAX",
     "run_sweep",
     "summarize",
     "make_figure",
@@ -174,6 +185,11 @@ _RESERVED = {"method": "methods", "seed": "seeds"}
 _VARIANT_LISTS = ("methods", "seeds")
 #: Longest run name before it is shortened with a hash.
 _MAX_NAME = 160
+#: Most runs a spec may expand to without ``force`` (``mixedrl sweep --force``): checking a spec builds every
+#: run's config first (about 2 ms and 2.5 kB each), and a larger sweep is more likely a typo than a plan.
+MAX_RUNS = 10_000
+#: The largest seed the generators accept (``torch.Generator.manual_seed``: 64 bits).
+SEED_MAX = 2**64 - 1
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -228,20 +244,44 @@ class SweepRun:
     config: TrainConfig
 
 
+def _check_values(value: Any, key: str) -> None:
+    """Refuse a TOML date or time anywhere in ``value`` (no config field is one)."""
+    if isinstance(value, (datetime.date, datetime.time)):
+        raise ValueError(f"{key}: {value.isoformat()} is a TOML date or time, which no config field takes (quote it "
+                         f"to make it a string)")
+    if isinstance(value, dict):
+        for k, v in value.items():
+            _check_values(v, f"{key}.{k}")
+    elif isinstance(value, list):
+        for v in value:
+            _check_values(v, key)
+
+
+def _run_count(methods: list[Any], seeds: list[Any], grid: dict[str, tuple[Any, ...]],
+               variants: dict[str, dict[str, Any]]) -> int:
+    """How many runs a spec expands to (:func:`expand`), without building them."""
+    points = 1
+    for values in grid.values():
+        points *= len(values)
+    own = list(variants.values()) or [{}]
+    return sum(points * len(v.get("methods", methods)) * len(v.get("seeds", seeds)) for v in own)
+
+
 def _check_list(value: Any, key: str) -> list[Any]:
     if not isinstance(value, list):
         raise ValueError(f"{key}: expected a list of values, got {type(value).__name__} {value!r}")
     if not value:
         raise ValueError(f"{key}: empty list (a sweep over nothing)")
-    seen: list[Any] = []
-    for v in value:
-        if any(v == s and type(v) is type(s) for s in seen):
+    seen: set[str] = set()
+    for v in value:  # the same TOML value twice (1 and 1.0 differ here; equal configs are found by expand)
+        text = f"{type(v).__name__}:{json.dumps(v, sort_keys=True, default=str)}"
+        if text in seen:
             raise ValueError(f"{key}: duplicate value {v!r}")
-        seen.append(v)
+        seen.add(text)
     return value
 
 
-def parse_spec(text: str, source: str = "spec") -> SweepSpec:
+def parse_spec(text: str, source: str = "spec", force: bool = False) -> SweepSpec:
     """Parse and check the TOML text of a sweep spec, and build the config of every run.
 
     Parameters
@@ -250,6 +290,8 @@ def parse_spec(text: str, source: str = "spec") -> SweepSpec:
         TOML with ``methods``, ``seeds``, and optionally ``[base]``, ``[grid]`` and ``[variants.NAME]``.
     source : str
         Name used in error messages (the file's path).
+    force : bool
+        Accept a spec of more than :data:`MAX_RUNS` runs.
 
     Returns
     -------
@@ -264,7 +306,10 @@ def parse_spec(text: str, source: str = "spec") -> SweepSpec:
         both in ``[base]`` and ``[grid]``, or a run whose config :meth:`TrainConfig.from_dict` rejects
         (unknown or invalid field; message starts with the run's name), a ``[variants.NAME]`` that is not a
         table, sets ``method`` / ``seed`` or a grid key, or has a ``methods`` / ``seeds`` that is not a
-        non-empty list without duplicates (``variants.NAME.KEY: ...``).
+        non-empty list without duplicates (``variants.NAME.KEY: ...``), a TOML date or time anywhere, a
+        seed beyond ``2**64 - 1``, more than :data:`MAX_RUNS` runs without ``force`` (``grid: ...``, checked
+        before any config is built), or two runs with equal configs (grid values equal after their
+        type is normalised, e.g. ``1`` and ``1.0`` of a float field: ``grid: ...`` naming both).
     """
     try:
         data = tomllib.loads(text)
@@ -276,6 +321,8 @@ def parse_spec(text: str, source: str = "spec") -> SweepSpec:
     for key in ("methods", "seeds"):
         if key not in data:
             raise ValueError(f"{key}: missing from {source} (a list is required)")
+    for key, value in data.items():
+        _check_values(value, key)
     methods = _check_list(data["methods"], "methods")
     seeds = _check_list(data["seeds"], "seeds")
     tables: dict[str, dict[str, Any]] = {}
@@ -292,6 +339,15 @@ def parse_spec(text: str, source: str = "spec") -> SweepSpec:
         if key in tables["base"]:
             raise ValueError(f"grid.{key}: also set in [base]; set it in one place")
     variants = _parse_variants(data.get("variants", {}), grid)
+    for key, values in [("seeds", seeds)] + [(f"variants.{n}.seeds", v["seeds"]) for n, v in variants.items()
+                                             if "seeds" in v]:
+        big = [v for v in values if isinstance(v, int) and v > SEED_MAX]
+        if big:
+            raise ValueError(f"{key}: {big[0]} is out of range; a seed is an integer in [0, 2**64 - 1]")
+    count = _run_count(methods, seeds, grid, variants)
+    if count > MAX_RUNS and not force:
+        raise ValueError(f"grid: {source} expands to {count} runs, more than the {MAX_RUNS} a sweep may have without "
+                         f"--force (force=True); nothing was checked or started")
     observer = data.get("observer")
     if observer is not None:
         resolve_observer(observer)
@@ -346,22 +402,27 @@ def _parse_variants(table: Any, grid: dict[str, Any]) -> dict[str, dict[str, Any
     return variants
 
 
-def load_spec(path: str | Path) -> SweepSpec:
-    """Read a spec file and :func:`parse_spec` it.
+def load_spec(path: str | Path, force: bool = False) -> SweepSpec:
+    """Read a spec file and :func:`parse_spec` it (``force``: as for :func:`parse_spec`).
 
     Raises
     ------
     ValueError
-        The file does not exist or is not UTF-8 (``spec: ...``), or :func:`parse_spec` rejects it.
+        The file does not exist, is a directory or is not UTF-8 (``spec: ...``), or :func:`parse_spec`
+        rejects it.
     """
     path = Path(path)
+    if path.is_dir():
+        raise ValueError(f"spec: {path} is a directory, not a spec file (TOML)")
     if not path.is_file():
         raise ValueError(f"spec: {path} does not exist")
     try:
         text = path.read_text(encoding="utf-8")
     except UnicodeDecodeError as exc:
         raise ValueError(f"spec: {path} is not UTF-8 text ({exc})") from None
-    return parse_spec(text, source=str(path))
+    except OSError as exc:
+        raise ValueError(f"spec: cannot read {path} ({exc.strerror})") from None
+    return parse_spec(text, source=str(path), force=force)
 
 
 def _format_value(value: Any) -> str:
@@ -403,8 +464,8 @@ def expand(spec: SweepSpec) -> list[SweepRun]:
     Raises
     ------
     ValueError
-        A run's config is invalid (message starts with ``base`` or the run's name, then the field), or two
-        runs get the same directory name.
+        A run's config is invalid (message starts with ``base`` or the run's name, then the field), two
+        runs get the same directory name, or two runs the same config.
     """
     defaults: dict = {}  # each run takes its task's experiment configuration for what the spec leaves out
     try:
@@ -437,7 +498,24 @@ def expand(spec: SweepSpec) -> list[SweepRun]:
         except (ValueError, TypeError) as exc:
             raise ValueError(f"{name}: {exc}") from None
         runs.append(SweepRun(name=name, point=point, config=config))
+    seen: dict[str, SweepRun] = {}
+    for run in runs:  # equal configs from values that differ only in type (1 and 1.0 of a float field)
+        other = seen.setdefault(json.dumps(_numbers_as_floats(run.config.to_dict()), sort_keys=True), run)
+        if other is not run:
+            raise ValueError(f"grid: the runs {other.name} and {run.name} have the same config (points {other.point} "
+                             f"and {run.point}); remove one of the equal values")
     return runs
+
+
+def _numbers_as_floats(value: Any) -> Any:
+    """``value`` with every integer (not bool) turned into a float: two configs that train alike compare equal."""
+    if isinstance(value, dict):
+        return {k: _numbers_as_floats(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_numbers_as_floats(v) for v in value]
+    if isinstance(value, int) and not isinstance(value, bool):
+        return float(value)
+    return value
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -556,7 +634,7 @@ def _train_points(configs: list[dict[str, Any]], paths: list[str], resume: bool,
         # the batch's other runs finished: one of them, restored and inactive, keeps this run batched
         j = finished[0]
         companion = make_trainer(cfgs[j])
-        companion.load_state_dict(load_checkpoint(dirs[j].checkpoint_path)["trainer"])
+        load_trainer(companion, dirs[j].checkpoint_path)
         trainers.append(companion)
         run_dirs.append(None)
         observers.append(None)
@@ -695,12 +773,14 @@ SWEEP_FILES = ("spec.toml", "sweep.json", "sweep.csv", "sweep_summary.csv", "run
 
 
 def _check_out(out: Path, spec: SweepSpec, runs: list[SweepRun], resume: bool) -> None:
-    """Refuse an ``out`` that is a file, holds anything but this sweep's files, or holds a sweep without
-    ``resume`` or of a different spec; reads only."""
+    """Refuse an ``out`` that is a file, a symbolic link leading nowhere, holds anything but this sweep's
+    files, or holds a sweep without ``resume`` or of a different spec; reads only."""
+    if out.is_symlink() and not out.exists():
+        raise ValueError(f"out: {out} is a symbolic link that does not resolve (a loop or a missing target)")
     if out.exists() and not out.is_dir():
         raise ValueError(f"out: {out} is a file, not a directory")
-    names = [n for n in sorted(os.listdir(out)) if not (n.startswith(".") and n.endswith(".tmp"))] \
-        if out.is_dir() else []
+    names = [n for n in sorted(os.listdir(out)) if not (n.startswith(".") and n.endswith(".tmp"))
+             and not (n == LOCK_NAME and is_lock_file(out / n))] if out.is_dir() else []
     if not names:
         return
     foreign = [n for n in names if n not in SWEEP_FILES]
@@ -714,7 +794,7 @@ def _check_out(out: Path, spec: SweepSpec, runs: list[SweepRun], resume: bool) -
         raise ValueError(f"out: {out} already holds a sweep; pass --resume to continue it, or choose a new --out")
     saved_spec = out / "spec.toml"
     if saved_spec.is_file():
-        saved = parse_spec(saved_spec.read_text(encoding="utf-8"), str(saved_spec))
+        saved = parse_spec(saved_spec.read_text(encoding="utf-8"), str(saved_spec), force=True)
         if dataclasses.replace(saved, text="") != dataclasses.replace(spec, text=""):
             raise ValueError(f"spec: differs from the sweep's {saved_spec}; resume with the same spec or use a new "
                              f"--out")
@@ -867,11 +947,37 @@ def _run_here(jobs: list[_Job]) -> Iterator[_Done]:
             yield i, None, _error_text(exc), None
 
 
+def _watch_parent(parent: int) -> None:
+    """End this process as soon as its parent is no longer ``parent`` (it died: this process was re-parented)."""
+    while os.getppid() == parent:
+        time.sleep(0.5)
+    os._exit(1)
+
+
+def _die_with_parent(parent: int) -> None:
+    """The initializer of a pool worker: the worker ends when the sweep driver (``parent``) dies, however it
+    dies (``kill -9`` included), instead of training on without anyone to record its runs.
+
+    On Linux the kernel sends the worker ``SIGKILL`` when the driver ends (``prctl(PR_SET_PDEATHSIG)``);
+    everywhere, a daemon thread also polls the parent's pid. A run killed so is resumed by ``--resume``.
+    """
+    if sys.platform.startswith("linux"):
+        try:
+            ctypes.CDLL(None, use_errno=True).prctl(1, int(signal.SIGKILL), 0, 0, 0)  # 1: PR_SET_PDEATHSIG
+        except (OSError, AttributeError):
+            pass  # no prctl: the thread below does it
+    if os.getppid() != parent:  # the driver died before the signal was armed
+        os._exit(1)
+    threading.Thread(target=_watch_parent, args=(parent,), name="watch-sweep-driver", daemon=True).start()
+
+
 def _run_pool(jobs: list[_Job], workers: int) -> Iterator[_Done]:
     """Run the jobs on a local pool of ``workers`` processes (``spawn``: a fresh interpreter each, no state
-    inherited from this one), yielding them as they finish."""
+    inherited from this one; each ends if this process dies, :func:`_die_with_parent`), yielding them as they
+    finish."""
     context = multiprocessing.get_context("spawn")
-    with concurrent.futures.ProcessPoolExecutor(max_workers=workers, mp_context=context) as pool:
+    with concurrent.futures.ProcessPoolExecutor(max_workers=workers, mp_context=context, initializer=_die_with_parent,
+                                                initargs=(os.getpid(),)) as pool:
         futures = {pool.submit(_timed_run_points, *job): i for i, job in enumerate(jobs)}
         try:
             for future in concurrent.futures.as_completed(futures):
@@ -949,6 +1055,8 @@ def run_sweep(spec: SweepSpec, out: str | Path, address: str | None = None, num_
     ------
     ImportError
         ``address`` is given and Ray is not installed (the message names the extra to install).
+    mixedrl.runs.RunLockedError
+        Another sweep driver is running in ``out`` (the message names its pid and host); nothing is written.
     ValueError
         ``out`` already holds a sweep and ``resume`` is false, ``resume`` with a different spec in
         ``out/spec.toml`` or ``out/sweep.json``, ``out`` holds files that are not this sweep's (anything
@@ -956,7 +1064,7 @@ def run_sweep(spec: SweepSpec, out: str | Path, address: str | None = None, num_
         not a positive integer, ``workers`` with ``address``, or ``workers`` and ``num_cpus`` that differ
         without ``address``, ``batch`` not a positive integer. Nothing is started or written.
     """
-    out = Path(out).resolve()
+    out = Path(os.path.realpath(out))
     runs = expand(spec)
     _check_count(num_cpus, "num_cpus")
     _check_count(workers, "workers")
@@ -977,70 +1085,78 @@ def run_sweep(spec: SweepSpec, out: str | Path, address: str | None = None, num_
             raise ImportError(f"mixedrl sweep --address needs Ray: {INSTALL_HINT}") from None
     n_workers = workers or num_cpus or os.cpu_count() or 1
 
-    started = False
-    if ray is not None and not ray.is_initialized():
-        if address == "local":
-            ray.init(num_cpus=num_cpus or os.cpu_count() or 1, include_dashboard=False, log_to_driver=False)
-        else:
-            ray.init(address=address, log_to_driver=False)
-        started = True
     try:
-        (out / "runs").mkdir(parents=True, exist_ok=True)
-        atomic_write_text(saved_spec, spec.text)
-        t0 = time.perf_counter()
-        parallel = (int(ray.cluster_resources().get("CPU", 1)) if ray is not None else n_workers)
-        batches = plan_batches(runs, batch, max(1, parallel), ddpg=batch_ddpg)
-        # the longest first (the largest budget, then the largest batch), so that no long job starts last
-        batches.sort(key=lambda b: (-max(runs[i].config.algorithm.iterations for i in b), -len(b), b[0]))
-        jobs: list[_Job] = [([runs[i].config.to_dict() for i in b], [str(out / "runs" / runs[i].name) for i in b],
-                             resume, spec.observer) for b in batches]
-        records: list[dict[str, Any] | None] = [None] * len(runs)
-        if ray is not None:
-            extra: dict[str, Any] = {"engine": "ray", "ray_version": ray.__version__, "address": address}
-            finished = _run_ray(jobs, ray)
-        else:
-            n_workers = min(n_workers, len(jobs))
-            extra = {"engine": "local", "workers": n_workers, "address": None}
-            finished = _run_here(jobs) if n_workers == 1 else _run_pool(jobs, n_workers)
-        extra.update({"batch": batch, "batches": len(batches)})
-
-        def current() -> list[dict[str, Any]]:
-            return [rec if rec is not None else _record(r, None, None) for rec, r in zip(records, runs)]
-
-        bar = None
-        if progress:
-            from tqdm.auto import tqdm
-
-            bar = tqdm(total=len(runs), desc="sweep (runs)")
-        failed = 0
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise ValueError(f"out: cannot create the directory {out} ({exc.strerror or exc})") from None
+    # one driver per sweep directory (the only writer of sweep.json): another driver, running or resuming
+    # beside this one, is refused while this one lives; the kernel releases the lock however it dies
+    with hold_lock(out / LOCK_NAME, "out"):
+        _check_out(out, spec, runs, resume)  # again under the lock: another driver may have written meanwhile
+        started = False
+        if ray is not None and not ray.is_initialized():
+            if address == "local":
+                ray.init(num_cpus=num_cpus or os.cpu_count() or 1, include_dashboard=False, log_to_driver=False)
+            else:
+                ray.init(address=address, log_to_driver=False)
+            started = True
         try:
-            for j, outcomes, error, wall in finished:
-                if error is not None:
-                    logger.error("batch of %s failed: %s", ", ".join(runs[i].name for i in batches[j]), error)
-                for k, i in enumerate(batches[j]):
-                    results, run_error = (None, error) if outcomes is None else outcomes[k]
-                    if run_error is not None:
-                        failed += 1
-                        if outcomes is not None:
-                            logger.error("run %s failed: %s", runs[i].name, run_error)
-                    records[i] = _record(runs[i], results, run_error, None if results is None else wall)
-                _write_outputs(out, spec, current(), {**extra, "failed": failed, "finished": False,
-                                                       "wall_seconds": time.perf_counter() - t0})
+            (out / "runs").mkdir(parents=True, exist_ok=True)
+            atomic_write_text(saved_spec, spec.text)
+            t0 = time.perf_counter()
+            parallel = (int(ray.cluster_resources().get("CPU", 1)) if ray is not None else n_workers)
+            batches = plan_batches(runs, batch, max(1, parallel), ddpg=batch_ddpg)
+            # the longest first (the largest budget, then the largest batch), so that no long job starts last
+            batches.sort(key=lambda b: (-max(runs[i].config.algorithm.iterations for i in b), -len(b), b[0]))
+            jobs: list[_Job] = [([runs[i].config.to_dict() for i in b], [str(out / "runs" / runs[i].name) for i in b],
+                                 resume, spec.observer) for b in batches]
+            records: list[dict[str, Any] | None] = [None] * len(runs)
+            if ray is not None:
+                extra: dict[str, Any] = {"engine": "ray", "ray_version": ray.__version__, "address": address}
+                finished = _run_ray(jobs, ray)
+            else:
+                n_workers = min(n_workers, len(jobs))
+                extra = {"engine": "local", "workers": n_workers, "address": None}
+                finished = _run_here(jobs) if n_workers == 1 else _run_pool(jobs, n_workers)
+            extra.update({"batch": batch, "batches": len(batches)})
+
+            def current() -> list[dict[str, Any]]:
+                return [rec if rec is not None else _record(r, None, None) for rec, r in zip(records, runs)]
+
+            bar = None
+            if progress:
+                from tqdm.auto import tqdm
+
+                bar = tqdm(total=len(runs), desc="sweep (runs)")
+            failed = 0
+            try:
+                for j, outcomes, error, wall in finished:
+                    if error is not None:
+                        logger.error("batch of %s failed: %s", ", ".join(runs[i].name for i in batches[j]), error)
+                    for k, i in enumerate(batches[j]):
+                        results, run_error = (None, error) if outcomes is None else outcomes[k]
+                        if run_error is not None:
+                            failed += 1
+                            if outcomes is not None:
+                                logger.error("run %s failed: %s", runs[i].name, run_error)
+                        records[i] = _record(runs[i], results, run_error, None if results is None else wall)
+                    _write_outputs(out, spec, current(), {**extra, "failed": failed, "finished": False,
+                                                           "wall_seconds": time.perf_counter() - t0})
+                    if bar is not None:
+                        bar.update(len(batches[j]))
+                        if failed:
+                            bar.set_postfix(failed=failed)
+            finally:
                 if bar is not None:
-                    bar.update(len(batches[j]))
-                    if failed:
-                        bar.set_postfix(failed=failed)
+                    bar.close()
+            doc_extra = {**extra, "failed": failed, "finished": True, "wall_seconds": time.perf_counter() - t0}
+            _write_outputs(out, spec, current(), doc_extra)
         finally:
-            if bar is not None:
-                bar.close()
-        doc_extra = {**extra, "failed": failed, "finished": True, "wall_seconds": time.perf_counter() - t0}
-        _write_outputs(out, spec, current(), doc_extra)
-    finally:
-        if started:
-            ray.shutdown()
-    doc = json.loads((out / "sweep.json").read_text())
-    make_figure(out, doc["summary"], spec.grid)
-    return doc
+            if started:
+                ray.shutdown()
+        doc = json.loads((out / "sweep.json").read_text())
+        make_figure(out, doc["summary"], spec.grid)
+        return doc
 
 
 
@@ -1048,12 +1164,14 @@ def run_sweep(spec: SweepSpec, out: str | Path, address: str | None = None, num_
 # command line
 # ----------------------------------------------------------------------------------------------------
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    """The options of ``mixedrl sweep`` (positional ``spec``, ``--out``, ``--workers``, ``--address``,
+    """The options of ``mixedrl sweep`` (positional ``spec``, ``--out``, ``--workers``, ``--force``, ``--address``,
     ``--num-cpus``, ``--resume``, ``--no-progress``)."""
     p.add_argument("spec", type=Path, help="sweep spec (TOML: methods, seeds, [base], [grid], [variants.NAME])")
     p.add_argument("--out", type=Path, required=True, help="sweep directory (shared by every node of a cluster)")
     p.add_argument("--workers", type=int, default=None,
                    help="processes of the local pool (default: all CPUs; 1 runs in this process)")
+    p.add_argument("--force", action="store_true",
+                   help=f"accept a spec of more than {MAX_RUNS} runs (mixedrl.sweep.MAX_RUNS)")
     add_engine_arguments(p)
 
 

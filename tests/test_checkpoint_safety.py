@@ -1,6 +1,6 @@
 """Checkpoints are safe to share (issue 9, item 8): they hold plain data, load with
 ``torch.load(weights_only=True)``, and a file carrying a pickled callable is refused without running it.
-Old v1 files get a clear error and an explicit, trusted one-off conversion."""
+Old v1 files are refused with a message naming the release that reads them."""
 
 from __future__ import annotations
 
@@ -14,8 +14,9 @@ import numpy as np
 import pytest
 import torch
 
+import mixedrl.checkpoint
 from mixedrl.config import TrainConfig
-from mixedrl.runs import RunDirectory, convert_checkpoint, load_checkpoint, make_trainer, save_checkpoint, train
+from mixedrl.runs import RunDirectory, load_checkpoint, make_trainer, save_checkpoint, train
 
 V1, V2 = "mixedrl-checkpoint-v1", "mixedrl-checkpoint-v2"
 FAST = dict(task="linear", algorithm=dict(iterations=12, batch_size=32), ddpg=dict(warmup=20),
@@ -143,31 +144,16 @@ def test_malformed_marks_are_a_clear_error(tmp_path: Path) -> None:
         load_checkpoint(path)
 
 
-def test_old_v1_checkpoint_error_and_trusted_conversion(tmp_path: Path) -> None:
+@pytest.mark.parametrize("state", [
+    {"trainer": {"noise": {"mean": np.array([0.5, -1.0]), "count": 3}, "w": torch.arange(3.0)}},  # numpy objects
+    {"k": 4, "w": torch.ones(2)},  # plain data only
+], ids=["numpy", "plain"])
+def test_old_v1_checkpoint_is_refused_naming_the_release_that_reads_it(tmp_path: Path, state: dict) -> None:
     path = tmp_path / "checkpoint.pt"
-    state = {"trainer": {"noise": {"mean": np.array([0.5, -1.0]), "count": 3}, "w": torch.arange(3.0)}}
     torch.save({"format": V1, "state": state}, path)  # what the v1 save_checkpoint wrote
-    with pytest.raises(ValueError, match=f"^checkpoint: {re.escape(str(path))} is an old {V1} file.*convert_checkpoint"):
-        load_checkpoint(path)
     before = path.read_bytes()
-    with pytest.raises(ValueError, match="^trust"):
-        convert_checkpoint(path)
+    with pytest.raises(ValueError, match=f"^checkpoint: {re.escape(str(path))} is a {V1} file, written by mixedrl "
+                                         f"before {V2}.*mixedrl 0.1.0 from git commit b510485"):
+        load_checkpoint(path)
     assert path.read_bytes() == before
-    out = tmp_path / "converted.pt"
-    assert convert_checkpoint(path, trust=True, out=out) == out
-    assert path.read_bytes() == before  # out= leaves the original alone
-    assert convert_checkpoint(path, trust=True) == path
-    for p in (out, path):
-        got = load_checkpoint(p)
-        assert torch.load(p, weights_only=True)["format"] == V2
-        assert np.array_equal(got["trainer"]["noise"]["mean"], state["trainer"]["noise"]["mean"])
-        assert got["trainer"]["noise"]["count"] == 3 and torch.equal(got["trainer"]["w"], torch.arange(3.0))
-    assert convert_checkpoint(path, trust=True) == path  # converting a v2 file again changes nothing
-    assert np.array_equal(load_checkpoint(path)["trainer"]["noise"]["mean"], state["trainer"]["noise"]["mean"])
-
-
-def test_v1_checkpoint_of_plain_data_still_loads(tmp_path: Path) -> None:
-    path = tmp_path / "checkpoint.pt"
-    torch.save({"format": V1, "state": {"k": 4, "w": torch.ones(2)}}, path)
-    got = load_checkpoint(path)
-    assert got["k"] == 4 and torch.equal(got["w"], torch.ones(2))
+    assert not hasattr(mixedrl.checkpoint, "convert_checkpoint")

@@ -113,7 +113,7 @@ def test_unknown_nested_key_is_a_one_line_error(tmp_path: Path, capsys: pytest.C
 
 def test_evaluate_loads_an_old_run_directory(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     """A run written before the task configuration existed (``"task": "linear"`` and a top-level
-    ``train_half_widths`` in config.json) still evaluates."""
+    ``train_half_widths`` in config.json, written before config.json had a digest) still evaluates."""
     out = tmp_path / "run"
     assert main(["train", "--method", "mixed", "--out", str(out), "--iterations", "2", "--no-progress",
                  "--set", *SMALL]) == 0
@@ -121,6 +121,7 @@ def test_evaluate_loads_an_old_run_directory(tmp_path: Path, capsys: pytest.Capt
     old = {**json.loads((out / "config.json").read_text()), "task": "linear",
            "train_half_widths": [0.3, 0.2, 1.0, 0.1, 1.0]}
     (out / "config.json").write_text(json.dumps(old))
+    (out / "config.json.sha256").unlink()
     assert main(["evaluate", str(out)]) == 0
     assert json.loads(capsys.readouterr().out)["iteration"] == 2
 

@@ -25,14 +25,16 @@ FAST = ["--iterations", "20", "--set", "run.checkpoint_every=10", "run.eval_seed
 RUN = ["--method", "mixed", "--seed", "3"]
 
 
-def snapshot(root: Path) -> dict[str, bytes | None]:
-    """Every path under ``root`` (``root`` itself included) with its bytes (None for a directory)."""
+def snapshot(root: Path) -> dict[str, bytes | tuple[str, str] | None]:
+    """Every path under ``root`` (``root`` itself included) with its bytes (a symbolic link: its target, not
+    followed; a directory: None)."""
     if not root.exists():
         return {}
-    out: dict[str, bytes | None] = {".": None if root.is_dir() else root.read_bytes()}
+    out: dict[str, bytes | tuple[str, str] | None] = {".": None if root.is_dir() else root.read_bytes()}
     if root.is_dir():
         for p in sorted(root.rglob("*")):
-            out[str(p.relative_to(root))] = None if p.is_dir() else p.read_bytes()
+            rel = str(p.relative_to(root))
+            out[rel] = ("->", os.readlink(p)) if p.is_symlink() else None if p.is_dir() else p.read_bytes()
     return out
 
 
@@ -43,6 +45,7 @@ def cli(args: list[str], capsys: pytest.CaptureFixture[str]) -> tuple[int, str]:
 
 def refused(args: list[str], capsys: pytest.CaptureFixture[str], root: Path, match: str) -> str:
     """Run ``mixedrl args``: exit 2, one line on stderr matching ``match``, ``root`` unchanged."""
+    capsys.readouterr()  # what earlier commands printed
     before = snapshot(root)
     rc, err = cli(args, capsys)
     assert rc == 2, err
