@@ -14,14 +14,18 @@ The true system is eq. (1) with the noise entering through a fixed matrix ``E``:
     s_{t+1} = f(s_t, u_t) + E\\, \\xi_t, \\qquad \\xi_t \\sim N(\\mu, K),
 
 where ``s`` is the simulator state (``state_dim``), ``xi`` the additive uncertainty of the paper
-(``noise_dim``; for the vehicle the five components of eq. 53) and ``E`` (``state_dim x noise_dim``) a
-selection matrix. The residual of eq. (10) is ``xi = E^T (s' - f(s, u))``. The policy and the critic see
+(``noise_dim``; for the vehicle the five components of eq. 53) and ``E`` (``state_dim x noise_dim``) any
+matrix of full column rank (a 0/1 selection, the ``[dt^2, dt]^T`` of a torque in a semi-implicit Euler
+step). The residual of eq. (10) in noise coordinates is the least-squares solution of
+``E xi = s' - f(s, u)`` (``E^T (s' - f)`` for a selection). The true system is simulated
+(:meth:`Task.true_step`) unless the task has a plant (:mod:`mixedrl.plant`). The policy and the critic see
 the observation ``observe(s)``; the utility is charged on the next state, ``l(s', u)`` (eq. 2).
 """
 
 from __future__ import annotations
 
 import abc
+import math
 from dataclasses import dataclass, field
 from typing import Any, Callable
 
@@ -30,6 +34,7 @@ import torch
 
 from mixedrl.checks import check_positive_int, check_seed_lists
 from mixedrl.gaussian import sample_gaussian
+from mixedrl.ibe.common import check_noise_matrix, noise_coordinates
 
 __all__ = ["EQUILIBRIUM_ATOL", "Equilibrium", "Linearisation", "Task", "check_policies_and_seeds", "check_task",
            "cost_hessian"]
@@ -180,7 +185,8 @@ class Task(abc.ABC):
     gamma : float
         Discount factor of eq. (2).
     noise_matrix : torch.Tensor, shape (state_dim, noise_dim)
-        ``E``: a 0/1 selection matrix, how ``xi`` enters the state.
+        ``E``: how ``xi`` enters the state, any matrix of full column rank (independent columns:
+        :func:`mixedrl.ibe.common.check_noise_matrix`), e.g. a 0/1 selection or ``[dt^2, dt]^T``.
     prior_mean, prior_cov : numpy.ndarray, shapes (noise_dim,), (noise_dim, noise_dim)
         The designer's prior ``mu_M``, ``K_M`` (eq. 8).
     true_mean, true_cov : numpy.ndarray, shapes (noise_dim,), (noise_dim, noise_dim)
@@ -199,6 +205,18 @@ class Task(abc.ABC):
         Steps of each rollout of the default :meth:`evaluate` (200 unless the subclass sets it).
     eval_starts : int
         Start states per evaluation seed of the default :meth:`evaluate` (64 unless the subclass sets it).
+    action_limit : torch.Tensor or None, shape (action_dim,)
+        Where the plant clips the action (``None``: it does not); ``f`` must apply the same clip.
+    saturation_margin : float or torch.Tensor
+        Transitions with ``|u_i| > action_limit_i - saturation_margin_i`` are dropped from the IBE
+        (:func:`mixedrl.plant.saturated`); 0 by default.
+    plant : list of mixedrl.plant.CheckedPlant or None
+        The true system (:func:`mixedrl.plant.attach_plant`); ``None``: simulated by :meth:`true_step`.
+    plant_evaluation : str
+        ``"simulated"`` (:meth:`evaluate` as below), ``"plant"`` or ``"none"``
+        (:data:`mixedrl.plant.PLANT_EVALUATIONS`).
+    evaluation_transitions : int
+        Plant (or simulated plant) transitions the evaluations have used.
     """
 
     state_dim: int
@@ -218,6 +236,11 @@ class Task(abc.ABC):
     name: str
     eval_horizon: int = 200
     eval_starts: int = 64
+    action_limit: torch.Tensor | None = None
+    saturation_margin: Any = 0.0
+    plant: Any = None
+    plant_evaluation: str = "simulated"
+    evaluation_transitions: int = 0
 
     def __init_subclass__(cls, **kwargs: Any) -> None:
         super().__init_subclass__(**kwargs)
@@ -339,9 +362,21 @@ class Task(abc.ABC):
                                   f"needs it)")
 
     def residuals(self, s: torch.Tensor, u: torch.Tensor, s_next: torch.Tensor) -> torch.Tensor:
-        """Eq. (10) in noise coordinates: ``xi = E^T (s' - f(s, u))``, (B, noise_dim)."""
+        """Eq. (10) in noise coordinates: the least-squares ``xi`` of ``E xi = s' - f(s, u)``, (B, noise_dim)
+        (``E^T (s' - f)`` for a 0/1 selection; :func:`mixedrl.ibe.common.noise_coordinates`).
+
+        Notes
+        -----
+        A departure from eq. (10): rows whose action the plant may have clipped
+        (:func:`mixedrl.plant.saturated`, with :attr:`action_limit` set) are NaN, so the callers' finite
+        filter drops them from the IBE (there the additive model does not hold).
+        """
+        from mixedrl.plant import saturated
+
         with torch.no_grad():
-            return (s_next - self.f(s, u.to(s.dtype))) @ self.noise_matrix.to(s.dtype)
+            xi = noise_coordinates(s_next - self.f(s, u.to(s.dtype)), self.noise_matrix.to(s.dtype))
+            clipped = saturated(self, u)
+            return xi if clipped is None else xi.masked_fill(clipped[:, None], math.nan)
 
     def evaluate(self, policy: torch.nn.Module, seeds: list[int], horizon: int | None = None) -> dict[str, Any]:
         """Seeded rollouts of the *true* environment (:meth:`true_step`) under ``policy`` from fixed starts.
@@ -378,11 +413,16 @@ class Task(abc.ABC):
         ValueError
             ``seeds`` empty, or ``horizon`` not a positive integer.
         """
+        if self.plant_evaluation != "simulated":  # the task's plant, or none (mixedrl.plant)
+            from mixedrl.plant import evaluate_on_plant
+
+            return {} if self.plant_evaluation == "none" else evaluate_on_plant(self, policy, seeds, horizon)
         horizon = self.eval_horizon if horizon is None else horizon
         horizon = check_positive_int(horizon, "horizon")
         if len(seeds) == 0:
             raise ValueError("seeds: expected at least one evaluation seed, got none")
         n, half = int(self.eval_starts), int(horizon) // 2
+        self.evaluation_transitions += n * int(horizon) * len(seeds)
         costs, terminated, abs_sums, sums, counts = [], [], [], [], []
         with torch.no_grad():
             for seed in seeds:
@@ -520,6 +560,7 @@ def check_task(task: Task, batch: int = 3) -> None:
             raise ValueError(f"{name}.{attr}: contains NaN or inf")
         if attr in ("action_bound", "obs_scale") and not (arr > 0).all():
             raise ValueError(f"{name}.{attr}: expected positive values, got {arr.tolist()}")
+    check_noise_matrix(task.noise_matrix, f"{name}.noise_matrix", n)
     s = task.sample_initial(batch, torch.Generator().manual_seed(0))
     _check_output(s, task, "sample_initial", (batch, n), torch.float64)
     bound = torch.as_tensor(task.action_bound, dtype=torch.float64)
