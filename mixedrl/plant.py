@@ -71,7 +71,7 @@ class PlantError(RuntimeError):
 
     def __init__(self, plant: Any, step: int, call: str, problem: str) -> None:
         self.plant, self.step, self.problem = plant, int(step), problem
-        super().__init__(f"plant {type(plant).__name__} ({plant!r}): {call} at step {step}: {problem}")
+        super().__init__(f"plant {type(plant).__name__} ({plant!r}) at step {step} ({call}): {problem}")
 
 
 @runtime_checkable
@@ -299,8 +299,9 @@ def evaluate_on_plant(task: Task, policy: torch.nn.Module, seeds: list[int], hor
     dict
         Means over the episodes: ``cost`` (the task's discounted ``sum gamma^t l(x_{t+1}, u_t)``),
         ``plant_return`` (the plant's undiscounted ``sum last_reward``, NaN without rewards),
-        ``plant_terminated_fraction`` (episodes the plant terminated), ``terminated_fraction`` (ended by
-        the plant or the task before ``horizon``), ``episode_length``.
+        ``plant_terminated_fraction`` (episodes the plant terminated), ``terminated_fraction`` (episodes
+        the plant terminated or that reached a state terminal for the task; a truncation, the plant's
+        time limit, is not a termination), ``episode_length`` (steps).
 
     Raises
     ------
@@ -320,7 +321,7 @@ def evaluate_on_plant(task: Task, policy: torch.nn.Module, seeds: list[int], hor
     with torch.no_grad():
         for seed in seeds:
             x = torch.as_tensor(plant.reset(episode_seed(seed, 1, 0), owner="evaluation"))[None]
-            cost, ret, t, ended = 0.0, 0.0, 0, False
+            cost, ret, t, task_end = 0.0, 0.0, 0, False
             for t in range(horizon):
                 u = policy(task.observe(x.float())).double()
                 x_next = torch.as_tensor(plant.step(u[0].numpy()))[None]
@@ -328,13 +329,13 @@ def evaluate_on_plant(task: Task, policy: torch.nn.Module, seeds: list[int], hor
                 cost += task.gamma**t * float(task.cost(x_next, u)[0])
                 ret += float(getattr(plant.plant, "last_reward", math.nan))
                 x = x_next
-                if plant.episode_over or bool(task.is_terminal(x)[0]):
-                    ended = True
+                task_end = bool(task.is_terminal(x)[0])
+                if plant.episode_over or task_end:
                     break
             costs.append(cost)
             returns.append(ret)
             plant_ends.append(bool(getattr(plant.plant, "last_terminated", False)))
-            ends.append(ended)
+            ends.append(plant_ends[-1] or task_end)
             lengths.append(t + 1)
     return {"cost": float(np.mean(costs)), "plant_return": float(np.mean(returns)),
             "plant_terminated_fraction": float(np.mean(plant_ends)), "terminated_fraction": float(np.mean(ends)),
