@@ -24,17 +24,19 @@ the step; the run's last checkpoint is intact and ``--resume`` continues from it
 
 Evaluation (:func:`evaluate_on_plant`) runs one plant episode per evaluation seed, sequentially, with the
 deterministic policy, and reports the task's discounted cost beside the plant's own return and
-termination; ``task.plant_evaluation = "none"`` evaluates not at all. Plant transitions are counted,
+termination; ``attach_plant(..., evaluation="none")`` evaluates not at all. Plant transitions are counted,
 training and evaluation separately (``results.json``: ``plant_transitions``).
 
-Saturation (:func:`saturated`): a task may declare the actuator limit at which the plant clips
-(``Task.action_limit``, the model ``f`` applies the same clip) and a margin (``Task.saturation_margin``,
-the reach of a disturbance entering before the clip, in action units); transitions whose action lies
-within the margin of the limit are dropped from the IBE (:meth:`mixedrl.tasks.Task.residuals`).
+Saturation (:meth:`mixedrl.tasks.Task.saturated`): a task may declare the actuator limit at which the
+plant clips (``Task.action_limit``, the model ``f`` applies the same clip) and a margin
+(``Task.saturation_margin``, the reach of a disturbance entering before the clip, in action units);
+transitions whose action lies within the margin of the limit are dropped from the IBE
+(:meth:`mixedrl.tasks.Task.residuals`).
 """
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Callable, Sequence
 from typing import Any, Protocol, runtime_checkable
@@ -48,7 +50,7 @@ from mixedrl.task_base import Task
 __all__ = ["CheckedPlant", "DisturbedEnv", "GymnasiumPlant", "PLANT_EVALUATIONS", "Plant", "PlantCopies",
            "PlantError", "SimulatedPlant", "attach_plant", "check_plant_sampler", "evaluate_on_plant", "episode_seed",
            "plant_copies", "plant_transitions",
-           "saturated", "unwrapped_state"]
+           "unwrapped_state"]
 
 #: ``Task.plant_evaluation``: ``"simulated"`` (:meth:`Task.evaluate`, the model plus simulated noise; the
 #: default), ``"plant"`` (:func:`evaluate_on_plant`) or ``"none"`` (no evaluation).
@@ -194,6 +196,8 @@ def attach_plant(task: Task, plant: Any, evaluation: str = "plant") -> Task:
         raise ValueError("plant: expected a plant or a non-empty list of plants, got an empty list")
     task.plant = [CheckedPlant(p, task.state_dim) for p in plants]
     task.plant_evaluation = evaluation
+    task.plant_evaluate = {"simulated": None, "none": lambda policy, seeds, horizon=None: {},
+                           "plant": functools.partial(evaluate_on_plant, task)}[evaluation]
     return task
 
 
@@ -265,23 +269,6 @@ def check_plant_sampler(task: Task, config: Any) -> None:
     if getattr(task, "plant", None) is not None and config.sampler.name == "true_copies":
         raise ValueError("sampler.name: a task with a plant needs a model-rollout sampler ('model_rollouts', or "
                          "'dlc_course'); 'true_copies' uses batch_size true copies as PEV's batch")
-
-
-def saturated(task: Task, u: torch.Tensor) -> torch.Tensor | None:
-    """Rows of ``u`` (B, action_dim) whose action may have been clipped by the plant, or ``None`` if the
-    task declares no actuator limit.
-
-    A row is saturated when ``|u_i| > action_limit_i - saturation_margin_i`` for some ``i``. With the
-    disturbance entering after the clip (a torque added to the clipped one) the margin is 0; with a
-    disturbance entering before it (an actuator bias ``b``) the margin must cover ``|b|``: there the plant
-    clips ``u + b`` and removes part of the bias, which the additive model cannot represent.
-    """
-    limit = getattr(task, "action_limit", None)
-    if limit is None:
-        return None
-    limit = torch.as_tensor(limit, dtype=torch.float64)
-    margin = torch.as_tensor(getattr(task, "saturation_margin", 0.0), dtype=torch.float64)
-    return (u.double().abs() > limit - margin).any(dim=-1)
 
 
 def evaluate_on_plant(task: Task, policy: torch.nn.Module, seeds: list[int], horizon: int | None = None

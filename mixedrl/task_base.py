@@ -209,12 +209,15 @@ class Task(abc.ABC):
         Where the plant clips the action (``None``: it does not); ``f`` must apply the same clip.
     saturation_margin : float or torch.Tensor
         Transitions with ``|u_i| > action_limit_i - saturation_margin_i`` are dropped from the IBE
-        (:func:`mixedrl.plant.saturated`); 0 by default.
+        (:meth:`saturated`); 0 by default.
     plant : list of mixedrl.plant.CheckedPlant or None
         The true system (:func:`mixedrl.plant.attach_plant`); ``None``: simulated by :meth:`true_step`.
     plant_evaluation : str
         ``"simulated"`` (:meth:`evaluate` as below), ``"plant"`` or ``"none"``
         (:data:`mixedrl.plant.PLANT_EVALUATIONS`).
+    plant_evaluate : callable or None
+        ``(policy, seeds, horizon) -> dict``, what :meth:`evaluate` does instead of its simulated rollouts
+        (set by :func:`mixedrl.plant.attach_plant` for ``plant_evaluation`` ``"plant"`` and ``"none"``).
     evaluation_transitions : int
         Plant (or simulated plant) transitions the evaluations have used.
     """
@@ -240,6 +243,7 @@ class Task(abc.ABC):
     saturation_margin: Any = 0.0
     plant: Any = None
     plant_evaluation: str = "simulated"
+    plant_evaluate: Callable[..., dict[str, Any]] | None = None
     evaluation_transitions: int = 0
 
     def __init_subclass__(cls, **kwargs: Any) -> None:
@@ -368,15 +372,28 @@ class Task(abc.ABC):
         Notes
         -----
         A departure from eq. (10): rows whose action the plant may have clipped
-        (:func:`mixedrl.plant.saturated`, with :attr:`action_limit` set) are NaN, so the callers' finite
-        filter drops them from the IBE (there the additive model does not hold).
+        (:meth:`saturated`, with :attr:`action_limit` set) are NaN, so the callers' finite filter drops
+        them from the IBE (there the additive model does not hold).
         """
-        from mixedrl.plant import saturated
-
         with torch.no_grad():
             xi = noise_coordinates(s_next - self.f(s, u.to(s.dtype)), self.noise_matrix.to(s.dtype))
-            clipped = saturated(self, u)
+            clipped = self.saturated(u)
             return xi if clipped is None else xi.masked_fill(clipped[:, None], math.nan)
+
+    def saturated(self, u: torch.Tensor) -> torch.Tensor | None:
+        """Rows of ``u`` (B, action_dim) whose action the plant may have clipped, or ``None`` without an
+        :attr:`action_limit`: those with ``|u_i| > action_limit_i - saturation_margin_i`` for some ``i``.
+
+        With the disturbance entering after the clip (a torque added to the clipped one) the margin is 0;
+        with one entering before it (an actuator bias ``b``) it must cover ``|b|`` (e.g. the prior's mean
+        plus three standard deviations, in action units): there the plant clips ``u + b`` and removes part
+        of the bias, which the additive model of eq. (1) cannot represent.
+        """
+        if self.action_limit is None:
+            return None
+        limit = torch.as_tensor(self.action_limit, dtype=torch.float64)
+        margin = torch.as_tensor(self.saturation_margin, dtype=torch.float64)
+        return (u.double().abs() > limit - margin).any(dim=-1)
 
     def evaluate(self, policy: torch.nn.Module, seeds: list[int], horizon: int | None = None) -> dict[str, Any]:
         """Seeded rollouts of the *true* environment (:meth:`true_step`) under ``policy`` from fixed starts.
@@ -413,10 +430,8 @@ class Task(abc.ABC):
         ValueError
             ``seeds`` empty, or ``horizon`` not a positive integer.
         """
-        if self.plant_evaluation != "simulated":  # the task's plant, or none (mixedrl.plant)
-            from mixedrl.plant import evaluate_on_plant
-
-            return {} if self.plant_evaluation == "none" else evaluate_on_plant(self, policy, seeds, horizon)
+        if self.plant_evaluate is not None:  # on the task's plant, or none (mixedrl.plant.attach_plant)
+            return self.plant_evaluate(policy, seeds, horizon)
         horizon = self.eval_horizon if horizon is None else horizon
         horizon = check_positive_int(horizon, "horizon")
         if len(seeds) == 0:

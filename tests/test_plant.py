@@ -245,7 +245,7 @@ def test_evaluation_on_the_plant_is_sequential_and_counted() -> None:
     assert a == evaluate_on_plant(task, policy, [0, 1], horizon=30)  # fixed episode seeds
     assert a["episode_length"] == 30 and a["terminated_fraction"] == 0.0
     assert math.isfinite(a["plant_return"]) and a["plant_return"] < 0 < a["cost"]
-    task.plant_evaluation = "none"
-    assert task.evaluate(policy, [0]) == {}
+    assert attach_plant(task, task.plant, evaluation="none").evaluate(policy, [0]) == {}
+    assert task.evaluation_transitions == 120
     with pytest.raises(ValueError, match="sampler.name: a task with a plant needs a model-rollout sampler"):
         AGPI(task, TrainConfig(method="mixed", task="linear", seed=0, sampler=dict(name="true_copies")))
