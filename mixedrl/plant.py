@@ -265,7 +265,11 @@ def plant_copies(task: Task, config: Any) -> PlantCopies | None:
 
 def check_plant_sampler(task: Task, config: Any) -> None:
     """Raise ``ValueError`` if ``task`` has a plant but ``config.sampler.name`` is ``"true_copies"`` (whose
-    batch is the true copies' states themselves, which a plant cannot provide in the numbers PEV needs)."""
+    batch is the true copies' states themselves, which a plant cannot provide in the numbers PEV needs) or
+    ``config.method`` is ``"ddpg"`` (which steps batches of simulated copies)."""
+    if getattr(task, "plant", None) is not None and config.method == "ddpg":
+        raise ValueError("config: method 'ddpg' steps batches of simulated true copies; a task with a plant "
+                         "trains with Algorithm 2 (methods 'mixed', 'model', 'oracle')")
     if getattr(task, "plant", None) is not None and config.sampler.name == "true_copies":
         raise ValueError("sampler.name: a task with a plant needs a model-rollout sampler ('model_rollouts', or "
                          "'dlc_course'); 'true_copies' uses batch_size true copies as PEV's batch")
@@ -380,6 +384,10 @@ class GymnasiumPlant:
     state_fn : callable, optional
         ``env -> state`` (``(state_dim,)``, the coordinates of the task's model ``f``); the observation
         is not enough for a model that needs the full state. Default :func:`unwrapped_state`.
+    action_fn : callable, optional
+        The task's action ``u`` (float64, ``(action_dim,)``) -> the env's action; the identity by default.
+        The double lane change's env takes normalised actions:
+        ``action_fn=lambda u: u / task.action_bound.numpy()``.
 
     Attributes
     ----------
@@ -393,12 +401,13 @@ class GymnasiumPlant:
         A space of ``env`` is not a ``gymnasium.spaces.Box`` (the message names it).
     """
 
-    def __init__(self, env: Any, state_fn: Callable[[Any], np.ndarray] = unwrapped_state) -> None:
+    def __init__(self, env: Any, state_fn: Callable[[Any], np.ndarray] = unwrapped_state,
+                 action_fn: Callable[[np.ndarray], np.ndarray] | None = None) -> None:
         for space in ("action_space", "observation_space"):
             if not isinstance(getattr(env, space, None), gym.spaces.Box):
                 raise ValueError(f"env: {space} must be a gymnasium.spaces.Box, got "
                                  f"{type(getattr(env, space, None)).__name__}")
-        self.env, self.state_fn = env, state_fn
+        self.env, self.state_fn, self.action_fn = env, state_fn, action_fn
         self.last_reward, self.last_terminated, self.last_truncated = math.nan, False, False
 
     def __repr__(self) -> str:
@@ -412,6 +421,7 @@ class GymnasiumPlant:
 
     def step(self, u: np.ndarray) -> np.ndarray:
         space = self.env.action_space
+        u = u if self.action_fn is None else self.action_fn(u)
         action = np.asarray(u, dtype=space.dtype).reshape(space.shape)
         _, reward, terminated, truncated, _ = self.env.step(action)
         self.last_reward, self.last_terminated, self.last_truncated = float(reward), bool(terminated), bool(truncated)

@@ -11,6 +11,7 @@ import pytest
 import torch
 
 from mixedrl.algorithms.agpi import AGPI
+from mixedrl.algorithms.ddpg import DDPG
 from mixedrl.config import TrainConfig
 from mixedrl.envs.gym_models import (PendulumV1Task, mountain_car_noise_matrix, mountain_car_step,
                                      pendulum_noise_matrix, pendulum_v1_step)
@@ -67,6 +68,25 @@ def test_disturbed_env_is_the_additive_model(env_id: str, step: object, E: torch
         assert xi.shape == (1, 1)
         assert abs(xi[0, 0] - 0.3) < 1e-4, xi  # float32 states of the car
         x = x_next
+
+
+def test_double_lane_change_behind_the_adapter() -> None:
+    """The package's own env as a plant: its state is the task's, its actions normalised."""
+    import mixedrl.envs  # noqa: F401  (registers the env)
+    from mixedrl.tasks import task_from_config
+
+    task = task_from_config("dlc")
+    bound = task.action_bound.double().numpy()
+    plant = GymnasiumPlant(gym.make("mixedrl/DoubleLaneChange-v0"), action_fn=lambda u: u / bound)
+    x = torch.as_tensor(plant.reset(seed=0))[None]
+    xs = []
+    for _ in range(200):
+        u = torch.tensor([[0.0, -0.2]], dtype=torch.float64)
+        x_next = torch.as_tensor(plant.step(u[0].numpy()))[None]
+        xs.append(task.residuals(x, u, x_next))
+        x = x_next
+    force = task.xi_to_force(float(torch.cat(xs)[:, task.noise_index].mean()))
+    assert abs(force - 261.0) < 0.02 * 261.0, force
 
 
 # ------------------------------------------------------------------------------------------ residuals
@@ -249,3 +269,5 @@ def test_evaluation_on_the_plant_is_sequential_and_counted() -> None:
     assert task.evaluation_transitions == 120
     with pytest.raises(ValueError, match="sampler.name: a task with a plant needs a model-rollout sampler"):
         AGPI(task, TrainConfig(method="mixed", task="linear", seed=0, sampler=dict(name="true_copies")))
+    with pytest.raises(ValueError, match="config: method 'ddpg' steps batches of simulated true copies"):
+        DDPG(task, TrainConfig(method="ddpg", task="linear", seed=0))
