@@ -452,12 +452,19 @@ class DisturbedEnv(gym.Wrapper):
     after the env's speed and position clips: where those bind, a force inside the physics would differ.)
     The observation is recomputed from the moved state; reward and termination are the env's.
 
+    With ``before_clip=True`` the force is an actuator bias instead: it is added to the action, which the
+    env then clips, so where ``|u + xi|`` exceeds the env's limit the clip removes part of it and the
+    additive model does not hold (declare ``action_limit`` and ``saturation_margin`` on the task,
+    :meth:`mixedrl.tasks.Task.saturated`).
+
     Parameters
     ----------
     env : gymnasium.Env
         ``gymnasium.make("Pendulum-v1")`` or ``gymnasium.make("MountainCarContinuous-v0")``.
     mean, std : float
         The disturbance's mean and standard deviation (``std = 0``: a constant force).
+    before_clip : bool, optional
+        Add the force to the action before the env's clip (an actuator bias) rather than after it.
 
     Notes
     -----
@@ -465,12 +472,12 @@ class DisturbedEnv(gym.Wrapper):
     continues the stream).
     """
 
-    def __init__(self, env: Any, mean: float = 0.0, std: float = 0.0) -> None:
+    def __init__(self, env: Any, mean: float = 0.0, std: float = 0.0, before_clip: bool = False) -> None:
         super().__init__(env)
         if not (math.isfinite(mean) and math.isfinite(std) and std >= 0):
             raise ValueError(f"std: expected finite mean and std >= 0, got mean={mean!r}, std={std!r}")
         self.E = _disturbance_matrix(env)
-        self.mean, self.std = float(mean), float(std)
+        self.mean, self.std, self.before_clip = float(mean), float(std), bool(before_clip)
         self.rng = np.random.default_rng(0)
 
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None) -> tuple[Any, dict]:
@@ -479,9 +486,11 @@ class DisturbedEnv(gym.Wrapper):
         return self.env.reset(seed=seed, options=options)
 
     def step(self, action: Any) -> tuple[Any, float, bool, bool, dict[str, Any]]:
+        xi = self.mean + self.std * self.rng.standard_normal()
+        if self.before_clip:
+            return self.env.step(np.asarray(action, dtype=self.action_space.dtype) + np.float32(xi))
         _, reward, terminated, truncated, info = self.env.step(action)
         inner = self.env.unwrapped
-        xi = self.mean + self.std * self.rng.standard_normal()
         state = np.asarray(inner.state, dtype=np.float64) + self.E[:, 0] * xi
         inner.state = state.astype(np.asarray(inner.state).dtype)
         obs = inner._get_obs() if hasattr(inner, "_get_obs") else np.array(inner.state, dtype=np.float32)

@@ -377,12 +377,13 @@ class Task(abc.ABC):
         """
         with torch.no_grad():
             xi = noise_coordinates(s_next - self.f(s, u.to(s.dtype)), self.noise_matrix.to(s.dtype))
-            clipped = self.saturated(u)
+            clipped = self.saturated(s, u)
             return xi if clipped is None else xi.masked_fill(clipped[:, None], math.nan)
 
-    def saturated(self, u: torch.Tensor) -> torch.Tensor | None:
-        """Rows of ``u`` (B, action_dim) whose action the plant may have clipped, or ``None`` without an
-        :attr:`action_limit`: those with ``|u_i| > action_limit_i - saturation_margin_i`` for some ``i``.
+    def saturated(self, s: torch.Tensor, u: torch.Tensor) -> torch.Tensor | None:
+        """Rows of ``(s, u)`` (B, state_dim), (B, action_dim) whose action the plant may have clipped, or
+        ``None`` without an :attr:`action_limit`: those with ``|u_i| > action_limit_i - saturation_margin_i``
+        for some ``i``. A task whose plant also clips states (a speed limit) overrides it to add those.
 
         With the disturbance entering after the clip (a torque added to the clipped one) the margin is 0;
         with one entering before it (an actuator bias ``b``) it must cover ``|b|`` (e.g. the prior's mean

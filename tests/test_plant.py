@@ -189,6 +189,29 @@ def test_ibe_within_two_percent_when_a_third_saturates() -> None:
     assert abs(est - 0.5) > 0.1 * 0.5
 
 
+def test_pendulum_bias_before_the_clips_is_masked() -> None:
+    """Pendulum-v1 with an actuator bias entering before its torque and speed clips: the declared limit
+    and margin leave out exactly the transitions where the residual is not the bias."""
+    rng = np.random.default_rng(0)
+    for margin in (0.0, 0.65):
+        task = PendulumV1Task()
+        task.saturation_margin = margin
+        plant = GymnasiumPlant(DisturbedEnv(gym.make("Pendulum-v1"), mean=0.5, before_clip=True))
+        x, xi = torch.as_tensor(plant.reset(seed=0))[None], []
+        for i in range(600):
+            u = torch.as_tensor(rng.uniform(-2.0, 2.0, (1, 1)))
+            x_next = torch.as_tensor(plant.step(u[0].numpy()))[None]
+            xi.append(float(task.residuals(x, u, x_next)[0, 0]))
+            x = torch.as_tensor(plant.reset(seed=i + 1))[None] if plant.last_truncated else x_next
+        xi = np.array(xi)
+        kept = xi[np.isfinite(xi)]
+        if margin == 0:  # only |u| > 2 dropped: the torque clip of u + 0.5 and the speed clip bias the rest
+            assert np.abs(kept - 0.5).max() > 0.1
+        else:
+            assert 0.2 < 1 - kept.size / xi.size < 0.6
+            np.testing.assert_allclose(kept, 0.5, atol=1e-5)
+
+
 # ------------------------------------------------------------------------------------------ plant checks
 class Flaky:
     """A plant that misbehaves at step ``at`` (raises, NaN or a wrong shape)."""
@@ -254,6 +277,15 @@ def test_plant_failure_stops_the_run_and_resume_continues(tmp_path) -> None:
     assert saved["plant_transitions"]["evaluation"] == 2 * 2 * 200
     assert saved["plant_transitions"]["plant"] == "GymnasiumPlant(Pendulum-v1)"
     assert abs(saved["final_ibe_mean"][0] - 0.5) < 0.05
+
+
+def test_a_run_without_evaluation() -> None:
+    task = attach_plant(PendulumV1Task(), GymnasiumPlant(gym.make("Pendulum-v1")), evaluation="none")
+    cfg = TrainConfig(method="mixed", task="linear", seed=0, algorithm=dict(iterations=4, batch_size=8, hidden_sizes=(8,)),
+                      sampler=dict(name="model_rollouts", true_steps=3, true_every=2), run=dict(eval_every=2))
+    results = train(AGPI(task, cfg), progress=False)
+    assert results["final"] == {} and not any(k.startswith("eval/") for k in results["metrics"][-1])
+    assert results["plant_transitions"]["training"] == 6 and results["plant_transitions"]["evaluation"] == 0
 
 
 def test_evaluation_on_the_plant_is_sequential_and_counted() -> None:

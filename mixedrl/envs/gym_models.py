@@ -92,6 +92,9 @@ class PendulumV1Task(Task):
 
     Notes
     -----
+    With a ``saturation_margin`` (a bias entering before the clip, :class:`mixedrl.plant.DisturbedEnv`
+    ``before_clip=True``) :meth:`saturated` also drops the transitions near the env's speed clip.
+
     The utility is Gymnasium's, ``angle_normalize(theta)^2 + 0.1 theta_dot^2 + 0.001 u^2``, charged on the
     next state (eq. 2; the env charges the current one). ``action_limit`` is the env's ``max_torque``: the
     model clips there, and a transition at the limit is dropped from the IBE only if a disturbance could
@@ -121,6 +124,18 @@ class PendulumV1Task(Task):
     def cost(self, s_next: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
         torque = torch.clamp(u[:, 0], -2.0, 2.0)
         return angle_normalize(s_next[:, 0]) ** 2 + 0.1 * s_next[:, 1] ** 2 + 0.001 * torque**2
+
+    def saturated(self, s: torch.Tensor, u: torch.Tensor) -> torch.Tensor | None:
+        """:meth:`Task.saturated`, plus (with a ``saturation_margin``) the rows whose rate the model brings
+        within the margin's reach (``E_rate * margin``) of the env's speed clip: a bias entering before the
+        clips is cut there too."""
+        rows = super().saturated(s, u)
+        margin = float(torch.as_tensor(self.saturation_margin).max())
+        if rows is None or margin <= 0:
+            return rows
+        with torch.no_grad():
+            rate = self.f(s, u)[:, 1]
+        return rows | (rate.abs() > 8.0 - float(self.noise_matrix[1, 0]) * margin)
 
     def sample_initial(self, n: int, generator: torch.Generator) -> torch.Tensor:
         high = torch.tensor([math.pi, 1.0], dtype=torch.float64)
