@@ -403,7 +403,10 @@ class Task(abc.ABC):
         :meth:`sample_initial` and then the noise of ``horizon`` steps; the action is
         ``policy(observe(s))`` (float32 observations, as in training). A copy that reaches a terminal state
         (:meth:`is_terminal`) stops: no cost, no state counted from then on. Subclasses with a
-        task-specific evaluation (a course, a reference trajectory) override this method.
+        task-specific evaluation (a course, a reference trajectory) override this method. Every simulated
+        step (``eval_starts * horizon`` per seed) is added to :attr:`evaluation_transitions`. A task with
+        a plant evaluated on it (:func:`mixedrl.plant.attach_plant`) calls :attr:`plant_evaluate`
+        instead (:func:`mixedrl.plant.evaluate_on_plant`, or nothing).
 
         Parameters
         ----------

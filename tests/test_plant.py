@@ -52,8 +52,9 @@ def test_mountain_car_step_equals_gymnasium() -> None:
     np.testing.assert_allclose(ours, _gym_steps("MountainCarContinuous-v0", s, u), rtol=0, atol=1e-6)
 
 
-@pytest.mark.parametrize("env_id,step,E", [("Pendulum-v1", pendulum_v1_step, pendulum_noise_matrix()),
-                                           ("MountainCarContinuous-v0", mountain_car_step, mountain_car_noise_matrix())])
+@pytest.mark.parametrize("env_id,step,E", [
+    ("Pendulum-v1", pendulum_v1_step, pendulum_noise_matrix()),
+    ("MountainCarContinuous-v0", mountain_car_step, mountain_car_noise_matrix())])
 def test_disturbed_env_is_the_additive_model(env_id: str, step: object, E: torch.Tensor) -> None:
     """x' = f(x, u) + E xi exactly, and the least-squares residual returns the force (E is no selection)."""
     env = DisturbedEnv(gym.make(env_id), mean=0.3)
@@ -281,7 +282,8 @@ def test_plant_failure_stops_the_run_and_resume_continues(tmp_path) -> None:
 
 def test_a_run_without_evaluation() -> None:
     task = attach_plant(PendulumV1Task(), GymnasiumPlant(gym.make("Pendulum-v1")), evaluation="none")
-    cfg = TrainConfig(method="mixed", task="linear", seed=0, algorithm=dict(iterations=4, batch_size=8, hidden_sizes=(8,)),
+    cfg = TrainConfig(method="mixed", task="linear", seed=0,
+                      algorithm=dict(iterations=4, batch_size=8, hidden_sizes=(8,)),
                       sampler=dict(name="model_rollouts", true_steps=3, true_every=2), run=dict(eval_every=2))
     results = train(AGPI(task, cfg), progress=False)
     assert results["final"] == {} and not any(k.startswith("eval/") for k in results["metrics"][-1])
