@@ -260,6 +260,9 @@ def plant_copies(task: Task, config: Any) -> PlantCopies | None:
     plants = getattr(task, "plant", None)
     if plants is None:
         return None
+    if not isinstance(plants, list) or not all(isinstance(p, CheckedPlant) for p in plants):
+        raise ValueError(f"task.plant: expected the list attach_plant makes, got {type(plants).__name__} (give "
+                         f"{type(task).__name__} its plant with mixedrl.plant.attach_plant(task, plant))")
     return PlantCopies(plants, config.sampler.true_envs, config.seed)
 
 

@@ -305,3 +305,7 @@ def test_evaluation_on_the_plant_is_sequential_and_counted() -> None:
         AGPI(task, TrainConfig(method="mixed", task="linear", seed=0, sampler=dict(name="true_copies")))
     with pytest.raises(ValueError, match="config: method 'ddpg' steps batches of simulated true copies"):
         DDPG(task, TrainConfig(method="ddpg", task="linear", seed=0))
+    bare = PendulumV1Task()
+    bare.plant = GymnasiumPlant(env)
+    with pytest.raises(ValueError, match="task.plant: expected the list attach_plant makes, got GymnasiumPlant"):
+        AGPI(bare, TrainConfig(method="mixed", task="linear", seed=0, sampler=dict(name="model_rollouts")))
