@@ -14,14 +14,18 @@ The true system is eq. (1) with the noise entering through a fixed matrix ``E``:
     s_{t+1} = f(s_t, u_t) + E\\, \\xi_t, \\qquad \\xi_t \\sim N(\\mu, K),
 
 where ``s`` is the simulator state (``state_dim``), ``xi`` the additive uncertainty of the paper
-(``noise_dim``; for the vehicle the five components of eq. 53) and ``E`` (``state_dim x noise_dim``) a
-selection matrix. The residual of eq. (10) is ``xi = E^T (s' - f(s, u))``. The policy and the critic see
+(``noise_dim``; for the vehicle the five components of eq. 53) and ``E`` (``state_dim x noise_dim``) any
+matrix of full column rank (a 0/1 selection, the ``[dt^2, dt]^T`` of a torque in a semi-implicit Euler
+step). The residual of eq. (10) in noise coordinates is the least-squares solution of
+``E xi = s' - f(s, u)`` (``E^T (s' - f)`` for a selection). The true system is simulated
+(:meth:`Task.true_step`) unless the task has a plant (:mod:`mixedrl.plant`). The policy and the critic see
 the observation ``observe(s)``; the utility is charged on the next state, ``l(s', u)`` (eq. 2).
 """
 
 from __future__ import annotations
 
 import abc
+import math
 from dataclasses import dataclass, field
 from typing import Any, Callable
 
@@ -30,6 +34,7 @@ import torch
 
 from mixedrl.checks import check_positive_int, check_seed_lists
 from mixedrl.gaussian import sample_gaussian
+from mixedrl.ibe.common import check_noise_matrix, noise_coordinates
 
 __all__ = ["EQUILIBRIUM_ATOL", "Equilibrium", "Linearisation", "Task", "check_policies_and_seeds", "check_task",
            "cost_hessian"]
@@ -180,7 +185,8 @@ class Task(abc.ABC):
     gamma : float
         Discount factor of eq. (2).
     noise_matrix : torch.Tensor, shape (state_dim, noise_dim)
-        ``E``: a 0/1 selection matrix, how ``xi`` enters the state.
+        ``E``: how ``xi`` enters the state, any matrix of full column rank (independent columns:
+        :func:`mixedrl.ibe.common.check_noise_matrix`), e.g. a 0/1 selection or ``[dt^2, dt]^T``.
     prior_mean, prior_cov : numpy.ndarray, shapes (noise_dim,), (noise_dim, noise_dim)
         The designer's prior ``mu_M``, ``K_M`` (eq. 8).
     true_mean, true_cov : numpy.ndarray, shapes (noise_dim,), (noise_dim, noise_dim)
@@ -199,6 +205,21 @@ class Task(abc.ABC):
         Steps of each rollout of the default :meth:`evaluate` (200 unless the subclass sets it).
     eval_starts : int
         Start states per evaluation seed of the default :meth:`evaluate` (64 unless the subclass sets it).
+    action_limit : torch.Tensor or None, shape (action_dim,)
+        Where the plant clips the action (``None``: it does not); ``f`` must apply the same clip.
+    saturation_margin : float or torch.Tensor
+        Transitions with ``|u_i| > action_limit_i - saturation_margin_i`` are dropped from the IBE
+        (:meth:`saturated`); 0 by default.
+    plant : list of mixedrl.plant.CheckedPlant or None
+        The true system (:func:`mixedrl.plant.attach_plant`); ``None``: simulated by :meth:`true_step`.
+    plant_evaluation : str
+        ``"simulated"`` (:meth:`evaluate` as below), ``"plant"`` or ``"none"``
+        (:data:`mixedrl.plant.PLANT_EVALUATIONS`).
+    plant_evaluate : callable or None
+        ``(policy, seeds, horizon) -> dict``, what :meth:`evaluate` does instead of its simulated rollouts
+        (set by :func:`mixedrl.plant.attach_plant` for ``plant_evaluation`` ``"plant"`` and ``"none"``).
+    evaluation_transitions : int
+        Plant (or simulated plant) transitions the evaluations have used.
     """
 
     state_dim: int
@@ -218,6 +239,12 @@ class Task(abc.ABC):
     name: str
     eval_horizon: int = 200
     eval_starts: int = 64
+    action_limit: torch.Tensor | None = None
+    saturation_margin: Any = 0.0
+    plant: Any = None
+    plant_evaluation: str = "simulated"
+    plant_evaluate: Callable[..., dict[str, Any]] | None = None
+    evaluation_transitions: int = 0
 
     def __init_subclass__(cls, **kwargs: Any) -> None:
         super().__init_subclass__(**kwargs)
@@ -339,9 +366,35 @@ class Task(abc.ABC):
                                   f"needs it)")
 
     def residuals(self, s: torch.Tensor, u: torch.Tensor, s_next: torch.Tensor) -> torch.Tensor:
-        """Eq. (10) in noise coordinates: ``xi = E^T (s' - f(s, u))``, (B, noise_dim)."""
+        """Eq. (10) in noise coordinates: the least-squares ``xi`` of ``E xi = s' - f(s, u)``, (B, noise_dim)
+        (``E^T (s' - f)`` for a 0/1 selection; :func:`mixedrl.ibe.common.noise_coordinates`).
+
+        Notes
+        -----
+        A departure from eq. (10): rows whose action the plant may have clipped
+        (:meth:`saturated`, with :attr:`action_limit` set) are NaN, so the callers' finite filter drops
+        them from the IBE (there the additive model does not hold).
+        """
         with torch.no_grad():
-            return (s_next - self.f(s, u.to(s.dtype))) @ self.noise_matrix.to(s.dtype)
+            xi = noise_coordinates(s_next - self.f(s, u.to(s.dtype)), self.noise_matrix.to(s.dtype))
+            clipped = self.saturated(s, u)
+            return xi if clipped is None else xi.masked_fill(clipped[:, None], math.nan)
+
+    def saturated(self, s: torch.Tensor, u: torch.Tensor) -> torch.Tensor | None:
+        """Rows of ``(s, u)`` (B, state_dim), (B, action_dim) whose action the plant may have clipped, or
+        ``None`` without an :attr:`action_limit`: those with ``|u_i| > action_limit_i - saturation_margin_i``
+        for some ``i``. A task whose plant also clips states (a speed limit) overrides it to add those.
+
+        With the disturbance entering after the clip (a torque added to the clipped one) the margin is 0;
+        with one entering before it (an actuator bias ``b``) it must cover ``|b|`` (e.g. the prior's mean
+        plus three standard deviations, in action units): there the plant clips ``u + b`` and removes part
+        of the bias, which the additive model of eq. (1) cannot represent.
+        """
+        if self.action_limit is None:
+            return None
+        limit = torch.as_tensor(self.action_limit, dtype=torch.float64)
+        margin = torch.as_tensor(self.saturation_margin, dtype=torch.float64)
+        return (u.double().abs() > limit - margin).any(dim=-1)
 
     def evaluate(self, policy: torch.nn.Module, seeds: list[int], horizon: int | None = None) -> dict[str, Any]:
         """Seeded rollouts of the *true* environment (:meth:`true_step`) under ``policy`` from fixed starts.
@@ -350,7 +403,10 @@ class Task(abc.ABC):
         :meth:`sample_initial` and then the noise of ``horizon`` steps; the action is
         ``policy(observe(s))`` (float32 observations, as in training). A copy that reaches a terminal state
         (:meth:`is_terminal`) stops: no cost, no state counted from then on. Subclasses with a
-        task-specific evaluation (a course, a reference trajectory) override this method.
+        task-specific evaluation (a course, a reference trajectory) override this method. Every simulated
+        step (``eval_starts * horizon`` per seed) is added to :attr:`evaluation_transitions`. A task with
+        a plant evaluated on it (:func:`mixedrl.plant.attach_plant`) calls :attr:`plant_evaluate`
+        instead (:func:`mixedrl.plant.evaluate_on_plant`, or nothing).
 
         Parameters
         ----------
@@ -378,11 +434,14 @@ class Task(abc.ABC):
         ValueError
             ``seeds`` empty, or ``horizon`` not a positive integer.
         """
+        if self.plant_evaluate is not None:  # on the task's plant, or none (mixedrl.plant.attach_plant)
+            return self.plant_evaluate(policy, seeds, horizon)
         horizon = self.eval_horizon if horizon is None else horizon
         horizon = check_positive_int(horizon, "horizon")
         if len(seeds) == 0:
             raise ValueError("seeds: expected at least one evaluation seed, got none")
         n, half = int(self.eval_starts), int(horizon) // 2
+        self.evaluation_transitions += n * int(horizon) * len(seeds)
         costs, terminated, abs_sums, sums, counts = [], [], [], [], []
         with torch.no_grad():
             for seed in seeds:
@@ -520,6 +579,7 @@ def check_task(task: Task, batch: int = 3) -> None:
             raise ValueError(f"{name}.{attr}: contains NaN or inf")
         if attr in ("action_bound", "obs_scale") and not (arr > 0).all():
             raise ValueError(f"{name}.{attr}: expected positive values, got {arr.tolist()}")
+    check_noise_matrix(task.noise_matrix, f"{name}.noise_matrix", n)
     s = task.sample_initial(batch, torch.Generator().manual_seed(0))
     _check_output(s, task, "sample_initial", (batch, n), torch.float64)
     bound = torch.as_tensor(task.action_bound, dtype=torch.float64)

@@ -51,6 +51,7 @@ from mixedrl.envs.dlc_task import CourseSampler
 from mixedrl.expectation import expectation_nodes, h_value
 from mixedrl.networks import Actor, AffineActor, AffineAnchoredActor, AnchoredActor, Critic, QuadraticCritic
 from mixedrl.noise import make_noise_source
+from mixedrl.plant import check_plant_sampler
 from mixedrl.pev import critic_loss, critic_step
 from mixedrl.pim import MVCResult, actor_objective, actor_step, mvc_check
 from mixedrl.tasks import Task, check_task
@@ -181,6 +182,7 @@ class AGPI:
         self.transitions: tuple[torch.Tensor, torch.Tensor] | None = None
         # the sampler chosen by config.sampler.name makes the batch (model_data.py); None = the true copies
         sampler_class = SAMPLER_CLASSES.get(config.sampler.name)
+        check_plant_sampler(task, config)
         if config.sampler.name not in SAMPLER_CLASSES:
             raise ValueError(f"config: sampler.name {config.sampler.name!r} has no implementation "
                              f"(known: {sorted(SAMPLER_CLASSES)})")
@@ -526,6 +528,7 @@ class AGPI:
             "noise": self.noise.state_dict(),
             "stop_count": self.stop_count,
             "stopped": self.stopped,
+            "evaluation_transitions": self.task.evaluation_transitions,
             **({"sampler": self.sampler.state_dict()} if self.sampler is not None else {}),
             **({"actor_avg": self.actor_avg.state_dict()} if self.actor_avg is not None else {}),
             **({"critic_target": self.critic_target.state_dict()} if self.critic_target is not None else {}),
@@ -572,4 +575,5 @@ class AGPI:
         self.k = int(state["k"])
         self.stop_count = int(state["stop_count"])
         self.stopped = bool(state["stopped"])
+        self.task.evaluation_transitions = int(state.get("evaluation_transitions", 0))
 

@@ -18,6 +18,7 @@ import torch
 
 from mixedrl.config import TrainConfig
 from mixedrl.networks import Actor, QCritic
+from mixedrl.plant import check_plant_sampler
 from mixedrl.schedule import set_learning_rates
 from mixedrl.tasks import Task, check_task
 
@@ -103,6 +104,7 @@ class DDPG:
         if config.method != "ddpg":
             raise ValueError(f"config: method must be 'ddpg', got {config.method!r}")
         check_task(task)
+        check_plant_sampler(task, config)
         self.task, self.config = task, config
         self.generator = torch.Generator().manual_seed(config.seed)
         g = self.generator

@@ -48,6 +48,7 @@ import torch
 from mixedrl.config import ModelRolloutsSampler, TrainConfig
 from mixedrl.envs.dlc_task import CourseSampler
 from mixedrl.gaussian import sample_gaussian
+from mixedrl.plant import plant_copies
 from mixedrl.tasks import Task
 
 __all__ = ["ModelStateSampler", "SAMPLER_CLASSES", "course_starts", "has_course"]
@@ -137,6 +138,8 @@ class ModelStateSampler:
         #: course copies restart when they pass the course's end ("along", "loop")
         self.end_restart = starts in ("along", "loop")
         self.course_length = _course_length(task)
+        #: The task's plant (mixedrl.plant) driven instead of the simulated true copies, or None.
+        self.plant = plant_copies(task, config)
 
     # ------------------------------------------------------------------------------------ rollouts
     def on_course(self) -> torch.Tensor:
@@ -222,25 +225,29 @@ class ModelStateSampler:
         Returns
         -------
         torch.Tensor, shape (M, noise_dim)
-            Finite residuals ``xi^D = E^T (s' - f(s, u))`` of eq. (10), float64. Every step counts
+            Finite residuals ``xi^D`` of eq. (10) in noise coordinates (:meth:`Task.residuals`; rows the
+            plant may have clipped are dropped), float64. Every step counts
             ``true_envs`` transitions in :attr:`true_transitions`.
         """
         task, cfg = self.task, self.options
         out, states, actions = [], [], []
         for _ in range(cfg.true_steps):
-            s = self.true_states
+            s = self.true_states if self.plant is None else self.plant.current(self.true_states)
             with torch.no_grad():
                 u = actor(task.observe(s.float())).double()
-                s_next = task.true_step(s, u, self.generator)
+                s_next = task.true_step(s, u, self.generator) if self.plant is None else self.plant.step(u)
                 out.append(task.residuals(s, u, s_next))
             states.append(s)
             actions.append(u)
             self.true_transitions += s.shape[0]
             self.true_steps += 1
             done = task.is_terminal(s_next) | (self.true_steps >= cfg.true_horizon)
+            if self.plant is not None:  # the plant's own episode end; its reset, not the model's starts
+                done = done | self.plant.done
             s_next = s_next.clone()
             if bool(done.any()):
-                s_next[done] = course_starts(task, int(done.sum()), self.generator)
+                s_next[done] = (course_starts(task, int(done.sum()), self.generator) if self.plant is None
+                                else self.plant.reset(done))
                 self.true_steps[done] = 0
             self.true_states = s_next
         xi = torch.cat(out, dim=0)

@@ -1,6 +1,7 @@
 """What the three Cases of the IBE share: the residuals of eq. (10) and the input and state checks.
 
-* :func:`~mixedrl.ibe.residuals`: eq. (10), ``xi_j = x_{j+1} - f(x_j, u_j)``.
+* :func:`~mixedrl.ibe.residuals`: eq. (10), ``xi_j = x_{j+1} - f(x_j, u_j)``, in noise coordinates
+  (the least-squares :func:`noise_coordinates`) for a full-column-rank ``E`` (:func:`check_noise_matrix`).
 * :func:`real_batch`, :func:`real_vector`, :func:`real_covariance`: the checks every estimator applies to
   its arguments (real numbers only: complex, bool, string and object arrays are refused; finite; of the
   right shape; at least one noise dimension).
@@ -28,6 +29,8 @@ from mixedrl.gaussian import sample_gaussian
 
 __all__ = [
     "residuals",
+    "check_noise_matrix",
+    "noise_coordinates",
     "real_array",
     "real_batch",
     "real_vector",
@@ -54,10 +57,14 @@ def residuals(
     x: np.ndarray | torch.Tensor,
     u: np.ndarray | torch.Tensor,
     x_next: np.ndarray | torch.Tensor,
+    E: np.ndarray | torch.Tensor | None = None,
 ) -> np.ndarray | torch.Tensor:
     """Implements eq. (10): the residual of a transition under the model's deterministic part.
 
     .. math:: \\xi_j^{\\mathcal{D}} = x_{j+1}^{\\mathcal{D}} - f(x_j^{\\mathcal{D}}, u_j^{\\mathcal{D}})
+
+    With the noise matrix ``E`` of ``x' = f(x, u) + E xi`` the residual is returned in noise coordinates,
+    the least-squares solution of ``E xi = x_{j+1} - f(x_j, u_j)`` (:func:`noise_coordinates`).
 
     Parameters
     ----------
@@ -70,17 +77,20 @@ def residuals(
         Actions, same leading dimensions as ``x``.
     x_next : ndarray or Tensor, shape (..., n)
         Next states.
+    E : ndarray or Tensor, shape (n, d), optional
+        How the noise enters the state; any matrix of full column rank (:func:`check_noise_matrix`).
+        ``None`` (default): the residual in state coordinates (``E = I``).
 
     Returns
     -------
-    ndarray or Tensor, shape (..., n)
+    ndarray or Tensor, shape (..., n), or (..., d) with ``E``
         Same kind as the inputs (numpy in, numpy out; torch in, torch out).
 
     Raises
     ------
     ValueError
-        Inputs of mixed kinds, not real numbers, non-finite, of inconsistent shapes, or ``f`` returning a
-        wrong shape.
+        Inputs of mixed kinds, not real numbers, non-finite, of inconsistent shapes, ``f`` returning a
+        wrong shape, or ``E`` not an ``(n, d)`` matrix of full column rank.
     """
     is_torch = [isinstance(a, torch.Tensor) for a in (x, u, x_next)]
     if any(is_torch) and not all(is_torch):
@@ -102,7 +112,53 @@ def residuals(
     if tuple(fx.shape) != tuple(x_next.shape):
         raise ValueError(f"f: returned shape {tuple(fx.shape)}, expected {tuple(x_next.shape)}")
     # xi_j = x_{j+1} - f(x_j, u_j)
-    return x_next - fx
+    if E is None:
+        return x_next - fx
+    check_noise_matrix(E, "E", x.shape[-1])
+    return noise_coordinates(x_next - fx, E)
+
+
+def check_noise_matrix(E: Any, name: str, n: int | None = None) -> None:
+    """Raise ``ValueError`` naming ``name`` unless ``E`` is a finite real ``(n, d)`` matrix of full column
+    rank ``d`` (``d <= n`` independent columns).
+
+    The residual of eq. (10) is a noise only if ``E xi = r`` determines ``xi``: any ``E`` with independent
+    columns does (a 0/1 selection, the ``[dt, 1]^T`` of a semi-implicit Euler step, a ``B`` matrix), a
+    rank-deficient one does not (two noise components moving the state the same way).
+    """
+    arr = real_array(E.detach() if isinstance(E, torch.Tensor) else E, name)
+    arr = np.asarray(arr, dtype=np.float64)
+    if arr.ndim != 2 or (n is not None and arr.shape[0] != n):
+        rows = "n" if n is None else str(n)
+        raise ValueError(f"{name}: expected a ({rows}, noise_dim) matrix, got shape {arr.shape}")
+    check_finite(arr, name)
+    rank = int(np.linalg.matrix_rank(arr)) if arr.size else 0
+    if arr.shape[1] < 1 or rank < arr.shape[1]:
+        raise ValueError(f"{name}: expected full column rank {arr.shape[1]} (each noise component moving the state "
+                         f"in its own direction, so that E xi = x' - f(x, u) determines xi), got rank {rank}")
+
+
+def noise_coordinates(r: np.ndarray | torch.Tensor, E: np.ndarray | torch.Tensor) -> np.ndarray | torch.Tensor:
+    """The least-squares ``xi = argmin |E xi - r|`` of residuals ``r`` (..., n) for a full-column-rank ``E``
+    (n, d): ``(E^T E)^{-1} E^T r``, shape (..., d), the kind and dtype of ``r``.
+
+    For ``E^T E = I`` exactly (a 0/1 selection of distinct state components) this is ``E^T r``, computed as
+    such (bit for bit what the package computed before any other ``E`` was allowed); otherwise a QR
+    least-squares solve (``lstsq``), without forming the normal equations.
+    """
+    if isinstance(r, torch.Tensor):
+        Et = torch.as_tensor(E).to(r.dtype)
+        d = Et.shape[1]
+        if torch.equal(Et.T @ Et, torch.eye(d, dtype=r.dtype)):
+            return r @ Et
+        flat = r.reshape(-1, r.shape[-1]).T
+        return torch.linalg.lstsq(Et, flat, driver="gelsd").solution.T.reshape(*r.shape[:-1], d)
+    En = np.asarray(E.detach().numpy() if isinstance(E, torch.Tensor) else E, dtype=np.float64)
+    d = En.shape[1]
+    if np.array_equal(En.T @ En, np.eye(d)):
+        return r @ En
+    flat = np.reshape(r, (-1, r.shape[-1])).T
+    return np.linalg.lstsq(En, flat, rcond=None)[0].T.reshape(*r.shape[:-1], d)
 
 
 

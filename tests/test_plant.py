@@ -1,0 +1,311 @@
+"""The plant interface (issue 41): adapters, checks, saturation, least-squares residuals, failure and resume."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import gymnasium as gym
+import numpy as np
+import pytest
+import torch
+
+from mixedrl.algorithms.agpi import AGPI
+from mixedrl.algorithms.ddpg import DDPG
+from mixedrl.config import TrainConfig
+from mixedrl.envs.gym_models import (PendulumV1Task, mountain_car_noise_matrix, mountain_car_step,
+                                     pendulum_noise_matrix, pendulum_v1_step)
+from mixedrl.ibe import KnownCovarianceIBE
+from mixedrl.ibe.common import check_noise_matrix, noise_coordinates, residuals
+from mixedrl.plant import (CheckedPlant, DisturbedEnv, GymnasiumPlant, PlantError, SimulatedPlant, attach_plant,
+                           evaluate_on_plant)
+from mixedrl.runs import RunDirectory, load_checkpoint, train
+from mixedrl.task_base import Task, check_task
+
+
+# ------------------------------------------------------------------------------------------ physics
+def _gym_steps(env_id: str, states: np.ndarray, actions: np.ndarray) -> np.ndarray:
+    env = gym.make(env_id).unwrapped
+    env.reset(seed=0)
+    out = []
+    for s, a in zip(states, actions):
+        env.state = s.copy()
+        env.step(a.astype(np.float32))
+        out.append(np.asarray(env.state, dtype=np.float64))
+    return np.stack(out)
+
+
+def test_pendulum_v1_step_equals_gymnasium() -> None:
+    rng = np.random.default_rng(0)
+    s = np.column_stack([rng.uniform(-2 * np.pi, 2 * np.pi, 500), rng.uniform(-9, 9, 500)])
+    u = rng.uniform(-3, 3, (500, 1))  # a third beyond the clip at 2
+    ours = pendulum_v1_step(torch.as_tensor(s), torch.as_tensor(u)).numpy()
+    np.testing.assert_allclose(ours, _gym_steps("Pendulum-v1", s, u), rtol=0, atol=1e-6)
+
+
+def test_mountain_car_step_equals_gymnasium() -> None:
+    rng = np.random.default_rng(1)
+    s = np.column_stack([rng.uniform(-1.2, 0.6, 500), rng.uniform(-0.07, 0.07, 500)])
+    s[:50, 0], s[:50, 1] = -1.2, -0.05  # at the left wall, moving left
+    u = rng.uniform(-1.5, 1.5, (500, 1))
+    ours = mountain_car_step(torch.as_tensor(s), torch.as_tensor(u)).numpy()
+    np.testing.assert_allclose(ours, _gym_steps("MountainCarContinuous-v0", s, u), rtol=0, atol=1e-6)
+
+
+@pytest.mark.parametrize("env_id,step,E", [
+    ("Pendulum-v1", pendulum_v1_step, pendulum_noise_matrix()),
+    ("MountainCarContinuous-v0", mountain_car_step, mountain_car_noise_matrix())])
+def test_disturbed_env_is_the_additive_model(env_id: str, step: object, E: torch.Tensor) -> None:
+    """x' = f(x, u) + E xi exactly, and the least-squares residual returns the force (E is no selection)."""
+    env = DisturbedEnv(gym.make(env_id), mean=0.3)
+    plant = GymnasiumPlant(env)
+    x = plant.reset(seed=3)
+    rng = np.random.default_rng(2)
+    for _ in range(20):
+        u = rng.uniform(-0.5, 0.5, 1)
+        x_next = plant.step(u)
+        xi = residuals(lambda a, b: step(torch.as_tensor(a), torch.as_tensor(b)).numpy(), x[None], u[None],
+                       x_next[None], E.numpy())
+        assert xi.shape == (1, 1)
+        assert abs(xi[0, 0] - 0.3) < 1e-4, xi  # float32 states of the car
+        x = x_next
+
+
+def test_double_lane_change_behind_the_adapter() -> None:
+    """The package's own env as a plant: its state is the task's, its actions normalised."""
+    import mixedrl.envs  # noqa: F401  (registers the env)
+    from mixedrl.tasks import task_from_config
+
+    task = task_from_config("dlc")
+    bound = task.action_bound.double().numpy()
+    plant = GymnasiumPlant(gym.make("mixedrl/DoubleLaneChange-v0"), action_fn=lambda u: u / bound)
+    x = torch.as_tensor(plant.reset(seed=0))[None]
+    xs = []
+    for _ in range(200):
+        u = torch.tensor([[0.0, -0.2]], dtype=torch.float64)
+        x_next = torch.as_tensor(plant.step(u[0].numpy()))[None]
+        xs.append(task.residuals(x, u, x_next))
+        x = x_next
+    force = task.xi_to_force(float(torch.cat(xs)[:, task.noise_index].mean()))
+    assert abs(force - 261.0) < 0.02 * 261.0, force
+
+
+# ------------------------------------------------------------------------------------------ residuals
+def test_residuals_least_squares_for_any_full_column_rank_E() -> None:
+    rng = np.random.default_rng(0)
+    E = np.array([[0.05, 0.0], [1.0, 0.2], [0.0, 1.0]])
+    xi = rng.normal(size=(7, 2))
+    x, u = rng.normal(size=(7, 3)), rng.normal(size=(7, 1))
+    x_next = x + xi @ E.T
+    np.testing.assert_allclose(residuals(lambda a, b: a, x, u, x_next, E), xi, atol=1e-12)
+    got = residuals(lambda a, b: a, torch.as_tensor(x), torch.as_tensor(u), torch.as_tensor(x_next), torch.as_tensor(E))
+    np.testing.assert_allclose(got.numpy(), xi, atol=1e-12)
+    # E^T r would be off by E^T E != I (here by 0.25% on [dt, 1]^T)
+    e1 = np.array([[0.05], [1.0]])
+    r = np.array([[0.05, 1.0]])
+    assert noise_coordinates(r, e1)[0, 0] == pytest.approx(1.0, abs=1e-14)
+    assert abs((r @ e1)[0, 0] - 1.0) > 2e-3
+
+
+def test_selection_E_is_bitwise_the_transpose() -> None:
+    """The default tasks' 0/1 selections keep E^T r bit for bit (the shipped results stay identical)."""
+    E = torch.zeros(7, 5)
+    E[:5, :5] = torch.eye(5)
+    r = torch.randn(9, 7, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    assert torch.equal(noise_coordinates(r, E.double()), r @ E.double())
+
+
+def test_rank_deficient_E_is_named() -> None:
+    with pytest.raises(ValueError, match=r"E: expected full column rank 2 .* got rank 1"):
+        check_noise_matrix(np.array([[1.0, 2.0], [1.0, 2.0]]), "E")
+
+    class Degenerate(PendulumV1Task):
+        def __init__(self) -> None:
+            super().__init__()
+            self.noise_dim = 2
+            self.noise_matrix = torch.tensor([[0.1, 0.2], [1.0, 2.0]], dtype=torch.float64)
+            self.prior_mean, self.prior_cov = np.zeros(2), np.eye(2)
+            self.true_mean, self.true_cov = np.zeros(2), np.eye(2)
+
+    with pytest.raises(ValueError, match=r"Degenerate.noise_matrix: expected full column rank 2"):
+        check_task(Degenerate())
+
+
+# ------------------------------------------------------------------------------------------ saturation
+class BiasedActuator(Task):
+    """x' = A x + B clip(u + b) + B w: an actuator bias b entering *before* the clip at |u| = 1."""
+
+    state_dim, obs_dim, action_dim, noise_dim, gamma = 2, 2, 1, 1, 0.9
+    dt = 0.05
+
+    def __init__(self) -> None:
+        self.noise_matrix = torch.tensor([[self.dt**2], [self.dt]], dtype=torch.float64)  # not a selection
+        self.prior_mean, self.prior_cov = np.zeros(1), np.eye(1)
+        self.true_mean, self.true_cov = np.array([0.5]), np.array([[0.05**2]])
+        self.action_bound = torch.tensor([1.5])
+        self.action_limit = torch.tensor([1.0])
+        self.saturation_margin = 0.55  # covers the prior's reach of the bias
+        self.obs_scale = torch.ones(2)
+
+    def f(self, s: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+        v = s[:, 1] + self.dt * torch.clamp(u[:, 0], -1.0, 1.0)
+        return torch.stack([s[:, 0] + self.dt * v, v], dim=-1)
+
+    def plant(self, s: torch.Tensor, u: torch.Tensor, gen: torch.Generator) -> torch.Tensor:  # type: ignore[override]
+        w = 0.05 * torch.randn(s.shape[0], 1, generator=gen, dtype=torch.float64)
+        return self.f(s, torch.clamp(u + 0.5, -1.0, 1.0)) + w @ self.noise_matrix.T
+
+    def observe(self, s: torch.Tensor) -> torch.Tensor:
+        return s
+
+    def cost(self, s_next: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+        return (s_next**2).sum(-1)
+
+    def sample_initial(self, n: int, generator: torch.Generator) -> torch.Tensor:
+        return torch.randn(n, 2, generator=generator, dtype=torch.float64)
+
+
+def _saturation_estimate(seed: int, mask: bool) -> tuple[float, float]:
+    task = BiasedActuator()
+    if not mask:
+        task.action_limit = None
+    gen = torch.Generator().manual_seed(seed)
+    s = task.sample_initial(2000, gen)
+    u = 3.0 * torch.rand(2000, 1, generator=gen, dtype=torch.float64) - 1.5  # |u + 0.5| > 1 on a third
+    s_next = task.plant(s, u, gen)
+    clipped = float(((u + 0.5).abs() > 1.0).double().mean())
+    xi = task.residuals(s, u, s_next)
+    xi = xi[torch.isfinite(xi).all(dim=-1)]
+    ibe = KnownCovarianceIBE(task.prior_mean, task.prior_cov, task.true_cov).update(xi.numpy())
+    return float(ibe.mean[0]), clipped
+
+
+def test_ibe_within_two_percent_when_a_third_saturates() -> None:
+    for seed in range(10):
+        est, clipped = _saturation_estimate(seed, mask=True)
+        assert 0.30 < clipped < 0.37
+        assert abs(est - 0.5) <= 0.02 * 0.5, (seed, est)
+    # without the declared limit the clipped transitions pull the estimate far off (the test has power)
+    est, _ = _saturation_estimate(0, mask=False)
+    assert abs(est - 0.5) > 0.1 * 0.5
+
+
+def test_pendulum_bias_before_the_clips_is_masked() -> None:
+    """Pendulum-v1 with an actuator bias entering before its torque and speed clips: the declared limit
+    and margin leave out exactly the transitions where the residual is not the bias."""
+    rng = np.random.default_rng(0)
+    for margin in (0.0, 0.65):
+        task = PendulumV1Task()
+        task.saturation_margin = margin
+        plant = GymnasiumPlant(DisturbedEnv(gym.make("Pendulum-v1"), mean=0.5, before_clip=True))
+        x, xi = torch.as_tensor(plant.reset(seed=0))[None], []
+        for i in range(600):
+            u = torch.as_tensor(rng.uniform(-2.0, 2.0, (1, 1)))
+            x_next = torch.as_tensor(plant.step(u[0].numpy()))[None]
+            xi.append(float(task.residuals(x, u, x_next)[0, 0]))
+            x = torch.as_tensor(plant.reset(seed=i + 1))[None] if plant.last_truncated else x_next
+        xi = np.array(xi)
+        kept = xi[np.isfinite(xi)]
+        if margin == 0:  # only |u| > 2 dropped: the torque clip of u + 0.5 and the speed clip bias the rest
+            assert np.abs(kept - 0.5).max() > 0.1
+        else:
+            assert 0.2 < 1 - kept.size / xi.size < 0.6
+            np.testing.assert_allclose(kept, 0.5, atol=1e-5)
+
+
+# ------------------------------------------------------------------------------------------ plant checks
+class Flaky:
+    """A plant that misbehaves at step ``at`` (raises, NaN or a wrong shape)."""
+
+    def __init__(self, inner: object, at: int, how: str) -> None:
+        self.inner, self.at, self.how, self.n = inner, at, how, 0
+
+    def __repr__(self) -> str:
+        return "Flaky()"
+
+    def reset(self, seed: int | None = None) -> np.ndarray:
+        return self.inner.reset(seed)
+
+    def step(self, u: np.ndarray) -> np.ndarray:
+        x = self.inner.step(u)
+        self.n += 1
+        if self.n - 1 == self.at:
+            if self.how == "raise":
+                raise OSError("link down")
+            return np.full_like(x, np.nan) if self.how == "nan" else x[:1]
+        return x
+
+
+@pytest.mark.parametrize("how,problem", [("raise", "raised OSError: link down"),
+                                         ("nan", r"returned a non-finite state \[nan, nan\]"),
+                                         ("shape", r"returned a state of shape \(1,\), expected \(2,\)")])
+def test_plant_failures_name_plant_and_step(how: str, problem: str) -> None:
+    plant = CheckedPlant(Flaky(SimulatedPlant(PendulumV1Task()), 3, how), 2)
+    plant.reset(0)
+    for _ in range(3):
+        plant.step(np.zeros(1))
+    with pytest.raises(PlantError, match=rf"plant Flaky \(Flaky\(\)\) at step 3 \(step\): {problem}"):
+        plant.step(np.zeros(1))
+
+
+def test_gymnasium_plant_needs_box_spaces() -> None:
+    with pytest.raises(ValueError, match="env: action_space must be a gymnasium.spaces.Box, got Discrete"):
+        GymnasiumPlant(gym.make("CartPole-v1"))
+
+
+def _config(**sampler: object) -> TrainConfig:
+    return TrainConfig(method="mixed", task="linear", seed=0,
+                       algorithm=dict(iterations=12, batch_size=16, hidden_sizes=(8,)),
+                       sampler=dict(name="model_rollouts", true_steps=2, true_every=1, **sampler),
+                       run=dict(eval_every=6, eval_seeds=2, checkpoint_every=4))
+
+
+def test_plant_failure_stops_the_run_and_resume_continues(tmp_path) -> None:
+    run = RunDirectory(tmp_path / "run")
+    env = DisturbedEnv(gym.make("Pendulum-v1"), mean=0.5)
+    task = attach_plant(PendulumV1Task(), Flaky(GymnasiumPlant(env), 418, "nan"))
+    # plant steps: 2 per iteration, 400 of the evaluation at iteration 6: step 418 is iteration 10's
+    with pytest.raises(PlantError, match=r"plant Flaky \(Flaky\(\)\) at step 418 \(step\): returned a non-finite"):
+        train(AGPI(task, _config()), run, progress=False)
+    assert load_checkpoint(run.checkpoint_path)["trainer"]["k"] == 8  # the last checkpoint is intact
+    task = attach_plant(PendulumV1Task(), GymnasiumPlant(env))  # the plant repaired
+    results = train(AGPI(task, _config()), run, resume=True, progress=False)
+    assert results["iterations"] == 12
+    saved = json.loads(run.results_path.read_text())
+    # training: 8 iterations in the checkpoint, 4 after it; evaluation: one 200-step episode per seed at
+    # iterations 6 (counted in the checkpoint) and 12
+    assert saved["plant_transitions"]["training"] == 24
+    assert saved["plant_transitions"]["evaluation"] == 2 * 2 * 200
+    assert saved["plant_transitions"]["plant"] == "GymnasiumPlant(Pendulum-v1)"
+    assert abs(saved["final_ibe_mean"][0] - 0.5) < 0.05
+
+
+def test_a_run_without_evaluation() -> None:
+    task = attach_plant(PendulumV1Task(), GymnasiumPlant(gym.make("Pendulum-v1")), evaluation="none")
+    cfg = TrainConfig(method="mixed", task="linear", seed=0,
+                      algorithm=dict(iterations=4, batch_size=8, hidden_sizes=(8,)),
+                      sampler=dict(name="model_rollouts", true_steps=3, true_every=2), run=dict(eval_every=2))
+    results = train(AGPI(task, cfg), progress=False)
+    assert results["final"] == {} and not any(k.startswith("eval/") for k in results["metrics"][-1])
+    assert results["plant_transitions"]["training"] == 6 and results["plant_transitions"]["evaluation"] == 0
+
+
+def test_evaluation_on_the_plant_is_sequential_and_counted() -> None:
+    env = DisturbedEnv(gym.make("Pendulum-v1"), mean=0.2)
+    task = attach_plant(PendulumV1Task(), GymnasiumPlant(env))
+    policy = torch.nn.Linear(3, 1)
+    a = evaluate_on_plant(task, policy, [0, 1], horizon=30)
+    assert task.evaluation_transitions == 60
+    assert a == evaluate_on_plant(task, policy, [0, 1], horizon=30)  # fixed episode seeds
+    assert a["episode_length"] == 30 and a["terminated_fraction"] == 0.0
+    assert math.isfinite(a["plant_return"]) and a["plant_return"] < 0 < a["cost"]
+    assert attach_plant(task, task.plant, evaluation="none").evaluate(policy, [0]) == {}
+    assert task.evaluation_transitions == 120
+    with pytest.raises(ValueError, match="sampler.name: a task with a plant needs a model-rollout sampler"):
+        AGPI(task, TrainConfig(method="mixed", task="linear", seed=0, sampler=dict(name="true_copies")))
+    with pytest.raises(ValueError, match="config: method 'ddpg' steps batches of simulated true copies"):
+        DDPG(task, TrainConfig(method="ddpg", task="linear", seed=0))
+    bare = PendulumV1Task()
+    bare.plant = GymnasiumPlant(env)
+    with pytest.raises(ValueError, match="task.plant: expected the list attach_plant makes, got GymnasiumPlant"):
+        AGPI(bare, TrainConfig(method="mixed", task="linear", seed=0, sampler=dict(name="model_rollouts")))
