@@ -143,8 +143,8 @@ def test_reduced_study_end_to_end(tmp_path: Path) -> None:
         assert res["final_return"] == rows[-1]["return"] and math.isfinite(res["final_return"])
         if run["kind"] == "sb3":  # counted, not estimated (SAC's train_freq 32 finishes its last rollout)
             assert res["true_transitions"] >= run["reduced"]["n_timesteps"]
-        elif run["method"] == "mixed":  # the plant's training transitions: iterations * 20 / 10
-            assert res["true_transitions"] == run["reduced"]["iterations"] * 2
+        elif run["method"] == "mixed":  # the plant's: 20 steps at every 10th iteration from the first
+            assert res["true_transitions"] == math.ceil(run["reduced"]["iterations"] / 10) * 20
         else:
             assert res["true_transitions"] == 0
     # the same policy, the same episode seeds, the same returns: the initial policies of seed 0
