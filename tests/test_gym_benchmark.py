@@ -143,6 +143,14 @@ def test_reduced_study_end_to_end(tmp_path: Path) -> None:
         assert res["final_return"] == rows[-1]["return"] and math.isfinite(res["final_return"])
         if run["kind"] == "sb3":  # counted, not estimated (SAC's train_freq 32 finishes its last rollout)
             assert res["true_transitions"] >= run["reduced"]["n_timesteps"]
+            built, published = res["hyperparameters"], run["hyperparams"]
+            for key in ("learning_rate", "gamma", "batch_size", "tau", "ent_coef", "use_sde"):
+                if key in published:
+                    assert built[key] == published[key], (run["id"], key)
+            if "net_arch" in published.get("policy_kwargs", {}):
+                arch = built["net_arch"]
+                arch = arch if isinstance(arch, list) else arch["pi"]
+                assert arch == published["policy_kwargs"]["net_arch"], run["id"]
         elif run["method"] == "mixed":  # the plant's: 20 steps at every 10th iteration from the first
             assert res["true_transitions"] == math.ceil(run["reduced"]["iterations"] / 10) * 20
         else:

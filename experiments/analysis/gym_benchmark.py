@@ -356,7 +356,7 @@ def run_sb3(run: dict[str, Any], progress: bool = False) -> dict[str, Any]:
     from stable_baselines3.common.monitor import Monitor
     from stable_baselines3.common.noise import NormalActionNoise, OrnsteinUhlenbeckActionNoise
 
-    from validation.peers import TransitionCounter
+    from validation.peers import TransitionCounter, _hyperparameters
 
     hp = deepcopy(run["hyperparams"])
     total = int(hp.pop("n_timesteps"))
@@ -366,12 +366,12 @@ def run_sb3(run: dict[str, Any], progress: bool = False) -> dict[str, Any]:
         hp["buffer_size"] = run["reduced"]["buffer_size"]
     counter = TransitionCounter(make_env(run["env"], run["disturbance"]))
     env = Monitor(counter)
-    n_actions = env.action_space.shape[0]
+    zeros = np.zeros(env.action_space.shape[0])
     noise_type, noise_std = hp.pop("noise_type", None), hp.pop("noise_std", None)
-    if noise_type == "normal":
-        hp["action_noise"] = NormalActionNoise(mean=np.zeros(n_actions), sigma=noise_std * np.ones(n_actions))
+    if noise_type == "normal":  # as rl_zoo3's ExperimentManager builds it
+        hp["action_noise"] = NormalActionNoise(mean=zeros, sigma=noise_std * np.ones_like(zeros))
     elif noise_type == "ornstein-uhlenbeck":
-        hp["action_noise"] = OrnsteinUhlenbeckActionNoise(mean=np.zeros(n_actions), sigma=noise_std * np.ones(n_actions))
+        hp["action_noise"] = OrnsteinUhlenbeckActionNoise(mean=zeros, sigma=noise_std * np.ones_like(zeros))
     elif noise_type is not None:
         raise ValueError(f"hyperparams.noise_type: unknown {noise_type!r}")
     if "train_freq" in hp and isinstance(hp["train_freq"], list):
@@ -429,7 +429,8 @@ def run_sb3(run: dict[str, Any], progress: bool = False) -> dict[str, Any]:
     if rows[-1]["true_transitions"] != counter.count:
         evaluate()
     return {"rows": rows, "true_transitions": int(counter.count), "train_seconds": float(train_seconds),
-            "steps": int(counter.count), "episodes": len(env.get_episode_rewards())}
+            "steps": int(counter.count), "episodes": len(env.get_episode_rewards()),
+            "hyperparameters": _hyperparameters(model)}  # every constructor argument as the built model holds it
 
 
 def run_mixedrl(run: dict[str, Any], progress: bool = False) -> dict[str, Any]:
@@ -602,7 +603,8 @@ def timing_table(results: list[dict[str, Any]]) -> list[dict[str, Any]]:
     groups: dict[tuple[str, str], list[float]] = {}
     for r in results:
         if r["steps"] > 0:
-            groups.setdefault((r["config"]["env"], r["config"]["method"]), []).append(1000 * r["train_seconds"] / r["steps"])
+            key = (r["config"]["env"], r["config"]["method"])
+            groups.setdefault(key, []).append(1000 * r["train_seconds"] / r["steps"])
     return [{"env": e, "method": m, "unit": "iterations" if m in ("mixed", "model", "oracle") else "env steps",
              "seconds_per_1k": float(np.median(v)), "runs": len(v)} for (e, m), v in groups.items()]
 
