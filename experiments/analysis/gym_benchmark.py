@@ -536,10 +536,14 @@ def analyse(spec: dict[str, Any], results: list[dict[str, Any]], results_dir: Pa
     reps = int(spec["reduced"]["bootstrap_reps"]) if reduced else int(stats_spec.get("reps", 50_000))
     conf, bseed = float(stats_spec.get("confidence", 0.95)), int(stats_spec.get("bootstrap_seed", 0))
     ref = stats_spec.get("improvement_reference", "mixed")
-    cells: dict[tuple[str, str], dict[str, list[dict[str, Any]]]] = {}
+    cells: dict[tuple[str, str], dict[str, list[dict[str, Any]]]] = {  # the spec's order of envs and methods
+        (env_id, d["name"]): {m: [] for m in spec["methods"]}
+        for env_id, env_spec in spec["envs"].items() for d in env_spec["disturbances"]}
     for r in results:
         c = r["config"]
         cells.setdefault((c["env"], c["disturbance"]["name"]), {}).setdefault(c["method"], []).append(r)
+    cells = {k: {m: rs for m, rs in v.items() if rs} for k, v in cells.items()}
+    cells = {k: v for k, v in cells.items() if v}
     table: dict[str, Any] = {"study": spec["name"], "reduced": reduced, "confidence": conf, "reps": reps,
                              "cells": []}
     lines = [f"# {spec['name']}{' (reduced: CI budgets, not results)' if reduced else ''}", "",
@@ -610,7 +614,8 @@ def timing_table(results: list[dict[str, Any]]) -> list[dict[str, Any]]:
 
 
 def figure(cells: dict[tuple[str, str], dict[str, list[dict[str, Any]]]], path: Path) -> None:
-    """Return against true transitions, one thin line per seed (references: one dashed line per seed)."""
+    """Return against true transitions, one thin line per seed (references: one dashed line per seed; the
+    zoo's published mean +- std on the undisturbed env as a star at its budget)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -618,7 +623,8 @@ def figure(cells: dict[tuple[str, str], dict[str, list[dict[str, Any]]]], path: 
 
     fig, axes = plt.subplots(1, len(cells), figsize=(6.5 * len(cells), 4.5), squeeze=False)
     for ax, ((env_id, dname), methods) in zip(axes[0], cells.items()):
-        for m, rs in methods.items():
+        right = 1.0
+        for k, (m, rs) in enumerate(methods.items()):
             colour = COLOURS.get(m, None)
             for i, r in enumerate(sorted(rs, key=lambda r: r["config"]["seed"])):
                 label = m if i == 0 else None
@@ -630,12 +636,20 @@ def figure(cells: dict[tuple[str, str], dict[str, list[dict[str, Any]]]], path: 
                 x = [row["true_transitions"] for row in r["rows"]]
                 y = [row["return"] for row in r["rows"]]
                 ax.plot(x, y, color=colour, lw=0.8, alpha=0.6, marker=".", ms=3, label=label)
+            zoo = rs[0]["config"].get("zoo")
+            if zoo:  # the zoo's published number, on the undisturbed env
+                x_zoo = zoo["timesteps"] * (1 + 0.08 * k)  # side by side where the budgets coincide
+                ax.errorbar(x_zoo, zoo["mean"], yerr=zoo.get("std", 0.0), color=colour, marker="*",
+                            ms=9, capsize=3, ls="none", label=f"{m}: zoo, undisturbed env")
+                right = max(right, x_zoo)
+            right = max([right] + [row["true_transitions"] for r in rs for row in r["rows"]])
         ax.set_xscale("symlog", linthresh=100)
+        ax.set_xlim(0, 1.5 * right)
         ax.set_xlabel("true transitions (training)")
         ax.set_ylabel("return (env's own, mean over the episode seeds)")
         ax.set_title(f"{env_id}, disturbance {dname}")
         ax.grid(alpha=0.3)
-        ax.legend(fontsize=7, loc="lower right")
+        ax.legend(fontsize=7, loc="best")
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)
