@@ -3,6 +3,7 @@ public state replaced, resource limits of the configuration, complex actions of 
 
 from __future__ import annotations
 
+import copy
 import math
 from typing import Any
 
@@ -17,6 +18,7 @@ from mixedrl.config import TrainConfig
 from mixedrl.runs import RunDirectory, train
 from mixedrl.tasks import check_task, task_from_config
 from test_custom_task import Cruise as CruiseTask
+from test_ibe import Linear
 
 
 class Cruise(CruiseTask):
@@ -108,3 +110,61 @@ def test_the_probe_reaches_states_beyond_the_first_batch() -> None:
     check_task(task)  # its probe (zero and upper-bound actions) does not reach them
     with pytest.raises(ValueError, match=r"^Cruise.cost: returned NaN or inf values on states of sample_initial"):
         check_task_types(task)
+
+
+# ----------------------------------------------------------------------------------------------------
+# item 7: the IBE's public state is read-only
+# ----------------------------------------------------------------------------------------------------
+def _estimators() -> list[Any]:
+    from mixedrl.ibe import KnownCovarianceIBE, LinearFeatureIBE, StateDependentIBE, UnknownCovarianceIBE
+
+    def features(x: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+        return torch.cat([torch.ones_like(x[:, :1]), x], dim=1)
+
+    xi = np.array([[0.1, -0.2], [0.3, 0.0], [-0.1, 0.4]])
+    x, u = np.arange(6.0).reshape(3, 2) / 6, np.zeros((3, 1))
+    return [KnownCovarianceIBE(np.zeros(2), np.eye(2), 0.1 * np.eye(2)).update(xi),
+            UnknownCovarianceIBE(np.zeros(2), np.eye(2)).update(xi),
+            UnknownCovarianceIBE(np.zeros(2), np.eye(2), recursion="paper").update(xi),
+            StateDependentIBE(Linear(2, 1, 2), 0.1 * np.eye(2), 2, 1, max_iter=5).update(x, u, xi),
+            LinearFeatureIBE(features, np.zeros((3, 2)), 0.1 * np.eye(2), 2, 1).update(x, u, xi)]
+
+
+_PUBLIC = ("mean", "prior_mean", "prior_cov", "noise_cov", "count", "cov", "mean_cov", "total", "data_mean",
+           "scatter", "psi", "recursion", "max_iter", "iterations", "converged", "weights", "gram", "cross",
+           "prior_weights", "prior_std", "state_dim", "action_dim", "phi", "features")
+
+
+@pytest.mark.parametrize("index", range(5))
+def test_the_ibe_public_state_cannot_be_replaced(index: int) -> None:
+    est = _estimators()[index]
+    before = {k: v.copy() if isinstance(v, np.ndarray) else v for k, v in est.state_dict().items()}
+    probes = {"mean": [np.nan, 0.0], "prior_cov": -np.eye(2), "count": -3, "cov": np.full((2, 2), np.nan)}
+    fields = [name for name in _PUBLIC if hasattr(est, name)]
+    assert {"count", "cov"} <= set(fields)
+    for name in fields:  # a computed property (Case 1's cov, Case 2's mean_cov) has Python's own message
+        computed = isinstance(getattr(type(est), name), property)
+        message = f"property '{name}'" if computed else rf"^{name}: read-only; {type(est).__name__}'s state changes only"
+        with pytest.raises(AttributeError, match=message):
+            setattr(est, name, probes.get(name, getattr(est, name)))
+        with pytest.raises(AttributeError, match=message):
+            delattr(est, name)
+    after = est.state_dict()
+    assert before.keys() == after.keys()
+    for key, value in before.items():
+        if isinstance(value, np.ndarray):
+            np.testing.assert_array_equal(after[key], value)
+        elif not isinstance(value, list):
+            assert after[key] == value
+    with pytest.raises(ValueError, match="read-only"):
+        est.cov[0, 0] = 5.0  # writing into the arrays stays refused
+
+
+def test_read_only_fields_keep_the_numbers_and_checkpoint_loading() -> None:
+    for est in _estimators():
+        twin = type(est).__new__(type(est))
+        twin.__dict__.update(copy.deepcopy(est.__dict__))
+        twin.load_state_dict(est.state_dict())
+        for name in ("mean", "cov", "weights", "count"):
+            if hasattr(est, name):
+                np.testing.assert_array_equal(getattr(twin, name), getattr(est, name))
