@@ -18,7 +18,6 @@ from mixedrl.gaussian import CHOLESKY_PIVOT_FLOOR, solve_psd
 from mixedrl.ibe.common import (
     GaussianNoiseEstimate,
     PosteriorGuard,
-    ReadOnlyField,
     check_posterior,
     check_state,
     real_batch,
@@ -176,8 +175,7 @@ class KnownCovarianceIBE(GaussianNoiseEstimate):
 
     _KIND = "KnownCovarianceIBE"
 
-    mean_cov = ReadOnlyField()
-    total = ReadOnlyField()
+    _FIELDS = ("mean_cov", "total")
 
     def __init__(self, prior_mean: Any, prior_cov: Any, noise_cov: Any) -> None:
         prior_mean = real_vector(prior_mean, "prior_mean")

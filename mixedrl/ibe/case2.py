@@ -19,7 +19,6 @@ from mixedrl.gaussian import pinv_psd, psd_solver, solve_psd
 from mixedrl.ibe.common import (
     GaussianNoiseEstimate,
     PosteriorGuard,
-    ReadOnlyField,
     check_posterior,
     check_state,
     real_batch,
@@ -294,16 +293,8 @@ class UnknownCovarianceIBE(GaussianNoiseEstimate):
     _KIND = "UnknownCovarianceIBE"
     _RECURSIONS = ("exact", "paper")
 
-    cov = ReadOnlyField()
-    _mean_cov = ReadOnlyField()
-    recursion = ReadOnlyField()
-    max_iter = ReadOnlyField()
-    iterations = ReadOnlyField()
-    converged = ReadOnlyField()
-    data_mean = ReadOnlyField()
-    scatter = ReadOnlyField()
-    psi = ReadOnlyField()
-    total = ReadOnlyField()
+    _FIELDS = ("cov", "_mean_cov", "recursion", "max_iter", "iterations", "converged", "data_mean", "scatter", "psi",
+               "total")
 
     def __init__(self, prior_mean: Any, prior_cov: Any, recursion: str = "exact", max_iter: int = FIXED_POINT_MAX_ITER) -> None:
         prior_mean = real_vector(prior_mean, "prior_mean")

@@ -21,7 +21,6 @@ from mixedrl.expectation import support
 from mixedrl.gaussian import sample_gaussian
 from mixedrl.ibe.common import (
     PosteriorGuard,
-    ReadOnlyField,
     ReadOnlyFields,
     check_dimension,
     check_posterior,
@@ -86,11 +85,7 @@ class StateDependentIBE(ReadOnlyFields):
     #: The mean is ``mean_at(x, u)``: Algorithm 2 plans with per-state nodes.
     state_dependent = True
 
-    phi = ReadOnlyField()
-    state_dim = ReadOnlyField()
-    action_dim = ReadOnlyField()
-    prior_std = ReadOnlyField()
-    max_iter = ReadOnlyField()
+    _FIELDS = ("phi", "state_dim", "action_dim", "prior_std", "max_iter")
 
     def __init__(
         self,
@@ -377,14 +372,7 @@ class LinearFeatureIBE(ReadOnlyFields):
     #: The mean is ``mean_at(x, u)``: Algorithm 2 plans with per-state nodes.
     state_dependent = True
 
-    features = ReadOnlyField()
-    state_dim = ReadOnlyField()
-    action_dim = ReadOnlyField()
-    prior_std = ReadOnlyField()
-    prior_weights = ReadOnlyField()
-    weights = ReadOnlyField()
-    gram = ReadOnlyField()
-    cross = ReadOnlyField()
+    _FIELDS = ("features", "state_dim", "action_dim", "prior_std", "prior_weights", "weights", "gram", "cross")
 
     def __init__(self, features: Callable[[torch.Tensor, torch.Tensor], torch.Tensor], prior_weights: Any,
                  noise_cov: Any, state_dim: int, action_dim: int, prior_std: float = 1.0) -> None:

@@ -315,13 +315,26 @@ class ReadOnlyField:
 
 
 class ReadOnlyFields:
-    """Base class of the estimators: read-only public fields (see :class:`ReadOnlyField`)."""
+    """Base class of the estimators: read-only public fields (see :class:`ReadOnlyField`).
+
+    ``mean``, ``prior_mean``, ``prior_cov``, ``noise_cov`` and ``count`` are fields of every estimator
+    that has them; a subclass names its own in ``_FIELDS`` (a :class:`ReadOnlyField` is made for each).
+    """
+
+    _FIELDS: tuple[str, ...] = ()
 
     mean = ReadOnlyField()
     prior_mean = ReadOnlyField()
     prior_cov = ReadOnlyField()
     noise_cov = ReadOnlyField()
     count = ReadOnlyField()
+
+    def __init_subclass__(cls, **kwargs: Any) -> None:
+        super().__init_subclass__(**kwargs)
+        for name in cls.__dict__.get("_FIELDS", ()):
+            field = ReadOnlyField()
+            field.__set_name__(cls, name)
+            setattr(cls, name, field)
 
     def _commit(self, **fields: Any) -> None:
         """Set the read-only fields ``fields`` (validated by the caller); arrays are stored as read-only views."""
