@@ -45,6 +45,7 @@ import copy
 import dataclasses
 import json
 import math
+import os
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, ClassVar, Union
@@ -586,6 +587,9 @@ class RunConfig:
     def __post_init__(self) -> None:
         for f in dataclasses.fields(self):
             setattr(self, f.name, check_positive_int(getattr(self, f.name), f"run.{f.name}"))
+        cores = os.cpu_count()
+        if cores is not None and self.num_threads > cores:
+            raise ValueError(f"run.num_threads: {self.num_threads} threads, more than this machine's {cores} cores")
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -933,6 +937,53 @@ def apply_overrides(data: dict[str, Any], overrides: dict[str, Any]) -> dict[str
 _SECTION_CLASSES: dict[str, type] = {"algorithm": AlgorithmConfig, "ddpg": DDPGConfig, "run": RunConfig}
 
 
+def machine_memory() -> int | None:
+    """The machine's physical memory in bytes (``None`` where the system does not report it)."""
+    try:
+        return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    except (AttributeError, OSError, ValueError):
+        return None
+
+
+def memory_lower_bounds(config: TrainConfig) -> dict[str, int]:
+    """Lower bounds, in bytes, of the memory a run of ``config`` allocates, by the key that sets it.
+
+    Every bound takes the smallest task (one observation, one action: the task's own sizes only add), so
+    a configuration above the machine's memory cannot run on it:
+
+    * ``algorithm.hidden_sizes``: the actor and the critic, each at least ``P = sum_i (h_{i-1} + 1) h_i
+      + h_last + 1`` parameters (``h_0 = 1``), float32, each with its gradient and the two Adam moments
+      (16 bytes a parameter);
+    * ``algorithm.batch_size``: the batch's states (float64) and one network's hidden activations on them
+      (float32): ``batch_size (8 + 4 sum(hidden_sizes))`` bytes;
+    * ``ddpg.buffer_size`` (DDPG only): the replay buffer's observation, next observation, action, cost
+      and terminal flag, float32: 20 bytes a transition.
+    """
+    alg = config.algorithm
+    widths = (1, *alg.hidden_sizes, 1)
+    params = sum((a + 1) * b for a, b in zip(widths[:-1], widths[1:]))
+    out = {"algorithm.hidden_sizes": 2 * 16 * params,
+           "algorithm.batch_size": alg.batch_size * (8 + 4 * sum(alg.hidden_sizes))}
+    if config.method == "ddpg":
+        out["ddpg.buffer_size"] = 20 * config.ddpg.buffer_size
+    return out
+
+
+def _check_memory(config: TrainConfig) -> None:
+    """Refuse a configuration whose memory lower bounds (:func:`memory_lower_bounds`) exceed the machine's
+    memory, naming the first key whose own bound does, else the key with the largest bound."""
+    total = machine_memory()
+    if total is None:
+        return
+    need = memory_lower_bounds(config)
+    if sum(need.values()) > total:
+        key = next((k for k, v in need.items() if v > total), max(need, key=need.get))
+        value = {k: getattr(getattr(config, k.split(".")[0]), k.split(".")[1]) for k in need}[key]
+        raise ValueError(f"{key}: {value!r} needs at least {need[key] / 2**30:.3g} GiB (all of the run at least "
+                         f"{sum(need.values()) / 2**30:.3g} GiB), more than this machine's {total / 2**30:.3g} GiB "
+                         f"of memory")
+
+
 @dataclass(init=False)
 class TrainConfig:
     """Configuration of one training run (Algorithm 2 or DDPG), in sections.
@@ -992,6 +1043,7 @@ class TrainConfig:
         if self.method == "ddpg" and self.algorithm.critic_target != 0.0:
             raise ValueError(f"algorithm.critic_target: {self.algorithm.critic_target!r} is PEV's target critic "
                              f"(Algorithm 2); method 'ddpg' has its own target networks (ddpg.tau; use 0)")
+        _check_memory(self)
 
     @classmethod
     def for_task(cls, task: Any = "dlc", **fields: Any) -> "TrainConfig":

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import copy
 import math
+import re
 from typing import Any
 
 import numpy as np
@@ -168,3 +169,47 @@ def test_read_only_fields_keep_the_numbers_and_checkpoint_loading() -> None:
         for name in ("mean", "cov", "weights", "count"):
             if hasattr(est, name):
                 np.testing.assert_array_equal(getattr(twin, name), getattr(est, name))
+
+
+# ----------------------------------------------------------------------------------------------------
+# item 8: resource limits, validated with the configuration
+# ----------------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("key, value, message", [
+    ("algorithm.batch_size", 10**12, r"^mixedrl train: error: algorithm\.batch_size: 1000000000000 needs at least "),
+    ("algorithm.hidden_sizes", [10**9], r"^mixedrl train: error: algorithm\.hidden_sizes: \(1000000000,\) needs at least "),
+    ("run.num_threads", 100000, r"^mixedrl train: error: run\.num_threads: 100000 threads, more than this machine's "),
+])
+def test_limits_are_one_line_errors_before_anything_is_created(tmp_path: Any, capsys: pytest.CaptureFixture[str],
+                                                               key: str, value: Any, message: str) -> None:
+    from mixedrl.cli import main
+
+    out = tmp_path / "run"
+    assert main(["train", "--method", "mixed", "--out", str(out), "--no-progress", "--set", f"{key}={value}"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert re.match(message, err) and "\n" not in err
+    assert not out.exists()
+
+
+def test_the_memory_bound_follows_the_machine(monkeypatch: pytest.MonkeyPatch) -> None:
+    import mixedrl.config as config
+
+    cfg = TrainConfig(method="ddpg", task="linear", algorithm=dict(batch_size=1000, hidden_sizes=(100, 100)),
+                      ddpg=dict(buffer_size=10**6))
+    need = config.memory_lower_bounds(cfg)
+    # actor and critic: (1 + 1) 100 + 101 * 100 + 101 parameters each, 16 bytes a parameter
+    assert need == {"algorithm.hidden_sizes": 2 * 16 * 10401, "algorithm.batch_size": 1000 * (8 + 800),
+                    "ddpg.buffer_size": 20 * 10**6}
+    assert "ddpg.buffer_size" not in config.memory_lower_bounds(cfg.replace(method="mixed"))
+    monkeypatch.setattr(config, "machine_memory", lambda: sum(need.values()))
+    cfg.validate()  # exactly enough
+    monkeypatch.setattr(config, "machine_memory", lambda: sum(need.values()) - 1)
+    with pytest.raises(ValueError, match=r"^ddpg\.buffer_size: 1000000 needs at least 0\.0186 GiB"):
+        cfg.validate()
+    monkeypatch.setattr(config, "machine_memory", lambda: None)  # a system that does not report it
+    cfg.replace(**{"algorithm.batch_size": 10**12}).validate()
+
+
+def test_as_many_threads_as_cores_is_accepted() -> None:
+    import os
+
+    assert TrainConfig(run=dict(num_threads=os.cpu_count())).run.num_threads == os.cpu_count()
