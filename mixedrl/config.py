@@ -71,6 +71,8 @@ __all__ = [
     "PRESETS",
     "DLC_EXPERIMENT",
     "FLAT_FORM_RELEASE",
+    "memory_lower_bounds",
+    "machine_memory",
     "register_sampler",
     "register_preset",
     "sampler_config",
