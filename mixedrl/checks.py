@@ -227,7 +227,10 @@ def check_task_types(task: Any) -> None:
 
     The training code moves ``noise_matrix``, ``action_bound`` and ``obs_scale`` between dtypes with
     torch methods and reads the prior and true moments as arrays, so a numpy ``noise_matrix`` that has
-    the right shape fails only deep inside an iteration. This check refuses it up front.
+    the right shape fails only deep inside an iteration. This check refuses it up front, and probes
+    ``observe``, ``f`` and ``cost`` beyond a single batch: :data:`PROBE_BATCHES` batches of
+    :data:`PROBE_BATCH_SIZE` start states, each rolled :data:`PROBE_STEPS` steps forward under random
+    actions within the bounds (own generators: no random stream of a trainer is touched).
 
     Parameters
     ----------
@@ -240,8 +243,9 @@ def check_task_types(task: Any) -> None:
     ValueError
         ``noise_matrix``, ``action_bound`` or ``obs_scale`` not a real floating-point ``torch.Tensor`` of
         its shape; ``prior_mean``, ``prior_cov``, ``true_mean`` or ``true_cov`` not a real array (numpy
-        or a list of numbers, not a tensor); ``value_scale`` not a positive finite number. The message
-        starts with ``<TaskClass>.<attribute>``.
+        or a list of numbers, not a tensor); ``value_scale`` not a positive finite number; ``observe``,
+        ``f`` or ``cost`` returning NaN or inf on a probed state. The message starts with
+        ``<TaskClass>.<attribute or function>``.
     """
     name = type(task).__name__
     n, m, o, d = (check_positive_int(getattr(task, a, None), f"{name}.{a}")
