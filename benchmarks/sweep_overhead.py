@@ -44,8 +44,8 @@ from mixedrl.sweep import expand, parse_spec, run_point, run_sweep
 def spec_text(runs: int, iterations: int) -> str:
     """A spec of ``runs`` short DLC runs: mixed and model, seeds ``0 .. runs/2 - 1``."""
     seeds = list(range((runs + 1) // 2))
-    return (f'methods = ["mixed", "model"]\nseeds = {seeds}\n\n[base]\niterations = {iterations}\n'
-            f"eval_every = {iterations}\ncheckpoint_every = {iterations}\neval_seeds = 1\n")
+    return (f'methods = ["mixed", "model"]\nseeds = {seeds}\n\n[base]\n"algorithm.iterations" = {iterations}\n'
+            f'"run.eval_every" = {iterations}\n"run.checkpoint_every" = {iterations}\n"run.eval_seeds" = 1\n')
 
 
 def pool_job(job: tuple[dict[str, Any], str]) -> dict[str, Any]:

@@ -12,6 +12,8 @@ a clearly indefinite one is not).
 
 from __future__ import annotations
 
+import math
+from collections.abc import Mapping
 from typing import Any
 
 import numpy as np
@@ -30,6 +32,11 @@ __all__ = [
     "check_unknown_keys",
     "check_number",
     "check_seed_lists",
+    "check_task_types",
+    "NonFiniteTrainingError",
+    "MONITORED_PREFIXES",
+    "UNMONITORED_METRICS",
+    "check_finite_metrics",
 ]
 
 SYMMETRY_RTOL = 1e-10
@@ -213,3 +220,144 @@ def check_seed_lists(seeds: Any, n: int, name: str = "seeds") -> list[list[int]]
         if not is_list(entry) or not all(is_int(s) for s in entry):
             raise ValueError(f"{name}: entry {p} (policy {p}) must be a non-empty list of ints, got {entry!r:.80}")
     return [[int(s) for s in entry] for entry in seeds]
+
+
+def check_task_types(task: Any) -> None:
+    """Check the types of a task's array attributes and of its ``value_scale`` (what training relies on).
+
+    The training code moves ``noise_matrix``, ``action_bound`` and ``obs_scale`` between dtypes with
+    torch methods and reads the prior and true moments as arrays, so a numpy ``noise_matrix`` that has
+    the right shape fails only deep inside an iteration. This check refuses it up front, and probes
+    ``observe``, ``f`` and ``cost`` beyond a single batch: :data:`PROBE_BATCHES` batches of
+    :data:`PROBE_BATCH_SIZE` start states, each rolled :data:`PROBE_STEPS` steps forward under random
+    actions within the bounds (own generators: no random stream of a trainer is touched).
+
+    Parameters
+    ----------
+    task : Task
+        A task (:class:`mixedrl.tasks.Task`) whose sizes ``state_dim``, ``action_dim``, ``obs_dim`` and
+        ``noise_dim`` are positive integers.
+
+    Raises
+    ------
+    ValueError
+        ``noise_matrix``, ``action_bound`` or ``obs_scale`` not a real floating-point ``torch.Tensor`` of
+        its shape; ``prior_mean``, ``prior_cov``, ``true_mean`` or ``true_cov`` not a real array (numpy
+        or a list of numbers, not a tensor); ``value_scale`` not a positive finite number; ``observe``,
+        ``f`` or ``cost`` returning NaN or inf on a probed state. The message starts with
+        ``<TaskClass>.<attribute or function>``.
+    """
+    name = type(task).__name__
+    n, m, o, d = (check_positive_int(getattr(task, a, None), f"{name}.{a}")
+                  for a in ("state_dim", "action_dim", "obs_dim", "noise_dim"))
+    for attr, shape in (("noise_matrix", (n, d)), ("action_bound", (m,)), ("obs_scale", (o,))):
+        v = getattr(task, attr, None)
+        if not isinstance(v, torch.Tensor):
+            raise ValueError(f"{name}.{attr}: expected a torch.Tensor of shape {shape}, got {type(v).__name__}")
+        if tuple(v.shape) != shape:
+            raise ValueError(f"{name}.{attr}: expected shape {shape}, got shape {tuple(v.shape)}")
+        if not v.is_floating_point():
+            raise ValueError(f"{name}.{attr}: expected a floating-point dtype (float32 or float64), got {v.dtype}")
+    for attr in ("prior_mean", "prior_cov", "true_mean", "true_cov"):
+        v = getattr(task, attr, None)
+        if isinstance(v, torch.Tensor):
+            raise ValueError(f"{name}.{attr}: expected a numpy array, got a torch.Tensor (use .numpy())")
+        if np.asarray(v).dtype.kind not in "fiu":
+            raise ValueError(f"{name}.{attr}: expected real numbers, got dtype {np.asarray(v).dtype}")
+    _probe_states(task, name, n, m)
+    scale = getattr(task, "value_scale", 1.0)
+    if isinstance(scale, bool) or not isinstance(scale, (int, float, np.integer, np.floating)) \
+            or not math.isfinite(scale) or scale <= 0:
+        raise ValueError(f"{name}.value_scale: expected a positive finite number (the critic's output is "
+                         f"multiplied by it), got {scale!r}")
+
+
+#: :func:`check_task_types` probes ``f``, ``cost`` and ``observe`` on this many batches of states (each
+#: its own seed) ...
+PROBE_BATCHES = 4
+#: ... of this many states, each rolled this many steps forward through ``f`` under random actions.
+PROBE_BATCH_SIZE = 32
+PROBE_STEPS = 3
+
+
+def _probe_states(task: Any, name: str, n: int, m: int) -> None:
+    """Run ``f``, ``cost`` and ``observe`` on :data:`PROBE_BATCHES` batches from ``sample_initial`` (seeds
+    1, 2, ...), rolled :data:`PROBE_STEPS` steps forward under actions uniform within the bounds, in
+    float64 with own generators (no random stream of a trainer is touched); raise naming the function
+    and the probe when an output is not finite."""
+    bound = task.action_bound.detach().to(torch.float64)
+    with torch.no_grad():
+        for probe in range(1, PROBE_BATCHES + 1):
+            gen = torch.Generator().manual_seed(probe)
+            s = task.sample_initial(PROBE_BATCH_SIZE, gen)
+            if not isinstance(s, torch.Tensor) or tuple(s.shape) != (PROBE_BATCH_SIZE, n):
+                raise ValueError(f"{name}.sample_initial: expected a tensor of shape {(PROBE_BATCH_SIZE, n)}, "
+                                 f"returned {getattr(s, 'shape', type(s).__name__)}")
+            s = s.to(torch.float64)
+            for step in range(PROBE_STEPS):
+                u = (2.0 * torch.rand(PROBE_BATCH_SIZE, m, generator=gen, dtype=torch.float64) - 1.0) * bound
+                s_next = task.f(s, u)
+                where = f"on states of sample_initial(seed {probe}) after {step} random-action steps"
+                for fn, value in (("observe", task.observe(s)), ("f", s_next), ("cost", task.cost(s_next, u))):
+                    if isinstance(value, torch.Tensor) and not bool(torch.isfinite(value).all()):
+                        raise ValueError(f"{name}.{fn}: returned NaN or inf values {where}")
+                s = s_next
+
+
+class NonFiniteTrainingError(ValueError):
+    """Training produced a non-finite loss or evaluation (:func:`check_finite_metrics`).
+
+    Attributes
+    ----------
+    iteration : int or None
+        The iteration whose metrics row held it.
+    key : str
+        The first non-finite metric of the row (``"train/critic_loss"``, ``"eval/cost"`` ...).
+    value : float
+        Its value (NaN or +-inf).
+    """
+
+    def __init__(self, message: str, iteration: int | None, key: str, value: float) -> None:
+        super().__init__(message)
+        self.iteration, self.key, self.value = iteration, key, value
+
+
+#: Metrics whose name starts with one of these are checked by :func:`check_finite_metrics`: the
+#: training losses and value statistics (``train/``), the MVC's sides (``mvc/``) and the evaluation
+#: (``eval/``).
+MONITORED_PREFIXES = ("train/", "mvc/", "eval/")
+#: Monitored metrics that are NaN by design: DDPG's mean exploration cost of an iteration whose every
+#: transition was non-finite (DDPG skips such transitions, :meth:`mixedrl.algorithms.ddpg.DDPG.collect`).
+UNMONITORED_METRICS = frozenset({"train/env_cost"})
+
+
+def check_finite_metrics(row: Mapping[str, Any], where: str = "training") -> None:
+    """Raise if a metrics row of training holds a non-finite loss or evaluation result.
+
+    Reads only (the row and the run are unchanged). The caller raises before the row is recorded, so a
+    run directory keeps its last checkpoint, which was written from finite iterations.
+
+    Parameters
+    ----------
+    row : mapping
+        One iteration's metrics (``"iteration"`` and the ``train/``, ``mvc/``, ``eval/`` ... entries);
+        the entries under :data:`MONITORED_PREFIXES`, less :data:`UNMONITORED_METRICS`, are checked, in
+        the row's order (the order they were computed in).
+    where : str
+        What the message starts with (the run).
+
+    Raises
+    ------
+    NonFiniteTrainingError
+        ``"<where>: iteration <k>: <key> is nan (...)"``, naming the first non-finite entry, and the others.
+    """
+    bad = [(k, v) for k, v in row.items()
+           if k.startswith(MONITORED_PREFIXES) and k not in UNMONITORED_METRICS
+           and isinstance(v, (float, int, np.floating)) and not math.isfinite(v)]
+    if bad:
+        key, value = bad[0]
+        iteration = row.get("iteration")
+        others = f"; also non-finite: {', '.join(k for k, _ in bad[1:])}" if len(bad) > 1 else ""
+        raise NonFiniteTrainingError(
+            f"{where}: iteration {iteration}: {key} is {value} (the first non-finite quantity of the row{others}); "
+            f"training stopped, the run's last checkpoint is kept", iteration, key, float(value))

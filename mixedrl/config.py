@@ -34,9 +34,9 @@ sweep specifications::
     mixedrl train --method mixed --out runs/true --set sampler.name=\\"true_copies\\"
     mixedrl train --method mixed --out runs/mine --config experiment.json   # nested JSON, like config.json
 
-Old forms still load: the flat 45-field ``config.json`` and old flat keys (``iterations``,
-``model_course_starts``, ...) through :data:`LEGACY_KEYS` (:func:`migrate`); ``"task": "dlc"`` or
-``"linear"`` as a string and a top-level ``train_half_widths`` (moved to ``task.train_half_widths``).
+``"task": "dlc"`` (a task's name) stands for that task's defaults. The flat form of the first release
+(45 top-level fields: ``iterations``, ``model_course_starts``, ``ddpg_tau`` ...) is refused with an error
+naming the release that reads it (:data:`FLAT_FORM_RELEASE`).
 """
 
 from __future__ import annotations
@@ -45,6 +45,7 @@ import copy
 import dataclasses
 import json
 import math
+import os
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, ClassVar, Union
@@ -69,11 +70,12 @@ __all__ = [
     "SAMPLERS",
     "PRESETS",
     "DLC_EXPERIMENT",
-    "LEGACY_KEYS",
+    "FLAT_FORM_RELEASE",
+    "memory_lower_bounds",
+    "machine_memory",
     "register_sampler",
     "register_preset",
     "sampler_config",
-    "migrate",
     "TaskConfig",
     "DoubleLaneChangeTaskConfig",
     "LinearTaskConfig",
@@ -586,6 +588,9 @@ class RunConfig:
     def __post_init__(self) -> None:
         for f in dataclasses.fields(self):
             setattr(self, f.name, check_positive_int(getattr(self, f.name), f"run.{f.name}"))
+        cores = os.cpu_count()
+        if cores is not None and self.num_threads > cores:
+            raise ValueError(f"run.num_threads: {self.num_threads} threads, more than this machine's {cores} cores")
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -727,111 +732,23 @@ def __getattr__(name: str) -> Any:
 
 
 # ----------------------------------------------------------------------------------------------------
-# migration of the flat configuration (45 top-level fields)
+# the flat configuration form (45 top-level fields) of the first release
 # ----------------------------------------------------------------------------------------------------
-#: The flat keys of the old ``TrainConfig`` (45 top-level fields) and where they live now. Old
-#: ``config.json`` files, checkpoints, ``--set`` keys, :func:`apply_overrides` and sweep specs go through
-#: it. ``state_source`` is special: ``"true"`` -> ``sampler.name = "true_copies"``; ``"model"`` ->
-#: ``"dlc_course"`` on the double lane change, ``"model_rollouts"`` on another task (which then takes no
-#: ``course_*`` / ``kick_*`` option).
-LEGACY_KEYS: dict[str, str] = {
-    **{name: f"algorithm.{name}" for name in (
-        "iterations", "batch_size", "horizon", "hidden_sizes", "activation", "value_output", "critic_lr",
-        "actor_lr", "lr_decay_to", "lr_decay_iterations", "grad_clip", "expectation", "noise_samples", "j_max",
-        "mvc_check", "stop_epsilon", "stop_patience", "ibe_recursion", "ibe_case", "batch_weighting",
-        "batch_weight_offset", "actor_average")},
-    **{f"ddpg_{name}": f"ddpg.{name}" for name in ("envs", "buffer_size", "warmup", "tau", "noise_std")},
-    **{name: f"run.{name}" for name in ("eval_every", "eval_seeds", "checkpoint_every", "num_threads")},
-    "state_source": "sampler.name",
-    "model_course_fraction": "sampler.course_fraction",
-    "model_course_start": "sampler.course_start",
-    "model_course_starts": "sampler.course_starts",
-    "model_course_horizon": "sampler.course_horizon",  # also sampler.true_horizon (the old field set both)
-    "model_kick_prob": "sampler.kick_prob",
-    "model_kick_scale": "sampler.kick_scale",
-    "model_box": "sampler.box",
-    "true_envs": "sampler.true_envs",
-    "true_steps": "sampler.true_steps",
-    "true_every": "sampler.true_every",
-}
-_FULL = 40  # an old config.json holds (nearly) every flat field
+#: The release that reads the flat configuration form (``config.json`` with 45 top-level fields, and the
+#: flat keys ``iterations``, ``model_course_starts``, ``ddpg_tau`` ...).
+FLAT_FORM_RELEASE = "mixedrl 0.1.0 at git commit b510485"
 
 
-def _task_name(task: Any) -> str:
-    if isinstance(task, str):
-        return task
-    if isinstance(task, dict):
-        return str(task.get("name", "dlc"))
-    return str(getattr(task, "name", "dlc"))
-
-
-def _model_sampler(task: str) -> str:
-    """The sampler the old ``state_source = "model"`` meant on ``task``: the model-rollout sampler of the
-    task's preset (the double lane change's ``"dlc_course"``), else ``"model_rollouts"``."""
-    name = PRESETS.get(task, {}).get("sampler", {}).get("name", ModelRolloutsSampler.NAME)
-    model = issubclass(SAMPLERS.get(name, TrueCopiesSampler), ModelRolloutsSampler)
-    return name if model else ModelRolloutsSampler.NAME
-
-
-def migrate(data: dict[str, Any]) -> dict[str, Any]:
-    """Return the sectioned form of a (possibly partial) config dict with old flat keys (:data:`LEGACY_KEYS`).
-
-    Keys of the new form pass through; an old key moves to its section (a value already given there
-    under the new key wins only if it is equal, else it is an error naming both). ``data`` is not modified.
-
-    Raises
-    ------
-    ValueError
-        A sampler option the chosen sampler does not have (naming the old key and the task), or an old
-        and a new key with different values.
-    """
-    if not isinstance(data, dict):
-        raise ValueError(f"config: expected a dict, got {type(data).__name__}")
-    legacy = {k: v for k, v in data.items() if k in LEGACY_KEYS}
-    if not legacy:
-        return copy.deepcopy(data)
-    out = {k: copy.deepcopy(v) for k, v in data.items() if k not in LEGACY_KEYS}
-    task = _task_name(out.get("task", "dlc"))
-    moved: dict[str, Any] = {}
-    sampler_keys = [k for k in legacy if LEGACY_KEYS[k].startswith("sampler.")]
-    if sampler_keys:  # the old flat form's sampler: state_source (default "model") picks the class
-        source = legacy.get("state_source", "model")
-        if source not in ("true", "model"):
-            raise ValueError(f"state_source: expected 'true' or 'model', got {source!r}")
-        name = TrueCopiesSampler.NAME if source == "true" else _model_sampler(task)
-        moved["sampler.name"] = name
-        fields = {f.name for f in dataclasses.fields(SAMPLERS[name])}
-        for key in sampler_keys:
-            if key == "state_source":
-                continue
-            new = LEGACY_KEYS[key].split(".", 1)[1]
-            if name == ModelRolloutsSampler.NAME and key == "model_course_horizon":
-                new = "true_horizon"
-            elif "course_horizon" in fields and key == "model_course_horizon":
-                moved["sampler.true_horizon"] = legacy[key]
-            if new in fields:
-                moved[f"sampler.{new}"] = legacy[key]
-            elif source == "model" and len(legacy) < _FULL and legacy.get("model_course_fraction", 1) != 0:
-                # (with model_course_fraction = 0 the course options had no effect: they are dropped)
-                # a partial dict names the option on purpose: an error; a full old config.json carried
-                # every field (the unused ones are dropped), and state_source="true" never read them
-                raise ValueError(f"{key}: sampler option {LEGACY_KEYS[key]!r} needs a sampler with a course "
-                                 f"('dlc_course'); task {task!r} with state_source={source!r} uses {name!r}")
-    for key, value in legacy.items():
-        if not LEGACY_KEYS[key].startswith("sampler."):
-            moved[LEGACY_KEYS[key]] = value
-    for dotted, value in moved.items():
-        section, field_name = dotted.split(".", 1)
-        node = out.setdefault(section, {})
-        if not isinstance(node, dict):
-            node = out[section] = _jsonable(node)
-        if field_name in node and node[field_name] != value and not (section == "sampler" and field_name == "name"):
-            raise ValueError(f"{dotted}: given both as {dotted} and in the old flat form, with different values")
-        if section == "sampler" and field_name == "name" and node.get("name", value) != value:
-            raise ValueError(f"sampler.name: given as {node['name']!r} and, in the old flat form, "
-                             f"state_source={legacy.get('state_source', 'model')!r} ({value!r})")
-        node[field_name] = copy.deepcopy(value)
-    return out
+def _refuse_flat_form(keys: Any) -> None:
+    """Raise naming :data:`FLAT_FORM_RELEASE` if a top-level key of a configuration is one of the flat
+    form's: a field of ``algorithm`` or ``run`` (``iterations``), ``ddpg_<field>``, ``state_source``, a
+    sampler option (``model_*``, ``true_*``) or ``train_half_widths``."""
+    fields = {f.name for cls in (AlgorithmConfig, RunConfig) for f in dataclasses.fields(cls)}
+    fields |= {f"ddpg_{f.name}" for f in dataclasses.fields(DDPGConfig)} | {"state_source", "train_half_widths"}
+    flat = sorted(k for k in keys if k in fields or str(k).startswith(("model_", "true_")))
+    if flat:
+        raise ValueError(f"config: {flat} at the top level is the flat form, read by {FLAT_FORM_RELEASE}; this "
+                         f"release reads the sections (algorithm.iterations, sampler.course_starts, ...)")
 
 
 def flatten_table(table: dict[str, Any], prefix: str = "") -> dict[str, Any]:
@@ -854,10 +771,8 @@ def apply_overrides(data: dict[str, Any], overrides: dict[str, Any]) -> dict[str
     """Return a copy of the config dict ``data`` with dotted-key ``overrides`` applied.
 
     ``{"task.prior_force_mean": 300}`` sets ``data["task"]["prior_force_mean"]``; a plain key replaces a
-    top-level value. Intermediate levels are created as dicts when missing; a string ``task`` (the old
-    form, ``"dlc"``) is first expanded to ``{"name": "dlc"}``. Old flat keys (``iterations``,
-    ``model_course_starts``, ...; :data:`LEGACY_KEYS`) in ``data`` or in ``overrides`` are moved to their
-    sections first (:func:`migrate`). Other keys are not checked here: building the config
+    top-level value. Intermediate levels are created as dicts when missing; a string ``task`` (a name,
+    ``"dlc"``) is first expanded to ``{"name": "dlc"}``. Keys are not checked here: building the config
     (:meth:`TrainConfig.from_dict`) reports unknown ones with their dotted name.
 
     Parameters
@@ -883,35 +798,12 @@ def apply_overrides(data: dict[str, Any], overrides: dict[str, Any]) -> dict[str
     >>> from mixedrl.config import apply_overrides
     >>> apply_overrides({"seed": 1, "task": "dlc"}, {"task.prior_force_mean": 300, "seed": 2})
     {'seed': 2, 'task': {'name': 'dlc', 'prior_force_mean': 300}}
-    >>> apply_overrides({}, {"iterations": 300})
+    >>> apply_overrides({}, {"algorithm.iterations": 300})
     {'algorithm': {'iterations': 300}}
     """
     if not isinstance(data, dict):
         raise ValueError(f"data: expected a dict, got {type(data).__name__}")
-    out = migrate(data)
-    legacy = {k: v for k, v in overrides.items() if k in LEGACY_KEYS}
-    if legacy:
-        task = out.get("task", "dlc")
-        for key, value in overrides.items():  # the task decides what state_source="model" means
-            if str(key) == "task":
-                task = value
-            elif str(key) == "task.name":
-                task = {"name": value}
-        moved = migrate({**legacy, "task": task})
-        moved.pop("task")
-        if "state_source" not in legacy and "sampler" in moved:  # options of the sampler data already has
-            current = out.get("sampler", {})
-            name = current.get("name") if isinstance(current, dict) else getattr(current, "name", None)
-            if name is not None:
-                moved["sampler"]["name"] = name
-        flat = {f"{s}.{k}": v for s, sec in moved.items() for k, v in sec.items()}
-        # in the overrides' order: a moved key takes its old key's place, so a later dotted key still wins
-        pos = {k: i for i, k in enumerate(overrides)}
-        origin = {LEGACY_KEYS[k]: pos[k] for k in legacy}
-        last = max(pos[k] for k in legacy)
-        entries = [(pos[k], k, v) for k, v in overrides.items() if k not in LEGACY_KEYS]
-        entries += [(origin.get(k, last), k, v) for k, v in flat.items()]
-        overrides = {k: v for _, k, v in sorted(entries, key=lambda e: e[0])}
+    out = copy.deepcopy(data)
     for key, value in overrides.items():
         parts = str(key).split(".")
         if any(not p for p in parts):
@@ -933,15 +825,61 @@ def apply_overrides(data: dict[str, Any], overrides: dict[str, Any]) -> dict[str
 _SECTION_CLASSES: dict[str, type] = {"algorithm": AlgorithmConfig, "ddpg": DDPGConfig, "run": RunConfig}
 
 
+def machine_memory() -> int | None:
+    """The machine's physical memory in bytes (``None`` where the system does not report it)."""
+    try:
+        return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    except (AttributeError, OSError, ValueError):
+        return None
+
+
+def memory_lower_bounds(config: TrainConfig) -> dict[str, int]:
+    """Lower bounds, in bytes, of the memory a run of ``config`` allocates, by the key that sets it.
+
+    Every bound takes the smallest task (one observation, one action: the task's own sizes only add), so
+    a configuration above the machine's memory cannot run on it:
+
+    * ``algorithm.hidden_sizes``: the actor and the critic, each at least ``P = sum_i (h_{i-1} + 1) h_i
+      + h_last + 1`` parameters (``h_0 = 1``), float32, each with its gradient and the two Adam moments
+      (16 bytes a parameter);
+    * ``algorithm.batch_size``: the batch's states (float64) and one network's hidden activations on them
+      (float32): ``batch_size (8 + 4 sum(hidden_sizes))`` bytes;
+    * ``ddpg.buffer_size`` (DDPG only): the replay buffer's observation, next observation, action, cost
+      and terminal flag, float32: 20 bytes a transition.
+    """
+    alg = config.algorithm
+    widths = (1, *alg.hidden_sizes, 1)
+    params = sum((a + 1) * b for a, b in zip(widths[:-1], widths[1:]))
+    out = {"algorithm.hidden_sizes": 2 * 16 * params,
+           "algorithm.batch_size": alg.batch_size * (8 + 4 * sum(alg.hidden_sizes))}
+    if config.method == "ddpg":
+        out["ddpg.buffer_size"] = 20 * config.ddpg.buffer_size
+    return out
+
+
+def _check_memory(config: TrainConfig) -> None:
+    """Refuse a configuration whose memory lower bounds (:func:`memory_lower_bounds`) exceed the machine's
+    memory, naming the first key whose own bound does, else the key with the largest bound."""
+    total = machine_memory()
+    if total is None:
+        return
+    need = memory_lower_bounds(config)
+    if sum(need.values()) > total:
+        key = next((k for k, v in need.items() if v > total), max(need, key=need.get))
+        value = {k: getattr(getattr(config, k.split(".")[0]), k.split(".")[1]) for k in need}[key]
+        raise ValueError(f"{key}: {value!r} needs at least {need[key] / 2**30:.3g} GiB (all of the run at least "
+                         f"{sum(need.values()) / 2**30:.3g} GiB), more than this machine's {total / 2**30:.3g} GiB "
+                         f"of memory")
+
+
 @dataclass(init=False)
 class TrainConfig:
     """Configuration of one training run (Algorithm 2 or DDPG), in sections.
 
     A section left out (or given as a partial dict) takes the run's task's experiment configuration
     (:data:`PRESETS`, registered by the task; the double lane change's is
-    :data:`mixedrl.envs.dlc_task.DLC_EXPERIMENT`) over the library defaults of the section's class. Old
-    flat keyword arguments (``iterations=3``, ``model_box=2.0``; :data:`LEGACY_KEYS`) are accepted and
-    moved to their sections. ``to_dict`` / ``from_dict`` round-trip exactly through JSON.
+    :data:`mixedrl.envs.dlc_task.DLC_EXPERIMENT`) over the library defaults of the section's class.
+    ``to_dict`` / ``from_dict`` round-trip exactly through JSON.
     """
 
     method: str
@@ -972,13 +910,9 @@ class TrainConfig:
     """Evaluation, checkpoints, threads (:class:`RunConfig`)."""
 
     def __init__(self, method: str = "mixed", seed: int = 0, task: Any = "dlc", algorithm: Any = None,
-                 sampler: Any = None, ddpg: Any = None, run: Any = None, **legacy: Any) -> None:
-        check_unknown_keys(legacy, set(LEGACY_KEYS), "config")
-        if legacy:
-            sections = {"algorithm": algorithm, "sampler": sampler, "ddpg": ddpg, "run": run}
-            given = {k: _jsonable(v) for k, v in sections.items() if v is not None}
-            moved = migrate({**legacy, **given, "task": _jsonable(task) if not isinstance(task, str) else task})
-            algorithm, sampler, ddpg, run = (moved.get(k) for k in ("algorithm", "sampler", "ddpg", "run"))
+                 sampler: Any = None, ddpg: Any = None, run: Any = None, **unknown: Any) -> None:
+        _refuse_flat_form(unknown)
+        check_unknown_keys(unknown, {f.name for f in dataclasses.fields(TrainConfig)}, "config")
         self.method = _choice(method, "method", METHODS)
         self.seed = check_nonnegative_int(seed, "seed")
         self.task = task_config(task)
@@ -992,6 +926,7 @@ class TrainConfig:
         if self.method == "ddpg" and self.algorithm.critic_target != 0.0:
             raise ValueError(f"algorithm.critic_target: {self.algorithm.critic_target!r} is PEV's target critic "
                              f"(Algorithm 2); method 'ddpg' has its own target networks (ddpg.tau; use 0)")
+        _check_memory(self)
 
     @classmethod
     def for_task(cls, task: Any = "dlc", **fields: Any) -> "TrainConfig":
@@ -1024,30 +959,19 @@ class TrainConfig:
     def from_dict(cls, data: dict[str, Any]) -> "TrainConfig":
         """Build a config from a dictionary (the content of ``config.json``), nested sections included.
 
-        Old forms are accepted: the flat 45-field form (:data:`LEGACY_KEYS`, :func:`migrate`), ``"task":
-        "dlc"`` (a name: that task's defaults) and a top-level ``train_half_widths`` (moved to
-        ``task.train_half_widths``; dropped for the linear task, on which it never had an effect).
+        ``"task": "dlc"`` (a name) stands for that task's defaults.
 
         Raises
         ------
         ValueError
             ``data`` has a key that is not a field, at any level (``config: unknown key(s)
-            ['task.prior_mena']``), or a field is invalid (the message starts with its dotted name).
+            ['task.prior_mena']``), is in the flat form of :data:`FLAT_FORM_RELEASE` (the message names
+            that release), or a field is invalid (the message starts with its dotted name).
         """
         if not isinstance(data, dict):
             raise ValueError(f"config: expected a dict, got {type(data).__name__}")
-        data = dict(data)
-        if "train_half_widths" in data:  # the old top-level field
-            widths = data.pop("train_half_widths")
-            task = data.get("task", "dlc")
-            task = {"name": task} if isinstance(task, str) else dict(task) if isinstance(task, dict) else task
-            if isinstance(task, dict) and task.get("name", "dlc") == "dlc":
-                if "train_half_widths" in task and list(task["train_half_widths"]) != list(widths):
-                    raise ValueError("train_half_widths: given both at the top level (old form) and as "
-                                     "task.train_half_widths, with different values")
-                task["train_half_widths"] = widths
-            data["task"] = task
-        data = migrate(data)
+        data = copy.deepcopy(data)
+        _refuse_flat_form(data)
         check_unknown_keys(data, {f.name for f in dataclasses.fields(cls)}, "config")
         for section, name in (("algorithm", "grad_clip"), ("sampler", "box")):
             if isinstance(data.get(section), dict) and data[section].get(name) == "inf":
@@ -1056,7 +980,7 @@ class TrainConfig:
 
     def replace(self, **changes: Any) -> "TrainConfig":
         """Return a copy with ``changes`` applied; keys may be dotted (``**{"algorithm.iterations": 30}``,
-        see :func:`apply_overrides`) or old flat keys; unknown keys are an error."""
+        see :func:`apply_overrides`); unknown keys are an error."""
         changes = {k: _jsonable(v) for k, v in changes.items()}
         data = self.to_dict()
         if any(k in ("task", "task.name") for k in changes):  # a new task: its own presets for what is not given
@@ -1069,12 +993,13 @@ class TrainConfig:
 
     @classmethod
     def load(cls, path: str | Path) -> "TrainConfig":
-        """Read a config written by :meth:`save` (or an old flat one).
+        """Read a config written by :meth:`save`.
 
         Raises
         ------
         ValueError
-            The file is not valid JSON or holds an unknown key.
+            The file is not valid JSON, holds an unknown key or is in the flat form of
+            :data:`FLAT_FORM_RELEASE`.
         """
         try:
             data = json.loads(Path(path).read_text())

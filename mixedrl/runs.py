@@ -74,7 +74,7 @@ from mixedrl.algorithms.ddpg import DDPG
 from mixedrl.checkpoint import (atomic_write_bytes, atomic_write_text, default_file_mode, digest_path,
                                 is_temporary, load_checkpoint, regular_file, save_checkpoint, verify_digest,
                                 write_with_digest)
-from mixedrl.checks import check_positive_int
+from mixedrl.checks import check_finite_metrics, check_positive_int
 from mixedrl.config import ANCHORED_FEEDFORWARDS, TrainConfig, flatten_table, task_names
 from mixedrl.plant import plant_transitions
 from mixedrl.precision import run_policy_gap
@@ -1163,6 +1163,7 @@ def _train(trainers: list[Any], engine: Callable[[list[bool]], list[dict[str, fl
                 row = {"iteration": trainer.k, **rows[i], **(extra or {}), "time/elapsed_s": elapsed[i]}
                 if i in evaluations:
                     row.update(_scalar_eval(evaluations[i]))
+                check_finite_metrics(row, f"{cfg.method} seed {cfg.seed}" if runs[i] is None else str(runs[i].path))
                 pending[i].append(row)
                 if callback is not None:
                     callback(row)

@@ -448,8 +448,8 @@ def test_bellman_steps_reaches_pev_and_pim() -> None:
     from mixedrl.pim import actor_objective
 
     task = LinearTask()
-    cfg = TrainConfig(method="mixed", task="linear", seed=4, batch_size=32, iterations=5,
-                      algorithm={"bellman_steps": 3, "batch_weighting": "uniform"})  # the losses below: plain means
+    cfg = TrainConfig(method="mixed", task="linear", seed=4,
+                      algorithm={"batch_size": 32, "iterations": 5, "bellman_steps": 3, "batch_weighting": "uniform"})  # the losses below: plain means
     agent, twin = AGPI(task, cfg), AGPI(task, cfg)
     twin.load_state_dict(copy.deepcopy(agent.state_dict()))
     metrics = agent.iteration()

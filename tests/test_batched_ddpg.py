@@ -236,8 +236,8 @@ def test_a_sweep_resumes_a_batch_beside_its_finished_member(tmp_path: Path) -> N
 
 
 def test_plan_batches_groups_ddpg_runs_in_batches_of_their_own() -> None:
-    text = ('methods = ["mixed", "ddpg"]\nseeds = [0, 1, 2]\n[base]\ntask = "linear"\niterations = 20\n'
-            'batch_size = 32\n[variants.short]\n[variants.long]\nmethods = ["ddpg"]\n"algorithm.iterations" = 40\n'
+    text = ('methods = ["mixed", "ddpg"]\nseeds = [0, 1, 2]\n[base]\ntask = "linear"\n"algorithm.iterations" = 20\n'
+            '"algorithm.batch_size" = 32\n[variants.short]\n[variants.long]\nmethods = ["ddpg"]\n"algorithm.iterations" = 40\n'
             '[variants.wide]\nmethods = ["ddpg"]\nseeds = [0]\n"algorithm.batch_size" = 16\n')
     runs = expand(parse_spec(text))
     ddpg = [i for i, r in enumerate(runs) if r.config.method == "ddpg" and r.config.algorithm.batch_size == 32]

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import pytest
 
-from mixedrl.config import LEGACY_KEYS, TrainConfig
+from mixedrl.config import TrainConfig
 from mixedrl.sweep import expand, load_spec, parse_spec
 from experiments.analysis import beyond_paper as BP
 
@@ -29,7 +29,7 @@ def _comparable(cfg: TrainConfig, drop: str | None = None) -> dict:
     if drop == "task.prior_force_mean":
         data["task"].pop("prior_force_mean")
     elif drop is not None:
-        section, name = LEGACY_KEYS.get(drop, drop).split(".") if "." in LEGACY_KEYS.get(drop, drop) else (None, drop)
+        section, name = drop.split(".") if "." in drop else (None, drop)
         (data[section] if section else data).pop(name)
     return data
 
@@ -41,7 +41,7 @@ def _comparable(cfg: TrainConfig, drop: str | None = None) -> dict:
 def test_study_specs_leave_training_settings_to_the_defaults(name: str) -> None:
     spec = load_spec(ROOT / BP.STUDIES[name].spec)
     assert all(key.startswith("task.") for key in spec.base), spec.base  # only the experiment, never training
-    assert all(key.startswith("task.") or key == "ibe_case" for key in spec.grid), spec.grid
+    assert all(key.startswith("task.") or key == "algorithm.ibe_case" for key in spec.grid), spec.grid
     assert len(spec.seeds) == 5 and "oracle" in spec.methods and "mixed" in spec.methods
     defaults = TrainConfig().to_dict()
     for run in expand(spec):
@@ -104,7 +104,7 @@ def test_the_parts_are_the_spec_runs_with_the_shared_method_once_per_seed(name: 
 
 def test_reduced_spec() -> None:
     spec = BP.reduce_spec(load_spec(ROOT / BP.STUDIES["prior_mismatch"].spec))
-    assert spec.seeds == (0,) and spec.base == {"iterations": BP.REDUCED_ITERATIONS}
+    assert spec.seeds == (0,) and spec.base == {"algorithm.iterations": BP.REDUCED_ITERATIONS}
     assert spec.grid == {"task.prior_force_mean": (-300.0, 0.0)} and len(expand(spec)) == 6
 
 

@@ -18,8 +18,8 @@ from mixedrl.config import TrainConfig
 from mixedrl.runs import RunDirectory
 
 REPO = Path(__file__).resolve().parents[1]
-SMALL = ["task=\"linear\"", "batch_size=32", "eval_every=20", "checkpoint_every=10", "eval_seeds=1",
-         "ddpg_warmup=64", "ddpg_envs=8"]
+SMALL = ["task=\"linear\"", "algorithm.batch_size=32", "run.eval_every=20", "run.checkpoint_every=10",
+         "run.eval_seeds=1", "ddpg.warmup=64", "ddpg.envs=8"]
 
 
 def test_parse_overrides() -> None:
@@ -111,19 +111,24 @@ def test_unknown_nested_key_is_a_one_line_error(tmp_path: Path, capsys: pytest.C
     assert capsys.readouterr().err.startswith("mixedrl train: error: task.disturbance.law:")
 
 
-def test_evaluate_loads_an_old_run_directory(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+def test_evaluate_of_an_old_run_directory_names_the_release_that_reads_it(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     """A run written before the task configuration existed (``"task": "linear"`` and a top-level
-    ``train_half_widths`` in config.json, written before config.json had a digest) still evaluates."""
+    ``train_half_widths`` in config.json): a one-line error naming the release that reads it."""
     out = tmp_path / "run"
     assert main(["train", "--method", "mixed", "--out", str(out), "--iterations", "2", "--no-progress",
                  "--set", *SMALL]) == 0
     capsys.readouterr()
+    assert main(["evaluate", str(out)]) == 0
+    assert json.loads(capsys.readouterr().out)["iteration"] == 2
     old = {**json.loads((out / "config.json").read_text()), "task": "linear",
            "train_half_widths": [0.3, 0.2, 1.0, 0.1, 1.0]}
     (out / "config.json").write_text(json.dumps(old))
     (out / "config.json.sha256").unlink()
-    assert main(["evaluate", str(out)]) == 0
-    assert json.loads(capsys.readouterr().out)["iteration"] == 2
+    assert main(["evaluate", str(out)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and "['train_half_widths'] at the top level is the flat form, read by mixedrl 0.1.0 at " \
+        "git commit b510485" in err
 
 
 # ------------------------------------------------------------------------------ command plug-ins

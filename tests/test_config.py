@@ -1,5 +1,5 @@
 """Tests of the run configuration (mixedrl.config): the nested task configuration, dotted overrides,
-the old config.json form, and errors naming the dotted key."""
+the refusal of the old flat form, and errors naming the dotted key."""
 
 from __future__ import annotations
 
@@ -14,6 +14,7 @@ import pytest
 from mixedrl.envs import DoubleLaneChangeConfig
 from mixedrl.config import (
     DISTURBANCE_LAWS,
+    FLAT_FORM_RELEASE,
     DoubleLaneChangeTaskConfig,
     LinearTaskConfig,
     TrainConfig,
@@ -71,16 +72,21 @@ def test_config_json_holds_the_whole_task_and_round_trips(tmp_path: Path) -> Non
                                                     "cov": [[0.0, 0.0], [0.0, 0.01]]}
 
 
-def test_old_config_json_loads() -> None:
-    cfg = TrainConfig.from_dict(OLD_CONFIG)
-    assert cfg == TrainConfig(seed=3)
-    moved = TrainConfig.from_dict({**OLD_CONFIG, "train_half_widths": [1, 1, 1, 1, 1]})
-    assert moved.task.train_half_widths == (1.0, 1.0, 1.0, 1.0, 1.0)
-    old_linear = TrainConfig.from_dict({**OLD_CONFIG, "task": "linear"})
-    assert old_linear.task == LinearTaskConfig()  # train_half_widths never acted on the linear task
-    assert TrainConfig(task="linear").task == LinearTaskConfig()
-    with pytest.raises(ValueError, match="^train_half_widths"):
-        TrainConfig.from_dict({"train_half_widths": [1, 1, 1, 1, 1], "task": {"train_half_widths": [2, 2, 2, 2, 2]}})
+_RELEASE = r"read by mixedrl 0\.1\.0 at git commit b510485; this release reads the sections"
+
+
+def test_an_old_config_json_names_the_release_that_reads_it(tmp_path: Path) -> None:
+    assert FLAT_FORM_RELEASE == "mixedrl 0.1.0 at git commit b510485"
+    (tmp_path / "config.json").write_text(json.dumps(OLD_CONFIG))
+    with pytest.raises(ValueError, match=r"^config: \['activation', 'actor_lr', .*'value_output'\] at the top level is "
+                                         r"the flat form, " + _RELEASE):
+        TrainConfig.load(tmp_path / "config.json")
+    for part in ({"train_half_widths": [1, 1, 1, 1, 1]}, {"model_course_starts": "loop"}, {"ddpg_tau": 0.1},
+                 {"state_source": "true"}, {"true_envs": 2}):
+        with pytest.raises(ValueError, match=rf"^config: \['{next(iter(part))}'\] at the top level is the flat form, "
+                                             + _RELEASE):
+            TrainConfig.from_dict({"method": "mixed", **part})
+    assert TrainConfig(task="linear").task == LinearTaskConfig()  # a task's name stays a config's task
 
 
 @pytest.mark.parametrize("data,key", [
@@ -138,13 +144,16 @@ def test_apply_overrides_dotted_keys() -> None:
         TrainConfig.from_dict(apply_overrides(full, {"task.disturbance.meen": 1}))
 
 
-def test_an_old_flat_key_and_its_dotted_name_the_later_one_wins() -> None:
-    # a sweep's [base] with the old name and a variant with the dotted one: the variant's value (measured
-    # before the fix: the old key was moved after every dotted key and won)
-    assert apply_overrides({}, {"batch_size": 32, "algorithm.batch_size": 16}) == {"algorithm": {"batch_size": 16}}
-    assert apply_overrides({}, {"algorithm.batch_size": 16, "batch_size": 32}) == {"algorithm": {"batch_size": 32}}
-    out = apply_overrides({}, {"iterations": 5, "algorithm.iterations": 7, "critic_lr": 0.1})
-    assert out == {"algorithm": {"iterations": 7, "critic_lr": 0.1}}
+def test_old_flat_keys_are_refused_wherever_they_are_given() -> None:
+    # an override, a keyword argument, replace: the flat key reaches the top level and names the release
+    with pytest.raises(ValueError, match=r"^config: \['batch_size'\] at the top level is the flat form, " + _RELEASE):
+        TrainConfig.from_dict(apply_overrides({}, {"batch_size": 32, "algorithm.batch_size": 16}))
+    with pytest.raises(ValueError, match=r"^config: \['iterations'\] at the top level is the flat form, " + _RELEASE):
+        TrainConfig(iterations=7)
+    with pytest.raises(ValueError, match=r"^config: \['checkpoint_every'\] at the top level is the flat form"):
+        TrainConfig().replace(checkpoint_every=3)
+    with pytest.raises(ValueError, match=r"^config: unknown key\(s\) \['iteratons'\]; allowed: \['algorithm', "):
+        TrainConfig(iteratons=7)
 
 
 def test_replace_accepts_dotted_keys_and_task_objects() -> None:
@@ -198,8 +207,8 @@ def test_a_task_without_a_preset_gets_generic_defaults() -> None:
 def test_a_course_sampler_on_a_task_without_a_course_names_option_and_task() -> None:
     with pytest.raises(ValueError, match=r"^sampler\.name: 'dlc_course'.*task 'linear'"):
         TrainConfig(task="linear", sampler="dlc_course")
-    with pytest.raises(ValueError, match=r"^model_course_starts: .*sampler\.course_starts.*task 'linear'"):
-        TrainConfig(task="linear", model_course_starts="loop")
+    with pytest.raises(ValueError, match=r"^config: unknown key\(s\) \['sampler\.course_starts'\]"):
+        TrainConfig(task="linear", sampler={"course_starts": "loop"})
 
 
 def test_a_course_sampler_on_a_custom_task_without_a_course_is_refused_by_the_trainer() -> None:
@@ -210,71 +219,25 @@ def test_a_course_sampler_on_a_custom_task_without_a_course_is_refused_by_the_tr
         AGPI(LinearTask(), TrainConfig(algorithm={"batch_size": 8}))
 
 
-def test_legacy_flat_keys_migrate_to_their_sections() -> None:
-    from mixedrl.config import LEGACY_KEYS, migrate
-
-    assert len(LEGACY_KEYS) == 42  # the 45 flat fields less method, seed, task
-    cfg = TrainConfig(iterations=7, model_course_starts="loop", model_course_horizon=50, ddpg_tau=0.01,
-                      checkpoint_every=3)
-    assert (cfg.algorithm.iterations, cfg.sampler.course_starts, cfg.ddpg.tau, cfg.run.checkpoint_every) == \
-        (7, "loop", 0.01, 3)
-    assert cfg.sampler.course_horizon == cfg.sampler.true_horizon == 50  # the old field set both
-    assert TrainConfig(state_source="true").sampler.name == "true_copies"
-    assert TrainConfig(task="linear", model_box=2.0).sampler.name == "model_rollouts"
-    over = apply_overrides(TrainConfig().to_dict(), {"iterations": 300, "model_course_starts": "start"})
-    cfg = TrainConfig.from_dict(over)
-    assert cfg.algorithm.iterations == 300 and cfg.sampler.course_starts == "start"
-    assert migrate({"iterations": 3}) == {"algorithm": {"iterations": 3}}
-    with pytest.raises(ValueError, match=r"algorithm\.iterations"):
-        migrate({"iterations": 3, "algorithm": {"iterations": 4}})
-
-
-def _flat(cfg: TrainConfig) -> dict:
-    """The 45-field flat form the old TrainConfig.to_dict wrote for ``cfg`` (a DLC course run)."""
-    from mixedrl.config import LEGACY_KEYS
-
-    d = cfg.to_dict()
-    out = {"method": d["method"], "seed": d["seed"], "task": d["task"], "state_source": "model"}
-    for old, new in LEGACY_KEYS.items():
-        if old != "state_source":
-            section, name = new.split(".")
-            out[old] = d[section][name]
-    return out
-
-
-def test_an_old_flat_config_json_loads_to_the_same_run(tmp_path: Path) -> None:
-    new = TrainConfig(method="model", seed=3, algorithm={"iterations": 40}, sampler={"kick_prob": 0.0})
-    old = _flat(new)
-    assert len(old) == 45
-    (tmp_path / "config.json").write_text(json.dumps(old))
-    assert TrainConfig.load(tmp_path / "config.json") == new
-    old_true = {**old, "state_source": "true"}  # the options were never read by the true-copies source
-    assert TrainConfig.from_dict(old_true).sampler.name == "true_copies"
-
-
-def test_every_shipped_run_config_migrates_and_round_trips() -> None:
-    """Every config embedded in a shipped per-run result (old flat form) loads, and its migrated config
-    is one the new code writes and reads back unchanged, with the flat fields at their new places."""
-    from mixedrl.config import LEGACY_KEYS
-
+def test_every_shipped_flat_run_config_is_refused_naming_the_release() -> None:
+    """The configs embedded in shipped per-run results in the flat form are records of runs of
+    :data:`FLAT_FORM_RELEASE`: each is refused with an error naming it; the sectioned ones load and round-trip."""
     root = Path(__file__).resolve().parents[1] / "experiments" / "results"
-    seen = 0
+    flat = sectioned = 0
     for path in sorted(root.rglob("*.json")):
         data = json.loads(path.read_text())
         if not (isinstance(data, dict) and isinstance(data.get("config"), dict) and "method" in data["config"]):
             continue
-        old = data["config"]
-        cfg = TrainConfig.from_dict(old)
-        assert TrainConfig.from_dict(cfg.to_dict()) == cfg, path
-        new = cfg.to_dict()
-        for key, dotted in LEGACY_KEYS.items():
-            section, name = dotted.split(".")
-            if key in old and key != "state_source" and name in new[section]:
-                value = new[section][name]
-                assert value == old[key] or (value == "inf" and old[key] == "inf") or \
-                    (isinstance(value, list) and list(old[key]) == value), (path, key)
-        seen += 1
-    assert seen >= 300
+        config = data["config"]
+        if "algorithm" in config:
+            cfg = TrainConfig.from_dict(config)
+            assert TrainConfig.from_dict(cfg.to_dict()) == cfg, path
+            sectioned += 1
+            continue
+        with pytest.raises(ValueError, match=r"^config: \[.*\] at the top level is the flat form, " + _RELEASE):
+            TrainConfig.from_dict(config)
+        flat += 1
+    assert flat >= 300
 
 
 def test_dlc_obs_scale_override() -> None:

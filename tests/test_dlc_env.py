@@ -394,3 +394,17 @@ def test_non_numeric_action_names_its_type_and_the_space(bad: object) -> None:
     with pytest.raises(TypeError, match=rf"^u: .*got {type(bad).__name__}"):
         env.step_physical(bad)
     np.testing.assert_array_equal(env.state, before)
+
+
+@pytest.mark.parametrize("bad", [np.array([0.1 + 0.5j, 0.0]), [0.1 + 0j, 0.2], np.array([0.1, 0.2], dtype=np.complex64)])
+def test_complex_action_is_an_error_not_a_warning(bad: object) -> None:
+    env = DoubleLaneChangeEnv()
+    env.reset(seed=0)
+    before = env.state
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # the cast's ComplexWarning must not be the only sign
+        with pytest.raises(TypeError, match=r"^action: expected real numbers \(got complex(128|64)\) in Box\(-1\.0, 1\.0"):
+            env.step(bad)
+        with pytest.raises(TypeError, match=r"^u: expected real numbers \(got complex"):
+            env.step_physical(bad)
+    np.testing.assert_array_equal(env.state, before)

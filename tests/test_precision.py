@@ -219,8 +219,9 @@ def test_bad_equilibria_are_clear_errors() -> None:
         lq_reference(LinearTask().linearisation(), [0.0])
 
 
-def _config(method: str, **extra: object) -> TrainConfig:
-    return TrainConfig(method=method, task="linear", seed=0, batch_size=16, hidden_sizes=(8,), **extra)
+def _config(method: str, **run: object) -> TrainConfig:
+    return TrainConfig(method=method, task="linear", seed=0, algorithm={"batch_size": 16, "hidden_sizes": (8,)},
+                       run=run)
 
 
 @pytest.mark.parametrize("method, mean", [("model", "prior_mean"), ("oracle", "true_mean"), ("mixed", "prior_mean")])
@@ -246,7 +247,7 @@ def test_no_equilibrium_gives_null_with_a_reason() -> None:
 
 def test_policy_gap_in_results_json_of_a_tiny_run(tmp_path: Path) -> None:
     out = tmp_path / "run"
-    trainer = AGPI(LinearTask(), _config("mixed", iterations=2, eval_every=2, checkpoint_every=2, eval_seeds=1))
+    trainer = AGPI(LinearTask(), _config("mixed", eval_every=2, checkpoint_every=2, eval_seeds=1).replace(**{"algorithm.iterations": 2}))
     train(trainer, RunDirectory(out), progress=False)
     results = json.loads((out / "results.json").read_text())
     gap = results["policy_gap"]

@@ -314,7 +314,7 @@ SPEC = """
 methods = ["mixed"]
 seeds = [0]
 [base]
-iterations = 20
+"algorithm.iterations" = 20
 """
 
 

@@ -1,9 +1,12 @@
 """The study specs under ``experiments/studies/``: each is valid, and expands to the configs the studies' old builders
 (Python dicts of flat, pre-section keys in the scripts) trained, so moving a study to a spec changed no run.
 
-The old designs below are copied from ``experiments/analysis/model_based_study.py`` as it was before the move (its
+The old designs below are those of ``experiments/analysis/model_based_study.py`` as it was before the move (its
 ``DESIGNS``; run ``job`` built ``TrainConfig().replace(method, seed, iterations, eval_every=max(100, n // 5),
-checkpoint_every=n, num_threads=1, **design)``).
+checkpoint_every=n, num_threads=1, **design)``), written with the dotted keys the flat ones moved to
+(mixedrl 0.1.0 read the flat form; the translation was checked equal there: ``state_source = "model"`` is
+``sampler.name = "dlc_course"``, ``model_course_horizon`` set both ``sampler.course_horizon`` and
+``sampler.true_horizon``).
 """
 
 from __future__ import annotations
@@ -28,22 +31,26 @@ from mixedrl.sweep import expand, load_spec, parse_spec, run_sweep
 ROOT = Path(__file__).resolve().parents[1]
 STUDIES = sorted((ROOT / "experiments" / "studies").glob("*.toml"))
 
-_MODEL = {"state_source": "model", "model_course_starts": "start", "true_envs": 1, "true_steps": 20,
-          "true_every": 10, "model_course_horizon": 2000, "model_kick_scale": 1.0, "batch_weighting": "uniform",
-          "lr_decay_iterations": 0}
-_G = {**_MODEL, "model_course_fraction": 0.75, "model_course_start": 500, "model_box": 3.0, "model_kick_prob": 0.01}
-_M = {**_G, "lr_decay_iterations": 1500, "batch_weighting": "relative", "batch_weight_offset": 1.0}
+_MODEL = {"sampler.name": "dlc_course", "sampler.course_starts": "start", "sampler.true_envs": 1,
+          "sampler.true_steps": 20, "sampler.true_every": 10, "sampler.course_horizon": 2000,
+          "sampler.true_horizon": 2000, "sampler.kick_scale": 1.0, "algorithm.batch_weighting": "uniform",
+          "algorithm.lr_decay_iterations": 0}
+_G = {**_MODEL, "sampler.course_fraction": 0.75, "sampler.course_start": 500, "sampler.box": 3.0,
+      "sampler.kick_prob": 0.01}
+_M = {**_G, "algorithm.lr_decay_iterations": 1500, "algorithm.batch_weighting": "relative",
+      "algorithm.batch_weight_offset": 1.0}
 OLD_DESIGNS: dict[str, dict[str, Any]] = {
-    "A": {**_MODEL, "model_course_fraction": 0.5, "model_course_start": 0, "model_box": 4.0, "model_kick_prob": 0.0},
-    "C": {**_MODEL, "model_course_fraction": 0.0, "model_course_start": 0, "model_box": math.inf,
-          "model_kick_prob": 0.0},
+    "A": {**_MODEL, "sampler.course_fraction": 0.5, "sampler.course_start": 0, "sampler.box": 4.0,
+          "sampler.kick_prob": 0.0},
+    "C": {**_MODEL, "sampler.course_fraction": 0.0, "sampler.course_start": 0, "sampler.box": math.inf,
+          "sampler.kick_prob": 0.0},
     "G": _G,
-    "I": {**_G, "lr_decay_iterations": 1500, "actor_lr": 1e-3},
-    "K": {**_G, "lr_decay_iterations": 1500, "batch_size": 1024},
+    "I": {**_G, "algorithm.lr_decay_iterations": 1500, "algorithm.actor_lr": 1e-3},
+    "K": {**_G, "algorithm.lr_decay_iterations": 1500, "algorithm.batch_size": 1024},
     "M": _M,
-    "Q1": {**_M, "actor_average": 0.995},
-    "S": {**_M, "model_course_starts": "along"},
-    "T": {**_M, "model_course_starts": "loop"},
+    "Q1": {**_M, "algorithm.actor_average": 0.995},
+    "S": {**_M, "sampler.course_starts": "along"},
+    "T": {**_M, "sampler.course_starts": "loop"},
 }
 
 
@@ -54,9 +61,14 @@ def test_every_study_spec_is_valid(path: Path) -> None:
 
 
 def _old_config(design: str, method: str, seed: int, iterations: int) -> TrainConfig:
-    return TrainConfig().replace(method=method, seed=seed, iterations=iterations,
-                                 eval_every=max(100, iterations // 5), checkpoint_every=iterations, num_threads=1,
+    return TrainConfig().replace(method=method, seed=seed, **_budget(iterations, max(100, iterations // 5)),
                                  **OLD_DESIGNS[design])
+
+
+def _budget(iterations: int, eval_every: int) -> dict[str, int]:
+    """The old scripts' ``iterations``, ``eval_every``, ``checkpoint_every = iterations`` and one thread."""
+    return {"algorithm.iterations": iterations, "run.eval_every": eval_every, "run.checkpoint_every": iterations,
+            "run.num_threads": 1}
 
 
 def test_model_based_spec_reproduces_the_old_designs() -> None:
@@ -117,10 +129,9 @@ def test_preview_spec_reproduces_the_old_config_of() -> None:
         if candidate == "P12s":
             continue  # test_preview_spec_p12s_is_the_old_patched_obs_scale
         # the old config_of(candidate, method, seed, iterations=n, design=design)
-        old = TrainConfig().replace(method=run.config.method, seed=run.config.seed, iterations=n,
-                                    eval_every=max(100, n // 5), checkpoint_every=n, num_threads=1,
-                                    model_course_starts=OLD_PREVIEW_DESIGNS[design],
-                                    **{"task.preview_distances": OLD_PREVIEW[candidate]})
+        old = TrainConfig().replace(method=run.config.method, seed=run.config.seed, **_budget(n, max(100, n // 5)),
+                                    **{"sampler.course_starts": OLD_PREVIEW_DESIGNS[design],
+                                       "task.preview_distances": OLD_PREVIEW[candidate]})
         assert run.config == old, run.name
 
 
@@ -135,9 +146,8 @@ def test_preview_spec_p12s_is_the_old_patched_obs_scale() -> None:
     runs = [r for r in expand(load_spec(ROOT / "experiments" / "studies" / "preview.toml")) if r.point["variant"] == "M_P12s"]
     assert len(runs) == 5
     for run in runs:
-        old = TrainConfig().replace(method=run.config.method, seed=run.config.seed, iterations=1500,
-                                    eval_every=300, checkpoint_every=1500, num_threads=1, model_course_starts="start",
-                                    **{"task.preview_distances": OLD_PREVIEW["P12"]})
+        old = TrainConfig().replace(method=run.config.method, seed=run.config.seed, **_budget(1500, 300),
+                                    **{"sampler.course_starts": "start", "task.preview_distances": OLD_PREVIEW["P12"]})
         assert run.config.replace(**{"task.obs_scale": None}) == old, run.name
         task, plain = task_from_config(run.config.task), task_from_config(old.task)
         assert torch.equal(task.obs_scale, torch.cat([plain.obs_scale[:5], preview_scale(plain)]))
@@ -196,7 +206,8 @@ def test_the_theory_observer_reads_the_run_and_changes_none_of_its_numbers(tmp_p
     and without: the same rows bit for bit, plus the theory checks every 50th iteration."""
     from validation.reproduce import run_config
 
-    config = run_config("mixed", 0, quick=True).replace(iterations=60, eval_every=30, checkpoint_every=30)
+    config = run_config("mixed", 0, quick=True).replace(**{"algorithm.iterations": 60, "run.eval_every": 30,
+                                                             "run.checkpoint_every": 30})
     text = 'methods = ["mixed", "oracle"]\nseeds = [0]\n[base]\n' + "".join(
         f'"{k}" = {json.dumps(v)}\n' for k, v in {"algorithm.iterations": 60, "run.eval_every": 30,
                                                   "run.checkpoint_every": 30, "run.eval_seeds": 1,
@@ -232,10 +243,10 @@ def test_long_training_spec_and_its_observer_only_reads_the_runs() -> None:
         [("mixed", 0, 10000), ("oracle", 0, 10000)]
     # the old script's config: TrainConfig(method, seed=0, iterations=10000, eval_every=10000)
     for r in runs:
-        old = TrainConfig(method=r.config.method, seed=0, iterations=10000, eval_every=10000)
-        assert r.config.replace(checkpoint_every=old.run.checkpoint_every) == old
-    small = [r.config.replace(iterations=6, eval_every=100, checkpoint_every=100, eval_seeds=1, batch_size=64)
-             for r in runs]
+        old = TrainConfig(method=r.config.method, seed=0, algorithm={"iterations": 10000}, run={"eval_every": 10000})
+        assert r.config.replace(**{"run.checkpoint_every": old.run.checkpoint_every}) == old
+    small = [r.config.replace(**{"algorithm.iterations": 6, "run.eval_every": 100, "run.checkpoint_every": 100,
+                                 "run.eval_seeds": 1, "algorithm.batch_size": 64}) for r in runs]
     plain = train_batch([make_trainer(c) for c in small], progress=False)
     seen = train_batch([make_trainer(c) for c in small], progress=False,
                        observers=[LongTrainingObserver(3), LongTrainingObserver(3)])
@@ -251,11 +262,12 @@ def test_long_training_spec_and_its_observer_only_reads_the_runs() -> None:
 def _old_precision_config(method: str, seed: int, bellman_steps: int, iterations: int = 1500) -> TrainConfig:
     """``experiments/analysis/precision_study.py``'s ``run`` before the move (``--set algorithm.bellman_steps=N``): the
     placeholder ``task="linear"`` config it trained ``PendulumTask()`` with, its task the pendulum's."""
-    flat = dict(method=method, task="linear", seed=seed, iterations=iterations, batch_size=256, horizon=100,
-                model_course_fraction=0.0, model_course_horizon=100, model_kick_prob=0.0,
-                model_box=3.0, batch_weighting="relative", lr_decay_iterations=iterations, eval_every=300,
-                algorithm={"bellman_steps": bellman_steps})
-    return TrainConfig.from_dict({**TrainConfig(**flat).to_dict(), "task": {"name": "pendulum"}})
+    cfg = TrainConfig(method=method, task="linear", seed=seed,
+                      algorithm={"iterations": iterations, "batch_size": 256, "horizon": 100,
+                                 "batch_weighting": "relative", "lr_decay_iterations": iterations,
+                                 "bellman_steps": bellman_steps},
+                      sampler={"name": "model_rollouts", "true_horizon": 100, "box": 3.0}, run={"eval_every": 300})
+    return TrainConfig.from_dict({**cfg.to_dict(), "task": {"name": "pendulum"}})
 
 
 def test_precision_spec_reproduces_the_old_script_configs() -> None:

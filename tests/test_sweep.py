@@ -41,13 +41,13 @@ def main(argv: list[str]) -> int:
 BASE = """
 [base]
 task = "linear"
-iterations = 20
-batch_size = 32
-eval_every = 10
-checkpoint_every = 10
-eval_seeds = 1
+"algorithm.iterations" = 20
+"algorithm.batch_size" = 32
+"run.eval_every" = 10
+"run.checkpoint_every" = 10
+"run.eval_seeds" = 1
 """
-SPEC = 'methods = ["mixed"]\nseeds = [0]\n' + BASE + "\n[grid]\ncritic_lr = [1e-3, 3e-3]\n"
+SPEC = 'methods = ["mixed"]\nseeds = [0]\n' + BASE + '\n[grid]\n"algorithm.critic_lr" = [1e-3, 3e-3]\n'
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -83,17 +83,17 @@ def test_flatten_table() -> None:
 # ----------------------------------------------------------------------------------------------------
 def test_parse_spec_expands_grid_methods_and_seeds_in_order() -> None:
     spec = parse_spec('methods = ["mixed", "model"]\nseeds = [0, 3]\n' + BASE +
-                      '\n[grid]\ncritic_lr = [1e-3, 3e-3]\n"horizon" = [16]\n')
+                      '\n[grid]\n"algorithm.critic_lr" = [1e-3, 3e-3]\n"algorithm.horizon" = [16]\n')
     runs = expand(spec)
     assert len(runs) == 2 * 1 * 2 * 2
-    assert [r.name for r in runs[:4]] == [
-        "critic_lr=0.001__horizon=16__mixed_seed0", "critic_lr=0.001__horizon=16__mixed_seed3",
-        "critic_lr=0.001__horizon=16__model_seed0", "critic_lr=0.001__horizon=16__model_seed3"]
+    grid = "algorithm.critic_lr=0.001__algorithm.horizon=16"
+    assert [r.name for r in runs[:4]] == [f"{grid}__mixed_seed0", f"{grid}__mixed_seed3", f"{grid}__model_seed0",
+                                          f"{grid}__model_seed3"]
     last = runs[-1]
-    assert last.point == {"critic_lr": 3e-3, "horizon": 16}
-    assert last.config == TrainConfig(method="model", seed=3, task="linear", iterations=20, batch_size=32,
-                                      eval_every=10, checkpoint_every=10, eval_seeds=1, critic_lr=3e-3,
-                                      horizon=16)
+    assert last.point == {"algorithm.critic_lr": 3e-3, "algorithm.horizon": 16}
+    assert last.config == TrainConfig(method="model", seed=3, task="linear",
+                                      algorithm=dict(iterations=20, batch_size=32, critic_lr=3e-3, horizon=16),
+                                      run=dict(eval_every=10, checkpoint_every=10, eval_seeds=1))
     assert spec == parse_spec(spec.text)  # deterministic
     assert len({r.name for r in runs}) == len(runs)
 
@@ -125,7 +125,8 @@ def test_spec_without_grid() -> None:
     ('methods = ["mixed"]\nseeds = [0]\n[base]\ntask.nothing = 8', r"^base: .*task"),
     ('methods = ["mixed"]\nseeds = [0]\n[grid]\ncriticlr = [1e-3]',
      r"^criticlr=0.001__mixed_seed0: config: unknown key\(s\) \['criticlr'\]"),
-    ('methods = ["mixed"]\nseeds = [0]\n[grid]\nbatch_size = [16, 0]', r"^batch_size=0__mixed_seed0: algorithm.batch_size"),
+    ('methods = ["mixed"]\nseeds = [0]\n[grid]\n"algorithm.batch_size" = [16, 0]',
+     r"^algorithm.batch_size=0__mixed_seed0: algorithm.batch_size"),
     ('methods = ["ppo"]\nseeds = [0]', r"^ppo_seed0: method: expected one of"),
     ('methods = ["mixed"]\nseeds = [-1]', r"^mixed_seed-1: seed: expected a non-negative integer"),
     ('methods = ["mixed"]\nseeds = [0]\n[grid]\ntask = ["a b", "a/b"]', r"same run name"),
@@ -137,26 +138,28 @@ def test_invalid_specs_are_rejected_naming_the_key(text: str, message: str) -> N
 
 VARIANTS = """
 [variants.small]
-batch_size = 16
+"algorithm.batch_size" = 16
 
 [variants.wide]
-batch_size = 64
-hidden_sizes = [32, 32]
+"algorithm.batch_size" = 64
+"algorithm.hidden_sizes" = [32, 32]
 """
 
 
 def test_variants_are_named_overrides_over_base_crossed_with_the_grid() -> None:
-    spec = parse_spec('methods = ["mixed"]\nseeds = [0, 1]\n' + BASE + '\n[grid]\ncritic_lr = [1e-3, 3e-3]\n'
+    spec = parse_spec('methods = ["mixed"]\nseeds = [0, 1]\n' + BASE + '\n[grid]\n"algorithm.critic_lr" = [1e-3, 3e-3]\n'
                       + VARIANTS)
     runs = expand(spec)
     assert len(runs) == 2 * 2 * 2
-    assert runs[0].name == "variant=small__critic_lr=0.001__mixed_seed0"
-    assert runs[0].point == {"variant": "small", "critic_lr": 1e-3}
-    base = dict(task="linear", iterations=20, eval_every=10, checkpoint_every=10, eval_seeds=1)
-    assert runs[0].config == TrainConfig(method="mixed", seed=0, batch_size=16, critic_lr=1e-3, **base)
-    assert runs[-1].config == TrainConfig(method="mixed", seed=1, batch_size=64, hidden_sizes=[32, 32],
-                                          critic_lr=3e-3, **base)
-    assert spec.variants == {"small": {"batch_size": 16}, "wide": {"batch_size": 64, "hidden_sizes": [32, 32]}}
+    assert runs[0].name == "variant=small__algorithm.critic_lr=0.001__mixed_seed0"
+    assert runs[0].point == {"variant": "small", "algorithm.critic_lr": 1e-3}
+    base = dict(task="linear", run=dict(eval_every=10, checkpoint_every=10, eval_seeds=1))
+    assert runs[0].config == TrainConfig(method="mixed", seed=0, algorithm=dict(iterations=20, batch_size=16,
+                                                                                  critic_lr=1e-3), **base)
+    assert runs[-1].config == TrainConfig(method="mixed", seed=1, algorithm=dict(
+        iterations=20, batch_size=64, hidden_sizes=[32, 32], critic_lr=3e-3), **base)
+    assert spec.variants == {"small": {"algorithm.batch_size": 16},
+                             "wide": {"algorithm.batch_size": 64, "algorithm.hidden_sizes": [32, 32]}}
     only = expand(parse_spec('methods = ["model"]\nseeds = [0]\n' + BASE + VARIANTS))
     assert [r.name for r in only] == ["variant=small__model_seed0", "variant=wide__model_seed0"]
     # a variant with its own methods and seeds
@@ -164,7 +167,8 @@ def test_variants_are_named_overrides_over_base_crossed_with_the_grid() -> None:
                             'methods = ["mixed", "oracle"]\nseeds = [3, 4]\n'))
     assert [r.name for r in own] == ["variant=small__model_seed0"] + [
         f"variant=wide__{m}_seed{s}" for m in ("mixed", "oracle") for s in (3, 4)]
-    assert own[-1].config == TrainConfig(method="oracle", seed=4, batch_size=64, hidden_sizes=[32, 32], **base)
+    assert own[-1].config == TrainConfig(method="oracle", seed=4, algorithm=dict(
+        iterations=20, batch_size=64, hidden_sizes=[32, 32]), **base)
 
 
 @pytest.mark.parametrize("tail, message", [
@@ -208,11 +212,11 @@ def test_run_name_is_deterministic_safe_and_bounded() -> None:
 
 def test_invalid_spec_starts_nothing(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     spec = tmp_path / "spec.toml"
-    spec.write_text(SPEC.replace("critic_lr = [1e-3, 3e-3]", "critic_lr = [1e-3, -1.0]"))
+    spec.write_text(SPEC.replace('"algorithm.critic_lr" = [1e-3, 3e-3]', '"algorithm.critic_lr" = [1e-3, -1.0]'))
     out = tmp_path / "out"
     assert main([str(spec), "--out", str(out), "--no-progress"]) == 2
     err = capsys.readouterr().err
-    assert "critic_lr=-1.0__mixed_seed0: algorithm.critic_lr: expected a positive number" in err
+    assert "algorithm.critic_lr=-1.0__mixed_seed0: algorithm.critic_lr: expected a positive number" in err
     assert "Traceback" not in err and not out.exists()
 
 
@@ -359,7 +363,7 @@ def test_sweep_on_the_local_pool_equals_train_alone_and_resumes(pool_sweep, tmp_
     # sweep.json: each run's full config and its figures; the CSVs and the spec copy
     runs = expand(load_spec(spec_path))
     assert [r["name"] for r in doc["runs"]] == [r.name for r in runs] == \
-        ["critic_lr=0.001__mixed_seed0", "critic_lr=0.003__mixed_seed0"]
+        ["algorithm.critic_lr=0.001__mixed_seed0", "algorithm.critic_lr=0.003__mixed_seed0"]
     assert doc["failed"] == 0 and doc["finished"] is True
     # the two runs share a batch key: one batch, so one worker of the two asked for
     assert (doc["engine"], doc["workers"], doc["address"], doc["batch"], doc["batches"]) == ("local", 1, None, 16, 1)
@@ -373,15 +377,15 @@ def test_sweep_on_the_local_pool_equals_train_alone_and_resumes(pool_sweep, tmp_
         assert rec["results"]["true_transitions"] == results.get("true_transitions")
         assert rec["metrics"]["batch_size_runs"] == 2
     assert (full / "spec.toml").read_text() == SPEC
-    assert (full / "figures" / "cost_vs_critic_lr.png").is_file()
+    assert (full / "figures" / "cost_vs_algorithm.critic_lr.png").is_file()
     with open(full / "sweep.csv") as fh:
         rows = list(csv.DictReader(fh))
     assert [r["name"] for r in rows] == [r.name for r in runs] and float(rows[1]["cost"]) == \
         doc["runs"][1]["results"]["cost"]
     with open(full / "sweep_summary.csv") as fh:
         summary = list(csv.DictReader(fh))
-    assert [(s["critic_lr"], s["method"], s["runs"]) for s in summary] == [("0.001", "mixed", "1"),
-                                                                           ("0.003", "mixed", "1")]
+    assert [(s["algorithm.critic_lr"], s["method"], s["runs"]) for s in summary] == [("0.001", "mixed", "1"),
+                                                                                     ("0.003", "mixed", "1")]
 
     # a batch of the sweep is exactly the same configs trained by train_batch
     together = [RunDirectory(tmp_path / "together" / r.name) for r in runs]
@@ -503,7 +507,7 @@ def test_a_failed_run_is_recorded_and_does_not_stop_the_others(tmp_path: Path,
     runs = expand(load_spec(spec_path))
     # run 1's directory holds a finished run of another config: resuming it is an error
     bad = RunDirectory(out / "runs" / runs[0].name)
-    bad.write_config(runs[0].config.replace(critic_lr=0.5))
+    bad.write_config(runs[0].config.replace(**{"algorithm.critic_lr": 0.5}))
     bad.write_results({"cost": 1.0})
     assert main([str(spec_path), "--out", str(out), "--resume", "--workers", "2", "--no-progress"]) == 1
     assert "1 run(s) failed" in capsys.readouterr().err

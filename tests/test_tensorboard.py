@@ -65,7 +65,7 @@ def test_cli_flag_without_the_extra_is_one_line_exit_2(tmp_path: Path, monkeypat
     _hide_tensorboard(monkeypatch)
     out = tmp_path / "run"
     assert main(["train", "--method", "model", "--out", str(out), "--iterations", "2", "--no-progress",
-                 "--tensorboard", "--set", "batch_size=16"]) == 2
+                 "--tensorboard", "--set", "algorithm.batch_size=16"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("mixedrl train: error: tensorboard: ")
     assert not (out / "config.json").exists()

@@ -8,7 +8,7 @@ course exactly as a mixedrl run is evaluated:
 
 * the same function: :meth:`mixedrl.envs.dlc_task.DoubleLaneChangeTask.evaluate` (what
   ``trainer.evaluate(eval_seeds(config))`` calls, :func:`mixedrl.envs.evaluate_tracking` once per seed),
-  on the task of ``TrainConfig(seed=seed, eval_seeds=eval_seeds)``, with that run's evaluation seeds
+  on the task of ``TrainConfig(seed=seed, run={"eval_seeds": eval_seeds})``, with that run's evaluation seeds
   :func:`mixedrl.runs.eval_seeds`;
 * the same observation: the environment's observation of a state is the task's ``observe`` of that state
   (:func:`observation_mismatch` measures it; ``tests/test_peers.py`` asserts it is zero);
@@ -149,7 +149,7 @@ class PhysicalPolicy:
 
 
 def peer_task(seed: int = 0, eval_seeds: int = 2) -> tuple[DoubleLaneChangeTask, list[int]]:
-    """The task and evaluation seeds of a mixedrl run with ``TrainConfig(seed=seed, eval_seeds=eval_seeds)``.
+    """The task and evaluation seeds of a mixedrl run with ``TrainConfig(seed=seed, run={"eval_seeds": eval_seeds})``.
 
     Returns
     -------
@@ -275,7 +275,7 @@ def train_peer(algo: str, *, seed: int = 0, transitions: int = 100_000, eval_eve
 
     After every ``eval_every`` true transitions (and at the end) the deterministic policy
     (``model.predict(obs, deterministic=True)``) drives the full course once per evaluation seed of
-    ``TrainConfig(seed=seed, eval_seeds=eval_seeds)``, through
+    ``TrainConfig(seed=seed, run={"eval_seeds": eval_seeds})``, through
     :meth:`mixedrl.envs.dlc_task.DoubleLaneChangeTask.evaluate` with :class:`PhysicalPolicy`. An evaluation takes
     place where SB3 starts a new rollout, i.e. after the gradient steps on the data so far, so the policy
     evaluated at ``n`` transitions has learnt from exactly those ``n``.

@@ -92,7 +92,7 @@ LABELS = {"mixed": "Mixed RL", "model": "Model-driven RL", "ddpg": "Data-driven 
 #: Quick mode (the test suite): the paper's budget (1500 iterations: at 600 the model-based training has
 #: not converged and the ordering inverts), one evaluation course, DDPG's longer budget 2x instead of
 #: 16x; at most this many seeds.
-QUICK = {"eval_every": 150, "eval_seeds": 1, "ddpg_warmup": 500}
+QUICK = {"run.eval_every": 150, "run.eval_seeds": 1, "ddpg.warmup": 500}
 QUICK_MAX_SEEDS = 2
 #: The spec of the reproduction's runs (``mixedrl sweep experiments/studies/reproduction.toml`` trains the same).
 SPEC_PATH = Path(__file__).resolve().parent.parent / "experiments" / "studies" / "reproduction.toml"
@@ -111,9 +111,10 @@ def run_config(label: str, seed: int, quick: bool = False) -> TrainConfig:
     if label == "ddpg_long":
         factor = QUICK_DDPG_LONG_FACTOR if quick else DDPG_LONG_FACTOR
         # DDPG keeps its schedule: the learning rates decay over its whole (longer) budget
-        config = config.replace(iterations=factor * config.algorithm.iterations, lr_decay_iterations=0,
-                                checkpoint_every=factor * config.run.checkpoint_every,
-                                eval_every=max(1, factor // 4) * config.run.eval_every)
+        config = config.replace(**{"algorithm.iterations": factor * config.algorithm.iterations,
+                                   "algorithm.lr_decay_iterations": 0,
+                                   "run.checkpoint_every": factor * config.run.checkpoint_every,
+                                   "run.eval_every": max(1, factor // 4) * config.run.eval_every})
     return config
 
 

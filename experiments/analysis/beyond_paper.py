@@ -91,7 +91,7 @@ STUDIES: dict[str, Study] = {
         "True disturbance law: Gaussian, Student-t (3 dof), two-point, Gaussian with 10x the variance; "
         "the planners assume a Gaussian."),
     "road_grade": Study(
-        "experiments/studies/road_grade.toml", {"oracle": "ibe_case"}, True,
+        "experiments/studies/road_grade.toml", {"oracle": "algorithm.ibe_case"}, True,
         "Road grade (a state-dependent mean): Case-2 IBE (one mean) against Case-3 IBE (eq. 19, a Fourier "
         "series along the course) and the oracle (the true mean at every state)."),
 }
@@ -133,7 +133,7 @@ def reduce_spec(spec: SweepSpec) -> SweepSpec:
     """The ``--reduced`` spec: the first seed, ``REDUCED_ITERATIONS`` iterations, two grid points (the
     first two values of the first grid key, the other keys at their first value)."""
     grid = {k: list(v[:2]) if i == 0 else list(v[:1]) for i, (k, v) in enumerate(spec.grid.items())}
-    text = spec_text(list(spec.methods), list(spec.seeds[:1]), {**spec.base, "iterations": REDUCED_ITERATIONS}, grid,
+    text = spec_text(list(spec.methods), list(spec.seeds[:1]), {**spec.base, "algorithm.iterations": REDUCED_ITERATIONS}, grid,
                      "reduced by experiments/analysis/beyond_paper.py (--reduced)")
     return parse_spec(text, "reduced spec")
 
@@ -380,7 +380,7 @@ def _point_columns(name: str, record: dict[str, Any], collapse: bool) -> dict[st
         d = config["task"]["disturbance"]
         return {"law": d["law"], "dof": d["dof"] if d["law"] == "student_t" else None, "mean_N": d["mean"],
                 "variance_N2": d["variance"]}
-    return {"ibe_case": None if (collapse and record["shared"]) else record["point"]["ibe_case"]}
+    return {"ibe_case": None if (collapse and record["shared"]) else record["point"]["algorithm.ibe_case"]}
 
 
 def course_mean_force(run_dir: Path, config: dict[str, Any], X: np.ndarray) -> np.ndarray:

@@ -43,7 +43,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from mixedrl.config import TrainConfig, migrate
+from mixedrl.config import TrainConfig
 from mixedrl.runs import RunDirectory, atomic_write_bytes, atomic_write_text, load_checkpoint, make_trainer
 
 from mixedrl.tables import csv_text
@@ -121,9 +121,10 @@ FIGURE_DESIGN = "S"
 
 
 def design_of(config: dict[str, Any]) -> str:
-    """The design (a key of :data:`DESIGNS`) of a run's saved config (a config saved before
-    ``model_course_starts`` existed ran design M, the only one then)."""
-    starts = migrate(config).get("sampler", {}).get("course_starts", DESIGNS["M"])  # old flat configs too
+    """The design (a key of :data:`DESIGNS`) of a run's saved config: ``sampler.course_starts``, or in the
+    flat form of the shipped runs of mixedrl 0.1.0 ``model_course_starts`` (a config saved before it
+    existed ran design M, the only one then)."""
+    starts = config.get("sampler", {}).get("course_starts", config.get("model_course_starts", DESIGNS["M"]))
     return next(d for d, v in DESIGNS.items() if v == starts)
 
 

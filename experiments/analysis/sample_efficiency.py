@@ -106,7 +106,7 @@ def peers(args: argparse.Namespace) -> None:
             path = out / f"{algo}_s{seed}.json"
             if path.exists():
                 expected = {"transitions": args.transitions, "eval_every": eval_every, "kwargs": {},
-                            "eval_seeds": run_eval_seeds(TrainConfig(seed=seed, eval_seeds=args.eval_seeds))}
+                            "eval_seeds": run_eval_seeds(TrainConfig(seed=seed, run={"eval_seeds": args.eval_seeds}))}
                 problem = _stale(path, expected)
                 if problem:
                     stale.append(problem)

@@ -28,7 +28,7 @@ import numpy as np
 import torch
 
 from mixedrl.checks import check_positive_int
-from mixedrl.config import LEGACY_KEYS, TrainConfig
+from mixedrl.config import TrainConfig
 from mixedrl.tables import mean_std
 from mixedrl.runs import (
     CONVERGENCE_RTOL,
@@ -209,8 +209,8 @@ def rows_from_metrics(metrics: Sequence[dict[str, Any]]) -> list[dict[str, Any]]
 def ours_config(method: str, seed: int, iterations: int, overrides: dict[str, Any] | None = None) -> TrainConfig:
     """The :class:`TrainConfig` of one of mixedrl's runs in the study.
 
-    ``TrainConfig().replace(method=..., seed=..., iterations=..., eval_every=choose_eval_every(iterations),
-    num_threads=1, **overrides)`` (``overrides`` may set ``eval_every`` and dotted task keys).
+    ``TrainConfig().replace(method=..., seed=..., algorithm.iterations=..., run.eval_every=choose_eval_every(
+    iterations), run.num_threads=1, **overrides)`` (``overrides``: dotted keys, ``run.eval_every`` among them).
 
     Raises
     ------
@@ -223,8 +223,7 @@ def ours_config(method: str, seed: int, iterations: int, overrides: dict[str, An
     overrides = dict(overrides or {})
     base = {"method": method, "seed": seed, "algorithm.iterations": iterations,
             "run.eval_every": choose_eval_every(iterations), "run.num_threads": 1}
-    given = {LEGACY_KEYS.get(k, k) for k in overrides}  # an override, in either form, replaces its base value
-    return TrainConfig().replace(**{**{k: v for k, v in base.items() if k not in given}, **overrides})
+    return TrainConfig().replace(**{**base, **overrides})
 
 
 def train_ours(method: str, seed: int, iterations: int, overrides: dict[str, Any] | None = None,

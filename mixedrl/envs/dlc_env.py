@@ -24,18 +24,22 @@ __all__ = ["DoubleLaneChangeEnv"]
 def _pair(value: Any, name: str, space: str) -> tuple[float, float]:
     """Validate a length-2 finite action as two floats (the cheap single-step path).
 
-    Raises ``TypeError`` naming the value's type and ``space`` when it is not numeric, ``ValueError``
-    for a wrong shape or a NaN/inf component.
+    Raises ``TypeError`` naming the value's type and ``space`` when it is not numeric or not real
+    (complex: the cast would drop the imaginary part), ``ValueError`` for a wrong shape or a NaN/inf
+    component.
     """
+    kind = ""
     try:
         a = np.asarray(value)
-        # strings, raw bytes and a lone object (None) would convert to float or NaN silently; refuse them
-        if a.dtype.kind in "USV" or (a.dtype.kind == "O" and a.ndim == 0):
+        kind = a.dtype.kind
+        # strings, raw bytes and a lone object (None) would convert to float or NaN silently, complex
+        # values would lose their imaginary part; refuse them
+        if kind in "USVc" or (kind == "O" and a.ndim == 0):
             raise TypeError
         a = a.astype(np.float64, copy=False)
     except (TypeError, ValueError) as exc:
-        raise TypeError(f"{name}: expected a numeric array in {space}, got {type(value).__name__} "
-                        f"{value!r:.80}") from exc
+        what = f"real numbers (got {a.dtype})" if kind == "c" else "a numeric array"
+        raise TypeError(f"{name}: expected {what} in {space}, got {type(value).__name__} {value!r:.80}") from exc
     if a.shape != (2,):
         raise ValueError(f"{name}: expected shape (2,), got {a.shape}")
     a0, a1 = float(a[0]), float(a[1])

@@ -21,6 +21,11 @@ finite; zero-dimensional noise at construction; and any update (or ``load_state_
 posterior would not be finite and symmetric PSD, overflow included. The candidate posterior is
 computed with floating-point warnings silenced, checked, and only then committed.
 
+The public state (``mean``, ``cov``, ``prior_cov``, ``count``, the sufficient statistics ...) is
+read-only: assigning or deleting an attribute raises ``AttributeError`` and the arrays are read-only
+views, so the state changes only through ``update`` and ``load_state_dict``, which validate it
+(:class:`mixedrl.ibe.common.ReadOnlyField`).
+
 How inverses are computed
 -------------------------
 The vehicle task has a rank-1 true noise covariance and a prior ``K_M`` with entries ``1e-20``

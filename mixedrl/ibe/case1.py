@@ -18,7 +18,6 @@ from mixedrl.gaussian import CHOLESKY_PIVOT_FLOOR, solve_psd
 from mixedrl.ibe.common import (
     GaussianNoiseEstimate,
     PosteriorGuard,
-    ReadOnlyArray,
     check_posterior,
     check_state,
     real_batch,
@@ -176,16 +175,15 @@ class KnownCovarianceIBE(GaussianNoiseEstimate):
 
     _KIND = "KnownCovarianceIBE"
 
-    mean_cov = ReadOnlyArray()
+    _FIELDS = ("mean_cov", "total")
 
     def __init__(self, prior_mean: Any, prior_cov: Any, noise_cov: Any) -> None:
-        self.prior_mean = real_vector(prior_mean, "prior_mean")
-        n = self.prior_mean.shape[0]
-        self.prior_cov = real_covariance(prior_cov, "prior_cov", n)
-        self.noise_cov = real_covariance(noise_cov, "noise_cov", n)
-        self.count = 0
-        self.total = np.zeros(n)
-        self.mean, self.mean_cov = self.prior_mean.copy(), self.prior_cov.copy()
+        prior_mean = real_vector(prior_mean, "prior_mean")
+        n = prior_mean.shape[0]
+        prior_cov = real_covariance(prior_cov, "prior_cov", n)
+        noise_cov = real_covariance(noise_cov, "noise_cov", n)
+        self._commit(prior_mean=prior_mean, prior_cov=prior_cov, noise_cov=noise_cov, count=0, total=np.zeros(n),
+                     mean=prior_mean.copy(), mean_cov=prior_cov.copy())
         self._diag = _simultaneous_diag(self.prior_cov, self.noise_cov)
 
     def _posterior(self, count: int, total: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -231,7 +229,7 @@ class KnownCovarianceIBE(GaussianNoiseEstimate):
             count = self.count + nb
             mean, mean_cov = self._posterior(count, total)
         check_posterior("xi", (total, mean))  # Psi_k^-1 depends on k alone (finite, PSD by construction)
-        self.total, self.count, self.mean, self.mean_cov = total, count, mean, mean_cov
+        self._commit(total=total, count=count, mean=mean, mean_cov=mean_cov)
         return self
 
     def state_dict(self) -> dict[str, Any]:
@@ -262,9 +260,9 @@ class KnownCovarianceIBE(GaussianNoiseEstimate):
         noise_cov = real_covariance(st["noise_cov"], "state_dict: noise_cov", n)
         new = KnownCovarianceIBE(st["prior_mean"], prior_cov, noise_cov)
         with PosteriorGuard("state_dict"):
-            new.mean, new.mean_cov = new._posterior(st["count"], st["total"])
-        check_posterior("state_dict", (new.mean, new.mean_cov))
-        new.count, new.total = st["count"], st["total"]
+            mean, mean_cov = new._posterior(st["count"], st["total"])
+        check_posterior("state_dict", (mean, mean_cov))
+        new._commit(mean=mean, mean_cov=mean_cov, count=st["count"], total=st["total"])
         self.__dict__.update(new.__dict__)
         return self
 

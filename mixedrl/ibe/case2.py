@@ -19,7 +19,6 @@ from mixedrl.gaussian import pinv_psd, psd_solver, solve_psd
 from mixedrl.ibe.common import (
     GaussianNoiseEstimate,
     PosteriorGuard,
-    ReadOnlyArray,
     check_posterior,
     check_state,
     real_batch,
@@ -294,35 +293,26 @@ class UnknownCovarianceIBE(GaussianNoiseEstimate):
     _KIND = "UnknownCovarianceIBE"
     _RECURSIONS = ("exact", "paper")
 
-    cov = ReadOnlyArray()
-    _mean_cov = ReadOnlyArray()
+    _FIELDS = ("cov", "_mean_cov", "recursion", "max_iter", "iterations", "converged", "data_mean", "scatter", "psi",
+               "total")
 
     def __init__(self, prior_mean: Any, prior_cov: Any, recursion: str = "exact", max_iter: int = FIXED_POINT_MAX_ITER) -> None:
-        self.prior_mean = real_vector(prior_mean, "prior_mean")
-        n = self.prior_mean.shape[0]
-        self.prior_cov = real_covariance(prior_cov, "prior_cov", n)
+        prior_mean = real_vector(prior_mean, "prior_mean")
+        prior_cov = real_covariance(prior_cov, "prior_cov", prior_mean.shape[0])
         if recursion not in self._RECURSIONS:
             raise ValueError(f"recursion: expected one of {self._RECURSIONS}, got {recursion!r}")
-        self.recursion = recursion
-        self.max_iter = check_positive_int(max_iter, "max_iter")
+        self._commit(prior_mean=prior_mean, prior_cov=prior_cov, recursion=recursion,
+                     max_iter=check_positive_int(max_iter, "max_iter"))
         self._reset()
 
     def _reset(self) -> None:
         n = self.dim
-        self.count = 0
-        self.mean = self.prior_mean.copy()
-        self.cov = self.prior_cov.copy()  # K_hat_0 = K_M (Algorithm 1)
         self._prior_scale: float | None = None  # cached part of the fixed-point tolerance
-        self._mean_cov: np.ndarray | None = self.prior_cov.copy()
-        self.iterations = 0
-        self.converged = True
-        # exact: sufficient statistics
-        self.data_mean = np.zeros(n)
-        self.scatter = np.zeros((n, n))
-        # paper: eq. (18) state
         self._prior_prec = pinv_psd(self.prior_cov)
-        self.psi = self._prior_prec.copy()
-        self.total = np.zeros(n)
+        # K_hat_0 = K_M (Algorithm 1); exact: sufficient statistics; paper: eq. (18) state
+        self._commit(count=0, mean=self.prior_mean.copy(), cov=self.prior_cov.copy(), _mean_cov=self.prior_cov.copy(),
+                     iterations=0, converged=True, data_mean=np.zeros(n), scatter=np.zeros((n, n)),
+                     psi=self._prior_prec.copy(), total=np.zeros(n))
 
     @property
     def dim(self) -> int:
@@ -337,7 +327,7 @@ class UnknownCovarianceIBE(GaussianNoiseEstimate):
         ``K_M (N K_M + K_hat)^{-1} K_hat``), so updates do not pay for it.
         """
         if self._mean_cov is None:
-            self._mean_cov = _mean_cov_case2(self.prior_cov, self.count, self.cov)
+            self._commit(_mean_cov=_mean_cov_case2(self.prior_cov, self.count, self.cov))
         return self._mean_cov
 
     def update(self, xi: Any) -> UnknownCovarianceIBE:
@@ -394,8 +384,8 @@ class UnknownCovarianceIBE(GaussianNoiseEstimate):
         check_posterior("xi", (mean, cov))
         if not ok:
             logger.warning("UnknownCovarianceIBE: eq. (17) fixed point not converged after %d iterations", it)
-        self.count, self.data_mean, self.scatter = count, data_mean, scatter
-        self.mean, self.cov, self._mean_cov, self.iterations, self.converged = mean, cov, None, it, ok
+        self._commit(count=count, data_mean=data_mean, scatter=scatter, mean=mean, cov=cov, _mean_cov=None,
+                     iterations=it, converged=ok)
 
     def _update_paper(self, batch: np.ndarray) -> None:
         psi, total, mean, cov, k = self.psi, self.total, self.mean, self.cov, self.count
@@ -416,7 +406,7 @@ class UnknownCovarianceIBE(GaussianNoiseEstimate):
                 mean = new_mean
             mean_cov = symmetrize(solve_psd(psi, np.eye(self.dim)))
         check_posterior("xi", (total, mean, mean_cov), (cov, psi))
-        self.psi, self.total, self.mean, self.cov, self.count, self._mean_cov = psi, total, mean, cov, k, mean_cov
+        self._commit(psi=psi, total=total, mean=mean, cov=cov, count=k, _mean_cov=mean_cov)
 
     def state_dict(self) -> dict[str, Any]:
         """Return a copy of the full state (plain floats, ints, strs and ndarrays)."""
@@ -461,28 +451,29 @@ class UnknownCovarianceIBE(GaussianNoiseEstimate):
         check_positive_int(st["max_iter"], "state_dict: max_iter")
         prior_cov = real_covariance(st["prior_cov"], "state_dict: prior_cov", n)
         new = UnknownCovarianceIBE.__new__(UnknownCovarianceIBE)
-        new.prior_mean, new.prior_cov, new.recursion, new.max_iter = st["prior_mean"], prior_cov, st["recursion"], st["max_iter"]
+        new._commit(prior_mean=st["prior_mean"], prior_cov=prior_cov, recursion=st["recursion"], max_iter=st["max_iter"])
         new._reset()
-        new.count = st["count"]
+        new._commit(count=st["count"])
         if new.recursion == "exact":
-            new.data_mean = st["data_mean"]
-            new.scatter = real_covariance(st["scatter"], "state_dict: scatter", n)
-            if new.count == 0 and (np.any(new.data_mean != 0) or np.any(new.scatter != 0)):
+            data_mean = st["data_mean"]
+            scatter = real_covariance(st["scatter"], "state_dict: scatter", n)
+            if new.count == 0 and (np.any(data_mean != 0) or np.any(scatter != 0)):
                 raise ValueError("state_dict: count is 0 but the statistics are not empty")
+            new._commit(data_mean=data_mean, scatter=scatter)
             if new.count > 0:
                 with PosteriorGuard("state_dict"):
-                    (new.mean, new.cov, new.iterations, new.converged) = _solve_eq17(
-                        new.prior_mean, new.prior_cov, new.count, new.data_mean, new.scatter, new.max_iter, FIXED_POINT_RTOL
+                    mean, cov, iterations, converged = _solve_eq17(
+                        new.prior_mean, new.prior_cov, new.count, data_mean, scatter, new.max_iter, FIXED_POINT_RTOL
                     )
-                check_posterior("state_dict", (new.mean,), (new.cov,))
-                new._mean_cov = None
+                check_posterior("state_dict", (mean,), (cov,))
+                new._commit(mean=mean, cov=cov, iterations=iterations, converged=converged, _mean_cov=None)
         else:
-            new.psi = real_covariance(st["psi"], "state_dict: psi", n)
-            new.cov = real_covariance(st["cov"], "state_dict: cov", n)
-            new.total, new.mean = st["total"], st["mean"]
+            psi = real_covariance(st["psi"], "state_dict: psi", n)
+            cov = real_covariance(st["cov"], "state_dict: cov", n)
             with PosteriorGuard("state_dict"):
-                new._mean_cov = symmetrize(solve_psd(new.psi, np.eye(n)))
-            check_posterior("state_dict", (new._mean_cov,))
+                mean_cov = symmetrize(solve_psd(psi, np.eye(n)))
+            check_posterior("state_dict", (mean_cov,))
+            new._commit(psi=psi, cov=cov, total=st["total"], mean=st["mean"], _mean_cov=mean_cov)
         self.__dict__.update(new.__dict__)
         return self
 

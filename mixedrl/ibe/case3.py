@@ -21,8 +21,7 @@ from mixedrl.expectation import support
 from mixedrl.gaussian import sample_gaussian
 from mixedrl.ibe.common import (
     PosteriorGuard,
-    ReadOnlyArray,
-    ReadOnlyArrays,
+    ReadOnlyFields,
     check_dimension,
     check_posterior,
     check_state,
@@ -34,7 +33,7 @@ from mixedrl.ibe.common import (
 __all__ = ["StateDependentIBE", "LinearFeatureIBE"]
 
 
-class StateDependentIBE(ReadOnlyArrays):
+class StateDependentIBE(ReadOnlyFields):
     """Implements eq. (19): Case 3 IBE with a state-dependent mean ``mu = phi(x, u; w)``.
 
     .. math::
@@ -86,6 +85,8 @@ class StateDependentIBE(ReadOnlyArrays):
     #: The mean is ``mean_at(x, u)``: Algorithm 2 plans with per-state nodes.
     state_dependent = True
 
+    _FIELDS = ("phi", "state_dim", "action_dim", "prior_std", "max_iter")
+
     def __init__(
         self,
         phi: torch.nn.Module,
@@ -97,17 +98,15 @@ class StateDependentIBE(ReadOnlyArrays):
     ) -> None:
         if not isinstance(phi, torch.nn.Module):
             raise ValueError(f"phi: expected a torch.nn.Module, got {type(phi).__name__}")
-        self.noise_cov = real_covariance(noise_cov, "noise_cov")
-        self.state_dim = check_positive_int(state_dim, "state_dim")
-        self.action_dim = check_positive_int(action_dim, "action_dim")
-        self.prior_std = check_number(prior_std, "prior_std", positive=True)
-        self.max_iter = check_positive_int(max_iter, "max_iter")
-        self.phi = phi.double()
+        self._commit(noise_cov=real_covariance(noise_cov, "noise_cov"),
+                     state_dim=check_positive_int(state_dim, "state_dim"),
+                     action_dim=check_positive_int(action_dim, "action_dim"),
+                     prior_std=check_number(prior_std, "prior_std", positive=True),
+                     max_iter=check_positive_int(max_iter, "max_iter"), phi=phi.double(), count=0)
         self._prior_w = [p.detach().clone() for p in self.phi.parameters()]
         lam, vec = support(self.noise_cov)
         # whitening W with W W^T = K^+ : r^T K^+ r = |r W|^2
         self._whiten = torch.as_tensor(vec / np.sqrt(lam))
-        self.count = 0
         self._x = torch.zeros((0, self.state_dim), dtype=torch.float64)
         self._u = torch.zeros((0, self.action_dim), dtype=torch.float64)
         self._xi = torch.zeros((0, self.dim), dtype=torch.float64)
@@ -170,7 +169,7 @@ class StateDependentIBE(ReadOnlyArrays):
         saved = [p.detach().clone() for p in self.phi.parameters()]
         old = (self._x, self._u, self._xi, self.count)
         self._x, self._u, self._xi = torch.cat([self._x, xb]), torch.cat([self._u, ub]), torch.cat([self._xi, xib])
-        self.count += xb.shape[0]
+        self._commit(count=self.count + xb.shape[0])
         try:
             self._fit()
             ok = all(bool(torch.isfinite(p).all()) for p in self.phi.parameters())
@@ -183,7 +182,8 @@ class StateDependentIBE(ReadOnlyArrays):
             with torch.no_grad():
                 for p, s in zip(self.phi.parameters(), saved):
                     p.copy_(s)
-            self._x, self._u, self._xi, self.count = old
+            self._x, self._u, self._xi = old[:3]
+            self._commit(count=old[3])
             raise ValueError("xi: update rejected: fitting eq. (19) gave non-finite parameters or a non-finite "
                              "negative log posterior (residuals too large for float64?)")
         return self
@@ -305,13 +305,13 @@ class StateDependentIBE(ReadOnlyArrays):
             for i, p in enumerate(self.phi.parameters()):
                 p.copy_(torch.as_tensor(st[f"params.{i}"]))
         self._prior_w = [torch.as_tensor(st[f"prior_params.{i}"]).clone() for i in range(len(shapes))]
-        self.noise_cov, self.prior_std, self.max_iter, self.count = noise_cov, st["prior_std"], st["max_iter"], st["count"]
+        self._commit(noise_cov=noise_cov, prior_std=st["prior_std"], max_iter=st["max_iter"], count=st["count"])
         self._whiten = torch.as_tensor(vec / np.sqrt(lam))
         self._x, self._u, self._xi = (torch.as_tensor(st[k]).clone() for k in ("x", "u", "xi"))
         return self
 
 
-class LinearFeatureIBE(ReadOnlyArrays):
+class LinearFeatureIBE(ReadOnlyFields):
     """Implements eq. (19) in closed form: Case 3 IBE with a mean linear in its parameters.
 
     .. math::
@@ -372,37 +372,30 @@ class LinearFeatureIBE(ReadOnlyArrays):
     #: The mean is ``mean_at(x, u)``: Algorithm 2 plans with per-state nodes.
     state_dependent = True
 
-    prior_weights = ReadOnlyArray()
-    weights = ReadOnlyArray()
-    gram = ReadOnlyArray()
-    cross = ReadOnlyArray()
+    _FIELDS = ("features", "state_dim", "action_dim", "prior_std", "prior_weights", "weights", "gram", "cross")
 
     def __init__(self, features: Callable[[torch.Tensor, torch.Tensor], torch.Tensor], prior_weights: Any,
                  noise_cov: Any, state_dim: int, action_dim: int, prior_std: float = 1.0) -> None:
         if not callable(features):
             raise ValueError(f"features: expected a callable g(x, u), got {type(features).__name__}")
-        self.features = features
-        self.state_dim = check_positive_int(state_dim, "state_dim")
-        self.action_dim = check_positive_int(action_dim, "action_dim")
+        self._commit(features=features, state_dim=check_positive_int(state_dim, "state_dim"),
+                     action_dim=check_positive_int(action_dim, "action_dim"))
         w0 = np.array(real_array(prior_weights, "prior_weights"), dtype=np.float64)
         if w0.ndim != 2:
             raise ValueError(f"prior_weights: expected a (p, n) matrix, got shape {w0.shape}")
         check_dimension(w0.shape[0], "prior_weights (rows: features)")
         check_dimension(w0.shape[1], "prior_weights (columns: noise)")
         check_finite(w0, "prior_weights")
-        self.noise_cov = real_covariance(noise_cov, "noise_cov", w0.shape[1])
-        self.prior_std = check_number(prior_std, "prior_std", positive=True)
+        self._commit(noise_cov=real_covariance(noise_cov, "noise_cov", w0.shape[1]),
+                     prior_std=check_number(prior_std, "prior_std", positive=True))
         with torch.no_grad():
             g = features(torch.zeros((1, self.state_dim), dtype=torch.float64),
                          torch.zeros((1, self.action_dim), dtype=torch.float64))
         if tuple(g.shape) != (1, w0.shape[0]):
             raise ValueError(f"features: returned shape {tuple(g.shape)} for one input, expected (1, {w0.shape[0]}) "
                              f"(one feature per row of prior_weights)")
-        self.prior_weights = w0
-        self.count = 0
-        self.gram = np.zeros((w0.shape[0], w0.shape[0]))
-        self.cross = np.zeros(w0.shape)
-        self.weights = w0.copy()
+        self._commit(prior_weights=w0, count=0, gram=np.zeros((w0.shape[0], w0.shape[0])), cross=np.zeros(w0.shape),
+                     weights=w0.copy())
         self._support = support(self.noise_cov)
 
     @property
@@ -475,7 +468,7 @@ class LinearFeatureIBE(ReadOnlyArrays):
             check_posterior("xi", (cross,))
             weights = self._solve(gram, cross)
         check_posterior("xi", (weights,))
-        self.gram, self.cross, self.weights, self.count = gram, cross, weights, self.count + xb.shape[0]
+        self._commit(gram=gram, cross=cross, weights=weights, count=self.count + xb.shape[0])
         return self
 
     def mean_at(self, x: Any, u: Any) -> np.ndarray | torch.Tensor:
@@ -536,9 +529,9 @@ class LinearFeatureIBE(ReadOnlyArrays):
         real_covariance(st["gram"], "state_dict: gram", p)
         new = LinearFeatureIBE(self.features, st["prior_weights"], noise_cov, self.state_dim, self.action_dim,
                                st["prior_std"])
-        new.gram, new.cross, new.count = st["gram"], st["cross"], st["count"]
         with PosteriorGuard("state_dict"):
-            new.weights = new._solve(new.gram, new.cross)
-        check_posterior("state_dict", (new.weights,))
+            weights = new._solve(st["gram"], st["cross"])
+        check_posterior("state_dict", (weights,))
+        new._commit(gram=st["gram"], cross=st["cross"], count=st["count"], weights=weights)
         self.__dict__.update(new.__dict__)
         return self

@@ -10,7 +10,8 @@
   commits it only after :func:`check_posterior` has found it finite and symmetric PSD, so a rejected
   update leaves the estimator as it was.
 * :func:`check_state`: validation of a ``state_dict`` against a key/shape specification.
-* :class:`ReadOnlyArray`, :class:`ReadOnlyArrays`: read-only views for the estimators' public arrays;
+* :class:`ReadOnlyField`, :class:`ReadOnlyFields`: the estimators' public state, read-only (arrays as
+  read-only views; assignment refused);
   :class:`GaussianNoiseEstimate`: the mixed-model noise ``N(mean, cov)`` of Cases 1 and 2 (eq. (20)).
 """
 
@@ -40,8 +41,8 @@ __all__ = [
     "check_posterior",
     "PosteriorGuard",
     "check_state",
-    "ReadOnlyArray",
-    "ReadOnlyArrays",
+    "ReadOnlyField",
+    "ReadOnlyFields",
     "GaussianNoiseEstimate",
 ]
 
@@ -337,15 +338,20 @@ def check_state(state: Any, spec: dict[str, Any], kind: str) -> dict[str, Any]:
 # ----------------------------------------------------------------------------------------------------
 # read-only public arrays, the Gaussian noise estimate of Cases 1 and 2
 # ----------------------------------------------------------------------------------------------------
-class ReadOnlyArray:
-    """Descriptor that stores a public array (``mean``, ``cov``, ...) as a read-only view.
+class ReadOnlyField:
+    """Descriptor of a public field of an estimator's state (``mean``, ``cov``, ``count`` ...): readable,
+    not assignable.
 
-    Updates replace these arrays rather than writing into them, so handing out a read-only view is
-    free and guarantees that a caller who writes into ``est.mean`` gets an error instead of silently
-    changing the estimator's state. Only the named attributes pay for it (no ``__setattr__`` hook).
+    The state changes only through the estimator's own methods (``update``, ``load_state_dict``), which
+    validate it (finite, of the right shape, symmetric PSD covariances, non-negative counts) before
+    committing it with :meth:`ReadOnlyFields._commit`. Assigning the attribute (``ibe.mean = ...``) or
+    deleting it raises ``AttributeError``; an array is handed out as a read-only view, so writing into it
+    (``ibe.mean[0] = ...``) raises ``ValueError``. Updates replace the arrays rather than writing into
+    them, so the views are free, and only the named attributes pay for it (no ``__setattr__`` hook).
     """
 
     def __set_name__(self, owner: type, name: str) -> None:
+        self.name = name
         self.key = "_ro_" + name
 
     def __get__(self, obj: Any, objtype: type | None = None) -> Any:
@@ -354,25 +360,51 @@ class ReadOnlyArray:
         try:
             return obj.__dict__[self.key]
         except KeyError:
-            raise AttributeError(self.key[4:]) from None
+            raise AttributeError(self.name) from None
 
     def __set__(self, obj: Any, value: Any) -> None:
-        if isinstance(value, np.ndarray):
-            value = value.view()
-            value.flags.writeable = False
-        obj.__dict__[self.key] = value
+        raise AttributeError(f"{self.name}: read-only; {type(obj).__name__}'s state changes only through update() "
+                             f"and load_state_dict(), which validate it")
+
+    def __delete__(self, obj: Any) -> None:
+        self.__set__(obj, None)
 
 
-class ReadOnlyArrays:
-    """Base class giving the estimators read-only public arrays (see :class:`ReadOnlyArray`)."""
+class ReadOnlyFields:
+    """Base class of the estimators: read-only public fields (see :class:`ReadOnlyField`).
 
-    mean = ReadOnlyArray()
-    prior_mean = ReadOnlyArray()
-    prior_cov = ReadOnlyArray()
-    noise_cov = ReadOnlyArray()
+    ``mean``, ``prior_mean``, ``prior_cov``, ``noise_cov`` and ``count`` are fields of every estimator
+    that has them; a subclass names its own in ``_FIELDS`` (a :class:`ReadOnlyField` is made for each).
+    """
+
+    _FIELDS: tuple[str, ...] = ()
+
+    mean = ReadOnlyField()
+    prior_mean = ReadOnlyField()
+    prior_cov = ReadOnlyField()
+    noise_cov = ReadOnlyField()
+    count = ReadOnlyField()
+
+    def __init_subclass__(cls, **kwargs: Any) -> None:
+        super().__init_subclass__(**kwargs)
+        for name in cls.__dict__.get("_FIELDS", ()):
+            field = ReadOnlyField()
+            field.__set_name__(cls, name)
+            setattr(cls, name, field)
+
+    def _commit(self, **fields: Any) -> None:
+        """Set the read-only fields ``fields`` (validated by the caller); arrays are stored as read-only views."""
+        cls = type(self)
+        for name, value in fields.items():
+            if not isinstance(getattr(cls, name, None), ReadOnlyField):
+                raise AttributeError(f"{name}: not a read-only field of {cls.__name__}")
+            if isinstance(value, np.ndarray):
+                value = value.view()
+                value.flags.writeable = False
+            self.__dict__["_ro_" + name] = value
 
 
-class GaussianNoiseEstimate(ReadOnlyArrays):
+class GaussianNoiseEstimate(ReadOnlyFields):
     """Shared part of Cases 1 and 2: the mixed-model noise ``N(mean, cov)`` (eq. (20))."""
 
     #: A learning source (:class:`mixedrl.noise.NoiseSource`): the algorithms call ``update``.
@@ -380,10 +412,8 @@ class GaussianNoiseEstimate(ReadOnlyArrays):
     #: One mean for every state (Cases 1 and 2).
     state_dependent = False
 
-    mean: np.ndarray
     cov: np.ndarray
     mean_cov: np.ndarray
-    count: int
 
     def sample(self, n: int, generator: np.random.Generator | torch.Generator) -> np.ndarray | torch.Tensor:
         """Draw ``xi_hat ~ N(mean, cov)`` (eq. (20)); works for a singular ``cov``.
