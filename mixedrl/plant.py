@@ -292,7 +292,7 @@ def evaluate_on_plant(task: Task, policy: torch.nn.Module, seeds: list[int], hor
     -------
     dict
         Means over the episodes: ``cost`` (the task's discounted ``sum gamma^t l(x_{t+1}, u_t)``),
-        ``plant_return`` (the plant's undiscounted ``sum last_reward``, NaN without rewards),
+        ``plant_return`` (the plant's undiscounted ``sum last_reward``; ``None`` for a plant without rewards),
         ``plant_terminated_fraction`` (episodes the plant terminated), ``terminated_fraction`` (episodes
         the plant terminated or that reached a state terminal for the task; a truncation, the plant's
         time limit, is not a termination), ``episode_length`` (steps).
@@ -310,6 +310,7 @@ def evaluate_on_plant(task: Task, policy: torch.nn.Module, seeds: list[int], hor
     if len(seeds) == 0:
         raise ValueError("seeds: expected at least one evaluation seed, got none")
     plant = plants[0]
+    rewarded = hasattr(plant.plant, "last_reward")
     horizon = int(task.eval_horizon if horizon is None else horizon)
     costs, returns, plant_ends, ends, lengths = [], [], [], [], []
     with torch.no_grad():
@@ -321,7 +322,8 @@ def evaluate_on_plant(task: Task, policy: torch.nn.Module, seeds: list[int], hor
                 x_next = torch.as_tensor(plant.step(u[0].numpy()))[None]
                 task.evaluation_transitions = getattr(task, "evaluation_transitions", 0) + 1
                 cost += task.gamma**t * float(task.cost(x_next, u)[0])
-                ret += float(getattr(plant.plant, "last_reward", math.nan))
+                if rewarded:
+                    ret += float(plant.plant.last_reward)
                 x = x_next
                 task_end = bool(task.is_terminal(x)[0])
                 if plant.episode_over or task_end:
@@ -331,7 +333,7 @@ def evaluate_on_plant(task: Task, policy: torch.nn.Module, seeds: list[int], hor
             plant_ends.append(bool(getattr(plant.plant, "last_terminated", False)))
             ends.append(plant_ends[-1] or task_end)
             lengths.append(t + 1)
-    return {"cost": float(np.mean(costs)), "plant_return": float(np.mean(returns)),
+    return {"cost": float(np.mean(costs)), "plant_return": float(np.mean(returns)) if rewarded else None,
             "plant_terminated_fraction": float(np.mean(plant_ends)), "terminated_fraction": float(np.mean(ends)),
             "episode_length": float(np.mean(lengths))}
 

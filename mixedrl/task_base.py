@@ -32,7 +32,7 @@ from typing import Any, Callable
 import numpy as np
 import torch
 
-from mixedrl.checks import check_positive_int, check_seed_lists
+from mixedrl.checks import check_positive_int, check_seed_lists, check_task_types
 from mixedrl.gaussian import sample_gaussian
 from mixedrl.ibe.common import check_noise_matrix, noise_coordinates
 
@@ -544,7 +544,9 @@ def check_task(task: Task, batch: int = 3) -> None:
 
     Calls :meth:`Task.sample_initial` (own generator, seed 0), :meth:`Task.observe`, :meth:`Task.f` and
     :meth:`Task.cost` on ``batch`` states with zero and bound actions, in float32 and float64 (training uses
-    both); nothing of the task or of a trainer's random streams is touched.
+    both), then :func:`mixedrl.checks.check_task_types` (the attributes' types, ``value_scale``, and
+    ``f``/``cost``/``observe`` probed on more states); nothing of the task or of a trainer's random streams
+    is touched.
 
     Parameters
     ----------
@@ -594,3 +596,4 @@ def check_task(task: Task, batch: int = 3) -> None:
                 raise ValueError(f"{name}.f: the output does not depend differentiably on u (a detached or "
                                  f"numpy computation?); the policy improvement differentiates through f")
             _check_output(task.cost(s_next, u), task, "cost", (batch,), None)
+    check_task_types(task)

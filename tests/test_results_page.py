@@ -113,13 +113,15 @@ def _ship() -> Any:
 
 @pytest.mark.parametrize("spec", sorted((ROOT / "experiments" / "studies").glob("*.toml")), ids=lambda p: p.stem)
 def test_every_spec_names_the_commands_that_ship_it(spec: Path) -> None:
-    """experiments/ship.py SPEC: the header's first command trains the spec itself (``mixedrl sweep`` of it, or
-    the beyond-the-paper runner that drives that sweep), and every script it names exists."""
+    """experiments/ship.py SPEC: the header's first command trains the spec itself (``mixedrl sweep`` of it, the
+    beyond-the-paper runner that drives that sweep, or the spec's own runner ``experiments/analysis/<name>.py``),
+    and every script it names exists."""
     cmds = _ship().commands(spec)
     assert cmds, spec.name
     first = cmds[0]
     assert first[:3] == ["mixedrl", "sweep", f"experiments/studies/{spec.name}"] or \
-        first[1:4] == ["experiments/analysis/beyond_paper.py", "run", spec.stem], first
+        first[1:4] == ["experiments/analysis/beyond_paper.py", "run", spec.stem] or \
+        first == ["python", f"experiments/analysis/{spec.stem}.py"], first
     for argv in cmds:
         assert argv[0] in ("mixedrl", "python"), argv
         if argv[0] == "python":
