@@ -872,6 +872,10 @@ def _check_memory(config: TrainConfig) -> None:
                          f"of memory")
 
 
+#: The largest seed: torch and numpy generators take seeds of 64 bits.
+MAX_SEED = 2**64 - 1
+
+
 @dataclass(init=False)
 class TrainConfig:
     """Configuration of one training run (Algorithm 2 or DDPG), in sections.
@@ -915,6 +919,8 @@ class TrainConfig:
         check_unknown_keys(unknown, {f.name for f in dataclasses.fields(TrainConfig)}, "config")
         self.method = _choice(method, "method", METHODS)
         self.seed = check_nonnegative_int(seed, "seed")
+        if self.seed > MAX_SEED:
+            raise ValueError(f"seed: expected an integer in [0, 2**64 - 1] (torch's generator seed), got {seed!r}")
         self.task = task_config(task)
         preset = PRESETS.get(self.task.name, {})
         for name, value in (("algorithm", algorithm), ("ddpg", ddpg), ("run", run)):

@@ -11,18 +11,19 @@ A spec is a small TOML file::
     methods = ["mixed", "model"]          # TrainConfig.method of the runs
     seeds = [0, 1, 2]                     # TrainConfig.seed of the runs
 
-    [base]                                # TrainConfig fields shared by every run
-    iterations = 600
-    eval_seeds = 1                        # dotted keys (task.prior_force_mean = 150) reach nested fields
+    [base]                                # TrainConfig fields shared by every run, as dotted keys
+    "algorithm.iterations" = 600
+    "run.eval_seeds" = 1
+    "task.prior_force_mean" = 150
 
-    [grid]                                # config field -> list of values: the cartesian product
-    critic_lr = [1e-3, 3e-3]
-    batch_size = [256, 512]
+    [grid]                                # dotted key -> list of values: the cartesian product
+    "algorithm.critic_lr" = [1e-3, 3e-3]
+    "algorithm.batch_size" = [256, 512]
 
     [variants.short]                      # optional: named designs that are not a product, each a table of
-    horizon = 8                           # fields applied over [base] (not method, seed or a grid key)
+    "algorithm.horizon" = 8               # fields applied over [base] (not method, seed or a grid key)
     [variants.long]
-    horizon = 32
+    "algorithm.horizon" = 32
     seeds = [0]                           # a variant may have its own methods / seeds lists
 
 and optionally ``observer = "module:function"`` (top level): ``function(config)`` returns the

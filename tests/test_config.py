@@ -282,3 +282,10 @@ def test_linear_task_config_holds_every_field_of_the_lq_problem():
     assert cfg.prior_mean == (0.1, -0.2) and cfg.R == ((0.3,),)  # JSON face: tuples
     with pytest.raises(ValueError, match=r"task\.disturbance\.cov"):
         LinearTaskConfig(disturbance={"mean": (0.0, 0.4), "cov": ((0.0, 1.0), (0.0, 0.02))})
+
+
+@pytest.mark.parametrize("seed", [2**64, -1])
+def test_a_seed_beyond_64_bits_is_refused_naming_it(seed: int) -> None:
+    with pytest.raises(ValueError, match=r"^seed: "):
+        TrainConfig(seed=seed)
+    assert TrainConfig(seed=2**64 - 1).seed == 2**64 - 1

@@ -31,6 +31,10 @@ __all__ = ["CostWeights", "DoubleLaneChangeConfig", "DoubleLaneChangeTaskConfig"
 _C = TypeVar("_C")
 
 
+#: The largest prior force moment (N) a task accepts: the IBE squares it (float64 overflows near 1e308).
+MAX_PRIOR_FORCE = 1e100
+
+
 @dataclass(frozen=True)
 class CostWeights:
     """Weights of the utility of eq. (54), charged on the next state (eq. 2).
@@ -253,6 +257,10 @@ class DoubleLaneChangeTaskConfig(DoubleLaneChangeConfig):
         object.__setattr__(self, "prior_force_mean", check_number(self.prior_force_mean, "prior_force_mean"))
         object.__setattr__(self, "prior_force_std",
                            check_number(self.prior_force_std, "prior_force_std", positive=True))
+        for name in ("prior_force_mean", "prior_force_std"):
+            if abs(getattr(self, name)) > MAX_PRIOR_FORCE:
+                raise ValueError(f"{name}: |{getattr(self, name)!r}| N exceeds {MAX_PRIOR_FORCE:g} N: the IBE forms "
+                                 f"second moments of the force, which would overflow float64")
 
 
 #: The flat keys of the cost weights that :func:`make_config` accepts (moved into ``cost``).
