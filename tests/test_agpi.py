@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 import torch
 
+from mixedrl.algorithms import algorithm2
 from mixedrl.algorithms.agpi import (
     AGPI,
     actor_objective,
@@ -350,7 +351,7 @@ def _params(module: torch.nn.Module) -> list[torch.Tensor]:
     return [p.detach().clone() for p in module.parameters()]
 
 
-def test_iteration_plans_with_the_current_ibe_posterior() -> None:
+def test_iteration_plans_with_the_current_ibe_posterior(monkeypatch: pytest.MonkeyPatch) -> None:
     """The GOPS-MAC bug (an estimate computed, then replaced by the prior before planning) is caught on
     what ``iteration()`` itself does: every PEV/PIM call plans with the nodes of the IBE's current
     posterior, and the critic after the iteration is the one a PEV step under the posterior gives --
@@ -367,14 +368,14 @@ def test_iteration_plans_with_the_current_ibe_posterior() -> None:
         twins[name] = AGPI(task, cfg)
         twins[name].load_state_dict(copy.deepcopy(ag.state_dict()))  # Adam's state is shared otherwise
     calls: list[tuple[str, torch.Tensor]] = []
-    for step in ("pev", "pim"):  # the steps of the iteration's engine (this run alone as a batch)
-        original = getattr(ag.engine, step)
+    for step, name in (("pev", "critic_step"), ("pim", "actor_step")):  # the steps the loop takes (eqs. 49-52)
+        original = getattr(algorithm2, name)
 
-        def spy(s, offsets, weights, active, original=original, step=step):  # noqa: ANN001
+        def spy(task, critic, actor, descent, s, offsets, weights, *args, original=original, step=step, **kw):  # noqa: ANN001
             calls.append((step, offsets.clone()))
-            return original(s, offsets, weights, active)
+            return original(task, critic, actor, descent, s, offsets, weights, *args, **kw)
 
-        setattr(ag.engine, step, spy)
+        monkeypatch.setattr(algorithm2, name, spy)
     count_before = ag.noise.count
     metrics = ag.iteration()
     # the planning nodes of every step are those of the posterior at the start of the iteration
@@ -417,7 +418,7 @@ class JumpingNoise:
         self.mean, self.count = state["mean"].copy(), state["count"]
 
 
-def test_inner_loop_takes_extra_pim_steps_while_the_mvc_fails() -> None:
+def test_inner_loop_takes_extra_pim_steps_while_the_mvc_fails(monkeypatch: pytest.MonkeyPatch) -> None:
     """Eq. (38) fails (the noise jumps by 3 in velocity): the inner loop must take PIM steps until
     j = j_max, each a real step of the actor under xi_hat_k."""
     task = LinearTask()
@@ -425,13 +426,13 @@ def test_inner_loop_takes_extra_pim_steps_while_the_mvc_fails() -> None:
                       mvc_check="all"), sampler="true_copies")
     ag = AGPI(task, cfg, noise_source=JumpingNoise())
     calls: list[torch.Tensor] = []
-    original = ag.engine.pim  # the PIM step of the iteration's engine (this run alone as a batch)
+    original = algorithm2.actor_step  # the PIM step the loop takes (eqs. 51-52)
 
-    def spy(s, offsets, weights, active):  # noqa: ANN001
+    def spy(task, critic, actor, descent, s, offsets, weights, *args, **kw):  # noqa: ANN001
         calls.append(offsets.clone())
-        return original(s, offsets, weights, active)
+        return original(task, critic, actor, descent, s, offsets, weights, *args, **kw)
 
-    ag.engine.pim = spy
+    monkeypatch.setattr(algorithm2, "actor_step", spy)
     for _ in range(2):
         calls.clear()
         metrics = ag.iteration()
