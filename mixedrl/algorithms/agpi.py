@@ -47,8 +47,7 @@ from torch.optim.swa_utils import AveragedModel
 
 from mixedrl.config import TrainConfig
 from mixedrl.algorithms import algorithm2
-from mixedrl.algorithms.model_data import SAMPLER_CLASSES, has_course
-from mixedrl.envs.dlc_task import CourseSampler
+from mixedrl.samplers import SAMPLER_CLASSES
 from mixedrl.departures import actor_average, anchor, critic_target, state_weights
 from mixedrl.departures.anchor import equilibrium_gain, equilibrium_observation, feedforward_policy
 from mixedrl.expectation import expectation_nodes, h_value
@@ -56,7 +55,7 @@ from mixedrl.networks import Actor, AffineActor, AffineAnchoredActor, AnchoredAc
 from mixedrl.noise import make_noise_source
 from mixedrl.pev import critic_loss, critic_step
 from mixedrl.pim import MVCResult, actor_objective, actor_step, mvc_check
-from mixedrl.tasks import Task, check_task
+from mixedrl.task_base import Task, check_task
 
 __all__ = [
     "AGPI",
@@ -185,9 +184,8 @@ class AGPI:
         if config.sampler.name not in SAMPLER_CLASSES:
             raise ValueError(f"config: sampler.name {config.sampler.name!r} has no implementation "
                              f"(known: {sorted(SAMPLER_CLASSES)})")
-        if isinstance(config.sampler, CourseSampler) and not has_course(task):
-            raise ValueError(f"sampler.name: {config.sampler.name!r} needs a task with a course (a model with "
-                             f"initial_states and a course_length); task {type(task).__name__} has none")
+        if sampler_class is not None:
+            sampler_class.check_task(task, config)
         self.sampler = sampler_class(task, config, self.generator) if sampler_class is not None else None
         self._solo: Any = None  # the batched engine of this run alone (iteration)
         #: The Polyak (EMA) average of the actor's weights (departure ``algorithm.actor_average > 0``), else

@@ -19,7 +19,7 @@ import torch
 from mixedrl.config import TrainConfig
 from mixedrl.networks import Actor, QCritic
 from mixedrl.schedule import set_learning_rates
-from mixedrl.tasks import Task, check_task
+from mixedrl.task_base import Task, check_task
 
 __all__ = ["DDPG", "ReplayBuffer"]
 

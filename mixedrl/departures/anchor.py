@@ -28,7 +28,7 @@ import torch
 
 from mixedrl.lq import LQSolution, discounted_lq_optimum
 from mixedrl.networks import AnchoredActor
-from mixedrl.tasks import Linearisation, Task
+from mixedrl.task_base import Linearisation, Task
 
 __all__ = ["NAME", "KEY", "PAPER", "active", "refresh", "LQReference", "lq_reference", "own_noise",
            "FeedForwardPolicy", "feedforward_policy", "equilibrium_observation", "equilibrium_gain",
