@@ -466,3 +466,24 @@ def test_bellman_steps_reaches_pev_and_pim() -> None:
     objectives = {n: float(actor_objective(task, twin.critic, twin.actor, s, *nodes, None, n)) for n in (1, 3)}
     assert metrics["train/actor_objective"] == pytest.approx(objectives[3], rel=1e-6)
     assert abs(objectives[3] - objectives[1]) > 1e-3 * abs(objectives[1])
+
+
+def test_paper_preset_is_the_papers_algorithm2_and_results_list_the_departures() -> None:
+    """Issue 40: TrainConfig.preset("paper") switches every departure off (mixedrl.departures.used is empty),
+    one argument away from the library defaults, and a run's results.json lists the departures it used."""
+    from mixedrl import departures
+    from mixedrl.config import PAPER_SETTINGS
+
+    paper = TrainConfig.preset("paper", method="mixed", seed=1, task="linear")
+    assert departures.used(paper) == []
+    assert paper.sampler.name == "true_copies" and paper.algorithm.batch_weighting == "uniform"
+    library = TrainConfig(method="mixed", seed=1, task="linear")
+    assert set(departures.used(library)) >= {"schedule", "sampler", "state_weights"}
+    for d in departures.DEPARTURES:  # each departure's paper value is the one the preset sets
+        section, _, name = d.KEY.partition(".")
+        assert PAPER_SETTINGS[section][name] == d.PAPER
+    with pytest.raises(ValueError, match="preset"):
+        TrainConfig.preset("papers")
+    short = {"algorithm.iterations": 3, "algorithm.batch_size": 32, "run.eval_every": 3}
+    assert train(AGPI(LinearTask(), paper.replace(**short)), progress=False)["departures"] == []
+    assert train(AGPI(LinearTask(), library.replace(**short)), progress=False)["departures"] == departures.used(library)

@@ -14,9 +14,11 @@ from typing import Any
 import torch
 from torch.optim.swa_utils import AveragedModel, get_ema_multi_avg_fn
 
+from mixedrl.config import PAPER_SETTINGS
+
 NAME = "actor_average"
 KEY = "algorithm.actor_average"
-PAPER = 0.0
+PAPER = PAPER_SETTINGS["algorithm"]["actor_average"]
 
 
 def active(config: Any) -> bool:

@@ -26,6 +26,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from mixedrl.config import PAPER_SETTINGS
 from mixedrl.lq import LQSolution, discounted_lq_optimum
 from mixedrl.networks import AnchoredActor
 from mixedrl.task_base import Linearisation, Task
@@ -36,7 +37,7 @@ __all__ = ["NAME", "KEY", "PAPER", "active", "refresh", "LQReference", "lq_refer
 
 NAME = "anchor"
 KEY = "algorithm.feedforward"
-PAPER = "learned"
+PAPER = PAPER_SETTINGS["algorithm"]["feedforward"]
 #: The values of ``algorithm.feedforward`` that train an anchored actor class.
 ANCHORED = ("lq_train", "lq_affine", "lq_affine_ss")
 #: The anchored classes with the optimum's gain (:class:`mixedrl.networks.AffineAnchoredActor`).

@@ -11,9 +11,11 @@ from __future__ import annotations
 
 from typing import Any
 
+from mixedrl.config import PAPER_SETTINGS
+
 NAME = "bellman_steps"
 KEY = "algorithm.bellman_steps"
-PAPER = 1
+PAPER = PAPER_SETTINGS["algorithm"]["bellman_steps"]
 
 
 def active(config: Any) -> bool:

@@ -15,9 +15,11 @@ from typing import Any
 import torch
 from torch.optim.swa_utils import AveragedModel, get_ema_multi_avg_fn
 
+from mixedrl.config import PAPER_SETTINGS
+
 NAME = "critic_target"
 KEY = "algorithm.critic_target"
-PAPER = 0.0
+PAPER = PAPER_SETTINGS["algorithm"]["critic_target"]
 
 
 def active(config: Any) -> bool:

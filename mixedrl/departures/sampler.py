@@ -17,9 +17,11 @@ from __future__ import annotations
 
 from typing import Any
 
+from mixedrl.config import PAPER_SETTINGS
+
 NAME = "sampler"
 KEY = "sampler.name"
-PAPER = "true_copies"
+PAPER = PAPER_SETTINGS["sampler"]["name"]
 
 
 def active(config: Any) -> bool:

@@ -14,11 +14,12 @@ from __future__ import annotations
 
 from typing import Any
 
+from mixedrl.config import PAPER_SETTINGS
 from mixedrl.schedule import set_learning_rates
 
 NAME = "schedule"
 KEY = "algorithm.lr_decay_to"
-PAPER = 1.0
+PAPER = PAPER_SETTINGS["algorithm"]["lr_decay_to"]
 
 
 def active(config: Any) -> bool:

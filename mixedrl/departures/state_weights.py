@@ -11,10 +11,11 @@ precisely in relative terms as far ones; on the double lane change the course er
 from __future__ import annotations
 
 from typing import Any
+from mixedrl.config import PAPER_SETTINGS
 
 NAME = "state_weights"
 KEY = "algorithm.batch_weighting"
-PAPER = "uniform"
+PAPER = PAPER_SETTINGS["algorithm"]["batch_weighting"]
 
 
 def active(config: Any) -> bool:
