@@ -1,22 +1,13 @@
-"""Algorithm 2: mixed RL with a parameterised critic and actor and the adaptive GPI (AGPI) loop.
+"""Algorithm 2: a run's state (:class:`AGPI`) -- task, config, generator, networks, optimisers, noise source,
+sampler, counters, checkpoint format -- and its networks (:func:`build_networks`).
 
-One outer iteration ``k`` of :class:`AGPI` (see :meth:`AGPI.iteration`) is
-
-1. **data**: the sampler chosen by ``config.sampler.name`` makes the batch ``x`` of this iteration and
-   the residuals ``xi^D`` (eq. 10) of the true transitions it drives: ``"true_copies"`` (the paper's
-   Algorithm 2) steps ``batch_size`` copies of the *true* environment once under the current policy
-   ``pi^k``, their states are the batch; a model-rollout sampler (``"model_rollouts"``, or the double
-   lane change's ``"dlc_course"``; :mod:`mixedrl.algorithms.model_data`) takes the batch from rollouts
-   of the planning model and drives a few true copies for the IBE (docs/algorithm2.rst);
-2. **PEV** (eqs. 49-50, :func:`mixedrl.pev.critic_step`): one semi-gradient step of the critic
-   ``V(x; w)`` under ``xi_hat_k``;
-3. **PIM** (eqs. 51-52, :func:`mixedrl.pim.actor_step`): one gradient step of the actor
-   ``pi(x; theta)`` under ``xi_hat_k``, gradients through the model ``f``;
-4. **IBE** (eq. 20): the noise source absorbs the residuals: ``xi_hat_k -> xi_hat_{k+1}``;
-5. **MVC loop** (eqs. 37-39, :func:`mixedrl.pim.mvc_check`, masked per run in
-   :class:`mixedrl.algorithms.batched.BatchedAGPI`): while the maximum variation condition
-   fails on the batch, one more PIM step (``j <- j + 1``), until it holds or ``j = j_max``;
-6. the stopping test ``|V^{k+1} - V^k| <= eps`` and ``|pi^{k+1} - pi^k| <= eps``.
+The loop itself, one outer iteration ``k`` (data, PEV eqs. 49-50, PIM eqs. 51-52, IBE eq. 20, the MVC loop
+eqs. 37-39, the stopping test), is :func:`mixedrl.algorithms.algorithm2.iteration`, for a run alone
+(:meth:`AGPI.iteration`, ``R = 1``) and for many runs trained as one computation
+(:class:`mixedrl.algorithms.batched.BatchedAGPI`): one loop. Its PEV and PIM steps are
+:func:`mixedrl.pev.critic_step` and :func:`mixedrl.pim.actor_step`, which :meth:`AGPI.pev` and
+:meth:`AGPI.pim` call too. The departures from the paper plug into the loop's named hooks
+(:mod:`mixedrl.departures`); ``TrainConfig.preset("paper")`` switches them all off.
 
 The noise source is the only difference between mixed RL (an IBE posterior), model-driven RL (the fixed
 prior, eq. 55) and the oracle (the fixed true noise): one algorithm, three noise sources
@@ -31,9 +22,8 @@ noise (2 points). Reparameterised samples (``rule="samples"``) are available. Be
 additive, ``f(x, u)`` is computed once per state and only ``l`` and ``V`` are evaluated at the nodes
 (``h`` of eq. 37, :func:`mixedrl.expectation.h_value`).
 
-The steps live in their own modules (:mod:`mixedrl.pev`, :mod:`mixedrl.pim`, :mod:`mixedrl.expectation`,
-:mod:`mixedrl.noise`); the names ``critic_loss``, ``actor_objective``, ``h_value``, ``expectation_nodes``,
-``mvc_check``, ``MVCResult`` and ``make_noise_source`` are re-exported here for the old import path.
+The names ``critic_loss``, ``actor_objective``, ``h_value``, ``expectation_nodes``, ``mvc_check``,
+``MVCResult`` and ``make_noise_source`` are re-exported here for the old import path.
 """
 
 from __future__ import annotations
@@ -127,14 +117,8 @@ class AGPI:
 
     Notes
     -----
-    Order inside one iteration (see the module docstring): the paper's loop is IBE -> PEV -> PIM -> MVC.
-    The MVC of eq. (38) needs ``xi_hat_{k+1}``, the estimate *after* the next IBE update, so the IBE
-    update is moved between PIM and the MVC loop (a cyclic shift of the paper's loop: PEV and PIM of
-    iteration ``k`` use ``xi_hat_k``, the MVC compares ``xi_hat_k`` with ``xi_hat_{k+1}``). The
-    transitions feeding the IBE are collected under ``pi^k`` at the start of the iteration.
-    The extra PIM steps of the inner loop use ``xi_hat_k`` (the distribution eq. 39 measures the
-    improvement with). With a state-dependent source (Case 3) the nodes are per state, centred at
-    ``phi(x, pi^k(x))`` (:meth:`planning_moments`).
+    The order of the steps inside one iteration (the IBE update between PIM and the MVC loop, a cyclic
+    shift of the paper's loop) is explained in :mod:`mixedrl.algorithms.algorithm2`.
     """
 
     def __init__(self, task: Task, config: TrainConfig, architecture: str = "mlp", noise_source: Any = None
@@ -379,10 +363,14 @@ class AGPI:
             "noise": self.noise.state_dict(),
             "stop_count": self.stop_count,
             "stopped": self.stopped,
-            **({"sampler": self.sampler.state_dict()} if self.sampler is not None else {}),
-            **({"actor_avg": self.actor_avg.state_dict()} if self.actor_avg is not None else {}),
-            **({"critic_target": self.critic_target.state_dict()} if self.critic_target is not None else {}),
+            **{key: part.state_dict() for key, part in self.plug_ins().items()},
         }
+
+    def plug_ins(self) -> dict[str, Any]:
+        """The run's parts that departures add, by checkpoint key: ``sampler`` (a model-rollout sampler),
+        ``actor_avg`` (averaging), ``critic_target`` (target values); only those the run has."""
+        parts = {"sampler": self.sampler, "actor_avg": self.actor_avg, "critic_target": self.critic_target}
+        return {key: part for key, part in parts.items() if part is not None}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         """Restore :meth:`state_dict`.
@@ -394,12 +382,7 @@ class AGPI:
         """
         missing = {"k", "critic", "actor", "critic_opt", "actor_opt", "generator", "states", "steps", "noise",
                    "stop_count", "stopped"} - set(state)
-        if self.sampler is not None and "sampler" not in state:
-            missing.add("sampler")
-        if self.actor_avg is not None and "actor_avg" not in state:
-            missing.add("actor_avg")
-        if self.critic_target is not None and "critic_target" not in state:
-            missing.add("critic_target")
+        missing |= set(self.plug_ins()) - set(state)
         if missing:
             raise ValueError(f"state: missing keys {sorted(missing)}")
         if tuple(state["states"].shape) != tuple(self.states.shape):
@@ -412,10 +395,9 @@ class AGPI:
             self.actor.load_state_dict(state["actor"])
             self.critic_opt.load_state_dict(state["critic_opt"])
             self.actor_opt.load_state_dict(state["actor_opt"])
-            if self.actor_avg is not None:
-                self.actor_avg.load_state_dict(state["actor_avg"])
-            if self.critic_target is not None:
-                self.critic_target.load_state_dict(state["critic_target"])
+            for key, part in self.plug_ins().items():
+                if key != "sampler":  # the averages (the sampler is restored above)
+                    part.load_state_dict(state[key])
         except (RuntimeError, KeyError) as exc:
             raise ValueError(f"state: weights do not match the networks ({exc})") from None
         self.generator.set_state(state["generator"])

@@ -13,14 +13,18 @@ checkpoint format and run directory; what is shared is the arithmetic:
   PEV (eq. 49), PIM (eq. 51) and the three ``h`` of the MVC (eqs. 37-39) are evaluated once for all
   runs, with each run's own quadrature of its own ``xi_hat_k`` (per-state offsets and weights,
   summed node by node: :func:`mixedrl.expectation.weighted_sum`);
-* the losses are per run (``runs=R`` of :func:`mixedrl.pev.critic_loss` and
-  :func:`mixedrl.pim.actor_objective`) and each run takes its own clipped Adam step
-  (:func:`mixedrl.schedule.descend`); the MVC inner loop is masked: a run whose condition holds (or
+* the losses are per run (``runs=R`` of :func:`mixedrl.pev.critic_step` and
+  :func:`mixedrl.pim.actor_step`) and each run takes its own clipped Adam step
+  (:class:`mixedrl.schedule.Descent`); the MVC inner loop is masked: a run whose condition holds (or
   whose ``j`` reached ``j_max``) takes no more steps while the others do.
+
+The loop itself is :func:`mixedrl.algorithms.algorithm2.iteration` (:meth:`BatchedAGPI.iteration`); this
+module only stacks the runs (:class:`StackedNetwork`, the joined quadrature, the rows of each run).
 
 Everything a run draws at random (its sampler's rollouts and true transitions, sampled quadrature) comes
 from its own generator, in the order of a run alone. ``R = 1`` is the single run: the member's own
-modules are called (no ``vmap``) and :meth:`AGPI.iteration` is ``BatchedAGPI([run]).iteration()[0]``.
+modules are called (no ``vmap``) and :meth:`AGPI.iteration` is ``BatchedAGPI([run]).iteration()[0]``: the
+same loop.
 
 Reproducibility (measured, ``tests/test_batched.py``): for ``R >= 2`` the batched kernels give every run
 the same bits whatever else shares the batch (the same config and seed give the same weights in any

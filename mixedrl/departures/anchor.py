@@ -26,7 +26,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from mixedrl.config import PAPER_SETTINGS
+from mixedrl.config import AFFINE_FEEDFORWARDS, ANCHORED_FEEDFORWARDS, PAPER_SETTINGS
 from mixedrl.lq import LQSolution, discounted_lq_optimum
 from mixedrl.networks import AnchoredActor
 from mixedrl.task_base import Linearisation, Task
@@ -39,9 +39,9 @@ NAME = "anchor"
 KEY = "algorithm.feedforward"
 PAPER = PAPER_SETTINGS["algorithm"]["feedforward"]
 #: The values of ``algorithm.feedforward`` that train an anchored actor class.
-ANCHORED = ("lq_train", "lq_affine", "lq_affine_ss")
+ANCHORED = ANCHORED_FEEDFORWARDS
 #: The anchored classes with the optimum's gain (:class:`mixedrl.networks.AffineAnchoredActor`).
-AFFINE = ("lq_affine", "lq_affine_ss")
+AFFINE = AFFINE_FEEDFORWARDS
 
 
 def active(config: Any) -> bool:
