@@ -51,7 +51,7 @@ from importlib.metadata import EntryPoint, entry_points
 from pathlib import Path
 from typing import Any, Sequence
 
-from mixedrl.config import FEEDFORWARDS, METHODS, TrainConfig, apply_overrides
+from mixedrl.config import CONFIG_PRESETS, FEEDFORWARDS, METHODS, TrainConfig, apply_overrides
 from mixedrl.precision import format_policy_gap, gap_summary
 from mixedrl.runs import RunDirectory, evaluate_run, make_trainer, train
 from mixedrl.sweep import add_parser as add_sweep_parser
@@ -139,6 +139,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE",
                    help="override config fields; dotted keys for nested ones (task.prior_force_mean=300, "
                         "task.disturbance.mean=261); values are JSON, else strings")
+    p.add_argument("--preset", choices=tuple(CONFIG_PRESETS), default=None,
+                   help="'paper': the paper's literal Algorithm 2 (TrainConfig.preset); --set applies on top")
     p.add_argument("--resume", action="store_true",
                    help="continue from the run's checkpoint (without it, --out must be new or empty)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -213,6 +215,8 @@ def _requested_config(args: argparse.Namespace, run: RunDirectory) -> TrainConfi
             base = apply_overrides(base, flatten_table(file_data))
     else:
         base = TrainConfig.from_dict(file_data).to_dict() if file_data is not None else {}
+        if getattr(args, "preset", None):
+            base = TrainConfig.from_dict({"method": args.method, "seed": 0, **base}).with_preset(args.preset).to_dict()
         given["seed"] = 0 if args.seed is None else args.seed
     base = apply_overrides(base, {**overrides, **{k: v for k, v in given.items() if v is not None}})
     return TrainConfig.from_dict(base)

@@ -69,6 +69,8 @@ __all__ = [
     "CourseSampler",
     "SAMPLERS",
     "PRESETS",
+    "PAPER_SETTINGS",
+    "CONFIG_PRESETS",
     "DLC_EXPERIMENT",
     "FLAT_FORM_RELEASE",
     "memory_lower_bounds",
@@ -998,6 +1000,29 @@ class TrainConfig:
         Path(path).write_text(json.dumps(self.to_dict(), indent=2, sort_keys=True) + "\n")
 
     @classmethod
+    def preset(cls, name: str, **fields: Any) -> "TrainConfig":
+        """The config of the named preset of :data:`CONFIG_PRESETS` (``"paper"``: the paper's literal
+        Algorithm 2; ``"library"``: ``TrainConfig(**fields)``, the library defaults), with ``fields``
+        (``method``, ``seed``, ``task``, sections) given as to the constructor; the preset's settings win.
+
+        Raises
+        ------
+        ValueError
+            An unknown preset name (naming ``preset``), or as the constructor.
+        """
+        return cls(**{"method": "mixed", "seed": 0, **fields}).with_preset(name)
+
+    def with_preset(self, name: str) -> "TrainConfig":
+        """A copy with the settings of the preset ``name`` (:data:`CONFIG_PRESETS`) applied (its sampler
+        section replaces the config's)."""
+        if name not in CONFIG_PRESETS:
+            raise ValueError(f"preset: expected one of {tuple(CONFIG_PRESETS)}, got {name!r}")
+        data = self.to_dict()
+        for section, values in CONFIG_PRESETS[name].items():
+            data[section] = dict(values) if section == "sampler" else {**data[section], **values}
+        return TrainConfig.from_dict(data)
+
+    @classmethod
     def load(cls, path: str | Path) -> "TrainConfig":
         """Read a config written by :meth:`save`.
 
@@ -1036,3 +1061,21 @@ def _sampler(value: Any, preset: dict[str, Any], task: str) -> Any:
         if isinstance(value.get("box"), str) and value["box"] == "inf":
             value = {**value, "box": math.inf}
     return sampler_config(value, task)
+
+
+# ----------------------------------------------------------------------------------------------------
+# presets of Algorithm 2 (issue 40): the paper's literal form and the library defaults, one argument apart
+# ----------------------------------------------------------------------------------------------------
+#: The paper's value of every setting where the library departs from it (one module each in
+#: :mod:`mixedrl.departures`, which reads its paper value from here): ``TrainConfig.preset("paper")``
+#: (``mixedrl train --preset paper``) is the paper's Algorithm 2 -- the true copies as the batch, the plain
+#: batch mean in PEV and PIM, fixed step sizes, the critic itself in PEV's target, one-step ``h``, the
+#: MLP actor, the last actor deployed. The table of docs/algorithm2.rst gives each with the library's
+#: default and why.
+PAPER_SETTINGS: dict[str, dict[str, Any]] = {
+    "sampler": {"name": "true_copies"},
+    "algorithm": {"batch_weighting": "uniform", "lr_decay_to": 1.0, "critic_target": 0.0, "bellman_steps": 1,
+                  "feedforward": "learned", "actor_average": 0.0},
+}
+#: Preset name -> section -> settings applied over ``TrainConfig(**fields)`` (:meth:`TrainConfig.preset`).
+CONFIG_PRESETS: dict[str, dict[str, dict[str, Any]]] = {"library": {}, "paper": PAPER_SETTINGS}

@@ -21,7 +21,7 @@ import torch
 
 from mixedrl.checks import as_vector, check_covariance, check_number, check_positive_int
 from mixedrl.expectation import h_value, weighted_sum
-from mixedrl.schedule import descend
+from mixedrl.schedule import Descent
 from mixedrl.quadratic import AffinePolicy, LinearDynamics, QuadraticCost, QuadraticValue, check_problem, lyapunov_solve
 
 __all__ = ["evaluate_policy", "bellman_backup", "ExactPEV", "pev_step", "h_steps", "critic_loss", "critic_step", "run_mean", "check_runs"]
@@ -392,11 +392,13 @@ def run_mean(values: torch.Tensor, runs: int = 1) -> torch.Tensor:
     return values.mean() if runs == 1 else values.reshape(runs, -1).mean(dim=1)
 
 
-def critic_step(task: Any, critic: torch.nn.Module, actor: torch.nn.Module, optimizer: torch.optim.Optimizer,
-                s: torch.Tensor, offsets: torch.Tensor, weights: torch.Tensor, grad_clip: float,
-                relative_offset: float | None = None, steps: int = 1,
-                target_critic: Callable[[torch.Tensor], torch.Tensor] | None = None) -> float:
-    """Implements eqs. (49)-(50): PEV, one semi-gradient step of the critic under ``xi_hat_k``.
+def critic_step(task: Any, critic: Callable[..., torch.Tensor], actor: Callable[..., torch.Tensor],
+                optimizer: torch.optim.Optimizer | Descent, s: torch.Tensor, offsets: torch.Tensor,
+                weights: torch.Tensor, grad_clip: float | None = None, relative_offset: float | None = None,
+                steps: int = 1, target_critic: Callable[[torch.Tensor], torch.Tensor] | None = None, *,
+                runs: int = 1, active: list[int] | None = None) -> torch.Tensor:
+    """Implements eqs. (49)-(50): PEV, one semi-gradient step of the critic under ``xi_hat_k`` (of one run,
+    or of ``R`` runs at once: the step Algorithm 2 takes, :func:`mixedrl.algorithms.algorithm2.iteration`).
 
     .. math:: w^{k+1} = w^k - \\alpha\\, \\partial J_{\\rm critic} / \\partial w
 
@@ -404,39 +406,45 @@ def critic_step(task: Any, critic: torch.nn.Module, actor: torch.nn.Module, opti
     ----------
     task : Task
         Model and utility.
-    critic : torch.nn.Module
-        ``V(x; w)``, updated in place.
-    actor : torch.nn.Module
+    critic : torch.nn.Module or StackedNetwork
+        ``V(x; w)``, updated in place (``R`` runs: their stacked critics).
+    actor : torch.nn.Module or StackedNetwork
         ``pi(x; theta)`` (not moved: ``u_theta`` is computed without gradient).
-    optimizer : torch.optim.Optimizer
-        Over the critic's parameters (learning rate ``alpha``).
-    s : torch.Tensor, shape (B, state_dim)
-        The batch of states (float32).
+    optimizer : torch.optim.Optimizer or Descent
+        One run: the optimiser over the critic's parameters (learning rate ``alpha``), with ``grad_clip``;
+        ``R`` runs: their :class:`mixedrl.schedule.Descent` (each run's optimiser and clip).
+    s : torch.Tensor, shape (R B, state_dim)
+        The batch of states (float32), run ``r``'s in rows ``r B .. (r + 1) B - 1``.
     offsets, weights : torch.Tensor
-        Quadrature of ``xi_hat_k``, shapes ``(P, state_dim)`` (or ``(P, B, state_dim)``) and ``(P,)``.
-    grad_clip : float
-        Largest gradient norm.
+        Quadrature of ``xi_hat_k``, shapes ``(P, state_dim)`` (or ``(P, R B, state_dim)``) and ``(P,)``
+        (or ``(P, R B)``).
+    grad_clip : float, optional
+        Largest gradient norm (with an optimizer; a ``Descent`` holds its own).
     relative_offset : float or None, optional
-        See :func:`critic_loss`.
+        Departure hook *state weights* (:mod:`mixedrl.departures.state_weights`); see :func:`critic_loss`.
     steps : int, optional
-        Model steps of the target (:func:`h_steps`); 1 = eq. (37), the paper's.
+        Departure hook *Bellman steps*: model steps of the target (:func:`h_steps`); 1 = eq. (37), the paper's.
     target_critic : callable, optional
-        See :func:`critic_loss`.
+        Departure hook *target values* (:mod:`mixedrl.departures.critic_target`); see :func:`critic_loss`.
+    runs : int, optional
+        ``R``.
+    active : list of int, optional
+        The runs that step (default all).
 
     Returns
     -------
-    float
-        The critic loss before the step.
+    torch.Tensor, shape () or (R,)
+        The critic loss before the step, detached.
 
     Notes
     -----
-    The step is Adam's in :class:`mixedrl.algorithms.agpi.AGPI` (learning rate decayed linearly), with
-    the gradient norm clipped at ``grad_clip``; the paper writes plain gradient descent.
+    The step is Adam's (learning rate decayed linearly, :mod:`mixedrl.departures.schedule`), with the gradient
+    norm clipped at ``grad_clip``; the paper writes plain gradient descent.
     """
+    step = optimizer if isinstance(optimizer, Descent) else Descent.single(critic, optimizer, grad_clip)
     with torch.no_grad():
         u = actor(task.observe(s))
-    loss = critic_loss(task, critic, s, u, offsets, weights, relative_offset, actor, steps, target_critic=target_critic)
-    params = list(critic.parameters())
-    # w^{k+1} = w^k - alpha dJ_critic/dw   (Adam)
-    descend(loss, params, [params], [optimizer], [grad_clip])
-    return float(loss.detach())
+    loss = critic_loss(task, critic, s, u, offsets, weights, relative_offset, actor, steps, runs, target_critic)
+    # w^{k+1} = w^k - alpha dJ_critic/dw   (Adam, per run)
+    step(loss, active)
+    return loss.detach()

@@ -23,7 +23,7 @@ import torch
 from mixedrl.checks import as_vector, check_number
 from mixedrl.expectation import h_value
 from mixedrl.pev import check_runs, h_steps, run_mean
-from mixedrl.schedule import descend
+from mixedrl.schedule import Descent
 from mixedrl.quadratic import AffinePolicy, LinearDynamics, QuadraticCost, QuadraticValue, check_problem
 
 __all__ = ["improve_policy", "ExactPIM", "pim_step", "actor_objective", "actor_step", "MVCResult", "MVCTerms", "mvc_terms", "mvc_check"]
@@ -207,10 +207,12 @@ def actor_objective(task: Any, critic: torch.nn.Module, actor: torch.nn.Module, 
     return run_mean(rho * h, runs) / scale
 
 
-def actor_step(task: Any, critic: torch.nn.Module, actor: torch.nn.Module, optimizer: torch.optim.Optimizer,
-               s: torch.Tensor, offsets: torch.Tensor, weights: torch.Tensor, grad_clip: float,
-               relative_offset: float | None = None, steps: int = 1) -> float:
-    """Implements eqs. (51)-(52): PIM, one gradient step of the actor under ``xi_hat_k``.
+def actor_step(task: Any, critic: Callable[..., torch.Tensor], actor: Callable[..., torch.Tensor],
+               optimizer: torch.optim.Optimizer | Descent, s: torch.Tensor, offsets: torch.Tensor,
+               weights: torch.Tensor, grad_clip: float | None = None, relative_offset: float | None = None,
+               steps: int = 1, *, runs: int = 1, active: list[int] | None = None) -> torch.Tensor:
+    """Implements eqs. (51)-(52): PIM, one gradient step of the actor under ``xi_hat_k`` (of one run, or of
+    ``R`` runs at once: the step Algorithm 2 takes, :func:`mixedrl.algorithms.algorithm2.iteration`).
 
     .. math:: \\theta^{k+1} = \\theta^k - \\beta\\, \\partial J_{\\rm actor} / \\partial \\theta
 
@@ -218,44 +220,50 @@ def actor_step(task: Any, critic: torch.nn.Module, actor: torch.nn.Module, optim
     ----------
     task : Task
         Model ``f`` (differentiable), utility, ``gamma``.
-    critic : torch.nn.Module
-        ``V^k`` (frozen during the step).
-    actor : torch.nn.Module
+    critic : torch.nn.Module or callable
+        ``V^k``, frozen during the step (a module's parameters are set not to require a gradient while the
+        step is taken; ``R`` runs: :meth:`mixedrl.algorithms.batched.StackedNetwork.frozen`).
+    actor : torch.nn.Module or StackedNetwork
         ``pi(x; theta)``, updated in place.
-    optimizer : torch.optim.Optimizer
-        Over the actor's parameters (learning rate ``beta``).
-    s : torch.Tensor, shape (B, state_dim)
+    optimizer : torch.optim.Optimizer or Descent
+        One run: the optimiser over the actor's parameters (learning rate ``beta``), with ``grad_clip``;
+        ``R`` runs: their :class:`mixedrl.schedule.Descent`.
+    s : torch.Tensor, shape (R B, state_dim)
         The batch of states (float32).
     offsets, weights : torch.Tensor
-        Quadrature of ``xi_hat_k``, shapes ``(P, state_dim)`` (or ``(P, B, state_dim)``) and ``(P,)``.
-    grad_clip : float
-        Largest gradient norm.
+        Quadrature of ``xi_hat_k`` (see :func:`mixedrl.pev.critic_step`).
+    grad_clip : float, optional
+        Largest gradient norm (with an optimizer).
     relative_offset : float or None, optional
-        See :func:`actor_objective`.
+        Departure hook *state weights*; see :func:`actor_objective`.
     steps : int, optional
-        See :func:`actor_objective`.
+        Departure hook *Bellman steps*; see :func:`actor_objective`.
+    runs : int, optional
+        ``R``.
+    active : list of int, optional
+        The runs that step (default all).
 
     Returns
     -------
-    float
-        The actor objective before the step.
+    torch.Tensor, shape () or (R,)
+        The actor objective before the step, detached.
 
     Notes
     -----
-    Adam in :class:`mixedrl.algorithms.agpi.AGPI` (decayed linearly) with gradient clipping. The
-    critic's weights are frozen during the step (``requires_grad=False``), so only ``theta`` moves.
+    Adam (``actor_lr`` decayed linearly) with gradient clipping; the paper writes plain gradient descent.
     """
-    for p in critic.parameters():
+    step = optimizer if isinstance(optimizer, Descent) else Descent.single(actor, optimizer, grad_clip)
+    frozen = list(critic.parameters()) if isinstance(critic, torch.nn.Module) else []
+    for p in frozen:
         p.requires_grad_(False)
     try:
-        obj = actor_objective(task, critic, actor, s, offsets, weights, relative_offset, steps)
-        params = list(actor.parameters())
-        # theta^{k+1} = theta^k - beta dJ_actor/dtheta   (Adam)
-        descend(obj, params, [params], [optimizer], [grad_clip])
+        obj = actor_objective(task, critic, actor, s, offsets, weights, relative_offset, steps, runs)
+        # theta^{k+1} = theta^k - beta dJ_actor/dtheta   (Adam, per run)
+        step(obj, active)
     finally:
-        for p in critic.parameters():
+        for p in frozen:
             p.requires_grad_(True)
-    return float(obj.detach())
+    return obj.detach()
 
 
 # ----------------------------------------------------------------------------------------------------

@@ -76,6 +76,7 @@ from mixedrl.checkpoint import (atomic_write_bytes, atomic_write_text, default_f
                                 write_with_digest)
 from mixedrl.checks import check_finite_metrics, check_positive_int
 from mixedrl.config import ANCHORED_FEEDFORWARDS, TrainConfig, flatten_table, task_names
+from mixedrl import departures
 from mixedrl.plant import plant_transitions
 from mixedrl.precision import run_policy_gap
 from mixedrl.tasks import Task, task_from_config
@@ -1237,6 +1238,8 @@ def summarize(trainer: Any, rows: list[dict[str, Any]], elapsed: float, seeds: l
         results["true_transitions"] = None if count is None else int(count)
         results["plant_transitions"] = plant_transitions(trainer)
     if hasattr(trainer, "noise"):
+        # the departures from the paper's Algorithm 2 the run used (mixedrl.departures; [] = the paper's)
+        results["departures"] = departures.used(cfg)
         # the planning noise at the end (for a state-dependent source its mean over the last batch)
         mean, cov = trainer.noise_moments()
         results["final_ibe_mean"] = np.asarray(mean, dtype=float).tolist()

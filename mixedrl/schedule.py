@@ -9,7 +9,7 @@ from typing import Sequence
 
 from mixedrl.config import TrainConfig
 
-__all__ = ["lr_factor", "set_learning_rates", "descend"]
+__all__ = ["lr_factor", "set_learning_rates", "descend", "Descent"]
 
 
 def lr_factor(config: TrainConfig, k: int) -> float:
@@ -104,3 +104,36 @@ def descend(loss: torch.Tensor, leaves: Sequence[torch.Tensor], run_params: Sequ
         optimizers[r].step()
         for p in params:
             p.grad = None
+
+
+class Descent:
+    """The gradient steps of one network of ``R`` runs (``R = 1`` included): :func:`descend` bound to the
+    tensors, the runs' optimisers and their gradient clips.
+
+    Parameters
+    ----------
+    leaves : sequence of torch.Tensor
+        The tensors the gradient is taken with respect to (one run: its parameters; ``R`` stacked runs:
+        the stacked parameters, :class:`mixedrl.algorithms.batched.StackedNetwork`).
+    run_params : sequence of sequences of torch.Tensor
+        Per run, its parameters in the order of ``leaves``.
+    optimizers : sequence of torch.optim.Optimizer
+        Per run, its optimiser.
+    grad_clips : sequence of float
+        Per run, the largest gradient norm.
+    """
+
+    def __init__(self, leaves: Sequence[torch.Tensor], run_params: Sequence[Sequence[torch.Tensor]],
+                 optimizers: Sequence[torch.optim.Optimizer], grad_clips: Sequence[float]) -> None:
+        self.leaves, self.run_params = list(leaves), [list(p) for p in run_params]
+        self.optimizers, self.grad_clips = list(optimizers), list(grad_clips)
+
+    @classmethod
+    def single(cls, module: torch.nn.Module, optimizer: torch.optim.Optimizer, grad_clip: float) -> "Descent":
+        """One run's network, its optimiser and its gradient clip."""
+        params = list(module.parameters())
+        return cls(params, [params], [optimizer], [grad_clip])
+
+    def __call__(self, loss: torch.Tensor, active: Sequence[int] | None = None) -> None:
+        """Each (active) run's clipped step on its loss (shape () for one run, (R,) for ``R``): :func:`descend`."""
+        descend(loss, self.leaves, self.run_params, self.optimizers, self.grad_clips, active)

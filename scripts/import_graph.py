@@ -5,6 +5,9 @@ Usage (from the repository root)::
     python scripts/import_graph.py            # edges, then cycles and private imports; exit 1 if any
     python scripts/import_graph.py --quiet    # only the problems
 
+An *upward arrow* is an import that climbs the layers of :data:`LAYERS` (:func:`upward`): the generic
+algorithm importing a task or the evaluation yardstick, or a task importing the algorithm.
+
 Every ``import`` / ``from ... import`` statement of ``mixedrl/``, ``theory/`` and ``validation/`` counts,
 wherever it stands (module level or inside a function: a lazy import still ties the two modules
 together). An edge ``a -> b`` links two modules of these packages; ``from pkg import name`` is an edge to
@@ -132,6 +135,38 @@ def package_edges(edges: dict[str, set[str]]) -> set[tuple[str, str]]:
             if a.split(".")[0] != b.split(".")[0]}
 
 
+#: The layers of mixedrl that imports must not climb: a module of a layer imports only modules of its own or
+#: a lower layer (listed lowest first; a module matches the first prefix that names it or a package above it).
+#: ``generic`` is the paper's algorithm and its departures, which must not know any task; ``tasks`` the
+#: built-in tasks, which must not know the algorithm that trains on them; ``evaluation`` the yardsticks,
+#: which training must not import.
+LAYERS: dict[str, tuple[str, ...]] = {
+    "generic": ("mixedrl.algorithms", "mixedrl.departures", "mixedrl.pev", "mixedrl.pim", "mixedrl.expectation",
+                "mixedrl.noise", "mixedrl.schedule", "mixedrl.samplers", "mixedrl.ibe"),
+    "tasks": ("mixedrl.envs", "mixedrl.linear_task", "mixedrl.tasks"),
+    "evaluation": ("mixedrl.precision",),
+}
+#: Which layers may not import which: ``generic`` imports no task and no yardstick; a task imports no algorithm.
+FORBIDDEN: tuple[tuple[str, str], ...] = (("generic", "tasks"), ("generic", "evaluation"), ("tasks", "generic"))
+
+
+def layer(module: str) -> str | None:
+    """The layer of :data:`LAYERS` of ``module``, or ``None``."""
+    for name, prefixes in LAYERS.items():
+        if any(module == p or module.startswith(p + ".") for p in prefixes):
+            return name
+    return None
+
+
+def upward(edges: dict[str, set[str]]) -> list[tuple[str, str]]:
+    """The edges ``a -> b`` that climb: the layers of ``a`` and ``b`` are a pair of :data:`FORBIDDEN`; sorted.
+    (A task's own sampler, :mod:`mixedrl.envs.dlc_sampler`, builds on the generic :mod:`mixedrl.samplers`,
+    the extension point a task plugs into: that edge is the allowed one.)"""
+    allowed = {("mixedrl.envs.dlc_sampler", "mixedrl.samplers")}
+    return sorted((a, b) for a, bs in edges.items() for b in bs
+                  if (layer(a), layer(b)) in FORBIDDEN and (a, b) not in allowed)
+
+
 def main(argv: list[str] | None = None) -> int:
     """Print the graph and the problems; exit status 1 if there is a cycle or a private import."""
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
@@ -153,7 +188,11 @@ def main(argv: list[str] | None = None) -> int:
     print(f"private imports across modules: {len(private)}")
     for mod, source, name in private:
         print(f"  {mod}: from {source} import {name}")
-    return 1 if found or private else 0
+    up = upward(edges)
+    print(f"upward arrows (generic -> task or yardstick, task -> generic): {len(up)}")
+    for a, b in up:
+        print(f"  {a} -> {b}")
+    return 1 if found or private or up else 0
 
 
 if __name__ == "__main__":

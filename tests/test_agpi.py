@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 import torch
 
+from mixedrl.algorithms import algorithm2
 from mixedrl.algorithms.agpi import (
     AGPI,
     actor_objective,
@@ -350,7 +351,7 @@ def _params(module: torch.nn.Module) -> list[torch.Tensor]:
     return [p.detach().clone() for p in module.parameters()]
 
 
-def test_iteration_plans_with_the_current_ibe_posterior() -> None:
+def test_iteration_plans_with_the_current_ibe_posterior(monkeypatch: pytest.MonkeyPatch) -> None:
     """The GOPS-MAC bug (an estimate computed, then replaced by the prior before planning) is caught on
     what ``iteration()`` itself does: every PEV/PIM call plans with the nodes of the IBE's current
     posterior, and the critic after the iteration is the one a PEV step under the posterior gives --
@@ -367,14 +368,14 @@ def test_iteration_plans_with_the_current_ibe_posterior() -> None:
         twins[name] = AGPI(task, cfg)
         twins[name].load_state_dict(copy.deepcopy(ag.state_dict()))  # Adam's state is shared otherwise
     calls: list[tuple[str, torch.Tensor]] = []
-    for step in ("pev", "pim"):  # the steps of the iteration's engine (this run alone as a batch)
-        original = getattr(ag.engine, step)
+    for step, name in (("pev", "critic_step"), ("pim", "actor_step")):  # the steps the loop takes (eqs. 49-52)
+        original = getattr(algorithm2, name)
 
-        def spy(s, offsets, weights, active, original=original, step=step):  # noqa: ANN001
+        def spy(task, critic, actor, descent, s, offsets, weights, *args, original=original, step=step, **kw):  # noqa: ANN001
             calls.append((step, offsets.clone()))
-            return original(s, offsets, weights, active)
+            return original(task, critic, actor, descent, s, offsets, weights, *args, **kw)
 
-        setattr(ag.engine, step, spy)
+        monkeypatch.setattr(algorithm2, name, spy)
     count_before = ag.noise.count
     metrics = ag.iteration()
     # the planning nodes of every step are those of the posterior at the start of the iteration
@@ -417,7 +418,7 @@ class JumpingNoise:
         self.mean, self.count = state["mean"].copy(), state["count"]
 
 
-def test_inner_loop_takes_extra_pim_steps_while_the_mvc_fails() -> None:
+def test_inner_loop_takes_extra_pim_steps_while_the_mvc_fails(monkeypatch: pytest.MonkeyPatch) -> None:
     """Eq. (38) fails (the noise jumps by 3 in velocity): the inner loop must take PIM steps until
     j = j_max, each a real step of the actor under xi_hat_k."""
     task = LinearTask()
@@ -425,13 +426,13 @@ def test_inner_loop_takes_extra_pim_steps_while_the_mvc_fails() -> None:
                       mvc_check="all"), sampler="true_copies")
     ag = AGPI(task, cfg, noise_source=JumpingNoise())
     calls: list[torch.Tensor] = []
-    original = ag.engine.pim  # the PIM step of the iteration's engine (this run alone as a batch)
+    original = algorithm2.actor_step  # the PIM step the loop takes (eqs. 51-52)
 
-    def spy(s, offsets, weights, active):  # noqa: ANN001
+    def spy(task, critic, actor, descent, s, offsets, weights, *args, **kw):  # noqa: ANN001
         calls.append(offsets.clone())
-        return original(s, offsets, weights, active)
+        return original(task, critic, actor, descent, s, offsets, weights, *args, **kw)
 
-    ag.engine.pim = spy
+    monkeypatch.setattr(algorithm2, "actor_step", spy)
     for _ in range(2):
         calls.clear()
         metrics = ag.iteration()
@@ -465,3 +466,42 @@ def test_bellman_steps_reaches_pev_and_pim() -> None:
     objectives = {n: float(actor_objective(task, twin.critic, twin.actor, s, *nodes, None, n)) for n in (1, 3)}
     assert metrics["train/actor_objective"] == pytest.approx(objectives[3], rel=1e-6)
     assert abs(objectives[3] - objectives[1]) > 1e-3 * abs(objectives[1])
+
+
+def test_paper_preset_is_the_papers_algorithm2_and_results_list_the_departures() -> None:
+    """Issue 40: TrainConfig.preset("paper") switches every departure off (mixedrl.departures.used is empty),
+    one argument away from the library defaults, and a run's results.json lists the departures it used."""
+    from mixedrl import departures
+    from mixedrl.config import PAPER_SETTINGS
+
+    paper = TrainConfig.preset("paper", method="mixed", seed=1, task="linear")
+    assert departures.used(paper) == []
+    assert paper.sampler.name == "true_copies" and paper.algorithm.batch_weighting == "uniform"
+    library = TrainConfig(method="mixed", seed=1, task="linear")
+    assert set(departures.used(library)) >= {"schedule", "sampler", "state_weights"}
+    for d in departures.DEPARTURES:  # each departure's paper value is the one the preset sets
+        section, _, name = d.KEY.partition(".")
+        assert PAPER_SETTINGS[section][name] == d.PAPER
+    with pytest.raises(ValueError, match="preset"):
+        TrainConfig.preset("papers")
+    short = {"algorithm.iterations": 3, "algorithm.batch_size": 32, "run.eval_every": 3}
+    assert train(AGPI(LinearTask(), paper.replace(**short)), progress=False)["departures"] == []
+    assert train(AGPI(LinearTask(), library.replace(**short)), progress=False)["departures"] == departures.used(library)
+
+
+def test_the_loop_is_one_readable_function_and_the_steps_are_the_documented_ones() -> None:
+    """Issue 40: Algorithm 2 is one function of at most 150 lines (mixedrl.algorithms.algorithm2.iteration),
+    which takes its PEV and PIM steps with the functions the docs cite for eqs. 49-52, and the modules of the
+    algorithm and its departures stay under 600 lines."""
+    import inspect
+    from pathlib import Path
+
+    from mixedrl import departures, pev, pim
+
+    source = inspect.getsource(algorithm2.iteration)
+    assert len(source.splitlines()) <= 150
+    assert "critic_step(" in source and "actor_step(" in source
+    assert algorithm2.critic_step is pev.critic_step and algorithm2.actor_step is pim.actor_step
+    root = Path(algorithm2.__file__).parent
+    for path in [*root.glob("*.py"), *Path(departures.__file__).parent.glob("*.py")]:
+        assert len(path.read_text().splitlines()) <= 600, path.name

@@ -46,6 +46,15 @@ def test_core_imports_neither_theory_nor_validation() -> None:
     assert ("theory", "validation") not in edges  # theory imports only mixedrl
 
 
+def test_no_upward_arrows() -> None:
+    """Imports point one way (issue 40): the generic algorithm (algorithms, departures, PEV/PIM, samplers, ...)
+    imports no task module and not the precision yardstick; a task module imports no part of the algorithm."""
+    assert GRAPH.upward(EDGES) == []
+    assert GRAPH.upward({"mixedrl.algorithms.agpi": {"mixedrl.envs.dlc_task"}}) == [
+        ("mixedrl.algorithms.agpi", "mixedrl.envs.dlc_task")]  # the rule can fail
+    assert GRAPH.layer("mixedrl.algorithms.algorithm2") == "generic" and GRAPH.layer("mixedrl.envs.vehicle") == "tasks"
+
+
 def test_no_private_name_imported_across_modules() -> None:
     assert PRIVATE == [], "\n".join(f"{m}: from {s} import {n}" for m, s, n in PRIVATE)
 

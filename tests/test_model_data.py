@@ -12,7 +12,7 @@ import pytest
 import torch
 
 from mixedrl.algorithms.agpi import AGPI
-from mixedrl.algorithms.model_data import ModelStateSampler
+from mixedrl.samplers import ModelStateSampler
 from mixedrl.config import TrainConfig
 from mixedrl.runs import RunDirectory, make_trainer, train
 from mixedrl.tasks import LinearTask

@@ -1,22 +1,13 @@
-"""Algorithm 2: mixed RL with a parameterised critic and actor and the adaptive GPI (AGPI) loop.
+"""Algorithm 2: a run's state (:class:`AGPI`) -- task, config, generator, networks, optimisers, noise source,
+sampler, counters, checkpoint format -- and its networks (:func:`build_networks`).
 
-One outer iteration ``k`` of :class:`AGPI` (see :meth:`AGPI.iteration`) is
-
-1. **data**: the sampler chosen by ``config.sampler.name`` makes the batch ``x`` of this iteration and
-   the residuals ``xi^D`` (eq. 10) of the true transitions it drives: ``"true_copies"`` (the paper's
-   Algorithm 2) steps ``batch_size`` copies of the *true* environment once under the current policy
-   ``pi^k``, their states are the batch; a model-rollout sampler (``"model_rollouts"``, or the double
-   lane change's ``"dlc_course"``; :mod:`mixedrl.algorithms.model_data`) takes the batch from rollouts
-   of the planning model and drives a few true copies for the IBE (docs/algorithm2.rst);
-2. **PEV** (eqs. 49-50, :func:`mixedrl.pev.critic_step`): one semi-gradient step of the critic
-   ``V(x; w)`` under ``xi_hat_k``;
-3. **PIM** (eqs. 51-52, :func:`mixedrl.pim.actor_step`): one gradient step of the actor
-   ``pi(x; theta)`` under ``xi_hat_k``, gradients through the model ``f``;
-4. **IBE** (eq. 20): the noise source absorbs the residuals: ``xi_hat_k -> xi_hat_{k+1}``;
-5. **MVC loop** (eqs. 37-39, :func:`mixedrl.pim.mvc_check`, masked per run in
-   :class:`mixedrl.algorithms.batched.BatchedAGPI`): while the maximum variation condition
-   fails on the batch, one more PIM step (``j <- j + 1``), until it holds or ``j = j_max``;
-6. the stopping test ``|V^{k+1} - V^k| <= eps`` and ``|pi^{k+1} - pi^k| <= eps``.
+The loop itself, one outer iteration ``k`` (data, PEV eqs. 49-50, PIM eqs. 51-52, IBE eq. 20, the MVC loop
+eqs. 37-39, the stopping test), is :func:`mixedrl.algorithms.algorithm2.iteration`, for a run alone
+(:meth:`AGPI.iteration`, ``R = 1``) and for many runs trained as one computation
+(:class:`mixedrl.algorithms.batched.BatchedAGPI`): one loop. Its PEV and PIM steps are
+:func:`mixedrl.pev.critic_step` and :func:`mixedrl.pim.actor_step`, which :meth:`AGPI.pev` and
+:meth:`AGPI.pim` call too. The departures from the paper plug into the loop's named hooks
+(:mod:`mixedrl.departures`); ``TrainConfig.preset("paper")`` switches them all off.
 
 The noise source is the only difference between mixed RL (an IBE posterior), model-driven RL (the fixed
 prior, eq. 55) and the oracle (the fixed true noise): one algorithm, three noise sources
@@ -31,9 +22,8 @@ noise (2 points). Reparameterised samples (``rule="samples"``) are available. Be
 additive, ``f(x, u)`` is computed once per state and only ``l`` and ``V`` are evaluated at the nodes
 (``h`` of eq. 37, :func:`mixedrl.expectation.h_value`).
 
-The steps live in their own modules (:mod:`mixedrl.pev`, :mod:`mixedrl.pim`, :mod:`mixedrl.expectation`,
-:mod:`mixedrl.noise`); the names ``critic_loss``, ``actor_objective``, ``h_value``, ``expectation_nodes``,
-``mvc_check``, ``MVCResult`` and ``make_noise_source`` are re-exported here for the old import path.
+The names ``critic_loss``, ``actor_objective``, ``h_value``, ``expectation_nodes``, ``mvc_check``,
+``MVCResult`` and ``make_noise_source`` are re-exported here for the old import path.
 """
 
 from __future__ import annotations
@@ -43,20 +33,20 @@ from typing import Any
 
 import numpy as np
 import torch
-from torch.optim.swa_utils import AveragedModel, get_ema_multi_avg_fn
+from torch.optim.swa_utils import AveragedModel
 
-from mixedrl.config import AFFINE_FEEDFORWARDS, ANCHORED_FEEDFORWARDS, TrainConfig
-from mixedrl.algorithms.model_data import SAMPLER_CLASSES, has_course
-from mixedrl.envs.dlc_task import CourseSampler
+from mixedrl.config import TrainConfig
+from mixedrl.algorithms import algorithm2
+from mixedrl.samplers import SAMPLER_CLASSES
+from mixedrl.departures import actor_average, anchor, critic_target, state_weights
+from mixedrl.departures.anchor import equilibrium_gain, equilibrium_observation, feedforward_policy
 from mixedrl.expectation import expectation_nodes, h_value
 from mixedrl.networks import Actor, AffineActor, AffineAnchoredActor, AnchoredActor, Critic, QuadraticCritic
 from mixedrl.noise import make_noise_source
 from mixedrl.plant import check_plant_sampler
 from mixedrl.pev import critic_loss, critic_step
 from mixedrl.pim import MVCResult, actor_objective, actor_step, mvc_check
-from mixedrl.tasks import Task, check_task
-from mixedrl.precision import (equilibrium_gain, equilibrium_observation, feedforward_action, feedforward_policy,
-                               steady_anchor)
+from mixedrl.task_base import Task, check_task
 
 __all__ = [
     "AGPI",
@@ -128,14 +118,8 @@ class AGPI:
 
     Notes
     -----
-    Order inside one iteration (see the module docstring): the paper's loop is IBE -> PEV -> PIM -> MVC.
-    The MVC of eq. (38) needs ``xi_hat_{k+1}``, the estimate *after* the next IBE update, so the IBE
-    update is moved between PIM and the MVC loop (a cyclic shift of the paper's loop: PEV and PIM of
-    iteration ``k`` use ``xi_hat_k``, the MVC compares ``xi_hat_k`` with ``xi_hat_{k+1}``). The
-    transitions feeding the IBE are collected under ``pi^k`` at the start of the iteration.
-    The extra PIM steps of the inner loop use ``xi_hat_k`` (the distribution eq. 39 measures the
-    improvement with). With a state-dependent source (Case 3) the nodes are per state, centred at
-    ``phi(x, pi^k(x))`` (:meth:`planning_moments`).
+    The order of the steps inside one iteration (the IBE update between PIM and the MVC loop, a cyclic
+    shift of the paper's loop) is explained in :mod:`mixedrl.algorithms.algorithm2`.
     """
 
     def __init__(self, task: Task, config: TrainConfig, architecture: str = "mlp", noise_source: Any = None
@@ -152,7 +136,7 @@ class AGPI:
         # "lq_affine_ss" the AffineAnchoredActor (refresh_anchor)
         feedforward = config.algorithm.feedforward
         self._linearisation = None
-        if feedforward in ANCHORED_FEEDFORWARDS and architecture != "mlp":
+        if feedforward in anchor.ANCHORED and architecture != "mlp":
             raise ValueError(f"algorithm.feedforward: {feedforward!r} anchors the MLP actor; architecture "
                              f"{architecture!r} has none (use architecture 'mlp', or feedforward 'learned' or 'lq')")
         if feedforward != "learned":
@@ -161,10 +145,10 @@ class AGPI:
                 raise ValueError(f"algorithm.feedforward: {feedforward!r} needs a task with an equilibrium "
                                  f"(Task.equilibrium); task {getattr(task, 'name', type(task).__name__)!r} "
                                  f"defines none")
-        anchor = (equilibrium_observation(task, self._linearisation) if feedforward in ANCHORED_FEEDFORWARDS
-                  else None)
-        gain = equilibrium_gain(task, self._linearisation) if feedforward in AFFINE_FEEDFORWARDS else None
-        self.critic, self.actor = build_networks(task, config, self.generator, architecture, anchor, gain)
+        anchor_obs = (equilibrium_observation(task, self._linearisation) if feedforward in anchor.ANCHORED
+                      else None)
+        gain = equilibrium_gain(task, self._linearisation) if feedforward in anchor.AFFINE else None
+        self.critic, self.actor = build_networks(task, config, self.generator, architecture, anchor_obs, gain)
         self.critic_opt = torch.optim.Adam(self.critic.parameters(), lr=config.algorithm.critic_lr)
         self.actor_opt = torch.optim.Adam(self.actor.parameters(), lr=config.algorithm.actor_lr)
         # Case 1 / 2 / 3 of the IBE (config.algorithm.ibe_case; mixed RL only)
@@ -186,30 +170,25 @@ class AGPI:
         if config.sampler.name not in SAMPLER_CLASSES:
             raise ValueError(f"config: sampler.name {config.sampler.name!r} has no implementation "
                              f"(known: {sorted(SAMPLER_CLASSES)})")
-        if isinstance(config.sampler, CourseSampler) and not has_course(task):
-            raise ValueError(f"sampler.name: {config.sampler.name!r} needs a task with a course (a model with "
-                             f"initial_states and a course_length); task {type(task).__name__} has none")
+        if sampler_class is not None:
+            sampler_class.check_task(task, config)
         self.sampler = sampler_class(task, config, self.generator) if sampler_class is not None else None
-        #: The Polyak (EMA) average of the actor's weights (``config.algorithm.actor_average > 0``), else ``None``.
-        self.actor_avg: AveragedModel | None = None
         self._solo: Any = None  # the batched engine of this run alone (iteration)
-        if config.algorithm.actor_average > 0:
-            self.actor_avg = AveragedModel(self.actor, multi_avg_fn=get_ema_multi_avg_fn(config.algorithm.actor_average),
-                                           use_buffers=True)
-        #: The target critic ``V(x; w_bar)`` of PEV (``config.algorithm.critic_target > 0``: the EMA of the
-        #: critic's weights), else ``None`` (PEV's target takes the critic itself, eq. 50).
-        self.critic_target: AveragedModel | None = None
-        if config.algorithm.critic_target > 0:
-            ema = get_ema_multi_avg_fn(config.algorithm.critic_target)
-            self.critic_target = AveragedModel(self.critic, multi_avg_fn=ema, use_buffers=True)
-            self.critic_target.requires_grad_(False)
+        #: The Polyak (EMA) average of the actor's weights (departure ``algorithm.actor_average > 0``), else
+        #: ``None`` (:mod:`mixedrl.departures.actor_average`).
+        self.actor_avg: AveragedModel | None = actor_average.make(self.actor, config)
+        #: The target critic ``V(x; w_bar)`` of PEV (departure ``algorithm.critic_target > 0``: the EMA of the
+        #: critic's weights), else ``None`` (PEV's target takes the critic itself, eq. 50;
+        #: :mod:`mixedrl.departures.critic_target`).
+        self.critic_target: AveragedModel | None = critic_target.make(self.critic, config)
         self.refresh_anchor()
 
     # -------------------------------------------------------------------------------------- helpers
     @property
     def relative_offset(self) -> float | None:
-        """``batch_weight_offset`` if ``batch_weighting == "relative"``, else ``None`` (the plain batch mean)."""
-        return self.config.algorithm.batch_weight_offset if self.config.algorithm.batch_weighting == "relative" else None
+        """``batch_weight_offset`` if ``batch_weighting == "relative"``, else ``None`` (the plain batch mean):
+        :func:`mixedrl.departures.state_weights.offset`."""
+        return state_weights.offset(self.config)
 
     @property
     def learned_policy(self) -> torch.nn.Module:
@@ -218,25 +197,10 @@ class AGPI:
         return self.actor_avg.module if self.actor_avg is not None else self.actor
 
     def refresh_anchor(self) -> None:
-        """``algorithm.feedforward = "lq_train"`` or ``"lq_affine"``: anchor the actor (and its average) at
-        the LQ optimum's action ``u_ff`` (for ``"lq_affine"`` also its gain ``-L``) for the current own noise
-        moments (:func:`mixedrl.precision.feedforward_action`: the IBE posterior, the prior or the truth);
-        ``"lq_affine_ss"``: at the optimum's steady state and its action there
-        (:func:`mixedrl.precision.steady_anchor`); in
-        place, so a batch's stacked buffers follow. Called at construction, at the start of every iteration
-        (before the actor is used) and at its end (so the evaluated policy is anchored at the moments the next
-        iteration plans with). Otherwise nothing."""
-        if not isinstance(self.actor, AnchoredActor):
-            return
-        actors = [self.actor] + ([] if self.actor_avg is None else [self.actor_avg.module])
-        if self.config.algorithm.feedforward == "lq_affine_ss":
-            obs, u_ss = steady_anchor(self, self._linearisation, self.actor)
-            for actor in actors:
-                actor.set_anchor(obs, u_ss)
-        else:
-            u_ff = feedforward_action(self, self._linearisation, self.actor)
-            for actor in actors:
-                actor.set_anchor_action(u_ff)
+        """Anchor an anchored actor (and its average) at the LQ optimum for the current own noise moments
+        (:func:`mixedrl.departures.anchor.refresh`, the hook the loop calls at the start and the end of every
+        iteration; also called at construction). Otherwise nothing."""
+        anchor.refresh(self)
 
     @property
     def policy(self) -> torch.nn.Module:
@@ -250,53 +214,13 @@ class AGPI:
         return self.learned_policy
 
     def nodes(self, mean: np.ndarray, cov: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
-        """Quadrature of ``N(mean, cov)`` with this run's rule (:func:`mixedrl.expectation.expectation_nodes`).
-
-        Parameters
-        ----------
-        mean : numpy.ndarray
-            Shape (noise_dim,), or (B, noise_dim) per state.
-        cov : numpy.ndarray, shape (noise_dim, noise_dim)
-
-        Returns
-        -------
-        offsets : torch.Tensor
-            Shape (P, state_dim), or (P, B, state_dim) per state.
-        weights : torch.Tensor
-            Shape (P,).
-        """
-        return expectation_nodes(mean, cov, self.task.noise_matrix, self.config.algorithm.expectation,
-                                 self.config.algorithm.noise_samples, self.generator)
+        """Quadrature of ``N(mean, cov)`` with this run's rule: :func:`mixedrl.algorithms.algorithm2.nodes`."""
+        return algorithm2.nodes(self, mean, cov)
 
     def planning_moments(self, s: torch.Tensor, u: torch.Tensor) -> tuple[np.ndarray, np.ndarray]:
-        """The moments of ``xi_hat_k`` that PEV and PIM plan with on the batch ``s``, copies.
-
-        Parameters
-        ----------
-        s : torch.Tensor, shape (B, state_dim)
-            The batch.
-        u : torch.Tensor, shape (B, action_dim)
-            ``pi^k(s)``; used only by a state-dependent source.
-
-        Returns
-        -------
-        mean : numpy.ndarray
-            Shape (noise_dim,), or (B, noise_dim) for a state-dependent source: ``mu_hat_k``, or
-            ``phi(x, pi^k(x); w_hat_k)`` per state (Case 3).
-        cov : numpy.ndarray, shape (noise_dim, noise_dim)
-            ``K_hat_k``.
-
-        Notes
-        -----
-        For Case 3 the mean is evaluated at ``(x, pi^k(x))`` and held fixed during the iteration's PEV,
-        PIM and MVC steps, as ``xi_hat_k`` is for Cases 1 and 2: PIM does not differentiate through
-        ``phi``.
-        """
-        if self.noise.state_dependent:
-            mean = self.noise.mean_at(s.double(), u.double()).numpy()
-        else:
-            mean = self.noise.mean
-        return np.array(mean, dtype=np.float64), np.array(self.noise.cov, dtype=np.float64)
+        """The moments of ``xi_hat_k`` that PEV and PIM plan with on the batch ``s`` (``u = pi^k(s)``), copies:
+        :func:`mixedrl.algorithms.algorithm2.planning_moments`."""
+        return algorithm2.planning_moments(self, s, u)
 
     # -------------------------------------------------------------------------------------- the steps
     def collect(self) -> tuple[torch.Tensor, torch.Tensor]:
@@ -342,83 +266,39 @@ class AGPI:
         return self.sampler.true_transitions if self.sampler is not None else self.k * self.config.algorithm.batch_size
 
     def pev(self, s: torch.Tensor, offsets: torch.Tensor, weights: torch.Tensor) -> float:
-        """Implements eqs. (49)-(50): PEV, one semi-gradient step of the critic under ``xi_hat_k``.
+        """Implements eqs. (49)-(50): PEV, one semi-gradient step of this run's critic under ``xi_hat_k``
+        (:func:`mixedrl.pev.critic_step`, the step the loop takes; Adam at the current learning rate, gradient
+        norm clipped at ``grad_clip``, this run's departure hooks). Returns the critic loss before the step.
 
         .. math:: w^{k+1} = w^k - \\alpha\\, \\partial J_{\\rm critic} / \\partial w
-
-        Parameters
-        ----------
-        s : torch.Tensor, shape (B, state_dim)
-            The batch of states (float32).
-        offsets, weights : torch.Tensor
-            Quadrature of ``xi_hat_k``, shapes ``(P, state_dim)`` (or ``(P, B, state_dim)``) and ``(P,)``.
-
-        Returns
-        -------
-        float
-            The critic loss before the step (:func:`mixedrl.pev.critic_step`: Adam, learning rate
-            ``critic_lr`` decayed linearly, gradient norm clipped at ``grad_clip``).
         """
         target = None if self.critic_target is None else self.critic_target.module
-        return critic_step(self.task, self.critic, self.actor, self.critic_opt, s, offsets, weights,
-                           self.config.algorithm.grad_clip, self.relative_offset, self.config.algorithm.bellman_steps,
-                           target)
+        return float(critic_step(self.task, self.critic, self.actor, self.critic_opt, s, offsets, weights,
+                                 self.config.algorithm.grad_clip, self.relative_offset,
+                                 self.config.algorithm.bellman_steps, target))
 
     def pim(self, s: torch.Tensor, offsets: torch.Tensor, weights: torch.Tensor) -> float:
-        """Implements eqs. (51)-(52): PIM, one gradient step of the actor under ``xi_hat_k``.
+        """Implements eqs. (51)-(52): PIM, one gradient step of this run's actor under ``xi_hat_k``
+        (:func:`mixedrl.pim.actor_step`, the step the loop takes). Returns the actor objective before the step.
 
         .. math:: \\theta^{k+1} = \\theta^k - \\beta\\, \\partial J_{\\rm actor} / \\partial \\theta
-
-        Parameters
-        ----------
-        s : torch.Tensor, shape (B, state_dim)
-            The batch of states (float32).
-        offsets, weights : torch.Tensor
-            Quadrature of ``xi_hat_k``, shapes ``(P, state_dim)`` (or ``(P, B, state_dim)``) and ``(P,)``.
-
-        Returns
-        -------
-        float
-            The actor objective before the step (:func:`mixedrl.pim.actor_step`: Adam, ``actor_lr``
-            decayed linearly, gradient clipping, critic frozen).
         """
-        return actor_step(self.task, self.critic, self.actor, self.actor_opt, s, offsets, weights,
-                          self.config.algorithm.grad_clip, self.relative_offset, self.config.algorithm.bellman_steps)
+        return float(actor_step(self.task, self.critic, self.actor, self.actor_opt, s, offsets, weights,
+                                self.config.algorithm.grad_clip, self.relative_offset,
+                                self.config.algorithm.bellman_steps))
 
     def ibe(self, residuals: torch.Tensor) -> None:
-        """Implements eq. (20): the IBE update ``[mu_k, K_k] = IBE(mu_{k-1}, K_{k-1}, xi^D_k)`` (eq. 13).
-
-        Parameters
-        ----------
-        residuals : torch.Tensor, shape (M, noise_dim)
-            The residuals of eq. (10) collected this iteration (float64).
-
-        Notes
-        -----
-        A fixed source (model-driven RL, oracle: ``learns = False``) is left as it is. A state-dependent
-        source (Case 3, eq. 19) gets the transitions' states and actions too (:attr:`transitions`).
-        """
-        if residuals.shape[0] == 0 or not self.noise.learns:
-            return
-        if self.noise.state_dependent:
-            x, u = self.transitions
-            self.noise.update(x.numpy(), u.numpy(), residuals.numpy())
-        else:
-            self.noise.update(residuals.numpy())
+        """Implements eq. (20): the IBE update of this run's noise source (:func:`mixedrl.algorithms.algorithm2.ibe`)."""
+        algorithm2.ibe(self.noise, residuals, self.transitions)
 
     def iteration(self) -> dict[str, float]:
-        """Implements Algorithm 2, one outer iteration ``k``: data, PEV, PIM, IBE, MVC loop, stopping test.
+        """Implements Algorithm 2, one outer iteration ``k``: data, PEV, PIM, IBE, MVC loop, stopping test
+        (:func:`mixedrl.algorithms.algorithm2.iteration` with this run alone, ``R = 1``).
 
         Returns
         -------
         dict
             This iteration's metrics (namespaced keys, see :mod:`mixedrl.runs`).
-
-        Notes
-        -----
-        See the class Notes for the order of the steps and :func:`mixedrl.pim.mvc_check` for the batch
-        form of the MVC. The iteration is :class:`mixedrl.algorithms.batched.BatchedAGPI`'s with this one
-        run (``R = 1``): one implementation for a run alone and for many runs at once.
         """
         return self.engine.iteration()[0]
 
@@ -431,49 +311,6 @@ class AGPI:
 
             self._solo = BatchedAGPI([self])
         return self._solo
-
-    def _finish_iteration(self, s: torch.Tensor, residuals: torch.Tensor, v_before: torch.Tensor,
-                          v_after: torch.Tensor, u_old: torch.Tensor, u_new: torch.Tensor, mvc: MVCResult, j: int,
-                          critic_loss_value: float, actor_obj: float) -> dict[str, float]:
-        """The end of iteration ``k`` (after the MVC loop): the stopping test, the actor average, ``k + 1``
-        and the metrics row (:meth:`iteration`; the batched engine calls it per run)."""
-        cfg = self.config
-        # stopping test: |V^{k+1} - V^k| <= eps and |pi^{k+1} - pi^k| <= eps on the batch
-        with torch.no_grad():
-            dv = float((v_after - v_before).abs().mean() / (v_before.abs().mean() + 1e-12))
-            dpi = float(((u_new - u_old) / self.actor_bound_tensor()).abs().mean())
-        if cfg.algorithm.stop_epsilon > 0 and dv <= cfg.algorithm.stop_epsilon and dpi <= cfg.algorithm.stop_epsilon:
-            self.stop_count += 1
-        else:
-            self.stop_count = 0
-        self.stopped = cfg.algorithm.stop_epsilon > 0 and self.stop_count >= cfg.algorithm.stop_patience
-        if self.actor_avg is not None:  # theta_bar <- beta theta_bar + (1 - beta) theta^{k+1}
-            self.actor_avg.update_parameters(self.actor)
-        if self.critic_target is not None:  # w_bar <- beta w_bar + (1 - beta) w^{k+1}   (algorithm.critic_target)
-            self.critic_target.update_parameters(self.critic)
-        self.refresh_anchor()
-        self.k += 1
-        self.last_batch = s
-        metrics = {
-            "train/critic_loss": critic_loss_value,
-            "train/actor_objective": actor_obj,
-            "train/value_mean": float(v_before.mean()),
-            "train/value_change": dv,
-            "train/policy_change": dpi,
-            "mvc/held": float(mvc.held),
-            "mvc/fraction_states": mvc.fraction,
-            "mvc/lhs_mean": mvc.lhs_mean,
-            "mvc/e_mean": mvc.e_mean,
-            "mvc/e_nonnegative": mvc.e_nonnegative,
-            "mvc/inner_steps": float(j),
-        }
-        metrics["data/true_transitions"] = float(self.true_transitions)
-        metrics.update(self.noise_metrics())
-        if residuals.shape[0] > 0:
-            batch_mean = residuals.mean(dim=0).numpy()
-            for key in [k for k in metrics if k.startswith("ibe/mean_") and k[9:].isdigit()]:
-                metrics[f"ibe/batch_mean_{key[9:]}"] = float(batch_mean[int(key[9:])])
-        return metrics
 
     def noise_moments(self) -> tuple[np.ndarray, np.ndarray]:
         """Copies of the current ``(mu_hat, K_hat)``, shapes (noise_dim,), (noise_dim, noise_dim).
@@ -529,10 +366,14 @@ class AGPI:
             "stop_count": self.stop_count,
             "stopped": self.stopped,
             "evaluation_transitions": self.task.evaluation_transitions,
-            **({"sampler": self.sampler.state_dict()} if self.sampler is not None else {}),
-            **({"actor_avg": self.actor_avg.state_dict()} if self.actor_avg is not None else {}),
-            **({"critic_target": self.critic_target.state_dict()} if self.critic_target is not None else {}),
+            **{key: part.state_dict() for key, part in self.plug_ins().items()},
         }
+
+    def plug_ins(self) -> dict[str, Any]:
+        """The run's parts that departures add, by checkpoint key: ``sampler`` (a model-rollout sampler),
+        ``actor_avg`` (averaging), ``critic_target`` (target values); only those the run has."""
+        parts = {"sampler": self.sampler, "actor_avg": self.actor_avg, "critic_target": self.critic_target}
+        return {key: part for key, part in parts.items() if part is not None}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         """Restore :meth:`state_dict`.
@@ -544,12 +385,7 @@ class AGPI:
         """
         missing = {"k", "critic", "actor", "critic_opt", "actor_opt", "generator", "states", "steps", "noise",
                    "stop_count", "stopped"} - set(state)
-        if self.sampler is not None and "sampler" not in state:
-            missing.add("sampler")
-        if self.actor_avg is not None and "actor_avg" not in state:
-            missing.add("actor_avg")
-        if self.critic_target is not None and "critic_target" not in state:
-            missing.add("critic_target")
+        missing |= set(self.plug_ins()) - set(state)
         if missing:
             raise ValueError(f"state: missing keys {sorted(missing)}")
         if tuple(state["states"].shape) != tuple(self.states.shape):
@@ -562,10 +398,9 @@ class AGPI:
             self.actor.load_state_dict(state["actor"])
             self.critic_opt.load_state_dict(state["critic_opt"])
             self.actor_opt.load_state_dict(state["actor_opt"])
-            if self.actor_avg is not None:
-                self.actor_avg.load_state_dict(state["actor_avg"])
-            if self.critic_target is not None:
-                self.critic_target.load_state_dict(state["critic_target"])
+            for key, part in self.plug_ins().items():
+                if key != "sampler":  # the averages (the sampler is restored above)
+                    part.load_state_dict(state[key])
         except (RuntimeError, KeyError) as exc:
             raise ValueError(f"state: weights do not match the networks ({exc})") from None
         self.generator.set_state(state["generator"])

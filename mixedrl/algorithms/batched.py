@@ -13,14 +13,18 @@ checkpoint format and run directory; what is shared is the arithmetic:
   PEV (eq. 49), PIM (eq. 51) and the three ``h`` of the MVC (eqs. 37-39) are evaluated once for all
   runs, with each run's own quadrature of its own ``xi_hat_k`` (per-state offsets and weights,
   summed node by node: :func:`mixedrl.expectation.weighted_sum`);
-* the losses are per run (``runs=R`` of :func:`mixedrl.pev.critic_loss` and
-  :func:`mixedrl.pim.actor_objective`) and each run takes its own clipped Adam step
-  (:func:`mixedrl.schedule.descend`); the MVC inner loop is masked: a run whose condition holds (or
+* the losses are per run (``runs=R`` of :func:`mixedrl.pev.critic_step` and
+  :func:`mixedrl.pim.actor_step`) and each run takes its own clipped Adam step
+  (:class:`mixedrl.schedule.Descent`); the MVC inner loop is masked: a run whose condition holds (or
   whose ``j`` reached ``j_max``) takes no more steps while the others do.
+
+The loop itself is :func:`mixedrl.algorithms.algorithm2.iteration` (:meth:`BatchedAGPI.iteration`); this
+module only stacks the runs (:class:`StackedNetwork`, the joined quadrature, the rows of each run).
 
 Everything a run draws at random (its sampler's rollouts and true transitions, sampled quadrature) comes
 from its own generator, in the order of a run alone. ``R = 1`` is the single run: the member's own
-modules are called (no ``vmap``) and :meth:`AGPI.iteration` is ``BatchedAGPI([run]).iteration()[0]``.
+modules are called (no ``vmap``) and :meth:`AGPI.iteration` is ``BatchedAGPI([run]).iteration()[0]``: the
+same loop.
 
 Reproducibility (measured, ``tests/test_batched.py``): for ``R >= 2`` the batched kernels give every run
 the same bits whatever else shares the batch (the same config and seed give the same weights in any
@@ -38,11 +42,9 @@ from typing import Any, Callable, Sequence
 import torch
 from torch.func import functional_call, stack_module_state, vmap
 
-from mixedrl.config import ANCHORED_FEEDFORWARDS
-from mixedrl.expectation import h_value
-from mixedrl.pev import critic_loss
-from mixedrl.pim import actor_objective, mvc_check
-from mixedrl.schedule import descend, set_learning_rates
+from mixedrl.algorithms import algorithm2
+from mixedrl.departures.anchor import ANCHORED
+from mixedrl.schedule import Descent, descend
 
 __all__ = ["BatchedAGPI", "BatchedRuns", "StackedNetwork", "SHARED_FIELDS", "DDPG_SHARED_FIELDS", "batch_key"]
 
@@ -85,9 +87,9 @@ def batch_key(config: Any) -> tuple[Any, ...]:
 
 def _anchored(config: Any) -> bool:
     """The anchored actor class the run trains (``algorithm.feedforward`` in
-    :data:`~mixedrl.config.ANCHORED_FEEDFORWARDS`: other buffers, another forward), else ``""``."""
+    :data:`~mixedrl.departures.anchor.ANCHORED`: other buffers, another forward), else ``""``."""
     ff = config.algorithm.feedforward
-    return ff if ff in ANCHORED_FEEDFORWARDS else ""
+    return ff if ff in ANCHORED else ""
 
 
 class StackedNetwork:
@@ -168,7 +170,7 @@ def _check_members(members: Sequence[AGPI]) -> None:
     if len(members) == 0:
         raise ValueError("members: expected at least one AGPI run, got none")
     for i, m in enumerate(members):
-        if not all(hasattr(m, a) for a in ("critic_opt", "actor_opt", "collect", "nodes", "_finish_iteration")):
+        if not all(hasattr(m, a) for a in ("critic_opt", "actor_opt", "collect", "noise", "critic_target")):
             raise ValueError(f"members: entry {i} is a {type(m).__name__}, not an AGPI run (DDPG runs train in a "
                              f"BatchedDDPG)")
     check_shared(members, SHARED_FIELDS)
@@ -277,7 +279,8 @@ class BatchedRuns:
 
 
 class BatchedAGPI(BatchedRuns):
-    """Algorithm 2 for ``R`` runs at once (see the module docstring).
+    """``R`` runs of Algorithm 2 stacked as one computation; :meth:`iteration` is
+    :func:`mixedrl.algorithms.algorithm2.iteration` (the paper's loop) on them.
 
     Parameters
     ----------
@@ -297,16 +300,25 @@ class BatchedAGPI(BatchedRuns):
     def __init__(self, members: Sequence[AGPI]) -> None:
         super().__init__(members)
         algo = self.members[0].config.algorithm
-        self.steps = algo.bellman_steps
         self._filler: torch.Tensor | None = None
-        #: The runs' target critics ``V(x; w_bar)`` stacked (``algorithm.critic_target > 0``), else ``None``.
-        #: The EMA updates each run's target in place (:meth:`AGPI._finish_iteration`), which the stacked
-        #: views follow.
+        #: The runs' target critics ``V(x; w_bar)`` stacked (departure ``algorithm.critic_target > 0``), else
+        #: ``None``. The EMA updates each run's target in place (:mod:`mixedrl.departures.critic_target`),
+        #: which the stacked views follow.
         self.critic_target = (StackedNetwork([m.critic_target.module for m in self.members], self.batch)
                               if algo.critic_target > 0 else None)
+        #: Each run's clipped Adam step of its critic / its actor (:class:`mixedrl.schedule.Descent`).
+        self.critic_descent = Descent(self.critic.leaves, self._critic_params, [m.critic_opt for m in self.members],
+                                      [m.config.algorithm.grad_clip for m in self.members])
+        self.actor_descent = Descent(self.actor.leaves, self._actor_params, [m.actor_opt for m in self.members],
+                                     [m.config.algorithm.grad_clip for m in self.members])
 
-    # -------------------------------------------------------------------------------------- helpers
-    def _placeholder(self, m: AGPI) -> torch.Tensor:
+    def iteration(self, active: Sequence[bool] | None = None) -> list[dict[str, float] | None]:
+        """Implements Algorithm 2, one outer iteration of every active run:
+        :func:`mixedrl.algorithms.algorithm2.iteration` (see there; ``active``: which runs iterate)."""
+        return algorithm2.iteration(self, active)
+
+    # -------------------------------------------------------------------------------------- stacking
+    def placeholder(self, m: AGPI) -> torch.Tensor:
         """A batch for a run that does not iterate (its last batch): it fills its rows, its results are unused."""
         if m.last_batch is not None:
             return m.last_batch
@@ -314,7 +326,7 @@ class BatchedAGPI(BatchedRuns):
             self._filler = self.task.sample_initial(self.batch, torch.Generator().manual_seed(0)).float()
         return self._filler
 
-    def _join(self, nodes: list[tuple[torch.Tensor, torch.Tensor]]) -> tuple[torch.Tensor, torch.Tensor]:
+    def join(self, nodes: list[tuple[torch.Tensor, torch.Tensor]]) -> tuple[torch.Tensor, torch.Tensor]:
         """The runs' quadratures as one, per state: offsets (P, R B, n) and weights (P, R B), run ``r``'s
         nodes on its rows; a run with fewer nodes than ``P`` repeats its first node with weight 0."""
         if self.runs == 1:
@@ -331,130 +343,6 @@ class BatchedAGPI(BatchedRuns):
             weights.append(w[:, None].expand(size, self.batch))
         return torch.cat(offsets, dim=1), torch.cat(weights, dim=1)
 
-    def _slice(self, r: int) -> slice:
+    def rows(self, r: int) -> slice:
+        """The rows of run ``r`` in the stacked batch: ``r B .. (r + 1) B - 1``."""
         return slice(r * self.batch, (r + 1) * self.batch)
-
-    def pev(self, s: torch.Tensor, offsets: torch.Tensor, weights: torch.Tensor, active: list[int]) -> list[float]:
-        """Eqs. (49)-(50) for every run: one semi-gradient step of each active run's critic (its own Adam)."""
-        with torch.no_grad():
-            u = self.actor(self.task.observe(s))
-        rel = self.members[0].relative_offset
-        loss = critic_loss(self.task, self.critic, s, u, offsets, weights, rel, self.actor, self.steps, self.runs,
-                           self.critic_target)
-        # w^{k+1} = w^k - alpha dJ_critic/dw   (Adam, per run)
-        self.descend_critics(loss, active)
-        return [float(v) for v in loss.detach().reshape(-1)]
-
-    def pim(self, s: torch.Tensor, offsets: torch.Tensor, weights: torch.Tensor, active: list[int]) -> list[float]:
-        """Eqs. (51)-(52) for every run: one gradient step of each active run's actor, critics frozen."""
-        rel = self.members[0].relative_offset
-        # theta^{k+1} = theta^k - beta dJ_actor/dtheta   (Adam, per run)
-        obj = self.descend_actors(lambda critic: actor_objective(self.task, critic, self.actor, s, offsets, weights,
-                                                                 rel, self.steps, self.runs), active)
-        return [float(v) for v in obj.reshape(-1)]
-
-    # -------------------------------------------------------------------------------------- the iteration
-    def iteration(self, active: Sequence[bool] | None = None) -> list[dict[str, float] | None]:
-        """Implements Algorithm 2, one outer iteration of every active run (see :meth:`AGPI.iteration`).
-
-        Parameters
-        ----------
-        active : sequence of bool, optional
-            Which runs iterate (default: all). An inactive run (budget reached, stopped) draws nothing,
-            takes no step and returns ``None``.
-
-        Returns
-        -------
-        list
-            Per run its metrics row (the keys of :meth:`AGPI.iteration`), or ``None`` if inactive.
-        """
-        flags, on = self.active_runs(active)
-        if not on:
-            return [None] * self.runs
-        task = self.task
-        batches: list[torch.Tensor] = []
-        residuals: list[torch.Tensor | None] = []
-        for r, m in enumerate(self.members):
-            if flags[r]:
-                m.refresh_anchor()  # algorithm.feedforward = "lq_train": u_ff of xi_hat_k, before the actor is used
-                set_learning_rates(m.config, m.k, m.critic_opt, m.actor_opt)
-                s_r, xi_r = m.collect()
-                batches.append(s_r)
-                residuals.append(xi_r)
-            else:
-                batches.append(self._placeholder(m))
-                residuals.append(None)
-        s = batches[0] if self.runs == 1 else torch.cat(batches)
-        obs = task.observe(s)
-        with torch.no_grad():
-            v_before = self.critic(obs)
-            u_old = self.actor(obs)
-        u_runs = [u_old[self._slice(r)] for r in range(self.runs)]
-
-        def quadrature() -> tuple[torch.Tensor, torch.Tensor]:
-            nodes = [m.nodes(*m.planning_moments(batches[r], u_runs[r])) if flags[r] else None
-                     for r, m in enumerate(self.members)]
-            fill = nodes[on[0]]
-            return self._join([n if n is not None else fill for n in nodes])
-
-        # xi_hat_k: each run's current IBE posterior (the prior only before any data)
-        nodes_k = quadrature()
-        # PEV with xi_hat_k
-        critic_losses = self.pev(s, *nodes_k, on)
-        # PIM with xi_hat_k
-        actor_objs = self.pim(s, *nodes_k, on)
-        # IBE: xi_hat_k -> xi_hat_{k+1}
-        for r in on:
-            self.members[r].ibe(residuals[r])
-        nodes_next = quadrature()
-        # AGPI inner loop: repeat PIM (masked per run) until the MVC holds or j = j_max
-        outcome = self._mvc_loop(s, obs, u_old, nodes_k, nodes_next, on)
-        with torch.no_grad():
-            v_after = self.critic(obs)
-        rows: list[dict[str, float] | None] = [None] * self.runs
-        for r in on:
-            m, sl = self.members[r], self._slice(r)
-            mvc, j, u_new = outcome[r]
-            rows[r] = m._finish_iteration(batches[r], residuals[r], v_before[sl], v_after[sl], u_runs[r], u_new,
-                                          mvc, j, critic_losses[r], actor_objs[r])
-        return rows
-
-    def _mvc_loop(self, s: torch.Tensor, obs: torch.Tensor, u_old: torch.Tensor,
-                  nodes_k: tuple[torch.Tensor, torch.Tensor], nodes_next: tuple[torch.Tensor, torch.Tensor],
-                  on: list[int]) -> dict[int, tuple[Any, int, torch.Tensor]]:
-        """Implements the AGPI inner loop for every active run, masked per run: PIM steps under ``xi_hat_k``
-        until the MVC (eq. 38) holds or ``j = j_max``.
-
-        .. math::
-            h(x, u^{k+1}, \\hat\\xi_{k+1}) - h(x, u^{k+1}, \\hat\\xi_k) \\le e_k(x)
-            = h(x, u^k, \\hat\\xi_k) - h(x, u^{k+1}, \\hat\\xi_k)
-
-        Returns, per active run, ``(mvc, j, u_new)``: the last check, the extra PIM steps taken and
-        ``u^{k+1} = pi^{k+1}(x)`` on its batch.
-        """
-        task = self.task
-        critic = self.critic.frozen()
-        with torch.no_grad():
-            h_old_cur = h_value(task, critic, s, u_old, *nodes_k)
-        j = {r: 0 for r in on}
-        pending = list(on)
-        done: dict[int, tuple[Any, int, torch.Tensor]] = {}
-        while True:
-            with torch.no_grad():
-                u_new = self.actor(obs)
-                h_new_cur = h_value(task, critic, s, u_new, *nodes_k)
-                h_new_next = h_value(task, critic, s, u_new, *nodes_next)
-            still: list[int] = []
-            for r in pending:
-                sl, cfg = self._slice(r), self.members[r].config
-                mvc = mvc_check(h_new_next[sl], h_new_cur[sl], h_old_cur[sl], cfg.algorithm.mvc_check)
-                if mvc.held or j[r] >= cfg.algorithm.j_max:
-                    done[r] = (mvc, j[r], u_new[sl])
-                else:
-                    still.append(r)
-            if not still:
-                return done
-            self.pim(s, *nodes_k, still)
-            for r in still:
-                j[r] += 1
-            pending = still

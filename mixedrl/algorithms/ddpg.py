@@ -20,7 +20,7 @@ from mixedrl.config import TrainConfig
 from mixedrl.networks import Actor, QCritic
 from mixedrl.plant import check_plant_sampler
 from mixedrl.schedule import set_learning_rates
-from mixedrl.tasks import Task, check_task
+from mixedrl.task_base import Task, check_task
 
 __all__ = ["DDPG", "ReplayBuffer"]
 

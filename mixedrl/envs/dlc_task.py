@@ -14,15 +14,13 @@ imports this module; this module imports the interface from :mod:`mixedrl.task_b
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
-from typing import Any, ClassVar
+from typing import Any
 
 import numpy as np
 import torch
 
-from mixedrl.checks import check_fraction, check_nonnegative_int, check_number, check_positive_int
-from mixedrl.config import (MODEL_COURSE_STARTS, DoubleLaneChangeTaskConfig, ModelRolloutsSampler, register_preset,
-                            register_sampler)
+from mixedrl.config import DoubleLaneChangeTaskConfig, register_preset
+from mixedrl.envs.dlc_sampler import CourseSampler
 from mixedrl.envs.dlc_config import make_config
 from mixedrl.envs.evaluation import TrackingResult, evaluate_courses
 from mixedrl.envs.model import DoubleLaneChangeModel
@@ -289,76 +287,6 @@ def _course_metrics(runs: list[TrackingResult], keep_trajectory: bool) -> dict[s
 # ----------------------------------------------------------------------------------------------------
 # the double lane change's experiment: its course sampler and its preset, registered here
 # ----------------------------------------------------------------------------------------------------
-@dataclass
-class CourseSampler(ModelRolloutsSampler):
-    """``sampler.name = "dlc_course"``: the course design of the double lane change (a task with a
-    course; docs/model_based.rst). Model rollouts as :class:`ModelRolloutsSampler`, of two kinds:
-
-    * *course* copies (a fraction ``course_fraction`` of the batch) drive the course, from iteration
-      ``course_start`` on (spread over ``course_ramp`` iterations), for ``course_horizon`` steps,
-      restarting as ``course_starts`` says, and are
-      *kicked* (``kick_prob`` per step, ``kick_scale`` times ``obs_scale``) so that the batch spreads
-      around the course trajectory;
-    * *wide* copies restart from the training distribution every ``algorithm.horizon`` steps.
-
-    The true-data copies of mixed RL start at the course start and restart after ``true_horizon`` steps.
-    Dotted keys: ``sampler.<field>``.
-    """
-
-    NAME: ClassVar[str] = "dlc_course"
-
-    name: str = "dlc_course"
-    """Always ``"dlc_course"`` for this class."""
-
-    box: float = 3.0
-    """A rollout restarts when a component of its observation exceeds ``box`` times ``obs_scale``."""
-
-    true_horizon: int = 2000
-    """Steps after which a true-data copy restarts at the course start (2000 = the whole course)."""
-
-    course_fraction: float = 0.75
-    """Fraction of the batch's rollouts that drive the course (the rest are wide copies)."""
-
-    course_start: int = 500
-    """Iteration from which the course copies drive the course; before it they restart from the wide
-    distribution like the others."""
-
-    course_ramp: int = 0
-    """Iterations over which the course copies switch to the course (a departure, docs/precision.rst): 0 =
-    all at ``course_start`` (the DLC experiment's configuration); ``r > 0`` = copy ``i`` of the ``n``
-    course copies from iteration ``course_start + floor(i r / n)`` on, so the batch moves onto the course
-    gradually, at the same rate for every method."""
-
-    course_starts: str = "along"
-    """Where a course copy restarts once ``course_start`` has passed: ``"start"`` = at the course start
-    (``X = 0``), not at the course's end (a copy drives on past it until its horizon); ``"along"`` = on
-    the reference at a point drawn uniformly along the course (``X ~ U(0, course_length)``), also when it
-    passes the course's end; ``"loop"`` = at the course start, also when it passes the course's end."""
-
-    course_horizon: int = 2000
-    """Steps after which a course copy restarts (2000 = the whole double lane change)."""
-
-    kick_prob: float = 0.01
-    """Probability per step that a course copy is kicked: a uniform random offset of ``kick_scale *
-    obs_scale_i`` on each noise component is added to its state."""
-
-    kick_scale: float = 1.0
-    """Size of a kick, in units of the task's ``obs_scale``."""
-
-    def __post_init__(self) -> None:
-        super().__post_init__()
-        w = "sampler"
-        check_fraction(self.course_fraction, f"{w}.course_fraction")
-        check_fraction(self.kick_prob, f"{w}.kick_prob")
-        self.course_start = check_nonnegative_int(self.course_start, f"{w}.course_start")
-        self.course_ramp = check_nonnegative_int(self.course_ramp, f"{w}.course_ramp")
-        if self.course_starts not in MODEL_COURSE_STARTS:
-            raise ValueError(f"{w}.course_starts: expected one of {MODEL_COURSE_STARTS}, got {self.course_starts!r}")
-        self.course_horizon = check_positive_int(self.course_horizon, f"{w}.course_horizon")
-        check_number(self.kick_scale, f"{w}.kick_scale", nonneg=True)
-
-
-register_sampler(CourseSampler, tasks=("dlc",))
 
 #: The double lane change's experiment configuration (the reproduction of Table I, ``mixedrl reproduce``):
 #: the shared settings (learning rates, their decay, ``horizon``, ``value_output``, ``batch_size``, the

@@ -1,0 +1,28 @@
+"""Departure hook *state weights*: PEV and PIM weight the states of the batch by their relative error.
+
+The paper's eqs. (50) and (52) average over the batch: every state counts alike (``algorithm.batch_weighting
+= "uniform"``). With ``"relative"`` (the library default) PEV squares the relative TD error
+``(V - V_target) / (|V_target| + c)`` and PIM weights state ``x`` by ``1 / (V(x) + c)`` (batch mean 1),
+``c = algorithm.batch_weight_offset`` (:func:`mixedrl.pev.critic_loss`, :func:`mixedrl.pim.actor_objective`).
+Measured effect (docs/tuning.rst): states near the reference, whose values are small, are fitted as
+precisely in relative terms as far ones; on the double lane change the course errors fall.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+from mixedrl.config import PAPER_SETTINGS
+
+NAME = "state_weights"
+KEY = "algorithm.batch_weighting"
+PAPER = PAPER_SETTINGS["algorithm"]["batch_weighting"]
+
+
+def active(config: Any) -> bool:
+    """Whether the batch is weighted (``algorithm.batch_weighting != "uniform"``)."""
+    return config.algorithm.batch_weighting != PAPER
+
+
+def offset(config: Any) -> float | None:
+    """The hook of PEV and PIM: ``c`` of the relative weights, or ``None`` (the paper's batch mean)."""
+    return config.algorithm.batch_weight_offset if active(config) else None
