@@ -227,7 +227,8 @@ def test_records_from_a_reproduction_folder(tmp_path: Path) -> None:
 
     text = ('methods = ["mixed", "ddpg"]\nseeds = [1]\n[base]\n"algorithm.iterations" = 6\n'
             '"algorithm.batch_size" = 16\n"ddpg.warmup" = 16\n"run.eval_every" = 3\n"run.eval_seeds" = 1\n'
-            '"run.checkpoint_every" = 6\n[variants.paper]\n[variants.ddpg_long]\nmethods = ["ddpg"]\n')
+            '"run.checkpoint_every" = 6\n[variants.paper]\n[variants.ddpg_long]\nmethods = ["ddpg"]\n'
+            '"algorithm.iterations" = 9\n')  # the longer DDPG run (two equal configs are refused)
     run_sweep(parse_spec(text), tmp_path / "repro" / "sweep", workers=1, progress=False)
     for where in (tmp_path / "repro", tmp_path / "repro" / "sweep"):
         records = records_from_reproduction(where)
