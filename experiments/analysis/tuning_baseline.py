@@ -20,9 +20,11 @@ trainer: ``task="linear"`` only keeps the double lane change's preset away, the 
 
 Usage::
 
-    PYTHONPATH=. python experiments/analysis/tuning_baseline.py [--iterations 750] [--seeds 100 101 102]
+    PYTHONPATH=. python experiments/analysis/tuning_baseline.py --iterations 750
+    PYTHONPATH=. python experiments/analysis/tuning_baseline.py --methods mixed \
+        --dest experiments/results/tuning_baseline/iterations1500
 
-writes ``experiments/results/tuning_baseline/``: ``table.md``, ``rows.json`` and ``runs/<system>_<method>_<seed>.json``
+writes ``--dest`` (default ``experiments/results/tuning_baseline/``): ``table.md``, ``rows.json`` and ``per_run/<system>_<method>_<seed>.json``
 (each run's config, the task's parameters and its results without the metrics rows).
 """
 
@@ -72,7 +74,7 @@ def task_parameters(task: Any) -> dict[str, Any]:
             if not k.startswith("_") and isinstance(v, (int, float, tuple, list, np.ndarray, torch.Tensor))}
 
 
-def one_run(system: str, method: str, seed: int, iterations: int | None) -> dict[str, Any]:
+def one_run(system: str, method: str, seed: int, iterations: int | None, out: Path = OUT) -> dict[str, Any]:
     """Train one run and measure it (module docstring)."""
     task = TUNING_SYSTEMS[system]()
     algorithm = {} if iterations is None else {"iterations": iterations}
@@ -106,7 +108,7 @@ def one_run(system: str, method: str, seed: int, iterations: int | None) -> dict
            "train_seconds": results["train_seconds"], "wall_seconds": wall}
     record = {"config": config.to_dict(), "task": {"name": task.name, **task_parameters(task)},
               "results": _jsonable(results), "lqr_evaluated": lqr, "row": row}
-    runs = OUT / "runs"
+    runs = out / "per_run"
     runs.mkdir(parents=True, exist_ok=True)
     atomic_write_text(runs / f"{system}_{method}_{seed}.json", json.dumps(record, indent=1) + "\n")
     return row
@@ -133,6 +135,7 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--seeds", type=int, nargs="+", default=[100, 101, 102])
     ap.add_argument("--systems", nargs="+", default=list(TUNING_SYSTEMS), choices=list(TUNING_SYSTEMS))
     ap.add_argument("--methods", nargs="+", default=["mixed", "model"])
+    ap.add_argument("--dest", type=Path, default=OUT, help=f"output directory (default {OUT.relative_to(ROOT)})")
     args = ap.parse_args(argv)
     if any(s < 100 for s in args.seeds):
         raise SystemExit("seeds: the tuning seeds are 100 and up (0-9 belong to the targets)")
@@ -141,7 +144,7 @@ def main(argv: list[str] | None = None) -> None:
     for system in args.systems:
         for method in args.methods:
             for seed in args.seeds:
-                row = one_run(system, method, seed, args.iterations)
+                row = one_run(system, method, seed, args.iterations, args.dest)
                 print(format_row(row), flush=True)
                 rows.append(row)
     refs = {s: lqr_reference(TUNING_SYSTEMS[s]()) for s in args.systems}
@@ -167,10 +170,10 @@ def main(argv: list[str] | None = None) -> None:
                          f"{np.mean([r['wall_seconds'] for r in rs]):.0f} s/run")
     lines += ["", "LQR references on the linearisation (gain, action at the equilibrium, steady state under the "
               "true mean, closed-loop spectral radius):", "", "```", json.dumps(refs, indent=1), "```"]
-    OUT.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(OUT / "table.md", "\n".join(lines) + "\n")
-    atomic_write_text(OUT / "rows.json", json.dumps(rows, indent=1) + "\n")
-    print("\n".join(lines[-(len(args.systems) * len(args.methods)) - 12:]))
+    args.dest.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(args.dest / "table.md", "\n".join(lines) + "\n")
+    atomic_write_text(args.dest / "rows.json", json.dumps(rows, indent=1) + "\n")
+    print("\n".join(line for line in lines if line.startswith("- ")))
 
 
 if __name__ == "__main__":
