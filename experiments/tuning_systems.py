@@ -69,7 +69,8 @@ class CartFriction(_OriginTask):
 
     ``E = [0, 1]^T``. Cost ``l(s', u) = e'^2 + 0.1 v'^2 + 0.01 u^2``; ``gamma = 0.97``. Equilibrium: the origin,
     ``u* = 0`` (the smooth friction is zero at ``v = 0``, so a constant force is not held by friction: the
-    controller must cancel it). The ``tanh`` makes the damping 2.5 times larger near rest than at speed.
+    controller must cancel it). The ``tanh`` makes the damping near rest 16 times that at speed (``c + F_c / v_s = 3.2``
+    against ``c = 0.2`` N s/m): the linearisation holds only for ``|v| << v_s = 0.1`` m/s.
     """
 
     state_dim = obs_dim = 2
