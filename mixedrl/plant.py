@@ -20,7 +20,8 @@ simulated true copies (the ``model_rollouts`` and ``dlc_course`` samplers, :clas
 plant's ``reset``, the model's training states (``Task.sample_initial``) and the evaluation starts are
 three separate things. Every plant call is checked (:class:`CheckedPlant`): a plant that raises, returns a
 non-finite state or one of the wrong shape stops the run with a :class:`PlantError` naming the plant and
-the step; the run's last checkpoint is intact and ``--resume`` continues from it (the plant is reset).
+the step; the run's last checkpoint is intact and ``--resume`` continues from it (the plant is reset, with
+the next episode seed: the sampler's checkpoint holds the episode counter, ``plant_episodes``).
 
 Evaluation (:func:`evaluate_on_plant`) runs one plant episode per evaluation seed, sequentially, with the
 deterministic policy, and reports the task's discounted cost beside the plant's own return and

@@ -309,3 +309,55 @@ def test_evaluation_on_the_plant_is_sequential_and_counted() -> None:
     bare.plant = GymnasiumPlant(env)
     with pytest.raises(ValueError, match="task.plant: expected the list attach_plant makes, got GymnasiumPlant"):
         AGPI(bare, TrainConfig(method="mixed", task="linear", seed=0, sampler=dict(name="model_rollouts")))
+
+
+class Recorder:
+    """A plant recording the seeds of its resets."""
+
+    def __init__(self, inner: object) -> None:
+        self.inner, self.seeds = inner, []
+
+    def reset(self, seed: int | None = None) -> np.ndarray:
+        self.seeds.append(seed)
+        return self.inner.reset(seed)
+
+    def step(self, u: np.ndarray) -> np.ndarray:
+        return self.inner.step(u)
+
+
+def test_resumed_run_continues_the_plant_episode_seeds(tmp_path) -> None:
+    """Interrupted after 6 iterations and resumed to 12, a run resets its plant with the episode seeds of
+    the uninterrupted run (the counter is in the sampler's checkpoint)."""
+    from mixedrl.plant import episode_seed
+    from mixedrl.runs import eval_seeds
+
+    def run(iterations: int, path, resume: bool = False) -> list[int]:
+        plant = Recorder(GymnasiumPlant(DisturbedEnv(gym.make("Pendulum-v1"), mean=0.5)))
+        cfg = TrainConfig(method="mixed", task="linear", seed=0,
+                          algorithm=dict(iterations=iterations, batch_size=8, hidden_sizes=(8,)),
+                          sampler=dict(name="model_rollouts", true_steps=2, true_every=1, true_horizon=3),
+                          run=dict(eval_every=6, eval_seeds=1, checkpoint_every=3))
+        train(AGPI(attach_plant(PendulumV1Task(), plant), cfg), RunDirectory(path), resume=resume, progress=False)
+        evaluation = {episode_seed(s, 1, 0) for s in eval_seeds(cfg)}
+        return [s for s in plant.seeds if s not in evaluation]
+
+    whole = run(12, tmp_path / "whole")
+    first = run(6, tmp_path / "parts")
+    state = load_checkpoint(RunDirectory(tmp_path / "parts").checkpoint_path)["trainer"]["sampler"]
+    assert state["plant_episodes"] == len(first)
+    second = run(12, tmp_path / "parts", resume=True)
+    assert len(whole) > len(first) > 2 and second
+    assert first + second == whole
+    # a checkpoint without the key (older, or of a run without a plant) still loads: the seeds restart at 0
+    from mixedrl.samplers import ModelStateSampler
+
+    cfg = TrainConfig(method="mixed", task="linear", seed=0, algorithm=dict(batch_size=8),
+                      sampler=dict(name="model_rollouts"))
+    task = attach_plant(PendulumV1Task(), SimulatedPlant(PendulumV1Task()))
+    sampler = ModelStateSampler(task, cfg, torch.Generator().manual_seed(0))
+    old = {k: v for k, v in state.items() if k != "plant_episodes"}
+    old.update(states=sampler.states, steps=sampler.steps)
+    sampler.load_state_dict(old)
+    assert sampler.plant.episodes == 0 and "plant_episodes" not in sampler.state_dict()
+    with pytest.raises(ValueError, match="state: sampler plant_episodes is -1, expected an integer >= 0"):
+        sampler.load_state_dict({**old, "plant_episodes": -1})
