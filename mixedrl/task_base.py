@@ -396,6 +396,13 @@ class Task(abc.ABC):
         margin = torch.as_tensor(self.saturation_margin, dtype=torch.float64)
         return (u.double().abs() > limit - margin).any(dim=-1)
 
+    def state_error(self, s: torch.Tensor) -> torch.Tensor:
+        """The task's own error measure of states ``s`` (B, state_dim) -> (B, k) float64, which the default
+        :meth:`evaluate` reports (``mean_abs_state*``, ``mean_state_<i>``): the state itself here (the
+        offset from the origin). A task whose state is not an error overrides it (the Gymnasium pendulum,
+        :class:`~mixedrl.envs.gym_models.PendulumV1Task`: the angle wrapped into ``[-pi, pi)``)."""
+        return s
+
     def evaluate(self, policy: torch.nn.Module, seeds: list[int], horizon: int | None = None) -> dict[str, Any]:
         """Seeded rollouts of the *true* environment (:meth:`true_step`) under ``policy`` from fixed starts.
 
@@ -423,10 +430,11 @@ class Task(abc.ABC):
             Means over the seeds and starts:
 
             - ``"cost"``: discounted cost ``sum_t gamma^t l(s_{t+1}, u_t)`` of a rollout;
-            - ``"mean_abs_state"``: ``|s|`` averaged over the second half of the rollout and the state's
+            - ``"mean_abs_state"``: ``|e|`` of the task's error measure ``e = state_error(s)`` (the state
+              itself by default, :meth:`state_error`) averaged over the second half of the rollout and its
               components (the steady offset from the origin, with the noise's spread);
-            - ``"mean_abs_state_<i>"``, ``"mean_state_<i>"``: per state component ``i``, ``|s_i|`` and the
-              signed ``s_i`` over the second half (the latter is the steady offset a constant bias leaves);
+            - ``"mean_abs_state_<i>"``, ``"mean_state_<i>"``: per component ``i`` of ``e``, ``|e_i|`` and the
+              signed ``e_i`` over the second half (the latter is the steady offset a constant bias leaves);
             - ``"terminated_fraction"``: rollouts that reached a terminal state.
 
         Raises
@@ -449,8 +457,9 @@ class Task(abc.ABC):
                 s = self.sample_initial(n, gen).to(torch.float64)
                 alive = torch.ones(n, dtype=torch.bool)
                 total = torch.zeros(n, dtype=torch.float64)
-                abs_sum = torch.zeros(self.state_dim, dtype=torch.float64)
-                signed_sum = torch.zeros(self.state_dim, dtype=torch.float64)
+                width = self.state_error(s).shape[-1]
+                abs_sum = torch.zeros(width, dtype=torch.float64)
+                signed_sum = torch.zeros(width, dtype=torch.float64)
                 count = 0.0
                 for t in range(int(horizon)):
                     u = policy(self.observe(s.float())).double()
@@ -460,7 +469,7 @@ class Task(abc.ABC):
                     alive = alive & ~self.is_terminal(s_next)
                     s = torch.where(alive[:, None], s_next, s)
                     if t >= half:
-                        kept = s[alive]
+                        kept = self.state_error(s)[alive]
                         abs_sum += kept.abs().sum(dim=0)
                         signed_sum += kept.sum(dim=0)
                         count += kept.shape[0]

@@ -361,3 +361,23 @@ def test_resumed_run_continues_the_plant_episode_seeds(tmp_path) -> None:
     assert sampler.plant.episodes == 0 and "plant_episodes" not in sampler.state_dict()
     with pytest.raises(ValueError, match="state: sampler plant_episodes is -1, expected an integer >= 0"):
         sampler.load_state_dict({**old, "plant_episodes": -1})
+
+
+def test_pendulum_v1_reports_the_wrapped_angle_error() -> None:
+    """Upright after a full turn (theta = 2 pi): the default evaluation reports the task's error measure,
+    the wrapped angle (about 0), not the unwrapped state (about 6.28)."""
+    class FullTurn(PendulumV1Task):
+        def sample_initial(self, n: int, generator: torch.Generator) -> torch.Tensor:
+            return torch.tensor([[2 * math.pi + 1e-6, 0.0]], dtype=torch.float64).expand(n, 2).clone()
+
+    task = FullTurn(torque_std=0.0)
+    s = torch.tensor([[2 * math.pi + 0.1, 0.5], [-math.pi - 0.1, -1.0]], dtype=torch.float64)
+    np.testing.assert_allclose(task.state_error(s).numpy(), [[0.1, 0.5], [math.pi - 0.1, -1.0]], atol=1e-12)
+    zero = torch.nn.Linear(3, 1)
+    torch.nn.init.zeros_(zero.weight)
+    torch.nn.init.zeros_(zero.bias)
+    ev = task.evaluate(zero, [0], horizon=20)
+    assert abs(ev["mean_state_0"]) < 0.01 and ev["mean_abs_state_0"] < 0.01, ev
+    # the default measure is the state itself
+    s = torch.randn(4, 2, dtype=torch.float64)
+    assert Task.state_error(task, s) is s

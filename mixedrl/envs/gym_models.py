@@ -127,6 +127,11 @@ class PendulumV1Task(Task):
         torque = torch.clamp(u[:, 0], -2.0, 2.0)
         return angle_normalize(s_next[:, 0]) ** 2 + 0.1 * s_next[:, 1] ** 2 + 0.001 * torque**2
 
+    def state_error(self, s: torch.Tensor) -> torch.Tensor:
+        """The error the evaluation reports: ``[angle_normalize(theta), theta_dot]`` (the angle from upright,
+        wrapped into ``[-pi, pi)``, as the cost sees it; the state's angle is not wrapped)."""
+        return torch.stack([angle_normalize(s[:, 0]), s[:, 1]], dim=-1)
+
     def saturated(self, s: torch.Tensor, u: torch.Tensor) -> torch.Tensor | None:
         """:meth:`Task.saturated`, plus (with a ``saturation_margin``) the rows whose rate the model brings
         within the margin's reach (``E_rate * margin``) of the env's speed clip: a bias entering before the
