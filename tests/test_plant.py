@@ -381,3 +381,69 @@ def test_pendulum_v1_reports_the_wrapped_angle_error() -> None:
     # the default measure is the state itself
     s = torch.randn(4, 2, dtype=torch.float64)
     assert Task.state_error(task, s) is s
+
+
+# ------------------------------------------------------------------------------------------ tasks with their own evaluate
+def test_builtin_evaluations_count_their_transitions() -> None:
+    """The linear task's rollouts and the double lane change's simulated courses are evaluation transitions
+    of the simulated plant (results.json reported them as null)."""
+    from mixedrl.tasks import task_from_config
+
+    linear = task_from_config("linear")
+    policy = torch.nn.Linear(2, 1)
+    linear.evaluate(policy, [0, 1])
+    assert linear.evaluation_transitions == 2 * 64 * 100
+    dlc = task_from_config("dlc")
+    actor = torch.nn.Linear(dlc.obs_dim, 2)
+    runs = dlc.evaluate(actor, [0, 1], keep_trajectory=True)["trajectories"]
+    steps = sum(r.n_steps for r in runs)
+    assert steps > 0 and dlc.evaluation_transitions == steps
+    dlc.evaluate_many([actor, actor], [[0, 1], [0, 1]])
+    assert dlc.evaluation_transitions == 3 * steps
+    cfg = TrainConfig(method="mixed", task="linear", seed=0,
+                      algorithm=dict(iterations=2, batch_size=8, hidden_sizes=(8,)),
+                      run=dict(eval_every=2, eval_seeds=2))
+    results = train(AGPI(task_from_config("linear"), cfg), progress=False)
+    assert results["plant_transitions"]["evaluation"] == 2 * 64 * 100
+    # a batch evaluates with its first run's task: each run is credited with its own evaluations
+    from mixedrl.runs import train_batch
+
+    batch = train_batch([AGPI(task_from_config("dlc"), TrainConfig(
+        method="mixed", task="dlc", seed=s, algorithm=dict(iterations=2, batch_size=8, hidden_sizes=(8,)),
+        run=dict(eval_every=2, eval_seeds=2))) for s in (0, 1)], progress=False)
+    counts = [r["plant_transitions"]["evaluation"] for r in batch]
+    assert all(c > 0 for c in counts), counts
+
+
+def test_tasks_with_their_own_evaluate_on_a_plant() -> None:
+    """The double lane change and the linear task evaluate on an attached plant (and count it); a task whose
+    own evaluate cannot is refused at attach_plant."""
+    import mixedrl.envs  # noqa: F401  (registers the env)
+    from mixedrl.linear_task import LinearTask
+    from mixedrl.tasks import task_from_config
+
+    dlc = task_from_config("dlc")
+    bound = dlc.action_bound.double().numpy()
+    attach_plant(dlc, GymnasiumPlant(gym.make("mixedrl/DoubleLaneChange-v0"), action_fn=lambda u: u / bound))
+    actor = torch.nn.Linear(dlc.obs_dim, 2)
+    torch.nn.init.zeros_(actor.weight)
+    torch.nn.init.zeros_(actor.bias)
+    ev = dlc.evaluate(actor, [0])
+    assert set(ev) == {"cost", "plant_return", "plant_terminated_fraction", "terminated_fraction",
+                       "episode_length"}
+    assert dlc.evaluation_transitions == ev["episode_length"] > 0
+    assert dlc.evaluate_many([actor], [[0]]) == [ev]
+    linear = attach_plant(LinearTask(), SimulatedPlant(LinearTask()))
+    ev = linear.evaluate(torch.nn.Linear(2, 1), [0, 1])  # 100 steps or until the state leaves the domain
+    assert "plant_return" in ev and 0 < ev["episode_length"] <= 100
+    assert linear.evaluation_transitions == 2 * ev["episode_length"]
+
+    class OwnEvaluation(PendulumV1Task):
+        def evaluate(self, policy: torch.nn.Module, seeds: list[int], horizon: int | None = None) -> dict:
+            return {"cost": 0.0}
+
+    with pytest.raises(ValueError, match=r"evaluation: OwnEvaluation.evaluate is the task's own and cannot "
+                                         r"evaluate on a plant"):
+        attach_plant(OwnEvaluation(), SimulatedPlant(PendulumV1Task()))
+    task = attach_plant(OwnEvaluation(), SimulatedPlant(PendulumV1Task()), evaluation="simulated")
+    assert not task.counts_evaluation_transitions and PendulumV1Task.counts_evaluation_transitions
