@@ -417,6 +417,27 @@ class GymnasiumPlant:
     ------
     ValueError
         A space of ``env`` is not a ``gymnasium.spaces.Box`` (the message names it).
+
+    Examples
+    --------
+    The three environments it is documented for (``state_fn`` :func:`unwrapped_state` for each, the
+    default; docs/tutorial.rst, section 4):
+
+    .. code-block:: python
+
+       from mixedrl.envs.gym_models import MountainCarTask, PendulumV1Task
+       from mixedrl.tasks import task_from_config
+
+       # Pendulum-v1: the state [theta, theta_dot] (angle not wrapped), the torque as it is
+       pendulum = attach_plant(PendulumV1Task(), GymnasiumPlant(gym.make("Pendulum-v1")))
+       # MountainCarContinuous-v0: the state [position, velocity], the force as it is
+       car = attach_plant(MountainCarTask(), GymnasiumPlant(gym.make("MountainCarContinuous-v0")))
+       # the package's double lane change: the simulator state, the env's actions normalised
+       import mixedrl.envs  # registers mixedrl/DoubleLaneChange-v0
+       dlc = task_from_config("dlc")
+       bound = dlc.action_bound.double().numpy()
+       dlc = attach_plant(dlc, GymnasiumPlant(gym.make("mixedrl/DoubleLaneChange-v0"),
+                                              action_fn=lambda u: u / bound))
     """
 
     def __init__(self, env: Any, state_fn: Callable[[Any], np.ndarray] = unwrapped_state,
