@@ -92,6 +92,11 @@ class LinearTask(Task):
     """
 
     name = "linear"
+    #: :meth:`evaluate`: 64 starts, 100 steps (also the horizon of an evaluation on a plant).
+    eval_horizon = 100
+    eval_starts = 64
+    evaluates_on_plant = True
+    counts_evaluation_transitions = True
 
     def __init__(self, A: Any = None, B: Any = None, Q: Any = None, R: Any = None, gamma: float = 0.9,
                  true_mean: Any = None, true_cov: Any = None, prior_mean: Any = None, prior_cov: Any = None,
@@ -169,15 +174,25 @@ class LinearTask(Task):
         s = s.to(torch.float64)
         return torch.cat([torch.ones(s.shape[0], 1, dtype=torch.float64), s], dim=1)
 
-    def evaluate(self, policy: torch.nn.Module, seeds: list[int]) -> dict[str, Any]:
-        """Discounted cost of 100-step rollouts from a fixed grid of starts, averaged over ``seeds``."""
+    def evaluate(self, policy: torch.nn.Module, seeds: list[int], horizon: int | None = None) -> dict[str, Any]:
+        """Discounted cost of 100-step rollouts (``horizon``) from 64 seeded starts, averaged over ``seeds``.
+
+        Every simulated step (``64 * horizon`` per seed) is added to :attr:`evaluation_transitions`; with a
+        plant attached (:func:`mixedrl.plant.attach_plant`) the evaluation is :attr:`plant_evaluate`'s
+        (:func:`mixedrl.plant.evaluate_on_plant`, or none).
+        """
+        if self.plant_evaluate is not None:  # on the task's plant, or none
+            return self.plant_evaluate(policy, seeds, horizon)
+        horizon = int(self.eval_horizon if horizon is None else horizon)
+        n = int(self.eval_starts)
+        self.evaluation_transitions += n * horizon * len(seeds)
         costs = []
         for seed in seeds:
             gen = torch.Generator().manual_seed(int(seed))
-            s = self.sample_initial(64, gen)
-            total = torch.zeros(64, dtype=torch.float64)
+            s = self.sample_initial(n, gen)
+            total = torch.zeros(n, dtype=torch.float64)
             with torch.no_grad():
-                for t in range(100):
+                for t in range(horizon):
                     u = policy(s.float()).double()
                     s_next = self.true_step(s, u, gen)
                     total += self.gamma**t * self.cost(s_next, u)

@@ -20,12 +20,16 @@ simulated true copies (the ``model_rollouts`` and ``dlc_course`` samplers, :clas
 plant's ``reset``, the model's training states (``Task.sample_initial``) and the evaluation starts are
 three separate things. Every plant call is checked (:class:`CheckedPlant`): a plant that raises, returns a
 non-finite state or one of the wrong shape stops the run with a :class:`PlantError` naming the plant and
-the step; the run's last checkpoint is intact and ``--resume`` continues from it (the plant is reset).
+the step; the run's last checkpoint is intact and ``--resume`` continues from it (the plant is reset, with
+the next episode seed: the sampler's checkpoint holds the episode counter, ``plant_episodes``).
 
 Evaluation (:func:`evaluate_on_plant`) runs one plant episode per evaluation seed, sequentially, with the
 deterministic policy, and reports the task's discounted cost beside the plant's own return and
-termination; ``attach_plant(..., evaluation="none")`` evaluates not at all. Plant transitions are counted,
-training and evaluation separately (``results.json``: ``plant_transitions``).
+termination; ``attach_plant(..., evaluation="none")`` evaluates not at all. The tasks with their own
+evaluation (the double lane change's courses, the linear task's rollouts) evaluate on the plant too; a
+task whose own ``evaluate`` cannot (``Task.evaluates_on_plant`` False) is refused at :func:`attach_plant`
+unless ``evaluation="simulated"``. Plant transitions are counted, training and evaluation separately
+(``results.json``: ``plant_transitions``; a simulated evaluation's steps are the simulated plant's).
 
 Saturation (:meth:`mixedrl.tasks.Task.saturated`): a task may declare the actuator limit at which the
 plant clips (``Task.action_limit``, the model ``f`` applies the same clip) and a margin
@@ -48,7 +52,7 @@ import torch
 from mixedrl.task_base import Task
 
 __all__ = ["CheckedPlant", "DisturbedEnv", "GymnasiumPlant", "PLANT_EVALUATIONS", "Plant", "PlantCopies",
-           "PlantError", "SimulatedPlant", "attach_plant", "check_plant_sampler", "evaluate_on_plant", "episode_seed",
+           "PlantError", "SimulatedPlant", "attach_plant", "check_plant_sampler", "credit_evaluations", "evaluate_on_plant", "episode_seed",
            "plant_copies", "plant_transitions",
            "unwrapped_state"]
 
@@ -187,10 +191,19 @@ def attach_plant(task: Task, plant: Any, evaluation: str = "plant") -> Task:
     Raises
     ------
     ValueError
-        ``plant`` lacks ``reset``/``step`` or ``evaluation`` is unknown (the message names the argument).
+        ``plant`` lacks ``reset``/``step`` or ``evaluation`` is unknown (the message names the argument), or
+        ``evaluation`` is ``"plant"`` or ``"none"`` for a task whose own ``evaluate`` cannot run on a plant
+        (:attr:`Task.evaluates_on_plant <mixedrl.tasks.Task>` False: an override of :meth:`Task.evaluate`
+        that does not call ``task.plant_evaluate``).
     """
     if evaluation not in PLANT_EVALUATIONS:
         raise ValueError(f"evaluation: expected one of {PLANT_EVALUATIONS}, got {evaluation!r}")
+    if evaluation != "simulated" and not getattr(task, "evaluates_on_plant", True):
+        name = type(task).__name__
+        raise ValueError(f"evaluation: {name}.evaluate is the task's own and cannot evaluate on a plant (it does "
+                         f"not call task.plant_evaluate); attach with evaluation='simulated', or make "
+                         f"{name}.evaluate return self.plant_evaluate(policy, seeds, horizon) when that is set "
+                         f"and declare {name}.evaluates_on_plant = True")
     plants = list(plant) if isinstance(plant, (list, tuple)) else [plant]
     if not plants:
         raise ValueError("plant: expected a plant or a non-empty list of plants, got an empty list")
@@ -404,6 +417,27 @@ class GymnasiumPlant:
     ------
     ValueError
         A space of ``env`` is not a ``gymnasium.spaces.Box`` (the message names it).
+
+    Examples
+    --------
+    The three environments it is documented for (``state_fn`` :func:`unwrapped_state` for each, the
+    default; docs/tutorial.rst, section 4):
+
+    .. code-block:: python
+
+       from mixedrl.envs.gym_models import MountainCarTask, PendulumV1Task
+       from mixedrl.tasks import task_from_config
+
+       # Pendulum-v1: the state [theta, theta_dot] (angle not wrapped), the torque as it is
+       pendulum = attach_plant(PendulumV1Task(), GymnasiumPlant(gym.make("Pendulum-v1")))
+       # MountainCarContinuous-v0: the state [position, velocity], the force as it is
+       car = attach_plant(MountainCarTask(), GymnasiumPlant(gym.make("MountainCarContinuous-v0")))
+       # the package's double lane change: the simulator state, the env's actions normalised
+       import mixedrl.envs  # registers mixedrl/DoubleLaneChange-v0
+       dlc = task_from_config("dlc")
+       bound = dlc.action_bound.double().numpy()
+       dlc = attach_plant(dlc, GymnasiumPlant(gym.make("mixedrl/DoubleLaneChange-v0"),
+                                              action_fn=lambda u: u / bound))
     """
 
     def __init__(self, env: Any, state_fn: Callable[[Any], np.ndarray] = unwrapped_state,
@@ -502,6 +536,20 @@ class DisturbedEnv(gym.Wrapper):
         return obs, reward, terminated, truncated, info
 
 
+def credit_evaluations(trainers: Sequence[Any], task: Task, results: list[dict[str, Any]]
+                       ) -> list[dict[str, Any]]:
+    """``results`` of ``task.evaluate_many`` on the ``trainers``' policies, after moving each policy's
+    evaluation transitions (``task.last_evaluation_counts``) from ``task``, which counted them all, to its
+    trainer's own task (:func:`mixedrl.runs.evaluate_together`: a batch evaluates with its first run's task)."""
+    counts = getattr(task, "last_evaluation_counts", None)
+    if counts is not None and len(counts) == len(trainers):
+        task.evaluation_transitions -= sum(counts)
+        for trainer, count in zip(trainers, counts):
+            trainer.task.evaluation_transitions += count
+        task.last_evaluation_counts = None
+    return results
+
+
 def plant_transitions(trainer: Any) -> dict[str, Any]:
     """The plant transitions of a run (``results.json``: ``plant_transitions``).
 
@@ -509,12 +557,14 @@ def plant_transitions(trainer: Any) -> dict[str, Any]:
     -------
     dict
         ``training`` (the true transitions the IBE's data came from, ``trainer.true_transitions``),
-        ``evaluation`` (``task.evaluation_transitions``; ``None`` for a task whose own ``evaluate`` does not
-        count them) and ``plant`` (``"simulated"`` or the plant's repr).
+        ``evaluation`` (``task.evaluation_transitions``, the plant's or, with the simulated evaluation, the
+        simulated plant's: the default rollouts, the double lane change's courses, the linear task's;
+        ``None`` for a task whose own ``evaluate`` does not count them,
+        ``Task.counts_evaluation_transitions`` False) and ``plant`` (``"simulated"`` or the plant's repr).
     """
     task = trainer.task
     training = getattr(trainer, "true_transitions", None)
-    counted = type(task).evaluate is Task.evaluate or task.plant_evaluation != "simulated"
+    counted = getattr(task, "counts_evaluation_transitions", True) or task.plant_evaluation != "simulated"
     plants = getattr(task, "plant", None)
     return {"training": None if training is None else int(training),
             "evaluation": int(task.evaluation_transitions) if counted else None,

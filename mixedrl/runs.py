@@ -77,7 +77,7 @@ from mixedrl.checkpoint import (atomic_write_bytes, atomic_write_text, default_f
 from mixedrl.checks import check_finite_metrics, check_positive_int
 from mixedrl.config import ANCHORED_FEEDFORWARDS, TrainConfig, flatten_table, task_names
 from mixedrl import departures
-from mixedrl.plant import plant_transitions
+from mixedrl.plant import credit_evaluations, plant_transitions
 from mixedrl.precision import run_policy_gap
 from mixedrl.tasks import Task, task_from_config
 from mixedrl.tensorboard import TB_DIR, TensorBoardLogger
@@ -679,7 +679,8 @@ def evaluate_together(trainers: list[Any], seeds: list[list[int]], *, exact: boo
     task = _shared_task(trainers)
     if task is None:
         return [t.evaluate(s) for t, s in zip(trainers, seeds)]
-    return task.evaluate_many([t.policy for t in trainers], [list(s) for s in seeds], exact=exact)
+    return credit_evaluations(trainers, task, task.evaluate_many([t.policy for t in trainers],
+                                                                 [list(s) for s in seeds], exact=exact))
 
 
 def _scalar_eval(ev: dict[str, Any]) -> dict[str, float]:

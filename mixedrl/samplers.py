@@ -265,22 +265,35 @@ class ModelStateSampler:
 
     # ------------------------------------------------------------------------------------ checkpoints
     def state_dict(self) -> dict[str, Any]:
-        """Rollout states and clocks, true-copy states and clocks, counters."""
-        return {"states": self.states.clone(), "steps": self.steps.clone(), "true_states": self.true_states.clone(),
-                "true_steps": self.true_steps.clone(), "true_transitions": self.true_transitions,
-                "restarts": self.restarts}
+        """Rollout states and clocks, true-copy states and clocks, counters; with a plant that has started
+        episodes also ``plant_episodes`` (:attr:`PlantCopies.episodes <mixedrl.plant.PlantCopies>`, so a
+        resumed run continues the plant's episode seeds; absent while 0, so a fresh sampler's state, the
+        template a checkpoint is checked against, does not require it of older checkpoints)."""
+        state = {"states": self.states.clone(), "steps": self.steps.clone(), "true_states": self.true_states.clone(),
+                 "true_steps": self.true_steps.clone(), "true_transitions": self.true_transitions,
+                 "restarts": self.restarts}
+        if self.plant is not None and self.plant.episodes:
+            state["plant_episodes"] = self.plant.episodes
+        return state
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         """Restore :meth:`state_dict`.
 
+        A state without ``plant_episodes`` (a checkpoint of a run without a plant, or from before the key)
+        restarts the plant's episode seeds at 0.
+
         Raises
         ------
         ValueError
-            A key is missing or a tensor has the wrong shape (message starts with ``state``).
+            A key is missing, a tensor has the wrong shape or ``plant_episodes`` is not an integer >= 0
+            (message starts with ``state``).
         """
         missing = {"states", "steps", "true_states", "true_steps", "true_transitions", "restarts"} - set(state)
         if missing:
             raise ValueError(f"state: sampler is missing keys {sorted(missing)}")
+        episodes = state.get("plant_episodes", 0)
+        if isinstance(episodes, bool) or not isinstance(episodes, (int, np.integer)) or episodes < 0:
+            raise ValueError(f"state: sampler plant_episodes is {episodes!r}, expected an integer >= 0")
         for key in ("states", "steps", "true_states", "true_steps"):
             if tuple(state[key].shape) != tuple(getattr(self, key).shape):
                 raise ValueError(f"state: sampler {key} has shape {tuple(state[key].shape)}, expected "
@@ -289,6 +302,8 @@ class ModelStateSampler:
             setattr(self, key, state[key].clone())
         self.true_transitions = int(state["true_transitions"])
         self.restarts = int(state["restarts"])
+        if self.plant is not None:
+            self.plant.episodes = int(episodes)
 
 
 #: Sampler name (``TrainConfig.sampler.name``, :data:`mixedrl.config.SAMPLERS`) -> the class that makes

@@ -220,6 +220,16 @@ class Task(abc.ABC):
         (set by :func:`mixedrl.plant.attach_plant` for ``plant_evaluation`` ``"plant"`` and ``"none"``).
     evaluation_transitions : int
         Plant (or simulated plant) transitions the evaluations have used.
+    last_evaluation_counts : list of int or None
+        Per policy, the evaluation transitions of the last :meth:`evaluate_many`.
+    evaluates_on_plant : bool
+        Whether :meth:`evaluate` honours :attr:`plant_evaluate` (and so can run on a plant): True for the
+        default :meth:`evaluate`; a subclass overriding :meth:`evaluate` is taken not to unless it sets
+        the attribute itself (:func:`mixedrl.plant.attach_plant` refuses it an evaluation on the plant).
+    counts_evaluation_transitions : bool
+        Whether :meth:`evaluate` adds its transitions to :attr:`evaluation_transitions` (likewise: True
+        for the default, False for an override that does not set it; ``results.json`` then reports
+        ``plant_transitions.evaluation`` as ``null``).
     """
 
     state_dim: int
@@ -245,11 +255,18 @@ class Task(abc.ABC):
     plant_evaluation: str = "simulated"
     plant_evaluate: Callable[..., dict[str, Any]] | None = None
     evaluation_transitions: int = 0
+    evaluates_on_plant: bool = True
+    counts_evaluation_transitions: bool = True
+    last_evaluation_counts: list[int] | None = None
 
     def __init_subclass__(cls, **kwargs: Any) -> None:
         super().__init_subclass__(**kwargs)
         if "name" not in cls.__dict__:
             cls.name = cls.__name__
+        if "evaluate" in cls.__dict__:  # an own evaluate: what it does with a plant and the count is its to say
+            for flag in ("evaluates_on_plant", "counts_evaluation_transitions"):
+                if flag not in cls.__dict__:
+                    setattr(cls, flag, False)
 
     @abc.abstractmethod
     def f(self, s: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
@@ -396,6 +413,13 @@ class Task(abc.ABC):
         margin = torch.as_tensor(self.saturation_margin, dtype=torch.float64)
         return (u.double().abs() > limit - margin).any(dim=-1)
 
+    def state_error(self, s: torch.Tensor) -> torch.Tensor:
+        """The task's own error measure of states ``s`` (B, state_dim) -> (B, k) float64, which the default
+        :meth:`evaluate` reports (``mean_abs_state*``, ``mean_state_<i>``): the state itself here (the
+        offset from the origin). A task whose state is not an error overrides it (the Gymnasium pendulum,
+        :class:`~mixedrl.envs.gym_models.PendulumV1Task`: the angle wrapped into ``[-pi, pi)``)."""
+        return s
+
     def evaluate(self, policy: torch.nn.Module, seeds: list[int], horizon: int | None = None) -> dict[str, Any]:
         """Seeded rollouts of the *true* environment (:meth:`true_step`) under ``policy`` from fixed starts.
 
@@ -403,7 +427,9 @@ class Task(abc.ABC):
         :meth:`sample_initial` and then the noise of ``horizon`` steps; the action is
         ``policy(observe(s))`` (float32 observations, as in training). A copy that reaches a terminal state
         (:meth:`is_terminal`) stops: no cost, no state counted from then on. Subclasses with a
-        task-specific evaluation (a course, a reference trajectory) override this method. Every simulated
+        task-specific evaluation (a course, a reference trajectory) override this method (and say whether
+        the override evaluates on a plant and counts its transitions: :attr:`evaluates_on_plant`,
+        :attr:`counts_evaluation_transitions`). Every simulated
         step (``eval_starts * horizon`` per seed) is added to :attr:`evaluation_transitions`. A task with
         a plant evaluated on it (:func:`mixedrl.plant.attach_plant`) calls :attr:`plant_evaluate`
         instead (:func:`mixedrl.plant.evaluate_on_plant`, or nothing).
@@ -423,10 +449,11 @@ class Task(abc.ABC):
             Means over the seeds and starts:
 
             - ``"cost"``: discounted cost ``sum_t gamma^t l(s_{t+1}, u_t)`` of a rollout;
-            - ``"mean_abs_state"``: ``|s|`` averaged over the second half of the rollout and the state's
+            - ``"mean_abs_state"``: ``|e|`` of the task's error measure ``e = state_error(s)`` (the state
+              itself by default, :meth:`state_error`) averaged over the second half of the rollout and its
               components (the steady offset from the origin, with the noise's spread);
-            - ``"mean_abs_state_<i>"``, ``"mean_state_<i>"``: per state component ``i``, ``|s_i|`` and the
-              signed ``s_i`` over the second half (the latter is the steady offset a constant bias leaves);
+            - ``"mean_abs_state_<i>"``, ``"mean_state_<i>"``: per component ``i`` of ``e``, ``|e_i|`` and the
+              signed ``e_i`` over the second half (the latter is the steady offset a constant bias leaves);
             - ``"terminated_fraction"``: rollouts that reached a terminal state.
 
         Raises
@@ -449,8 +476,9 @@ class Task(abc.ABC):
                 s = self.sample_initial(n, gen).to(torch.float64)
                 alive = torch.ones(n, dtype=torch.bool)
                 total = torch.zeros(n, dtype=torch.float64)
-                abs_sum = torch.zeros(self.state_dim, dtype=torch.float64)
-                signed_sum = torch.zeros(self.state_dim, dtype=torch.float64)
+                width = self.state_error(s).shape[-1]
+                abs_sum = torch.zeros(width, dtype=torch.float64)
+                signed_sum = torch.zeros(width, dtype=torch.float64)
                 count = 0.0
                 for t in range(int(horizon)):
                     u = policy(self.observe(s.float())).double()
@@ -460,7 +488,7 @@ class Task(abc.ABC):
                     alive = alive & ~self.is_terminal(s_next)
                     s = torch.where(alive[:, None], s_next, s)
                     if t >= half:
-                        kept = s[alive]
+                        kept = self.state_error(s)[alive]
                         abs_sum += kept.abs().sum(dim=0)
                         signed_sum += kept.sum(dim=0)
                         count += kept.shape[0]
@@ -485,7 +513,9 @@ class Task(abc.ABC):
         Training evaluates all the runs of a batch that are due at one iteration with one call
         (:func:`mixedrl.runs.train_batch`). A task may override it to drive all the rollouts at once
         (:class:`~mixedrl.tasks.DoubleLaneChangeTask` does); this default evaluates them one after the
-        other, so it is exact whatever ``exact`` says.
+        other, so it is exact whatever ``exact`` says. Each policy's evaluation transitions are left in
+        :attr:`last_evaluation_counts` (one per policy, all added to :attr:`evaluation_transitions`), so
+        that the batch can credit them to each run's own task (:func:`mixedrl.plant.credit_evaluations`).
 
         Parameters
         ----------
@@ -508,7 +538,13 @@ class Task(abc.ABC):
             ``policies`` not a list, or ``seeds`` not one non-empty list of ints per policy.
         """
         seeds = check_policies_and_seeds(policies, seeds)
-        return [self.evaluate(policy, s) for policy, s in zip(policies, seeds)]
+        out, counts = [], []
+        for policy, s in zip(policies, seeds):
+            before = self.evaluation_transitions
+            out.append(self.evaluate(policy, s))
+            counts.append(self.evaluation_transitions - before)
+        self.last_evaluation_counts = counts
+        return out
 
 
 def check_policies_and_seeds(policies: Any, seeds: Any) -> list[list[int]]:

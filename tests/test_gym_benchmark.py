@@ -114,9 +114,11 @@ def test_spec_runs() -> None:
 def test_mountain_car_task_is_a_task() -> None:
     import torch
 
+    from mixedrl.envs.gym_models import MountainCarTask
     from mixedrl.task_base import check_task
 
-    task = gb.MountainCarTask(force_mean=-0.3)
+    assert gb.MountainCarTask is MountainCarTask  # the package's, not a copy in the script
+    task = MountainCarTask(force_mean=-0.3)
     check_task(task)
     s = torch.tensor([[-0.5, 0.0], [0.45, 0.01], [task.goal - 0.01, 0.0]], dtype=torch.float64)
     assert task.is_terminal(s).tolist() == [False, True, False]

@@ -309,3 +309,163 @@ def test_evaluation_on_the_plant_is_sequential_and_counted() -> None:
     bare.plant = GymnasiumPlant(env)
     with pytest.raises(ValueError, match="task.plant: expected the list attach_plant makes, got GymnasiumPlant"):
         AGPI(bare, TrainConfig(method="mixed", task="linear", seed=0, sampler=dict(name="model_rollouts")))
+
+
+class Recorder:
+    """A plant recording the seeds of its resets."""
+
+    def __init__(self, inner: object) -> None:
+        self.inner, self.seeds = inner, []
+
+    def reset(self, seed: int | None = None) -> np.ndarray:
+        self.seeds.append(seed)
+        return self.inner.reset(seed)
+
+    def step(self, u: np.ndarray) -> np.ndarray:
+        return self.inner.step(u)
+
+
+def test_resumed_run_continues_the_plant_episode_seeds(tmp_path) -> None:
+    """Interrupted after 6 iterations and resumed to 12, a run resets its plant with the episode seeds of
+    the uninterrupted run (the counter is in the sampler's checkpoint)."""
+    from mixedrl.plant import episode_seed
+    from mixedrl.runs import eval_seeds
+
+    def run(iterations: int, path, resume: bool = False) -> list[int]:
+        plant = Recorder(GymnasiumPlant(DisturbedEnv(gym.make("Pendulum-v1"), mean=0.5)))
+        cfg = TrainConfig(method="mixed", task="linear", seed=0,
+                          algorithm=dict(iterations=iterations, batch_size=8, hidden_sizes=(8,)),
+                          sampler=dict(name="model_rollouts", true_steps=2, true_every=1, true_horizon=3),
+                          run=dict(eval_every=6, eval_seeds=1, checkpoint_every=3))
+        train(AGPI(attach_plant(PendulumV1Task(), plant), cfg), RunDirectory(path), resume=resume, progress=False)
+        evaluation = {episode_seed(s, 1, 0) for s in eval_seeds(cfg)}
+        return [s for s in plant.seeds if s not in evaluation]
+
+    whole = run(12, tmp_path / "whole")
+    first = run(6, tmp_path / "parts")
+    state = load_checkpoint(RunDirectory(tmp_path / "parts").checkpoint_path)["trainer"]["sampler"]
+    assert state["plant_episodes"] == len(first)
+    second = run(12, tmp_path / "parts", resume=True)
+    assert len(whole) > len(first) > 2 and second
+    assert first + second == whole
+    # a checkpoint without the key (older, or of a run without a plant) still loads: the seeds restart at 0
+    from mixedrl.samplers import ModelStateSampler
+
+    cfg = TrainConfig(method="mixed", task="linear", seed=0, algorithm=dict(batch_size=8),
+                      sampler=dict(name="model_rollouts"))
+    task = attach_plant(PendulumV1Task(), SimulatedPlant(PendulumV1Task()))
+    sampler = ModelStateSampler(task, cfg, torch.Generator().manual_seed(0))
+    old = {k: v for k, v in state.items() if k != "plant_episodes"}
+    old.update(states=sampler.states, steps=sampler.steps)
+    sampler.load_state_dict(old)
+    assert sampler.plant.episodes == 0 and "plant_episodes" not in sampler.state_dict()
+    with pytest.raises(ValueError, match="state: sampler plant_episodes is -1, expected an integer >= 0"):
+        sampler.load_state_dict({**old, "plant_episodes": -1})
+
+
+def test_pendulum_v1_reports_the_wrapped_angle_error() -> None:
+    """Upright after a full turn (theta = 2 pi): the default evaluation reports the task's error measure,
+    the wrapped angle (about 0), not the unwrapped state (about 6.28)."""
+    class FullTurn(PendulumV1Task):
+        def sample_initial(self, n: int, generator: torch.Generator) -> torch.Tensor:
+            return torch.tensor([[2 * math.pi + 1e-6, 0.0]], dtype=torch.float64).expand(n, 2).clone()
+
+    task = FullTurn(torque_std=0.0)
+    s = torch.tensor([[2 * math.pi + 0.1, 0.5], [-math.pi - 0.1, -1.0]], dtype=torch.float64)
+    np.testing.assert_allclose(task.state_error(s).numpy(), [[0.1, 0.5], [math.pi - 0.1, -1.0]], atol=1e-12)
+    zero = torch.nn.Linear(3, 1)
+    torch.nn.init.zeros_(zero.weight)
+    torch.nn.init.zeros_(zero.bias)
+    ev = task.evaluate(zero, [0], horizon=20)
+    assert abs(ev["mean_state_0"]) < 0.01 and ev["mean_abs_state_0"] < 0.01, ev
+    # the default measure is the state itself
+    s = torch.randn(4, 2, dtype=torch.float64)
+    assert Task.state_error(task, s) is s
+
+
+# ------------------------------------------------------------------------------------------ tasks with their own evaluate
+def test_builtin_evaluations_count_their_transitions() -> None:
+    """The linear task's rollouts and the double lane change's simulated courses are evaluation transitions
+    of the simulated plant (results.json reported them as null)."""
+    from mixedrl.tasks import task_from_config
+
+    linear = task_from_config("linear")
+    policy = torch.nn.Linear(2, 1)
+    linear.evaluate(policy, [0, 1])
+    assert linear.evaluation_transitions == 2 * 64 * 100
+    dlc = task_from_config("dlc")
+    actor = torch.nn.Linear(dlc.obs_dim, 2)
+    runs = dlc.evaluate(actor, [0, 1], keep_trajectory=True)["trajectories"]
+    steps = sum(r.n_steps for r in runs)
+    assert steps > 0 and dlc.evaluation_transitions == steps
+    dlc.evaluate_many([actor, actor], [[0, 1], [0, 1]])
+    assert dlc.evaluation_transitions == 3 * steps
+    cfg = TrainConfig(method="mixed", task="linear", seed=0,
+                      algorithm=dict(iterations=2, batch_size=8, hidden_sizes=(8,)),
+                      run=dict(eval_every=2, eval_seeds=2))
+    results = train(AGPI(task_from_config("linear"), cfg), progress=False)
+    assert results["plant_transitions"]["evaluation"] == 2 * 64 * 100
+    # a batch evaluates with its first run's task: each run is credited with its own evaluations
+    from mixedrl.runs import train_batch
+
+    batch = train_batch([AGPI(task_from_config("dlc"), TrainConfig(
+        method="mixed", task="dlc", seed=s, algorithm=dict(iterations=2, batch_size=8, hidden_sizes=(8,)),
+        run=dict(eval_every=2, eval_seeds=2))) for s in (0, 1)], progress=False)
+    counts = [r["plant_transitions"]["evaluation"] for r in batch]
+    assert all(c > 0 for c in counts), counts
+
+
+def test_tasks_with_their_own_evaluate_on_a_plant() -> None:
+    """The double lane change and the linear task evaluate on an attached plant (and count it); a task whose
+    own evaluate cannot is refused at attach_plant."""
+    import mixedrl.envs  # noqa: F401  (registers the env)
+    from mixedrl.linear_task import LinearTask
+    from mixedrl.tasks import task_from_config
+
+    dlc = task_from_config("dlc")
+    bound = dlc.action_bound.double().numpy()
+    attach_plant(dlc, GymnasiumPlant(gym.make("mixedrl/DoubleLaneChange-v0"), action_fn=lambda u: u / bound))
+    actor = torch.nn.Linear(dlc.obs_dim, 2)
+    torch.nn.init.zeros_(actor.weight)
+    torch.nn.init.zeros_(actor.bias)
+    ev = dlc.evaluate(actor, [0])
+    assert set(ev) == {"cost", "plant_return", "plant_terminated_fraction", "terminated_fraction",
+                       "episode_length"}
+    assert dlc.evaluation_transitions == ev["episode_length"] > 0
+    assert dlc.evaluate_many([actor], [[0]]) == [ev]
+    linear = attach_plant(LinearTask(), SimulatedPlant(LinearTask()))
+    ev = linear.evaluate(torch.nn.Linear(2, 1), [0, 1])  # 100 steps or until the state leaves the domain
+    assert "plant_return" in ev and 0 < ev["episode_length"] <= 100
+    assert linear.evaluation_transitions == 2 * ev["episode_length"]
+
+    class OwnEvaluation(PendulumV1Task):
+        def evaluate(self, policy: torch.nn.Module, seeds: list[int], horizon: int | None = None) -> dict:
+            return {"cost": 0.0}
+
+    with pytest.raises(ValueError, match=r"evaluation: OwnEvaluation.evaluate is the task's own and cannot "
+                                         r"evaluate on a plant"):
+        attach_plant(OwnEvaluation(), SimulatedPlant(PendulumV1Task()))
+    task = attach_plant(OwnEvaluation(), SimulatedPlant(PendulumV1Task()), evaluation="simulated")
+    assert not task.counts_evaluation_transitions and PendulumV1Task.counts_evaluation_transitions
+
+
+def test_gymnasium_plant_documented_for_its_three_envs() -> None:
+    """The GymnasiumPlant docstring's example (Pendulum-v1, MountainCarContinuous-v0, the double lane
+    change) runs, and the tutorial's plant section shows all three."""
+    import inspect
+    import textwrap
+    from pathlib import Path
+
+    doc = inspect.getdoc(GymnasiumPlant)
+    code = textwrap.dedent(doc.split(".. code-block:: python", 1)[1])
+    namespace = {"gym": gym, "attach_plant": attach_plant, "GymnasiumPlant": GymnasiumPlant}
+    exec(compile(code, "GymnasiumPlant.__doc__", "exec"), namespace)  # noqa: S102 - the docstring's example
+    for name in ("pendulum", "car", "dlc"):
+        assert repr(namespace[name].plant[0].plant).startswith("GymnasiumPlant(")
+    x = namespace["dlc"].plant[0].reset(0)
+    assert x.shape == (namespace["dlc"].state_dim,)
+    tutorial = Path(__file__).resolve().parents[1] / "docs" / "tutorial.rst"
+    section = tutorial.read_text().split("4. Your real system as a plant", 1)[1].split("\nAPI of", 1)[0]
+    for env_id in ('gym.make("Pendulum-v1")', 'gym.make("MountainCarContinuous-v0")',
+                   'gym.make("mixedrl/DoubleLaneChange-v0")'):
+        assert env_id in section and env_id in doc, env_id

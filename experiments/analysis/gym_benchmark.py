@@ -19,7 +19,8 @@ writes the table and the figure::
   ``num_timesteps``); Algorithm 2 (``mixed``, ``model``, ``oracle``) with ``TrainConfig``'s defaults
   through the plant interface (:func:`mixedrl.plant.attach_plant` on a
   :class:`mixedrl.plant.GymnasiumPlant` of the same disturbed env; the nominal physics in torch is the
-  designer's ``f``: :class:`mixedrl.envs.gym_models.PendulumV1Task`, :class:`MountainCarTask`).
+  designer's ``f``: :class:`mixedrl.envs.gym_models.PendulumV1Task`,
+  :class:`mixedrl.envs.gym_models.MountainCarTask`).
   Model-driven RL (the prior, no true transition) and the oracle (the true disturbance law) are the
   prior-model and true-model reference policies.
 * **Evaluation.** Every policy, at every point of every curve, through one function,
@@ -39,7 +40,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import os
 import sys
 import time
@@ -59,7 +59,7 @@ if str(ROOT) not in sys.path:  # run as a script: the repository's mixedrl and v
     sys.path.insert(0, str(ROOT))
 
 from mixedrl.checkpoint import atomic_write_text
-from mixedrl.envs.gym_models import PendulumV1Task, mountain_car_noise_matrix, mountain_car_step
+from mixedrl.envs.gym_models import MountainCarTask, PendulumV1Task
 from mixedrl.plant import DisturbedEnv, GymnasiumPlant, attach_plant, unwrapped_state
 from mixedrl.task_base import Task
 
@@ -177,59 +177,6 @@ def improvement_estimates(pairs: dict[str, tuple[np.ndarray, np.ndarray]], reps:
 
 
 # ================================================================================================ tasks
-class MountainCarTask(Task):
-    """MountainCarContinuous-v0 as a task: the model is the env's own step
-    (:func:`mixedrl.envs.gym_models.mountain_car_step`), the uncertainty a force ``xi ~ N(mu, K)`` (action
-    units) added after the actuator clip (``E = power [1, 1]^T``, :func:`mountain_car_noise_matrix`).
-
-    The designer's cost (the env's own reward is sparse: +100 at the flag, ``-0.1 u^2`` a step) is the
-    energy the car still lacks to stand at the flag, ``max(0, E_goal - E(s')) / (E_goal - E_min)`` with
-    ``E(p, v) = 0.0025 / 3 sin(3 p) + v^2 / 2`` (the env's gravity ``-0.0025 cos(3 p)`` per step is
-    ``-dE/dp``), plus ``0.001 u^2``; a state past the flag (``p >= 0.45``) is terminal. The evaluation
-    reports the env's own return.
-    """
-
-    state_dim, obs_dim, action_dim, noise_dim = 2, 2, 1, 1
-    eval_horizon = 999
-    goal = 0.45
-
-    def __init__(self, force_mean: float = 0.0, force_std: float = 0.1, prior_mean: float = 0.0,
-                 prior_std: float = 1.0, gamma: float = 0.99) -> None:
-        self.gamma = float(gamma)
-        self.noise_matrix = mountain_car_noise_matrix()
-        self.prior_mean, self.prior_cov = np.array([prior_mean], float), np.array([[prior_std**2]], float)
-        self.true_mean, self.true_cov = np.array([force_mean], float), np.array([[force_std**2]], float)
-        self.action_bound = torch.tensor([1.0])
-        self.action_limit = torch.tensor([1.0])
-        self.obs_scale = torch.tensor([1.2, 0.07])
-        self.value_scale = 30.0
-        self.e_goal = self.energy(torch.tensor([[self.goal, 0.0]], dtype=torch.float64))[0].item()
-        self.e_min = self.energy(torch.tensor([[-math.pi / 6, 0.0]], dtype=torch.float64))[0].item()
-
-    @staticmethod
-    def energy(s: torch.Tensor) -> torch.Tensor:
-        return 0.0025 / 3 * torch.sin(3 * s[:, 0]) + 0.5 * s[:, 1] ** 2
-
-    def f(self, s: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
-        return mountain_car_step(s, u.to(s.dtype))
-
-    def observe(self, s: torch.Tensor) -> torch.Tensor:
-        return s
-
-    def cost(self, s_next: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
-        force = torch.clamp(u[:, 0], -1.0, 1.0)
-        lack = torch.clamp(self.e_goal - self.energy(s_next), min=0.0) / (self.e_goal - self.e_min)
-        return lack.to(s_next.dtype) + 0.001 * force.to(s_next.dtype) ** 2
-
-    def is_terminal(self, s: torch.Tensor) -> torch.Tensor:
-        return super().is_terminal(s) | (s[:, 0] >= self.goal)
-
-    def sample_initial(self, n: int, generator: torch.Generator) -> torch.Tensor:
-        lo = torch.tensor([-1.2, -0.07], dtype=torch.float64)
-        hi = torch.tensor([0.5, 0.07], dtype=torch.float64)
-        return lo + (hi - lo) * torch.rand(n, 2, generator=generator, dtype=torch.float64)
-
-
 def make_task(env_spec: dict[str, Any], disturbance: dict[str, Any]) -> Task:
     """The designer's task of an env of the spec: nominal physics, true law (the oracle's) and prior."""
     prior = env_spec.get("prior", {})

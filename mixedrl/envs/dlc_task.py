@@ -89,6 +89,8 @@ class DoubleLaneChangeTask(Task):
     """
 
     name = "dlc"
+    evaluates_on_plant = True
+    counts_evaluation_transitions = True
 
     def __init__(self, prior_force_mean: float = 150.0, prior_force_std: float = 4.0, gamma: float = 0.99,
                  **config: Any) -> None:
@@ -119,6 +121,8 @@ class DoubleLaneChangeTask(Task):
         scales = [0.3, 0.2, 0.5, 0.1, 0.5] + [2.0] * (self.obs_dim - 5) if cfg.obs_scale is None else cfg.obs_scale
         self.obs_scale = torch.tensor(scales, dtype=torch.float32)
         self.value_scale = 1.0
+        #: An evaluation on a plant drives one course (:func:`mixedrl.plant.evaluate_on_plant`).
+        self.eval_horizon = cfg.max_steps
 
     @classmethod
     def from_config(cls, config: DoubleLaneChangeTaskConfig) -> "DoubleLaneChangeTask":
@@ -239,14 +243,24 @@ class DoubleLaneChangeTask(Task):
         ``keep_trajectory`` also ``trajectories`` (the :class:`~mixedrl.envs.TrackingResult` objects).
         The courses are driven by :func:`mixedrl.envs.evaluate_courses` with ``exact=True`` (in lock step
         from :data:`~mixedrl.envs.evaluation.NUMPY_MIN_ROWS` seeds on, else one after the other): the
-        numbers are those of :func:`~mixedrl.envs.evaluate_tracking` per seed, bit for bit.
+        numbers are those of :func:`~mixedrl.envs.evaluate_tracking` per seed, bit for bit. Their steps
+        (the simulated plant's) are added to :attr:`evaluation_transitions`.
+
+        With a plant attached (:func:`mixedrl.plant.attach_plant`, e.g. a
+        :class:`~mixedrl.plant.GymnasiumPlant` of ``mixedrl/DoubleLaneChange-v0``) the evaluation is
+        :attr:`plant_evaluate`'s instead: one plant episode of at most a course (:attr:`eval_horizon`,
+        ``max_steps``) per seed, :func:`mixedrl.plant.evaluate_on_plant`'s ``cost`` (discounted eq. 54),
+        plant return and terminations (no Table I metrics, which need the simulated course), or none.
 
         Raises
         ------
         ValueError
             ``seeds`` empty or not ints.
         """
+        if self.plant_evaluate is not None:  # on the task's plant, or none
+            return self.plant_evaluate(policy, seeds, None)
         runs = evaluate_courses([policy], self.model.config, seeds=[list(seeds)], exact=True)[0]
+        self.evaluation_transitions += sum(r.n_steps for r in runs)
         return _course_metrics(runs, keep_trajectory)
 
     def evaluate_many(self, policies: list[torch.nn.Module], seeds: list[list[int]], *, exact: bool = False
@@ -257,7 +271,9 @@ class DoubleLaneChangeTask(Task):
         With ``exact=False`` (default) the policies are called once per step on all their courses (a batch
         of rows, or one call of the stacked policies): the metrics may differ from :meth:`evaluate`'s in
         the float32 last bits of the policy (about 1e-8 relative; docs/reproduction.rst).
-        With ``exact=True`` each is bit-identical to :meth:`evaluate`.
+        With ``exact=True`` each is bit-identical to :meth:`evaluate`. The courses' steps are counted as
+        :meth:`Task.evaluate_many <mixedrl.tasks.Task.evaluate_many>` says (``last_evaluation_counts``); with
+        a plant the policies are evaluated on it one after the other.
 
         Raises
         ------
@@ -265,7 +281,11 @@ class DoubleLaneChangeTask(Task):
             As :func:`mixedrl.envs.evaluate_courses` (e.g. ``seeds`` not one non-empty list per policy).
         """
         seeds = check_policies_and_seeds(policies, seeds)
+        if self.plant_evaluate is not None:  # one policy after the other on the plant (or none)
+            return super().evaluate_many(policies, seeds, exact=exact)
         runs = evaluate_courses(list(policies), self.model.config, seeds=seeds, exact=exact)
+        self.last_evaluation_counts = [sum(r.n_steps for r in courses) for courses in runs]
+        self.evaluation_transitions += sum(self.last_evaluation_counts)
         return [_course_metrics(r, False) for r in runs]
 
 

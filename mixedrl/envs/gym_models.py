@@ -9,7 +9,9 @@
   the least-squares solve, :func:`mixedrl.ibe.common.noise_coordinates`);
 * :class:`PendulumV1Task`: Pendulum-v1 as a :class:`~mixedrl.tasks.Task` (the model of the tutorial's
   plant section): Gymnasium's cost charged on the next state (eq. 2), the actuator limit declared
-  (``action_limit``, the model clips as the plant does).
+  (``action_limit``, the model clips as the plant does);
+* :class:`MountainCarTask`: MountainCarContinuous-v0 as a task (the benchmark's,
+  ``experiments/analysis/gym_benchmark.py``): the env's step, a force after the clip, an energy cost.
 
 Both step functions equal the envs' ``step`` up to float32 rounding (the envs mix float32 actions and
 states into float64 arithmetic; tests/test_plant.py checks them on many random states and actions).
@@ -24,7 +26,7 @@ import torch
 
 from mixedrl.task_base import Task
 
-__all__ = ["PendulumV1Task", "angle_normalize", "mountain_car_noise_matrix", "mountain_car_step",
+__all__ = ["MountainCarTask", "PendulumV1Task", "angle_normalize", "mountain_car_noise_matrix", "mountain_car_step",
            "pendulum_noise_matrix", "pendulum_v1_step"]
 
 
@@ -125,6 +127,11 @@ class PendulumV1Task(Task):
         torque = torch.clamp(u[:, 0], -2.0, 2.0)
         return angle_normalize(s_next[:, 0]) ** 2 + 0.1 * s_next[:, 1] ** 2 + 0.001 * torque**2
 
+    def state_error(self, s: torch.Tensor) -> torch.Tensor:
+        """The error the evaluation reports: ``[angle_normalize(theta), theta_dot]`` (the angle from upright,
+        wrapped into ``[-pi, pi)``, as the cost sees it; the state's angle is not wrapped)."""
+        return torch.stack([angle_normalize(s[:, 0]), s[:, 1]], dim=-1)
+
     def saturated(self, s: torch.Tensor, u: torch.Tensor) -> torch.Tensor | None:
         """:meth:`Task.saturated`, plus (with a ``saturation_margin``) the rows whose rate the model brings
         within the margin's reach (``E_rate * margin``) of the env's speed clip: a bias entering before the
@@ -140,3 +147,56 @@ class PendulumV1Task(Task):
     def sample_initial(self, n: int, generator: torch.Generator) -> torch.Tensor:
         high = torch.tensor([math.pi, 1.0], dtype=torch.float64)
         return (2 * torch.rand(n, 2, generator=generator, dtype=torch.float64) - 1) * high
+
+
+class MountainCarTask(Task):
+    """MountainCarContinuous-v0 as a task: the model is the env's own step
+    (:func:`mixedrl.envs.gym_models.mountain_car_step`), the uncertainty a force ``xi ~ N(mu, K)`` (action
+    units) added after the actuator clip (``E = power [1, 1]^T``, :func:`mountain_car_noise_matrix`).
+
+    The designer's cost (the env's own reward is sparse: +100 at the flag, ``-0.1 u^2`` a step) is the
+    energy the car still lacks to stand at the flag, ``max(0, E_goal - E(s')) / (E_goal - E_min)`` with
+    ``E(p, v) = 0.0025 / 3 sin(3 p) + v^2 / 2`` (the env's gravity ``-0.0025 cos(3 p)`` per step is
+    ``-dE/dp``), plus ``0.001 u^2``; a state past the flag (``p >= 0.45``) is terminal. The evaluation
+    reports the env's own return.
+    """
+
+    state_dim, obs_dim, action_dim, noise_dim = 2, 2, 1, 1
+    eval_horizon = 999
+    goal = 0.45
+
+    def __init__(self, force_mean: float = 0.0, force_std: float = 0.1, prior_mean: float = 0.0,
+                 prior_std: float = 1.0, gamma: float = 0.99) -> None:
+        self.gamma = float(gamma)
+        self.noise_matrix = mountain_car_noise_matrix()
+        self.prior_mean, self.prior_cov = np.array([prior_mean], float), np.array([[prior_std**2]], float)
+        self.true_mean, self.true_cov = np.array([force_mean], float), np.array([[force_std**2]], float)
+        self.action_bound = torch.tensor([1.0])
+        self.action_limit = torch.tensor([1.0])
+        self.obs_scale = torch.tensor([1.2, 0.07])
+        self.value_scale = 30.0
+        self.e_goal = self.energy(torch.tensor([[self.goal, 0.0]], dtype=torch.float64))[0].item()
+        self.e_min = self.energy(torch.tensor([[-math.pi / 6, 0.0]], dtype=torch.float64))[0].item()
+
+    @staticmethod
+    def energy(s: torch.Tensor) -> torch.Tensor:
+        return 0.0025 / 3 * torch.sin(3 * s[:, 0]) + 0.5 * s[:, 1] ** 2
+
+    def f(self, s: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+        return mountain_car_step(s, u.to(s.dtype))
+
+    def observe(self, s: torch.Tensor) -> torch.Tensor:
+        return s
+
+    def cost(self, s_next: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+        force = torch.clamp(u[:, 0], -1.0, 1.0)
+        lack = torch.clamp(self.e_goal - self.energy(s_next), min=0.0) / (self.e_goal - self.e_min)
+        return lack.to(s_next.dtype) + 0.001 * force.to(s_next.dtype) ** 2
+
+    def is_terminal(self, s: torch.Tensor) -> torch.Tensor:
+        return super().is_terminal(s) | (s[:, 0] >= self.goal)
+
+    def sample_initial(self, n: int, generator: torch.Generator) -> torch.Tensor:
+        lo = torch.tensor([-1.2, -0.07], dtype=torch.float64)
+        hi = torch.tensor([0.5, 0.07], dtype=torch.float64)
+        return lo + (hi - lo) * torch.rand(n, 2, generator=generator, dtype=torch.float64)
