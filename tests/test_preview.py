@@ -28,9 +28,9 @@ from validation.preview import LimitedPreviewNMPC, NumpyActor, actor_weights, pr
 
 ROOT = Path(__file__).resolve().parents[1]
 PREVIEW = (3.0, 6.0, 12.0)
-FAST = dict(iterations=12, batch_size=32, eval_every=6, checkpoint_every=4, eval_seeds=1,
-            state_source="model", model_course_horizon=30, model_course_start=2, true_envs=1, true_steps=2,
-            true_every=3)
+FAST = {"algorithm.iterations": 12, "algorithm.batch_size": 32, "run.eval_every": 6, "run.checkpoint_every": 4,
+        "run.eval_seeds": 1, "sampler.course_horizon": 30, "sampler.true_horizon": 30, "sampler.course_start": 2,
+        "sampler.true_envs": 1, "sampler.true_steps": 2, "sampler.true_every": 3}
 
 
 ROOT_SPEC = ROOT / "experiments" / "studies" / "preview.toml"
@@ -44,7 +44,7 @@ def _tanh_path(X: np.ndarray) -> np.ndarray:
 
 
 def _config(**extra: object) -> TrainConfig:
-    return TrainConfig(method="mixed", **{**FAST, **extra}).replace(**{"task.preview_distances": list(PREVIEW)})
+    return TrainConfig(method="mixed").replace(**{**FAST, **extra, "task.preview_distances": list(PREVIEW)})
 
 
 def test_preview_observation_is_the_path_ahead() -> None:
@@ -103,7 +103,7 @@ def test_preview_training_checkpoints_and_resumes(tmp_path: Path) -> None:
 def test_cli_train_with_preview(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     """``mixedrl train --set task.preview_distances=[...]`` runs and evaluates with the wider observation."""
     out = tmp_path / "run"
-    sets = [f"{k}={json.dumps(v)}" for k, v in FAST.items() if k != "iterations"]
+    sets = [f"{k}={json.dumps(v)}" for k, v in FAST.items() if k != "algorithm.iterations"]
     assert main(["train", "--method", "mixed", "--out", str(out), "--iterations", "3", "--no-progress",
                  "--set", "task.preview_distances=[3, 6, 12]", *sets]) == 0
     capsys.readouterr()
