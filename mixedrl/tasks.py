@@ -25,11 +25,15 @@ at its top: the import graph has no cycle (``tests/test_imports.py``).
 
 from __future__ import annotations
 
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-from mixedrl.config import DoubleLaneChangeTaskConfig, LinearTaskConfig, TaskConfig, task_config
+from mixedrl.config import LinearTaskConfig, task_config
 from mixedrl.config import register_task as register_task_config
+from mixedrl.envs.dlc_config import DoubleLaneChangeTaskConfig
 from mixedrl.envs.dlc_task import DLC_EXPERIMENT, CourseSampler, DoubleLaneChangeTask
+
+if TYPE_CHECKING:  # the union of the built-in tasks' configurations, complete once the task modules registered
+    from mixedrl.config import TaskConfig
 from mixedrl.linear_task import LinearTask
 from mixedrl.task_base import EQUILIBRIUM_ATOL, Equilibrium, Linearisation, Task, check_task, cost_hessian
 

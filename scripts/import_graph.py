@@ -137,17 +137,22 @@ def package_edges(edges: dict[str, set[str]]) -> set[tuple[str, str]]:
 
 #: The layers of mixedrl that imports must not climb: a module of a layer imports only modules of its own or
 #: a lower layer (listed lowest first; a module matches the first prefix that names it or a package above it).
-#: ``generic`` is the paper's algorithm and its departures, which must not know any task; ``tasks`` the
-#: built-in tasks, which must not know the algorithm that trains on them; ``evaluation`` the yardsticks,
-#: which training must not import.
+#: ``configuration`` is the run's configuration (:mod:`mixedrl.config` and its parts), which a task registers
+#: with and which must not know any task; ``generic`` is the paper's algorithm and its departures, which must
+#: not know any task; ``tasks`` the built-in tasks, which must not know the algorithm that trains on them;
+#: ``evaluation`` the yardsticks, which training must not import.
 LAYERS: dict[str, tuple[str, ...]] = {
+    "configuration": ("mixedrl.config", "mixedrl.config_tasks", "mixedrl.config_sections"),
     "generic": ("mixedrl.algorithms", "mixedrl.departures", "mixedrl.pev", "mixedrl.pim", "mixedrl.expectation",
                 "mixedrl.noise", "mixedrl.schedule", "mixedrl.samplers", "mixedrl.ibe"),
     "tasks": ("mixedrl.envs", "mixedrl.linear_task", "mixedrl.tasks"),
     "evaluation": ("mixedrl.precision",),
 }
-#: Which layers may not import which: ``generic`` imports no task and no yardstick; a task imports no algorithm.
-FORBIDDEN: tuple[tuple[str, str], ...] = (("generic", "tasks"), ("generic", "evaluation"), ("tasks", "generic"))
+#: Which layers may not import which: the configuration imports no task (a task registers its configuration
+#: class and preset with it: :func:`mixedrl.config.register_builtin_task`, :func:`mixedrl.config.register_preset`);
+#: ``generic`` imports no task and no yardstick; a task imports no algorithm.
+FORBIDDEN: tuple[tuple[str, str], ...] = (("configuration", "tasks"), ("generic", "tasks"), ("generic", "evaluation"),
+                                          ("tasks", "generic"))
 
 
 def layer(module: str) -> str | None:
@@ -161,8 +166,10 @@ def layer(module: str) -> str | None:
 def upward(edges: dict[str, set[str]]) -> list[tuple[str, str]]:
     """The edges ``a -> b`` that climb: the layers of ``a`` and ``b`` are a pair of :data:`FORBIDDEN`; sorted.
     (A task's own sampler, :mod:`mixedrl.envs.dlc_sampler`, builds on the generic :mod:`mixedrl.samplers`,
-    the extension point a task plugs into: that edge is the allowed one.)"""
-    allowed = {("mixedrl.envs.dlc_sampler", "mixedrl.samplers")}
+    the extension point a task plugs into, and the configuration checks the laws of the task-independent
+    disturbance model :mod:`mixedrl.envs.disturbance` (``DISTURBANCE_LAWS``, also the linear task's): those
+    edges are the allowed ones.)"""
+    allowed = {("mixedrl.envs.dlc_sampler", "mixedrl.samplers"), ("mixedrl.config_tasks", "mixedrl.envs.disturbance")}
     return sorted((a, b) for a, bs in edges.items() for b in bs
                   if (layer(a), layer(b)) in FORBIDDEN and (a, b) not in allowed)
 
@@ -189,7 +196,7 @@ def main(argv: list[str] | None = None) -> int:
     for mod, source, name in private:
         print(f"  {mod}: from {source} import {name}")
     up = upward(edges)
-    print(f"upward arrows (generic -> task or yardstick, task -> generic): {len(up)}")
+    print(f"upward arrows (configuration or generic -> task, generic -> yardstick, task -> generic): {len(up)}")
     for a, b in up:
         print(f"  {a} -> {b}")
     return 1 if found or private or up else 0

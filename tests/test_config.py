@@ -266,7 +266,7 @@ def test_dlc_obs_scale_override() -> None:
 def test_linear_task_config_holds_every_field_of_the_lq_problem():
     """The LQ problem has one representation (mixedrl.lq.LQProblem); its JSON face names each of its fields
     (or maps it to task.disturbance), and a value set on the face reaches the problem unchanged."""
-    from mixedrl.config import _PROBLEM_KEYS
+    from mixedrl.config_tasks import _PROBLEM_KEYS
     from mixedrl.lq import LQProblem
 
     face = {f.name for f in dataclasses.fields(LinearTaskConfig)}

@@ -55,6 +55,19 @@ def test_no_upward_arrows() -> None:
     assert GRAPH.layer("mixedrl.algorithms.algorithm2") == "generic" and GRAPH.layer("mixedrl.envs.vehicle") == "tasks"
 
 
+def test_the_configuration_imports_no_task() -> None:
+    """The generic configuration imports no task module (issue 40): the double lane change registers its
+    configuration class with it (mixedrl.config.register_builtin_task), not the other way round."""
+    for module in ("mixedrl.config", "mixedrl.config_tasks", "mixedrl.config_sections"):
+        assert GRAPH.layer(module) == "configuration"
+        assert not {b for b in EDGES[module] if GRAPH.layer(b) == "tasks"} - {"mixedrl.envs.disturbance"}, module
+    assert "mixedrl.config" in EDGES["mixedrl.envs.dlc_task"]  # the task registers with the configuration
+    assert GRAPH.upward({"mixedrl.config": {"mixedrl.envs.dlc_config"}}) == [
+        ("mixedrl.config", "mixedrl.envs.dlc_config")]  # the arrow of before is refused
+    assert GRAPH.upward({"mixedrl.config_tasks": {"mixedrl.envs.dlc_config"}}) == [
+        ("mixedrl.config_tasks", "mixedrl.envs.dlc_config")]
+
+
 def test_no_private_name_imported_across_modules() -> None:
     assert PRIVATE == [], "\n".join(f"{m}: from {s} import {n}" for m, s, n in PRIVATE)
 

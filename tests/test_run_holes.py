@@ -19,6 +19,7 @@ import torch
 
 import mixedrl.checkpoint
 import mixedrl.sweep
+import mixedrl.sweep_spec
 from mixedrl.cli import main
 from mixedrl.config import TrainConfig
 from mixedrl.runs import RunDirectory, hold_lock, load_checkpoint, make_trainer, save_checkpoint, train
@@ -332,7 +333,7 @@ def test_bad_sweep_grids_are_one_line(tmp_path: Path, tail: str, match: str,
 
 
 def test_force_accepts_a_large_grid(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setattr(mixedrl.sweep, "MAX_RUNS", 2)
+    monkeypatch.setattr(mixedrl.sweep_spec, "MAX_RUNS", 2)  # parse_spec reads it there (re-exported by mixedrl.sweep)
     text = SPEC + '\n[grid]\n"algorithm.critic_lr" = [0.001, 0.002, 0.003]\n'
     with pytest.raises(ValueError, match="^grid: spec expands to 3 runs, more than the 2"):
         mixedrl.sweep.parse_spec(text)

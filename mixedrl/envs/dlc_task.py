@@ -6,7 +6,9 @@ An adapter on the vehicle model of :mod:`mixedrl.envs` (:class:`~mixedrl.envs.mo
 
 The double lane change's experiment lives here with its task: the options of its course sampler
 (:class:`CourseSampler`, ``sampler.name = "dlc_course"``) and its preset (:data:`DLC_EXPERIMENT`), which
-this module registers with :mod:`mixedrl.config` (importing :mod:`mixedrl` imports this module).
+this module registers with :mod:`mixedrl.config` (importing :mod:`mixedrl` imports this module), as it
+registers the task's configuration (:class:`~mixedrl.envs.dlc_config.DoubleLaneChangeTaskConfig`, ``task.name =
+"dlc"``, with :func:`mixedrl.config.register_builtin_task`): the generic configuration imports no task module.
 ``from mixedrl.tasks import DoubleLaneChangeTask, CourseSampler, DLC_EXPERIMENT`` still works (:mod:`mixedrl.tasks`
 imports this module; this module imports the interface from :mod:`mixedrl.task_base`).
 """
@@ -19,9 +21,9 @@ from typing import Any
 import numpy as np
 import torch
 
-from mixedrl.config import DoubleLaneChangeTaskConfig, register_preset
+from mixedrl.config import register_builtin_task, register_preset
 from mixedrl.envs.dlc_sampler import CourseSampler
-from mixedrl.envs.dlc_config import make_config
+from mixedrl.envs.dlc_config import CostWeights, DoubleLaneChangeTaskConfig, make_config
 from mixedrl.envs.evaluation import TrackingResult, evaluate_courses
 from mixedrl.envs.model import DoubleLaneChangeModel
 from mixedrl.task_base import Equilibrium, Linearisation, Task, check_policies_and_seeds, cost_hessian
@@ -305,8 +307,9 @@ def _course_metrics(runs: list[TrackingResult], keep_trajectory: bool) -> dict[s
 
 
 # ----------------------------------------------------------------------------------------------------
-# the double lane change's experiment: its course sampler and its preset, registered here
+# the double lane change's experiment: its configuration, its course sampler and its preset, registered here
 # ----------------------------------------------------------------------------------------------------
+register_builtin_task(DoubleLaneChangeTaskConfig, DoubleLaneChangeTaskConfig.from_dict, CostWeights=CostWeights)
 
 #: The double lane change's experiment configuration (the reproduction of Table I, ``mixedrl reproduce``):
 #: the shared settings (learning rates, their decay, ``horizon``, ``value_output``, ``batch_size``, the

@@ -1,0 +1,390 @@
+"""The sections of :class:`mixedrl.config.TrainConfig` besides the task: :class:`AlgorithmConfig`,
+:class:`DDPGConfig`, :class:`RunConfig`, the samplers' options (:data:`SAMPLERS`, :func:`register_sampler`) and
+the tasks' experiment configurations (:data:`PRESETS`, :func:`register_preset`).
+
+:mod:`mixedrl.config` re-exports every public name of this module.
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+import os
+from dataclasses import dataclass
+from typing import Any, ClassVar, Union
+
+from mixedrl.checks import check_fraction, check_int, check_nonnegative_int, check_number, check_positive_int
+from mixedrl.config_tasks import BATCH_WEIGHTINGS, FEEDFORWARDS, build_section, check_choice
+
+__all__ = [
+    "AlgorithmConfig",
+    "DDPGConfig",
+    "RunConfig",
+    "SamplerConfig",
+    "TrueCopiesSampler",
+    "ModelRolloutsSampler",
+    "SAMPLERS",
+    "PRESETS",
+    "register_sampler",
+    "register_preset",
+    "sampler_config",
+]
+
+# ----------------------------------------------------------------------------------------------------
+# sections of TrainConfig
+# ----------------------------------------------------------------------------------------------------
+@dataclass
+class AlgorithmConfig:
+    """The training algorithm shared by every method: Algorithm 2 (mixed, model, oracle) and the networks,
+    optimiser and budget DDPG uses too. Dotted keys: ``algorithm.<field>``.
+
+    ``batch_weighting``, ``batch_weight_offset`` and ``actor_average`` are tuning add-ons, departures from
+    the paper's Algorithm 2 (docs/algorithm2.rst). ``batch_weighting`` defaults to ``"relative"``, measured
+    over the pendulum and the linear test bed (``experiments/studies/custom_defaults.toml``, docs/tuning.rst); the paper's
+    plain batch mean is ``"uniform"``. ``actor_average`` is off by default.
+    """
+
+    iterations: int = 1500
+    """Budget: number of outer iterations ``k`` (one PEV + PIM step of Algorithm 2, or one DDPG update)."""
+
+    batch_size: int = 512
+    """Number of states of the PEV/PIM batch per iteration (Algorithm 2; made by the sampler), or the
+    replay minibatch size (DDPG)."""
+
+    horizon: int = 60
+    """Steps after which a training copy (a true-environment copy or a model rollout started from the
+    training distribution) is reset to a fresh initial state."""
+
+    hidden_sizes: tuple[int, ...] = (64, 64)
+    """Hidden layer widths of the actor and the critic (the same for every method)."""
+
+    activation: str = "elu"
+    """Hidden activation of the MLPs: ``"elu"``, ``"tanh"`` or ``"relu"``."""
+
+    value_output: str = "square"
+    """Output head of the critic (and of DDPG's Q-critic): ``"softplus"``, ``"square"`` (sum of squares)
+    or ``"linear"``; see :class:`mixedrl.networks.Critic`."""
+
+    critic_lr: float = 3e-3
+    """Adam learning rate alpha of the critic (eq. 50), also DDPG's Q-critic."""
+
+    actor_lr: float = 3e-4
+    """Adam learning rate beta of the actor (eq. 52), also DDPG's actor."""
+
+    lr_decay_to: float = 0.01
+    """Learning rates decay linearly from their value to ``lr_decay_to`` times it over the budget
+    (1.0 = constant), or over ``lr_decay_iterations`` iterations if that is set."""
+
+    lr_decay_iterations: int = 0
+    """Length of the learning-rate decay in iterations; after it the rates stay at ``lr_decay_to`` times
+    their start. 0 (the default) = the budget (``iterations``), so the decay is tied to the budget; a
+    budget shorter than the length decays over the budget (see :func:`mixedrl.schedule.lr_factor`)."""
+
+    grad_clip: float = 10.0
+    """Clip of the global gradient norm of each update (``math.inf`` disables it)."""
+
+    expectation: str = "sigma"
+    """How the expectation over ``xi_hat ~ N(mu_hat, K_hat)`` in eqs. (49)-(52) is computed:
+    ``"sigma"`` = deterministic spherical-cubature sigma points in the range of ``K_hat`` (2r points,
+    exact for polynomials of degree <= 3 in ``xi``), ``"samples"`` = reparameterised Monte-Carlo samples."""
+
+    noise_samples: int = 4
+    """Number of reparameterised samples per state when ``expectation == "samples"``."""
+
+    j_max: int = 5
+    """Maximum number of extra PIM steps of the AGPI inner loop (Algorithm 2)."""
+
+    mvc_check: str = "mean"
+    """Where the MVC (eq. 38) is checked on the batch: ``"mean"`` (batch average of both sides) or
+    ``"all"`` (every state)."""
+
+    stop_epsilon: float = 0.0
+    """Stopping test of Algorithm 2: stop when the mean absolute change of ``V`` and of ``pi`` on the
+    batch both stay below ``stop_epsilon`` for ``stop_patience`` iterations; 0 disables it."""
+
+    stop_patience: int = 100
+    """Consecutive iterations the stopping test must hold."""
+
+    ibe_recursion: str = "exact"
+    """Recursion of the Case-2 IBE (``"exact"`` = eq. 17 recursively, ``"paper"`` = eq. 18)."""
+
+    ibe_case: int = 2
+    """Which IBE mixed RL plans with (:func:`mixedrl.noise.make_noise_source`): ``2`` = Case 2, mean and
+    covariance unknown (eqs. 17-18); ``1`` = Case 1, covariance known (the true ``K``, eq. 16); ``3`` =
+    Case 3, a state-dependent mean ``phi(x, u) = W^T g(x, u)`` on the task's features, covariance known
+    (eq. 19, :class:`mixedrl.ibe.LinearFeatureIBE`). Only ``method = "mixed"`` reads it;
+    ``ibe_recursion`` must be ``"exact"`` unless it is 2."""
+
+    batch_weighting: str = "relative"
+    """Departure (tuning add-on): how the states of the batch are weighted in PEV and PIM (eqs. 50 and
+    52): ``"uniform"`` = the plain batch mean (the paper's); ``"relative"`` (the default) = each state by its relative
+    error: PEV squares the relative TD error ``(V - V_target) / (|V_target| + c)`` and PIM weights state
+    ``x`` by ``1 / (V(x) + c)`` (batch mean 1), ``c = batch_weight_offset``
+    (:func:`mixedrl.pev.critic_loss`, :func:`mixedrl.pim.actor_objective`)."""
+
+    batch_weight_offset: float = 1.0
+    """Departure (tuning add-on): ``c`` of ``batch_weighting = "relative"``, in the units of the value."""
+
+    actor_average: float = 0.0
+    """Departure (tuning add-on): decay ``beta`` of an exponential moving average of the actor's weights,
+    ``theta_bar <- beta theta_bar + (1 - beta) theta`` after every iteration (Polyak averaging). With
+    ``beta > 0`` the *averaged* actor is the run's policy (evaluated, saved, deployed:
+    :attr:`mixedrl.algorithms.agpi.AGPI.policy`), while the iterate keeps driving the training rollouts
+    and the gradient steps. 0 (the default) = no averaging. The window is about ``1 / (1 - beta)``
+    iterations."""
+
+    critic_target: float = 0.0
+    """Departure (precision add-on): decay ``beta`` of a target critic for PEV's target. 0 (the default) =
+    eq. (50) as written: ``V_target = l(x', u) + gamma V^k(x'; w)`` with the critic being trained. ``beta > 0``:
+    ``V_target`` takes ``V(x'; w_bar)`` instead, ``w_bar <- beta w_bar + (1 - beta) w`` after every iteration
+    (an exponential moving average of the critic's weights, the target networks of DQN and DDPG;
+    :func:`mixedrl.pev.critic_loss`), so the target moves slowly when the batch's distribution changes.
+    PIM and the MVC keep the critic ``V^k(x; w)`` itself. The same for every method of Algorithm 2; the
+    window is about ``1 / (1 - beta)`` iterations. DDPG has its own (``ddpg.tau``)."""
+
+    bellman_steps: int = 1
+    """Departure (precision add-on): model steps ``n`` of the Bellman operator in PEV and PIM. 1 (the
+    default) = the one-step ``h`` of eq. (37), the paper's Algorithm 2. ``n > 1``: the critic's target
+    and the actor's objective are the ``n``-step ``h_n`` on a rollout of the planning model under the
+    actor, the noise at its mean for ``n - 1`` steps and ``V^k`` with the quadrature of ``xi_hat_k``
+    after them (:func:`mixedrl.pev.h_steps`; the actor's gradient back-propagated through the rollout).
+    The same for every method; the MVC (eq. 38) keeps the one-step ``h``."""
+
+    feedforward: str = "learned"
+    """Departure (precision add-on): where the run's policy takes its action at the task's equilibrium.
+    ``"learned"`` (the default, the paper's) = the actor's own. ``"lq"`` = the actor shifted by a constant so
+    that at the equilibrium it takes the discounted LQ optimum's action for the method's own noise mean,
+    ``pi_ff(o) = pi(o) - pi(o(s*)) + u* - l0(E mu)`` (:class:`mixedrl.precision.FeedForwardPolicy`; the
+    mean is the IBE posterior for mixed RL, the prior for model-driven RL, the truth for the oracle).
+    Training is unchanged (the same bits); the shifted actor is what is evaluated and deployed
+    (:attr:`mixedrl.algorithms.agpi.AGPI.policy`). ``"lq_train"`` = the same anchor as the actor's policy
+    class *during training*: ``u(o) = u_bar tanh(MLP(o) - MLP(o*) + atanh(clip(u_ff / u_bar, -0.999, 0.999)))``
+    (:class:`mixedrl.networks.AnchoredActor`; smooth, bounded, ``u(o*) = u_ff``), ``u_ff`` the LQ optimum's
+    action for the run's current own noise moments, refreshed at the start of every iteration (before the
+    data collection, PEV, PIM and the MVC use the actor); the trained actor is what is evaluated and
+    deployed. A departure from the paper too, off by default, the same for mixed, model and oracle
+    (only the noise moments differ); needs ``architecture="mlp"``; runs with ``"lq_train"`` and runs without
+    it are trained in separate batches (:func:`mixedrl.algorithms.batched.batch_key`). Algorithm 2 only
+    (DDPG has no noise model to take the mean from; it refuses every value but ``"learned"``), and only for
+    a task with an equilibrium. ``"lq_affine"`` = ``"lq_train"`` with the LQ optimum's feedback gain too:
+    ``u(o) = u_bar tanh(z* + G_z (o - o*) + MLP(o) - MLP(o*) - J_MLP(o*) (o - o*))``
+    (:class:`mixedrl.networks.AffineAnchoredActor`), so the policy is the discounted LQ optimum's affine
+    policy to first order at the equilibrium (``u(o*) = u_ff``, ``du/dx = -L``,
+    :func:`mixedrl.precision.equilibrium_gain`) and training shapes only the terms of second and higher
+    order; it needs observations that determine the linearisation's coordinates there. ``"lq_affine_ss"``
+    = ``"lq_affine"`` expanded about the LQ optimum's steady state ``x_ss`` for the own noise mean instead
+    of the equilibrium: ``o*`` = the observation of ``x_ss`` and ``u(o*)`` = the optimum's action there,
+    both refreshed with the noise moments (:func:`mixedrl.precision.steady_anchor`), so the learned
+    remainder vanishes, with its slope, where the closed loop comes to rest (with ``"lq_affine"`` it
+    vanishes at the equilibrium, and at ``x_ss`` the remainder and the tanh's curvature shift the resting
+    point)."""
+
+    def __post_init__(self) -> None:
+        w = "algorithm"
+        for name in ("iterations", "batch_size", "horizon", "noise_samples", "j_max", "stop_patience",
+                     "bellman_steps"):
+            setattr(self, name, check_positive_int(getattr(self, name), f"{w}.{name}"))
+        self.lr_decay_iterations = check_nonnegative_int(self.lr_decay_iterations, f"{w}.lr_decay_iterations")
+        if isinstance(self.hidden_sizes, (str, bytes)) or not isinstance(self.hidden_sizes, (list, tuple)) \
+                or not self.hidden_sizes:
+            raise ValueError(f"{w}.hidden_sizes: expected positive widths, got {self.hidden_sizes!r}")
+        self.hidden_sizes = tuple(check_positive_int(h, f"{w}.hidden_sizes") for h in self.hidden_sizes)
+        check_choice(self.activation, f"{w}.activation", ("elu", "tanh", "relu"))
+        check_choice(self.value_output, f"{w}.value_output", ("softplus", "square", "linear"))
+        check_choice(self.expectation, f"{w}.expectation", ("sigma", "samples"))
+        check_choice(self.mvc_check, f"{w}.mvc_check", ("mean", "all"))
+        check_choice(self.ibe_recursion, f"{w}.ibe_recursion", ("exact", "paper"))
+        check_choice(self.batch_weighting, f"{w}.batch_weighting", BATCH_WEIGHTINGS)
+        check_choice(self.feedforward, f"{w}.feedforward", FEEDFORWARDS)
+        if check_int(self.ibe_case, f"{w}.ibe_case") not in (1, 2, 3):
+            raise ValueError(f"{w}.ibe_case: expected 1, 2 or 3 (the IBE's Case), got {self.ibe_case!r}")
+        if self.ibe_case != 2 and self.ibe_recursion != "exact":
+            raise ValueError(f"{w}.ibe_recursion: 'paper' is eq. (18), a Case 2 recursion; "
+                             f"{w}.ibe_case is {self.ibe_case}")
+        for name in ("critic_lr", "actor_lr"):
+            check_number(getattr(self, name), f"{w}.{name}", positive=True)
+        check_number(self.grad_clip, f"{w}.grad_clip", positive=True, allow_inf=True)
+        check_fraction(self.lr_decay_to, f"{w}.lr_decay_to", low_open=True)
+        check_fraction(self.actor_average, f"{w}.actor_average", high_open=True)
+        check_fraction(self.critic_target, f"{w}.critic_target", high_open=True)
+        check_number(self.stop_epsilon, f"{w}.stop_epsilon", nonneg=True)
+        self.batch_weight_offset = check_number(self.batch_weight_offset, f"{w}.batch_weight_offset", positive=True)
+
+
+@dataclass
+class DDPGConfig:
+    """What DDPG has and the model-based methods do not (replay buffer, target networks, exploration
+    noise; textbook values, not tuned). Dotted keys: ``ddpg.<field>``."""
+
+    envs: int = 16
+    """Parallel true-environment copies stepped once per iteration (transitions per iteration)."""
+
+    buffer_size: int = 200_000
+    """Replay buffer capacity (transitions)."""
+
+    warmup: int = 2000
+    """Transitions collected with exploration before the first update."""
+
+    tau: float = 0.005
+    """Polyak factor of the target networks, in (0, 1]."""
+
+    noise_std: float = 0.2
+    """Standard deviation of the Gaussian exploration noise, as a fraction of each action bound."""
+
+    def __post_init__(self) -> None:
+        self.envs = check_positive_int(self.envs, "ddpg.envs")
+        self.buffer_size = check_positive_int(self.buffer_size, "ddpg.buffer_size")
+        self.warmup = check_nonnegative_int(self.warmup, "ddpg.warmup")
+        check_fraction(self.tau, "ddpg.tau", low_open=True)
+        check_number(self.noise_std, "ddpg.noise_std", positive=True)
+
+
+@dataclass
+class RunConfig:
+    """Bookkeeping of a run: evaluation, checkpoints, threads. Dotted keys: ``run.<field>``."""
+
+    eval_every: int = 100
+    """Evaluate the policy every ``eval_every`` iterations (:meth:`mixedrl.tasks.Task.evaluate`)."""
+
+    eval_seeds: int = 2
+    """Number of noise realisations averaged by each evaluation."""
+
+    checkpoint_every: int = 500
+    """Write an atomic checkpoint every ``checkpoint_every`` iterations (and at the end)."""
+
+    num_threads: int = 1
+    """``torch.set_num_threads`` for the run (fixed, so results do not depend on the machine)."""
+
+    def __post_init__(self) -> None:
+        for f in dataclasses.fields(self):
+            setattr(self, f.name, check_positive_int(getattr(self, f.name), f"run.{f.name}"))
+        cores = os.cpu_count()
+        if cores is not None and self.num_threads > cores:
+            raise ValueError(f"run.num_threads: {self.num_threads} threads, more than this machine's {cores} cores")
+
+
+# ----------------------------------------------------------------------------------------------------
+# samplers: where Algorithm 2's PEV/PIM states come from
+# ----------------------------------------------------------------------------------------------------
+#: Sampler name -> its options class (``sampler.name`` selects it); filled by :func:`register_sampler`.
+SAMPLERS: dict[str, type] = {}
+#: Sampler name -> the task names it works with (``None`` = any task).
+_SAMPLER_TASKS: dict[str, tuple[str, ...] | None] = {}
+
+
+def register_sampler(cls: type, tasks: tuple[str, ...] | None = None) -> type:
+    """Register the options class ``cls`` of a sampler under ``cls.NAME`` (usable as a decorator).
+
+    ``tasks`` names the task configurations the sampler needs (``None``: any task); choosing it with
+    another task is an error naming ``sampler.name`` and the task. The algorithm that uses the sampler
+    looks its implementation up by the same name (:data:`mixedrl.algorithms.model_data.SAMPLER_CLASSES`).
+    """
+    SAMPLERS[cls.NAME] = cls
+    _SAMPLER_TASKS[cls.NAME] = tasks
+    return cls
+
+
+@dataclass
+class TrueCopiesSampler:
+    """``sampler.name = "true_copies"``: Algorithm 2 as the paper writes it. The batch is the current
+    states of ``algorithm.batch_size`` copies of the true environment, each stepped once per iteration
+    under the current policy and reset every ``algorithm.horizon`` steps (``batch_size`` true transitions
+    per iteration); the IBE consumes their residuals. No options."""
+
+    NAME: ClassVar[str] = "true_copies"
+
+    name: str = "true_copies"
+    """Always ``"true_copies"`` for this class."""
+
+
+@dataclass
+class ModelRolloutsSampler:
+    """``sampler.name = "model_rollouts"``: the batch is ``algorithm.batch_size`` rollouts of the planning
+    model ``f + E xi_hat`` under the method's noise source, restarted from the task's training
+    distribution (``sample_initial``) every ``algorithm.horizon`` steps; for mixed RL ``true_envs`` copies
+    of the true environment collect the IBE's residuals (model-driven RL and the oracle collect none).
+    Dotted keys: ``sampler.<field>``."""
+
+    NAME: ClassVar[str] = "model_rollouts"
+
+    name: str = "model_rollouts"
+    """Always ``"model_rollouts"`` for this class."""
+
+    box: float = 3.0
+    """A rollout restarts when a component of its observation exceeds ``box`` times the task's
+    ``obs_scale`` (``math.inf`` disables it: the planning model may then drive a rollout anywhere)."""
+
+    true_envs: int = 1
+    """Mixed RL: true-environment copies driven at each collection."""
+
+    true_steps: int = 20
+    """Mixed RL: consecutive steps each true copy drives per collection."""
+
+    true_every: int = 10
+    """Mixed RL: iterations between collections (true transitions per iteration:
+    ``true_envs * true_steps / true_every``)."""
+
+    true_horizon: int = 200
+    """Mixed RL: steps after which a true copy restarts at the task's episode start."""
+
+    def __post_init__(self) -> None:
+        w = "sampler"
+        if self.name != self.NAME:
+            raise ValueError(f"{w}.name: expected {self.NAME!r} for {type(self).__name__}, got {self.name!r}")
+        check_number(self.box, f"{w}.box", positive=True, allow_inf=True)
+        for name in ("true_envs", "true_steps", "true_every", "true_horizon"):
+            setattr(self, name, check_positive_int(getattr(self, name), f"{w}.{name}"))
+
+
+register_sampler(TrueCopiesSampler)
+register_sampler(ModelRolloutsSampler)
+
+#: The configuration of a run's sampler: one of the registered classes (:data:`SAMPLERS`), by ``name``
+#: (these two, or a task's own, such as the double lane change's :class:`mixedrl.envs.dlc_task.CourseSampler`).
+SamplerConfig = Union[TrueCopiesSampler, ModelRolloutsSampler]
+
+
+def sampler_config(value: Any, task: str | None = None) -> Any:
+    """Build a sampler configuration from its name, a dict (``name`` selects the class, default
+    ``"model_rollouts"``) or an options object (returned as is); ``task`` (a task name) is checked
+    against what the sampler needs.
+
+    Raises
+    ------
+    ValueError
+        Unknown sampler (``sampler.name``), unknown option (``config: unknown key(s) ['sampler.<key>']``),
+        an invalid value, or a sampler the task cannot provide for (naming ``sampler.name`` and the task).
+    """
+    if isinstance(value, str):
+        value = {"name": value}
+    if isinstance(value, dict):
+        name = value.get("name", ModelRolloutsSampler.NAME)
+        if name not in SAMPLERS:
+            raise ValueError(f"sampler.name: expected one of {tuple(SAMPLERS)}, got {name!r}")
+        value = build_section(SAMPLERS[name], {**value, "name": name}, "sampler")
+    elif not any(type(value) is cls for cls in SAMPLERS.values()):
+        raise ValueError(f"sampler: expected a sampler name {tuple(SAMPLERS)}, a dict or an options object, "
+                         f"got {value!r}")
+    needs = _SAMPLER_TASKS.get(value.name)
+    if task is not None and needs is not None and task not in needs:
+        raise ValueError(f"sampler.name: {value.name!r} needs a task with a course ({', '.join(needs)}); "
+                         f"task {task!r} has none")
+    return value
+
+
+# ----------------------------------------------------------------------------------------------------
+# presets: a task's experiment configuration
+# ----------------------------------------------------------------------------------------------------
+#: Task name -> its experiment configuration: section -> field values that replace the library defaults
+#: (a section not named keeps the library defaults). Filled by :func:`register_preset`.
+PRESETS: dict[str, dict[str, dict[str, Any]]] = {}
+_SECTIONS = ("algorithm", "sampler", "ddpg", "run")
+
+
+def register_preset(task: str, sections: dict[str, dict[str, Any]]) -> None:
+    """Register the experiment configuration of the task named ``task``: the values ``TrainConfig`` gives
+    a section's missing fields when the run's task is ``task`` (``{"algorithm": {...}, "sampler": {...}}``)."""
+    unknown = set(sections) - set(_SECTIONS)
+    if unknown:
+        raise ValueError(f"sections: unknown section(s) {sorted(unknown)}; allowed: {sorted(_SECTIONS)}")
+    PRESETS[task] = copy.deepcopy(sections)

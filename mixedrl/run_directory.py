@@ -1,0 +1,553 @@
+"""The run-directory protocol: the files of a run, its one-writer lock, its records and their checks.
+
+The checkpoint codec, the atomic writes and the sha256 sidecars are :mod:`mixedrl.checkpoint`. The
+training driver that writes these files is :mod:`mixedrl.runs`, which re-exports every public name of this
+module (``mixedrl.runs.RunDirectory``, ``mixedrl.runs.hold_lock``, ...).
+
+A run lives in one directory::
+
+    RUN_DIR/
+        config.json      the TrainConfig of the run (mixedrl.config)
+        checkpoint.pt    the latest checkpoint (written to a temporary file, then renamed: atomic;
+                         plain data, read with torch.load(weights_only=True): safe to share)
+        metrics.jsonl    one JSON object per iteration (namespaced keys, see below)
+        metrics.csv      the same table as CSV, written when the run ends
+        results.json     final evaluation, convergence, wall time
+        config.json.sha256, checkpoint.pt.sha256, results.json.sha256
+                         the sha256 of each (sha256sum format), verified on every load
+        .lock            the one-writer lock (fcntl.flock; holds the writer's pid, host, start time;
+                         created without following links, never truncated: :func:`hold_lock`)
+
+The writes come in an order that makes every kill point resumable: at each checkpoint ``config.json``
+(with the first one), the new ``metrics.jsonl`` rows, then ``checkpoint.pt``; at the end ``metrics.csv``
+and ``results.json``; each file after its digest (:func:`write_with_digest`). A directory is therefore
+always *fresh* (the lock, ``config.json``, rows up to the first checkpoint: resumed from scratch, the rows
+discarded) or *at checkpoint k* (rows beyond ``k`` discarded on resume).
+
+Training never replaces a run: without ``resume`` the directory must be absent or empty (anything the
+package did not write, a planted ``.lock`` included, makes it not a run); with it the saved config must
+match (a larger ``iterations`` extends the budget) and ``metrics.jsonl`` must be complete up to the
+checkpoint (docs/algorithm2.rst, "Run directories").
+"""
+
+from __future__ import annotations
+
+import contextlib
+import csv
+import errno
+import io
+import json
+import math
+import os
+import re
+import socket
+import stat
+import time
+from pathlib import Path
+from typing import Any, Iterator
+
+import numpy as np
+import torch
+
+from mixedrl.checkpoint import (atomic_write_text, default_file_mode, is_temporary, load_checkpoint, regular_file,
+                                verify_digest, write_with_digest)
+from mixedrl.config import TrainConfig, task_names
+
+__all__ = [
+    "RunDirectory",
+    "RunLockedError",
+    "hold_lock",
+    "is_lock_file",
+    "LOCK_NAME",
+    "RUN_FILES",
+    "config_record",
+    "check_state",
+    "load_trainer",
+]
+
+#: The files that make a directory a run (any one of them): never replaced without ``resume``.
+RUN_FILES = ("config.json", "checkpoint.pt", "metrics.jsonl", "results.json")
+#: The lock file of a run directory (see :meth:`RunDirectory.lock`).
+LOCK_NAME = ".lock"
+#: Names whose presence means a run was started here: :data:`RUN_FILES` and the digests written before them.
+_STARTED = RUN_FILES + tuple(f"{name}.sha256" for name in ("config.json", "checkpoint.pt", "results.json"))
+
+
+def _temporary_of_run(name: str) -> bool:
+    """True for a temporary file :func:`atomic_write_bytes` leaves when killed while writing a run's file."""
+    stem = name[1:].rsplit(".", 2)[0] if is_temporary(name) and name.count(".") >= 3 else ""
+    return stem in _STARTED + ("metrics.csv",)
+
+
+class RunLockedError(ValueError):
+    """Another process holds the run directory's lock (a second writer is refused)."""
+
+
+#: The lock file's content: the holder's line, padded with spaces to this many bytes (so it is rewritten in
+#: place, never truncated).
+_LOCK_WIDTH = 256
+#: What a lock file this package wrote holds: nothing, or a holder's line and padding.
+_LOCK_TEXT = re.compile(rb"(pid [0-9]+ on \S+ since \S+\n)? *")
+
+
+def is_lock_file(path: Path) -> bool:
+    """Whether ``path`` is a lock file this package wrote: a regular file of one link holding nothing but a
+    holder's line (:data:`_LOCK_TEXT`); a symbolic link, a hard link to another file, or any other content
+    is not."""
+    try:
+        st = os.lstat(path)
+        if not stat.S_ISREG(st.st_mode) or st.st_nlink != 1 or st.st_size > _LOCK_WIDTH:
+            return False
+        with open(path, "rb") as fh:
+            return _LOCK_TEXT.fullmatch(fh.read(_LOCK_WIDTH + 1)) is not None
+    except OSError:
+        return False
+
+
+@contextlib.contextmanager
+def hold_lock(path: str | Path, what: str = "out") -> Iterator[None]:
+    """Hold the exclusive lock of the file ``path`` (``fcntl.flock``) for the duration of the ``with`` block.
+
+    The file is created if needed, without following a symbolic link (``O_NOFOLLOW``), and is never
+    truncated: an existing file is used only if it is one this package wrote (a regular file of one link
+    holding a holder's line), and the holder's line (pid, host, start time) is written over it in place,
+    padded to a fixed width. The kernel releases the lock when the holder exits, however it dies, so a lock
+    left by a killed process is recovered by the next holder. The descriptor is not inherited by child
+    processes (``O_CLOEXEC``).
+
+    Parameters
+    ----------
+    path : str or pathlib.Path
+        The lock file (its directory must exist).
+    what : str
+        The prefix of the error messages (the argument that named the directory).
+
+    Raises
+    ------
+    RunLockedError
+        Another process holds the lock (the message names the directory and the holder).
+    ValueError
+        ``path`` is a symbolic link, not a regular file, a hard link or holds something else than a
+        holder's line (nothing is written into it), or the directory cannot be written.
+    """
+    import fcntl
+
+    path = Path(path)
+    foreign = (f"{what}: {path} is not a lock file mixedrl wrote (a symbolic link, a hard link, a special file or "
+               f"other content); the directory is not mixedrl's: choose a new directory")
+    flags = os.O_RDWR | os.O_CREAT | getattr(os, "O_NOFOLLOW", 0) | getattr(os, "O_CLOEXEC", 0)
+    try:
+        fd = os.open(path, flags | getattr(os, "O_NONBLOCK", 0), default_file_mode())
+    except OSError as exc:
+        if exc.errno == errno.ELOOP:
+            raise ValueError(foreign) from None
+        raise ValueError(f"{what}: cannot write in {path.parent} ({exc.strerror})") from None
+    try:
+        st = os.fstat(fd)
+        if not stat.S_ISREG(st.st_mode) or st.st_nlink != 1 or st.st_size > _LOCK_WIDTH:
+            raise ValueError(foreign)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            holder = os.pread(fd, _LOCK_WIDTH, 0).decode("utf-8", "replace").strip() or "unknown"
+            raise RunLockedError(f"{what}: {path.parent} is being written by another process ({holder}); "
+                                 f"one writer per directory") from None
+        if _LOCK_TEXT.fullmatch(os.pread(fd, _LOCK_WIDTH + 1, 0)) is None:
+            raise ValueError(foreign)
+        host = socket.gethostname().replace(" ", "_")[:120] or "unknown"
+        info = f"pid {os.getpid()} on {host} since {time.strftime('%Y-%m-%dT%H:%M:%SZ', time.gmtime())}\n"
+        os.pwrite(fd, info.encode().ljust(_LOCK_WIDTH), 0)
+        yield
+    finally:
+        os.close(fd)  # releases the flock
+
+
+def _metrics_row(line: bytes, number: int, path: Path) -> dict[str, Any]:
+    """One row of ``metrics.jsonl`` (line ``number``): a JSON object with a positive integer ``iteration``."""
+    try:
+        row = json.loads(line.decode("utf-8"))
+    except UnicodeDecodeError as exc:
+        raise ValueError(f"metrics: {path} line {number} is not UTF-8 text ({exc.reason} at byte {exc.start})") \
+            from None
+    if not isinstance(row, dict):
+        raise ValueError(f"metrics: {path} line {number} is a JSON {type(row).__name__}, expected an object")
+    k = row.get("iteration")
+    if type(k) is not int or k < 1:
+        raise ValueError(f"metrics: {path} line {number} has iteration {k!r}, expected a positive integer")
+    return row
+
+
+class RunDirectory:
+    """The files of one run (see the module docstring).
+
+    Parameters
+    ----------
+    path : str or pathlib.Path
+        Directory; created by the first write (not by reading or validating).
+    """
+
+    def __init__(self, path: str | Path) -> None:
+        self.path = Path(path)
+
+    config_path = property(lambda self: self.path / "config.json")
+    checkpoint_path = property(lambda self: self.path / "checkpoint.pt")
+    metrics_path = property(lambda self: self.path / "metrics.jsonl")
+    csv_path = property(lambda self: self.path / "metrics.csv")
+    results_path = property(lambda self: self.path / "results.json")
+    lock_path = property(lambda self: self.path / LOCK_NAME)
+
+    def _check_link(self) -> None:
+        """Refuse a ``path`` that is a symbolic link leading nowhere (a loop or a missing target)."""
+        if self.path.is_symlink() and not os.path.exists(self.path):
+            raise ValueError(f"out: {self.path} is a symbolic link that does not resolve (a loop or a missing "
+                             f"target)")
+
+    def _mkdir(self) -> None:
+        self._check_link()
+        try:
+            self.path.mkdir(parents=True, exist_ok=True)
+        except FileExistsError:
+            raise ValueError(f"out: {self.path} is a file, not a directory") from None
+        except OSError as exc:
+            raise ValueError(f"out: cannot create the directory {self.path} ({exc.strerror})") from None
+
+    def entries(self) -> list[str]:
+        """Names in the directory other than its lock and leftover temporary files ([] if it does not exist).
+
+        The lock file is listed when it is not one this package wrote (a symbolic or hard link, other
+        content): such a directory is not a run.
+
+        Raises
+        ------
+        ValueError
+            ``path`` exists and is not a directory, is a symbolic link that does not resolve, or cannot be
+            listed.
+        """
+        self._check_link()
+        if not self.path.exists():
+            return []
+        if not self.path.is_dir():
+            raise ValueError(f"out: {self.path} is a file, not a directory")
+        try:
+            names = os.listdir(self.path)
+        except OSError as exc:
+            raise ValueError(f"out: cannot read the directory {self.path} ({exc.strerror})") from None
+        return sorted(n for n in names if not _temporary_of_run(n)
+                      and not (n == LOCK_NAME and is_lock_file(self.path / n)))
+
+    def holds_run(self) -> bool:
+        """True if a run was started here: any of :data:`RUN_FILES`, a digest of one (a write that was
+        killed), or this package's lock file."""
+        return (any(name in _STARTED for name in self.entries())
+                or (self.lock_path.exists() and is_lock_file(self.lock_path)))
+
+    def check_new(self) -> None:
+        """Refuse to start a new run here unless the directory is absent or empty; creates nothing.
+
+        Empty means: nothing but this package's lock file and temporary files (a run killed before it wrote
+        anything).
+
+        Raises
+        ------
+        ValueError
+            ``path`` is a file, holds a run (resume it, or choose a new directory), or holds other files.
+        """
+        names = self.entries()
+        found = [n for n in names if n in _STARTED]
+        if found:
+            raise ValueError(f"out: {self.path} already holds a run ({', '.join(found)}); pass --resume "
+                             f"(resume=True) to continue it, or choose a new directory")
+        if names:
+            shown = ", ".join(names[:3]) + (", ..." if len(names) > 3 else "")
+            raise ValueError(f"out: {self.path} is not empty and holds no run ({shown}); choose a new or "
+                             f"empty directory")
+
+    @contextlib.contextmanager
+    def lock(self) -> Iterator[None]:
+        """Hold the directory's one-writer lock (``<path>/.lock``, :func:`hold_lock`) for the duration of the
+        ``with`` block. The directory is created if needed.
+
+        Raises
+        ------
+        RunLockedError
+            Another process holds the lock (the message names the directory and the holder).
+        ValueError
+            The directory cannot be created or written, or its ``.lock`` is not one this package wrote.
+        """
+        self._mkdir()
+        with hold_lock(self.lock_path):
+            yield
+
+    def write_config(self, config: TrainConfig, task: Any = None) -> None:
+        """Save the run's config as ``config.json`` (:func:`config_record`: with the user's own ``task``,
+        its name), with its sha256 in ``config.json.sha256``."""
+        self._mkdir()
+        text = json.dumps(config_record(config, task), indent=2, sort_keys=True) + "\n"
+        write_with_digest(self.config_path, text.encode("utf-8"))
+
+    def read_config(self) -> TrainConfig:
+        """Load ``config.json`` (unknown keys are an error), verified against its sha256 sidecar.
+
+        Raises
+        ------
+        ValueError
+            No ``config.json``, one that does not match its digest, or one that is not a valid config; one
+            recorded for the user's own task (``task.name`` not a built-in or registered task) is refused
+            with a message naming the task: its :class:`~mixedrl.tasks.Task` object is needed (read the raw
+            record with :meth:`read_record`).
+        """
+        record = self.read_record()
+        task = record.get("task")
+        if isinstance(task, dict) and set(task) == {"name"} and task["name"] not in task_names():
+            raise ValueError(f"config: {self.config_path} records the user's own task {task['name']!r}, which "
+                             f"no config can rebuild; build it and pass it to make_trainer(config, task)")
+        return TrainConfig.from_dict(record)
+
+    def read_record(self) -> dict[str, Any]:
+        """The JSON object of ``config.json`` as written (:func:`config_record`), not migrated or validated;
+        verified against its sha256 sidecar (``config.json.sha256``) when it has one.
+
+        Raises
+        ------
+        ValueError
+            ``config.json`` is missing, not a regular file, does not match its digest, or is not a JSON object.
+        """
+        if not regular_file(self.config_path, "config"):
+            raise ValueError(f"path: {self.path} has no config.json")
+        try:
+            data = self.config_path.read_bytes()
+        except OSError as exc:
+            raise ValueError(f"config: cannot read {self.config_path} ({exc.strerror})") from None
+        verify_digest(self.config_path, data, "config")
+        try:
+            record = json.loads(data.decode("utf-8"))
+        except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+            raise ValueError(f"config: cannot read {self.config_path} as JSON ({exc})") from None
+        if not isinstance(record, dict):
+            raise ValueError(f"config: {self.config_path} holds a JSON {type(record).__name__}, expected an object")
+        return record
+
+    def append_metrics(self, rows: list[dict[str, Any]]) -> None:
+        """Append rows to ``metrics.jsonl``."""
+        if not rows:
+            return
+        self._mkdir()
+        with open(self.metrics_path, "a") as fh:
+            for row in rows:
+                fh.write(json.dumps(row, allow_nan=True) + "\n")
+
+    def read_metrics(self) -> list[dict[str, Any]]:
+        """All rows of ``metrics.jsonl`` (an empty list if there is none).
+
+        A last line without its newline that is not JSON is the torn row of an interrupted write and is
+        left out.
+
+        Raises
+        ------
+        ValueError
+            ``metrics: ...`` naming the file and the line: the file is not a regular file, a line is not
+            UTF-8, not JSON (other than a torn last line), not an object, or has no positive integer
+            ``iteration``.
+        """
+        if not regular_file(self.metrics_path, "metrics"):
+            return []
+        data = self.metrics_path.read_bytes()
+        lines = data.split(b"\n")
+        rows = []
+        for number, line in enumerate(lines, 1):
+            if not line.strip():
+                continue
+            try:
+                rows.append(_metrics_row(line, number, self.metrics_path))
+            except json.JSONDecodeError as exc:
+                if number == len(lines):
+                    break  # a torn last line (no newline yet) of an interrupted run
+                raise ValueError(f"metrics: {self.metrics_path} line {number} is not JSON ({exc})") from None
+        return rows
+
+    def truncate_metrics(self, k: int) -> None:
+        """Keep only the rows with ``iteration <= k`` (used when resuming from a checkpoint at ``k``).
+
+        Raises
+        ------
+        ValueError
+            ``metrics.jsonl`` is missing or lacks a row of some iteration ``1..k`` (resuming would lose
+            metrics); nothing is changed then.
+        """
+        rows = self.check_metrics(k)
+        atomic_write_text(self.metrics_path, "".join(json.dumps(r) + "\n" for r in rows))
+
+    def check_metrics(self, k: int) -> list[dict[str, Any]]:
+        """The rows of iterations ``1..k`` of ``metrics.jsonl``, checked complete (see :meth:`truncate_metrics`)."""
+        rows = [r for r in self.read_metrics() if r["iteration"] <= k]
+        if [r["iteration"] for r in rows] != list(range(1, k + 1)):
+            state = "is missing" if not self.metrics_path.is_file() else f"has {len(rows)} rows up to iteration {k}"
+            raise ValueError(f"metrics: {self.metrics_path} {state}, but the checkpoint is at iteration {k} "
+                             f"(one row per iteration expected); resuming would lose metrics: restore the "
+                             f"file or train into a new directory")
+        return rows
+
+    def write_csv(self) -> None:
+        """Write ``metrics.csv`` from ``metrics.jsonl`` (union of keys as columns)."""
+        rows = self.read_metrics()
+        keys: list[str] = []
+        for row in rows:
+            keys += [k for k in row if k not in keys]
+        out = io.StringIO()
+        writer = csv.DictWriter(out, fieldnames=keys)
+        writer.writeheader()
+        for row in rows:
+            writer.writerow(row)
+        self._mkdir()
+        atomic_write_text(self.csv_path, out.getvalue())
+
+    def write_results(self, results: dict[str, Any]) -> None:
+        """Write ``results.json`` atomically, with its sha256 in ``results.json.sha256``."""
+        self._mkdir()
+        text = json.dumps(results, indent=2, sort_keys=True) + "\n"
+        write_with_digest(self.results_path, text.encode("utf-8"))
+
+    def read_results(self) -> dict[str, Any]:
+        """Read ``results.json``, verified against its sha256 sidecar when it has one.
+
+        Raises
+        ------
+        ValueError
+            ``results: ...`` naming the file if it is missing, not a regular file, does not match its digest,
+            or is not JSON.
+        """
+        if not regular_file(self.results_path, "results"):
+            raise ValueError(f"results: {self.results_path} does not exist")
+        data = self.results_path.read_bytes()
+        verify_digest(self.results_path, data, "results")
+        try:
+            return json.loads(data)
+        except json.JSONDecodeError as exc:
+            raise ValueError(f"results: {self.results_path} is not valid JSON ({exc})") from None
+
+
+
+def config_record(config: TrainConfig, task: Any = None) -> dict[str, Any]:
+    """The content of a run's ``config.json``: ``config.to_dict()``, naming the task the run trains.
+
+    A built-in task is built from ``config.task``, which is recorded in full. The user's own ``task`` (a
+    :class:`~mixedrl.tasks.Task` whose ``name`` is not ``config.task.name``, e.g. ``"Cruise"`` trained
+    with the placeholder ``TrainConfig(task="linear")``) does not use ``config.task``; the record's
+    ``task`` is then ``{"name": task.name}``.
+    """
+    data = config.to_dict()
+    name = getattr(task, "name", None)
+    if task is not None and name != config.task.name:
+        data["task"] = {"name": str(name)}
+    return json.loads(json.dumps(data))  # exactly what config.json holds (lists, not tuples)
+
+
+
+def _real(value: Any) -> bool:
+    return isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, (bool, np.bool_))
+
+
+def _check_fields(value: Any, template: Any, where: str, path: Path) -> None:
+    """Check ``value`` against ``template`` (what a fresh trainer's ``state_dict()`` holds there): the kind of
+    every field (dict with the template's keys, list, tensor or array of the template's dtype and number of
+    dimensions, bool, integer, real number, string, generator); ``None`` in the template is not checked."""
+    def bad(problem: str) -> ValueError:
+        return ValueError(f"checkpoint: {path} field {where} {problem}")
+
+    if template is None:
+        return
+    if isinstance(template, dict):
+        if not isinstance(value, dict):
+            raise bad(f"is a {type(value).__name__}, expected a dict")
+        for key, sub in template.items():
+            if key not in value:
+                raise bad(f"has no key {key!r}")
+            _check_fields(value[key], sub, f"{where}.{key}", path)
+    elif isinstance(template, (list, tuple)):
+        if not isinstance(value, (list, tuple)):
+            raise bad(f"is a {type(value).__name__}, expected a list")
+        for i, (v, t) in enumerate(zip(value, template)):
+            _check_fields(v, t, f"{where}[{i}]", path)
+    elif isinstance(template, (torch.Tensor, np.ndarray)):
+        if type(value) is not type(template):
+            raise bad(f"is a {type(value).__name__}, expected a {type(template).__name__}")
+        if value.dtype != template.dtype or value.ndim != template.ndim:
+            raise bad(f"has dtype {value.dtype} and {value.ndim} dimension(s), expected {template.dtype} and "
+                      f"{template.ndim}")
+    elif isinstance(template, (bool, np.bool_)):
+        if not isinstance(value, (bool, np.bool_)):
+            raise bad(f"is {value!r}, expected true or false")
+    elif isinstance(template, (int, np.integer)):
+        if not _real(value) or not float(value).is_integer():
+            raise bad(f"is {value!r}, expected an integer")
+    elif _real(template):
+        if not _real(value):
+            raise bad(f"is {value!r}, expected a number")
+    elif not isinstance(value, type(template)):
+        raise bad(f"is a {type(value).__name__}, expected a {type(template).__name__}")
+
+
+def check_state(state: Any, path: str | Path, budget: int | None = None,
+                template: dict[str, Any] | None = None) -> None:
+    """Check a loaded checkpoint's record field by field before it is used (:func:`train`, ``evaluate``).
+
+    Parameters
+    ----------
+    state : Any
+        What :func:`load_checkpoint` returned.
+    path : str or pathlib.Path
+        The checkpoint (named in the errors).
+    budget : int, optional
+        The run's ``algorithm.iterations``: the largest iteration a checkpoint of it can be at.
+    template : dict, optional
+        A fresh trainer's ``state_dict()``: every field of it must be in ``state["trainer"]``, of its kind.
+
+    Raises
+    ------
+    ValueError
+        ``checkpoint: <path> field <name> ...``: ``trainer`` missing or not a dict, ``trainer.k`` not an
+        integer in ``[0, budget]``, ``elapsed`` not a finite number ``>= 0``, ``trainer.stop_count`` not an
+        integer ``>= 0``, or a field of ``template`` missing or of another kind.
+    """
+    path = Path(path)
+    if not isinstance(state, dict) or not isinstance(state.get("trainer"), dict):
+        found = type(state.get("trainer")).__name__ if isinstance(state, dict) and "trainer" in state else "missing"
+        raise ValueError(f"checkpoint: {path} field trainer is {found}, expected a dict (a trainer's state)")
+    trainer = state["trainer"]
+    k, top = trainer.get("k"), "" if budget is None else f", {budget}"
+    if type(k) is not int or k < 0 or (budget is not None and k > budget):
+        raise ValueError(f"checkpoint: {path} field trainer.k is {k!r}, expected an integer in [0{top}]")
+    elapsed = state.get("elapsed", 0.0)
+    if not _real(elapsed) or not math.isfinite(elapsed) or elapsed < 0:
+        raise ValueError(f"checkpoint: {path} field elapsed is {elapsed!r}, expected a finite number >= 0")
+    count = trainer.get("stop_count", 0)
+    if type(count) is not int or count < 0:
+        raise ValueError(f"checkpoint: {path} field trainer.stop_count is {count!r}, expected an integer >= 0")
+    if template is not None:
+        _check_fields(trainer, template, "trainer", path)
+
+
+def load_trainer(trainer: Any, path: str | Path, state: dict[str, Any] | None = None) -> dict[str, Any]:
+    """Restore ``trainer`` from the checkpoint ``path`` (or its already loaded ``state``), checked first
+    (:func:`check_state` against the trainer's own fields and budget).
+
+    Returns
+    -------
+    dict
+        The checkpoint's record.
+
+    Raises
+    ------
+    ValueError
+        ``checkpoint: <path> ...``: unreadable, invalid, or a state the trainer does not accept.
+    """
+    if state is None:
+        state = load_checkpoint(path)
+    check_state(state, path, trainer.config.algorithm.iterations, trainer.state_dict())
+    try:
+        trainer.load_state_dict(state["trainer"])
+    except (ValueError, KeyError, TypeError, IndexError, RuntimeError, AttributeError) as exc:
+        text = " ".join(str(exc).split())[:300]
+        raise ValueError(f"checkpoint: {path} field trainer does not fit the run's trainer "
+                         f"({type(exc).__name__}: {text})") from None
+    return state

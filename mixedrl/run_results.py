@@ -1,0 +1,264 @@
+"""The evaluation of runs and their summaries: the trainer of a configuration, the evaluation seeds, the
+evaluation of a saved run or of a batch of trainers together, the convergence criterion and the
+``results.json`` record of a finished run.
+
+:mod:`mixedrl.runs` (the training driver) re-exports every public name of this module.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from mixedrl.algorithms.agpi import AGPI
+from mixedrl.algorithms.ddpg import DDPG
+from mixedrl.config import ANCHORED_FEEDFORWARDS, TrainConfig
+from mixedrl import departures
+from mixedrl.plant import credit_evaluations, plant_transitions
+from mixedrl.precision import run_policy_gap
+from mixedrl.tasks import Task, task_from_config
+from mixedrl.run_directory import RunDirectory, load_trainer
+
+__all__ = [
+    "iterations_to_converge",
+    "eval_seeds",
+    "make_trainer",
+    "evaluate_run",
+    "evaluate_together",
+    "summarize",
+    "CONVERGENCE_RTOL",
+]
+
+#: Relative tolerance of the convergence criterion (:func:`iterations_to_converge`).
+CONVERGENCE_RTOL = 0.10
+
+def iterations_to_converge(iterations: list[int], costs: list[float], rtol: float = CONVERGENCE_RTOL) -> int:
+    """The convergence criterion applied identically to every method.
+
+    A run has converged at the first evaluated iteration ``k`` from which **every** later evaluation cost
+    stays within ``rtol`` (10%) of the run's final level, ``J_final`` = the median of its last three
+    evaluations:
+
+    .. math::
+
+        k^\\star = \\min\\{k_i : J(k_j) \\le (1 + \\mathrm{rtol})\\, J_{\\rm final}\\ \\forall j \\ge i\\}.
+
+    Parameters
+    ----------
+    iterations : list of int
+        Evaluated iterations, increasing.
+    costs : list of float
+        Evaluation cost at each (non-finite counts as not converged).
+    rtol : float
+        Relative tolerance.
+
+    Returns
+    -------
+    int
+        ``k*`` (the last evaluated iteration if the run never settles).
+
+    Raises
+    ------
+    ValueError
+        ``iterations`` empty or lengths differ.
+    """
+    if not iterations or len(iterations) != len(costs):
+        raise ValueError(f"iterations: expected equal non-empty lists, got {len(iterations)} and {len(costs)}")
+    final = float(np.median(costs[-3:]))
+    bound = (1.0 + rtol) * final if final >= 0 else (1.0 - rtol) * final
+    k_star = iterations[-1]
+    for i in range(len(costs) - 1, -1, -1):
+        if math.isfinite(costs[i]) and costs[i] <= bound:
+            k_star = iterations[i]
+        else:
+            break
+    return int(k_star)
+
+
+def eval_seeds(config: TrainConfig) -> list[int]:
+    """Noise seeds of the evaluation episodes: fixed per run, disjoint from the training seed stream."""
+    return [1_000_003 * (config.seed + 1) + i for i in range(config.run.eval_seeds)]
+
+
+def make_trainer(config: TrainConfig, task: Task | None = None) -> AGPI | DDPG:
+    """Build the trainer of ``config.method`` (Algorithm 2 for mixed/model/oracle, DDPG for ddpg).
+
+    The task is built from ``config.task`` (:func:`mixedrl.tasks.task_from_config`) unless ``task`` is given.
+    """
+    if task is None:
+        task = task_from_config(config.task)
+    if config.method == "ddpg":
+        return DDPG(task, config)
+    return AGPI(task, config)
+
+
+def evaluate_run(path: str | Path, *, seeds: int | None = None, feedforward: str | None = None,
+                 task: Task | None = None) -> dict[str, Any]:
+    """Evaluate a run directory's final policy on its task (``mixedrl evaluate``); reads only.
+
+    Parameters
+    ----------
+    path : str or Path
+        A run directory with ``config.json`` and a checkpoint.
+    seeds : int, optional
+        Number of noise seeds (default the run's ``run.eval_seeds``; the seeds are :func:`eval_seeds`).
+    feedforward : str, optional
+        Evaluate with this ``algorithm.feedforward`` instead of the run's (``"lq"``: the actor shifted to
+        the LQ optimum's action at the equilibrium for the method's own noise mean). Training does not
+        read ``"lq"``, so this evaluates what the run would have deployed with it; ``"lq_train"``,
+        ``"lq_affine"`` and ``"lq_affine_ss"`` change training and are refused unless they are the run's own.
+    task : Task, optional
+        The task object of a user's own task (not rebuilt from the config).
+
+    Returns
+    -------
+    dict
+        ``config`` (the :class:`TrainConfig` evaluated), ``iteration``, ``metrics`` (the task's
+        evaluation), ``policy_gap`` and ``policy_gap_reason`` (:func:`mixedrl.precision.run_policy_gap`).
+
+    Raises
+    ------
+    ValueError
+        If ``path`` is not a run directory, or as :class:`TrainConfig` for a bad ``feedforward``.
+    """
+    run = RunDirectory(path)
+    if not run.path.is_dir():
+        raise ValueError(f"run_dir: {run.path} is not a directory" if run.path.exists()
+                         else f"run_dir: {run.path} does not exist")
+    config = run.read_config()
+    if seeds is not None:
+        config = config.replace(**{"run.eval_seeds": seeds})
+    if feedforward is not None:
+        trained = {feedforward, config.algorithm.feedforward} & set(ANCHORED_FEEDFORWARDS)
+        if trained and feedforward != config.algorithm.feedforward:
+            raise ValueError(f"feedforward: {sorted(trained)[0]!r} is a training-time policy class (an anchored "
+                             f"actor); the run "
+                             f"was trained with algorithm.feedforward = {config.algorithm.feedforward!r}, it cannot be "
+                             f"evaluated with {feedforward!r}")
+        config = config.replace(**{"algorithm.feedforward": feedforward})
+    trainer = make_trainer(config, task)
+    load_trainer(trainer, run.checkpoint_path)
+    metrics = trainer.evaluate(eval_seeds(config))
+    gap, reason = run_policy_gap(trainer)
+    return {"config": config, "iteration": int(trainer.k), "metrics": metrics, "policy_gap": gap,
+            "policy_gap_reason": reason}
+
+
+def _shared_task(trainers: list[Any]) -> Any:
+    """The task all ``trainers`` evaluate on (a built-in task of one configuration, or one task object),
+    or ``None`` when they have none in common or a trainer evaluates otherwise than AGPI and DDPG do."""
+    # a trainer's own evaluate() might do something else: only AGPI's and DDPG's (the task's evaluate of
+    # the policy) are batched
+    if not all(type(t).evaluate in (AGPI.evaluate, DDPG.evaluate) for t in trainers):
+        return None
+    first = trainers[0]
+    for t in trainers[1:]:
+        same_builtin = (type(t.task) is type(first.task) and getattr(t.task, "name", None) == t.config.task.name
+                        and getattr(first.task, "name", None) == first.config.task.name
+                        and t.config.task == first.config.task)
+        if t.task is not first.task and not same_builtin:
+            return None
+    return first.task if hasattr(first.task, "evaluate_many") else None
+
+
+def evaluate_together(trainers: list[Any], seeds: list[list[int]], *, exact: bool = False) -> list[dict[str, Any]]:
+    """The evaluations of several runs at once: their policies on their seeds, in one call of the task's
+    :meth:`~mixedrl.tasks.Task.evaluate_many` (the courses in lock step).
+
+    With ``exact=False`` (the periodic evaluations of training: the ``eval/*`` metrics rows, a monitor, and
+    ``iterations_to_converge``) the policies are called once per step on all their courses, and the
+    numbers may differ from the trainer's own ``evaluate`` in the float32 last bits of a batched policy
+    call (about 1e-8 relative, docs/reproduction.rst). With ``exact=True`` (a run's last iteration, whose
+    evaluation is also its final one in ``results.json``) each equals ``trainer.evaluate(seeds)`` bit for
+    bit. Trainers without a common task are evaluated one by one with their own ``evaluate``.
+
+    Parameters
+    ----------
+    trainers : list of AGPI or DDPG
+        The runs (any trainer with ``evaluate(seeds)``; AGPI and DDPG runs on one task are batched).
+    seeds : list of list of int
+        Each run's evaluation seeds (:func:`eval_seeds`).
+    exact : bool, optional
+        Bit-identical to each trainer's ``evaluate`` (per-course policy calls) or not (batched calls).
+
+    Returns
+    -------
+    list of dict
+        Per run, the task's evaluation.
+
+    Raises
+    ------
+    ValueError
+        ``seeds`` not one list per trainer.
+    """
+    if len(seeds) != len(trainers):
+        raise ValueError(f"seeds: {len(seeds)} lists of seeds for {len(trainers)} trainers")
+    if not trainers:
+        return []
+    task = _shared_task(trainers)
+    if task is None:
+        return [t.evaluate(s) for t, s in zip(trainers, seeds)]
+    return credit_evaluations(trainers, task, task.evaluate_many([t.policy for t in trainers],
+                                                                 [list(s) for s in seeds], exact=exact))
+
+
+def summarize(trainer: Any, rows: list[dict[str, Any]], elapsed: float, seeds: list[int],
+              final: dict[str, Any] | None = None) -> dict[str, Any]:
+    """Final evaluation and convergence figures of a finished run (the content of ``results.json``).
+
+    ``final`` is the trainer's exact evaluation on ``seeds`` when the caller already has it (the training
+    loop evaluates a run's last iteration exactly); otherwise ``trainer.evaluate(seeds)`` is called.
+
+    ``policy_gap`` is the policy at the task's equilibrium against the discounted LQ optimum for the
+    method's own noise mean (:func:`mixedrl.precision.run_policy_gap`), ``null`` with ``policy_gap_reason``
+    when the task has no equilibrium.
+    """
+    cfg: TrainConfig = trainer.config
+    if final is None:
+        final = trainer.evaluate(seeds)
+    evals = [(r["iteration"], r["eval/cost"]) for r in rows if "eval/cost" in r]
+    results: dict[str, Any] = {
+        "method": cfg.method,
+        "seed": cfg.seed,
+        "task": getattr(trainer.task, "name", cfg.task.name),
+        "iterations": int(trainer.k),
+        "train_seconds": float(elapsed),
+        "final": {k: float(v) for k, v in final.items() if isinstance(v, (int, float, np.floating))},
+        "iterations_to_converge": iterations_to_converge([e[0] for e in evals], [e[1] for e in evals])
+        if evals else int(trainer.k),
+        "convergence_criterion": f"first evaluated iteration after which eval/cost stays <= "
+                                 f"(1 + {CONVERGENCE_RTOL}) x median of the last 3 evaluations",
+    }
+    for key in ("lateral_mae", "speed_mae", "cost"):
+        if key in final:
+            results[key] = float(final[key])
+    if hasattr(trainer, "true_transitions"):
+        count = trainer.true_transitions
+        results["true_transitions"] = None if count is None else int(count)
+        results["plant_transitions"] = plant_transitions(trainer)
+    if hasattr(trainer, "noise"):
+        # the departures from the paper's Algorithm 2 the run used (mixedrl.departures; [] = the paper's)
+        results["departures"] = departures.used(cfg)
+        # the planning noise at the end (for a state-dependent source its mean over the last batch)
+        mean, cov = trainer.noise_moments()
+        results["final_ibe_mean"] = np.asarray(mean, dtype=float).tolist()
+        results["final_ibe_cov_diag"] = np.diag(np.asarray(cov, dtype=float)).tolist()
+        mvc = [r["mvc/held"] for r in rows if "mvc/held" in r]
+        results["mvc_held_fraction"] = float(np.mean(mvc)) if mvc else None
+        inner = [r["mvc/inner_steps"] for r in rows if "mvc/inner_steps" in r]
+        results["mean_inner_steps"] = float(np.mean(inner)) if inner else None
+    # the precision yardstick at the equilibrium (mixedrl.precision; evaluation only): null with a reason
+    # when the task has none
+    results["policy_gap"], reason = run_policy_gap(trainer)
+    if reason is not None:
+        results["policy_gap_reason"] = reason
+    feedforward = cfg.algorithm.feedforward
+    if feedforward != "learned":
+        # the evaluated policy's action at the equilibrium is the LQ optimum's by construction
+        results["feedforward"] = feedforward
+    if feedforward == "lq":  # ... and the trained actor's own, before the shift
+        results["policy_gap_learned"], _ = run_policy_gap(trainer, trainer.learned_policy)
+    return results

@@ -1,0 +1,295 @@
+"""Sweep execution: one batch of runs trained by :func:`mixedrl.runs.train_batch` (:func:`run_points`), the
+batches of a sweep (:func:`plan_batches`), and the executors that run them here, on a process pool or on Ray.
+
+:mod:`mixedrl.sweep` (the driver) re-exports every public name of this module.
+"""
+
+from __future__ import annotations
+
+import concurrent.futures
+import ctypes
+import multiprocessing
+import os
+import signal
+import sys
+import threading
+import time
+from typing import Any, Iterator, Sequence
+
+from mixedrl.config import TrainConfig
+from mixedrl.algorithms.batched import batch_key
+from mixedrl.checks import check_positive_int
+from mixedrl.sweep_spec import SweepRun, resolve_observer
+from mixedrl.runs import RunDirectory, check_run_directory, load_trainer, make_trainer, train_batch
+
+__all__ = [
+    "run_point",
+    "run_points",
+    "plan_batches",
+    "DEFAULT_BATCH",
+]
+
+#: Most runs trained as one computation (:func:`mixedrl.runs.train_batch`) by default: at 15 runs a batch
+#: already makes 1.7x the run-iterations per second of the runs one by one (``benchmarks/batched_table.py``).
+DEFAULT_BATCH = 16
+
+
+def run_point(config: dict[str, Any], path: str, resume: bool = False) -> dict[str, Any]:
+    """Train one run of a sweep into ``path`` alone: exactly ``mixedrl train`` (``--batch 1``).
+
+    Parameters
+    ----------
+    config : dict
+        ``TrainConfig.to_dict()`` of the run.
+    path : str
+        The run directory.
+    resume : bool
+        If the run has ``results.json``, return it without training; else continue from its checkpoint.
+
+    Returns
+    -------
+    dict
+        The run's results (the content of ``results.json``).
+
+    Raises
+    ------
+    ValueError
+        ``resume`` and the run directory holds a different config.
+    """
+    return run_points([config], [path], resume)[0]
+
+
+def run_points(configs: list[dict[str, Any]], paths: list[str], resume: bool = False,
+               observer: str | None = None) -> list[dict[str, Any]]:
+    """Train the runs of one batch of a sweep, each into its path; the body of a pool or Ray task.
+
+    :func:`mixedrl.runs.make_trainer` for each run, then :func:`mixedrl.runs.train_batch` (one run:
+    :func:`mixedrl.runs.train`, which is ``mixedrl train``), which sets
+    ``torch.set_num_threads(config.run.num_threads)``.
+
+    Parameters
+    ----------
+    configs : list of dict
+        ``TrainConfig.to_dict()`` of each run (several: they must share a
+        :func:`mixedrl.algorithms.batched.batch_key`).
+    paths : list of str
+        The run directories.
+    resume : bool
+        A run with ``results.json`` is returned without training; the others continue from their
+        checkpoints, in one batch. When a single run of a batch is left, the batch's last finished run
+        is restored from its checkpoint beside it (in memory, not rewritten) so that it keeps the
+        batched arithmetic of the uninterrupted sweep.
+    observer : str, optional
+        The spec's ``observer`` (:func:`resolve_observer`).
+
+    Returns
+    -------
+    list of dict
+        Per run its results (the content of its ``results.json``).
+
+    Raises
+    ------
+    ValueError
+        A run directory is refused (``resume`` and another config, or foreign files; the others of the
+        batch have trained), or ``configs`` and ``paths`` of different lengths.
+    """
+    outcomes = _train_points(configs, paths, resume, observer)
+    for results, error in outcomes:
+        if error is not None:
+            raise ValueError(error)
+    return [results for results, _ in outcomes]
+
+
+def _train_points(configs: list[dict[str, Any]], paths: list[str], resume: bool,
+                  observer: str | None) -> list[tuple[dict[str, Any] | None, str | None]]:
+    """:func:`run_points`, per run ``(results, None)`` or ``(None, error text)``: a run whose directory is
+    refused (another config, foreign files) fails alone, the others of its batch train."""
+    if len(configs) != len(paths):
+        raise ValueError(f"paths: {len(paths)} paths for {len(configs)} configs")
+    cfgs = [TrainConfig.from_dict(c) for c in configs]
+    dirs = [RunDirectory(p) for p in paths]
+    outcomes: list[tuple[dict[str, Any] | None, str | None]] = [(None, None)] * len(cfgs)
+    todo, finished = [], []
+    for i, (cfg, run_dir) in enumerate(zip(cfgs, dirs)):
+        try:
+            if resume and run_dir.results_path.is_file():
+                if run_dir.read_config().to_dict() != cfg.to_dict():
+                    raise ValueError(f"config: differs from the saved {run_dir.config_path}; resume with the same "
+                                     f"spec")
+                outcomes[i] = (run_dir.read_results(), None)
+                finished.append(i)
+            else:
+                check_run_directory(run_dir, cfg, resume)
+                todo.append(i)
+        except Exception as exc:  # noqa: BLE001 - this run fails, the batch's others train
+            outcomes[i] = (None, _error_text(exc))
+    if not todo:
+        return outcomes
+    factory = None if observer is None else resolve_observer(observer)
+    trainers = [make_trainer(cfgs[i]) for i in todo]
+    run_dirs: list[RunDirectory | None] = [dirs[i] for i in todo]
+    observers = [None if factory is None else factory(cfgs[i]) for i in todo]
+    if len(todo) == 1 and finished:
+        # the batch's other runs finished: one of them, restored and inactive, keeps this run batched
+        j = finished[0]
+        companion = make_trainer(cfgs[j])
+        load_trainer(companion, dirs[j].checkpoint_path)
+        trainers.append(companion)
+        run_dirs.append(None)
+        observers.append(None)
+    trained = train_batch(trainers, run_dirs, resume=resume, progress=False, observers=observers)
+    for i, res in zip(todo, trained):
+        outcomes[i] = (res, None)
+    return outcomes
+
+
+def _timed_run_points(configs: list[dict[str, Any]], paths: list[str], resume: bool,
+                      observer: str | None) -> tuple[list[tuple[dict[str, Any] | None, str | None]], float]:
+    """:func:`_train_points` and its wall time in seconds (start-up, training and evaluation of the batch)."""
+    t0 = time.perf_counter()
+    outcomes = _train_points(configs, paths, resume, observer)
+    return outcomes, time.perf_counter() - t0
+
+
+def plan_batches(runs: Sequence[SweepRun], batch: int = DEFAULT_BATCH, workers: int = 1,
+                 ddpg: bool = False) -> list[list[int]]:
+    """Group a sweep's runs into batches trained as one computation each.
+
+    Runs with equal :func:`mixedrl.algorithms.batched.batch_key` (the kind of algorithm, Algorithm 2 or
+    DDPG, the task, the network shapes and batch size; method, seed, budget and learning rates may differ)
+    form a group; DDPG runs only with ``ddpg=True``, otherwise each trains alone (measured on 2 cores, five
+    DDPG runs in one batch do 1.01-1.12 times the work per second of five alone, and a batch of the long
+    runs on one worker would leave the other idle: docs/algorithm2.rst). A
+    group of ``n`` runs is split into ``c`` batches of near-equal size, ``c`` the smallest number with at
+    most ``batch`` runs each, raised up to ``workers`` while every batch keeps two runs or more (so
+    that the workers share the work). A batch never holds a single run of a larger group: a run's bits
+    then depend only on whether its group has one run (or ``batch = 1``: every run alone, as
+    ``mixedrl train``), not on ``batch`` or ``workers`` (the batched engine gives a run the same bits in
+    any batch of two or more, :mod:`mixedrl.algorithms.batched`, :mod:`mixedrl.algorithms.batched_ddpg`).
+
+    Parameters
+    ----------
+    runs : sequence of SweepRun
+    batch : int
+        Most runs per batch (``>= 1``).
+    workers : int
+        Processes that will train the batches.
+    ddpg : bool
+        Batch the DDPG runs too (:class:`mixedrl.algorithms.batched_ddpg.BatchedDDPG`); default: each alone.
+
+    Returns
+    -------
+    list of list of int
+        Indices into ``runs``, each batch in the runs' order, batches in the order of their first run.
+    """
+    check_count(batch, "batch")
+    check_count(workers, "workers")
+    groups: dict[Any, list[int]] = {}
+    alone: list[list[int]] = []
+    for i, r in enumerate(runs):
+        key = batch_key(r.config) if batch > 1 and (ddpg or r.config.method != "ddpg") else None
+        if key is None:
+            alone.append([i])
+        else:
+            groups.setdefault(key, []).append(i)
+    batches = list(alone)
+    for members in groups.values():
+        n = len(members)
+        count = max(-(-n // batch), min(workers, n // 2)) if n > 1 else 1
+        while count > 1 and n // count < 2:
+            count -= 1
+        size, extra = divmod(n, count)
+        start = 0
+        for c in range(count):
+            stop = start + size + (1 if c < extra else 0)
+            batches.append(members[start:stop])
+            start = stop
+    return sorted(batches, key=lambda b: b[0])
+
+
+def _error_text(exc: BaseException) -> str:
+    cause = getattr(exc, "cause", None)  # ray.exceptions.RayTaskError wraps the run's own exception
+    err = cause if isinstance(cause, BaseException) else exc
+    return f"{type(err).__name__}: {err}"
+
+
+#: A job: one batch of runs, ``(configs, paths, resume, observer)`` (the arguments of :func:`run_points`).
+Job = tuple[list[dict[str, Any]], list[str], bool, "str | None"]
+#: A finished job as the executors report it: (index, per run (results, error text) or None, error text of
+#: the whole batch or None, wall seconds).
+Done = tuple[int, "list[tuple[dict[str, Any] | None, str | None]] | None", "str | None", "float | None"]
+
+
+def run_here(jobs: list[Job]) -> Iterator[Done]:
+    """Run the jobs one after the other in this process (``workers=1``)."""
+    for i, job in enumerate(jobs):
+        try:
+            results, wall = _timed_run_points(*job)
+            yield i, results, None, wall
+        except Exception as exc:  # noqa: BLE001 - one failed batch must not stop the others
+            yield i, None, _error_text(exc), None
+
+
+def _watch_parent(parent: int) -> None:
+    """End this process as soon as its parent is no longer ``parent`` (it died: this process was re-parented)."""
+    while os.getppid() == parent:
+        time.sleep(0.5)
+    os._exit(1)
+
+
+def _die_with_parent(parent: int) -> None:
+    """The initializer of a pool worker: the worker ends when the sweep driver (``parent``) dies, however it
+    dies (``kill -9`` included), instead of training on without anyone to record its runs.
+
+    On Linux the kernel sends the worker ``SIGKILL`` when the driver ends (``prctl(PR_SET_PDEATHSIG)``);
+    everywhere, a daemon thread also polls the parent's pid. A run killed so is resumed by ``--resume``.
+    """
+    if sys.platform.startswith("linux"):
+        try:
+            ctypes.CDLL(None, use_errno=True).prctl(1, int(signal.SIGKILL), 0, 0, 0)  # 1: PR_SET_PDEATHSIG
+        except (OSError, AttributeError):
+            pass  # no prctl: the thread below does it
+    if os.getppid() != parent:  # the driver died before the signal was armed
+        os._exit(1)
+    threading.Thread(target=_watch_parent, args=(parent,), name="watch-sweep-driver", daemon=True).start()
+
+
+def run_pool(jobs: list[Job], workers: int) -> Iterator[Done]:
+    """Run the jobs on a local pool of ``workers`` processes (``spawn``: a fresh interpreter each, no state
+    inherited from this one; each ends if this process dies, :func:`_die_with_parent`), yielding them as they
+    finish."""
+    context = multiprocessing.get_context("spawn")
+    with concurrent.futures.ProcessPoolExecutor(max_workers=workers, mp_context=context, initializer=_die_with_parent,
+                                                initargs=(os.getpid(),)) as pool:
+        futures = {pool.submit(_timed_run_points, *job): i for i, job in enumerate(jobs)}
+        try:
+            for future in concurrent.futures.as_completed(futures):
+                try:
+                    results, wall = future.result()
+                    yield futures[future], results, None, wall
+                except Exception as exc:  # noqa: BLE001 - one failed batch must not stop the others
+                    yield futures[future], None, _error_text(exc), None
+        finally:
+            for future in futures:
+                future.cancel()
+
+
+def run_ray(jobs: list[Job], ray: Any) -> Iterator[Done]:
+    """Run the jobs as Ray tasks (one task per batch, ``num_cpus=1`` each) on the initialised cluster,
+    yielding them as they finish (``ray.wait``)."""
+    task = ray.remote(num_cpus=1)(_timed_run_points)
+    refs = {task.remote(*job): i for i, job in enumerate(jobs)}
+    pending = list(refs)
+    while pending:
+        done, pending = ray.wait(pending, num_returns=1)
+        try:
+            results, wall = ray.get(done[0])
+            yield refs[done[0]], results, None, wall
+        except Exception as exc:  # noqa: BLE001 - one failed batch must not stop the others
+            yield refs[done[0]], None, _error_text(exc), None
+
+
+def check_count(value: Any, name: str) -> None:
+    """:func:`mixedrl.checks.check_positive_int`, ``None`` allowed (the option's default)."""
+    if value is not None:
+        check_positive_int(value, name)

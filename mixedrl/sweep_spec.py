@@ -1,0 +1,417 @@
+"""Sweep specifications: their parsing, checks and expansion into runs (:mod:`mixedrl.sweep` executes them and
+re-exports every public name of this module).
+
+A spec is a small TOML file::
+
+    methods = ["mixed", "model"]          # TrainConfig.method of the runs
+    seeds = [0, 1, 2]                     # TrainConfig.seed of the runs
+
+    [base]                                # TrainConfig fields shared by every run, as dotted keys
+    "algorithm.iterations" = 600
+    "run.eval_seeds" = 1
+    "task.prior_force_mean" = 150
+
+    [grid]                                # dotted key -> list of values: the cartesian product
+    "algorithm.critic_lr" = [1e-3, 3e-3]
+    "algorithm.batch_size" = [256, 512]
+
+    [variants.short]                      # optional: named designs that are not a product, each a table of
+    "algorithm.horizon" = 8               # fields applied over [base] (not method, seed or a grid key)
+    [variants.long]
+    "algorithm.horizon" = 32
+    seeds = [0]                           # a variant may have its own methods / seeds lists
+
+and optionally ``observer = "module:function"`` (top level): ``function(config)`` returns the
+:class:`mixedrl.runs.IterationObserver` of each run (the reproduction's theory checks).
+
+It expands to ``len(variants or [one]) x len(grid product) x len(methods) x len(seeds)`` runs (a variant's own
+``methods`` / ``seeds`` replace the spec's for its runs), each named by :func:`run_name`.
+
+Before anything starts, the spec is checked (TOML syntax, top-level keys, non-empty lists without
+duplicates, variant tables, no TOML dates, seeds below ``2**64``, at most :data:`MAX_RUNS` runs unless
+``--force``) and the :class:`~mixedrl.config.TrainConfig` of **every** run is built (two runs with equal
+configs are an error); any error names the offending key and nothing is started or written.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import datetime
+import hashlib
+import importlib
+import itertools
+import json
+import re
+import tomllib
+from pathlib import Path
+from typing import Any
+
+from mixedrl.config import TrainConfig, apply_overrides, flatten_table
+
+__all__ = [
+    "SPEC_KEYS",
+    "SweepSpec",
+    "SweepRun",
+    "apply_dotted",
+    "flatten_table",
+    "parse_spec",
+    "load_spec",
+    "resolve_observer",
+    "expand",
+    "run_name",
+    "config_hash",
+    "MAX_RUNS",
+    "SEED_MAX",
+]
+
+#: Top-level keys a spec may have (``methods`` and ``seeds`` are required).
+SPEC_KEYS = ("methods", "seeds", "base", "grid", "variants", "observer")
+#: Fields a spec sets through ``methods`` and ``seeds``, never through ``[base]`` or ``[grid]``.
+_RESERVED = {"method": "methods", "seed": "seeds"}
+#: Keys of a ``[variants.NAME]`` table that replace the spec's lists for that variant (not config fields).
+_VARIANT_LISTS = ("methods", "seeds")
+#: Longest run name before it is shortened with a hash.
+_MAX_NAME = 160
+#: Most runs a spec may expand to without ``force`` (``mixedrl sweep --force``): checking a spec builds every
+#: run's config first (about 2 ms and 2.5 kB each), and a larger sweep is more likely a typo than a plan.
+MAX_RUNS = 10_000
+#: The largest seed the generators accept (``torch.Generator.manual_seed``: 64 bits).
+SEED_MAX = 2**64 - 1
+
+
+#: Dotted-key overrides of a config dict: :func:`mixedrl.config.apply_overrides` (one implementation for
+#: ``mixedrl train --set`` and the sweep's ``[base]`` / ``[grid]`` keys).
+apply_dotted = apply_overrides
+
+
+@dataclasses.dataclass(frozen=True)
+class SweepSpec:
+    """A parsed, checked sweep spec (see the module docstring).
+
+    Attributes
+    ----------
+    methods : tuple of str
+        ``TrainConfig.method`` of the runs.
+    seeds : tuple of int
+        ``TrainConfig.seed`` of the runs.
+    base : dict
+        Dotted key -> value shared by every run.
+    grid : dict
+        Dotted key -> tuple of values; the runs cover their cartesian product (in the spec's key order).
+    text : str
+        The spec's TOML text (copied to ``DIR/spec.toml``).
+    variants : dict
+        Variant name -> its dotted-key overrides (applied over ``base``), and optionally ``methods`` /
+        ``seeds``: the variant's own lists; empty for a spec without ``[variants.NAME]`` tables. The runs
+        cover variants x grid points x methods x seeds.
+    observer : str or None
+        ``"module:function"``: ``function(config)`` returns the :class:`mixedrl.runs.IterationObserver` of a
+        run (or ``None``), for example ``"validation.reproduce:theory_observer"`` (the theory checks);
+        resolved when the spec is parsed.
+    """
+
+    methods: tuple[str, ...]
+    seeds: tuple[int, ...]
+    base: dict[str, Any]
+    grid: dict[str, tuple[Any, ...]]
+    text: str = ""
+    variants: dict[str, dict[str, Any]] = dataclasses.field(default_factory=dict)
+    observer: str | None = None
+
+
+@dataclasses.dataclass(frozen=True)
+class SweepRun:
+    """One run of a sweep: its directory name, its grid values and its full config."""
+
+    name: str
+    point: dict[str, Any]
+    config: TrainConfig
+
+
+def _check_values(value: Any, key: str) -> None:
+    """Refuse a TOML date or time anywhere in ``value`` (no config field is one)."""
+    if isinstance(value, (datetime.date, datetime.time)):
+        raise ValueError(f"{key}: {value.isoformat()} is a TOML date or time, which no config field takes (quote it "
+                         f"to make it a string)")
+    if isinstance(value, dict):
+        for k, v in value.items():
+            _check_values(v, f"{key}.{k}")
+    elif isinstance(value, list):
+        for v in value:
+            _check_values(v, key)
+
+
+def _run_count(methods: list[Any], seeds: list[Any], grid: dict[str, tuple[Any, ...]],
+               variants: dict[str, dict[str, Any]]) -> int:
+    """How many runs a spec expands to (:func:`expand`), without building them."""
+    points = 1
+    for values in grid.values():
+        points *= len(values)
+    own = list(variants.values()) or [{}]
+    return sum(points * len(v.get("methods", methods)) * len(v.get("seeds", seeds)) for v in own)
+
+
+def _check_list(value: Any, key: str) -> list[Any]:
+    if not isinstance(value, list):
+        raise ValueError(f"{key}: expected a list of values, got {type(value).__name__} {value!r}")
+    if not value:
+        raise ValueError(f"{key}: empty list (a sweep over nothing)")
+    seen: set[str] = set()
+    for v in value:  # the same TOML value twice (1 and 1.0 differ here; equal configs are found by expand)
+        text = f"{type(v).__name__}:{json.dumps(v, sort_keys=True, default=str)}"
+        if text in seen:
+            raise ValueError(f"{key}: duplicate value {v!r}")
+        seen.add(text)
+    return value
+
+
+def parse_spec(text: str, source: str = "spec", force: bool = False) -> SweepSpec:
+    """Parse and check the TOML text of a sweep spec, and build the config of every run.
+
+    Parameters
+    ----------
+    text : str
+        TOML with ``methods``, ``seeds``, and optionally ``[base]``, ``[grid]`` and ``[variants.NAME]``.
+    source : str
+        Name used in error messages (the file's path).
+    force : bool
+        Accept a spec of more than :data:`MAX_RUNS` runs.
+
+    Returns
+    -------
+    SweepSpec
+
+    Raises
+    ------
+    ValueError
+        Invalid TOML (``spec: ...``), an unknown top-level key (``spec: unknown key(s) ...``), a missing,
+        empty, non-list or duplicated ``methods`` / ``seeds`` / grid list (message starts with the key,
+        e.g. ``grid.critic_lr: ...``), ``method`` or ``seed`` set in ``[base]`` / ``[grid]``, a field
+        both in ``[base]`` and ``[grid]``, or a run whose config :meth:`TrainConfig.from_dict` rejects
+        (unknown or invalid field; message starts with the run's name), a ``[variants.NAME]`` that is not a
+        table, sets ``method`` / ``seed`` or a grid key, or has a ``methods`` / ``seeds`` that is not a
+        non-empty list without duplicates (``variants.NAME.KEY: ...``), a TOML date or time anywhere, a
+        seed beyond ``2**64 - 1``, more than :data:`MAX_RUNS` runs without ``force`` (``grid: ...``, checked
+        before any config is built), or two runs with equal configs (grid values equal after their
+        type is normalised, e.g. ``1`` and ``1.0`` of a float field: ``grid: ...`` naming both).
+    """
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise ValueError(f"spec: {source} is not valid TOML ({exc})") from None
+    unknown = sorted(set(data) - set(SPEC_KEYS))
+    if unknown:
+        raise ValueError(f"spec: unknown key(s) {unknown} in {source}; allowed: {list(SPEC_KEYS)}")
+    for key in ("methods", "seeds"):
+        if key not in data:
+            raise ValueError(f"{key}: missing from {source} (a list is required)")
+    for key, value in data.items():
+        _check_values(value, key)
+    methods = _check_list(data["methods"], "methods")
+    seeds = _check_list(data["seeds"], "seeds")
+    tables: dict[str, dict[str, Any]] = {}
+    for key in ("base", "grid"):
+        table = data.get(key, {})
+        if not isinstance(table, dict):
+            raise ValueError(f"{key}: expected a table [{key}], got {type(table).__name__}")
+        tables[key] = flatten_table(table)
+        for field, via in _RESERVED.items():
+            if field in tables[key]:
+                raise ValueError(f"{key}.{field}: set by the spec's {via!r} list, not in [{key}]")
+    grid = {key: tuple(_check_list(values, f"grid.{key}")) for key, values in tables["grid"].items()}
+    for key in grid:
+        if key in tables["base"]:
+            raise ValueError(f"grid.{key}: also set in [base]; set it in one place")
+    variants = _parse_variants(data.get("variants", {}), grid)
+    for key, values in [("seeds", seeds)] + [(f"variants.{n}.seeds", v["seeds"]) for n, v in variants.items()
+                                             if "seeds" in v]:
+        big = [v for v in values if isinstance(v, int) and v > SEED_MAX]
+        if big:
+            raise ValueError(f"{key}: {big[0]} is out of range; a seed is an integer in [0, 2**64 - 1]")
+    count = _run_count(methods, seeds, grid, variants)
+    if count > MAX_RUNS and not force:
+        raise ValueError(f"grid: {source} expands to {count} runs, more than the {MAX_RUNS} a sweep may have without "
+                         f"--force (force=True); nothing was checked or started")
+    observer = data.get("observer")
+    if observer is not None:
+        resolve_observer(observer)
+    spec = SweepSpec(methods=tuple(methods), seeds=tuple(seeds), base=tables["base"], grid=grid, text=text,
+                     variants=variants, observer=observer)
+    expand(spec)  # builds (and so validates) the config of every run before anything starts
+    return spec
+
+
+def resolve_observer(name: Any) -> Any:
+    """The observer factory a spec names: ``"module:function"`` imported, ``function(config)`` callable.
+
+    Raises
+    ------
+    ValueError
+        ``name`` is not a ``"module:function"`` string, the module does not import, or it has no such
+        callable (the message starts with ``observer``).
+    """
+    if not isinstance(name, str) or not re.fullmatch(r"[A-Za-z_][\w.]*:[A-Za-z_]\w*", name):
+        raise ValueError(f"observer: expected \"module:function\", got {name!r}")
+    module_name, attr = name.split(":")
+    try:
+        module = importlib.import_module(module_name)
+    except ImportError as exc:
+        raise ValueError(f"observer: cannot import {module_name!r} ({exc})") from None
+    factory = getattr(module, attr, None)
+    if not callable(factory):
+        raise ValueError(f"observer: {module_name} has no callable {attr!r}")
+    return factory
+
+
+def _parse_variants(table: Any, grid: dict[str, Any]) -> dict[str, dict[str, Any]]:
+    """Check the ``[variants.NAME]`` tables: each a table of dotted-key overrides (over ``[base]``), not
+    ``method`` / ``seed`` and not a grid key; ``methods`` / ``seeds`` (lists) give the variant its own."""
+    if not isinstance(table, dict):
+        raise ValueError(f"variants: expected tables [variants.NAME], got {type(table).__name__}")
+    variants: dict[str, dict[str, Any]] = {}
+    for name, body in table.items():
+        if not re.fullmatch(r"[A-Za-z0-9.+\-_]+", name):
+            raise ValueError(f"variants.{name}: a variant name may hold letters, digits, '.', '+', '-', '_' only")
+        if not isinstance(body, dict):
+            raise ValueError(f"variants.{name}: expected a table [variants.{name}], got {type(body).__name__}")
+        own = {key: _check_list(body[key], f"variants.{name}.{key}") for key in _VARIANT_LISTS if key in body}
+        flat = flatten_table({k: v for k, v in body.items() if k not in _VARIANT_LISTS})
+        for field, via in _RESERVED.items():
+            if field in flat:
+                raise ValueError(f"variants.{name}.{field}: set by the spec's {via!r} list, not in a variant")
+        for key in flat:
+            if key in grid:
+                raise ValueError(f"variants.{name}.{key}: also a grid key; set it in one place")
+        variants[name] = {**flat, **own}
+    return variants
+
+
+def load_spec(path: str | Path, force: bool = False) -> SweepSpec:
+    """Read a spec file and :func:`parse_spec` it (``force``: as for :func:`parse_spec`).
+
+    Raises
+    ------
+    ValueError
+        The file does not exist, is a directory or is not UTF-8 (``spec: ...``), or :func:`parse_spec`
+        rejects it.
+    """
+    path = Path(path)
+    if path.is_dir():
+        raise ValueError(f"spec: {path} is a directory, not a spec file (TOML)")
+    if not path.is_file():
+        raise ValueError(f"spec: {path} does not exist")
+    try:
+        text = path.read_text(encoding="utf-8")
+    except UnicodeDecodeError as exc:
+        raise ValueError(f"spec: {path} is not UTF-8 text ({exc})") from None
+    except OSError as exc:
+        raise ValueError(f"spec: cannot read {path} ({exc.strerror})") from None
+    return parse_spec(text, source=str(path), force=force)
+
+
+def format_value(value: Any) -> str:
+    if isinstance(value, str):
+        text = value
+    elif isinstance(value, (list, tuple)):
+        text = "x".join(format_value(v) for v in value)
+    elif isinstance(value, dict):
+        text = "_".join(f"{k}-{format_value(v)}" for k, v in value.items())
+    else:
+        text = json.dumps(value)
+    return re.sub(r"[^A-Za-z0-9.+\-]", "_", text)
+
+
+def run_name(point: dict[str, Any], method: str, seed: int) -> str:
+    """The directory name of one run: ``key=value`` of each grid value, then ``<method>_seed<S>``, joined by
+    ``__`` (e.g. ``critic_lr=0.001__batch_size=256__mixed_seed0``).
+
+    Characters other than letters, digits, ``.``, ``+`` and ``-`` in a value become ``_``; a name longer than
+    160 characters is cut and ends with a hash of the full name, so it stays unique and deterministic.
+    """
+    parts = [f"{key}={format_value(value)}" for key, value in point.items()] + [f"{method}_seed{seed}"]
+    name = "__".join(parts)
+    if len(name) > _MAX_NAME:
+        digest = hashlib.sha256(name.encode()).hexdigest()[:12]
+        name = f"{name[:_MAX_NAME - 14]}__{digest}"
+    return name
+
+
+def expand(spec: SweepSpec) -> list[SweepRun]:
+    """Every run of ``spec``: variants (spec order) x grid points (cartesian product, spec order) x methods x
+    seeds. A run's ``point`` holds ``variant`` (its name, for a spec with variants) and its grid values.
+
+    Returns
+    -------
+    list of SweepRun
+        In a fixed order (the order of ``sweep.json``).
+
+    Raises
+    ------
+    ValueError
+        A run's config is invalid (message starts with ``base`` or the run's name, then the field), two
+        runs get the same directory name, or two runs the same config.
+    """
+    defaults: dict = {}  # each run takes its task's experiment configuration for what the spec leaves out
+    try:
+        TrainConfig.from_dict(apply_dotted(defaults, spec.base))
+    except (ValueError, TypeError) as exc:
+        raise ValueError(f"base: {exc}") from None
+    keys = list(spec.grid)
+    variants: list[str | None] = list(spec.variants) or [None]
+    own = {name: spec.variants.get(name, {}) if name is not None else {} for name in variants}
+    combos = [({**({} if variant is None else {"variant": variant}), **dict(zip(keys, values))}, method, seed)
+              for variant in variants
+              for values in itertools.product(*(spec.grid[k] for k in keys))
+              for method in own[variant].get("methods", spec.methods)
+              for seed in own[variant].get("seeds", spec.seeds)]
+    names: dict[str, dict[str, Any]] = {}
+    for point, method, seed in combos:  # every name first: a clash is reported before any config error
+        name = run_name(point, method, seed)
+        if name in names:
+            raise ValueError(f"grid: the points {names[name]} and {point} give the same run name {name!r}")
+        names[name] = point
+    runs: list[SweepRun] = []
+    for point, method, seed in combos:
+        name = run_name(point, method, seed)
+        variant = {k: v for k, v in (spec.variants.get(point.get("variant"), {}) if spec.variants else {}).items()
+                   if k not in _VARIANT_LISTS}
+        grid_point = {k: v for k, v in point.items() if not (spec.variants and k == "variant")}
+        overrides = {**spec.base, **variant, **grid_point, "method": method, "seed": seed}
+        try:
+            config = TrainConfig.from_dict(apply_dotted(defaults, overrides))
+        except (ValueError, TypeError) as exc:
+            raise ValueError(f"{name}: {exc}") from None
+        runs.append(SweepRun(name=name, point=point, config=config))
+    seen: dict[str, SweepRun] = {}
+    for run in runs:  # equal configs from values that differ only in type (1 and 1.0 of a float field)
+        other = seen.setdefault(json.dumps(_numbers_as_floats(run.config.to_dict()), sort_keys=True), run)
+        if other is not run:
+            raise ValueError(f"grid: the runs {other.name} and {run.name} have the same config (points {other.point} "
+                             f"and {run.point}); remove one of the equal values")
+    return runs
+
+
+def _numbers_as_floats(value: Any) -> Any:
+    """``value`` with every integer (not bool) turned into a float: two configs that train alike compare equal."""
+    if isinstance(value, dict):
+        return {k: _numbers_as_floats(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_numbers_as_floats(v) for v in value]
+    if isinstance(value, int) and not isinstance(value, bool):
+        return float(value)
+    return value
+
+
+
+def config_hash(config: TrainConfig | dict[str, Any]) -> str:
+    """The sha256 (hex) of a run's configuration: of the canonical JSON of ``TrainConfig.to_dict()`` (keys
+    sorted, no whitespace), so two runs with equal configs have equal hashes wherever they ran.
+
+    Parameters
+    ----------
+    config : TrainConfig or dict
+        The config, or its ``to_dict()``.
+    """
+    data = config.to_dict() if isinstance(config, TrainConfig) else config
+    text = json.dumps(data, sort_keys=True, separators=(",", ":"), allow_nan=True)
+    return hashlib.sha256(text.encode("utf-8")).hexdigest()
