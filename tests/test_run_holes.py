@@ -100,9 +100,11 @@ class Killed(BaseException):
 
 
 def _outcome(path: Path) -> dict[str, Any]:
-    """What an interrupted and resumed run must share with an uninterrupted one (times left out)."""
+    """What an interrupted and resumed run must share with an uninterrupted one (times left out, and the
+    plant's evaluation transitions: an evaluation the kill interrupted is run again, and counted again)."""
     run = RunDirectory(path)
     results = {k: v for k, v in run.read_results().items() if k != "train_seconds"}
+    results["plant_transitions"] = {k: v for k, v in results["plant_transitions"].items() if k != "evaluation"}
     rows = [{k: v for k, v in r.items() if k != "time/elapsed_s"} for r in run.read_metrics()]
     trainer = load_checkpoint(run.checkpoint_path)["trainer"]
     names = sorted(n for n in os.listdir(path) if not n.endswith(".tmp"))
@@ -156,6 +158,9 @@ def test_a_kill_at_every_write_resumes_to_the_uninterrupted_run(tmp_path: Path,
                 train(make_trainer(CONFIG), RunDirectory(out), progress=False)
         train(make_trainer(CONFIG), RunDirectory(out), resume=True, progress=False)
         assert _outcome(out) == reference, f"killed at write {n} of {writes}"
+        evaluated, whole = (RunDirectory(p).read_results()["plant_transitions"]["evaluation"]
+                            for p in (out, tmp_path / "whole"))
+        assert evaluated >= whole and evaluated % 6400 == 0, (n, evaluated, whole)  # whole evaluations only
 
 
 def test_resume_after_a_kill_before_anything_was_written(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
