@@ -1,7 +1,7 @@
 """Per-iteration cost of Algorithm 2 and where one default run's wall time goes (issue 44).
 
     python benchmarks/iteration_table.py [--sizes 1 5 15] [--blocks 6] [--block 5] [--run-iterations N]
-                                         [--table-only | --split-only] [--out FILE.json]
+                                         [--cache-ab] [--table-only | --split-only] [--out FILE.json]
 
 **Table**: for each ``R`` (``--sizes``; seeds x mixed / model / oracle at the double lane change's
 defaults, one :class:`mixedrl.algorithms.batched.BatchedAGPI`; ``R = 1`` is a run alone, as
@@ -10,6 +10,8 @@ defaults, one :class:`mixedrl.algorithms.batched.BatchedAGPI`; ``R = 1`` is a ru
 (``--blocks`` blocks of ``--block`` iterations, the order of the sizes reversed every other block), each
 iteration timed on its own: the table gives the min and the median ms per batch iteration and the median
 per run-iteration. Alternating blocks give every size the same load from other jobs on a shared machine.
+``--cache-ab`` times every size twice, the same runs with the quadrature cache of issue 44 and without it
+(``run.node_cache = None``: the nodes computed at every call, as before), side by side in the same blocks.
 
 **Split**: one default run (``TrainConfig(method="mixed", seed=0)``, its budget or ``--run-iterations``,
 trained by :func:`mixedrl.runs.train` in memory) in a fresh subprocess, its wall time split into
@@ -70,25 +72,33 @@ def _engine(size: int, first_seed: int) -> Any:
     return trainers[0] if size == 1 else BatchedAGPI(trainers)
 
 
-def table(sizes: list[int], blocks: int, block: int) -> list[dict[str, Any]]:
-    """Per-iteration wall times of ``R`` runs, all sizes in alternating blocks (see the module docstring)."""
+def table(sizes: list[int], blocks: int, block: int, cache_ab: bool = False) -> list[dict[str, Any]]:
+    """Per-iteration wall times of ``R`` runs, all sizes in alternating blocks (see the module docstring).
+    ``cache_ab``: every size twice, the same runs with and without the quadrature cache (``run.node_cache``,
+    issue 44; ``None`` computes the nodes every call, as before), side by side in the same blocks."""
     import torch
 
     torch.set_num_threads(1)
-    engines = [_engine(size, 100 * j) for j, size in enumerate(sizes)]
+    cases = [(size, cached) for size in sizes for cached in ((True, False) if cache_ab else (None,))]
+    engines = [_engine(size, 100 * sizes.index(size)) for size, _ in cases]
+    for engine, (_, cached) in zip(engines, cases):
+        if cached is False:
+            for m in getattr(engine, "members", [engine]):
+                m.node_cache = None
     for engine in engines:
         for _ in range(3):
             engine.iteration()
-    times: list[list[float]] = [[] for _ in sizes]
+    times: list[list[float]] = [[] for _ in cases]
     for b in range(blocks):
-        order = list(range(len(sizes))) if b % 2 == 0 else list(reversed(range(len(sizes))))
+        order = list(range(len(cases))) if b % 2 == 0 else list(reversed(range(len(cases))))
         for j in order:
             for _ in range(block):
                 t0 = time.perf_counter()
                 engines[j].iteration()
                 times[j].append(time.perf_counter() - t0)
-    return [{"runs": size, "iterations": len(t), "min_ms": 1e3 * min(t), "median_ms": 1e3 * statistics.median(t),
-             "median_ms_per_run": 1e3 * statistics.median(t) / size} for size, t in zip(sizes, times)]
+    return [{"runs": size, "node_cache": cached, "iterations": len(t), "min_ms": 1e3 * min(t),
+             "median_ms": 1e3 * statistics.median(t), "median_ms_per_run": 1e3 * statistics.median(t) / size}
+            for (size, cached), t in zip(cases, times)]
 
 
 def split_child(iterations: int | None) -> dict[str, float]:
@@ -155,6 +165,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--blocks", type=int, default=6)
     p.add_argument("--block", type=int, default=5)
     p.add_argument("--run-iterations", type=int, default=None, help="budget of the split's run (default: its config's)")
+    p.add_argument("--cache-ab", action="store_true",
+                   help="each size with and without the quadrature cache (run.node_cache), side by side")
     p.add_argument("--table-only", action="store_true")
     p.add_argument("--split-only", action="store_true")
     p.add_argument("--split-child", action="store_true", help=argparse.SUPPRESS)
@@ -168,10 +180,11 @@ def main(argv: list[str] | None = None) -> int:
     doc: dict[str, Any] = {"machine": machine()}
     print("  ".join(f"{k}={v}" for k, v in doc["machine"].items()))
     if not args.split_only:
-        doc["table"] = table(args.sizes, args.blocks, args.block)
-        print(f"{'R':>4} {'its':>5} {'min ms':>9} {'median ms':>10} {'median ms / run':>16}")
+        doc["table"] = table(args.sizes, args.blocks, args.block, args.cache_ab)
+        print(f"{'R':>4} {'nodes':>8} {'its':>5} {'min ms':>9} {'median ms':>10} {'median ms / run':>16}")
         for r in doc["table"]:
-            print(f"{r['runs']:>4} {r['iterations']:>5} {r['min_ms']:>9.1f} {r['median_ms']:>10.1f} "
+            nodes = {None: "", True: "cached", False: "every"}[r["node_cache"]]
+            print(f"{r['runs']:>4} {nodes:>8} {r['iterations']:>5} {r['min_ms']:>9.1f} {r['median_ms']:>10.1f} "
                   f"{r['median_ms_per_run']:>16.2f}")
     if not args.table_only:
         s = doc["split"] = split(args.run_iterations)
