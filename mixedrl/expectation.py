@@ -36,6 +36,7 @@ __all__ = [
     "GaussHermite",
     "quadrature_nodes",
     "expectation_nodes",
+    "NodeCache",
     "expect",
     "weighted_sum",
     "gaussian_expectation",
@@ -258,6 +259,51 @@ def expectation_nodes(mean: np.ndarray, cov: np.ndarray, noise_matrix: torch.Ten
     else:
         weights = torch.full((offsets.shape[0],), 1.0 / offsets.shape[0], dtype=dtype)
     return offsets, weights
+
+
+class NodeCache:
+    """:func:`expectation_nodes` remembered for its last inputs (issue 44): the IBE moves ``xi_hat`` only
+    now and then (and PEV, PIM and the MVC ask for the same nodes several times an iteration), so the nodes
+    are recomputed only when the inputs changed.
+
+    Calling the cache is calling :func:`expectation_nodes` with the same arguments, bit for bit: the nodes of a
+    deterministic rule (``"sigma"``, :class:`SigmaPoints`, :class:`GaussHermite`) of one mean (shape
+    ``(noise_dim,)``) are a function of ``(mean, cov, noise_matrix, rule, dtype)`` alone, and are reused while
+    these are bitwise the same (the arrays compared by their bytes, so ``-0.0`` is not ``0.0``). Sampled nodes
+    (``rule="samples"``, which draw from the generator) and a batch of means (Case 3, one per state) are
+    computed every call, as before. The returned tensors are shared between calls: callers must not modify
+    them in place (none does).
+
+    Attributes
+    ----------
+    hits, misses : int
+        Calls answered from the cache / computed (the uncached kinds not counted).
+    """
+
+    def __init__(self) -> None:
+        self._key: tuple | None = None
+        self._value: tuple[torch.Tensor, torch.Tensor] | None = None
+        self.hits = 0
+        self.misses = 0
+
+    def __call__(self, mean: np.ndarray, cov: np.ndarray, noise_matrix: torch.Tensor, rule: str | Rule = "sigma",
+                 n_samples: int = 4, generator: torch.Generator | None = None,
+                 dtype: torch.dtype = torch.float32) -> tuple[torch.Tensor, torch.Tensor]:
+        """:func:`expectation_nodes` ``(mean, cov, noise_matrix, rule, n_samples, generator, dtype)``."""
+        m, c = np.asarray(mean, dtype=np.float64), np.asarray(cov, dtype=np.float64)
+        deterministic = isinstance(rule, (SigmaPoints, GaussHermite)) or (isinstance(rule, str) and rule == "sigma")
+        if not deterministic or m.ndim != 1:
+            return expectation_nodes(mean, cov, noise_matrix, rule, n_samples, generator, dtype)
+        e = noise_matrix.detach()
+        key = (rule, dtype, m.shape, c.shape, m.tobytes(), c.tobytes(), e.dtype, tuple(e.shape),
+               e.cpu().contiguous().numpy().tobytes())
+        if self._value is not None and self._key == key:
+            self.hits += 1
+            return self._value
+        value = expectation_nodes(m, c, noise_matrix, rule, n_samples, generator, dtype)
+        self._key, self._value = key, value
+        self.misses += 1
+        return value
 
 
 def expect(g: Callable[..., Any], centers: Any, offsets: Any, weights: Any, extra: Any = None) -> Any:

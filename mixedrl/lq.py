@@ -30,7 +30,6 @@ import math
 from dataclasses import dataclass
 from typing import Any
 
-import control
 import numpy as np
 
 from mixedrl.checks import as_matrix, as_vector, check_covariance
@@ -263,6 +262,10 @@ def discounted_lq_optimum(A: np.ndarray, B: np.ndarray, Q: np.ndarray, R: np.nda
     n, g = A.shape[0], float(gamma)
     K = np.zeros((n, n)) if K is None else np.asarray(K, dtype=np.float64)
     sg = math.sqrt(g)
+    # imported here, not at module level (issue 44): ``control`` pulls in scipy.signal and matplotlib.pyplot
+    # (~1 s), and only the optimum needs it
+    import control
+
     try:
         # S solves the DARE with (sqrt(gamma) A, sqrt(gamma) B, Q, gamma R)
         S, _, L = control.dare(sg * A, sg * B, Q, g * R, method="scipy")

@@ -12,6 +12,7 @@ from mixedrl import gaussian
 from mixedrl.expectation import (
     SUPPORT_RTOL,
     GaussHermite,
+    NodeCache,
     SigmaPoints,
     expectation_nodes,
     gaussian_expectation,
@@ -186,3 +187,38 @@ def test_h_is_the_closed_form_on_a_quadratic_value(rng: np.random.Generator) -> 
     mean_next = x @ A.T + u @ B.T + mu
     closed = quad(mean_next, S) + np.trace(S @ K) + quad(u, R)
     np.testing.assert_allclose(got - closed, 0.0, atol=1e-11 * np.abs(closed).max())
+
+
+def test_node_cache_is_expectation_nodes_recomputed_only_on_change() -> None:
+    """Issue 44: the cached nodes are expectation_nodes' bit for bit; a changed mean, cov (even -0.0 for 0.0),
+    rule or noise matrix recomputes; sampled nodes and a batch of means are never cached."""
+    E = torch.tensor([[1.0, 0.0], [0.5, 2.0], [0.0, 1.0]])
+    mean, cov = np.array([0.1, -0.2]), np.array([[0.04, 0.01], [0.01, 0.09]])
+    cache = NodeCache()
+    first = cache(mean, cov, E)
+    assert cache.misses == 1 and cache.hits == 0
+    again = cache(mean.copy(), cov.copy(), E.clone())
+    assert cache.hits == 1 and again[0] is first[0]
+    for got, want in zip(again, expectation_nodes(mean, cov, E)):
+        assert torch.equal(got, want) and got.dtype == want.dtype
+    changed = [(mean + 1e-16, cov, E, "sigma"), (mean, cov * (1 + 1e-15), E, "sigma"),
+               (mean, cov, 2 * E, "sigma"), (mean, cov, E, GaussHermite(3))]
+    for m, c, e, rule in changed:
+        misses = cache.misses
+        got = cache(m, c, e, rule)
+        assert cache.misses == misses + 1
+        for a, b in zip(got, expectation_nodes(m, c, e, rule)):
+            assert torch.equal(a, b)
+    zero = NodeCache()
+    zero(np.zeros(2), np.zeros((2, 2)), E)
+    zero(np.array([-0.0, 0.0]), np.zeros((2, 2)), E)
+    assert zero.misses == 2  # compared by bytes
+    gen = torch.Generator().manual_seed(0)
+    a = cache(mean, cov, E, "samples", 4, gen)
+    b = cache(mean, cov, E, "samples", 4, gen)
+    assert not torch.equal(a[0], b[0])  # two draws
+    per_state = np.stack([mean, -mean])
+    hits = cache.hits
+    cache(per_state, cov, E)
+    cache(per_state, cov, E)
+    assert cache.hits == hits

@@ -151,3 +151,17 @@ def test_no_import_cycle_at_run_time() -> None:
         runtime.setdefault(a, set()).add(b)
     assert "mixedrl.task_base" in runtime["mixedrl.tasks"]  # the spy sees the imports
     assert GRAPH.cycles(runtime) == []
+
+
+def test_import_mixedrl_leaves_control_unimported() -> None:
+    """Issue 44: ``control`` (which pulls in scipy.signal and matplotlib.pyplot, about 1 s) is imported only by
+    :func:`mixedrl.lq.discounted_lq_optimum` when it is called, not by ``import mixedrl``."""
+    import os
+    import subprocess
+
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}
+    code = ("import sys, mixedrl, mixedrl.runs, mixedrl.lq; heavy = ('control', 'matplotlib.pyplot', 'scipy.signal'); "
+            "print([m for m in heavy if m in sys.modules])")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, env=env, check=False)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.strip().splitlines()[-1] == "[]"

@@ -40,7 +40,7 @@ from mixedrl.algorithms import algorithm2
 from mixedrl.samplers import SAMPLER_CLASSES
 from mixedrl.departures import actor_average, anchor, critic_target, state_weights
 from mixedrl.departures.anchor import equilibrium_gain, equilibrium_observation, feedforward_policy
-from mixedrl.expectation import expectation_nodes, h_value
+from mixedrl.expectation import NodeCache, expectation_nodes, h_value
 from mixedrl.networks import Actor, AffineActor, AffineAnchoredActor, AnchoredActor, Critic, QuadraticCritic
 from mixedrl.noise import make_noise_source
 from mixedrl.plant import check_plant_sampler
@@ -155,6 +155,8 @@ class AGPI:
         self.noise = noise_source if noise_source is not None else make_noise_source(
             config.method, task, config.algorithm.ibe_recursion, covariance="unknown" if config.algorithm.ibe_case == 2 else "known",
             state_dependent=config.algorithm.ibe_case == 3)
+        #: The quadrature of xi_hat, recomputed only when its moments change (algorithm2.nodes, issue 44).
+        self.node_cache = NodeCache()
         self.k = 0
         self.states = task.sample_initial(config.algorithm.batch_size, self.generator)
         # desynchronised episode clocks, so the copies do not all reset at the same iteration

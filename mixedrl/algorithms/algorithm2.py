@@ -226,6 +226,9 @@ def nodes(run: Any, mean: np.ndarray, cov: np.ndarray) -> tuple[torch.Tensor, to
     """Quadrature of ``N(mean, cov)`` with the run's rule (:func:`mixedrl.expectation.expectation_nodes`:
     ``algorithm.expectation``, ``noise_samples``, the run's generator for sampled nodes).
 
+    The nodes of a deterministic rule are computed only when ``(mean, cov)`` changed since the run's last call
+    (its :class:`~mixedrl.expectation.NodeCache`, ``run.node_cache``; issue 44): the same tensors, bit for bit.
+
     Returns
     -------
     offsets : torch.Tensor
@@ -233,8 +236,10 @@ def nodes(run: Any, mean: np.ndarray, cov: np.ndarray) -> tuple[torch.Tensor, to
     weights : torch.Tensor
         Shape (P,).
     """
-    return expectation_nodes(mean, cov, run.task.noise_matrix, run.config.algorithm.expectation,
-                             run.config.algorithm.noise_samples, run.generator)
+    cache = getattr(run, "node_cache", None)
+    compute = expectation_nodes if cache is None else cache
+    return compute(mean, cov, run.task.noise_matrix, run.config.algorithm.expectation,
+                   run.config.algorithm.noise_samples, run.generator)
 
 
 def metrics_row(run: Any, residuals: torch.Tensor, v_before: torch.Tensor, critic_loss: float, actor_obj: float,
