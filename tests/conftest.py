@@ -1,5 +1,8 @@
 """Shared pytest configuration: hypothesis profiles and seeded generators."""
 
+import shutil
+from pathlib import Path
+
 import numpy as np
 import pytest
 from hypothesis import HealthCheck, settings
@@ -15,3 +18,11 @@ settings.load_profile("ci")
 def rng() -> np.random.Generator:
     """A fresh generator with a fixed seed, so every test is reproducible."""
     return np.random.default_rng(20240101)
+
+
+@pytest.fixture()
+def run_copy(finished: Path, tmp_path: Path) -> Path:
+    """A copy of the test module's ``finished`` run directory (each module defines its own run)."""
+    out = tmp_path / "run"
+    shutil.copytree(finished, out)
+    return out

@@ -41,13 +41,6 @@ def finished(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return out
 
 
-@pytest.fixture()
-def run_copy(finished: Path, tmp_path: Path) -> Path:
-    out = tmp_path / "run"
-    shutil.copytree(finished, out)
-    return out
-
-
 # ---------------------------------------------------------------------------------------------------
 # item 1: the lock file never follows a link and a directory holding a foreign .lock is not a run
 # ---------------------------------------------------------------------------------------------------

@@ -61,13 +61,6 @@ def finished(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return out
 
 
-@pytest.fixture()
-def run_copy(finished: Path, tmp_path: Path) -> Path:
-    out = tmp_path / "run"
-    shutil.copytree(finished, out)
-    return out
-
-
 # ---------------------------------------------------------------------------------------------------
 # 1. a run directory is never silently replaced
 # ---------------------------------------------------------------------------------------------------
