@@ -151,10 +151,15 @@ def test_reproduce_quick_end_to_end(tmp_path: Path, capsys: pytest.CaptureFixtur
         assert abs(mean[vx] - true_mean) <= 0.02 * true_mean
     assert res["targets"]["ibe_mean_within_2pct"]
     assert res["mixed"]["theory"]["mvc_held_after_inner_loop"] >= 0.5
-    # trained as a sweep: the Algorithm-2 runs in batches (2 workers: 2 batches of 3), DDPG alone
+    # the paper preset's rows (first seed in quick mode) and the paired comparison under both settings
+    assert [r["seed"] for r in res["mixed_paper"]["runs"]] == [r["seed"] for r in res["model_paper"]["runs"]] == [0]
+    assert "library defaults, speed_mae: mixed better than model-driven on" in printed
+    assert "paper preset, speed_mae: mixed better than model-driven on" in printed
+    # trained as a sweep: the Algorithm-2 runs in batches (2 workers: 2 batches of 3, and the paper preset's
+    # 2 runs in one), DDPG alone
     sweep = json.loads((out / "sweep" / "sweep.json").read_text())
-    assert (sweep["batch"], sweep["batches"], res["sweep"]["batches"]) == (16, 2 + 4, 6)
-    assert sorted(r["metrics"].get("batch_size_runs", 1) for r in sweep["runs"]) == [1] * 4 + [3] * 6
+    assert (sweep["batch"], sweep["batches"], res["sweep"]["batches"]) == (16, 3 + 4, 7)
+    assert sorted(r["metrics"].get("batch_size_runs", 1) for r in sweep["runs"]) == [1] * 4 + [2] * 2 + [3] * 6
     for name in ("fig3_ibe_effect", "fig4_convergence", "fig5_trajectory", "fig6_speed_error",
                  "fig7_lateral_error"):
         assert (out / "figures" / f"{name}.png").stat().st_size > 1000
@@ -169,3 +174,29 @@ def test_format_references_block_and_bad_rows() -> None:
     assert "NMPC 2 s, gamma=0.99, true mean" in text and "13.13" in text and "0.049" in text
     with pytest.raises(ValueError, match="rows: row 0 lacks \\['cost'\\]"):
         format_references([{k: v for k, v in row.items() if k != "cost"}])
+
+
+def test_compare_seeds_counts_wins_and_gives_paired_intervals_per_setting() -> None:
+    """Mixed against model-driven RL seed by seed, for the library defaults and the paper preset: wins on
+    the seeds both have, the ratio of the means, the paired difference with an interval that is computed on
+    the seed pairs (a shuffled pairing would change it), none with one seed; the table prints each line."""
+    from validation.reproduce import compare_seeds
+
+    def runs(speeds: list[float]) -> dict:
+        return {"runs": [{"seed": s, "speed_mae": v, "lateral_mae": 0.1} for s, v in enumerate(speeds)]}
+    res = {"mixed": runs([0.010, 0.020, 0.012]), "model": runs([0.030, 0.015, 0.040]),
+           "mixed_paper": runs([0.02]), "model_paper": runs([0.01, 0.05])}
+    out = {(c["setting"], c["error"]): c for c in compare_seeds(res)}
+    speed = out[("library defaults", "speed_mae")]
+    assert speed["seeds"] == [0, 1, 2] and speed["mixed_wins"] == 2
+    assert speed["ratio_model_over_mixed"] == pytest.approx(0.085 / 0.042)
+    assert speed["difference_model_minus_mixed"] == pytest.approx((0.020 - 0.005 + 0.028) / 3)
+    lo, hi = speed["interval"]
+    assert -0.005 - 1e-12 <= lo < speed["difference_model_minus_mixed"] < hi <= 0.028 + 1e-12
+    assert out[("library defaults", "lateral_mae")]["mixed_wins"] == 0  # equal errors are no win
+    paper = out[("paper preset", "speed_mae")]
+    assert paper["seeds"] == [0] and paper["mixed_wins"] == 0 and paper["interval"] == [None, None]
+    table = format_table({**_fake_results(), "comparisons": compare_seeds(res)})
+    assert "library defaults, speed_mae: mixed better than model-driven on 2 of 3 seeds" in table
+    assert "paper preset, speed_mae: mixed better than model-driven on 0 of 1 seeds" in table
+    assert "no interval (one seed)" in table

@@ -181,13 +181,14 @@ def test_reproduction_spec_is_the_reproductions_run_config() -> None:
     from validation.reproduce import run_config
 
     runs = expand(load_spec(ROOT / "experiments" / "studies" / "reproduction.toml"))
-    assert len(runs) == 5 * 5
+    assert len(runs) == 7 * 5  # four methods, DDPG's longer budget, mixed and model-driven with the paper preset
     labels = []
     for run in runs:
-        label = "ddpg_long" if run.point["variant"] == "ddpg_long" else run.config.method
+        label = {"ddpg_long": "ddpg_long", "paper_preset": f"{run.config.method}_paper"}.get(
+            run.point["variant"], run.config.method)
         assert run.config == run_config(label, run.config.seed), run.name
         labels.append(label)
-    assert sorted(set(labels)) == ["ddpg", "ddpg_long", "mixed", "model", "oracle"]
+    assert sorted(set(labels)) == ["ddpg", "ddpg_long", "mixed", "mixed_paper", "model", "model_paper", "oracle"]
 
 
 def test_the_reproductions_spec_is_the_shipped_spec_with_the_theory_observer() -> None:
@@ -200,7 +201,8 @@ def test_the_reproductions_spec_is_the_shipped_spec_with_the_theory_observer() -
     quick = reproduction_spec(2, quick=True)
     assert quick.observer == "validation.reproduce:quick_theory_observer"
     for run in expand(quick):
-        label = "ddpg_long" if run.point["variant"] == "ddpg_long" else run.config.method
+        label = {"ddpg_long": "ddpg_long", "paper_preset": f"{run.config.method}_paper"}.get(
+            run.point["variant"], run.config.method)
         assert run.config == run_config(label, run.config.seed, quick=True), run.name
 
 

@@ -15,7 +15,12 @@ What it does, top to bottom:
    engine into ``DIR/sweep/runs/<name>/``: the Algorithm-2 runs in batches
    (:mod:`mixedrl.algorithms.batched`), DDPG alone (batching DDPG does not pay on 2 cores:
    :func:`mixedrl.sweep.plan_batches`), on ``workers`` processes (one torch thread each).
-   ``--resume`` reuses finished runs and resumes interrupted ones from their checkpoints.
+   ``--resume`` reuses finished runs and resumes interrupted ones from their checkpoints. Mixed and
+   model-driven RL train once more with the ``paper`` preset (the paper's literal Algorithm 2:
+   ``TrainConfig.preset("paper")``; rows ``mixed_paper``, ``model_paper``, the sweep variant
+   ``paper_preset``; the first seed only with ``--quick``), so the table shows the library defaults and the
+   paper's algorithm side by side, each with mixed against model-driven RL seed by seed
+   (:func:`compare_seeds`: wins, ratio, paired bootstrap interval).
 2. During the Algorithm-2 runs, every 250th iteration (50th with ``--quick``) a :class:`TheoryObserver`
    (the spec's ``observer``) applies the ``theory`` checks to the iteration just made, on its batch of
    states: value decrease (eqs. 29/42), the pointwise MVC (eq. 38, with ``e_k >= 0`` of eq. 39),
@@ -62,13 +67,13 @@ from mixedrl.checks import check_positive_int
 from mixedrl.config import DoubleLaneChangeTaskConfig, TrainConfig, task_config
 from mixedrl.gaussian import sample_gaussian
 from mixedrl.ibe import UnknownCovarianceIBE
-from mixedrl.tables import mean_std
+from mixedrl.tables import mean_std, paired_interval
 from mixedrl.runs import RunDirectory, atomic_write_bytes, atomic_write_text, eval_seeds, load_checkpoint, make_trainer
 from mixedrl.sweep import DEFAULT_BATCH, SweepSpec, expand, parse_spec, run_sweep
 from validation.nmpc import REFERENCE_SETTINGS
 from mixedrl.tasks import DoubleLaneChangeTask, task_from_config
 
-__all__ = ["PAPER", "METHODS", "reproduce", "reproduction_spec", "format_table", "format_references", "run_config",
+__all__ = ["PAPER", "METHODS", "EXTRA", "PRESET_ROWS", "compare_seeds", "reproduce", "reproduction_spec", "format_table", "format_references", "run_config",
            "TheoryObserver", "TheoryProbe", "theory_observer", "quick_theory_observer", "make_figures", "main",
            "register", "add_arguments", "run_command"]
 
@@ -82,13 +87,20 @@ PAPER: dict[str, dict[str, float]] = {
 }
 #: Order of the table rows.
 METHODS = ("mixed", "model", "ddpg", "oracle")
-#: Extra rows: DDPG with ``DDPG_LONG_FACTOR`` times the common budget, to measure where it converges.
-EXTRA = ("ddpg_long",)
+#: Extra rows: DDPG with ``DDPG_LONG_FACTOR`` times the common budget, to measure where it converges; mixed
+#: and model-driven RL with the paper's literal Algorithm 2 (``TrainConfig.preset("paper")``, :data:`PRESET_ROWS`).
+EXTRA = ("ddpg_long", "mixed_paper", "model_paper")
+#: The rows of the ``paper`` preset: label -> method. Their sweep variant is ``paper_preset``; in quick mode
+#: they train the first seed only.
+PRESET_ROWS = {"mixed_paper": "mixed", "model_paper": "model"}
+#: The paired per-seed comparisons of mixed against model-driven RL: (setting, mixed's label, model's label).
+COMPARISONS = (("library defaults", "mixed", "model"), ("paper preset", "mixed_paper", "model_paper"))
 DDPG_LONG_FACTOR = 16
 #: The same in quick mode.
 QUICK_DDPG_LONG_FACTOR = 2
 LABELS = {"mixed": "Mixed RL", "model": "Model-driven RL", "ddpg": "Data-driven RL (DDPG)",
-          "oracle": "Oracle (true noise)", "ddpg_long": "DDPG, longer budget"}
+          "oracle": "Oracle (true noise)", "ddpg_long": "DDPG, longer budget",
+          "mixed_paper": "Mixed RL, paper preset", "model_paper": "Model-driven, paper preset"}
 #: Quick mode (the test suite): the paper's budget (1500 iterations: at 600 the model-based training has
 #: not converged and the ordering inverts), one evaluation course, DDPG's longer budget 2x instead of
 #: 16x; at most this many seeds.
@@ -103,9 +115,13 @@ def run_config(label: str, seed: int, quick: bool = False) -> TrainConfig:
 
     ``label="ddpg_long"`` is DDPG with :data:`DDPG_LONG_FACTOR` times the budget (quick mode:
     :data:`QUICK_DDPG_LONG_FACTOR`), evaluated every ``factor / 4`` times as rarely; same everything else.
+    ``"mixed_paper"`` / ``"model_paper"`` (:data:`PRESET_ROWS`) are mixed / model-driven RL with the
+    ``paper`` preset (the paper's literal Algorithm 2) applied to those defaults.
     """
-    method = "ddpg" if label == "ddpg_long" else label
+    method = "ddpg" if label == "ddpg_long" else PRESET_ROWS.get(label, label)
     config = TrainConfig(method=method, seed=seed)
+    if label in PRESET_ROWS:
+        config = config.with_preset("paper")
     if quick:
         config = config.replace(**QUICK)
     if label == "ddpg_long":
@@ -254,12 +270,19 @@ def reproduction_spec(seeds: int = 5, quick: bool = False) -> SweepSpec:
     lines += [f'"{k}" = {json.dumps(v)}' for k, v in dotted(base, default).items()]
     lines += ["", "[variants.paper]", "", "[variants.ddpg_long]", 'methods = ["ddpg"]']
     lines += [f'"{k}" = {json.dumps(v)}' for k, v in dotted(long_cfg.to_dict(), base).items()]
+    lines += ["", "[variants.paper_preset]", f"methods = {json.dumps(list(PRESET_ROWS.values()))}"]
+    lines += ["seeds = [0]"] if quick else []
+    lines += [f'"{k}" = {json.dumps(v)}' for k, v in dotted(run_config("mixed_paper", 0, quick).to_dict(), base).items()]
     return parse_spec("\n".join(lines) + "\n", "reproduction_spec")
 
 
 def _label(record: dict[str, Any]) -> str:
-    """The table row of a sweep row: ``ddpg_long`` for that variant, else the method."""
-    return "ddpg_long" if record["point"].get("variant") == "ddpg_long" else record["method"]
+    """The table row of a sweep row: ``ddpg_long`` for that variant, ``<method>_paper`` for the
+    ``paper_preset`` variant, else the method."""
+    variant = record["point"].get("variant")
+    if variant == "paper_preset":
+        return f"{record['method']}_paper"
+    return "ddpg_long" if variant == "ddpg_long" else record["method"]
 
 
 def _trajectory_path(out: Path, label: str, seed: int) -> Path:
@@ -375,7 +398,7 @@ def reproduce(out: str | Path, seeds: int = 5, quick: bool = False, resume: bool
     for rec in sorted(doc["runs"], key=lambda r: r["seed"]):
         label = _label(rec)
         run = RunDirectory(out / "sweep" / rec["run_dir"])
-        if all(r["label"] != label for r in finished):  # the label's first seed drives Figs. 5-7
+        if label not in PRESET_ROWS and all(r["label"] != label for r in finished):  # first seed: Figs. 5-7
             _save_trajectory(out, run, label)
         finished.append({**run.read_results(), "label": label, "run_dir": str(Path("sweep") / rec["run_dir"])})
     wall = time.perf_counter() - t0
@@ -427,8 +450,31 @@ def aggregate(out: Path, finished: list[dict[str, Any]], wall: float, quick: boo
                 np.abs(np.asarray(gaps, dtype=float)).mean(axis=0).tolist(),
                 np.abs(np.asarray(gaps, dtype=float)).std(axis=0, ddof=1 if len(gaps) > 1 else 0).tolist())
         results[method] = entry
+    results["comparisons"] = compare_seeds(results)
     results["targets"] = check_targets(results)
     return results
+
+
+def compare_seeds(results: dict[str, Any]) -> list[dict[str, Any]]:
+    """Mixed against model-driven RL seed by seed, per setting of :data:`COMPARISONS` (the library defaults,
+    the paper preset) and per error (``speed_mae``, ``lateral_mae``): on how many common seeds mixed RL's
+    error is smaller, the ratio of the means (model / mixed) and the mean paired difference (model - mixed)
+    with its percentile-bootstrap 95% interval (:func:`mixedrl.tables.paired_interval`; none with one seed)."""
+    out = []
+    for setting, a, b in COMPARISONS:
+        if a not in results or b not in results:
+            continue
+        mixed = {r["seed"]: r for r in results[a]["runs"]}
+        model = {r["seed"]: r for r in results[b]["runs"]}
+        seeds = sorted(set(mixed) & set(model))
+        for key in ("speed_mae", "lateral_mae"):
+            x, y = [model[s][key] for s in seeds], [mixed[s][key] for s in seeds]
+            diff, lo, hi = paired_interval(x, y)
+            out.append({"setting": setting, "error": key, "seeds": seeds,
+                        "mixed_wins": int(sum(u > v for u, v in zip(x, y))),
+                        "ratio_model_over_mixed": float(np.mean(x) / np.mean(y)),
+                        "difference_model_minus_mixed": diff, "interval": [lo, hi]})
+    return out
 
 
 def _run_dir(out: Path, label: str, run: dict[str, Any]) -> RunDirectory:
@@ -516,6 +562,12 @@ def format_table(results: dict[str, Any]) -> str:
             + (f"{e['cost_mean']:>9.1f} ± {e['cost_std']:<5.1f}" if "cost_mean" in e else f"{'--':>17}")
             + (f"{e['true_transitions_mean']:>13,.0f}" if "true_transitions_mean" in e else f"{'--':>13}"))
     lines.append("")
+    for c in results.get("comparisons", []):
+        lo, hi = c["interval"]
+        ci = "no interval (one seed)" if lo is None else f"95% paired bootstrap [{lo:+.4f}, {hi:+.4f}]"
+        lines.append(f"{c['setting']}, {c['error']}: mixed better than model-driven on {c['mixed_wins']} of "
+                     f"{len(c['seeds'])} seeds; model / mixed {c['ratio_model_over_mixed']:.2f}; model - mixed "
+                     f"{c['difference_model_minus_mixed']:+.4f}, {ci}")
     lines.append(f"convergence: {results.get('convergence_criterion')}")
     lines.append(f"wall time: {results['wall_seconds']:.1f} s")
     if results.get("targets"):
@@ -626,6 +678,7 @@ def make_figures(out: str | Path, results: dict[str, Any], references: str | Pat
     # Fig. 4: convergence (evaluation cost of the course against iterations, mean and range over seeds)
     fig, ax = plt.subplots(figsize=(6, 4))
     colors["ddpg_long"] = "C3"
+    colors.update({label: colors[method] for label, method in PRESET_ROWS.items()})
     for m in methods + [e for e in EXTRA if e in results]:
         curves = []
         for r in results[m]["runs"]:
@@ -633,7 +686,7 @@ def make_figures(out: str | Path, results: dict[str, Any], references: str | Pat
             curves.append(([row["iteration"] for row in rows], [row["eval/cost"] for row in rows]))
         its = curves[0][0]
         vals = np.array([c[1] for c in curves if len(c[1]) == len(its)])
-        style = "--" if m in EXTRA else "-"
+        style = ":" if m in PRESET_ROWS else "--" if m in EXTRA else "-"
         ax.plot(its, vals.mean(axis=0), style, color=colors[m], label=LABELS[m])
         ax.fill_between(its, vals.min(axis=0), vals.max(axis=0), color=colors[m], alpha=0.1)
     ax.set_yscale("log")

@@ -35,18 +35,11 @@ for p in (ROOT, ROOT / "experiments" / "analysis"):
 
 from experiments.target_systems import TARGET_SYSTEMS  # noqa: E402
 from mixedrl.runs import atomic_write_text  # noqa: E402
+from mixedrl.tables import paired_interval  # noqa: E402
 from tuning_baseline import COST_REL, format_row, one_run  # noqa: E402
 
 SPEC = ROOT / "experiments" / "studies" / "learner_targets.toml"
 OUT = ROOT / "experiments" / "results" / "learner_targets"
-
-
-def paired_interval(diff: np.ndarray, reps: int = 20000, seed: int = 0) -> tuple[float, float]:
-    """Percentile 95% bootstrap interval of the mean of paired differences (seeds resampled together)."""
-    gen = np.random.default_rng(seed)
-    idx = gen.integers(0, len(diff), size=(reps, len(diff)))
-    means = diff[idx].mean(axis=1)
-    return float(np.percentile(means, 2.5)), float(np.percentile(means, 97.5))
 
 
 def run_or_read(system: str, method: str, setting: str, seed: int, spec: dict[str, Any], dest: Path) -> dict[str, Any]:
@@ -81,9 +74,10 @@ def summarise(rows: list[dict[str, Any]], systems: list[str], settings: list[str
                 cm = {r["seed"]: r["cost"] for r in mixed}
                 cd = {r["seed"]: r["cost"] for r in model}
                 diff = np.array([cd[s] - cm[s] for s in common])
-                lo, hi = paired_interval(diff)
+                mean, lo, hi = paired_interval([cd[s] for s in common], [cm[s] for s in common])
+                ci = "" if lo is None else f" [{lo:+.4g}, {hi:+.4g}]"
                 lines.append(f"  - {system} {setting}: mixed cheaper than model-driven on {int((diff > 0).sum())}/"
-                             f"{len(common)} seeds; cost(model) - cost(mixed) mean {diff.mean():+.4g} [{lo:+.4g}, {hi:+.4g}]")
+                             f"{len(common)} seeds; cost(model) - cost(mixed) mean {mean:+.4g}{ci} (paired bootstrap 95%)")
     return lines
 
 
