@@ -19,28 +19,10 @@ from mixedrl.checks import as_matrix, as_vector, check_covariance, check_number,
 from mixedrl.envs.disturbance import DISTURBANCE_LAWS, Disturbance
 from mixedrl.lq import LQProblem
 
-__all__ = [
-    "METHODS",
-    "TASKS",
-    "MODEL_COURSE_STARTS",
-    "BATCH_WEIGHTINGS",
-    "FEEDFORWARDS",
-    "ANCHORED_FEEDFORWARDS",
-    "AFFINE_FEEDFORWARDS",
-    "DISTURBANCE_LAWS",
-    "ForceDisturbanceConfig",
-    "GaussianNoiseConfig",
-    "LinearTaskConfig",
-    "register_task",
-    "register_builtin_task",
-    "task_names",
-    "task_config",
-    "task_config_union",
-    "build_section",
-    "to_jsonable",
-    "check_choice",
-    "BUILTIN_NAMES",
-]
+__all__ = ["METHODS", "TASKS", "MODEL_COURSE_STARTS", "BATCH_WEIGHTINGS", "FEEDFORWARDS", "ANCHORED_FEEDFORWARDS",
+           "AFFINE_FEEDFORWARDS", "DISTURBANCE_LAWS", "ForceDisturbanceConfig", "GaussianNoiseConfig",
+           "LinearTaskConfig", "register_task", "register_builtin_task", "task_names", "task_config",
+           "task_config_union", "build_section", "to_jsonable", "check_choice", "BUILTIN_NAMES"]
 
 #: The four methods of the reproduction (mixed RL, model-driven RL, oracle, DDPG).
 METHODS = ("mixed", "model", "oracle", "ddpg")

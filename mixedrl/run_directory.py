@@ -53,17 +53,8 @@ from mixedrl.checkpoint import (atomic_write_text, default_file_mode, is_tempora
                                 verify_digest, write_with_digest)
 from mixedrl.config import TrainConfig, task_names
 
-__all__ = [
-    "RunDirectory",
-    "RunLockedError",
-    "hold_lock",
-    "is_lock_file",
-    "LOCK_NAME",
-    "RUN_FILES",
-    "config_record",
-    "check_state",
-    "load_trainer",
-]
+__all__ = ["RunDirectory", "RunLockedError", "hold_lock", "is_lock_file", "LOCK_NAME", "RUN_FILES", "config_record",
+           "check_state", "load_trainer"]
 
 #: The files that make a directory a run (any one of them): never replaced without ``resume``.
 RUN_FILES = ("config.json", "checkpoint.pt", "metrics.jsonl", "results.json")

@@ -48,21 +48,8 @@ from typing import Any
 
 from mixedrl.config import TrainConfig, apply_overrides, flatten_table
 
-__all__ = [
-    "SPEC_KEYS",
-    "SweepSpec",
-    "SweepRun",
-    "apply_dotted",
-    "flatten_table",
-    "parse_spec",
-    "load_spec",
-    "resolve_observer",
-    "expand",
-    "run_name",
-    "config_hash",
-    "MAX_RUNS",
-    "SEED_MAX",
-]
+__all__ = ["SPEC_KEYS", "SweepSpec", "SweepRun", "apply_dotted", "flatten_table", "parse_spec", "load_spec",
+           "resolve_observer", "expand", "run_name", "config_hash", "MAX_RUNS", "SEED_MAX"]
 
 #: Top-level keys a spec may have (``methods`` and ``seeds`` are required).
 SPEC_KEYS = ("methods", "seeds", "base", "grid", "variants", "observer")

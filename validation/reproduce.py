@@ -105,7 +105,7 @@ def run_config(label: str, seed: int, quick: bool = False) -> TrainConfig:
     :data:`QUICK_DDPG_LONG_FACTOR`), evaluated every ``factor / 4`` times as rarely; same everything else.
     """
     method = "ddpg" if label == "ddpg_long" else label
-    config = TrainConfig(method=method, seed=seed)
+    config = TrainConfig(method=method, seed=seed, task="dlc")
     if quick:
         config = config.replace(**QUICK)
     if label == "ddpg_long":
@@ -240,7 +240,7 @@ def reproduction_spec(seeds: int = 5, quick: bool = False) -> SweepSpec:
     For ``seeds=5`` (not quick) it expands to the runs of ``experiments/studies/reproduction.toml`` (tested).
     """
     base = run_config("mixed", 0, quick).to_dict()
-    default = TrainConfig().to_dict()
+    default = TrainConfig(task="dlc").to_dict()
     long_cfg = run_config("ddpg_long", 0, quick)
 
     def dotted(cfg: dict[str, Any], ref: dict[str, Any]) -> dict[str, Any]:
