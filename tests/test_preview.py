@@ -44,7 +44,7 @@ def _tanh_path(X: np.ndarray) -> np.ndarray:
 
 
 def _config(**extra: object) -> TrainConfig:
-    return TrainConfig(method="mixed").replace(**{**FAST, **extra, "task.preview_distances": list(PREVIEW)})
+    return TrainConfig(method="mixed", task="dlc").replace(**{**FAST, **extra, "task.preview_distances": list(PREVIEW)})
 
 
 def test_preview_observation_is_the_path_ahead() -> None:
