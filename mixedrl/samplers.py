@@ -324,5 +324,10 @@ class _Implementations(Mapping):
     def __len__(self) -> int:
         return len(SAMPLERS)
 
+    def __repr__(self) -> str:
+        return repr(dict(self))
 
+
+#: Sampler name -> the class that makes Algorithm 2's batch (``None``: the true copies): a read-only view of the one
+#: registry :data:`mixedrl.config.SAMPLERS`.
 SAMPLER_CLASSES: Mapping[str, type | None] = _Implementations()
