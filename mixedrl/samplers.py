@@ -311,10 +311,6 @@ register_sampler(ModelRolloutsSampler, implementation=ModelStateSampler)
 
 
 class _Implementations(Mapping):
-    """Sampler name -> the class that makes Algorithm 2's batch (``None``: the true copies of
-    :class:`mixedrl.algorithms.agpi.AGPI` itself): a read-only view of the one registry
-    :data:`mixedrl.config.SAMPLERS` (:func:`mixedrl.config.register_sampler`)."""
-
     def __getitem__(self, name: str) -> type | None:
         return SAMPLERS[name].IMPLEMENTATION
 
@@ -328,6 +324,7 @@ class _Implementations(Mapping):
         return repr(dict(self))
 
 
-#: Sampler name -> the class that makes Algorithm 2's batch (``None``: the true copies): a read-only view of the one
-#: registry :data:`mixedrl.config.SAMPLERS`.
+#: Sampler name -> the class that makes Algorithm 2's batch (``None``: the true copies of
+#: :class:`mixedrl.algorithms.agpi.AGPI` itself): a read-only view of the one registry :data:`mixedrl.config.SAMPLERS`
+#: (:func:`mixedrl.config.register_sampler`).
 SAMPLER_CLASSES: Mapping[str, type | None] = _Implementations()
