@@ -10,16 +10,12 @@ The spec (a small TOML file of methods, seeds, ``[base]``, ``[grid]`` and ``[var
 parsed, checked and expanded by :mod:`mixedrl.sweep_spec`; the batches are run by :mod:`mixedrl.sweep_engines`.
 This module writes the sweep directory and re-exports every public name of both.
 
-It expands to ``len(variants or [one]) x len(grid product) x len(methods) x len(seeds)`` runs (a variant's own
-``methods`` / ``seeds`` replace the spec's for its runs). Every run is an
-ordinary run directory (:class:`mixedrl.runs.RunDirectory`) under ``DIR/runs/``, trained by
-:func:`mixedrl.runs.make_trainer` and :func:`mixedrl.runs.train_batch`. The runs are trained in batches
-(:func:`plan_batches`: runs with equal :func:`mixedrl.algorithms.batched.batch_key`, at most ``--batch`` per
-batch, default :data:`DEFAULT_BATCH`; Algorithm-2 runs in :class:`~mixedrl.algorithms.batched.BatchedAGPI`;
-DDPG runs alone, or with ``--batch-ddpg`` in :class:`~mixedrl.algorithms.batched_ddpg.BatchedDDPG`, never
-with Algorithm-2 runs): a run of a batch ends
-with exactly the weights and metrics of the same config in any other batch of two or more, and with
-``--batch 1`` every run trains alone, with exactly the weights and metrics of ``mixedrl train``.
+Every run is an ordinary run directory (:class:`mixedrl.runs.RunDirectory`) under ``DIR/runs/``, trained by
+:func:`mixedrl.runs.make_trainer` and :func:`mixedrl.runs.train_batch` in batches (:func:`plan_batches`: runs
+with equal :func:`mixedrl.algorithms.batched.batch_key`, at most ``--batch`` per batch, default
+:data:`DEFAULT_BATCH`; DDPG runs alone, or with ``--batch-ddpg`` among themselves): a run of a batch ends with
+exactly the weights and metrics of the same config in any other batch of two or more, and with ``--batch 1``
+with exactly those of ``mixedrl train``.
 
 One driver writes a sweep directory: it holds ``DIR/.lock`` (:func:`mixedrl.runs.hold_lock`) from its checks
 to its last write, and its pool workers end when it dies (:func:`mixedrl.sweep_engines._die_with_parent`).
