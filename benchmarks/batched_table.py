@@ -76,7 +76,7 @@ def evaluation(sizes: list[int], run: Path | None, repeats: int, threads: int, o
     state = None if run is None else load_checkpoint(RunDirectory(run).checkpoint_path)["trainer"]
     rows = []
     for size in sizes:
-        trainers = [make_trainer(TrainConfig(method=METHODS[i % 3], seed=i // 3)) for i in range(size)]
+        trainers = [make_trainer(TrainConfig(method=METHODS[i % 3], seed=i // 3, task="dlc")) for i in range(size)]
         if state is not None:
             for t in trainers:
                 t.actor.load_state_dict(state["actor"])
@@ -127,8 +127,8 @@ def _engine(size: int, ddpg: bool, first_seed: int = 0) -> Any:
     from mixedrl.runs import make_trainer
 
     if ddpg:
-        return BatchedDDPG([make_trainer(TrainConfig(method="ddpg", seed=first_seed + i)) for i in range(size)])
-    return BatchedAGPI([make_trainer(TrainConfig(method=METHODS[i % 3], seed=first_seed + i // 3))
+        return BatchedDDPG([make_trainer(TrainConfig(method="ddpg", seed=first_seed + i, task="dlc")) for i in range(size)])
+    return BatchedAGPI([make_trainer(TrainConfig(method=METHODS[i % 3], seed=first_seed + i // 3, task="dlc"))
                         for i in range(size)])
 
 

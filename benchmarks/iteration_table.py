@@ -13,7 +13,7 @@ per run-iteration. Alternating blocks give every size the same load from other j
 ``--cache-ab`` times every size twice, the same runs with the quadrature cache of issue 44 and without it
 (``run.node_cache = None``: the nodes computed at every call, as before), side by side in the same blocks.
 
-**Split**: one default run (``TrainConfig(method="mixed", seed=0)``, its budget or ``--run-iterations``,
+**Split**: one default run (``TrainConfig(method="mixed", seed=0, task="dlc")``, its budget or ``--run-iterations``,
 trained by :func:`mixedrl.runs.train` in memory) in a fresh subprocess, its wall time split into
 interpreter start, imports (``mixedrl``, :mod:`mixedrl.runs`), construction (:func:`mixedrl.runs.make_trainer`),
 the first iteration (which pays the lazy imports of the first optimiser step, ``torch._dynamo``), the other
@@ -68,7 +68,7 @@ def _engine(size: int, first_seed: int) -> Any:
     from mixedrl.config import TrainConfig
     from mixedrl.runs import make_trainer
 
-    trainers = [make_trainer(TrainConfig(method=METHODS[i % 3], seed=first_seed + i // 3)) for i in range(size)]
+    trainers = [make_trainer(TrainConfig(method=METHODS[i % 3], seed=first_seed + i // 3, task="dlc")) for i in range(size)]
     return trainers[0] if size == 1 else BatchedAGPI(trainers)
 
 
@@ -112,7 +112,7 @@ def split_child(iterations: int | None) -> dict[str, float]:
 
     t_imports = time.perf_counter() - t0
     torch.set_num_threads(1)
-    config = TrainConfig(method="mixed", seed=0)
+    config = TrainConfig(method="mixed", seed=0, task="dlc")
     if iterations is not None:
         config = config.replace(**{"algorithm.iterations": iterations})
     t1 = time.perf_counter()

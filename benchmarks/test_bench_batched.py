@@ -30,7 +30,7 @@ def one_thread() -> Iterator[None]:
 
 @pytest.mark.parametrize("runs", [1, 5])
 def test_batch_iteration(benchmark, runs: int) -> None:
-    engine = BatchedAGPI([make_trainer(TrainConfig(method=METHODS[i % 3], seed=i // 3)) for i in range(runs)])
+    engine = BatchedAGPI([make_trainer(TrainConfig(method=METHODS[i % 3], seed=i // 3, task="dlc")) for i in range(runs)])
     for _ in range(2):
         engine.iteration()
     rows = benchmark.pedantic(engine.iteration, rounds=5, iterations=1)

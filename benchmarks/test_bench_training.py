@@ -37,7 +37,7 @@ def one_thread() -> Iterator[None]:
 
 
 def _trainer(method: str) -> object:
-    trainer = make_trainer(TrainConfig(method=method, seed=0))
+    trainer = make_trainer(TrainConfig(method=method, seed=0, task="dlc"))
     for _ in range(3):  # past the first IBE update and any lazy initialisation
         trainer.iteration()
     return trainer

@@ -6,8 +6,8 @@ numbers ``eq. (N)`` everywhere in this package follow ``shared/paper/EQUATIONS.m
 Importing the package imports :mod:`mixedrl.tasks` (the task interface of :mod:`mixedrl.task_base`, the
 built-in tasks and the registry), hence :mod:`mixedrl.envs.dlc_task`, which registers the double lane change's experiment with the configuration
 (its course sampler ``"dlc_course"`` in :data:`mixedrl.config.SAMPLERS` and its preset in
-:data:`mixedrl.config.PRESETS`), so that every :class:`~mixedrl.config.TrainConfig` of that task sees
-them, and :mod:`mixedrl.envs.pendulum`, which registers the pendulum task by name
+:data:`mixedrl.config.PRESETS`), so that every :class:`~mixedrl.config.TrainConfig` that names that task
+sees them, and :mod:`mixedrl.envs.pendulum`, which registers the pendulum task by name
 (``task.name = "pendulum"``).
 """
 

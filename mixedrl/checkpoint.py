@@ -31,19 +31,8 @@ from typing import Any
 import numpy as np
 import torch
 
-__all__ = [
-    "save_checkpoint",
-    "load_checkpoint",
-    "regular_file",
-    "OLD_FORMAT_READER",
-    "atomic_write_bytes",
-    "atomic_write_text",
-    "write_with_digest",
-    "verify_digest",
-    "digest_path",
-    "default_file_mode",
-    "is_temporary",
-]
+__all__ = ["save_checkpoint", "load_checkpoint", "regular_file", "OLD_FORMAT_READER", "atomic_write_bytes",
+           "atomic_write_text", "write_with_digest", "verify_digest", "digest_path", "default_file_mode", "is_temporary"]
 
 #: Format tag of the checkpoints written now (plain data; see :func:`save_checkpoint`).
 _FORMAT = "mixedrl-checkpoint-v2"

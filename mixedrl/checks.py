@@ -19,25 +19,10 @@ from typing import Any
 import numpy as np
 import torch
 
-__all__ = [
-    "as_vector",
-    "as_matrix",
-    "as_batch",
-    "check_covariance",
-    "check_finite",
-    "check_fraction",
-    "check_int",
-    "check_nonnegative_int",
-    "check_positive_int",
-    "check_unknown_keys",
-    "check_number",
-    "check_seed_lists",
-    "check_task_types",
-    "NonFiniteTrainingError",
-    "MONITORED_PREFIXES",
-    "UNMONITORED_METRICS",
-    "check_finite_metrics",
-]
+__all__ = ["as_vector", "as_matrix", "as_batch", "check_covariance", "check_finite", "check_fraction", "check_int",
+           "check_nonnegative_int", "check_positive_int", "check_unknown_keys", "check_number", "check_seed_lists",
+           "check_task_types", "NonFiniteTrainingError", "MONITORED_PREFIXES", "UNMONITORED_METRICS",
+           "check_finite_metrics"]
 
 SYMMETRY_RTOL = 1e-10
 PSD_RTOL = 1e-10

@@ -18,14 +18,16 @@ The task configuration is one of two nested dataclasses, chosen by its ``name``:
 * :class:`LinearTaskConfig` (``name = "linear"``, a small LQ system with a known optimum), with the
   nested :class:`GaussianNoiseConfig` (``task.disturbance``).
 
-A section that is not given takes the task's experiment configuration (:data:`PRESETS`): the double
-lane change registers :data:`mixedrl.envs.dlc_task.DLC_EXPERIMENT` (the reproduction of Table I: its
-course sampler :class:`mixedrl.envs.dlc_task.CourseSampler`, the learning-rate decay over 1500
-iterations, the relative batch weighting; both live with the task in :mod:`mixedrl.envs.dlc_task` and
-stay importable from here and from :mod:`mixedrl.tasks`); any other task gets the library defaults of
-the section classes (model rollouts from the task's start distribution restarted outside 3 x ``obs_scale``,
-the decay tied to the budget, the relative batch weighting; docs/tuning.rst gives the measurement behind
-them).
+``TrainConfig()`` (no task named) holds the library defaults of the section classes (model rollouts from
+the task's start distribution restarted outside 3 x ``obs_scale``, the decay tied to the budget, the relative
+batch weighting; docs/tuning.rst gives the measurement behind them): what a user's own task object, passed
+to the trainer, trains with. Its ``task`` field holds the double lane change's defaults, the task the CLI
+and :func:`mixedrl.runs.make_trainer` build when no task object is given. When a task is named
+(``task="dlc"``, and in a dictionary: ``config.json``, ``--config``, sweep specifications, where a missing
+``task`` is ``"dlc"``), a section that is not given takes that task's experiment configuration
+(:data:`PRESETS`): the double lane change registers :data:`mixedrl.envs.dlc_task.DLC_EXPERIMENT` (the
+reproduction of Table I: its course sampler :class:`mixedrl.envs.dlc_task.CourseSampler`, the learning-rate
+decay over 1500 iterations).
 
 Dotted keys address nested fields, the same way on the command line, in :func:`apply_overrides` and in
 sweep specifications::
@@ -234,9 +236,9 @@ MAX_SEED = 2**64 - 1
 class TrainConfig:
     """Configuration of one training run (Algorithm 2 or DDPG), in sections.
 
-    A section left out (or given as a partial dict) takes the run's task's experiment configuration
-    (:data:`PRESETS`, registered by the task; the double lane change's is
-    :data:`mixedrl.envs.dlc_task.DLC_EXPERIMENT`) over the library defaults of the section's class.
+    A section left out (or given as a partial dict) takes the library defaults of the section's class; when
+    ``task`` is named, the named task's experiment configuration (:data:`PRESETS`, registered by the task;
+    the double lane change's is :data:`mixedrl.envs.dlc_task.DLC_EXPERIMENT`) over them.
     ``to_dict`` / ``from_dict`` round-trip exactly through JSON.
     """
 
@@ -249,7 +251,7 @@ class TrainConfig:
     replay sampling). Same seed, same weights."""
 
     task: TaskConfig
-    """The experiment: :class:`DoubleLaneChangeTaskConfig` (``name = "dlc"``, the default) or
+    """The experiment: :class:`DoubleLaneChangeTaskConfig` (``name = "dlc"``, also when none is named) or
     :class:`LinearTaskConfig` (``name = "linear"``); a task name or a nested dict is accepted
     (:func:`task_config`)."""
 
@@ -267,7 +269,7 @@ class TrainConfig:
     run: RunConfig
     """Evaluation, checkpoints, threads (:class:`RunConfig`)."""
 
-    def __init__(self, method: str = "mixed", seed: int = 0, task: Any = "dlc", algorithm: Any = None,
+    def __init__(self, method: str = "mixed", seed: int = 0, task: Any = None, algorithm: Any = None,
                  sampler: Any = None, ddpg: Any = None, run: Any = None, **unknown: Any) -> None:
         _refuse_flat_form(unknown)
         check_unknown_keys(unknown, {f.name for f in dataclasses.fields(TrainConfig)}, "config")
@@ -275,8 +277,10 @@ class TrainConfig:
         self.seed = check_nonnegative_int(seed, "seed")
         if self.seed > MAX_SEED:
             raise ValueError(f"seed: expected an integer in [0, 2**64 - 1] (torch's generator seed), got {seed!r}")
-        self.task = task_config(task)
-        preset = PRESETS.get(self.task.name, {})
+        # no task named: the library defaults (a user's own task object trains with them); ``task`` holds
+        # the double lane change's defaults, the task the CLI and make_trainer build when none is given
+        self.task = task_config("dlc" if task is None else task)
+        preset = PRESETS.get(self.task.name, {}) if task is not None else {}
         for name, value in (("algorithm", algorithm), ("ddpg", ddpg), ("run", run)):
             setattr(self, name, _section(_SECTION_CLASSES[name], value, preset.get(name, {}), name))
         self.sampler = _sampler(sampler, preset.get("sampler", {}), self.task.name)
@@ -319,7 +323,7 @@ class TrainConfig:
     def from_dict(cls, data: dict[str, Any]) -> "TrainConfig":
         """Build a config from a dictionary (the content of ``config.json``), nested sections included.
 
-        ``"task": "dlc"`` (a name) stands for that task's defaults.
+        ``"task": "dlc"`` (a name) stands for that task's defaults; a dict without ``task`` names ``"dlc"``.
 
         Raises
         ------
@@ -336,7 +340,7 @@ class TrainConfig:
         for section, name in (("algorithm", "grad_clip"), ("sampler", "box")):
             if isinstance(data.get(section), dict) and data[section].get(name) == "inf":
                 data[section] = {**data[section], name: math.inf}
-        return cls(**data)
+        return cls(**{"task": "dlc", **data})
 
     def replace(self, **changes: Any) -> "TrainConfig":
         """Return a copy with ``changes`` applied; keys may be dotted (``**{"algorithm.iterations": 30}``,

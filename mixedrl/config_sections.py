@@ -16,19 +16,8 @@ from typing import Any, ClassVar, Union
 from mixedrl.checks import check_fraction, check_int, check_nonnegative_int, check_number, check_positive_int
 from mixedrl.config_tasks import BATCH_WEIGHTINGS, FEEDFORWARDS, build_section, check_choice
 
-__all__ = [
-    "AlgorithmConfig",
-    "DDPGConfig",
-    "RunConfig",
-    "SamplerConfig",
-    "TrueCopiesSampler",
-    "ModelRolloutsSampler",
-    "SAMPLERS",
-    "PRESETS",
-    "register_sampler",
-    "register_preset",
-    "sampler_config",
-]
+__all__ = ["AlgorithmConfig", "DDPGConfig", "RunConfig", "SamplerConfig", "TrueCopiesSampler", "ModelRolloutsSampler",
+           "SAMPLERS", "PRESETS", "register_sampler", "register_preset", "sampler_config"]
 
 # ----------------------------------------------------------------------------------------------------
 # sections of TrainConfig
@@ -266,21 +255,19 @@ class RunConfig:
 # ----------------------------------------------------------------------------------------------------
 # samplers: where Algorithm 2's PEV/PIM states come from
 # ----------------------------------------------------------------------------------------------------
-#: Sampler name -> its options class (``sampler.name`` selects it); filled by :func:`register_sampler`.
+#: The one registry of samplers: name -> its options class (``sampler.name`` selects it; filled by
+#: :func:`register_sampler`). Each class carries the tasks it needs (``TASKS``, ``None``: any) and the class that
+#: makes Algorithm 2's batch (``IMPLEMENTATION``, ``None``: the true copies), read through
+#: :data:`mixedrl.samplers.SAMPLER_CLASSES`.
 SAMPLERS: dict[str, type] = {}
-#: Sampler name -> the task names it works with (``None`` = any task).
-_SAMPLER_TASKS: dict[str, tuple[str, ...] | None] = {}
 
 
-def register_sampler(cls: type, tasks: tuple[str, ...] | None = None) -> type:
-    """Register the options class ``cls`` of a sampler under ``cls.NAME`` (usable as a decorator).
-
-    ``tasks`` names the task configurations the sampler needs (``None``: any task); choosing it with
-    another task is an error naming ``sampler.name`` and the task. The algorithm that uses the sampler
-    looks its implementation up by the same name (:data:`mixedrl.algorithms.model_data.SAMPLER_CLASSES`).
-    """
+def register_sampler(cls: type, tasks: tuple[str, ...] | None = None, implementation: type | None = None) -> type:
+    """Register the options class ``cls`` of a sampler under ``cls.NAME``, with the task names it needs
+    (``None``: any task; another task is an error naming ``sampler.name``) and its implementation (a
+    :class:`mixedrl.samplers.ModelStateSampler` subclass; ``None``: the true copies)."""
+    cls.TASKS, cls.IMPLEMENTATION = tasks, implementation
     SAMPLERS[cls.NAME] = cls
-    _SAMPLER_TASKS[cls.NAME] = tasks
     return cls
 
 
@@ -365,7 +352,7 @@ def sampler_config(value: Any, task: str | None = None) -> Any:
     elif not any(type(value) is cls for cls in SAMPLERS.values()):
         raise ValueError(f"sampler: expected a sampler name {tuple(SAMPLERS)}, a dict or an options object, "
                          f"got {value!r}")
-    needs = _SAMPLER_TASKS.get(value.name)
+    needs = SAMPLERS[value.name].TASKS
     if task is not None and needs is not None and task not in needs:
         raise ValueError(f"sampler.name: {value.name!r} needs a task with a course ({', '.join(needs)}); "
                          f"task {task!r} has none")

@@ -19,28 +19,10 @@ from mixedrl.checks import as_matrix, as_vector, check_covariance, check_number,
 from mixedrl.envs.disturbance import DISTURBANCE_LAWS, Disturbance
 from mixedrl.lq import LQProblem
 
-__all__ = [
-    "METHODS",
-    "TASKS",
-    "MODEL_COURSE_STARTS",
-    "BATCH_WEIGHTINGS",
-    "FEEDFORWARDS",
-    "ANCHORED_FEEDFORWARDS",
-    "AFFINE_FEEDFORWARDS",
-    "DISTURBANCE_LAWS",
-    "ForceDisturbanceConfig",
-    "GaussianNoiseConfig",
-    "LinearTaskConfig",
-    "register_task",
-    "register_builtin_task",
-    "task_names",
-    "task_config",
-    "task_config_union",
-    "build_section",
-    "to_jsonable",
-    "check_choice",
-    "BUILTIN_NAMES",
-]
+__all__ = ["METHODS", "TASKS", "MODEL_COURSE_STARTS", "BATCH_WEIGHTINGS", "FEEDFORWARDS", "ANCHORED_FEEDFORWARDS",
+           "AFFINE_FEEDFORWARDS", "DISTURBANCE_LAWS", "ForceDisturbanceConfig", "GaussianNoiseConfig",
+           "LinearTaskConfig", "register_task", "register_builtin_task", "task_names", "task_config",
+           "task_config_union", "build_section", "to_jsonable", "check_choice", "BUILTIN_NAMES"]
 
 #: The four methods of the reproduction (mixed RL, model-driven RL, oracle, DDPG).
 METHODS = ("mixed", "model", "oracle", "ddpg")
@@ -243,6 +225,12 @@ _TASK_READERS: dict[str, Any] = {}
 BUILTIN_NAMES: dict[str, Any] = {}
 
 
+def _task_name(config_cls: type) -> Any:
+    """The default of the dataclass ``config_cls``'s ``name`` field (``None`` without one)."""
+    fields = {f.name: f for f in dataclasses.fields(config_cls)} if dataclasses.is_dataclass(config_cls) else {}
+    return fields["name"].default if "name" in fields else None
+
+
 def register_builtin_task(config_cls: type, reader: Any = None, **names: Any) -> type:
     """Register the configuration class of a built-in task (a name of :data:`TASKS`), from the task's own
     module: the double lane change's :mod:`mixedrl.envs.dlc_task` registers
@@ -258,8 +246,7 @@ def register_builtin_task(config_cls: type, reader: Any = None, **names: Any) ->
     ValueError
         ``config_cls``'s ``name`` default is not a name of :data:`TASKS`.
     """
-    fields = {f.name: f for f in dataclasses.fields(config_cls)} if dataclasses.is_dataclass(config_cls) else {}
-    name = fields["name"].default if "name" in fields else None
+    name = _task_name(config_cls)
     if name not in TASKS:
         raise ValueError(f"config_cls: expected the configuration of a built-in task {TASKS}, got {config_cls!r}")
     _TASK_CLASSES[name] = config_cls
@@ -295,8 +282,7 @@ def register_task(config_cls: type) -> type:
         ``config_cls`` is not a dataclass with a string default for ``name``, or the name is a built-in
         task's.
     """
-    fields = {f.name: f for f in dataclasses.fields(config_cls)} if dataclasses.is_dataclass(config_cls) else {}
-    name = fields["name"].default if "name" in fields else None
+    name = _task_name(config_cls)
     if not isinstance(name, str) or not name:
         raise ValueError(f"config_cls: expected a dataclass with a string default for 'name', got {config_cls!r}")
     if name in TASKS:

@@ -29,21 +29,8 @@ import torch
 
 from mixedrl.checks import as_batch, as_vector, check_covariance, check_positive_int
 
-__all__ = [
-    "SUPPORT_RTOL",
-    "support",
-    "SigmaPoints",
-    "GaussHermite",
-    "quadrature_nodes",
-    "expectation_nodes",
-    "NodeCache",
-    "expect",
-    "weighted_sum",
-    "gaussian_expectation",
-    "h",
-    "h_value",
-    "expected_cost_to_go",
-]
+__all__ = ["SUPPORT_RTOL", "support", "SigmaPoints", "GaussHermite", "quadrature_nodes", "expectation_nodes",
+           "NodeCache", "expect", "weighted_sum", "gaussian_expectation", "h", "h_value", "expected_cost_to_go"]
 
 #: Relative eigenvalue floor that defines the numerical support (range, rank) of a PSD matrix:
 #: eigenvalues ``<= SUPPORT_RTOL * lambda_max`` count as 0. The one cut-off of the project (quadrature,

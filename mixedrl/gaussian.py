@@ -30,16 +30,8 @@ from scipy.linalg.lapack import dpotrs as _dpotrs
 from mixedrl.checks import as_vector, check_covariance, check_positive_int
 from mixedrl.expectation import SUPPORT_RTOL, support
 
-__all__ = [
-    "SUPPORT_RTOL",
-    "CHOLESKY_PIVOT_FLOOR",
-    "solve_psd",
-    "psd_solver",
-    "pinv_psd",
-    "psd_factor",
-    "sample_gaussian",
-    "kl_divergence",
-]
+__all__ = ["SUPPORT_RTOL", "CHOLESKY_PIVOT_FLOOR", "solve_psd", "psd_solver", "pinv_psd", "psd_factor",
+           "sample_gaussian", "kl_divergence"]
 
 #: Smallest accepted squared Cholesky pivot of a unit-diagonal (Jacobi-scaled) matrix. Below it the
 #: matrix is treated as singular and :func:`solve_psd` falls back to the eigenvalue pseudo-inverse.

@@ -51,10 +51,9 @@ import torch
 
 from mixedrl.task_base import Task
 
-__all__ = ["CheckedPlant", "DisturbedEnv", "GymnasiumPlant", "PLANT_EVALUATIONS", "Plant", "PlantCopies",
-           "PlantError", "SimulatedPlant", "attach_plant", "check_plant_sampler", "credit_evaluations", "evaluate_on_plant", "episode_seed",
-           "plant_copies", "plant_transitions",
-           "unwrapped_state"]
+__all__ = ["CheckedPlant", "DisturbedEnv", "GymnasiumPlant", "PLANT_EVALUATIONS", "Plant", "PlantCopies", "PlantError",
+           "SimulatedPlant", "attach_plant", "check_plant_sampler", "credit_evaluations", "evaluate_on_plant",
+           "episode_seed", "plant_copies", "plant_transitions", "unwrapped_state"]
 
 #: ``Task.plant_evaluation``: ``"simulated"`` (:meth:`Task.evaluate`, the model plus simulated noise; the
 #: default), ``"plant"`` (:func:`evaluate_on_plant`) or ``"none"`` (no evaluation).

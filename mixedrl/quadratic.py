@@ -24,15 +24,8 @@ import scipy.linalg
 
 from mixedrl.checks import as_batch, as_matrix, as_vector, check_covariance
 
-__all__ = [
-    "LinearDynamics",
-    "QuadraticCost",
-    "QuadraticValue",
-    "AffinePolicy",
-    "lyapunov_solve",
-    "is_nonnegative",
-    "check_problem",
-]
+__all__ = ["LinearDynamics", "QuadraticCost", "QuadraticValue", "AffinePolicy", "lyapunov_solve", "is_nonnegative",
+           "check_problem"]
 
 #: Largest state dimension for which the discrete Lyapunov equation is solved by the Kronecker
 #: ("direct") method of :func:`scipy.linalg.solve_discrete_lyapunov`; larger ones use "bilinear".

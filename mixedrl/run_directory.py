@@ -53,17 +53,8 @@ from mixedrl.checkpoint import (atomic_write_text, default_file_mode, is_tempora
                                 verify_digest, write_with_digest)
 from mixedrl.config import TrainConfig, task_names
 
-__all__ = [
-    "RunDirectory",
-    "RunLockedError",
-    "hold_lock",
-    "is_lock_file",
-    "LOCK_NAME",
-    "RUN_FILES",
-    "config_record",
-    "check_state",
-    "load_trainer",
-]
+__all__ = ["RunDirectory", "RunLockedError", "hold_lock", "is_lock_file", "LOCK_NAME", "RUN_FILES", "config_record",
+           "check_state", "load_trainer"]
 
 #: The files that make a directory a run (any one of them): never replaced without ``resume``.
 RUN_FILES = ("config.json", "checkpoint.pt", "metrics.jsonl", "results.json")
@@ -432,7 +423,7 @@ def config_record(config: TrainConfig, task: Any = None) -> dict[str, Any]:
 
     A built-in task is built from ``config.task``, which is recorded in full. The user's own ``task`` (a
     :class:`~mixedrl.tasks.Task` whose ``name`` is not ``config.task.name``, e.g. ``"Cruise"`` trained
-    with the placeholder ``TrainConfig(task="linear")``) does not use ``config.task``; the record's
+    with ``TrainConfig()``) does not use ``config.task``; the record's
     ``task`` is then ``{"name": task.name}``.
     """
     data = config.to_dict()
@@ -440,7 +431,6 @@ def config_record(config: TrainConfig, task: Any = None) -> dict[str, Any]:
     if task is not None and name != config.task.name:
         data["task"] = {"name": str(name)}
     return json.loads(json.dumps(data))  # exactly what config.json holds (lists, not tuples)
-
 
 
 def _real(value: Any) -> bool:

@@ -22,15 +22,8 @@ from mixedrl.precision import run_policy_gap
 from mixedrl.tasks import Task, task_from_config
 from mixedrl.run_directory import RunDirectory, load_trainer
 
-__all__ = [
-    "iterations_to_converge",
-    "eval_seeds",
-    "make_trainer",
-    "evaluate_run",
-    "evaluate_together",
-    "summarize",
-    "CONVERGENCE_RTOL",
-]
+__all__ = ["iterations_to_converge", "eval_seeds", "make_trainer", "evaluate_run", "evaluate_together", "summarize",
+           "CONVERGENCE_RTOL"]
 
 #: Relative tolerance of the convergence criterion (:func:`iterations_to_converge`).
 CONVERGENCE_RTOL = 0.10

@@ -52,35 +52,11 @@ from mixedrl.run_directory import (LOCK_NAME, RUN_FILES, RunDirectory, RunLocked
 from mixedrl.run_results import (CONVERGENCE_RTOL, eval_seeds, evaluate_run, evaluate_together,
                                  iterations_to_converge, make_trainer, summarize)
 
-__all__ = [
-    "RunDirectory",
-    "save_checkpoint",
-    "load_checkpoint",
-    "atomic_write_bytes",
-    "atomic_write_text",
-    "write_with_digest",
-    "verify_digest",
-    "digest_path",
-    "RunLockedError",
-    "hold_lock",
-    "is_lock_file",
-    "LOCK_NAME",
-    "RUN_FILES",
-    "iterations_to_converge",
-    "eval_seeds",
-    "evaluate_run",
-    "evaluate_together",
-    "PeriodicObserver",
-    "config_record",
-    "train",
-    "train_batch",
-    "IterationObserver",
-    "check_run_directory",
-    "check_state",
-    "load_trainer",
-    "make_trainer",
-    "CONVERGENCE_RTOL",
-]
+__all__ = ["RunDirectory", "save_checkpoint", "load_checkpoint", "atomic_write_bytes", "atomic_write_text",
+           "write_with_digest", "verify_digest", "digest_path", "RunLockedError", "hold_lock", "is_lock_file",
+           "LOCK_NAME", "RUN_FILES", "iterations_to_converge", "eval_seeds", "evaluate_run", "evaluate_together",
+           "PeriodicObserver", "config_record", "train", "train_batch", "IterationObserver", "check_run_directory",
+           "check_state", "load_trainer", "make_trainer", "CONVERGENCE_RTOL"]
 
 logger = logging.getLogger(__name__)
 

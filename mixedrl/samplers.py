@@ -21,8 +21,8 @@ With ``"model_rollouts"`` every rollout restarts from the task's training distri
 (:class:`mixedrl.config.ModelRolloutsSampler`). A task may register its own model-rollout sampler: a subclass
 of :class:`ModelStateSampler` overriding the hooks :meth:`~ModelStateSampler.copy_horizons`,
 :meth:`~ModelStateSampler.expired`, :meth:`~ModelStateSampler.restart` and
-:meth:`~ModelStateSampler.after_step`, entered in :data:`SAMPLER_CLASSES` under its options' name (the double
-lane change's course sampler, :mod:`mixedrl.envs.dlc_sampler`).
+:meth:`~ModelStateSampler.after_step`, registered with its options class (:func:`mixedrl.config.register_sampler`;
+the double lane change's course sampler, :mod:`mixedrl.envs.dlc_sampler`).
 
 A rollout also restarts when it leaves the box ``|observe(x)_i| <= box * obs_scale_i``: outside it
 the critic would be trained on states far from anything the policy has to handle (see
@@ -32,12 +32,13 @@ docs/model_based.rst).
 from __future__ import annotations
 
 import math
+from collections.abc import Iterator, Mapping
 from typing import Any
 
 import numpy as np
 import torch
 
-from mixedrl.config import ModelRolloutsSampler, TrainConfig
+from mixedrl.config import SAMPLERS, ModelRolloutsSampler, TrainConfig, register_sampler
 from mixedrl.gaussian import sample_gaussian
 from mixedrl.plant import plant_copies
 from mixedrl.task_base import Task
@@ -306,12 +307,24 @@ class ModelStateSampler:
             self.plant.episodes = int(episodes)
 
 
-#: Sampler name (``TrainConfig.sampler.name``, :data:`mixedrl.config.SAMPLERS`) -> the class that makes
-#: Algorithm 2's batch; ``None`` = the true-environment copies of :class:`mixedrl.algorithms.agpi.AGPI`
-#: itself (Algorithm 2 as the paper writes it). A new sampler registers its options class with
-#: :func:`mixedrl.config.register_sampler` and its implementation here (a task's own: with the task, as
-#: :mod:`mixedrl.envs.dlc_sampler` does).
-SAMPLER_CLASSES: dict[str, type | None] = {
-    "true_copies": None,
-    ModelRolloutsSampler.NAME: ModelStateSampler,
-}
+register_sampler(ModelRolloutsSampler, implementation=ModelStateSampler)
+
+
+class _Implementations(Mapping):
+    def __getitem__(self, name: str) -> type | None:
+        return SAMPLERS[name].IMPLEMENTATION
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(SAMPLERS)
+
+    def __len__(self) -> int:
+        return len(SAMPLERS)
+
+    def __repr__(self) -> str:
+        return repr(dict(self))
+
+
+#: Sampler name -> the class that makes Algorithm 2's batch (``None``: the true copies of
+#: :class:`mixedrl.algorithms.agpi.AGPI` itself): a read-only view of the one registry :data:`mixedrl.config.SAMPLERS`
+#: (:func:`mixedrl.config.register_sampler`).
+SAMPLER_CLASSES: Mapping[str, type | None] = _Implementations()

@@ -10,72 +10,30 @@ The spec (a small TOML file of methods, seeds, ``[base]``, ``[grid]`` and ``[var
 parsed, checked and expanded by :mod:`mixedrl.sweep_spec`; the batches are run by :mod:`mixedrl.sweep_engines`.
 This module writes the sweep directory and re-exports every public name of both.
 
-It expands to ``len(variants or [one]) x len(grid product) x len(methods) x len(seeds)`` runs (a variant's own
-``methods`` / ``seeds`` replace the spec's for its runs). Every run is an
-ordinary run directory (:class:`mixedrl.runs.RunDirectory`) under ``DIR/runs/``, trained by
-:func:`mixedrl.runs.make_trainer` and :func:`mixedrl.runs.train_batch`. The runs are trained in batches
-(:func:`plan_batches`: runs with equal :func:`mixedrl.algorithms.batched.batch_key`, at most ``--batch`` per
-batch, default :data:`DEFAULT_BATCH`; Algorithm-2 runs in :class:`~mixedrl.algorithms.batched.BatchedAGPI`;
-DDPG runs alone, or with ``--batch-ddpg`` in :class:`~mixedrl.algorithms.batched_ddpg.BatchedDDPG`, never
-with Algorithm-2 runs): a run of a batch ends
-with exactly the weights and metrics of the same config in any other batch of two or more, and with
-``--batch 1`` every run trains alone, with exactly the weights and metrics of ``mixedrl train``.
+Every run is an ordinary run directory (:class:`mixedrl.runs.RunDirectory`) under ``DIR/runs/``, trained by
+:func:`mixedrl.runs.make_trainer` and :func:`mixedrl.runs.train_batch` in batches (:func:`plan_batches`: runs
+with equal :func:`mixedrl.algorithms.batched.batch_key`, at most ``--batch`` per batch, default
+:data:`DEFAULT_BATCH`; DDPG runs alone, or with ``--batch-ddpg`` among themselves): a run of a batch ends with
+exactly the weights and metrics of the same config in any other batch of two or more, and with ``--batch 1``
+with exactly those of ``mixedrl train``.
 
 One driver writes a sweep directory: it holds ``DIR/.lock`` (:func:`mixedrl.runs.hold_lock`) from its checks
 to its last write, and its pool workers end when it dies (:func:`mixedrl.sweep_engines._die_with_parent`).
 
-Engines (the same outputs from each):
+Engines (the same outputs from each): a local process pool (default; ``--workers N`` ``spawn`` processes of
+:class:`concurrent.futures.ProcessPoolExecutor`, one batch per task, the longest first; ``--workers 1`` trains
+in this process) or Ray when ``--address`` is given (the optional extra ``sweep``: one task per batch,
+``num_cpus=1``; ``--address local`` starts a local cluster of ``--num-cpus`` CPUs). Each batch sets
+``torch.set_num_threads(config.run.num_threads)``; a failed run is recorded with its error and does not stop
+the others.
 
-* **local process pool** (default): ``--workers N`` processes (default ``os.cpu_count()``;
-  :class:`concurrent.futures.ProcessPoolExecutor` with the ``spawn`` start method, so each worker is a fresh
-  interpreter), one batch per task, the longest first. ``--workers 1`` trains the batches one after the
-  other in this process. ``--num-cpus`` without ``--address`` is the older name of ``--workers``.
-* **Ray** (the optional extra ``sweep``) when ``--address`` is given: one Ray task per batch (``num_cpus=1``),
-  gathered with ``ray.wait``. ``--address local`` starts a local cluster of ``--num-cpus`` CPUs (default
-  all); any other address joins an existing cluster (``DIR`` must then be a path every node sees).
-
-Each batch sets ``torch.set_num_threads(config.run.num_threads)``. A failed run is recorded with its
-error and does not stop the others (a run whose directory is refused fails alone; a batch that raises
-fails with its runs).
-
-Outputs in ``DIR``:
-
-* ``spec.toml``: a copy of the spec;
-* ``runs/<name>/``: one run directory per run, ``<name>`` made of the variant, the grid values, method and
-  seed (:func:`run_name`);
-* ``sweep.json``: the spec (``methods``, ``seeds``, ``base``, ``grid``, ``variants`` and ``observer`` when it
-  has them), the engine (``engine`` ``"local"`` or ``"ray"``, ``workers`` or ``ray_version``, ``address``),
-  ``batch`` and ``batches``, ``failed``,
-  ``finished``, ``wall_seconds``, ``runs`` and ``summary``; rewritten atomically after every finished run.
-  ``runs`` holds **one row per run** (the one result schema of every study):
-
-  * ``name``: the run's directory name
-  * ``point``: its grid values (and ``variant``: the variant's name)
-  * ``config``: the full ``TrainConfig.to_dict()``
-  * ``config_hash``: sha256 of the canonical JSON of ``config`` (:func:`config_hash`)
-  * ``method``: ``config["method"]``
-  * ``seed``: ``config["seed"]``
-  * ``iterations``: the training budget in iterations (``results.json``'s ``iterations``)
-  * ``true_transitions``: true-environment transitions the run consumed (its budget in env steps)
-  * ``metrics``: every top-level number of ``results.json`` (``lateral_mae``, ``speed_mae``, ``cost``,
-    ``iterations_to_converge``, ...) but the columns above and the times
-  * ``train_seconds``: training time (``results.json``)
-  * ``wall_seconds``: the wall time of the run's batch in its worker: start-up, training and evaluation
-  * ``run_dir``: ``runs/<name>``, relative to ``DIR``
-  * ``error``: ``null``, or the failed run's exception (``Type: message``)
-  * ``results``: the figures of :data:`RESULT_KEYS` and ``run_dir`` (``null`` for a failed or unfinished run;
-    kept for readers of earlier sweeps)
-
-  A failed or unfinished run has ``null`` budget, times and ``results`` and empty ``metrics``.
-  ``summary``: per grid point and method, mean, sample std and 95% bootstrap interval over seeds
-  (:func:`summarize`);
-* ``sweep.csv``: the rows of ``runs`` flattened (:func:`csv_rows`: grid values and metrics one column each, no
-  ``config``) and ``sweep_summary.csv`` (the summary);
-* ``figures/cost_vs_<first grid key>.png`` when matplotlib is installed.
-
-``--resume`` skips runs whose ``results.json`` exists and resumes interrupted runs from their
-checkpoints in their batches (``train_batch(..., resume=True)``), so a resumed sweep ends with the results
-of an uninterrupted one.
+Outputs in ``DIR`` (docs/sweeps.rst, "Outputs", gives every field): ``spec.toml``, ``runs/<name>/`` (one run
+directory per run, :func:`run_name`), ``sweep.json`` (the spec, the engine, the batches, ``runs``: one row per
+run, the one result schema of every study, and ``summary``: per grid point and method, mean, sample std and
+95% bootstrap interval over seeds, :func:`summarize`; rewritten atomically after every finished run),
+``sweep.csv`` and ``sweep_summary.csv`` (:func:`csv_rows`) and ``figures/cost_vs_<first grid key>.png`` when
+matplotlib is installed. ``--resume`` skips finished runs and resumes interrupted ones from their checkpoints
+in their batches, so a resumed sweep ends with the results of an uninterrupted one.
 
 The statistics and CSV helpers are :mod:`mixedrl.tables`, shared with the studies' scripts."""
 

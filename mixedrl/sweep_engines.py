@@ -22,12 +22,7 @@ from mixedrl.checks import check_positive_int
 from mixedrl.sweep_spec import SweepRun, resolve_observer
 from mixedrl.runs import RunDirectory, check_run_directory, load_trainer, make_trainer, train_batch
 
-__all__ = [
-    "run_point",
-    "run_points",
-    "plan_batches",
-    "DEFAULT_BATCH",
-]
+__all__ = ["run_point", "run_points", "plan_batches", "DEFAULT_BATCH"]
 
 #: Most runs trained as one computation (:func:`mixedrl.runs.train_batch`) by default: at 15 runs a batch
 #: already makes 1.7x the run-iterations per second of the runs one by one (``benchmarks/batched_table.py``).

@@ -1,31 +1,12 @@
 """Sweep specifications: their parsing, checks and expansion into runs (:mod:`mixedrl.sweep` executes them and
 re-exports every public name of this module).
 
-A spec is a small TOML file::
-
-    methods = ["mixed", "model"]          # TrainConfig.method of the runs
-    seeds = [0, 1, 2]                     # TrainConfig.seed of the runs
-
-    [base]                                # TrainConfig fields shared by every run, as dotted keys
-    "algorithm.iterations" = 600
-    "run.eval_seeds" = 1
-    "task.prior_force_mean" = 150
-
-    [grid]                                # dotted key -> list of values: the cartesian product
-    "algorithm.critic_lr" = [1e-3, 3e-3]
-    "algorithm.batch_size" = [256, 512]
-
-    [variants.short]                      # optional: named designs that are not a product, each a table of
-    "algorithm.horizon" = 8               # fields applied over [base] (not method, seed or a grid key)
-    [variants.long]
-    "algorithm.horizon" = 32
-    seeds = [0]                           # a variant may have its own methods / seeds lists
-
-and optionally ``observer = "module:function"`` (top level): ``function(config)`` returns the
-:class:`mixedrl.runs.IterationObserver` of each run (the reproduction's theory checks).
-
-It expands to ``len(variants or [one]) x len(grid product) x len(methods) x len(seeds)`` runs (a variant's own
-``methods`` / ``seeds`` replace the spec's for its runs), each named by :func:`run_name`.
+A spec is a small TOML file (docs/sweeps.rst, "Writing a spec", gives an example): ``methods`` and ``seeds`` lists,
+``[base]`` (dotted ``TrainConfig`` keys shared by every run), ``[grid]`` (dotted key -> list of values: the
+cartesian product), optional ``[variants.NAME]`` tables (named designs applied over ``[base]``, each with
+its own ``methods`` / ``seeds`` if it likes) and optional ``observer = "module:function"`` (``function(config)``
+returns the :class:`mixedrl.runs.IterationObserver` of each run). It expands to ``len(variants or [one]) x
+len(grid product) x len(methods) x len(seeds)`` runs, each named by :func:`run_name`.
 
 Before anything starts, the spec is checked (TOML syntax, top-level keys, non-empty lists without
 duplicates, variant tables, no TOML dates, seeds below ``2**64``, at most :data:`MAX_RUNS` runs unless
@@ -48,21 +29,8 @@ from typing import Any
 
 from mixedrl.config import TrainConfig, apply_overrides, flatten_table
 
-__all__ = [
-    "SPEC_KEYS",
-    "SweepSpec",
-    "SweepRun",
-    "apply_dotted",
-    "flatten_table",
-    "parse_spec",
-    "load_spec",
-    "resolve_observer",
-    "expand",
-    "run_name",
-    "config_hash",
-    "MAX_RUNS",
-    "SEED_MAX",
-]
+__all__ = ["SPEC_KEYS", "SweepSpec", "SweepRun", "apply_dotted", "flatten_table", "parse_spec", "load_spec",
+           "resolve_observer", "expand", "run_name", "config_hash", "MAX_RUNS", "SEED_MAX"]
 
 #: Top-level keys a spec may have (``methods`` and ``seeds`` are required).
 SPEC_KEYS = ("methods", "seeds", "base", "grid", "variants", "observer")

@@ -10,8 +10,8 @@ the run's task configuration (:class:`mixedrl.config.DoubleLaneChangeTaskConfig`
 
 The names live where they are defined and this module gathers them (one import path for all):
 
-* :mod:`mixedrl.task_base`: :class:`Task`, :class:`Equilibrium`, :class:`Linearisation`,
-  :data:`EQUILIBRIUM_ATOL`, :func:`cost_hessian`, :func:`check_task` (it imports no task, nor this module);
+* :mod:`mixedrl.task_base`: :class:`Task`, :func:`check_task`, with :class:`Equilibrium`, :class:`Linearisation`,
+  :data:`EQUILIBRIUM_ATOL`, :func:`cost_hessian` of :mod:`mixedrl.equilibrium` (it imports no task, nor this module);
 * :mod:`mixedrl.linear_task`: :class:`~mixedrl.linear_task.LinearTask`;
 * :mod:`mixedrl.envs.dlc_task`: :class:`~mixedrl.envs.dlc_task.DoubleLaneChangeTask` with the double lane
   change's experiment (its course sampler :class:`~mixedrl.envs.dlc_task.CourseSampler`,

@@ -101,7 +101,7 @@ def quick_runs() -> dict[str, list[dict[str, float]]]:
     out: dict[str, list[dict[str, float]]] = {}
 
     def cfg(method: str, seed: int, kw: dict) -> TrainConfig:
-        c = TrainConfig(method=method, seed=seed)
+        c = TrainConfig(method=method, seed=seed, task="dlc")  # the double lane change with its preset
         flat = {k: v for k, v in kw.items() if k != "sampler"}
         if "sampler" in kw:
             d = c.to_dict()

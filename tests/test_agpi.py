@@ -318,7 +318,7 @@ def test_dlc_ibe_moves_to_truth_with_few_true_transitions() -> None:
     m/s, model-driven 0.0092 m/s; over seeds the comparison is in docs/model_based.rst.)"""
     from mixedrl.runs import make_trainer
 
-    mixed, model = make_trainer(TrainConfig(method="mixed", seed=0)), make_trainer(TrainConfig(method="model", seed=0))
+    mixed, model = (make_trainer(TrainConfig(method=m, seed=0, task="dlc")) for m in ("mixed", "model"))
     cfg = mixed.config
     true_mean = mixed.task.true_mean[2]
     assert abs(mixed.noise.mean[2] - true_mean) > 0.4 * true_mean

@@ -43,7 +43,7 @@ def test_study_specs_leave_training_settings_to_the_defaults(name: str) -> None:
     assert all(key.startswith("task.") for key in spec.base), spec.base  # only the experiment, never training
     assert all(key.startswith("task.") or key == "algorithm.ibe_case" for key in spec.grid), spec.grid
     assert len(spec.seeds) == 5 and "oracle" in spec.methods and "mixed" in spec.methods
-    defaults = TrainConfig().to_dict()
+    defaults = TrainConfig(task="dlc").to_dict()
     for run in expand(spec):
         data = run.config.to_dict()
         data["algorithm"].pop("ibe_case"), defaults["algorithm"].pop("ibe_case", None)
@@ -197,7 +197,7 @@ def _fake_study(out: Path, seeds: list[int], grid_value: float = 0.0) -> None:
     for seed in seeds:
         for method in ("mixed", "oracle"):
             name = f"{method}_seed{seed}"
-            cfg = TrainConfig(method=method, seed=seed).to_dict()
+            cfg = TrainConfig(method=method, seed=seed, task="dlc").to_dict()
             (out / "main" / "runs" / name).mkdir(parents=True)
             (out / "main" / "runs" / name / "results.json").write_text(json.dumps({"cost": 10.0 * seed + grid_value}))
             runs.append({"name": name, "point": {"task.prior_force_mean": grid_value}, "config": cfg, "error": None})

@@ -185,12 +185,12 @@ def test_dotted_section_keys_and_unknown_keys_name_the_dotted_key() -> None:
 
 
 def test_the_dlc_task_supplies_its_experiment_configuration() -> None:
-    cfg = TrainConfig()  # the double lane change's preset: the reproduction's settings
-    assert cfg == TrainConfig.for_task("dlc")
+    cfg = TrainConfig(task="dlc")  # the double lane change's preset: the reproduction's settings
+    assert cfg == TrainConfig.for_task("dlc") == TrainConfig.from_dict({})
     assert cfg.sampler.name == "dlc_course" and cfg.sampler.course_starts == "along"
     assert cfg.algorithm.lr_decay_iterations == 1500 and cfg.algorithm.batch_weighting == "relative"
     # a partial section keeps the preset for what it does not name
-    part = TrainConfig(algorithm={"iterations": 30})
+    part = TrainConfig(task="dlc", algorithm={"iterations": 30})
     assert part.algorithm.lr_decay_iterations == 1500 and part.algorithm.iterations == 30
 
 
@@ -211,12 +211,33 @@ def test_a_course_sampler_on_a_task_without_a_course_names_option_and_task() -> 
         TrainConfig(task="linear", sampler={"course_starts": "loop"})
 
 
+def test_a_bare_config_gives_a_users_own_task_object_the_library_defaults() -> None:
+    """Issue 40: ``TrainConfig()`` names no task, so a user's task object trains with the generic defaults
+    (model rollouts, the budget's decay), not the double lane change's course sampler and preset."""
+    from mixedrl.algorithms.agpi import AGPI
+    from mixedrl.samplers import ModelStateSampler
+    from mixedrl.tasks import LinearTask
+
+    class Mine(LinearTask):  # a user's own task class (no built-in name, no course)
+        pass
+
+    cfg = TrainConfig(algorithm={"batch_size": 8})
+    generic = TrainConfig(task="linear", algorithm={"batch_size": 8})
+    assert (cfg.algorithm, cfg.sampler, cfg.ddpg, cfg.run) == (generic.algorithm, generic.sampler, generic.ddpg,
+                                                               generic.run)
+    assert cfg.sampler.name == "model_rollouts" and cfg.algorithm.lr_decay_iterations == 0
+    assert cfg.task == TrainConfig(task="dlc").task  # what the CLI and make_trainer build without a task object
+    assert TrainConfig.from_dict(cfg.to_dict()) == cfg  # the sections are written: a round trip keeps them
+    agent = AGPI(Mine(), cfg)
+    assert type(agent.sampler) is ModelStateSampler
+
+
 def test_a_course_sampler_on_a_custom_task_without_a_course_is_refused_by_the_trainer() -> None:
     from mixedrl.algorithms.agpi import AGPI
     from mixedrl.tasks import LinearTask
 
     with pytest.raises(ValueError, match=r"^sampler\.name: 'dlc_course'.*LinearTask"):
-        AGPI(LinearTask(), TrainConfig(algorithm={"batch_size": 8}))
+        AGPI(LinearTask(), TrainConfig(sampler="dlc_course", algorithm={"batch_size": 8}))
 
 
 def test_every_shipped_flat_run_config_is_refused_naming_the_release() -> None:

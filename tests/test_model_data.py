@@ -61,7 +61,7 @@ def test_mixed_true_transitions_follow_the_configured_rate() -> None:
 
 
 def test_true_source_counts_one_true_step_per_copy() -> None:
-    assert TrainConfig().sampler.name == "dlc_course"  # the DLC experiment plans on the model
+    assert TrainConfig(task="dlc").sampler.name == "dlc_course"  # the DLC experiment plans on the model
     cfg = TrainConfig(method="mixed", task="linear", algorithm=dict(batch_size=16, iterations=5),
                       sampler="true_copies")
     trainer = make_trainer(cfg)

@@ -44,7 +44,7 @@ def _tanh_path(X: np.ndarray) -> np.ndarray:
 
 
 def _config(**extra: object) -> TrainConfig:
-    return TrainConfig(method="mixed").replace(**{**FAST, **extra, "task.preview_distances": list(PREVIEW)})
+    return TrainConfig(method="mixed", task="dlc").replace(**{**FAST, **extra, "task.preview_distances": list(PREVIEW)})
 
 
 def test_preview_observation_is_the_path_ahead() -> None:
@@ -149,7 +149,7 @@ def test_study_spec_is_the_default_but_preview() -> None:
     for run in (r for r in runs if "_n" not in r.point["variant"]):  # the default budget
         design = run.point["variant"].split("_")[0]
         cfg = run.config.to_dict()
-        base = TrainConfig().replace(seed=run.config.seed).to_dict()
+        base = TrainConfig(task="dlc").replace(seed=run.config.seed).to_dict()
         assert cfg["task"].pop("preview_distances") == list(run.config.task.preview_distances)
         base["task"].pop("preview_distances")
         if run.point["variant"] == "M_P12s":  # scales its preview terms (task.obs_scale; tests/test_studies.py)

@@ -137,7 +137,7 @@ def test_reproduce_quick_end_to_end(tmp_path: Path, capsys: pytest.CaptureFixtur
     res = json.loads((out / "results.json").read_text())
     for method in METHODS:
         assert [r["seed"] for r in res[method]["runs"]] == [0, 1]
-    cfg = TrainConfig().replace(**QUICK)
+    cfg = TrainConfig(task="dlc").replace(**QUICK)
     drives = -(-cfg.algorithm.iterations // cfg.sampler.true_every) * cfg.sampler.true_envs * cfg.sampler.true_steps
     assert [r["true_transitions"] for r in res["mixed"]["runs"]] == [drives, drives] == [3000, 3000]
     assert [r["true_transitions"] for r in res["model"]["runs"] + res["oracle"]["runs"]] == [0] * 4

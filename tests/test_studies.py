@@ -132,7 +132,7 @@ def test_preview_spec_reproduces_the_old_config_of() -> None:
         if candidate == "P12s":
             continue  # test_preview_spec_p12s_is_the_old_patched_obs_scale
         # the old config_of(candidate, method, seed, iterations=n, design=design)
-        old = TrainConfig().replace(method=run.config.method, seed=run.config.seed, **_budget(n, max(100, n // 5)),
+        old = TrainConfig(task="dlc").replace(method=run.config.method, seed=run.config.seed, **_budget(n, max(100, n // 5)),
                                     **{"sampler.course_starts": OLD_PREVIEW_DESIGNS[design],
                                        "task.preview_distances": OLD_PREVIEW[candidate]})
         assert run.config == old, run.name
@@ -149,7 +149,7 @@ def test_preview_spec_p12s_is_the_old_patched_obs_scale() -> None:
     runs = [r for r in expand(load_spec(ROOT / "experiments" / "studies" / "preview.toml")) if r.point["variant"] == "M_P12s"]
     assert len(runs) == 5
     for run in runs:
-        old = TrainConfig().replace(method=run.config.method, seed=run.config.seed, **_budget(1500, 300),
+        old = TrainConfig(task="dlc").replace(method=run.config.method, seed=run.config.seed, **_budget(1500, 300),
                                     **{"sampler.course_starts": "start", "task.preview_distances": OLD_PREVIEW["P12"]})
         assert run.config.replace(**{"task.obs_scale": None}) == old, run.name
         task, plain = task_from_config(run.config.task), task_from_config(old.task)
@@ -248,7 +248,7 @@ def test_long_training_spec_and_its_observer_only_reads_the_runs() -> None:
         [("mixed", 0, 10000), ("oracle", 0, 10000)]
     # the old script's config: TrainConfig(method, seed=0, iterations=10000, eval_every=10000)
     for r in runs:
-        old = TrainConfig(method=r.config.method, seed=0, algorithm={"iterations": 10000}, run={"eval_every": 10000})
+        old = TrainConfig(method=r.config.method, seed=0, task="dlc", algorithm={"iterations": 10000}, run={"eval_every": 10000})
         assert r.config.replace(**{"run.checkpoint_every": old.run.checkpoint_every}) == old
     small = [r.config.replace(**{"algorithm.iterations": 6, "run.eval_every": 100, "run.checkpoint_every": 100,
                                  "run.eval_seeds": 1, "algorithm.batch_size": 64}) for r in runs]

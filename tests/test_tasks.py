@@ -201,7 +201,7 @@ def test_the_course_sampler_and_the_preset_are_registered_by_the_task() -> None:
 
     assert config.CourseSampler is tasks.CourseSampler is config.SAMPLERS["dlc_course"]
     assert config.DLC_EXPERIMENT == tasks.DLC_EXPERIMENT == config.PRESETS["dlc"]
-    assert isinstance(TrainConfig().sampler, tasks.CourseSampler)
+    assert isinstance(TrainConfig(task="dlc").sampler, tasks.CourseSampler)
     with pytest.raises(AttributeError, match="no attribute 'CourseSamplr'"):
         config.CourseSamplr  # noqa: B018
 

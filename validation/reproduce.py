@@ -119,7 +119,7 @@ def run_config(label: str, seed: int, quick: bool = False) -> TrainConfig:
     ``paper`` preset (the paper's literal Algorithm 2) applied to those defaults.
     """
     method = "ddpg" if label == "ddpg_long" else PRESET_ROWS.get(label, label)
-    config = TrainConfig(method=method, seed=seed)
+    config = TrainConfig(method=method, seed=seed, task="dlc")
     if label in PRESET_ROWS:
         config = config.with_preset("paper")
     if quick:
@@ -256,7 +256,7 @@ def reproduction_spec(seeds: int = 5, quick: bool = False) -> SweepSpec:
     For ``seeds=5`` (not quick) it expands to the runs of ``experiments/studies/reproduction.toml`` (tested).
     """
     base = run_config("mixed", 0, quick).to_dict()
-    default = TrainConfig().to_dict()
+    default = TrainConfig(task="dlc").to_dict()
     long_cfg = run_config("ddpg_long", 0, quick)
 
     def dotted(cfg: dict[str, Any], ref: dict[str, Any]) -> dict[str, Any]:

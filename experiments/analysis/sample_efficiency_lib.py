@@ -209,7 +209,7 @@ def rows_from_metrics(metrics: Sequence[dict[str, Any]]) -> list[dict[str, Any]]
 def ours_config(method: str, seed: int, iterations: int, overrides: dict[str, Any] | None = None) -> TrainConfig:
     """The :class:`TrainConfig` of one of mixedrl's runs in the study.
 
-    ``TrainConfig().replace(method=..., seed=..., algorithm.iterations=..., run.eval_every=choose_eval_every(
+    ``TrainConfig(task="dlc").replace(method=..., seed=..., algorithm.iterations=..., run.eval_every=choose_eval_every(
     iterations), run.num_threads=1, **overrides)`` (``overrides``: dotted keys, ``run.eval_every`` among them).
 
     Raises
@@ -223,7 +223,7 @@ def ours_config(method: str, seed: int, iterations: int, overrides: dict[str, An
     overrides = dict(overrides or {})
     base = {"method": method, "seed": seed, "algorithm.iterations": iterations,
             "run.eval_every": choose_eval_every(iterations), "run.num_threads": 1}
-    return TrainConfig().replace(**{**base, **overrides})
+    return TrainConfig(task="dlc").replace(**{**base, **overrides})
 
 
 def train_ours(method: str, seed: int, iterations: int, overrides: dict[str, Any] | None = None,

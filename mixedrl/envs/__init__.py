@@ -30,27 +30,10 @@ from mixedrl.envs.reference import DoubleLaneChangeReference
 from mixedrl.envs.vector_env import DoubleLaneChangeVectorEnv
 from mixedrl.envs.vehicle import VehicleDynamics, VehicleParams, fiala_lateral_force
 
-__all__ = [
-    "ENV_ID",
-    "ACTION_DIM",
-    "NOISE_INDEX",
-    "STATE_DIM",
-    "CostWeights",
-    "Disturbance",
-    "DoubleLaneChangeConfig",
-    "DoubleLaneChangeEnv",
-    "DoubleLaneChangeModel",
-    "DoubleLaneChangeReference",
-    "DoubleLaneChangeTaskConfig",
-    "DoubleLaneChangeVectorEnv",
-    "TrackingResult",
-    "VehicleDynamics",
-    "VehicleParams",
-    "evaluate_tracking",
-    "evaluate_courses",
-    "fiala_lateral_force",
-    "make_config",
-]
+__all__ = ["ENV_ID", "ACTION_DIM", "NOISE_INDEX", "STATE_DIM", "CostWeights", "Disturbance", "DoubleLaneChangeConfig",
+           "DoubleLaneChangeEnv", "DoubleLaneChangeModel", "DoubleLaneChangeReference", "DoubleLaneChangeTaskConfig",
+           "DoubleLaneChangeVectorEnv", "TrackingResult", "VehicleDynamics", "VehicleParams", "evaluate_tracking",
+           "evaluate_courses", "fiala_lateral_force", "make_config"]
 
 #: Gymnasium id of the double-lane-change environment.
 ENV_ID = "mixedrl/DoubleLaneChange-v0"

@@ -26,7 +26,7 @@ import torch
 
 from mixedrl.checks import check_fraction, check_nonnegative_int, check_number, check_positive_int
 from mixedrl.config import MODEL_COURSE_STARTS, ModelRolloutsSampler, register_sampler
-from mixedrl.samplers import SAMPLER_CLASSES, ModelStateSampler, course_length, course_starts, has_course
+from mixedrl.samplers import ModelStateSampler, course_length, course_starts, has_course
 
 __all__ = ["CourseSampler", "CourseStateSampler"]
 
@@ -175,5 +175,4 @@ class CourseStateSampler(ModelStateSampler):
         self.states[hit] += (offset @ task.noise_matrix.to(torch.float64).T)[hit]
 
 
-register_sampler(CourseSampler, tasks=("dlc",))
-SAMPLER_CLASSES[CourseSampler.NAME] = CourseStateSampler
+register_sampler(CourseSampler, tasks=("dlc",), implementation=CourseStateSampler)

@@ -50,19 +50,6 @@ from mixedrl.envs.dlc_config import CostWeights, DoubleLaneChangeConfig, DoubleL
 from mixedrl.envs.model import ACTION_DIM, NOISE_INDEX, STATE_DIM, DoubleLaneChangeModel
 from mixedrl.envs.vector_env import DoubleLaneChangeVectorEnv
 
-__all__ = [
-    "CostWeights",
-    "Disturbance",
-    "DoubleLaneChangeConfig",
-    "DoubleLaneChangeModel",
-    "DoubleLaneChangeTaskConfig",
-    "DoubleLaneChangeVectorEnv",
-    "NOISE_INDEX",
-    "STATE_DIM",
-    "ACTION_DIM",
-    "make_config",
-    "observation_columns",
-    "observation_from_errors",
-    "stage_cost",
-    "tracking_errors",
-]
+__all__ = ["CostWeights", "Disturbance", "DoubleLaneChangeConfig", "DoubleLaneChangeModel",
+           "DoubleLaneChangeTaskConfig", "DoubleLaneChangeVectorEnv", "NOISE_INDEX", "STATE_DIM", "ACTION_DIM",
+           "make_config", "observation_columns", "observation_from_errors", "stage_cost", "tracking_errors"]

@@ -30,15 +30,8 @@ import torch
 from mixedrl.checks import check_finite, check_number
 from mixedrl.envs.libm import LibmOps
 
-__all__ = [
-    "VehicleParams",
-    "VehicleDynamics",
-    "fiala_lateral_force",
-    "STATE_NAMES",
-    "TRACKING_STATE_NAMES",
-    "ACTION_NAMES",
-    "VX_INDEX",
-]
+__all__ = ["VehicleParams", "VehicleDynamics", "fiala_lateral_force", "STATE_NAMES", "TRACKING_STATE_NAMES",
+           "ACTION_NAMES", "VX_INDEX"]
 
 logger = logging.getLogger(__name__)
 

@@ -52,14 +52,5 @@ from mixedrl.ibe.case2 import FIXED_POINT_MAX_ITER, FIXED_POINT_RTOL, UnknownCov
 from mixedrl.ibe.case3 import LinearFeatureIBE, StateDependentIBE
 from mixedrl.ibe.common import residuals
 
-__all__ = [
-    "residuals",
-    "map_mean_known_cov",
-    "map_mean_cov",
-    "KnownCovarianceIBE",
-    "UnknownCovarianceIBE",
-    "StateDependentIBE",
-    "LinearFeatureIBE",
-    "FIXED_POINT_RTOL",
-    "FIXED_POINT_MAX_ITER",
-]
+__all__ = ["residuals", "map_mean_known_cov", "map_mean_cov", "KnownCovarianceIBE", "UnknownCovarianceIBE",
+           "StateDependentIBE", "LinearFeatureIBE", "FIXED_POINT_RTOL", "FIXED_POINT_MAX_ITER"]

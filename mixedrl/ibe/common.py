@@ -28,23 +28,9 @@ import torch
 from mixedrl.checks import as_batch, as_vector, check_covariance, check_finite, check_nonnegative_int, check_unknown_keys
 from mixedrl.gaussian import sample_gaussian
 
-__all__ = [
-    "residuals",
-    "check_noise_matrix",
-    "noise_coordinates",
-    "real_array",
-    "real_batch",
-    "real_vector",
-    "real_covariance",
-    "check_dimension",
-    "symmetrize",
-    "check_posterior",
-    "PosteriorGuard",
-    "check_state",
-    "ReadOnlyField",
-    "ReadOnlyFields",
-    "GaussianNoiseEstimate",
-]
+__all__ = ["residuals", "check_noise_matrix", "noise_coordinates", "real_array", "real_batch", "real_vector",
+           "real_covariance", "check_dimension", "symmetrize", "check_posterior", "PosteriorGuard", "check_state",
+           "ReadOnlyField", "ReadOnlyFields", "GaussianNoiseEstimate"]
 
 #: numpy dtype kinds accepted as real numbers (float, signed and unsigned int).
 _REAL_KINDS = frozenset("fiu")
