@@ -76,7 +76,7 @@ import torch
 
 from mixedrl.config_tasks import COMPILE_MODES
 
-__all__ = ["MODES", "Update", "network_at", "functional_step", "cache_dir", "configure_cache", "clear_cache",
+__all__ = ["MODES", "Update", "Evaluation", "network_at", "functional_step", "cache_dir", "configure_cache", "clear_cache",
            "check_mode"]
 
 #: The values of ``algorithm.compile``: the eager step (default), the compiled step, this module's step eagerly.
@@ -288,7 +288,45 @@ class _AdamState:
         return out
 
 
-class Update:
+class _Compiled:
+    """A function run as :func:`torch.compile` made it (``mode="on"``, one graph, ``fullgraph=True``) or
+    eagerly (``"functional"``; ``"on"`` falls back to it, with a warning, when compiling fails)."""
+
+    def __init__(self, fn: Callable[..., Any], mode: str) -> None:
+        if check_mode(mode, "mode") == "off":
+            raise ValueError(f"mode: 'off' is the eager step, not a {type(self).__name__}")
+        self.fn, self.mode = fn, mode
+        self._fn: Callable[..., Any] | None = None
+
+    def _function(self) -> Callable[..., Any]:
+        if self._fn is None:
+            if self.mode == "on":
+                configure_cache()
+                import torch._dynamo  # the compiler's import (seconds): only when something is compiled
+
+                config = torch._dynamo.config
+                config.recompile_limit = max(config.recompile_limit, 64)  # one graph per loss, shape and engine
+                config.accumulated_recompile_limit = max(config.accumulated_recompile_limit, 1024)
+                self._fn = torch.compile(self.fn, fullgraph=True, dynamic=False)
+            else:
+                self._fn = self.fn
+        return self._fn
+
+    def _run(self, *args: Any) -> Any:
+        with torch.no_grad():
+            try:
+                return self._function()(*args)
+            except Exception as exc:  # noqa: BLE001  (a compiler failure: the same function, eagerly)
+                if self.mode != "on" or not _is_compile_error(exc):
+                    raise
+                warnings.warn(f"algorithm.compile = 'on': compiling {getattr(self.fn, '__name__', 'a step')} failed "
+                              f"({type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''}); it runs "
+                              f"eagerly instead (the same numbers to float32 rounding)", RuntimeWarning, stacklevel=3)
+                self.mode, self._fn = "functional", self.fn
+                return self.fn(*args)
+
+
+class Update(_Compiled):
     """The clipped Adam step of each run of one network on a pure ``loss`` (:func:`functional_step`),
     compiled (``mode="on"``) or run eagerly (``mode="functional"``).
 
@@ -307,26 +345,10 @@ class Update:
     """
 
     def __init__(self, loss: Loss, descent: Any, mode: str = "on") -> None:
-        if check_mode(mode, "mode") == "off":
-            raise ValueError("mode: 'off' is the eager step (mixedrl.schedule.descend), not an Update")
-        self.loss, self.descent, self.mode = loss, descent, mode
+        super().__init__(functional_step, mode)
+        self.loss, self.descent = loss, descent
         self.state = _AdamState(descent)
         self.stacked = self.state.stacked
-        self._fn: Callable[..., torch.Tensor] | None = None
-
-    def _function(self) -> Callable[..., torch.Tensor]:
-        if self._fn is None:
-            if self.mode == "on":
-                configure_cache()
-                import torch._dynamo  # the compiler's import (seconds): only when a step is compiled
-
-                config = torch._dynamo.config
-                config.recompile_limit = max(config.recompile_limit, 64)  # one graph per loss, shape and engine
-                config.accumulated_recompile_limit = max(config.accumulated_recompile_limit, 1024)
-                self._fn = torch.compile(functional_step, fullgraph=True, dynamic=False)
-            else:
-                self._fn = functional_step
-        return self._fn
 
     def hyper(self) -> torch.Tensor:
         """Per run ``lr, beta1, beta2, eps, grad_clip`` (float64, (R, 5)), read now (the schedule sets the rates)."""
@@ -345,19 +367,31 @@ class Update:
             mask = torch.zeros(runs, dtype=torch.bool)
             mask[list(active)] = True
         st = self.state.bind()
-        args = (self.stacked, list(self.descent.leaves), st["exp_avg"], st["exp_avg_sq"], st["step"], self.hyper(),
-                mask, *tensors)
-        with torch.no_grad():
-            try:
-                return self._function()(self.loss, *args)
-            except Exception as exc:  # noqa: BLE001  (a compiler failure: the same step, eagerly)
-                if self.mode != "on" or not _is_compile_error(exc):
-                    raise
-                warnings.warn(f"algorithm.compile = 'on': compiling the update failed ({type(exc).__name__}: "
-                              f"{str(exc).splitlines()[0] if str(exc) else ''}); the functional step runs eagerly "
-                              f"instead (the same numbers to float32 rounding)", RuntimeWarning, stacklevel=2)
-                self.mode, self._fn = "functional", functional_step
-                return functional_step(self.loss, *args)
+        return self._run(self.loss, self.stacked, list(self.descent.leaves), st["exp_avg"], st["exp_avg_sq"],
+                         st["step"], self.hyper(), mask, *tensors)
+
+
+class Evaluation(_Compiled):
+    """A pure function of tensors evaluated without gradient (e.g. the MVC's values of ``h``,
+    :func:`mixedrl.algorithms.algorithm2.mvc_values`): ``fn`` itself for ``mode="off"``, else compiled
+    (``"on"``) or :class:`_Compiled`'s eager fallback (``"functional"``).
+
+    Parameters
+    ----------
+    fn : callable
+        ``fn(*tensors)``, pure (the module docstring's rules for a loss).
+    mode : {"off", "on", "functional"}
+    """
+
+    def __init__(self, fn: Callable[..., Any], mode: str = "on") -> None:
+        self.off = check_mode(mode, "mode") == "off"
+        super().__init__(fn, "functional" if self.off else mode)
+
+    def __call__(self, *tensors: torch.Tensor) -> Any:
+        if self.off:
+            with torch.no_grad():
+                return self.fn(*tensors)
+        return self._run(*tensors)
 
 
 def _is_compile_error(exc: BaseException) -> bool:

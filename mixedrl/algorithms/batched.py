@@ -37,12 +37,14 @@ run took is recorded (``batch_size_runs`` in its ``results.json``).
 from __future__ import annotations
 
 import copy
+from functools import partial
 from typing import Any, Callable, Sequence
 
 import torch
 from torch.func import functional_call, stack_module_state, vmap
 
 from mixedrl.algorithms import algorithm2
+from mixedrl.compiled import Evaluation
 from mixedrl.departures.anchor import ANCHORED
 from mixedrl.schedule import Descent, descend
 
@@ -325,8 +327,14 @@ class BatchedAGPI(BatchedRuns):
         #: ``algorithm.compile`` (a shared field) chooses the eager, compiled or functional step (:mod:`mixedrl.compiled`).
         self.critic_descent = Descent(self.critic.leaves, self._critic_params, [m.critic_opt for m in self.members],
                                       [m.config.algorithm.grad_clip for m in self.members], algo.compile)
+        #: The MVC loop's values of ``h`` (:func:`mixedrl.algorithms.algorithm2.mvc_values`), without gradient.
+        self.mvc_values = Evaluation(partial(algorithm2.mvc_values, self.task, self.actor, self.critic.frozen()),
+                                     algo.compile)
         self.actor_descent = Descent(self.actor.leaves, self._actor_params, [m.actor_opt for m in self.members],
                                      [m.config.algorithm.grad_clip for m in self.members], algo.compile)
+        #: The MVC loop's values of ``h`` (:func:`mixedrl.algorithms.algorithm2.mvc_values`), without gradient.
+        self.mvc_values = Evaluation(partial(algorithm2.mvc_values, self.task, self.actor, self.critic.frozen()),
+                                     algo.compile)
 
     def iteration(self, active: Sequence[bool] | None = None) -> list[dict[str, float] | None]:
         """Implements Algorithm 2, one outer iteration of every active run:
