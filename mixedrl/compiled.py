@@ -66,6 +66,7 @@ updates takes tens of seconds, a warm one a few (docs/algorithm2.rst, the table 
 
 from __future__ import annotations
 
+import logging
 import os
 import shutil
 import warnings
@@ -307,6 +308,9 @@ class _Compiled:
                 config = torch._dynamo.config
                 config.recompile_limit = max(config.recompile_limit, 64)  # one graph per loss, shape and engine
                 config.accumulated_recompile_limit = max(config.accumulated_recompile_limit, 1024)
+                logging.getLogger("mixedrl").info(
+                    "algorithm.compile = 'on': %s is compiled at its first calls (cold: tens of seconds per graph; "
+                    "cached in %s)", getattr(self.fn, "__name__", "a step"), os.environ.get("TORCHINDUCTOR_CACHE_DIR"))
                 self._fn = torch.compile(self.fn, fullgraph=True, dynamic=False)
             else:
                 self._fn = self.fn

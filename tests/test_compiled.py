@@ -2,9 +2,10 @@
 eager step to float32 rounding, the same seed the same result, the optimisers' state in their checkpoints.
 
 The ``functional`` mode is the compiled step's code run eagerly (fast); the tests that compile
-(``algorithm.compile = "on"``) are marked ``slow``: a cold compile of the tiny task's four graphs takes
-about a minute on a quiet 2-core machine (a few seconds with a warm cache, kept in pytest's cache folder,
-``pytest --cache-clear`` empties it).
+(``algorithm.compile = "on"``) are marked ``slow``: cold, they took 8 and 5 minutes on the 2-core machine
+under a load average of 7 (2026-12-06; the tiny task's PEV, PIM and MVC graphs, one per shape of the
+quadrature); the cache they fill is pytest's cache folder (``pytest --cache-clear`` empties it), so later
+sessions load the graphs from it.
 """
 
 from __future__ import annotations
