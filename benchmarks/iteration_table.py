@@ -1,7 +1,8 @@
 """Per-iteration cost of Algorithm 2 and where one default run's wall time goes (issue 44).
 
     python benchmarks/iteration_table.py [--sizes 1 5 15] [--blocks 6] [--block 5] [--run-iterations N]
-                                         [--cache-ab] [--table-only | --split-only] [--out FILE.json]
+                                         [--cache-ab | --compile-ab [--cache-dir DIR]]
+                                         [--table-only | --split-only] [--out FILE.json]
 
 **Table**: for each ``R`` (``--sizes``; seeds x mixed / model / oracle at the double lane change's
 defaults, one :class:`mixedrl.algorithms.batched.BatchedAGPI`; ``R = 1`` is a run alone, as
@@ -12,6 +13,13 @@ iteration timed on its own: the table gives the min and the median ms per batch 
 per run-iteration. Alternating blocks give every size the same load from other jobs on a shared machine.
 ``--cache-ab`` times every size twice, the same runs with the quadrature cache of issue 44 and without it
 (``run.node_cache = None``: the nodes computed at every call, as before), side by side in the same blocks.
+``--compile-ab`` times every size twice, the same runs with ``algorithm.compile = "off"`` (the eager step)
+and ``"on"`` (PEV and PIM each one compiled graph, :mod:`mixedrl.compiled`), side by side in the same
+blocks; the compiled engines' warm-up gives the **cold** compile (its wall time less three steady compiled
+iterations) in a fresh, empty compile cache (a temporary ``MIXEDRL_CACHE_DIR``, unless ``--cache-dir``
+names one), and after the timing ``torch._dynamo.reset()`` and a new compiled engine per size give the
+**warm** compile (the graphs loaded from that on-disk cache; the same process, so Python modules and
+inductor's in-memory caches are warm too, a fresh process pays some more).
 
 **Split**: one default run (``TrainConfig(method="mixed", seed=0, task="dlc")``, its budget or ``--run-iterations``,
 trained by :func:`mixedrl.runs.train` in memory) in a fresh subprocess, its wall time split into
@@ -63,31 +71,42 @@ def machine() -> dict[str, Any]:
             "load_avg_1min": os.getloadavg()[0]}
 
 
-def _engine(size: int, first_seed: int) -> Any:
+def _engine(size: int, first_seed: int, compile: str = "off") -> Any:
     from mixedrl.algorithms.batched import BatchedAGPI
     from mixedrl.config import TrainConfig
     from mixedrl.runs import make_trainer
 
-    trainers = [make_trainer(TrainConfig(method=METHODS[i % 3], seed=first_seed + i // 3, task="dlc")) for i in range(size)]
+    trainers = [make_trainer(TrainConfig(method=METHODS[i % 3], seed=first_seed + i // 3, task="dlc",
+                                         algorithm={"compile": compile})) for i in range(size)]
     return trainers[0] if size == 1 else BatchedAGPI(trainers)
 
 
-def table(sizes: list[int], blocks: int, block: int, cache_ab: bool = False) -> list[dict[str, Any]]:
+def _warm_up(engine: Any, iterations: int = 3) -> float:
+    """Seconds of the engine's first ``iterations`` (a compiled engine compiles its graphs in them)."""
+    t0 = time.perf_counter()
+    for _ in range(iterations):
+        engine.iteration()
+    return time.perf_counter() - t0
+
+
+def table(sizes: list[int], blocks: int, block: int, cache_ab: bool = False,
+          compile_ab: bool = False) -> list[dict[str, Any]]:
     """Per-iteration wall times of ``R`` runs, all sizes in alternating blocks (see the module docstring).
     ``cache_ab``: every size twice, the same runs with and without the quadrature cache (``run.node_cache``,
-    issue 44; ``None`` computes the nodes every call, as before), side by side in the same blocks."""
+    issue 44; ``None`` computes the nodes every call, as before), side by side in the same blocks.
+    ``compile_ab``: every size twice, ``algorithm.compile`` off and on, side by side, with the cold and the
+    warm compile seconds of the compiled engines."""
     import torch
 
     torch.set_num_threads(1)
-    cases = [(size, cached) for size in sizes for cached in ((True, False) if cache_ab else (None,))]
-    engines = [_engine(size, 100 * sizes.index(size)) for size, _ in cases]
+    variants: tuple[Any, ...] = (True, False) if cache_ab else ("off", "on") if compile_ab else (None,)
+    cases = [(size, v) for size in sizes for v in variants]
+    engines = [_engine(size, 100 * sizes.index(size), v if compile_ab else "off") for size, v in cases]
     for engine, (_, cached) in zip(engines, cases):
         if cached is False:
             for m in getattr(engine, "members", [engine]):
                 m.node_cache = None
-    for engine in engines:
-        for _ in range(3):
-            engine.iteration()
+    warm_ups = [_warm_up(engine) for engine in engines]
     times: list[list[float]] = [[] for _ in cases]
     for b in range(blocks):
         order = list(range(len(cases))) if b % 2 == 0 else list(reversed(range(len(cases))))
@@ -96,9 +115,17 @@ def table(sizes: list[int], blocks: int, block: int, cache_ab: bool = False) -> 
                 t0 = time.perf_counter()
                 engines[j].iteration()
                 times[j].append(time.perf_counter() - t0)
-    return [{"runs": size, "node_cache": cached, "iterations": len(t), "min_ms": 1e3 * min(t),
-             "median_ms": 1e3 * statistics.median(t), "median_ms_per_run": 1e3 * statistics.median(t) / size}
-            for (size, cached), t in zip(cases, times)]
+    rows = [{"runs": size, "node_cache": v if cache_ab else None, "compile": v if compile_ab else "off",
+             "iterations": len(t), "min_ms": 1e3 * min(t), "median_ms": 1e3 * statistics.median(t),
+             "median_ms_per_run": 1e3 * statistics.median(t) / size} for (size, v), t in zip(cases, times)]
+    if compile_ab:
+        torch._dynamo.reset()  # the compiled code in memory forgotten: the next compile loads the on-disk cache
+        for row, warm_up in zip(rows, warm_ups):
+            if row["compile"] == "on":
+                steady = 3 * row["median_ms"] / 1e3
+                row["compile_cold_s"] = warm_up - steady
+                row["compile_warm_s"] = _warm_up(_engine(row["runs"], 100 * sizes.index(row["runs"]), "on")) - steady
+    return rows
 
 
 def split_child(iterations: int | None) -> dict[str, float]:
@@ -167,6 +194,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--run-iterations", type=int, default=None, help="budget of the split's run (default: its config's)")
     p.add_argument("--cache-ab", action="store_true",
                    help="each size with and without the quadrature cache (run.node_cache), side by side")
+    p.add_argument("--compile-ab", action="store_true",
+                   help="each size with algorithm.compile off and on, side by side; cold and warm compile seconds")
+    p.add_argument("--cache-dir", type=Path, default=None,
+                   help="with --compile-ab: the compile cache (MIXEDRL_CACHE_DIR; default a fresh temporary one: cold)")
     p.add_argument("--table-only", action="store_true")
     p.add_argument("--split-only", action="store_true")
     p.add_argument("--split-child", action="store_true", help=argparse.SUPPRESS)
@@ -180,12 +211,20 @@ def main(argv: list[str] | None = None) -> int:
     doc: dict[str, Any] = {"machine": machine()}
     print("  ".join(f"{k}={v}" for k, v in doc["machine"].items()))
     if not args.split_only:
-        doc["table"] = table(args.sizes, args.blocks, args.block, args.cache_ab)
-        print(f"{'R':>4} {'nodes':>8} {'its':>5} {'min ms':>9} {'median ms':>10} {'median ms / run':>16}")
+        if args.compile_ab:
+            import tempfile
+
+            cache = args.cache_dir or Path(tempfile.mkdtemp(prefix="mixedrl-cold-cache-"))
+            os.environ["MIXEDRL_CACHE_DIR"] = str(cache)
+            doc["machine"]["compile_cache"] = str(cache)
+        doc["table"] = table(args.sizes, args.blocks, args.block, args.cache_ab, args.compile_ab)
+        print(f"{'R':>4} {'nodes':>8} {'step':>5} {'its':>5} {'min ms':>9} {'median ms':>10} {'median ms / run':>16} "
+              f"{'cold s':>7} {'warm s':>7}")
         for r in doc["table"]:
             nodes = {None: "", True: "cached", False: "every"}[r["node_cache"]]
-            print(f"{r['runs']:>4} {nodes:>8} {r['iterations']:>5} {r['min_ms']:>9.1f} {r['median_ms']:>10.1f} "
-                  f"{r['median_ms_per_run']:>16.2f}")
+            cold, warm = (f"{r[k]:>7.1f}" if k in r else f"{'':>7}" for k in ("compile_cold_s", "compile_warm_s"))
+            print(f"{r['runs']:>4} {nodes:>8} {r['compile']:>5} {r['iterations']:>5} {r['min_ms']:>9.1f} "
+                  f"{r['median_ms']:>10.1f} {r['median_ms_per_run']:>16.2f} {cold} {warm}")
     if not args.table_only:
         s = doc["split"] = split(args.run_iterations)
         print(f"one default run (mixed, seed 0, {s['iterations']} iterations): wall {s['wall_s']:.2f} s")

@@ -310,13 +310,16 @@ class TrainConfig:
     # ------------------------------------------------------------------ serialisation
     def to_dict(self) -> dict[str, Any]:
         """Return the fields as a JSON-compatible nested dictionary (tuples become lists; ``inf`` a
-        string; the double lane change's ``task.obs_scale`` left out when it is ``None``, its default)."""
+        string; the double lane change's ``task.obs_scale`` left out when it is ``None``, its default, and
+        ``algorithm.compile`` when it is ``"off"``, its default)."""
         out = to_jsonable(self)
         for section, name in (("algorithm", "grad_clip"), ("sampler", "box")):
             if name in out[section] and math.isinf(out[section][name]):
                 out[section][name] = "inf"
         if out["task"].get("name") == "dlc" and out["task"].get("obs_scale", 0) is None:
             del out["task"]["obs_scale"]  # the default: config.json and config hashes as before the field
+        if out["algorithm"].get("compile") == "off":
+            del out["algorithm"]["compile"]  # the default (issue 44): config.json and config hashes as before the field
         return out
 
     @classmethod

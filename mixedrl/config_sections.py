@@ -14,7 +14,7 @@ from dataclasses import dataclass
 from typing import Any, ClassVar, Union
 
 from mixedrl.checks import check_fraction, check_int, check_nonnegative_int, check_number, check_positive_int
-from mixedrl.config_tasks import BATCH_WEIGHTINGS, FEEDFORWARDS, build_section, check_choice
+from mixedrl.config_tasks import BATCH_WEIGHTINGS, COMPILE_MODES, FEEDFORWARDS, build_section, check_choice
 
 __all__ = ["AlgorithmConfig", "DDPGConfig", "RunConfig", "SamplerConfig", "TrueCopiesSampler", "ModelRolloutsSampler",
            "SAMPLERS", "PRESETS", "register_sampler", "register_preset", "sampler_config"]
@@ -168,8 +168,17 @@ class AlgorithmConfig:
     vanishes at the equilibrium, and at ``x_ss`` the remainder and the tanh's curvature shift the resting
     point)."""
 
+    compile: str = "off"
+    """How the PEV and PIM steps run (:mod:`mixedrl.compiled`, issue 44): ``"off"`` (the default) = eagerly,
+    ``torch.autograd`` and ``torch.optim.Adam.step``; ``"on"`` = each step (loss, gradient by ``torch.func``,
+    clip, Adam on the optimiser's own state) compiled by ``torch.compile`` as one graph, cached on disk in
+    ``$MIXEDRL_CACHE_DIR`` (default ``~/.cache/mixedrl``); ``"functional"`` = that step without compiling (the
+    fallback of ``"on"``). The three give the same numbers to float32 rounding; ``"off"`` is the reference,
+    bit for bit. The runs of one batch share it."""
+
     def __post_init__(self) -> None:
         w = "algorithm"
+        check_choice(self.compile, f"{w}.compile", COMPILE_MODES)
         for name in ("iterations", "batch_size", "horizon", "noise_samples", "j_max", "stop_patience",
                      "bellman_steps"):
             setattr(self, name, check_positive_int(getattr(self, name), f"{w}.{name}"))

@@ -33,6 +33,9 @@ TASKS = ("dlc", "linear")
 #: (:attr:`mixedrl.envs.dlc_task.CourseSampler.course_starts`).
 MODEL_COURSE_STARTS = ("start", "along", "loop")
 #: How Algorithm 2 weights the states of its batch (``AlgorithmConfig.batch_weighting``).
+#: The values of ``algorithm.compile`` (:mod:`mixedrl.compiled`): the eager step (the default), the compiled
+#: step, the functional step without compiling.
+COMPILE_MODES = ("off", "on", "functional")
 BATCH_WEIGHTINGS = ("uniform", "relative")
 
 #: Where the policy takes its action at the equilibrium (``algorithm.feedforward``).

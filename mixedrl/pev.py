@@ -14,6 +14,7 @@ noise ``xi_hat_k`` (exactly for quadratics, by the quadrature of :mod:`mixedrl.e
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import partial
 from typing import Any, Callable
 
 import numpy as np
@@ -24,7 +25,7 @@ from mixedrl.expectation import h_value, weighted_sum
 from mixedrl.schedule import Descent
 from mixedrl.quadratic import AffinePolicy, LinearDynamics, QuadraticCost, QuadraticValue, check_problem, lyapunov_solve
 
-__all__ = ["evaluate_policy", "bellman_backup", "ExactPEV", "pev_step", "h_steps", "critic_loss", "critic_step", "run_mean", "check_runs"]
+__all__ = ["evaluate_policy", "bellman_backup", "ExactPEV", "pev_step", "h_steps", "critic_loss", "critic_loss_at", "critic_step", "run_mean", "check_runs"]
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -366,6 +367,15 @@ def critic_loss(task: Any, critic: torch.nn.Module, s: torch.Tensor, u: torch.Te
     if s.shape[0] != u.shape[0]:
         raise ValueError(f"u: batch size {u.shape[0]} differs from s's {s.shape[0]}")
     runs = check_runs(runs, s.shape[0])
+    return _critic_loss(task, critic, s, u, offsets, weights, relative_offset, actor, steps, runs, target_critic)
+
+
+def _critic_loss(task: Any, critic: Callable[..., torch.Tensor], s: torch.Tensor, u: torch.Tensor,
+                 offsets: torch.Tensor, weights: torch.Tensor, relative_offset: float | None,
+                 actor: Callable[..., torch.Tensor] | None, steps: int, runs: int,
+                 target_critic: Callable[[torch.Tensor], torch.Tensor] | None) -> torch.Tensor:
+    """:func:`critic_loss` on checked arguments (pure tensor arithmetic: the hot path, compiled by
+    :mod:`mixedrl.compiled`)."""
     with torch.no_grad():
         # V_target = l(x', u_theta) + gamma V^k(x'),  x' = f(x, u_theta) + xi_hat   (h of eq. 37; h_n if steps > 1;
         # V(x'; w_bar) of the target critic instead of V^k(x'; w) when one is given)
@@ -376,6 +386,21 @@ def critic_loss(task: Any, critic: torch.nn.Module, s: torch.Tensor, u: torch.Te
         return 0.5 * run_mean(((value - target) / (target.abs() + relative_offset)).pow(2), runs)
     scale = float(getattr(task, "value_scale", 1.0))
     return 0.5 * run_mean(((value - target) / scale).pow(2), runs)
+
+
+def critic_loss_at(params: tuple[torch.Tensor, ...], s: torch.Tensor, offsets: torch.Tensor, weights: torch.Tensor, *,
+                   task: Any, critic: Any, actor: Callable[..., torch.Tensor], relative_offset: float | None = None,
+                   steps: int = 1, runs: int = 1,
+                   target_critic: Callable[[torch.Tensor], torch.Tensor] | None = None) -> torch.Tensor:
+    """Eqs. (49)-(50) as a pure loss of the critic's parameters (:mod:`mixedrl.compiled`): :func:`critic_loss`
+    of the critic at ``params`` (:func:`mixedrl.compiled.network_at`) on ``u = pi(x)`` (no gradient), the
+    arguments already checked (:func:`critic_step` checks them once, outside the compiled step)."""
+    from mixedrl.compiled import network_at
+
+    with torch.no_grad():
+        u = actor(task.observe(s))
+    return _critic_loss(task, network_at(critic, params), s, u, offsets, weights, relative_offset, actor, steps,
+                        runs, target_critic)
 
 
 def check_runs(runs: int, batch: int) -> int:
@@ -442,6 +467,14 @@ def critic_step(task: Any, critic: Callable[..., torch.Tensor], actor: Callable[
     norm clipped at ``grad_clip``; the paper writes plain gradient descent.
     """
     step = optimizer if isinstance(optimizer, Descent) else Descent.single(critic, optimizer, grad_clip)
+    if step.mode != "off":  # algorithm.compile: the same loss as a pure function, one compiled step (issue 44)
+        if relative_offset is not None:
+            relative_offset = check_number(relative_offset, "relative_offset", positive=True)
+        runs = check_runs(runs, s.shape[0])
+        loss = partial(critic_loss_at, task=task, critic=critic, actor=actor, relative_offset=relative_offset,
+                       steps=steps, runs=runs, target_critic=target_critic)
+        key = ("pev", id(task), id(critic), id(actor), id(target_critic), relative_offset, steps, runs)
+        return step.minimise(loss, (s, offsets, weights), active, key)
     with torch.no_grad():
         u = actor(task.observe(s))
     loss = critic_loss(task, critic, s, u, offsets, weights, relative_offset, actor, steps, runs, target_critic)

@@ -14,6 +14,7 @@ takes another PIM step.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import partial
 from typing import Any, Callable
 
 import numpy as np
@@ -26,7 +27,7 @@ from mixedrl.pev import check_runs, h_steps, run_mean
 from mixedrl.schedule import Descent
 from mixedrl.quadratic import AffinePolicy, LinearDynamics, QuadraticCost, QuadraticValue, check_problem
 
-__all__ = ["improve_policy", "ExactPIM", "pim_step", "actor_objective", "actor_step", "MVCResult", "MVCTerms", "mvc_terms", "mvc_check"]
+__all__ = ["improve_policy", "ExactPIM", "pim_step", "actor_objective", "actor_objective_at", "actor_step", "MVCResult", "MVCTerms", "mvc_terms", "mvc_check"]
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -193,6 +194,14 @@ def actor_objective(task: Any, critic: torch.nn.Module, actor: torch.nn.Module, 
     if relative_offset is not None:
         relative_offset = check_number(relative_offset, "relative_offset", positive=True)
     runs = check_runs(runs, s.shape[0])
+    return _actor_objective(task, critic, actor, s, offsets, weights, relative_offset, steps, runs)
+
+
+def _actor_objective(task: Any, critic: Callable[..., torch.Tensor], actor: Callable[..., torch.Tensor],
+                     s: torch.Tensor, offsets: torch.Tensor, weights: torch.Tensor, relative_offset: float | None,
+                     steps: int, runs: int) -> torch.Tensor:
+    """:func:`actor_objective` on checked arguments (pure tensor arithmetic: the hot path, compiled by
+    :mod:`mixedrl.compiled`)."""
     obs = task.observe(s)
     u = actor(obs)
     scale = float(getattr(task, "value_scale", 1.0))
@@ -205,6 +214,18 @@ def actor_objective(task: Any, critic: torch.nn.Module, actor: torch.nn.Module, 
         rho = 1.0 / (critic(obs).reshape(h.shape) + relative_offset)
         rho = rho / (rho.mean() if runs == 1 else run_mean(rho, runs).repeat_interleave(h.shape[0] // runs))
     return run_mean(rho * h, runs) / scale
+
+
+def actor_objective_at(params: tuple[torch.Tensor, ...], s: torch.Tensor, offsets: torch.Tensor,
+                       weights: torch.Tensor, *, task: Any, critic: Callable[..., torch.Tensor], actor: Any,
+                       relative_offset: float | None = None, steps: int = 1, runs: int = 1) -> torch.Tensor:
+    """Eqs. (51)-(52) as a pure loss of the actor's parameters (:mod:`mixedrl.compiled`): :func:`actor_objective`
+    of the actor at ``params`` (:func:`mixedrl.compiled.network_at`), the critic ``V^k`` frozen (not
+    differentiated), the arguments already checked (:func:`actor_step` checks them once)."""
+    from mixedrl.compiled import network_at
+
+    return _actor_objective(task, critic, network_at(actor, params), s, offsets, weights, relative_offset, steps,
+                            runs)
 
 
 def actor_step(task: Any, critic: Callable[..., torch.Tensor], actor: Callable[..., torch.Tensor],
@@ -253,6 +274,14 @@ def actor_step(task: Any, critic: Callable[..., torch.Tensor], actor: Callable[.
     Adam (``actor_lr`` decayed linearly) with gradient clipping; the paper writes plain gradient descent.
     """
     step = optimizer if isinstance(optimizer, Descent) else Descent.single(actor, optimizer, grad_clip)
+    if step.mode != "off":  # algorithm.compile: the same objective as a pure function, one compiled step (issue 44)
+        if relative_offset is not None:
+            relative_offset = check_number(relative_offset, "relative_offset", positive=True)
+        runs = check_runs(runs, s.shape[0])
+        loss = partial(actor_objective_at, task=task, critic=critic, actor=actor, relative_offset=relative_offset,
+                       steps=steps, runs=runs)
+        key = ("pim", id(task), id(critic), id(actor), relative_offset, steps, runs)
+        return step.minimise(loss, (s, offsets, weights), active, key)
     frozen = list(critic.parameters()) if isinstance(critic, torch.nn.Module) else []
     for p in frozen:
         p.requires_grad_(False)

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import torch
 
-from typing import Sequence
+from typing import Any, Callable, Hashable, Sequence
 
 from mixedrl.config import TrainConfig
 
@@ -121,12 +121,20 @@ class Descent:
         Per run, its optimiser.
     grad_clips : sequence of float
         Per run, the largest gradient norm.
+    mode : {"off", "on", "functional"}, optional
+        ``algorithm.compile`` (:mod:`mixedrl.compiled`): how :meth:`minimise` steps. ``"off"`` (the default):
+        the eager step (:func:`descend`).
     """
 
     def __init__(self, leaves: Sequence[torch.Tensor], run_params: Sequence[Sequence[torch.Tensor]],
-                 optimizers: Sequence[torch.optim.Optimizer], grad_clips: Sequence[float]) -> None:
+                 optimizers: Sequence[torch.optim.Optimizer], grad_clips: Sequence[float], mode: str = "off") -> None:
+        from mixedrl.compiled import check_mode
+
         self.leaves, self.run_params = list(leaves), [list(p) for p in run_params]
         self.optimizers, self.grad_clips = list(optimizers), list(grad_clips)
+        self.mode = check_mode(mode, "mode")
+        #: The compiled steps of :meth:`minimise`, one per loss (key): :class:`mixedrl.compiled.Update`.
+        self.updates: dict[Hashable, Any] = {}
 
     @classmethod
     def single(cls, module: torch.nn.Module, optimizer: torch.optim.Optimizer, grad_clip: float) -> "Descent":
@@ -137,3 +145,13 @@ class Descent:
     def __call__(self, loss: torch.Tensor, active: Sequence[int] | None = None) -> None:
         """Each (active) run's clipped step on its loss (shape () for one run, (R,) for ``R``): :func:`descend`."""
         descend(loss, self.leaves, self.run_params, self.optimizers, self.grad_clips, active)
+
+    def minimise(self, loss: Callable[..., torch.Tensor], tensors: Sequence[torch.Tensor],
+                 active: Sequence[int] | None = None, key: Hashable = None) -> torch.Tensor:
+        """Each (active) run's clipped step on a pure loss ``loss(params, *tensors)`` (:mod:`mixedrl.compiled`):
+        eagerly (:meth:`__call__` on ``loss(leaves, *tensors)``) when :attr:`mode` is ``"off"``, else by a
+        :class:`mixedrl.compiled.Update` kept per ``key`` (default: ``loss`` itself), compiled for ``"on"``.
+        Returns the loss before the step, detached."""
+        from mixedrl.compiled import minimise
+
+        return minimise(self, loss, tensors, active, key)

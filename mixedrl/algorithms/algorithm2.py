@@ -42,7 +42,7 @@ from mixedrl.expectation import expectation_nodes, h_value
 from mixedrl.pev import critic_step
 from mixedrl.pim import MVCResult, actor_step, mvc_check
 
-__all__ = ["iteration", "ibe", "planning_moments", "nodes", "metrics_row"]
+__all__ = ["iteration", "mvc_values", "ibe", "planning_moments", "nodes", "metrics_row"]
 
 
 def iteration(engine: Any, active: Sequence[bool] | None = None) -> list[dict[str, float] | None]:
@@ -124,10 +124,8 @@ def iteration(engine: Any, active: Sequence[bool] | None = None) -> list[dict[st
     pending = list(on)
     outcome: dict[int, tuple[MVCResult, int, torch.Tensor]] = {}
     while pending:
-        with torch.no_grad():
-            u_new = engine.actor(obs)
-            h_new_cur = h_value(task, critic, s, u_new, *nodes_k)
-            h_new_next = h_value(task, critic, s, u_new, *nodes_next)
+        # u^{k+1} and its h under xi_hat_k and xi_hat_{k+1} (no gradient; one compiled graph with algorithm.compile)
+        u_new, h_new_cur, h_new_next = engine.mvc_values(s, obs, *nodes_k, *nodes_next)
         still: list[int] = []
         for r in pending:
             sl, cfg = engine.rows(r), runs[r].config.algorithm
@@ -166,6 +164,21 @@ def iteration(engine: Any, active: Sequence[bool] | None = None) -> list[dict[st
         m.last_batch = batches[r]
         rows[r] = metrics_row(m, residuals[r], v_before[sl], critic_losses[r], actor_objs[r], dv, dpi, mvc, j_r)
     return rows
+
+
+def mvc_values(task: Any, actor: Any, critic: Any, s: torch.Tensor, obs: torch.Tensor, offsets_k: torch.Tensor,
+               weights_k: torch.Tensor, offsets_next: torch.Tensor, weights_next: torch.Tensor
+               ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The left side of eq. (38) and the new term of eq. (39): ``u^{k+1} = pi^{k+1}(x)``,
+    ``h(x, u^{k+1}, xi_hat_k)`` and ``h(x, u^{k+1}, xi_hat_{k+1})`` (eq. 37, :func:`mixedrl.expectation.h_value`).
+
+    A pure function of tensors (:mod:`mixedrl.compiled`): the engine binds ``task``, its stacked actor and its
+    frozen critic and evaluates it without gradient (``engine.mvc_values``, a
+    :class:`mixedrl.compiled.Evaluation`: eagerly, or compiled with ``algorithm.compile = "on"``).
+    """
+    u_new = actor(obs)
+    return (u_new, h_value(task, critic, s, u_new, offsets_k, weights_k),
+            h_value(task, critic, s, u_new, offsets_next, weights_next))
 
 
 def ibe(noise: Any, residuals: torch.Tensor, transitions: tuple[torch.Tensor, torch.Tensor] | None = None) -> None:

@@ -37,12 +37,14 @@ run took is recorded (``batch_size_runs`` in its ``results.json``).
 from __future__ import annotations
 
 import copy
+from functools import partial
 from typing import Any, Callable, Sequence
 
 import torch
 from torch.func import functional_call, stack_module_state, vmap
 
 from mixedrl.algorithms import algorithm2
+from mixedrl.compiled import Evaluation
 from mixedrl.departures.anchor import ANCHORED
 from mixedrl.schedule import Descent, descend
 
@@ -55,7 +57,7 @@ AGPI = Any
 #: the losses and of the quadrature); every other field (method, seed, budget, learning rates, IBE,
 #: sampler, MVC settings, ...) may differ between them.
 SHARED_FIELDS = ("batch_size", "hidden_sizes", "activation", "value_output", "bellman_steps", "batch_weighting",
-                 "batch_weight_offset", "expectation", "noise_samples", "critic_target")
+                 "batch_weight_offset", "expectation", "noise_samples", "critic_target", "compile")
 
 #: The ``algorithm`` fields the DDPG runs of one batch (:class:`mixedrl.algorithms.batched_ddpg.BatchedDDPG`)
 #: must share: the network shapes and the minibatch size. Everything else (seed, budget, learning rates and
@@ -119,6 +121,7 @@ class StackedNetwork:
         self.runs = len(self.modules)
         self.batch = int(batch)
         if self.runs == 1:
+            self.names = [name for name, _ in self.modules[0].named_parameters()]
             self.leaves = list(self.modules[0].parameters())
             return
         params, self.buffers = stack_module_state(self.modules)
@@ -128,6 +131,7 @@ class StackedNetwork:
                 p.data = self.params[name].data[r]
             for name, b in module.named_buffers():
                 b.data = self.buffers[name].data[r]
+        self.names = list(self.params)
         self.leaves = list(self.params.values())
         base = copy.deepcopy(self.modules[0]).to("meta")
 
@@ -135,6 +139,7 @@ class StackedNetwork:
             return functional_call(base, (params, buffers), x)
 
         self._call = vmap(call)
+        self._frozen = lambda *x: self(*x, frozen=True)
 
     def run_params(self) -> list[list[torch.Tensor]]:
         """Per run, its parameters in the order of :attr:`leaves`."""
@@ -149,6 +154,19 @@ class StackedNetwork:
         ``frozen``: no gradient to the parameters."""
         if self.runs == 1:
             return self.modules[0](*x)
+        return self._apply({name: p.detach() for name, p in self.params.items()} if frozen else self.params, x)
+
+    def at(self, params: Sequence[torch.Tensor]) -> Callable[..., torch.Tensor]:
+        """The same function at the parameters ``params`` (in the order of :attr:`leaves`, stacked for
+        ``R > 1``): the network inside a pure loss of :mod:`mixedrl.compiled`."""
+        named = dict(zip(self.names, params))
+        if self.runs == 1:
+            module = self.modules[0]
+            return lambda *x: functional_call(module, named, x)
+        return lambda *x: self._apply(named, x)
+
+    def _apply(self, params: dict[str, torch.Tensor], x: Sequence[torch.Tensor]) -> torch.Tensor:
+        """The ``R > 1`` call at ``params``: each run's rows to its network (vmap), the rows back in order."""
         n = x[0].shape[0]
         k = n // (self.runs * self.batch)
         if k * self.runs * self.batch != n or any(t.shape[0] != n for t in x):
@@ -156,14 +174,13 @@ class StackedNetwork:
                              f"{self.runs} x {self.batch}")
         xs = [t.reshape(k, self.runs, self.batch, *t.shape[1:]).transpose(0, 1).reshape(
             self.runs, k * self.batch, *t.shape[1:]) for t in x]
-        params = {name: p.detach() for name, p in self.params.items()} if frozen else self.params
         out = self._call(params, self.buffers, *xs)
         tail = out.shape[2:]
         return out.reshape(self.runs, k, self.batch, *tail).transpose(0, 1).reshape(n, *tail)
 
     def frozen(self) -> Any:
         """The same function without gradient to the parameters (the critic inside PIM)."""
-        return self.modules[0] if self.runs == 1 else (lambda *x: self(*x, frozen=True))
+        return self.modules[0] if self.runs == 1 else self._frozen
 
 
 def _check_members(members: Sequence[AGPI]) -> None:
@@ -307,10 +324,17 @@ class BatchedAGPI(BatchedRuns):
         self.critic_target = (StackedNetwork([m.critic_target.module for m in self.members], self.batch)
                               if algo.critic_target > 0 else None)
         #: Each run's clipped Adam step of its critic / its actor (:class:`mixedrl.schedule.Descent`).
+        #: ``algorithm.compile`` (a shared field) chooses the eager, compiled or functional step (:mod:`mixedrl.compiled`).
         self.critic_descent = Descent(self.critic.leaves, self._critic_params, [m.critic_opt for m in self.members],
-                                      [m.config.algorithm.grad_clip for m in self.members])
+                                      [m.config.algorithm.grad_clip for m in self.members], algo.compile)
+        #: The MVC loop's values of ``h`` (:func:`mixedrl.algorithms.algorithm2.mvc_values`), without gradient.
+        self.mvc_values = Evaluation(partial(algorithm2.mvc_values, self.task, self.actor, self.critic.frozen()),
+                                     algo.compile)
         self.actor_descent = Descent(self.actor.leaves, self._actor_params, [m.actor_opt for m in self.members],
-                                     [m.config.algorithm.grad_clip for m in self.members])
+                                     [m.config.algorithm.grad_clip for m in self.members], algo.compile)
+        #: The MVC loop's values of ``h`` (:func:`mixedrl.algorithms.algorithm2.mvc_values`), without gradient.
+        self.mvc_values = Evaluation(partial(algorithm2.mvc_values, self.task, self.actor, self.critic.frozen()),
+                                     algo.compile)
 
     def iteration(self, active: Sequence[bool] | None = None) -> list[dict[str, float] | None]:
         """Implements Algorithm 2, one outer iteration of every active run:
