@@ -74,10 +74,12 @@ def task_parameters(task: Any) -> dict[str, Any]:
             if not k.startswith("_") and isinstance(v, (int, float, tuple, list, np.ndarray, torch.Tensor))}
 
 
-def one_run(system: str, method: str, seed: int, iterations: int | None, out: Path = OUT) -> dict[str, Any]:
-    """Train one run and measure it (module docstring)."""
+def one_run(system: str, method: str, seed: int, iterations: int | None, out: Path = OUT,
+            algorithm: dict[str, Any] | None = None, tag: str = "") -> dict[str, Any]:
+    """Train one run and measure it (module docstring); ``algorithm``: further ``algorithm.*`` settings,
+    ``tag``: a suffix of the per-run file's name."""
     task = TUNING_SYSTEMS[system]()
-    algorithm = {} if iterations is None else {"iterations": iterations}
+    algorithm = dict(algorithm or {}) | ({} if iterations is None else {"iterations": iterations})
     config = TrainConfig(method=method, task="linear", seed=seed, algorithm=algorithm)
     t0 = time.time()
     results = train(AGPI(task, config), progress=False)
@@ -110,7 +112,7 @@ def one_run(system: str, method: str, seed: int, iterations: int | None, out: Pa
               "results": _jsonable(results), "lqr_evaluated": lqr, "row": row}
     runs = out / "per_run"
     runs.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(runs / f"{system}_{method}_{seed}.json", json.dumps(record, indent=1) + "\n")
+    atomic_write_text(runs / f"{system}_{method}_{seed}{tag}.json", json.dumps(record, indent=1) + "\n")
     return row
 
 
