@@ -56,6 +56,9 @@ VARIANTS: dict[str, dict[str, Any]] = {
     "swing": {"rollout_horizon": 32, "critic_target": 0.8, "iterations": 600, "batch_size": 256,
               "actor_lr": 2e-3, "critic_lr": 2e-3, "rollout_discount_start": 0.95, "grad_clip": 1.0,
               "activation": "tanh"},
+    "swing2": {"rollout_horizon": 32, "critic_target": 0.8, "iterations": 1000, "batch_size": 256,
+               "actor_lr": 2e-3, "critic_lr": 2e-3, "rollout_discount_start": 0.95, "grad_clip": 1.0,
+               "activation": "tanh", "horizon": 20, "batch_weighting": "uniform"},
 }
 
 
