@@ -53,6 +53,7 @@ VARIANTS: dict[str, dict[str, Any]] = {
     "h4_lr": {"rollout_horizon": 4, "critic_target": 0.8, "iterations": 1100, "actor_lr": 1e-3},
     "h8_lr2": {"rollout_horizon": 8, "critic_target": 0.8, "iterations": 700, "actor_lr": 2e-3},
     "h8_lr_ct0": {"rollout_horizon": 8, "iterations": 700, "actor_lr": 1e-3},
+    "h8_lr2_j1": {"rollout_horizon": 8, "critic_target": 0.8, "iterations": 700, "actor_lr": 2e-3, "j_max": 1},
     "swing": {"rollout_horizon": 32, "critic_target": 0.8, "iterations": 600, "batch_size": 256,
               "actor_lr": 2e-3, "critic_lr": 2e-3, "rollout_discount_start": 0.95, "grad_clip": 1.0,
               "activation": "tanh"},
