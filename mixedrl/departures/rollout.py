@@ -29,7 +29,14 @@ states weighted by ``1 / (V_target(x_0) + c)``).
 The losses are pure functions of tensors and callables (no numpy, no data-dependent Python branches), so
 they can be compiled. ``R >= 1`` stacked runs (:mod:`mixedrl.algorithms.batched`) are supported: every
 function takes ``runs`` and returns one loss per run, each run's noise drawn from its own generator and its
-discount per row. Measured effect: ``experiments/results/learner_tuning/table.md``.
+discount per row.
+
+Measured effect (``experiments/results/learner_tuning/table.md``, held-out tuning systems, seeds 100-102, mixed
+RL): with ``H = 8``, ``critic_target = 0.8``, ``actor_lr = 2e-3`` and 700 iterations the evaluated cost over the
+discounted LQR with the true feed-forward is 0.961-0.965 on the cart with friction (the defaults: 0.99-1.02)
+and 1.006-1.007 on the two tanks (the defaults: 1.14-1.21); the cart's steady offset is within issue 42's
+tolerance of the LQR's on 3 of 3 seeds (the defaults: 0 of 3), the tanks' on none (0.012-0.013 against
+0.010). On the global swing-up it reaches a return IQM of -753 (the defaults: -1280): not solved.
 """
 
 from __future__ import annotations
