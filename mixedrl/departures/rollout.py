@@ -290,7 +290,9 @@ def improve(engine: Any, s: torch.Tensor, moments: Sequence[tuple[np.ndarray, np
         The rollout (detached) and the rows' discount, for :func:`update`'s critic fit.
     """
     gamma = _gamma(engine, s)
-    states, costs = rollout(engine.task, engine.actor, s, _draws(engine, moments, s))
+    # only the runs that step draw (a run's stream does not depend on its neighbours' MVC outcomes)
+    own = [mo if r in active_runs else None for r, mo in enumerate(moments)]
+    states, costs = rollout(engine.task, engine.actor, s, _draws(engine, own, s))
     obj = actor_loss(engine.task, _target(engine), states, costs, gamma, engine.runs, relative_offset)
     engine.actor_descent(obj, active_runs)
     return obj.detach(), states.detach(), costs.detach(), gamma
