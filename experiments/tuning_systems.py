@@ -35,7 +35,7 @@ if str(_ANALYSIS) not in sys.path:
     sys.path.insert(0, str(_ANALYSIS))
 from precision_study import LQRPolicy  # noqa: E402  (the discounted LQR with a mean's feed-forward, as a policy)
 
-__all__ = ["CartFriction", "TwoTank", "TUNING_SYSTEMS", "LQRPolicy", "lqr_reference"]
+__all__ = ["CartFriction", "TwoTank", "SwingUp", "TUNING_SYSTEMS", "GLOBAL_TUNING_SYSTEMS", "LQRPolicy", "lqr_reference"]
 
 
 class _OriginTask(Task):
@@ -160,8 +160,80 @@ class TwoTank(_OriginTask):
         return ~torch.isfinite(s).all(dim=-1) | (s.abs() > self.h_star).any(dim=-1)
 
 
+class SwingUp(Task):
+    r"""A GLOBAL tuning system: a pendulum swung up from anywhere and balanced upright, written for issue 42's
+    global learner (not Pendulum-v1: another mass, length, torque bound and cost), with an unknown constant
+    torque ``tau_d`` (true 0.6 N m, prior 0) added after the actuator clip.
+
+    State ``s = [theta, theta_dot]``, ``theta = 0`` upright. Semi-implicit Euler, ``dt = 0.05``:
+
+    .. math::
+
+        \dot\theta' = \operatorname{clip}\Big(\dot\theta + dt\big(\tfrac{3 g}{2 l} \sin\theta
+            + \tfrac{3}{m l^2} \operatorname{clip}(u, \pm \bar u)\big), \pm 8\Big) + \xi, \qquad
+        \theta' = \theta + dt\, \dot\theta' + dt\, \xi, \qquad \xi = dt \tfrac{3}{m l^2} \tau_d,
+
+    ``m = 0.8``, ``l = 1.2``, ``g = 9.81``, ``u_bar = 2.5`` (the torque cannot hold the pendulum level: it must
+    swing up). Cost ``l(s', u) = wrap(theta')^2 + 0.1 theta_dot'^2 + 0.002 u^2``, ``gamma = 0.99``. Observation
+    ``(cos theta, sin theta, theta_dot)``. Starts uniform in ``theta in [-pi, pi]``, ``theta_dot in [-1, 1]``.
+    The measure is the undiscounted return (minus the cost) of 200-step episodes from seeded starts
+    (:meth:`evaluate_return`).
+    """
+
+    state_dim, obs_dim, action_dim, noise_dim = 2, 3, 1, 1
+    gamma = 0.99
+    eval_horizon = 200
+
+    def __init__(self, mass: float = 0.8, length: float = 1.2, torque_bound: float = 2.5, torque_bias: float = 0.6,
+                 torque_std: float = 0.05, prior_torque_std: float = 1.0, dt: float = 0.05) -> None:
+        self.dt, self.mass, self.length, self.g = dt, mass, length, 9.81
+        c = 3.0 / (mass * length**2)
+        self.noise_matrix = torch.tensor([[c * dt * dt], [c * dt]], dtype=torch.float64)
+        self.prior_mean, self.prior_cov = np.zeros(1), np.array([[prior_torque_std**2]])
+        self.true_mean, self.true_cov = np.array([torque_bias]), np.array([[torque_std**2]])
+        self.action_bound = torch.tensor([torque_bound])
+        self.obs_scale = torch.tensor([1.0, 1.0, 8.0])
+        self.value_scale = 50.0
+
+    def f(self, s: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+        th, thdot = s[:, 0], s[:, 1]
+        bound = float(self.action_bound[0])
+        torque = torch.clamp(u[:, 0].to(s.dtype), -bound, bound)
+        acc = 3 * self.g / (2 * self.length) * torch.sin(th) + 3.0 / (self.mass * self.length**2) * torque
+        thdot_n = torch.clamp(thdot + self.dt * acc, -8.0, 8.0)
+        return torch.stack([th + self.dt * thdot_n, thdot_n], dim=1)
+
+    def observe(self, s: torch.Tensor) -> torch.Tensor:
+        return torch.stack([torch.cos(s[:, 0]), torch.sin(s[:, 0]), s[:, 1]], dim=-1)
+
+    def cost(self, s_next: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+        wrapped = torch.remainder(s_next[:, 0] + np.pi, 2 * np.pi) - np.pi
+        return wrapped**2 + 0.1 * s_next[:, 1] ** 2 + 0.002 * (u**2).sum(-1)
+
+    def sample_initial(self, n: int, generator: torch.Generator) -> torch.Tensor:
+        high = torch.tensor([np.pi, 1.0], dtype=torch.float64)
+        return (2 * torch.rand(n, 2, generator=generator, dtype=torch.float64) - 1) * high
+
+    def evaluate_return(self, policy: torch.nn.Module, episodes: int = 20, seed: int = 1000) -> dict[str, float]:
+        """Undiscounted returns (minus the summed cost) of ``episodes`` 200-step episodes of the true plant
+        (the model plus the true torque and its noise) from starts drawn with ``seed``: mean, IQM, min."""
+        gen = torch.Generator().manual_seed(seed)
+        s = self.sample_initial(episodes, gen)
+        total = torch.zeros(episodes, dtype=torch.float64)
+        with torch.no_grad():
+            for _ in range(self.eval_horizon):
+                u = policy(self.observe(s).float()).double()
+                s = self.true_step(s, u, gen)
+                total -= self.cost(s, u)
+        r = np.sort(total.numpy())
+        q = len(r) // 4
+        return {"mean": float(r.mean()), "iqm": float(r[q:len(r) - q].mean()), "min": float(r[0])}
+
+
 #: The tuning systems by name (constructors with their default parameters).
 TUNING_SYSTEMS: dict[str, type[Task]] = {"cart_friction": CartFriction, "two_tank": TwoTank}
+#: The global tuning systems by name (no equilibrium to compare with an LQR: measured by their return).
+GLOBAL_TUNING_SYSTEMS: dict[str, type[Task]] = {"swing_up": SwingUp}
 
 
 def lqr_reference(task: Task) -> dict[str, Any]:

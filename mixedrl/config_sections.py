@@ -176,6 +176,27 @@ class AlgorithmConfig:
     fallback of ``"on"``). The three give the same numbers to float32 rounding; ``"off"`` is the reference,
     bit for bit. The runs of one batch share it."""
 
+    rollout_horizon: int = 0
+    """Departure (learner, issue 42): model steps ``H`` of the rollouts PEV and PIM work on. 0 (the default) =
+    the paper's one-step PEV (eqs. 49-50) and PIM (eqs. 51-52). ``H > 0``: the actor's loss is the discounted
+    cost of an ``H``-step rollout of the planning model under ``N(mu_hat_k, K_hat_k)`` plus the target critic at
+    its end, differentiated through the model, and the critic is fitted to ``lambda``-returns along the same
+    rollouts (:mod:`mixedrl.departures.rollout`). The same for every method of Algorithm 2."""
+
+    rollout_lambda: float = 0.95
+    """Departure (learner): ``lambda`` in [0, 1] of the critic's ``lambda``-returns (``rollout_horizon > 0``)."""
+
+    rollout_updates: int = 1
+    """Departure (learner): actor-then-critic updates on fresh rollouts per iteration (``rollout_horizon > 0``)."""
+
+    rollout_discount_start: float = 0.0
+    """Departure (learner): with ``rollout_horizon > 0``, the rollouts' discount starts at this value and ramps
+    linearly to the task's ``gamma`` over the first ``rollout_discount_ramp`` of the budget; 0 (the default) =
+    the task's ``gamma`` throughout."""
+
+    rollout_discount_ramp: float = 0.4
+    """Departure (learner): fraction of the budget over which the discount ramps (``rollout_discount_start > 0``)."""
+
     def __post_init__(self) -> None:
         w = "algorithm"
         check_choice(self.compile, f"{w}.compile", COMPILE_MODES)
@@ -207,6 +228,11 @@ class AlgorithmConfig:
         check_fraction(self.critic_target, f"{w}.critic_target", high_open=True)
         check_number(self.stop_epsilon, f"{w}.stop_epsilon", nonneg=True)
         self.batch_weight_offset = check_number(self.batch_weight_offset, f"{w}.batch_weight_offset", positive=True)
+        self.rollout_horizon = check_nonnegative_int(self.rollout_horizon, f"{w}.rollout_horizon")
+        self.rollout_updates = check_positive_int(self.rollout_updates, f"{w}.rollout_updates")
+        check_fraction(self.rollout_lambda, f"{w}.rollout_lambda")
+        check_fraction(self.rollout_discount_start, f"{w}.rollout_discount_start", high_open=True)
+        check_fraction(self.rollout_discount_ramp, f"{w}.rollout_discount_ramp")
 
 
 @dataclass

@@ -77,18 +77,21 @@ def task_parameters(task: Any) -> dict[str, Any]:
 
 def one_run(system: str, method: str, seed: int, iterations: int | None, out: Path = OUT,
             systems: dict[str, Any] | None = None, preset: str | None = None,
-            overrides: dict[str, Any] | None = None) -> dict[str, Any]:
+            overrides: dict[str, Any] | None = None, algorithm: dict[str, Any] | None = None,
+            tag: str = "") -> dict[str, Any]:
     """Train one run and measure it (module docstring).
 
     ``systems`` maps the system's name to its task class (default :data:`TUNING_SYSTEMS`); a name missing
     from it is a built-in task named in the config (``"pendulum"``, ``"linear"``: the task the config
     builds). ``preset`` (e.g. ``"paper"``) and ``overrides`` (config sections, e.g. ``{"algorithm": {...}}``)
-    change the library defaults.
+    change the library defaults; ``algorithm``: further ``algorithm.*`` settings; ``tag``: a suffix of the
+    per-run file's name.
     """
     systems = TUNING_SYSTEMS if systems is None else systems
     sections = {k: dict(v) for k, v in (overrides or {}).items()}
+    sections["algorithm"] = sections.get("algorithm", {}) | dict(algorithm or {})
     if iterations is not None:
-        sections.setdefault("algorithm", {})["iterations"] = iterations
+        sections["algorithm"]["iterations"] = iterations
     builtin = system not in systems
     config = TrainConfig(method=method, task=system if builtin else "linear", seed=seed, **sections)
     if preset is not None:
@@ -140,7 +143,7 @@ def one_run(system: str, method: str, seed: int, iterations: int | None, out: Pa
     runs = out / "per_run"
     runs.mkdir(parents=True, exist_ok=True)
     name = f"{system}_{method}_{seed}" if preset is None else f"{system}_{method}_{preset}_{seed}"
-    atomic_write_text(runs / f"{name}.json", json.dumps(record, indent=1) + "\n")
+    atomic_write_text(runs / f"{name}{tag}.json", json.dumps(record, indent=1) + "\n")
     return row
 
 

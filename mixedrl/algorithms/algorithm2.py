@@ -19,7 +19,7 @@ their networks and batches) is
 The noise source is the only difference between mixed RL (an IBE posterior), model-driven RL (the prior,
 eq. 55) and the oracle (the true noise). Where the library departs from the paper the loop calls a named hook
 of :mod:`mixedrl.departures` (schedule, anchor, sampler, state weights, target values, Bellman steps,
-averaging); with every departure off (``TrainConfig.preset("paper")``) the loop is the paper's.
+averaging, model rollouts in PEV and PIM); with every departure off (``TrainConfig.preset("paper")``) the loop is the paper's.
 
 Order: the paper's loop is IBE -> PEV -> PIM -> MVC. The MVC of eq. (38) needs ``xi_hat_{k+1}``, so the IBE
 update sits between PIM and the MVC loop (a cyclic shift: PEV and PIM of iteration ``k`` use ``xi_hat_k``, the
@@ -37,7 +37,8 @@ from typing import Any, Sequence
 import numpy as np
 import torch
 
-from mixedrl.departures import actor_average, anchor, bellman_steps, critic_target, sampler, schedule, state_weights
+from mixedrl.departures import (actor_average, anchor, bellman_steps, critic_target, rollout, sampler, schedule,
+                                state_weights)
 from mixedrl.expectation import expectation_nodes, h_value
 from mixedrl.pev import critic_step
 from mixedrl.pim import MVCResult, actor_step, mvc_check
@@ -98,17 +99,25 @@ def iteration(engine: Any, active: Sequence[bool] | None = None) -> list[dict[st
     # xi_hat_k: each run's current noise source (for mixed RL the IBE posterior; the prior before any data)
     nodes_k = quadrature()
 
-    # ---- 2. PEV (eqs. 49-50) under xi_hat_k: w^{k+1} = w^k - alpha dJ_critic/dw
-    critic_losses = critic_step(task, engine.critic, engine.actor, engine.critic_descent, s, *nodes_k,
-                                relative_offset=rel, steps=steps, target_critic=engine.critic_target,
-                                runs=R, active=on)
+    if rollout.active(runs[0].config):
+        # ---- 2-3. departure hook: PEV and PIM on H-step model rollouts under xi_hat_k (lambda-returns, SHAC)
+        moments = [planning_moments(m, batches[r], u_runs[r]) if flags[r] else None for r, m in enumerate(runs)]
+        critic_losses, actor_objs = rollout.update(engine, s, moments, on, rel)
 
-    # ---- 3. PIM (eqs. 51-52) under xi_hat_k, critics frozen: theta^{k+1} = theta^k - beta dJ_actor/dtheta
-    def pim(which: list[int]) -> torch.Tensor:
-        return actor_step(task, engine.critic.frozen(), engine.actor, engine.actor_descent, s, *nodes_k,
-                          relative_offset=rel, steps=steps, runs=R, active=which)
+        def pim(which: list[int]) -> torch.Tensor:
+            return rollout.improve(engine, s, moments, which, rel)[0]
+    else:
+        # ---- 2. PEV (eqs. 49-50) under xi_hat_k: w^{k+1} = w^k - alpha dJ_critic/dw
+        critic_losses = critic_step(task, engine.critic, engine.actor, engine.critic_descent, s, *nodes_k,
+                                    relative_offset=rel, steps=steps, target_critic=engine.critic_target,
+                                    runs=R, active=on)
 
-    actor_objs = pim(on)
+        # ---- 3. PIM (eqs. 51-52) under xi_hat_k, critics frozen: theta^{k+1} = theta^k - beta dJ_actor/dtheta
+        def pim(which: list[int]) -> torch.Tensor:
+            return actor_step(task, engine.critic.frozen(), engine.actor, engine.actor_descent, s, *nodes_k,
+                              relative_offset=rel, steps=steps, runs=R, active=which)
+
+        actor_objs = pim(on)
 
     # ---- 4. IBE (eq. 20): xi_hat_k -> xi_hat_{k+1}
     for r in on:

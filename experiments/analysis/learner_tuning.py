@@ -1,0 +1,163 @@
+"""Issue 42's learner (:mod:`mixedrl.departures.rollout`) tuned on the held-out TUNING systems only, side by
+side with the library defaults (the baseline of ``tuning_baseline.py``): near an equilibrium on
+:class:`experiments.tuning_systems.CartFriction` and :class:`~experiments.tuning_systems.TwoTank` (cost against
+the discounted LQR with the true feed-forward, steady offset, ``policy_gap``, wall time), and globally on
+:class:`~experiments.tuning_systems.SwingUp` (the return of a swing-up from everywhere). Seeds 100 and up;
+the targets and their seeds 0-9 are never run here. Every run takes the library's sampler (model rollouts; mixed
+RL's IBE fed by one true copy, 2 true transitions per iteration: 1,200 in a 600-iteration run).
+
+Each *variant* is a set of ``algorithm.*`` settings (:data:`VARIANTS`); ``baseline`` is the library defaults.
+Runs go ``--jobs`` at a time (one thread each), a line per finished run on stderr. ``rows.json`` keeps the
+rows of earlier invocations (a row is replaced when its variant, system, method and seed are run again) and
+``table.md`` is written from it, so several sweeps end in one table; each row carries its wall seconds,
+measured while the other ``--jobs - 1`` runs of the same invocation ran beside it.
+
+Usage::
+
+    PYTHONPATH=. python experiments/analysis/learner_tuning.py --variants baseline h16 --jobs 2
+    PYTHONPATH=. python experiments/analysis/learner_tuning.py --systems swing_up --variants baseline h16 swing
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import multiprocessing
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+ROOT = Path(__file__).resolve().parents[2]
+for p in (ROOT, ROOT / "experiments" / "analysis"):
+    if str(p) not in sys.path:
+        sys.path.insert(0, str(p))
+
+from experiments.tuning_systems import GLOBAL_TUNING_SYSTEMS  # noqa: E402
+from mixedrl.algorithms.agpi import AGPI  # noqa: E402
+from mixedrl.config import TrainConfig  # noqa: E402
+from mixedrl.runs import atomic_write_text, train  # noqa: E402
+from tuning_baseline import COST_REL, one_run  # noqa: E402
+
+OUT = ROOT / "experiments" / "results" / "learner_tuning"
+
+#: Variant name -> ``algorithm.*`` settings over the library defaults.
+VARIANTS: dict[str, dict[str, Any]] = {
+    "baseline": {},
+    "h16": {"rollout_horizon": 16, "critic_target": 0.8, "iterations": 600},
+    "h8": {"rollout_horizon": 8, "critic_target": 0.8, "iterations": 900},
+    "h8_lr": {"rollout_horizon": 8, "critic_target": 0.8, "iterations": 700, "actor_lr": 1e-3},
+    "h4_lr": {"rollout_horizon": 4, "critic_target": 0.8, "iterations": 1100, "actor_lr": 1e-3},
+    "h8_lr2": {"rollout_horizon": 8, "critic_target": 0.8, "iterations": 700, "actor_lr": 2e-3},
+    "h8_lr_ct0": {"rollout_horizon": 8, "iterations": 700, "actor_lr": 1e-3},
+    "h8_lr2_j1": {"rollout_horizon": 8, "critic_target": 0.8, "iterations": 700, "actor_lr": 2e-3, "j_max": 1},
+    "swing": {"rollout_horizon": 32, "critic_target": 0.8, "iterations": 600, "batch_size": 256,
+              "actor_lr": 2e-3, "critic_lr": 2e-3, "rollout_discount_start": 0.95, "grad_clip": 1.0,
+              "activation": "tanh"},
+    "swing2": {"rollout_horizon": 32, "critic_target": 0.8, "iterations": 1000, "batch_size": 256,
+               "actor_lr": 2e-3, "critic_lr": 2e-3, "rollout_discount_start": 0.95, "grad_clip": 1.0,
+               "activation": "tanh", "horizon": 20, "batch_weighting": "uniform"},
+}
+
+
+def global_run(system: str, method: str, seed: int, algorithm: dict[str, Any]) -> dict[str, Any]:
+    """Train one run on a global tuning system and measure its return (the task's ``evaluate_return``)."""
+    task = GLOBAL_TUNING_SYSTEMS[system]()
+    config = TrainConfig(method=method, task="linear", seed=seed, algorithm=algorithm)
+    t0 = time.time()
+    run = AGPI(task, config)
+    results = train(run, progress=False)
+    wall = time.time() - t0
+    return {"returns": task.evaluate_return(run.policy, episodes=20), "wall_seconds": wall,
+            "iterations": results["iterations"], "true_transitions": run.true_transitions,
+            "noise_mean": float(np.asarray(run.noise.mean).reshape(-1)[0]), "true_mean": float(task.true_mean[0])}
+
+
+def job(args: tuple[str, str, str, int]) -> dict[str, Any]:
+    """One run of a variant (near-equilibrium: :func:`tuning_baseline.one_run`; global: :func:`global_run`)."""
+    variant, system, method, seed = args
+    torch.set_num_threads(1)
+    algorithm = VARIANTS[variant]
+    if system in GLOBAL_TUNING_SYSTEMS:
+        row = {"system": system, "method": method, "seed": seed, **global_run(system, method, seed, algorithm)}
+    else:
+        row = one_run(system, method, seed, None, OUT, algorithm=algorithm, tag=f"_{variant}")
+    row["variant"] = variant
+    return row
+
+
+def fmt(r: dict[str, Any]) -> str:
+    """A table line of a row."""
+    if "returns" in r:
+        ret = r["returns"]
+        return (f"| {r['system']} | {r['variant']} | {r['method']} | {r['seed']} | return IQM {ret['iqm']:.1f} "
+                f"(mean {ret['mean']:.1f}) | - | - | - | - | {r['wall_seconds']:.0f} |")
+    return (f"| {r['system']} | {r['variant']} | {r['method']} | {r['seed']} | {r['cost_ratio']:.4f} | "
+            f"{r['offset']:+.4f} / {r['lqr_true_offset']:+.4f} | {'yes' if r['offset_within_target'] else 'NO'} | "
+            f"{r['action_error_true_mean']:+.3f} | {r['gain_error_rel']:.3f} | {r['wall_seconds']:.0f} |")
+
+
+def summary(rows: list[dict[str, Any]]) -> list[str]:
+    """Per system, method and variant: mean/worst cost ratio, targets met, mean wall (or mean return IQM)."""
+    out = []
+    keys = sorted({(r["system"], r["method"], r["variant"]) for r in rows})
+    for system, method, variant in keys:
+        rs = [r for r in rows if (r["system"], r["method"], r["variant"]) == (system, method, variant)]
+        wall = np.mean([r["wall_seconds"] for r in rs])
+        if "returns" in rs[0]:
+            out.append(f"- {system} {method} {variant}: return IQM mean {np.mean([r['returns']['iqm'] for r in rs]):.1f} "
+                       f"(worst {min(r['returns']['iqm'] for r in rs):.1f}) over seeds "
+                       f"{[r['seed'] for r in rs]}; wall {wall:.0f} s/run")
+            continue
+        ratios = [r["cost_ratio"] for r in rs]
+        out.append(f"- {system} {method} {variant}: cost/LQR mean {np.mean(ratios):.4f} (worst {max(ratios):.4f}); "
+                   f"cost within {COST_REL:.0%} on {sum(r['cost_within_target'] for r in rs)}/{len(rs)}; offset "
+                   f"within target on {sum(r['offset_within_target'] for r in rs)}/{len(rs)}; wall {wall:.0f} s/run")
+    return out
+
+
+def main(argv: list[str] | None = None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--variants", nargs="+", default=["baseline", "h16"], choices=list(VARIANTS))
+    ap.add_argument("--systems", nargs="+", default=["cart_friction", "two_tank"])
+    ap.add_argument("--methods", nargs="+", default=["mixed"])
+    ap.add_argument("--seeds", type=int, nargs="+", default=[100, 101, 102])
+    ap.add_argument("--jobs", type=int, default=2)
+    args = ap.parse_args(argv)
+    if any(s < 100 for s in args.seeds):
+        raise SystemExit("seeds: the tuning seeds are 100 and up (0-9 belong to the targets)")
+    jobs = [(v, s, m, seed) for s in args.systems for m in args.methods for seed in args.seeds for v in args.variants]
+    OUT.mkdir(parents=True, exist_ok=True)
+    path = OUT / "rows.json"
+    rows = json.loads(path.read_text()) if path.exists() else []
+    new = []
+    with multiprocessing.get_context("fork").Pool(args.jobs) as pool:
+        for i, row in enumerate(pool.imap_unordered(job, jobs), 1):
+            print(f"[{i}/{len(jobs)}] {fmt(row)}", file=sys.stderr, flush=True)
+            new.append(row)
+    done = {(r["variant"], r["system"], r["method"], r["seed"]) for r in new}
+    rows = [r for r in rows if (r["variant"], r["system"], r["method"], r["seed"]) not in done] + new
+    rows.sort(key=lambda r: (r["system"], r["method"], r["seed"], list(VARIANTS).index(r["variant"])))
+    lines = ["Learner tuning (issue 42): the rollout learner (mixedrl.departures.rollout) against the library "
+             "defaults (baseline), held-out tuning systems and seeds only; written by "
+             "experiments/analysis/learner_tuning.py from rows.json", "",
+             "Variants (algorithm.* settings over the defaults):", ""]
+    lines += [f"- {name}: {json.dumps(VARIANTS[name])}" for name in VARIANTS if any(r["variant"] == name for r in rows)]
+    lines += ["", "cost/LQR: final evaluated cost over the discounted LQR with the true feed-forward (same seeds, same "
+              "evaluator); offset: controlled component's steady offset / the LQR's; offset ok: every component within "
+              "0.1 |LQR's| + 1e-3 obs_scale; du(eq) true: action error at the equilibrium against the true mean's LQ "
+              "optimum; gain err: ||du/dx + L|| / ||L||; wall: seconds per run (training + evaluations).", "",
+              "| system | variant | method | seed | cost/LQR | offset / LQR's | offset ok | du(eq) true | gain err | wall s |",
+              "|---|---|---|---|---|---|---|---|---|---|"]
+    lines += [fmt(r) for r in rows]
+    lines += ["", "Summary (mean over seeds):", ""] + summary(rows)
+    atomic_write_text(OUT / "table.md", "\n".join(lines) + "\n")
+    atomic_write_text(path, json.dumps(rows, indent=1) + "\n")
+    print("\n".join(summary(rows)))
+
+
+if __name__ == "__main__":
+    main()
