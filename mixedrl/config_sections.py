@@ -233,6 +233,10 @@ class AlgorithmConfig:
         check_fraction(self.rollout_lambda, f"{w}.rollout_lambda")
         check_fraction(self.rollout_discount_start, f"{w}.rollout_discount_start", high_open=True)
         check_fraction(self.rollout_discount_ramp, f"{w}.rollout_discount_ramp")
+        if self.rollout_horizon > 0 and self.compile != "off":
+            # the rollout departure's steps are eager (mixedrl.departures.rollout): refuse rather than ignore
+            raise ValueError(f"{w}.compile: the rollout departure ({w}.rollout_horizon = {self.rollout_horizon}) "
+                             f"runs eagerly; expected 'off' with it, got {self.compile!r}")
 
 
 @dataclass

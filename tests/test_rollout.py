@@ -167,3 +167,10 @@ def test_discount_ramp() -> None:
     assert rollout.discount(cfg, 20, 0.99) == pytest.approx(0.97)
     assert rollout.discount(cfg, 60, 0.99) == pytest.approx(0.99)
     assert rollout.discount(_config(), 0, 0.97) == 0.97
+
+
+def test_the_compiled_step_does_not_silently_skip_the_rollout() -> None:
+    """The rollout departure's steps are eager: asking to compile them is refused, naming the key."""
+    with pytest.raises(ValueError, match=r"algorithm.compile: the rollout departure"):
+        TrainConfig(task="linear", algorithm={"rollout_horizon": 4, "compile": "on"})
+    assert TrainConfig(task="linear", algorithm={"rollout_horizon": 4}).algorithm.compile == "off"
