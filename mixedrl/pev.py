@@ -412,9 +412,12 @@ def check_runs(runs: int, batch: int) -> int:
 
 
 def run_mean(values: torch.Tensor, runs: int = 1) -> torch.Tensor:
-    """The batch mean of per-state ``values`` (B,): a scalar, or one mean per run (R,) when ``runs = R > 1``
-    (the states of run ``r`` are rows ``r B' .. (r + 1) B' - 1``, ``B' = B / R``)."""
-    return values.mean() if runs == 1 else values.reshape(runs, -1).mean(dim=1)
+    """The batch mean of per-state ``values`` (..., B): a scalar, or one mean per run (R,) when ``runs = R > 1``
+    (the states of run ``r`` are rows ``r B' .. (r + 1) B' - 1`` of the last axis, ``B' = B / R``; any leading
+    axes, e.g. the steps of a rollout, are averaged with them)."""
+    if runs == 1:
+        return values.mean()
+    return values.reshape(*values.shape[:-1], runs, -1).transpose(0, -2).reshape(runs, -1).mean(dim=1)
 
 
 def critic_step(task: Any, critic: Callable[..., torch.Tensor], actor: Callable[..., torch.Tensor],

@@ -90,22 +90,25 @@ def iteration(engine: Any, active: Sequence[bool] | None = None) -> list[dict[st
         u_old = engine.actor(obs)
     u_runs = [u_old[engine.rows(r)] for r in range(R)]
 
-    def quadrature() -> tuple[torch.Tensor, torch.Tensor]:
-        """Each active run's nodes of its current xi_hat on its rows (an inactive run: the first active's)."""
-        per_run = [nodes(m, *planning_moments(m, batches[r], u_runs[r])) if flags[r] else None
-                   for r, m in enumerate(runs)]
+    def moments() -> list[tuple[np.ndarray, np.ndarray] | None]:
+        """Each active run's moments of its current xi_hat on its rows (``None`` for an inactive run)."""
+        return [planning_moments(m, batches[r], u_runs[r]) if flags[r] else None for r, m in enumerate(runs)]
+
+    def quadrature(per_run_moments: list[tuple[np.ndarray, np.ndarray] | None]) -> tuple[torch.Tensor, torch.Tensor]:
+        """Each active run's nodes of its moments on its rows (an inactive run: the first active's)."""
+        per_run = [nodes(m, *mo) if mo is not None else None for m, mo in zip(runs, per_run_moments)]
         return engine.join([n if n is not None else per_run[on[0]] for n in per_run])
 
     # xi_hat_k: each run's current noise source (for mixed RL the IBE posterior; the prior before any data)
-    nodes_k = quadrature()
+    moments_k = moments()
+    nodes_k = quadrature(moments_k)
 
     if rollout.active(runs[0].config):
         # ---- 2-3. departure hook: PEV and PIM on H-step model rollouts under xi_hat_k (lambda-returns, SHAC)
-        moments = [planning_moments(m, batches[r], u_runs[r]) if flags[r] else None for r, m in enumerate(runs)]
-        critic_losses, actor_objs = rollout.update(engine, s, moments, on, rel)
+        critic_losses, actor_objs = rollout.update(engine, s, moments_k, on, rel)
 
         def pim(which: list[int]) -> torch.Tensor:
-            return rollout.improve(engine, s, moments, which, rel)[0]
+            return rollout.improve(engine, s, moments_k, which, rel)[0]
     else:
         # ---- 2. PEV (eqs. 49-50) under xi_hat_k: w^{k+1} = w^k - alpha dJ_critic/dw
         critic_losses = critic_step(task, engine.critic, engine.actor, engine.critic_descent, s, *nodes_k,
@@ -122,7 +125,7 @@ def iteration(engine: Any, active: Sequence[bool] | None = None) -> list[dict[st
     # ---- 4. IBE (eq. 20): xi_hat_k -> xi_hat_{k+1}
     for r in on:
         ibe(runs[r].noise, residuals[r], runs[r].transitions)
-    nodes_next = quadrature()
+    nodes_next = quadrature(moments())
 
     # ---- 5. MVC loop (eqs. 37-39), masked per run: more PIM steps under xi_hat_k until
     #         h(x, u^{k+1}, xi_hat_{k+1}) - h(x, u^{k+1}, xi_hat_k) <= e_k(x) = h(x, u^k, xi_hat_k) - h(x, u^{k+1}, xi_hat_k)

@@ -49,6 +49,8 @@ import numpy as np
 import torch
 
 from mixedrl.config import PAPER_SETTINGS
+from mixedrl.gaussian import psd_factor
+from mixedrl.pev import run_mean
 
 NAME = "rollout"
 KEY = "algorithm.rollout_horizon"
@@ -101,8 +103,7 @@ def noise_draws(mean: np.ndarray, cov: np.ndarray, noise_matrix: torch.Tensor, h
     torch.Tensor, shape (H, batch, state_dim)
     """
     mean_t = torch.as_tensor(np.asarray(mean, dtype=np.float64))
-    w, v = torch.linalg.eigh(torch.as_tensor(np.asarray(cov, dtype=np.float64)))
-    root = v * w.clamp(min=0.0).sqrt()  # K^{1/2} up to rotation: root root^T = K
+    root = torch.as_tensor(psd_factor(np.asarray(cov, dtype=np.float64)))  # root root^T = K, also when singular
     z = torch.randn(horizon, batch, root.shape[0], generator=generator, dtype=torch.float64)
     xi = mean_t + z @ root.T
     return (xi @ noise_matrix.double().T).to(dtype)
@@ -145,13 +146,6 @@ def _discounts(gamma: torch.Tensor, steps: int) -> torch.Tensor:
     return gamma.reshape(1, -1) ** t
 
 
-def _run_mean(values: torch.Tensor, runs: int) -> torch.Tensor:
-    """Mean over the last axis's ``R`` blocks of rows (and any leading axes): () for ``R = 1``, else (R,)."""
-    if runs == 1:
-        return values.mean()
-    return values.reshape(*values.shape[:-1], runs, -1).transpose(0, -2).reshape(runs, -1).mean(dim=1)
-
-
 def actor_loss(task: Any, value_target: Network, states: torch.Tensor, costs: torch.Tensor, gamma: torch.Tensor,
                runs: int = 1, relative_offset: float | None = None) -> torch.Tensor:
     """PIM on a rollout: ``J = mean_x0 [sum_{t<H} gamma^t l(x_{t+1}, u_t) + gamma^H V_target(x_H)] / value_scale``.
@@ -182,10 +176,10 @@ def actor_loss(task: Any, value_target: Network, states: torch.Tensor, costs: to
     total = (disc[:-1] * costs).sum(dim=0) + disc[-1] * tail
     scale = float(getattr(task, "value_scale", 1.0))
     if relative_offset is None:
-        return _run_mean(total, runs) / scale
+        return run_mean(total, runs) / scale
     rho = 1.0 / (value_target(task.observe(states[0])).reshape(-1).detach().to(costs.dtype) + relative_offset)
-    rho = rho / _run_mean(rho, runs).reshape(-1).repeat_interleave(rho.shape[0] // runs)
-    return _run_mean(rho * total, runs) / scale
+    rho = rho / run_mean(rho, runs).reshape(-1).repeat_interleave(rho.shape[0] // runs)
+    return run_mean(rho * total, runs) / scale
 
 
 def lambda_returns(costs: torch.Tensor, next_values: torch.Tensor, gamma: torch.Tensor, lam: float) -> torch.Tensor:
@@ -247,7 +241,7 @@ def critic_loss(task: Any, critic: Network, states: torch.Tensor, targets: torch
         err = (value - targets) / float(getattr(task, "value_scale", 1.0))
     else:
         err = (value - targets) / (targets.abs() + relative_offset)
-    return 0.5 * _run_mean(err.pow(2), runs)
+    return 0.5 * run_mean(err.pow(2), runs)
 
 
 # ----------------------------------------------------------------------------------------------------
