@@ -22,7 +22,7 @@ BATCHES = [1, 256, 4096, 65536]
 @pytest.fixture(scope="module")
 def models() -> dict[str, DoubleLaneChangeModel]:
     """Eager and fused models. Inductor bakes the thread count into its kernels when it compiles them,
-    so the numbers are for the process's ``torch.get_num_threads()`` (set ``OMP_NUM_THREADS``; tox: 2)."""
+    so the numbers are for the process's ``torch.get_num_threads()`` (set ``OMP_NUM_THREADS``; tox: 1)."""
     return {"eager": DoubleLaneChangeModel(), "compiled": DoubleLaneChangeModel(compile=True)}
 
 

@@ -136,9 +136,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="budget (default: the config's; with --resume a larger one extends the run)")
     p.add_argument("--config", type=Path, default=None,
                    help="JSON file with TrainConfig fields, nested like a run's config.json")
-    p.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE",
+    p.add_argument("--set", nargs="*", action="extend", default=[], metavar="KEY=VALUE",
                    help="override config fields; dotted keys for nested ones (task.prior_force_mean=300, "
-                        "task.disturbance.mean=261); values are JSON, else strings")
+                        "task.disturbance.mean=261); values are JSON, else strings; repeated --set flags add up")
     p.add_argument("--preset", choices=tuple(CONFIG_PRESETS), default=None,
                    help="'paper': the paper's literal Algorithm 2 (TrainConfig.preset); --set applies on top")
     p.add_argument("--resume", action="store_true",
@@ -243,6 +243,10 @@ def _train(args: argparse.Namespace) -> int:
                                       "iterations_to_converge", "train_seconds", "true_transitions") if k in results}
     if "policy_gap" in results:
         shown["policy_gap"] = gap_summary(results["policy_gap"])
+    reference = (results.get("references") or {}).get("lqr_true_mean")
+    if reference is not None and "cost" in results:
+        shown["lqr_true_mean_cost"] = reference["cost"]
+        shown["cost_over_lqr"] = results["cost"] / reference["cost"] if reference["cost"] > 0 else None
     print(json.dumps(shown, indent=2))
     if "policy_gap" in results:  # the one human-readable line (stdout stays one JSON object)
         print(format_policy_gap(results["policy_gap"], results.get("policy_gap_reason")), file=sys.stderr)

@@ -35,7 +35,7 @@ from mixedrl.departures.anchor import (FeedForwardPolicy, LQReference, equilibri
 
 __all__ = ["LQReference", "lq_reference", "policy_gap", "run_policy_gap", "own_noise", "FeedForwardPolicy",
            "feedforward_policy", "equilibrium_observation", "equilibrium_gain", "steady_anchor",
-           "feedforward_action", "gap_summary", "format_policy_gap", "VALUE_NOTE"]
+           "feedforward_action", "gap_summary", "format_policy_gap", "VALUE_NOTE", "LQRPolicy", "run_references"]
 
 #: What the ``value`` entries of :func:`policy_gap` compare (also in ``results.json``).
 VALUE_NOTE = ("value: the critic at the equilibrium (V(x*), for DDPG Q(x*, pi(x*))) on the nonlinear model; "
@@ -202,6 +202,88 @@ def run_policy_gap(trainer: Any, policy: torch.nn.Module | None = None) -> tuple
         return policy_gap(task, policy, mean, cov, value=value, lin=lin), None
     except (ValueError, RuntimeError) as exc:
         return None, f"no LQ optimum at the equilibrium: {type(exc).__name__}: {exc}"
+
+
+class LQRPolicy(torch.nn.Module):
+    """The discounted LQR at the task's equilibrium with a noise mean's feed-forward, as a policy on observations.
+
+    .. math:: u = \\operatorname{clip}\\big(u_{ff} + G\\,(o - o^*),\\ -\\bar u,\\ \\bar u\\big)
+
+    with ``u_ff = u* - l0(E mu)`` the LQ optimum's action at the equilibrium for the mean ``mu``
+    (:func:`lq_reference`) and ``G`` its gain in observation coordinates (:func:`equilibrium_gain`).
+
+    Parameters
+    ----------
+    task : Task
+        A task with an equilibrium (:meth:`~mixedrl.tasks.Task.linearisation` not ``None``).
+    mean : array_like, shape (noise_dim,)
+        The noise mean of the feed-forward.
+    lin : Linearisation, optional
+        Instead of ``task.linearisation()``.
+
+    Raises
+    ------
+    ValueError
+        If the task has no equilibrium, or as :func:`lq_reference`.
+    """
+
+    def __init__(self, task: Task, mean: Any, lin: Linearisation | None = None) -> None:
+        super().__init__()
+        lin = task.linearisation() if lin is None else lin
+        if lin is None:
+            raise ValueError(f"task: {getattr(task, 'name', type(task).__name__)!r} defines no equilibrium "
+                             "(Task.equilibrium), so it has no LQR")
+        mean = np.asarray(mean, dtype=np.float64)
+        self.register_buffer("u_ff", torch.as_tensor(lq_reference(lin, mean).action, dtype=torch.float32))
+        self.register_buffer("gain", equilibrium_gain(task, lin).float())
+        self.register_buffer("o_star", equilibrium_observation(task, lin))
+        self.register_buffer("bound", torch.as_tensor(task.action_bound, dtype=torch.float32))
+
+    def forward(self, obs: torch.Tensor) -> torch.Tensor:
+        u = self.u_ff + (obs - self.o_star) @ self.gain.T
+        return torch.maximum(torch.minimum(u, self.bound), -self.bound)
+
+
+def run_references(trainer: Any, seeds: list[int]) -> tuple[dict[str, Any] | None, str | None]:
+    """The yardstick of a run: the discounted LQR with the true mean's feed-forward (:class:`LQRPolicy`),
+    the optimum near the equilibrium, evaluated like the run (its task, its evaluation seeds, the same
+    evaluator), so the run's evaluated cost and its training curve can be read against it.
+
+    Evaluation only (one more simulated evaluation, :meth:`mixedrl.tasks.Task.evaluate`, which drives no
+    plant and is not counted among the run's evaluation transitions).
+
+    Returns
+    -------
+    tuple
+        ``({"lqr_true_mean": {...}}, None)`` (the evaluation's numbers), or ``(None, reason)`` when the task
+        has no equilibrium, declares the LQR no yardstick (``Task.lqr_reference`` false, as the double lane
+        change, whose course is not an equilibrium), has a state-dependent true mean, is evaluated on a
+        plant, or its LQ problem has no solution.
+    """
+    task: Task = trainer.task
+    name = getattr(task, "name", type(task).__name__)
+    if not getattr(task, "lqr_reference", True):
+        return None, f"task {name!r} declares the LQR at its equilibrium no yardstick (Task.lqr_reference)"
+    if getattr(task, "true_mean_varies", False):
+        return None, f"task {name!r} has a state-dependent true mean: no constant feed-forward"
+    if getattr(task, "plant_evaluation", "simulated") != "simulated":
+        return None, "the run is evaluated on a plant: a reference would cost plant transitions"
+    try:
+        lin = task.linearisation()
+    except (ValueError, RuntimeError) as exc:
+        return None, f"no linearisation at the equilibrium: {type(exc).__name__}: {exc}"
+    if lin is None:
+        return None, f"task {name!r} defines no equilibrium (Task.equilibrium)"
+    try:
+        policy = LQRPolicy(task, task.true_mean, lin)
+    except (ValueError, np.linalg.LinAlgError) as exc:
+        return None, f"no discounted LQ optimum at the equilibrium: {type(exc).__name__}: {exc}"
+    counted = (task.evaluation_transitions, task.last_evaluation_counts)
+    try:
+        ev = task.evaluate(policy, list(seeds))
+    finally:  # the yardstick's steps are not the run's evaluation transitions
+        task.evaluation_transitions, task.last_evaluation_counts = counted
+    return {"lqr_true_mean": {k: float(v) for k, v in ev.items() if isinstance(v, (int, float, np.floating))}}, None
 
 
 #: The entries of a ``policy_gap`` that the command line shows (:func:`gap_summary`).

@@ -49,8 +49,8 @@ from typing import Any, Iterator
 import numpy as np
 import torch
 
-from mixedrl.checkpoint import (atomic_write_text, default_file_mode, is_temporary, load_checkpoint, regular_file,
-                                verify_digest, write_with_digest)
+from mixedrl.checkpoint import (atomic_write_bytes, atomic_write_text, default_file_mode, is_temporary, load_checkpoint,
+                                regular_file, verify_digest, write_with_digest)
 from mixedrl.config import TrainConfig, task_names
 
 __all__ = ["RunDirectory", "RunLockedError", "hold_lock", "is_lock_file", "LOCK_NAME", "RUN_FILES", "config_record",
@@ -67,7 +67,7 @@ _STARTED = RUN_FILES + tuple(f"{name}.sha256" for name in ("config.json", "check
 def _temporary_of_run(name: str) -> bool:
     """True for a temporary file :func:`atomic_write_bytes` leaves when killed while writing a run's file."""
     stem = name[1:].rsplit(".", 2)[0] if is_temporary(name) and name.count(".") >= 3 else ""
-    return stem in _STARTED + ("metrics.csv",)
+    return stem in _STARTED + ("metrics.csv", "training_curve.png")
 
 
 class RunLockedError(ValueError):
@@ -185,6 +185,7 @@ class RunDirectory:
     metrics_path = property(lambda self: self.path / "metrics.jsonl")
     csv_path = property(lambda self: self.path / "metrics.csv")
     results_path = property(lambda self: self.path / "results.json")
+    curve_path = property(lambda self: self.path / "training_curve.png")
     lock_path = property(lambda self: self.path / LOCK_NAME)
 
     def _check_link(self) -> None:
@@ -397,6 +398,11 @@ class RunDirectory:
         self._mkdir()
         text = json.dumps(results, indent=2, sort_keys=True) + "\n"
         write_with_digest(self.results_path, text.encode("utf-8"))
+
+    def write_curve(self, png: bytes) -> None:
+        """Write ``training_curve.png`` (:func:`mixedrl.run_results.training_curve`) atomically."""
+        self._mkdir()
+        atomic_write_bytes(self.curve_path, png)
 
     def read_results(self) -> dict[str, Any]:
         """Read ``results.json``, verified against its sha256 sidecar when it has one.

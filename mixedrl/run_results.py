@@ -18,12 +18,12 @@ from mixedrl.algorithms.ddpg import DDPG
 from mixedrl.config import ANCHORED_FEEDFORWARDS, TrainConfig
 from mixedrl import departures
 from mixedrl.plant import credit_evaluations, plant_transitions
-from mixedrl.precision import run_policy_gap
+from mixedrl.precision import run_policy_gap, run_references
 from mixedrl.tasks import Task, task_from_config
 from mixedrl.run_directory import RunDirectory, load_trainer
 
 __all__ = ["iterations_to_converge", "eval_seeds", "make_trainer", "evaluate_run", "evaluate_together", "summarize",
-           "CONVERGENCE_RTOL"]
+           "training_curve", "CONVERGENCE_RTOL"]
 
 #: Relative tolerance of the convergence criterion (:func:`iterations_to_converge`).
 CONVERGENCE_RTOL = 0.10
@@ -248,6 +248,11 @@ def summarize(trainer: Any, rows: list[dict[str, Any]], elapsed: float, seeds: l
     results["policy_gap"], reason = run_policy_gap(trainer)
     if reason is not None:
         results["policy_gap_reason"] = reason
+    # the yardstick of the training curve (evaluation only): the LQR with the true mean's feed-forward,
+    # evaluated like the run; null with a reason where the task has none
+    results["references"], reason = run_references(trainer, seeds)
+    if reason is not None:
+        results["references_reason"] = reason
     feedforward = cfg.algorithm.feedforward
     if feedforward != "learned":
         # the evaluated policy's action at the equilibrium is the LQ optimum's by construction
@@ -255,3 +260,51 @@ def summarize(trainer: Any, rows: list[dict[str, Any]], elapsed: float, seeds: l
     if feedforward == "lq":  # ... and the trained actor's own, before the shift
         results["policy_gap_learned"], _ = run_policy_gap(trainer, trainer.learned_policy)
     return results
+
+
+def training_curve(rows: list[dict[str, Any]], results: dict[str, Any]) -> bytes | None:
+    """The run's training curve as a PNG: the evaluated cost (``eval/cost``) against the iteration, with the
+    yardstick of ``results["references"]`` (the discounted LQR with the true mean's feed-forward) as a line.
+
+    Parameters
+    ----------
+    rows : list of dict
+        The run's metrics rows.
+    results : dict
+        Its :func:`summarize` record.
+
+    Returns
+    -------
+    bytes or None
+        The PNG; ``None`` without evaluations or without matplotlib (an optional extra, ``plots``).
+    """
+    evals = np.asarray([(r["iteration"], r["eval/cost"]) for r in rows if "eval/cost" in r], dtype=float)
+    if evals.size == 0:
+        return None
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        return None
+    import io
+
+    fig, ax = plt.subplots(figsize=(5.5, 3.6))
+    ax.plot(evals[:, 0], evals[:, 1], marker="o", markersize=3, label=f"{results['method']} (seed {results['seed']})")
+    reference = (results.get("references") or {}).get("lqr_true_mean")
+    if reference is not None:
+        ax.axhline(reference["cost"], color="k", linestyle="--",
+                   label=f"discounted LQR, true feed-forward: {reference['cost']:.4g}")
+    finite = evals[np.isfinite(evals[:, 1]), 1]
+    if finite.size and finite.min() > 0 and finite.max() > 20 * finite.min():
+        ax.set_yscale("log")
+    ax.set_xlabel("iteration")
+    ax.set_ylabel("evaluated cost")
+    ax.set_title(f"task {results['task']}: final cost {results['final'].get('cost', float('nan')):.4g}", fontsize=9)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    buffer = io.BytesIO()
+    fig.savefig(buffer, format="png", dpi=100)
+    plt.close(fig)
+    return buffer.getvalue()

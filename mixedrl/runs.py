@@ -50,7 +50,7 @@ from mixedrl.tensorboard import TB_DIR, TensorBoardLogger
 from mixedrl.run_directory import (LOCK_NAME, RUN_FILES, RunDirectory, RunLockedError, check_state, config_record,
                                    hold_lock, is_lock_file, load_trainer)
 from mixedrl.run_results import (CONVERGENCE_RTOL, eval_seeds, evaluate_run, evaluate_together,
-                                 iterations_to_converge, make_trainer, summarize)
+                                 iterations_to_converge, make_trainer, summarize, training_curve)
 
 __all__ = ["RunDirectory", "save_checkpoint", "load_checkpoint", "atomic_write_bytes", "atomic_write_text",
            "write_with_digest", "verify_digest", "digest_path", "RunLockedError", "hold_lock", "is_lock_file",
@@ -486,6 +486,9 @@ def _train(trainers: list[Any], engine: Callable[[list[bool]], list[dict[str, fl
             results["batch_size_runs"] = n
         if runs[i] is not None:
             runs[i].write_csv()
+            curve = training_curve(rows_i, results)
+            if curve is not None:  # before results.json, which marks the run finished
+                runs[i].write_curve(curve)
             runs[i].write_results(results)
         else:
             results["metrics"] = memory_rows[i]

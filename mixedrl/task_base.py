@@ -68,6 +68,10 @@ class Task(abc.ABC):
         Typical magnitude of the value (the critic's output is multiplied by it).
     true_mean_varies : bool
         Whether the true noise mean depends on the state (:meth:`true_mean_at`); ``False`` by default.
+    lqr_reference : bool
+        Whether the discounted LQR at the equilibrium (true mean's feed-forward) is the yardstick of this
+        task's runs (:func:`mixedrl.precision.run_references`, ``results.json``: ``references``); ``True`` by
+        default, used only when the task has an equilibrium.
     name : str
         The task's name in a run's results (``results["task"]``); the class name unless the subclass sets it.
     eval_horizon : int
@@ -115,6 +119,7 @@ class Task(abc.ABC):
     obs_scale: torch.Tensor
     value_scale: float = 1.0
     true_mean_varies: bool = False
+    lqr_reference: bool = True
     name: str
     eval_horizon: int = 200
     eval_starts: int = 64

@@ -29,6 +29,17 @@ def test_parse_overrides() -> None:
         parse_overrides(["novalue"])
 
 
+def test_repeated_set_flags_add_up(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """``--set a=1 --set b=2`` applies both (argparse's default would keep only the last flag's values)."""
+    out = tmp_path / "run"
+    assert main(["train", "--method", "model", "--out", str(out), "--iterations", "2", "--no-progress",
+                 "--set", *SMALL, "--set", "task.init_box=0.25"]) == 0
+    cfg = TrainConfig.load(out / "config.json")
+    assert cfg.task.name == "linear" and cfg.task.init_box == 0.25
+    printed = json.loads(capsys.readouterr().out)
+    assert printed["cost_over_lqr"] == pytest.approx(printed["cost"] / printed["lqr_true_mean_cost"])
+
+
 def test_train_then_evaluate(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     out = tmp_path / "run"
     assert main(["train", "--method", "mixed", "--seed", "2", "--out", str(out), "--iterations", "20",

@@ -1,7 +1,7 @@
 """Exact LQ case: DARE optimum, exact PEV/PIM (mixedrl.quadratic), Algorithm 1 with three noise sources.
 
 Fast tests (default tox env). The hypothesis sweep over random systems and the slope fit are in
-``tests/test_theory.py`` (tox env ``theory``).
+``tests/test_theory.py`` (tox env ``py``, marker ``theory``).
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Independent checks of the reference controllers (validation/nmpc.py); tox env 'nmpc' (needs CasADi).
+"""Independent checks of the reference controllers (validation/nmpc.py); tox env 'integration' (needs CasADi).
 
 * the CasADi model is the package's torch model (1e-12, float64, saturation branch included);
 * on a linear system the NMPC with a long horizon takes the DARE optimum's first action (1e-6);

@@ -395,3 +395,68 @@ def test_evaluate_with_feedforward_lq_reports_both_gaps(tmp_path: Path, capsys: 
     printed = json.loads(capsys.readouterr().out)
     assert printed["feedforward"] == "learned"
     assert printed["policy_gap"]["action_error"] == pytest.approx(results["policy_gap_learned"]["action_error"])
+
+
+# ------------------------------------------------------------------- the yardstick of a run: the LQR with the true mean
+def test_lqr_policy_is_scipys_discounted_optimum_with_the_means_feed_forward() -> None:
+    """``LQRPolicy(task, mu)`` on the linear task (observation = state) is ``u = -L x - l0(mu)`` of scipy's DARE,
+    for the true mean and for the prior's (which it tells apart)."""
+    from mixedrl.precision import LQRPolicy
+
+    task = LinearTask()
+    x = torch.tensor([[0.0, 0.0], [0.3, -0.2], [-0.5, 0.4]])
+    for mean in (task.true_mean, task.prior_mean):
+        L, l0 = scipy_optimum(task.A, task.B, task.Q, task.R, task.gamma, np.asarray(mean))
+        expected = -x.double().numpy() @ L.T - l0
+        assert np.abs(expected).max() < float(task.action_bound[0])  # unclipped: the affine law itself
+        assert np.allclose(LQRPolicy(task, mean)(x).double().numpy(), expected, atol=1e-5)
+    assert not np.allclose(LQRPolicy(task, task.true_mean)(x).numpy(), LQRPolicy(task, task.prior_mean)(x).numpy())
+
+
+def test_a_runs_results_carry_the_lqr_yardstick_uncounted(tmp_path: Path) -> None:
+    """``results.json`` holds ``references.lqr_true_mean``: the LQR with the true mean evaluated on the run's own
+    evaluation seeds (a better cost than the LQR with the prior's), not counted among the run's evaluation
+    transitions; the run directory holds the training curve."""
+    from mixedrl.precision import LQRPolicy
+
+    out = tmp_path / "run"
+    trainer = AGPI(LinearTask(), _config("mixed", eval_every=2, checkpoint_every=2, eval_seeds=2)
+                   .replace(**{"algorithm.iterations": 4}))
+    train(trainer, RunDirectory(out), progress=False)
+    results = json.loads((out / "results.json").read_text())
+    assert "references_reason" not in results
+    counted = trainer.task.evaluation_transitions
+    assert results["plant_transitions"]["evaluation"] == counted
+    seeds = sorted({s for s in _eval_seeds(trainer)})
+    fresh = LinearTask()
+    ref = fresh.evaluate(LQRPolicy(fresh, fresh.true_mean), seeds)["cost"]
+    prior = fresh.evaluate(LQRPolicy(fresh, fresh.prior_mean), seeds)["cost"]
+    assert results["references"]["lqr_true_mean"]["cost"] == pytest.approx(ref, rel=1e-12)
+    assert ref < prior
+    assert (out / "training_curve.png").stat().st_size > 1000
+
+
+def _eval_seeds(trainer: AGPI) -> list[int]:
+    from mixedrl.runs import eval_seeds
+
+    return eval_seeds(trainer.config)
+
+
+def test_no_yardstick_on_the_double_lane_change_or_without_an_equilibrium() -> None:
+    from mixedrl.precision import run_references
+
+    refs, reason = run_references(AGPI(_NoEquilibrium(), _config("model")), [0])
+    assert refs is None and "defines no equilibrium" in reason
+    dlc = AGPI(DoubleLaneChangeTask(), TrainConfig(method="model", task="dlc", seed=0))
+    refs, reason = run_references(dlc, [0])
+    assert refs is None and "Task.lqr_reference" in reason
+
+
+def test_training_curve_needs_evaluations() -> None:
+    from mixedrl.runs import training_curve
+
+    assert training_curve([{"iteration": 1}], {"method": "mixed", "seed": 0, "task": "linear", "final": {}}) is None
+    png = training_curve([{"iteration": 1, "eval/cost": 3.0}, {"iteration": 2, "eval/cost": 2.0}],
+                         {"method": "mixed", "seed": 0, "task": "linear", "final": {"cost": 2.0},
+                          "references": {"lqr_true_mean": {"cost": 1.5}}})
+    assert png is not None and png[:8] == b"\x89PNG\r\n\x1a\n"

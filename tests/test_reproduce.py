@@ -156,10 +156,11 @@ def test_reproduce_quick_end_to_end(tmp_path: Path, capsys: pytest.CaptureFixtur
     assert "library defaults, speed_mae: mixed better than model-driven on" in printed
     assert "paper preset, speed_mae: mixed better than model-driven on" in printed
     # trained as a sweep: the Algorithm-2 runs in batches (2 workers: 2 batches of 3, and the paper preset's
-    # 2 runs in one), DDPG alone
+    # 2 runs in one), DDPG alone (2 seeds, its longer budget on the first seed only)
     sweep = json.loads((out / "sweep" / "sweep.json").read_text())
-    assert (sweep["batch"], sweep["batches"], res["sweep"]["batches"]) == (16, 3 + 4, 7)
-    assert sorted(r["metrics"].get("batch_size_runs", 1) for r in sweep["runs"]) == [1] * 4 + [2] * 2 + [3] * 6
+    assert (sweep["batch"], sweep["batches"], res["sweep"]["batches"]) == (16, 3 + 3, 6)
+    assert sorted(r["metrics"].get("batch_size_runs", 1) for r in sweep["runs"]) == [1] * 3 + [2] * 2 + [3] * 6
+    assert [r["seed"] for r in res["ddpg_long"]["runs"]] == [0]
     for name in ("fig3_ibe_effect", "fig4_convergence", "fig5_trajectory", "fig6_speed_error",
                  "fig7_lateral_error"):
         assert (out / "figures" / f"{name}.png").stat().st_size > 1000

@@ -40,7 +40,7 @@ from mixedrl.algorithms.agpi import AGPI
 from mixedrl.envs.pendulum import PendulumTask
 from mixedrl.expectation import h_value
 from mixedrl.config import FEEDFORWARDS
-from mixedrl.precision import equilibrium_gain, equilibrium_observation, lq_reference
+from mixedrl.precision import LQRPolicy
 from mixedrl.runs import RunDirectory, atomic_write_text, eval_seeds, load_checkpoint, make_trainer
 from mixedrl.tables import paired_interval
 from mixedrl.tasks import task_from_config
@@ -209,25 +209,6 @@ def format_summary(summary: dict[str, Any]) -> list[str]:
         lines.append(f"  mixed - model cost {pair['cost_difference']:+.3f} [{ci}]; mixed better on cost "
                      f"on {pair['cost_wins']} of {pair['n']}, closer to the LQR's offset on {pair['offset_wins']}")
     return lines
-
-
-class LQRPolicy(torch.nn.Module):
-    """The discounted LQR on the linearisation with a noise mean's feed-forward, as a policy on observations:
-    ``u = u_ff + G (o - o*)`` clipped to the bound (``u_ff``, ``G``: :func:`mixedrl.precision.lq_reference`,
-    :func:`mixedrl.precision.equilibrium_gain`); the first-order part of ``algorithm.feedforward =
-    "lq_affine"``'s actor, without its remainder (the MLP's terms and the ``tanh``'s curvature)."""
-
-    def __init__(self, task: PendulumTask, mean: np.ndarray) -> None:
-        super().__init__()
-        lin = task.linearisation()
-        self.register_buffer("u_ff", torch.as_tensor(lq_reference(lin, mean).action, dtype=torch.float32))
-        self.register_buffer("gain", equilibrium_gain(task, lin).float())
-        self.register_buffer("o_star", equilibrium_observation(task, lin))
-        self.register_buffer("bound", torch.as_tensor(task.action_bound, dtype=torch.float32))
-
-    def forward(self, obs: torch.Tensor) -> torch.Tensor:
-        u = self.u_ff + (obs - self.o_star) @ self.gain.T
-        return torch.maximum(torch.minimum(u, self.bound), -self.bound)
 
 
 def lqr_yardstick(run_dir: Path) -> dict[str, Any]:

@@ -83,6 +83,9 @@ class DoubleLaneChangeTask(Task):
     mean_harmonics : int
         Harmonics ``H`` of the Fourier series along the course that Case 3 of the IBE fits
         (:meth:`mean_features`; 8).
+    lqr_reference : bool
+        ``False``: the course is no equilibrium, so the LQR at the straight-road equilibrium is not the
+        yardstick of a run (the course's are the NMPC references of ``validation/nmpc.py``).
 
     Raises
     ------
@@ -91,6 +94,7 @@ class DoubleLaneChangeTask(Task):
     """
 
     name = "dlc"
+    lqr_reference = False
     evaluates_on_plant = True
     counts_evaluation_transitions = True
 
