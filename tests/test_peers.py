@@ -141,10 +141,16 @@ TINY = {"transitions": 600, "eval_every": 300, "eval_seeds": 1, "kwargs": {"lear
 
 @pytest.mark.peers
 @pytest.mark.parametrize("algo", ["td3", "sac"])
-def test_seeded_run_is_reproducible_and_counted(algo: str, tmp_path) -> None:
+def test_seeded_run_is_reproducible_and_counted(algo: str, tmp_path, monkeypatch: pytest.MonkeyPatch) -> None:
     pytest.importorskip("stable_baselines3")
+    import tempfile
+
+    scratch = tmp_path / "tmp"
+    scratch.mkdir()
+    monkeypatch.setattr(tempfile, "tempdir", str(scratch))  # where SB3's default logger would make its folder
     out = tmp_path / "runs" / f"{algo}.json"
     a = train_peer(algo, seed=4, out=out, **TINY)
+    assert not [p.name for p in scratch.iterdir() if p.name.startswith("SB3-")]  # no SB3-<date> folder left behind
     b = train_peer(algo, seed=4, **TINY)
     assert [r["true_transitions"] for r in a["rows"]] == [300, 600]
     assert a["true_transitions"] == 600

@@ -58,6 +58,7 @@ __all__ = [
     "RESERVED_KWARGS",
     "PhysicalPolicy",
     "TransitionCounter",
+    "without_log_folder",
     "import_sb3",
     "make_peer_env",
     "observation_mismatch",
@@ -95,6 +96,18 @@ def import_sb3() -> ModuleType:
     except ImportError as exc:
         raise ImportError(INSTALL_HINT) from exc
     return stable_baselines3
+
+
+def without_log_folder(model: Any) -> Any:
+    """Give an SB3 model a logger that writes nothing, and return it.
+
+    Stable-Baselines3's default logger (``stable_baselines3.common.logger.configure``) creates a folder
+    ``$TMPDIR/SB3-<date>`` on every ``learn`` even with ``verbose=0``; a model with its own logger does not.
+    """
+    from stable_baselines3.common.logger import Logger
+
+    model.set_logger(Logger(folder=None, output_formats=[]))
+    return model
 
 
 class TransitionCounter(gym.Wrapper):
@@ -344,7 +357,7 @@ def train_peer(algo: str, *, seed: int = 0, transitions: int = 100_000, eval_eve
     env = Monitor(counter)
     cls = {"td3": sb3.TD3, "sac": sb3.SAC}[algo]
     try:
-        model = cls("MlpPolicy", env, seed=seed, verbose=0, device="cpu", **extra)
+        model = without_log_folder(cls("MlpPolicy", env, seed=seed, verbose=0, device="cpu", **extra))
     except TypeError as exc:
         raise ValueError(f"kwargs: not accepted by {cls.__name__}: {exc}") from None
     config = {

@@ -303,7 +303,7 @@ def run_sb3(run: dict[str, Any], progress: bool = False) -> dict[str, Any]:
     from stable_baselines3.common.monitor import Monitor
     from stable_baselines3.common.noise import NormalActionNoise, OrnsteinUhlenbeckActionNoise
 
-    from validation.peers import TransitionCounter, _hyperparameters
+    from validation.peers import TransitionCounter, _hyperparameters, without_log_folder
 
     hp = deepcopy(run["hyperparams"])
     total = int(hp.pop("n_timesteps"))
@@ -324,7 +324,7 @@ def run_sb3(run: dict[str, Any], progress: bool = False) -> dict[str, Any]:
     if "train_freq" in hp and isinstance(hp["train_freq"], list):
         hp["train_freq"] = tuple(hp["train_freq"])
     cls = getattr(sb3, run["algo"])
-    model = cls("MlpPolicy", env, seed=run["seed"], verbose=0, device="cpu", **hp)
+    model = without_log_folder(cls("MlpPolicy", env, seed=run["seed"], verbose=0, device="cpu", **hp))
     ev = run["evaluation"]
     every = max(1, total // ev["points"])
     rows: list[dict[str, Any]] = []
