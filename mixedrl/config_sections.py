@@ -14,7 +14,8 @@ from dataclasses import dataclass
 from typing import Any, ClassVar, Union
 
 from mixedrl.checks import check_fraction, check_int, check_nonnegative_int, check_number, check_positive_int
-from mixedrl.config_tasks import BATCH_WEIGHTINGS, COMPILE_MODES, FEEDFORWARDS, build_section, check_choice
+from mixedrl.config_tasks import (ANCHORED_FEEDFORWARDS, BATCH_WEIGHTINGS, COMPILE_MODES, FEEDFORWARDS, build_section,
+                                   check_choice)
 
 __all__ = ["AlgorithmConfig", "DDPGConfig", "RunConfig", "SamplerConfig", "TrueCopiesSampler", "ModelRolloutsSampler",
            "SAMPLERS", "PRESETS", "register_sampler", "register_preset", "sampler_config"]
@@ -197,6 +198,18 @@ class AlgorithmConfig:
     rollout_discount_ramp: float = 0.4
     """Departure (learner): fraction of the budget over which the discount ramps (``rollout_discount_start > 0``)."""
 
+    rollout_region: float = 0.0
+    """Departure (learner, :mod:`mixedrl.departures.region`): with ``rollout_horizon > 0``, the fraction of the
+    rollouts' start states drawn afresh each iteration from the task's whole state region
+    (``task.sample_region``), the rest being end states of the previous iteration's rollouts; 0 (the default) =
+    the rollouts start from the sampler's batch. Needs a state-independent noise source (not ``ibe_case = 3``)."""
+
+    actor_output: str = "tanh"
+    """Departure (learner, :mod:`mixedrl.departures.actor_output`): how the actor's output is bounded:
+    ``"tanh"`` (the default, ``u_bar tanh(MLP)``) or ``"clip"`` (``u_bar clip(MLP, -1, 1)``, the clip's gradient
+    passed straight through for the parameters only). Algorithm 2's plain actor only (not with an anchored
+    ``feedforward``, not DDPG)."""
+
     def __post_init__(self) -> None:
         w = "algorithm"
         check_choice(self.compile, f"{w}.compile", COMPILE_MODES)
@@ -233,6 +246,15 @@ class AlgorithmConfig:
         check_fraction(self.rollout_lambda, f"{w}.rollout_lambda")
         check_fraction(self.rollout_discount_start, f"{w}.rollout_discount_start", high_open=True)
         check_fraction(self.rollout_discount_ramp, f"{w}.rollout_discount_ramp")
+        check_choice(self.actor_output, f"{w}.actor_output", ("tanh", "clip"))
+        if self.actor_output != "tanh" and self.feedforward in ANCHORED_FEEDFORWARDS:
+            raise ValueError(f"{w}.actor_output: {self.actor_output!r} is for the plain actor; {w}.feedforward = "
+                             f"{self.feedforward!r} trains an anchored (tanh) actor")
+        check_fraction(self.rollout_region, f"{w}.rollout_region")
+        if self.rollout_region > 0 and (self.rollout_horizon == 0 or self.ibe_case == 3):
+            raise ValueError(f"{w}.rollout_region: the start states of the rollout departure; expected 0 unless "
+                             f"{w}.rollout_horizon > 0 with a state-independent noise source (ibe_case 1 or 2), got "
+                             f"{self.rollout_region!r} (rollout_horizon {self.rollout_horizon}, ibe_case {self.ibe_case})")
         if self.rollout_horizon > 0 and self.compile != "off":
             # the rollout departure's steps are eager (mixedrl.departures.rollout): refuse rather than ignore
             raise ValueError(f"{w}.compile: the rollout departure ({w}.rollout_horizon = {self.rollout_horizon}) "

@@ -13,7 +13,7 @@ from typing import Callable, Sequence
 import torch
 from torch import nn
 
-__all__ = ["MLP", "Critic", "Actor", "AnchoredActor", "AffineAnchoredActor", "QCritic", "QuadraticCritic", "AffineActor", "init_uniform_", "stacked_actors"]
+__all__ = ["MLP", "Critic", "Actor", "ClippedActor", "AnchoredActor", "AffineAnchoredActor", "QCritic", "QuadraticCritic", "AffineActor", "init_uniform_", "stacked_actors"]
 
 _ACTIVATIONS = {"elu": nn.ELU, "tanh": nn.Tanh, "relu": nn.ReLU}
 
@@ -185,6 +185,29 @@ class Actor(nn.Module):
 
     def forward(self, obs: torch.Tensor) -> torch.Tensor:
         return self.action_bound * torch.tanh(self.net(obs))
+
+
+class ClippedActor(Actor):
+    """An :class:`Actor` whose output is clipped instead of ``tanh``-squashed (``algorithm.actor_output = "clip"``,
+    :mod:`mixedrl.departures.actor_output`), the clip's gradient passed straight through for the parameters only.
+
+    .. math:: u(o) = \\bar u \\operatorname{clip}\\big(z(o; \\theta), -1, 1\\big), \\qquad z = \\mathrm{MLP}(o; \\theta)
+
+    with the gradients ``du/dtheta = u_bar dz/dtheta`` everywhere (straight through, also where ``|z| > 1``)
+    and ``du/do = u_bar clip'(z) dz/do`` (the true one: zero where clipped). The value is exactly
+    ``u_bar clip(z, -1, 1)``: the straight-through term ``z_p - detach(z_p)``, ``z_p = MLP(detach(o))``, adds 0.
+    With gradients enabled the MLP is evaluated twice (``o`` and ``detach(o)``); without, once. Same parameters,
+    initialisation and draws as the :class:`Actor`.
+    """
+
+    def forward(self, obs: torch.Tensor) -> torch.Tensor:
+        z = self.net(obs)
+        out = z.clamp(-1.0, 1.0)
+        if torch.is_grad_enabled():
+            z_params = self.net(obs.detach())  # the parameters' path only
+            outside = (z < -1.0) | (z > 1.0)
+            out = out + torch.where(outside, z_params - z_params.detach(), torch.zeros_like(z_params))
+        return self.action_bound * out
 
 
 def stacked_actors(actors: Sequence[nn.Module]) -> Callable[[torch.Tensor], torch.Tensor] | None:

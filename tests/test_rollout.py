@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-from experiments.tuning_systems import CartFriction
+from experiments.tuning_systems import CartFriction, SwingUp
 from mixedrl.algorithms.agpi import AGPI
 from mixedrl.algorithms.batched import BatchedAGPI
 from mixedrl.config import TrainConfig
@@ -142,10 +142,13 @@ def test_reproducible_and_listed(tmp_path) -> None:
     assert "rollout" not in used(_config(rollout_horizon=0))
 
 
-def test_batched_runs_do_not_depend_on_their_neighbours() -> None:
-    """R = 2: a run's weights are the same bits whatever run shares its batch (its own generator draws its noise)."""
+@pytest.mark.parametrize("task, extra", [(CartFriction, {}),
+                                         (SwingUp, {"actor_output": "clip", "rollout_region": 0.5})])
+def test_batched_runs_do_not_depend_on_their_neighbours(task: type, extra: dict) -> None:
+    """R = 2: a run's weights are the same bits whatever run shares its batch (its own generator draws its noise;
+    with the clipped actor and the region starts too, :mod:`tests.test_swing_departures`)."""
     def pair(other: int) -> AGPI:
-        runs = [AGPI(CartFriction(), _config(100)), AGPI(CartFriction(), _config(other))]
+        runs = [AGPI(task(), _config(100, **extra)), AGPI(task(), _config(other, **extra))]
         engine = BatchedAGPI(runs)
         for _ in range(3):
             engine.iteration()

@@ -61,6 +61,10 @@ VARIANTS: dict[str, dict[str, Any]] = {
                "actor_lr": 2e-3, "critic_lr": 2e-3, "rollout_discount_start": 0.95, "grad_clip": 1.0,
                "activation": "tanh", "horizon": 20, "batch_weighting": "uniform"},
 }
+#: The global departures (issue 42): the clipped actor (``actor_output``) and the region starts (``rollout_region``).
+VARIANTS["swing_clip"] = dict(VARIANTS["swing"], actor_output="clip")
+VARIANTS["swing_region"] = dict(VARIANTS["swing"], rollout_region=0.5)
+VARIANTS["swing_cr"] = dict(VARIANTS["swing"], actor_output="clip", rollout_region=0.5)
 
 
 def global_run(system: str, method: str, seed: int, algorithm: dict[str, Any]) -> dict[str, Any]:

@@ -49,6 +49,7 @@ import numpy as np
 import torch
 
 from mixedrl.config import PAPER_SETTINGS
+from mixedrl.departures import region
 from mixedrl.gaussian import psd_factor
 from mixedrl.pev import run_mean
 
@@ -327,4 +328,5 @@ def update(engine: Any, s: torch.Tensor, moments: Sequence[tuple[np.ndarray, np.
             targets = lambda_returns(costs, next_values, gamma, algo.rollout_lambda)
         loss = critic_loss(engine.task, engine.critic, states[:-1], targets, engine.runs, relative_offset)
         engine.critic_descent(loss, active_runs)
+    region.remember(engine, states[-1], active_runs)  # departure hook: the end states the next starts carry over
     return loss.detach(), obj
