@@ -57,6 +57,25 @@ def test_clipped_value_and_straight_through_gradients() -> None:
     assert torch.allclose(g_clip[-1][~clipped], g_free[-1][~clipped], rtol=1e-5, atol=1e-6)
 
 
+def test_inward_straight_through_only_moves_a_clipped_output_back() -> None:
+    """``clip_inward``: a clipped row passes its parameter gradient only where descent moves z back inside
+    (dJ/dz * z > 0); the unclipped rows as before (the two-sided gradient, or none, fails)."""
+    actor = _saturating_actor()
+    actor.inward = True
+    obs = torch.randn(64, 3, generator=torch.Generator().manual_seed(4))
+    weights = torch.randn(64, 1, generator=torch.Generator().manual_seed(5))
+    z = actor.net(obs)
+    clipped = z.abs() > 1
+    back = clipped & (weights * z > 0)
+    assert 0 < int(back.sum()) < int(clipped.sum())  # both kinds of clipped rows present
+    keep = (~clipped | back).to(z.dtype)
+    params = list(actor.parameters())
+    got = torch.autograd.grad((weights * actor(obs)).sum(), params)
+    want = torch.autograd.grad((keep * weights * actor.action_bound * actor.net(obs)).sum(), params)
+    for a, b in zip(got, want):
+        assert torch.allclose(a, b, rtol=1e-5, atol=1e-6)
+
+
 def test_clipped_actor_without_gradient_is_the_clip() -> None:
     actor = _saturating_actor()
     obs = torch.randn(32, 3, generator=torch.Generator().manual_seed(6))
@@ -108,9 +127,10 @@ def test_reproducible_and_listed() -> None:
     assert {"actor_output", "region_starts"} <= set(used(_config()))
     assert not {"actor_output", "region_starts"} & set(used(_config(actor_output="tanh", rollout_region=0.0)))
     assert type(AGPI(SwingUp(), _config(actor_output="tanh")).actor) is Actor
+    assert AGPI(SwingUp(), _config(actor_output="clip_inward")).actor.inward and not a.actor.inward
 
 
-@pytest.mark.parametrize("key, bad, extra", [("actor_output", "sigmoid", {}), ("rollout_region", 1.5, {}),
+@pytest.mark.parametrize("key, bad, extra", [("actor_output", "sigmoid", {}), ("actor_output", "inward", {}), ("rollout_region", 1.5, {}),
                                              ("rollout_region", 0.5, {"rollout_horizon": 0}),
                                              ("rollout_region", 0.5, {"ibe_case": 3}),
                                              ("actor_output", "clip", {"feedforward": "lq_train"})])

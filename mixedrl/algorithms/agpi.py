@@ -88,7 +88,8 @@ def build_networks(task: Task, config: TrainConfig, generator: torch.Generator, 
             task.action_bound, task.obs_scale)
     if anchor_obs is None:
         # departure hook (actor_output): the clipped actor with a straight-through gradient for its parameters
-        actor: torch.nn.Module = (ClippedActor if actor_output.active(config) else Actor)(*args)
+        actor: torch.nn.Module = (ClippedActor(*args, inward=config.algorithm.actor_output == "clip_inward")
+                                  if actor_output.active(config) else Actor(*args))
     elif anchor_gain is None:
         actor = AnchoredActor(*args, anchor_obs=anchor_obs)
     else:

@@ -18,6 +18,8 @@ gradient of SHAC (Xu et al., ICLR 2022) and the model-based value expansion of F
   ``algorithm.critic_target`` when that is on, else the critic itself without gradient;
 * ``algorithm.rollout_updates`` such actor-then-critic updates per iteration (:func:`update`), each on a
   fresh draw of the noise; the MVC loop's extra PIM steps are rollout actor steps (:func:`improve`);
+* ``algorithm.rollout_critic_steps = n`` critic steps on each rollout, the ``i``-th on its time steps
+  ``i, i + n, ..`` (minibatches of the rollout without a draw; ``n = 1``: one step on all of it);
 * optionally the discount of the rollouts ramps linearly from ``algorithm.rollout_discount_start`` to the
   task's ``gamma`` over the first ``algorithm.rollout_discount_ramp`` of the budget (:func:`discount`).
 
@@ -326,7 +328,10 @@ def update(engine: Any, s: torch.Tensor, moments: Sequence[tuple[np.ndarray, np.
             horizon, batch = costs.shape
             next_values = target(engine.task.observe(states[1:].reshape(horizon * batch, -1))).reshape(horizon, batch)
             targets = lambda_returns(costs, next_values, gamma, algo.rollout_lambda)
-        loss = critic_loss(engine.task, engine.critic, states[:-1], targets, engine.runs, relative_offset)
-        engine.critic_descent(loss, active_runs)
+        steps = algo.rollout_critic_steps
+        for i in range(steps):  # the i-th of the rollout's time steps i, i + n, .. (all of them for n = 1)
+            loss = critic_loss(engine.task, engine.critic, states[:-1][i::steps], targets[i::steps], engine.runs,
+                               relative_offset)
+            engine.critic_descent(loss, active_runs)
     region.remember(engine, states[-1], active_runs)  # departure hook: the end states the next starts carry over
     return loss.detach(), obj
