@@ -75,6 +75,7 @@ VARIANTS["swing_cri_clip2"] = dict(VARIANTS["swing_cri"], actor_output="clip")
 VARIANTS["swing_cri_relative"] = dict(VARIANTS["swing_cri"], batch_weighting="relative")
 VARIANTS["swing_cri_j5"] = dict(VARIANTS["swing_cri"], j_max=5)
 VARIANTS["swing_cri_500"] = dict(VARIANTS["swing_cri"], iterations=500)
+VARIANTS["swing_cri_cs4"] = dict(VARIANTS["swing_cri"], rollout_critic_steps=4)
 
 
 def global_run(system: str, method: str, seed: int, algorithm: dict[str, Any]) -> dict[str, Any]:
