@@ -12,10 +12,16 @@ rows of earlier invocations (a row is replaced when its variant, system, method 
 ``table.md`` is written from it, so several sweeps end in one table; each row carries its wall seconds,
 measured while the other ``--jobs - 1`` runs of the same invocation ran beside it.
 
+``--variants reference`` on ``swing_up`` evaluates :class:`EnergyLQR`, a controller that knows the model and the true
+torque (the best known return, not a learner). ``--timing SYSTEM`` only trains ``--variants`` one after the other in
+one process on ``SYSTEM`` and writes their wall and CPU seconds to ``timing.md`` (the wall times of ``rows.json``
+depend on what else ran on the machine).
+
 Usage::
 
     PYTHONPATH=. python experiments/analysis/learner_tuning.py --variants baseline h16 --jobs 2
     PYTHONPATH=. python experiments/analysis/learner_tuning.py --systems swing_up --variants baseline h16 swing
+    PYTHONPATH=. python experiments/analysis/learner_tuning.py --timing cart_friction --variants baseline swing_cri_h16
 """
 
 from __future__ import annotations
@@ -144,6 +150,23 @@ def job(args: tuple[str, str, str, int]) -> dict[str, Any]:
     return row
 
 
+def timing(system: str, variants: list[str], seed: int = 100) -> list[str]:
+    """Train ``variants`` one after the other in this process on ``system`` (``seed``) and return a line each with
+    its wall and CPU seconds (``getrusage`` of this process: less sensitive than the wall time to other work on the
+    machine) and its cost over the LQR; the per-run files go to ``OUT / "timing"``."""
+    import resource
+    lines = []
+    torch.set_num_threads(1)
+    for variant in variants:
+        c0, t0 = resource.getrusage(resource.RUSAGE_SELF), time.time()
+        r = one_run(system, "mixed", seed, None, OUT / "timing", algorithm=VARIANTS[variant], tag=f"_{variant}")
+        c1 = resource.getrusage(resource.RUSAGE_SELF)
+        cpu = c1.ru_utime - c0.ru_utime + c1.ru_stime - c0.ru_stime
+        lines.append(f"| {system} | {variant} | {seed} | {time.time() - t0:.1f} | {cpu:.1f} | {r['cost_ratio']:.4f} |")
+        print(lines[-1], file=sys.stderr, flush=True)
+    return lines
+
+
 def fmt(r: dict[str, Any]) -> str:
     """A table line of a row."""
     if "returns" in r:
@@ -181,7 +204,13 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--methods", nargs="+", default=["mixed"])
     ap.add_argument("--seeds", type=int, nargs="+", default=[100, 101, 102])
     ap.add_argument("--jobs", type=int, default=2)
+    ap.add_argument("--timing", metavar="SYSTEM", help="only time --variants on SYSTEM, one after the other "
+                    "(timing.md)")
     args = ap.parse_args(argv)
+    if args.timing:
+        head = ["| system | variant | seed | wall s | CPU s | cost/LQR |", "|---|---|---|---|---|---|"]
+        atomic_write_text(OUT / "timing.md", "\n".join(head + timing(args.timing, args.variants, args.seeds[0])) + "\n")
+        return
     if any(s < 100 for s in args.seeds):
         raise SystemExit("seeds: the tuning seeds are 100 and up (0-9 belong to the targets)")
     jobs = [(v, s, m, seed) for s in args.systems for m in args.methods for seed in args.seeds for v in args.variants]

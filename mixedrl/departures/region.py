@@ -24,7 +24,10 @@ is taken at the sampler's states.
 Measured effect (``experiments/results/learner_tuning/table.md``, mixed RL, seeds 100-102, variant ``swing_cri``
 against ``swing_cri_noregion``, the same without it): on SwingUp (region ``theta in [-pi, pi]``, ``theta_dot in
 [-8, 8]``) a return IQM of -135.5, -136.4, -136.8 against -137.6, -134.2, -142.7: a small effect, mostly on the
-worst seed (the energy-pumping + LQR reference: -125.8). NEAR_EQ_PLACEHOLDER
+worst seed (the energy-pumping + LQR reference: -125.8). Near an equilibrium, where the region is the training
+distribution itself, the evaluated cost over the discounted LQR with the true feed-forward is 0.959-0.961 against
+0.961-0.962 on the cart with friction and 0.999 against 1.000-1.001 on the two tanks (steady offsets within issue
+42's tolerance: cart 3 of 3 either way, tanks 0 of 3 either way).
 """
 
 from __future__ import annotations
