@@ -85,6 +85,7 @@ VARIANTS["swing_cri_cs4"] = dict(VARIANTS["swing_cri"], rollout_critic_steps=4)
 #: Cheaper forms of swing_cri (issue 42 allows a default at most 1.5x today's default's wall time).
 VARIANTS["swing_cri_h16"] = dict(VARIANTS["swing_cri"], rollout_horizon=16)
 VARIANTS["swing_cri_b128"] = dict(VARIANTS["swing_cri"], batch_size=128)
+VARIANTS["swing_cri_h16_500"] = dict(VARIANTS["swing_cri_h16"], iterations=500)
 
 
 def global_run(system: str, method: str, seed: int, algorithm: dict[str, Any]) -> dict[str, Any]:
@@ -208,8 +209,13 @@ def main(argv: list[str] | None = None) -> None:
                     "(timing.md)")
     args = ap.parse_args(argv)
     if args.timing:
-        head = ["| system | variant | seed | wall s | CPU s | cost/LQR |", "|---|---|---|---|---|---|"]
-        atomic_write_text(OUT / "timing.md", "\n".join(head + timing(args.timing, args.variants, args.seeds[0])) + "\n")
+        path = OUT / "timing.md"  # the lines of each invocation appended, under a line naming it
+        old = path.read_text() if path.exists() else ("Wall and CPU seconds of runs trained one after the other in one "
+                                                      "process (learner_tuning.py --timing)\n")
+        head = ["", f"{time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}: --timing {args.timing} --variants "
+                f"{' '.join(args.variants)}", "", "| system | variant | seed | wall s | CPU s | cost/LQR |",
+                "|---|---|---|---|---|---|"]
+        atomic_write_text(path, old + "\n".join(head + timing(args.timing, args.variants, args.seeds[0])) + "\n")
         return
     if any(s < 100 for s in args.seeds):
         raise SystemExit("seeds: the tuning seeds are 100 and up (0-9 belong to the targets)")
