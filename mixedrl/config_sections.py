@@ -263,7 +263,8 @@ class AlgorithmConfig:
         if self.rollout_region > 0 and (self.rollout_horizon == 0 or self.ibe_case == 3):
             raise ValueError(f"{w}.rollout_region: the start states of the rollout departure; expected 0 unless "
                              f"{w}.rollout_horizon > 0 with a state-independent noise source (ibe_case 1 or 2), got "
-                             f"{self.rollout_region!r} (rollout_horizon {self.rollout_horizon}, ibe_case {self.ibe_case})")
+                             f"{self.rollout_region!r} (rollout_horizon {self.rollout_horizon}, "
+                             f"ibe_case {self.ibe_case})")
         if self.rollout_horizon > 0 and self.compile != "off":
             # the rollout departure's steps are eager (mixedrl.departures.rollout): refuse rather than ignore
             raise ValueError(f"{w}.compile: the rollout departure ({w}.rollout_horizon = {self.rollout_horizon}) "

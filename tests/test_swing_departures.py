@@ -130,7 +130,8 @@ def test_reproducible_and_listed() -> None:
     assert AGPI(SwingUp(), _config(actor_output="clip_inward")).actor.inward and not a.actor.inward
 
 
-@pytest.mark.parametrize("key, bad, extra", [("actor_output", "sigmoid", {}), ("actor_output", "inward", {}), ("rollout_region", 1.5, {}),
+@pytest.mark.parametrize("key, bad, extra", [("actor_output", "sigmoid", {}), ("actor_output", "inward", {}),
+                                             ("rollout_region", 1.5, {}),
                                              ("rollout_region", 0.5, {"rollout_horizon": 0}),
                                              ("rollout_region", 0.5, {"ibe_case": 3}),
                                              ("actor_output", "clip", {"feedforward": "lq_train"})])
