@@ -214,6 +214,11 @@ class SwingUp(Task):
         high = torch.tensor([np.pi, 1.0], dtype=torch.float64)
         return (2 * torch.rand(n, 2, generator=generator, dtype=torch.float64) - 1) * high
 
+    def sample_region(self, n: int, generator: torch.Generator) -> torch.Tensor:
+        """The whole state region (``algorithm.rollout_region``): ``theta in [-pi, pi]``, ``theta_dot in [-8, 8]``."""
+        high = torch.tensor([np.pi, 8.0], dtype=torch.float64)
+        return (2 * torch.rand(n, 2, generator=generator, dtype=torch.float64) - 1) * high
+
     def evaluate_return(self, policy: torch.nn.Module, episodes: int = 20, seed: int = 1000) -> dict[str, float]:
         """Undiscounted returns (minus the summed cost) of ``episodes`` 200-step episodes of the true plant
         (the model plus the true torque and its noise) from starts drawn with ``seed``: mean, IQM, min."""

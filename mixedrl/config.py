@@ -434,7 +434,8 @@ def _sampler(value: Any, preset: dict[str, Any], task: str) -> Any:
 PAPER_SETTINGS: dict[str, dict[str, Any]] = {
     "sampler": {"name": "true_copies"},
     "algorithm": {"batch_weighting": "uniform", "lr_decay_to": 1.0, "critic_target": 0.0, "bellman_steps": 1,
-                  "feedforward": "learned", "actor_average": 0.0, "rollout_horizon": 0},
+                  "feedforward": "learned", "actor_average": 0.0, "rollout_horizon": 0,
+                  "rollout_region": 0.0, "actor_output": "tanh"},
 }
 #: Preset name -> section -> settings applied over ``TrainConfig(**fields)`` (:meth:`TrainConfig.preset`).
 CONFIG_PRESETS: dict[str, dict[str, dict[str, Any]]] = {"library": {}, "paper": PAPER_SETTINGS}

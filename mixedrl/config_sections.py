@@ -14,7 +14,8 @@ from dataclasses import dataclass
 from typing import Any, ClassVar, Union
 
 from mixedrl.checks import check_fraction, check_int, check_nonnegative_int, check_number, check_positive_int
-from mixedrl.config_tasks import BATCH_WEIGHTINGS, COMPILE_MODES, FEEDFORWARDS, build_section, check_choice
+from mixedrl.config_tasks import (ANCHORED_FEEDFORWARDS, BATCH_WEIGHTINGS, COMPILE_MODES, FEEDFORWARDS, build_section,
+                                   check_choice)
 
 __all__ = ["AlgorithmConfig", "DDPGConfig", "RunConfig", "SamplerConfig", "TrueCopiesSampler", "ModelRolloutsSampler",
            "SAMPLERS", "PRESETS", "register_sampler", "register_preset", "sampler_config"]
@@ -189,6 +190,10 @@ class AlgorithmConfig:
     rollout_updates: int = 1
     """Departure (learner): actor-then-critic updates on fresh rollouts per iteration (``rollout_horizon > 0``)."""
 
+    rollout_critic_steps: int = 1
+    """Departure (learner): critic steps on each rollout (``rollout_horizon > 0``), the ``i``-th on the rollout's
+    time steps ``i, i + n, ..``; 1 (the default) = one step on the whole rollout."""
+
     rollout_discount_start: float = 0.0
     """Departure (learner): with ``rollout_horizon > 0``, the rollouts' discount starts at this value and ramps
     linearly to the task's ``gamma`` over the first ``rollout_discount_ramp`` of the budget; 0 (the default) =
@@ -196,6 +201,19 @@ class AlgorithmConfig:
 
     rollout_discount_ramp: float = 0.4
     """Departure (learner): fraction of the budget over which the discount ramps (``rollout_discount_start > 0``)."""
+
+    rollout_region: float = 0.0
+    """Departure (learner, :mod:`mixedrl.departures.region`): with ``rollout_horizon > 0``, the fraction of the
+    rollouts' start states drawn afresh each iteration from the task's whole state region
+    (``task.sample_region``), the rest being end states of the previous iteration's rollouts; 0 (the default) =
+    the rollouts start from the sampler's batch. Needs a state-independent noise source (not ``ibe_case = 3``)."""
+
+    actor_output: str = "tanh"
+    """Departure (learner, :mod:`mixedrl.departures.actor_output`): how the actor's output is bounded:
+    ``"tanh"`` (the default, ``u_bar tanh(MLP)``), ``"clip"`` (``u_bar clip(MLP, -1, 1)``, the clip's gradient
+    passed straight through for the parameters only) or ``"clip_inward"`` (the same, straight through only where
+    the step moves a clipped output back inside). Algorithm 2's plain actor only (not with an anchored
+    ``feedforward``, not DDPG)."""
 
     def __post_init__(self) -> None:
         w = "algorithm"
@@ -230,9 +248,23 @@ class AlgorithmConfig:
         self.batch_weight_offset = check_number(self.batch_weight_offset, f"{w}.batch_weight_offset", positive=True)
         self.rollout_horizon = check_nonnegative_int(self.rollout_horizon, f"{w}.rollout_horizon")
         self.rollout_updates = check_positive_int(self.rollout_updates, f"{w}.rollout_updates")
+        self.rollout_critic_steps = check_positive_int(self.rollout_critic_steps, f"{w}.rollout_critic_steps")
+        if self.rollout_critic_steps > max(self.rollout_horizon, 1):
+            raise ValueError(f"{w}.rollout_critic_steps: at most rollout_horizon ({self.rollout_horizon}) steps on a "
+                             f"rollout, got {self.rollout_critic_steps}")
         check_fraction(self.rollout_lambda, f"{w}.rollout_lambda")
         check_fraction(self.rollout_discount_start, f"{w}.rollout_discount_start", high_open=True)
         check_fraction(self.rollout_discount_ramp, f"{w}.rollout_discount_ramp")
+        check_choice(self.actor_output, f"{w}.actor_output", ("tanh", "clip", "clip_inward"))
+        if self.actor_output != "tanh" and self.feedforward in ANCHORED_FEEDFORWARDS:
+            raise ValueError(f"{w}.actor_output: {self.actor_output!r} is for the plain actor; {w}.feedforward = "
+                             f"{self.feedforward!r} trains an anchored (tanh) actor")
+        check_fraction(self.rollout_region, f"{w}.rollout_region")
+        if self.rollout_region > 0 and (self.rollout_horizon == 0 or self.ibe_case == 3):
+            raise ValueError(f"{w}.rollout_region: the start states of the rollout departure; expected 0 unless "
+                             f"{w}.rollout_horizon > 0 with a state-independent noise source (ibe_case 1 or 2), got "
+                             f"{self.rollout_region!r} (rollout_horizon {self.rollout_horizon}, "
+                             f"ibe_case {self.ibe_case})")
         if self.rollout_horizon > 0 and self.compile != "off":
             # the rollout departure's steps are eager (mixedrl.departures.rollout): refuse rather than ignore
             raise ValueError(f"{w}.compile: the rollout departure ({w}.rollout_horizon = {self.rollout_horizon}) "

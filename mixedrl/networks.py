@@ -8,12 +8,12 @@ state), so the same seed gives the same weights.
 from __future__ import annotations
 
 import math
-from typing import Callable, Sequence
+from typing import Any, Callable, Sequence
 
 import torch
 from torch import nn
 
-__all__ = ["MLP", "Critic", "Actor", "AnchoredActor", "AffineAnchoredActor", "QCritic", "QuadraticCritic", "AffineActor", "init_uniform_", "stacked_actors"]
+__all__ = ["MLP", "Critic", "Actor", "ClippedActor", "AnchoredActor", "AffineAnchoredActor", "QCritic", "QuadraticCritic", "AffineActor", "init_uniform_", "stacked_actors"]
 
 _ACTIVATIONS = {"elu": nn.ELU, "tanh": nn.Tanh, "relu": nn.ReLU}
 
@@ -185,6 +185,61 @@ class Actor(nn.Module):
 
     def forward(self, obs: torch.Tensor) -> torch.Tensor:
         return self.action_bound * torch.tanh(self.net(obs))
+
+
+class ClippedActor(Actor):
+    """An :class:`Actor` whose output is clipped instead of ``tanh``-squashed (``algorithm.actor_output = "clip"``,
+    :mod:`mixedrl.departures.actor_output`), the clip's gradient passed straight through for the parameters only.
+
+    .. math:: u(o) = \\bar u \\operatorname{clip}\\big(z(o; \\theta), -1, 1\\big), \\qquad z = \\mathrm{MLP}(o; \\theta)
+
+    with the gradients ``du/dtheta = u_bar dz/dtheta`` everywhere (straight through, also where ``|z| > 1``)
+    and ``du/do = u_bar clip'(z) dz/do`` (the true one: zero where clipped). The value is exactly
+    ``u_bar clip(z, -1, 1)``: the straight-through term ``z_p - detach(z_p)``, ``z_p = MLP(detach(o))``, adds 0.
+    With gradients enabled the MLP is evaluated twice (``o`` and ``detach(o)``); without, once. Same parameters,
+    initialisation and draws as the :class:`Actor`.
+
+    With ``inward=True`` (``actor_output = "clip_inward"``) the straight-through gradient of a clipped output is
+    kept only where a descent step moves ``z`` back inside (``dJ/dz * z > 0``) and is zero where it would push
+    ``z`` further out: without it a saturated output winds up (``|z|`` to 16 within 200 iterations on SwingUp).
+    """
+
+    def __init__(self, *args: Any, inward: bool = False, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        #: Straight through only where the step moves the output back inside (``actor_output = "clip_inward"``).
+        self.inward = bool(inward)
+
+    def forward(self, obs: torch.Tensor) -> torch.Tensor:
+        z = self.net(obs)
+        out = z.clamp(-1.0, 1.0)
+        if torch.is_grad_enabled():
+            z_params = self.net(obs.detach())  # the parameters' path only
+            outside = (z < -1.0) | (z > 1.0)
+            through = z_params - z_params.detach()
+            if self.inward:
+                through = _Inward.apply(through, z.detach())
+            out = out + torch.where(outside, through, torch.zeros_like(z_params))
+        return self.action_bound * out
+
+
+class _Inward(torch.autograd.Function):
+    """``x`` unchanged; backward: the gradient ``g`` kept where a descent step moves ``z`` back inside
+    (``g z > 0``), zero where it would push ``z`` further out (no wind-up of a saturated output)."""
+
+    generate_vmap_rule = True
+
+    @staticmethod
+    def forward(x: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
+        return x.clone()
+
+    @staticmethod
+    def setup_context(ctx: Any, inputs: tuple[torch.Tensor, torch.Tensor], output: torch.Tensor) -> None:
+        ctx.save_for_backward(inputs[1])
+
+    @staticmethod
+    def backward(ctx: Any, grad: torch.Tensor) -> tuple[torch.Tensor, None]:
+        (z,) = ctx.saved_tensors
+        return grad * (grad * z > 0).to(grad.dtype), None
 
 
 def stacked_actors(actors: Sequence[nn.Module]) -> Callable[[torch.Tensor], torch.Tensor] | None:

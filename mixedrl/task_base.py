@@ -158,6 +158,12 @@ class Task(abc.ABC):
     def sample_initial(self, n: int, generator: torch.Generator) -> torch.Tensor:
         """``n`` initial states of the training environments, float64, (n, state_dim)."""
 
+    def sample_region(self, n: int, generator: torch.Generator) -> torch.Tensor:
+        """``n`` states drawn over the task's whole state region, float64, (n, state_dim): where the rollouts of
+        ``algorithm.rollout_region`` start (:mod:`mixedrl.departures.region`). Here the training distribution
+        (:meth:`sample_initial`); a global task overrides it with its whole region."""
+        return self.sample_initial(n, generator)
+
     def is_terminal(self, s: torch.Tensor) -> torch.Tensor:
         """Boolean (B,): the episode of this copy ends (left the domain, course finished, not finite)."""
         return ~torch.isfinite(s).all(dim=-1)

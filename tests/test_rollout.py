@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-from experiments.tuning_systems import CartFriction
+from experiments.tuning_systems import CartFriction, SwingUp
 from mixedrl.algorithms.agpi import AGPI
 from mixedrl.algorithms.batched import BatchedAGPI
 from mixedrl.config import TrainConfig
@@ -142,10 +142,13 @@ def test_reproducible_and_listed(tmp_path) -> None:
     assert "rollout" not in used(_config(rollout_horizon=0))
 
 
-def test_batched_runs_do_not_depend_on_their_neighbours() -> None:
-    """R = 2: a run's weights are the same bits whatever run shares its batch (its own generator draws its noise)."""
+@pytest.mark.parametrize("task, extra", [(CartFriction, {}),
+                                         (SwingUp, {"actor_output": "clip_inward", "rollout_region": 0.5})])
+def test_batched_runs_do_not_depend_on_their_neighbours(task: type, extra: dict) -> None:
+    """R = 2: a run's weights are the same bits whatever run shares its batch (its own generator draws its noise;
+    with the clipped actor and the region starts too, :mod:`tests.test_swing_departures`)."""
     def pair(other: int) -> AGPI:
-        runs = [AGPI(CartFriction(), _config(100)), AGPI(CartFriction(), _config(other))]
+        runs = [AGPI(task(), _config(100, **extra)), AGPI(task(), _config(other, **extra))]
         engine = BatchedAGPI(runs)
         for _ in range(3):
             engine.iteration()
@@ -155,7 +158,8 @@ def test_batched_runs_do_not_depend_on_their_neighbours() -> None:
 
 @pytest.mark.parametrize("key, bad", [("rollout_horizon", -1), ("rollout_horizon", 1.5), ("rollout_lambda", 1.5),
                                       ("rollout_updates", 0), ("rollout_discount_start", 1.0),
-                                      ("rollout_discount_ramp", -0.1)])
+                                      ("rollout_discount_ramp", -0.1), ("rollout_critic_steps", 0),
+                                      ("rollout_critic_steps", 4)])
 def test_bad_values_are_refused_naming_the_key(key: str, bad: object) -> None:
     with pytest.raises(ValueError, match=f"algorithm.{key}"):
         _config(**{key: bad})
@@ -174,3 +178,23 @@ def test_the_compiled_step_does_not_silently_skip_the_rollout() -> None:
     with pytest.raises(ValueError, match=r"algorithm.compile: the rollout departure"):
         TrainConfig(task="linear", algorithm={"rollout_horizon": 4, "compile": "on"})
     assert TrainConfig(task="linear", algorithm={"rollout_horizon": 4}).algorithm.compile == "off"
+
+
+def test_critic_steps_split_the_rollout_over_time() -> None:
+    """``rollout_critic_steps = n``: n critic steps, the i-th on time steps i, i + n, ..: with n = H each sees one
+    time step (a step on the whole rollout, or on the same slice each time, fails)."""
+    run = AGPI(CartFriction(), _config(rollout_critic_steps=3))
+    engine = BatchedAGPI([run])
+    seen = []
+    real = rollout.critic_loss
+
+    def spy(task, critic, states, targets, *args):
+        seen.append((states.shape[0], targets.clone()))
+        return real(task, critic, states, targets, *args)
+    rollout.critic_loss = spy
+    try:
+        engine.iteration()
+    finally:
+        rollout.critic_loss = real
+    assert [n for n, _ in seen] == [1, 1, 1]
+    assert not torch.equal(seen[0][1], seen[1][1]) and not torch.equal(seen[1][1], seen[2][1])

@@ -12,10 +12,16 @@ rows of earlier invocations (a row is replaced when its variant, system, method 
 ``table.md`` is written from it, so several sweeps end in one table; each row carries its wall seconds,
 measured while the other ``--jobs - 1`` runs of the same invocation ran beside it.
 
+``--variants reference`` on ``swing_up`` evaluates :class:`EnergyLQR`, a controller that knows the model and the true
+torque (the best known return, not a learner). ``--timing SYSTEM`` only trains ``--variants`` one after the other in
+one process on ``SYSTEM`` and writes their wall and CPU seconds to ``timing.md`` (the wall times of ``rows.json``
+depend on what else ran on the machine).
+
 Usage::
 
     PYTHONPATH=. python experiments/analysis/learner_tuning.py --variants baseline h16 --jobs 2
     PYTHONPATH=. python experiments/analysis/learner_tuning.py --systems swing_up --variants baseline h16 swing
+    PYTHONPATH=. python experiments/analysis/learner_tuning.py --timing cart_friction --variants baseline swing_cri_h16
 """
 
 from __future__ import annotations
@@ -61,6 +67,25 @@ VARIANTS: dict[str, dict[str, Any]] = {
                "actor_lr": 2e-3, "critic_lr": 2e-3, "rollout_discount_start": 0.95, "grad_clip": 1.0,
                "activation": "tanh", "horizon": 20, "batch_weighting": "uniform"},
 }
+#: The global departures (issue 42): the clipped actor (``actor_output``) and the region starts (``rollout_region``).
+VARIANTS["swing_clip"] = dict(VARIANTS["swing"], actor_output="clip")
+VARIANTS["swing_region"] = dict(VARIANTS["swing"], rollout_region=0.5)
+VARIANTS["swing_cr"] = dict(VARIANTS["swing"], actor_output="clip", rollout_region=0.5)
+#: ``clip_inward``: straight through only back inside (the two-sided clip winds up: |z| to 16); the batch's states
+#: weighted uniformly (the relative weights favour the states near the top) and one extra MVC step at most.
+VARIANTS["swing_cri"] = dict(VARIANTS["swing"], actor_output="clip_inward", rollout_region=0.5,
+                             batch_weighting="uniform", j_max=1, iterations=800)
+VARIANTS["swing_cri_noregion"] = dict(VARIANTS["swing_cri"], rollout_region=0.0)
+VARIANTS["swing_cri_tanh"] = dict(VARIANTS["swing_cri"], actor_output="tanh")
+VARIANTS["swing_cri_clip2"] = dict(VARIANTS["swing_cri"], actor_output="clip")
+VARIANTS["swing_cri_relative"] = dict(VARIANTS["swing_cri"], batch_weighting="relative")
+VARIANTS["swing_cri_j5"] = dict(VARIANTS["swing_cri"], j_max=5)
+VARIANTS["swing_cri_500"] = dict(VARIANTS["swing_cri"], iterations=500)
+VARIANTS["swing_cri_cs4"] = dict(VARIANTS["swing_cri"], rollout_critic_steps=4)
+#: Cheaper forms of swing_cri (issue 42 allows a default at most 1.5x today's default's wall time).
+VARIANTS["swing_cri_h16"] = dict(VARIANTS["swing_cri"], rollout_horizon=16)
+VARIANTS["swing_cri_b128"] = dict(VARIANTS["swing_cri"], batch_size=128)
+VARIANTS["swing_cri_h16_500"] = dict(VARIANTS["swing_cri_h16"], iterations=500)
 
 
 def global_run(system: str, method: str, seed: int, algorithm: dict[str, Any]) -> dict[str, Any]:
@@ -76,10 +101,47 @@ def global_run(system: str, method: str, seed: int, algorithm: dict[str, Any]) -
             "noise_mean": float(np.asarray(run.noise.mean).reshape(-1)[0]), "true_mean": float(task.true_mean[0])}
 
 
+class EnergyLQR(torch.nn.Module):
+    """The reference controller of :class:`~experiments.tuning_systems.SwingUp` (not a learner: it knows the model
+    and the true torque): energy pumping ``u = k (E* - E) sign(theta_dot) / b`` with ``E = theta_dot^2 / 2 + a cos
+    theta``, ``E* = a`` (``a = 3 g / (2 l)``, ``b = 3 / (m l^2)``), the discounted LQR of the upright
+    linearisation (costs ``diag(1, 0.1)``, ``0.002``) where ``cos theta > cos(switch)`` and ``|theta_dot| < 4``,
+    minus the true torque, clipped to the bound. ``k = 5``, ``switch = 0.5`` were the best of a 5 x 3 grid
+    (k 0.5-20, switch 0.3-0.8) on the task's own evaluation episodes: a "best known return", not a learner's."""
+
+    def __init__(self, task: Any, k_energy: float = 5.0, switch: float = 0.5) -> None:
+        super().__init__()
+        from scipy.linalg import solve_discrete_are
+        dt, self.a, self.b = task.dt, 3 * task.g / (2 * task.length), 3.0 / (task.mass * task.length ** 2)
+        A = np.array([[1 + dt * dt * self.a, dt], [dt * self.a, 1.0]])
+        B = np.array([[dt * dt * self.b], [dt * self.b]])
+        Q, R, g = np.diag([1.0, 0.1]), np.array([[0.002]]), float(np.sqrt(task.gamma))
+        P = solve_discrete_are(g * A, g * B, Q, R)
+        self.gain = np.linalg.solve(R / task.gamma + B.T @ P @ B, B.T @ P @ A)[0]
+        self.k, self.cos_switch, self.bound = k_energy, float(np.cos(switch)), float(task.action_bound[0])
+        self.tau = float(task.true_mean[0])
+
+    def forward(self, obs: torch.Tensor) -> torch.Tensor:
+        c, s, w = (obs[:, i].double() for i in range(3))
+        swing = self.k * (self.a - 0.5 * w ** 2 - self.a * c) * torch.sign(w + 1e-9) / self.b
+        lqr = -(self.gain[0] * torch.atan2(s, c) + self.gain[1] * w)
+        u = torch.where((c > self.cos_switch) & (w.abs() < 4), lqr, swing) - self.tau
+        return u.clamp(-self.bound, self.bound).float().reshape(-1, 1)
+
+
+#: The name of the reference rows (``--variants reference``): :class:`EnergyLQR`, no training.
+REFERENCE = "reference"
+
+
 def job(args: tuple[str, str, str, int]) -> dict[str, Any]:
     """One run of a variant (near-equilibrium: :func:`tuning_baseline.one_run`; global: :func:`global_run`)."""
     variant, system, method, seed = args
     torch.set_num_threads(1)
+    if variant == REFERENCE:
+        task = GLOBAL_TUNING_SYSTEMS[system]()
+        t0 = time.time()
+        return {"system": system, "method": "energy+LQR", "seed": seed, "variant": variant,
+                "returns": task.evaluate_return(EnergyLQR(task), episodes=20), "wall_seconds": time.time() - t0}
     algorithm = VARIANTS[variant]
     if system in GLOBAL_TUNING_SYSTEMS:
         row = {"system": system, "method": method, "seed": seed, **global_run(system, method, seed, algorithm)}
@@ -87,6 +149,23 @@ def job(args: tuple[str, str, str, int]) -> dict[str, Any]:
         row = one_run(system, method, seed, None, OUT, algorithm=algorithm, tag=f"_{variant}")
     row["variant"] = variant
     return row
+
+
+def timing(system: str, variants: list[str], seed: int = 100) -> list[str]:
+    """Train ``variants`` one after the other in this process on ``system`` (``seed``) and return a line each with
+    its wall and CPU seconds (``getrusage`` of this process: less sensitive than the wall time to other work on the
+    machine) and its cost over the LQR; the per-run files go to ``OUT / "timing"``."""
+    import resource
+    lines = []
+    torch.set_num_threads(1)
+    for variant in variants:
+        c0, t0 = resource.getrusage(resource.RUSAGE_SELF), time.time()
+        r = one_run(system, "mixed", seed, None, OUT / "timing", algorithm=VARIANTS[variant], tag=f"_{variant}")
+        c1 = resource.getrusage(resource.RUSAGE_SELF)
+        cpu = c1.ru_utime - c0.ru_utime + c1.ru_stime - c0.ru_stime
+        lines.append(f"| {system} | {variant} | {seed} | {time.time() - t0:.1f} | {cpu:.1f} | {r['cost_ratio']:.4f} |")
+        print(lines[-1], file=sys.stderr, flush=True)
+    return lines
 
 
 def fmt(r: dict[str, Any]) -> str:
@@ -121,15 +200,28 @@ def summary(rows: list[dict[str, Any]]) -> list[str]:
 
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--variants", nargs="+", default=["baseline", "h16"], choices=list(VARIANTS))
+    ap.add_argument("--variants", nargs="+", default=["baseline", "h16"], choices=[*VARIANTS, REFERENCE])
     ap.add_argument("--systems", nargs="+", default=["cart_friction", "two_tank"])
     ap.add_argument("--methods", nargs="+", default=["mixed"])
     ap.add_argument("--seeds", type=int, nargs="+", default=[100, 101, 102])
     ap.add_argument("--jobs", type=int, default=2)
+    ap.add_argument("--table-only", action="store_true", help="run nothing: rewrite table.md from rows.json")
+    ap.add_argument("--timing", metavar="SYSTEM", help="only time --variants on SYSTEM, one after the other "
+                    "(timing.md)")
     args = ap.parse_args(argv)
+    if args.timing:
+        path = OUT / "timing.md"  # the lines of each invocation appended, under a line naming it
+        old = path.read_text() if path.exists() else ("Wall and CPU seconds of runs trained one after the other in one "
+                                                      "process (learner_tuning.py --timing)\n")
+        head = ["", f"{time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}: --timing {args.timing} --variants "
+                f"{' '.join(args.variants)}", "", "| system | variant | seed | wall s | CPU s | cost/LQR |",
+                "|---|---|---|---|---|---|"]
+        atomic_write_text(path, old + "\n".join(head + timing(args.timing, args.variants, args.seeds[0])) + "\n")
+        return
     if any(s < 100 for s in args.seeds):
         raise SystemExit("seeds: the tuning seeds are 100 and up (0-9 belong to the targets)")
-    jobs = [(v, s, m, seed) for s in args.systems for m in args.methods for seed in args.seeds for v in args.variants]
+    jobs = [] if args.table_only else [(v, s, m, seed) for s in args.systems for m in args.methods
+                                       for seed in args.seeds for v in args.variants]
     OUT.mkdir(parents=True, exist_ok=True)
     path = OUT / "rows.json"
     rows = json.loads(path.read_text()) if path.exists() else []
@@ -140,12 +232,15 @@ def main(argv: list[str] | None = None) -> None:
             new.append(row)
     done = {(r["variant"], r["system"], r["method"], r["seed"]) for r in new}
     rows = [r for r in rows if (r["variant"], r["system"], r["method"], r["seed"]) not in done] + new
-    rows.sort(key=lambda r: (r["system"], r["method"], r["seed"], list(VARIANTS).index(r["variant"])))
+    order = [REFERENCE, *VARIANTS]
+    rows.sort(key=lambda r: (r["system"], r["method"], r["seed"], order.index(r["variant"])))
     lines = ["Learner tuning (issue 42): the rollout learner (mixedrl.departures.rollout) against the library "
              "defaults (baseline), held-out tuning systems and seeds only; written by "
              "experiments/analysis/learner_tuning.py from rows.json", "",
              "Variants (algorithm.* settings over the defaults):", ""]
     lines += [f"- {name}: {json.dumps(VARIANTS[name])}" for name in VARIANTS if any(r["variant"] == name for r in rows)]
+    lines += [f"- {REFERENCE}: not a learner: EnergyLQR of this script (energy pumping, the discounted LQR near the "
+              "top, the true torque compensated; k 5, switch 0.5): the best known return"]
     lines += ["", "cost/LQR: final evaluated cost over the discounted LQR with the true feed-forward (same seeds, same "
               "evaluator); offset: controlled component's steady offset / the LQR's; offset ok: every component within "
               "0.1 |LQR's| + 1e-3 obs_scale; du(eq) true: action error at the equilibrium against the true mean's LQ "

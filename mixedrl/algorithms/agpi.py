@@ -38,10 +38,11 @@ from torch.optim.swa_utils import AveragedModel
 from mixedrl.config import TrainConfig
 from mixedrl.algorithms import algorithm2
 from mixedrl.samplers import SAMPLER_CLASSES
-from mixedrl.departures import actor_average, anchor, critic_target, state_weights
+from mixedrl.departures import actor_average, actor_output, anchor, critic_target, state_weights
 from mixedrl.departures.anchor import equilibrium_gain, equilibrium_observation, feedforward_policy
 from mixedrl.expectation import NodeCache, expectation_nodes, h_value
-from mixedrl.networks import Actor, AffineActor, AffineAnchoredActor, AnchoredActor, Critic, QuadraticCritic
+from mixedrl.networks import (Actor, AffineActor, AffineAnchoredActor, AnchoredActor, ClippedActor, Critic,
+                              QuadraticCritic)
 from mixedrl.noise import make_noise_source
 from mixedrl.plant import check_plant_sampler
 from mixedrl.pev import critic_loss, critic_step
@@ -86,7 +87,9 @@ def build_networks(task: Task, config: TrainConfig, generator: torch.Generator, 
     args = (task.obs_dim, task.action_dim, config.algorithm.hidden_sizes, config.algorithm.activation, generator,
             task.action_bound, task.obs_scale)
     if anchor_obs is None:
-        actor: torch.nn.Module = Actor(*args)
+        # departure hook (actor_output): the clipped actor with a straight-through gradient for its parameters
+        actor: torch.nn.Module = (ClippedActor(*args, inward=config.algorithm.actor_output == "clip_inward")
+                                  if actor_output.active(config) else Actor(*args))
     elif anchor_gain is None:
         actor = AnchoredActor(*args, anchor_obs=anchor_obs)
     else:

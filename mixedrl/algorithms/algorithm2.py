@@ -37,8 +37,8 @@ from typing import Any, Sequence
 import numpy as np
 import torch
 
-from mixedrl.departures import (actor_average, anchor, bellman_steps, critic_target, rollout, sampler, schedule,
-                                state_weights)
+from mixedrl.departures import (actor_average, anchor, bellman_steps, critic_target, region, rollout, sampler,
+                                schedule, state_weights)
 from mixedrl.expectation import expectation_nodes, h_value
 from mixedrl.pev import critic_step
 from mixedrl.pim import MVCResult, actor_step, mvc_check
@@ -105,10 +105,12 @@ def iteration(engine: Any, active: Sequence[bool] | None = None) -> list[dict[st
 
     if rollout.active(runs[0].config):
         # ---- 2-3. departure hook: PEV and PIM on H-step model rollouts under xi_hat_k (lambda-returns, SHAC)
-        critic_losses, actor_objs = rollout.update(engine, s, moments_k, on, rel)
+        #      from the sampler's batch, or (departure hook: region starts) region draws and carried end states
+        starts = region.starts(engine, s, on)
+        critic_losses, actor_objs = rollout.update(engine, starts, moments_k, on, rel)
 
         def pim(which: list[int]) -> torch.Tensor:
-            return rollout.improve(engine, s, moments_k, which, rel)[0]
+            return rollout.improve(engine, starts, moments_k, which, rel)[0]
     else:
         # ---- 2. PEV (eqs. 49-50) under xi_hat_k: w^{k+1} = w^k - alpha dJ_critic/dw
         critic_losses = critic_step(task, engine.critic, engine.actor, engine.critic_descent, s, *nodes_k,

@@ -15,6 +15,8 @@ state weights          :mod:`~mixedrl.departures.state_weights`     PEV and PIM 
 target values          :mod:`~mixedrl.departures.critic_target`     PEV (the network inside ``V_target``)
 Bellman steps          :mod:`~mixedrl.departures.bellman_steps`     PEV and PIM (``h_n`` instead of ``h``)
 rollouts               :mod:`~mixedrl.departures.rollout`           PEV and PIM (``H``-step model rollouts)
+region starts          :mod:`~mixedrl.departures.region`            PEV and PIM (the rollouts' start states)
+actor output           :mod:`~mixedrl.departures.actor_output`      the actor's class (clip, not ``tanh``)
 averaging              :mod:`~mixedrl.departures.actor_average`     end of the iteration (``theta_bar``)
 =====================  ===========================================  ==========================================
 
@@ -26,14 +28,15 @@ from __future__ import annotations
 
 from typing import Any
 
-from mixedrl.departures import (actor_average, anchor, bellman_steps, critic_target, rollout, sampler,
-                                schedule, state_weights)
+from mixedrl.departures import (actor_average, actor_output, anchor, bellman_steps, critic_target, region,
+                                rollout, sampler, schedule, state_weights)
 
-__all__ = ["DEPARTURES", "used", "actor_average", "anchor", "bellman_steps", "critic_target", "rollout",
-           "sampler", "schedule", "state_weights"]
+__all__ = ["DEPARTURES", "used", "actor_average", "actor_output", "anchor", "bellman_steps", "critic_target", "region",
+           "rollout", "sampler", "schedule", "state_weights"]
 
 #: Every departure module, in the order of the loop.
-DEPARTURES = (schedule, anchor, sampler, state_weights, critic_target, bellman_steps, rollout, actor_average)
+DEPARTURES = (schedule, anchor, actor_output, sampler, state_weights, critic_target, bellman_steps, region, rollout,
+              actor_average)
 
 
 def used(config: Any) -> list[str]:
