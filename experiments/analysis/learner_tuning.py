@@ -37,6 +37,7 @@ for p in (ROOT, ROOT / "experiments" / "analysis"):
         sys.path.insert(0, str(p))
 
 from experiments.tuning_systems import GLOBAL_TUNING_SYSTEMS  # noqa: E402
+from experiments.tuning_tracking import TRACKING_TUNING_SYSTEMS, SlalomReference  # noqa: E402
 from mixedrl.algorithms.agpi import AGPI  # noqa: E402
 from mixedrl.config import TrainConfig  # noqa: E402
 from mixedrl.runs import atomic_write_text, train  # noqa: E402
@@ -78,17 +79,34 @@ VARIANTS["swing_cri_500"] = dict(VARIANTS["swing_cri"], iterations=500)
 VARIANTS["swing_cri_cs4"] = dict(VARIANTS["swing_cri"], rollout_critic_steps=4)
 
 
-def global_run(system: str, method: str, seed: int, algorithm: dict[str, Any]) -> dict[str, Any]:
-    """Train one run on a global tuning system and measure its return (the task's ``evaluate_return``)."""
-    task = GLOBAL_TUNING_SYSTEMS[system]()
+def _trained(system: str, method: str, seed: int, algorithm: dict[str, Any], systems: dict[str, Any]
+             ) -> tuple[Any, Any, dict[str, Any]]:
+    """Train one run of ``systems[system]``: the task, the trainer and the row's training fields."""
+    task = systems[system]()
     config = TrainConfig(method=method, task="linear", seed=seed, algorithm=algorithm)
     t0 = time.time()
     run = AGPI(task, config)
     results = train(run, progress=False)
-    wall = time.time() - t0
-    return {"returns": task.evaluate_return(run.policy, episodes=20), "wall_seconds": wall,
-            "iterations": results["iterations"], "true_transitions": run.true_transitions,
-            "noise_mean": float(np.asarray(run.noise.mean).reshape(-1)[0]), "true_mean": float(task.true_mean[0])}
+    return task, run, {"wall_seconds": time.time() - t0, "iterations": results["iterations"],
+                       "true_transitions": run.true_transitions,
+                       "noise_mean": float(np.asarray(run.noise.mean).reshape(-1)[0]),
+                       "true_mean": float(task.true_mean[0])}
+
+
+def global_run(system: str, method: str, seed: int, algorithm: dict[str, Any]) -> dict[str, Any]:
+    """Train one run on a global tuning system and measure its return (the task's ``evaluate_return``)."""
+    task, run, row = _trained(system, method, seed, algorithm, GLOBAL_TUNING_SYSTEMS)
+    return {"returns": task.evaluate_return(run.policy, episodes=20), **row}
+
+
+#: Evaluation seeds of the tracking rows (the course from its start, ``eval_starts`` runs per seed).
+TRACKING_EVAL_SEEDS = [1000, 1001, 1002, 1003]
+
+
+def tracking_run(system: str, method: str, seed: int, algorithm: dict[str, Any]) -> dict[str, Any]:
+    """Train one run on a tracking tuning system and measure it over its course (the task's ``evaluate``)."""
+    task, run, row = _trained(system, method, seed, algorithm, TRACKING_TUNING_SYSTEMS)
+    return {"course": task.evaluate(run.policy, TRACKING_EVAL_SEEDS), **row}
 
 
 class EnergyLQR(torch.nn.Module):
@@ -127,6 +145,11 @@ def job(args: tuple[str, str, str, int]) -> dict[str, Any]:
     """One run of a variant (near-equilibrium: :func:`tuning_baseline.one_run`; global: :func:`global_run`)."""
     variant, system, method, seed = args
     torch.set_num_threads(1)
+    if variant == REFERENCE and system in TRACKING_TUNING_SYSTEMS:
+        task = TRACKING_TUNING_SYSTEMS[system]()
+        t0 = time.time()
+        return {"system": system, "method": "LQR+ff", "seed": seed, "variant": variant,
+                "course": task.evaluate(SlalomReference(task), TRACKING_EVAL_SEEDS), "wall_seconds": time.time() - t0}
     if variant == REFERENCE:
         task = GLOBAL_TUNING_SYSTEMS[system]()
         t0 = time.time()
@@ -135,6 +158,8 @@ def job(args: tuple[str, str, str, int]) -> dict[str, Any]:
     algorithm = VARIANTS[variant]
     if system in GLOBAL_TUNING_SYSTEMS:
         row = {"system": system, "method": method, "seed": seed, **global_run(system, method, seed, algorithm)}
+    elif system in TRACKING_TUNING_SYSTEMS:
+        row = {"system": system, "method": method, "seed": seed, **tracking_run(system, method, seed, algorithm)}
     else:
         row = one_run(system, method, seed, None, OUT, algorithm=algorithm, tag=f"_{variant}")
     row["variant"] = variant
@@ -143,6 +168,11 @@ def job(args: tuple[str, str, str, int]) -> dict[str, Any]:
 
 def fmt(r: dict[str, Any]) -> str:
     """A table line of a row."""
+    if "course" in r:
+        c = r["course"]
+        return (f"| {r['system']} | {r['variant']} | {r['method']} | {r['seed']} | course cost {c['cost']:.1f} | "
+                f"lateral mean {c['lateral_mean']:+.3f} | lateral MAE {c['lateral_mae']:.3f} (max "
+                f"{c['lateral_max']:.2f}) | off course {c['terminated_fraction']:.2f} | - | {r['wall_seconds']:.0f} |")
     if "returns" in r:
         ret = r["returns"]
         return (f"| {r['system']} | {r['variant']} | {r['method']} | {r['seed']} | return IQM {ret['iqm']:.1f} "
@@ -159,6 +189,12 @@ def summary(rows: list[dict[str, Any]]) -> list[str]:
     for system, method, variant in keys:
         rs = [r for r in rows if (r["system"], r["method"], r["variant"]) == (system, method, variant)]
         wall = np.mean([r["wall_seconds"] for r in rs])
+        if "course" in rs[0]:
+            costs = [r["course"]["cost"] for r in rs]
+            out.append(f"- {system} {method} {variant}: course cost mean {np.mean(costs):.1f} (worst {max(costs):.1f}); "
+                       f"lateral MAE mean {np.mean([r['course']['lateral_mae'] for r in rs]):.3f} over seeds "
+                       f"{[r['seed'] for r in rs]}; wall {wall:.0f} s/run")
+            continue
         if "returns" in rs[0]:
             out.append(f"- {system} {method} {variant}: return IQM mean {np.mean([r['returns']['iqm'] for r in rs]):.1f} "
                        f"(worst {min(r['returns']['iqm'] for r in rs):.1f}) over seeds "
@@ -200,11 +236,16 @@ def main(argv: list[str] | None = None) -> None:
              "Variants (algorithm.* settings over the defaults):", ""]
     lines += [f"- {name}: {json.dumps(VARIANTS[name])}" for name in VARIANTS if any(r["variant"] == name for r in rows)]
     lines += [f"- {REFERENCE}: not a learner: EnergyLQR of this script (energy pumping, the discounted LQR near the "
-              "top, the true torque compensated; k 5, switch 0.5): the best known return"]
+              "top, the true torque compensated; k 5, switch 0.5): the best known return; on slalom (LQR+ff) "
+              "SlalomReference of experiments/tuning_tracking.py (the reference's feed-forward, the true current's "
+              "heading, the discounted LQR on the tracking errors)"]
     lines += ["", "cost/LQR: final evaluated cost over the discounted LQR with the true feed-forward (same seeds, same "
               "evaluator); offset: controlled component's steady offset / the LQR's; offset ok: every component within "
               "0.1 |LQR's| + 1e-3 obs_scale; du(eq) true: action error at the equilibrium against the true mean's LQ "
-              "optimum; gain err: ||du/dx + L|| / ||L||; wall: seconds per run (training + evaluations).", "",
+              "optimum; gain err: ||du/dx + L|| / ||L||; wall: seconds per run (training + evaluations). Tracking rows "
+              "(slalom, experiments/tuning_tracking.py): course cost (undiscounted sum of the cost over the 1,000-step "
+              "course from its start, eval seeds 1000-1003 x 8 starts), the signed and absolute lateral error (mean "
+              "over the course) and the fraction of runs off course, in the columns shown.", "",
               "| system | variant | method | seed | cost/LQR | offset / LQR's | offset ok | du(eq) true | gain err | wall s |",
               "|---|---|---|---|---|---|---|---|---|---|"]
     lines += [fmt(r) for r in rows]
