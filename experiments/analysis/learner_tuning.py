@@ -77,6 +77,12 @@ VARIANTS["swing_cri_relative"] = dict(VARIANTS["swing_cri"], batch_weighting="re
 VARIANTS["swing_cri_j5"] = dict(VARIANTS["swing_cri"], j_max=5)
 VARIANTS["swing_cri_500"] = dict(VARIANTS["swing_cri"], iterations=500)
 VARIANTS["swing_cri_cs4"] = dict(VARIANTS["swing_cri"], rollout_critic_steps=4)
+#: On the tracking system (slalom, experiments/tuning_tracking.py): swing_cri's settings one at a time.
+VARIANTS["swing_cri_h8"] = dict(VARIANTS["swing_cri"], rollout_horizon=8)
+VARIANTS["swing_cri_elu"] = dict(VARIANTS["swing_cri"], activation="elu")
+VARIANTS["swing_cri_b128"] = dict(VARIANTS["swing_cri"], batch_size=128)
+VARIANTS["swing_cri_1500"] = dict(VARIANTS["swing_cri"], iterations=1500)
+VARIANTS["swing_cri_nodisc"] = dict(VARIANTS["swing_cri"], rollout_discount_start=0.0)
 
 
 def _trained(system: str, method: str, seed: int, algorithm: dict[str, Any], systems: dict[str, Any]
@@ -191,7 +197,8 @@ def summary(rows: list[dict[str, Any]]) -> list[str]:
         wall = np.mean([r["wall_seconds"] for r in rs])
         if "course" in rs[0]:
             costs = [r["course"]["cost"] for r in rs]
-            out.append(f"- {system} {method} {variant}: course cost mean {np.mean(costs):.1f} (worst {max(costs):.1f}); "
+            out.append(f"- {system} {method} {variant}: course cost mean {np.mean(costs):.1f} "
+                       f"(worst {max(costs):.1f}); "
                        f"lateral MAE mean {np.mean([r['course']['lateral_mae'] for r in rs]):.3f} over seeds "
                        f"{[r['seed'] for r in rs]}; wall {wall:.0f} s/run")
             continue
@@ -243,9 +250,10 @@ def main(argv: list[str] | None = None) -> None:
               "evaluator); offset: controlled component's steady offset / the LQR's; offset ok: every component within "
               "0.1 |LQR's| + 1e-3 obs_scale; du(eq) true: action error at the equilibrium against the true mean's LQ "
               "optimum; gain err: ||du/dx + L|| / ||L||; wall: seconds per run (training + evaluations). Tracking rows "
-              "(slalom, experiments/tuning_tracking.py): course cost (undiscounted sum of the cost over the 1,000-step "
-              "course from its start, eval seeds 1000-1003 x 8 starts), the signed and absolute lateral error (mean "
-              "over the course) and the fraction of runs off course, in the columns shown.", "",
+              "(slalom, experiments/tuning_tracking.py): course cost (undiscounted sum of the cost over the whole "
+              "course from its start: 1,000 steps, slalom_fast 2,000; eval seeds 1000-1003 x 8 starts), the signed "
+              "and absolute lateral error (mean over the course) and the fraction of runs off course, in the columns "
+              "shown.", "",
               "| system | variant | method | seed | cost/LQR | offset / LQR's | offset ok | du(eq) true | gain err | wall s |",
               "|---|---|---|---|---|---|---|---|---|---|"]
     lines += [fmt(r) for r in rows]
