@@ -83,6 +83,11 @@ VARIANTS["swing_cri_elu"] = dict(VARIANTS["swing_cri"], activation="elu")
 VARIANTS["swing_cri_b128"] = dict(VARIANTS["swing_cri"], batch_size=128)
 VARIANTS["swing_cri_1500"] = dict(VARIANTS["swing_cri"], iterations=1500)
 VARIANTS["swing_cri_nodisc"] = dict(VARIANTS["swing_cri"], rollout_discount_start=0.0)
+VARIANTS["swing_cri_gc10"] = dict(VARIANTS["swing_cri"], grad_clip=10.0)
+VARIANTS["swing_cri_elu_rel"] = dict(VARIANTS["swing_cri"], activation="elu", batch_weighting="relative")
+#: The relative weighting with a larger offset ``c`` (in value units): 1 / (V + 10) flattens the weights of a
+#: swing-up's large values (0-300) more than those near a reference (V ~ 1).
+VARIANTS["swing_cri_rel_c10"] = dict(VARIANTS["swing_cri"], batch_weighting="relative", batch_weight_offset=10.0)
 
 
 def _trained(system: str, method: str, seed: int, algorithm: dict[str, Any], systems: dict[str, Any]
