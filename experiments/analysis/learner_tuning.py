@@ -2,7 +2,10 @@
 side with the library defaults (the baseline of ``tuning_baseline.py``): near an equilibrium on
 :class:`experiments.tuning_systems.CartFriction` and :class:`~experiments.tuning_systems.TwoTank` (cost against
 the discounted LQR with the true feed-forward, steady offset, ``policy_gap``, wall time), and globally on
-:class:`~experiments.tuning_systems.SwingUp` (the return of a swing-up from everywhere). Seeds 100 and up;
+:class:`~experiments.tuning_systems.SwingUp` (the return of a swing-up from everywhere), and along a moving
+reference on :class:`experiments.tuning_tracking.Slalom` (``slalom``, dt 0.01 s; ``slalom_fast``, dt 0.005 s: the
+course cost and lateral error over the whole course, against :class:`~experiments.tuning_tracking.SlalomReference`,
+``--variants reference``). Seeds 100 and up;
 the targets and their seeds 0-9 are never run here. Every run takes the library's sampler (model rollouts; mixed
 RL's IBE fed by one true copy, 2 true transitions per iteration: 1,200 in a 600-iteration run).
 
