@@ -2,7 +2,10 @@
 side with the library defaults (the baseline of ``tuning_baseline.py``): near an equilibrium on
 :class:`experiments.tuning_systems.CartFriction` and :class:`~experiments.tuning_systems.TwoTank` (cost against
 the discounted LQR with the true feed-forward, steady offset, ``policy_gap``, wall time), and globally on
-:class:`~experiments.tuning_systems.SwingUp` (the return of a swing-up from everywhere). Seeds 100 and up;
+:class:`~experiments.tuning_systems.SwingUp` (the return of a swing-up from everywhere), and along a moving
+reference on :class:`experiments.tuning_tracking.Slalom` (``slalom``, dt 0.01 s; ``slalom_fast``, dt 0.005 s: the
+course cost and lateral error over the whole course, against :class:`~experiments.tuning_tracking.SlalomReference`,
+``--variants reference``). Seeds 100 and up;
 the targets and their seeds 0-9 are never run here. Every run takes the library's sampler (model rollouts; mixed
 RL's IBE fed by one true copy, 2 true transitions per iteration: 1,200 in a 600-iteration run).
 
@@ -43,6 +46,7 @@ for p in (ROOT, ROOT / "experiments" / "analysis"):
         sys.path.insert(0, str(p))
 
 from experiments.tuning_systems import GLOBAL_TUNING_SYSTEMS  # noqa: E402
+from experiments.tuning_tracking import TRACKING_TUNING_SYSTEMS, SlalomReference  # noqa: E402
 from mixedrl.algorithms.agpi import AGPI  # noqa: E402
 from mixedrl.config import TrainConfig  # noqa: E402
 from mixedrl.runs import atomic_write_text, train  # noqa: E402
@@ -86,19 +90,46 @@ VARIANTS["swing_cri_cs4"] = dict(VARIANTS["swing_cri"], rollout_critic_steps=4)
 VARIANTS["swing_cri_h16"] = dict(VARIANTS["swing_cri"], rollout_horizon=16)
 VARIANTS["swing_cri_b128"] = dict(VARIANTS["swing_cri"], batch_size=128)
 VARIANTS["swing_cri_h16_500"] = dict(VARIANTS["swing_cri_h16"], iterations=500)
+#: On the tracking system (slalom, experiments/tuning_tracking.py): swing_cri's settings one at a time.
+VARIANTS["swing_cri_h8"] = dict(VARIANTS["swing_cri"], rollout_horizon=8)
+VARIANTS["swing_cri_elu"] = dict(VARIANTS["swing_cri"], activation="elu")
+VARIANTS["swing_cri_1500"] = dict(VARIANTS["swing_cri"], iterations=1500)
+VARIANTS["swing_cri_nodisc"] = dict(VARIANTS["swing_cri"], rollout_discount_start=0.0)
+VARIANTS["swing_cri_gc10"] = dict(VARIANTS["swing_cri"], grad_clip=10.0)
+VARIANTS["swing_cri_elu_rel"] = dict(VARIANTS["swing_cri"], activation="elu", batch_weighting="relative")
+#: The relative weighting with a larger offset ``c`` (in value units): 1 / (V + 10) flattens the weights of a
+#: swing-up's large values (0-300) more than those near a reference (V ~ 1).
+VARIANTS["swing_cri_rel_c10"] = dict(VARIANTS["swing_cri"], batch_weighting="relative", batch_weight_offset=10.0)
 
 
-def global_run(system: str, method: str, seed: int, algorithm: dict[str, Any]) -> dict[str, Any]:
-    """Train one run on a global tuning system and measure its return (the task's ``evaluate_return``)."""
-    task = GLOBAL_TUNING_SYSTEMS[system]()
+def _trained(system: str, method: str, seed: int, algorithm: dict[str, Any], systems: dict[str, Any]
+             ) -> tuple[Any, Any, dict[str, Any]]:
+    """Train one run of ``systems[system]``: the task, the trainer and the row's training fields."""
+    task = systems[system]()
     config = TrainConfig(method=method, task="linear", seed=seed, algorithm=algorithm)
     t0 = time.time()
     run = AGPI(task, config)
     results = train(run, progress=False)
-    wall = time.time() - t0
-    return {"returns": task.evaluate_return(run.policy, episodes=20), "wall_seconds": wall,
-            "iterations": results["iterations"], "true_transitions": run.true_transitions,
-            "noise_mean": float(np.asarray(run.noise.mean).reshape(-1)[0]), "true_mean": float(task.true_mean[0])}
+    return task, run, {"wall_seconds": time.time() - t0, "iterations": results["iterations"],
+                       "true_transitions": run.true_transitions,
+                       "noise_mean": float(np.asarray(run.noise.mean).reshape(-1)[0]),
+                       "true_mean": float(task.true_mean[0])}
+
+
+def global_run(system: str, method: str, seed: int, algorithm: dict[str, Any]) -> dict[str, Any]:
+    """Train one run on a global tuning system and measure its return (the task's ``evaluate_return``)."""
+    task, run, row = _trained(system, method, seed, algorithm, GLOBAL_TUNING_SYSTEMS)
+    return {"returns": task.evaluate_return(run.policy, episodes=20), **row}
+
+
+#: Evaluation seeds of the tracking rows (the course from its start, ``eval_starts`` runs per seed).
+TRACKING_EVAL_SEEDS = [1000, 1001, 1002, 1003]
+
+
+def tracking_run(system: str, method: str, seed: int, algorithm: dict[str, Any]) -> dict[str, Any]:
+    """Train one run on a tracking tuning system and measure it over its course (the task's ``evaluate``)."""
+    task, run, row = _trained(system, method, seed, algorithm, TRACKING_TUNING_SYSTEMS)
+    return {"course": task.evaluate(run.policy, TRACKING_EVAL_SEEDS), **row}
 
 
 class EnergyLQR(torch.nn.Module):
@@ -137,6 +168,11 @@ def job(args: tuple[str, str, str, int]) -> dict[str, Any]:
     """One run of a variant (near-equilibrium: :func:`tuning_baseline.one_run`; global: :func:`global_run`)."""
     variant, system, method, seed = args
     torch.set_num_threads(1)
+    if variant == REFERENCE and system in TRACKING_TUNING_SYSTEMS:
+        task = TRACKING_TUNING_SYSTEMS[system]()
+        t0 = time.time()
+        return {"system": system, "method": "LQR+ff", "seed": seed, "variant": variant,
+                "course": task.evaluate(SlalomReference(task), TRACKING_EVAL_SEEDS), "wall_seconds": time.time() - t0}
     if variant == REFERENCE:
         task = GLOBAL_TUNING_SYSTEMS[system]()
         t0 = time.time()
@@ -145,6 +181,8 @@ def job(args: tuple[str, str, str, int]) -> dict[str, Any]:
     algorithm = VARIANTS[variant]
     if system in GLOBAL_TUNING_SYSTEMS:
         row = {"system": system, "method": method, "seed": seed, **global_run(system, method, seed, algorithm)}
+    elif system in TRACKING_TUNING_SYSTEMS:
+        row = {"system": system, "method": method, "seed": seed, **tracking_run(system, method, seed, algorithm)}
     else:
         row = one_run(system, method, seed, None, OUT, algorithm=algorithm, tag=f"_{variant}")
     row["variant"] = variant
@@ -170,6 +208,11 @@ def timing(system: str, variants: list[str], seed: int = 100) -> list[str]:
 
 def fmt(r: dict[str, Any]) -> str:
     """A table line of a row."""
+    if "course" in r:
+        c = r["course"]
+        return (f"| {r['system']} | {r['variant']} | {r['method']} | {r['seed']} | course cost {c['cost']:.1f} | "
+                f"lateral mean {c['lateral_mean']:+.3f} | lateral MAE {c['lateral_mae']:.3f} (max "
+                f"{c['lateral_max']:.2f}) | off course {c['terminated_fraction']:.2f} | - | {r['wall_seconds']:.0f} |")
     if "returns" in r:
         ret = r["returns"]
         return (f"| {r['system']} | {r['variant']} | {r['method']} | {r['seed']} | return IQM {ret['iqm']:.1f} "
@@ -186,6 +229,13 @@ def summary(rows: list[dict[str, Any]]) -> list[str]:
     for system, method, variant in keys:
         rs = [r for r in rows if (r["system"], r["method"], r["variant"]) == (system, method, variant)]
         wall = np.mean([r["wall_seconds"] for r in rs])
+        if "course" in rs[0]:
+            costs = [r["course"]["cost"] for r in rs]
+            out.append(f"- {system} {method} {variant}: course cost mean {np.mean(costs):.1f} "
+                       f"(worst {max(costs):.1f}); "
+                       f"lateral MAE mean {np.mean([r['course']['lateral_mae'] for r in rs]):.3f} over seeds "
+                       f"{[r['seed'] for r in rs]}; wall {wall:.0f} s/run")
+            continue
         if "returns" in rs[0]:
             out.append(f"- {system} {method} {variant}: return IQM mean {np.mean([r['returns']['iqm'] for r in rs]):.1f} "
                        f"(worst {min(r['returns']['iqm'] for r in rs):.1f}) over seeds "
@@ -240,11 +290,17 @@ def main(argv: list[str] | None = None) -> None:
              "Variants (algorithm.* settings over the defaults):", ""]
     lines += [f"- {name}: {json.dumps(VARIANTS[name])}" for name in VARIANTS if any(r["variant"] == name for r in rows)]
     lines += [f"- {REFERENCE}: not a learner: EnergyLQR of this script (energy pumping, the discounted LQR near the "
-              "top, the true torque compensated; k 5, switch 0.5): the best known return"]
+              "top, the true torque compensated; k 5, switch 0.5): the best known return; on slalom (LQR+ff) "
+              "SlalomReference of experiments/tuning_tracking.py (the reference's feed-forward, the true current's "
+              "heading, the discounted LQR on the tracking errors)"]
     lines += ["", "cost/LQR: final evaluated cost over the discounted LQR with the true feed-forward (same seeds, same "
               "evaluator); offset: controlled component's steady offset / the LQR's; offset ok: every component within "
               "0.1 |LQR's| + 1e-3 obs_scale; du(eq) true: action error at the equilibrium against the true mean's LQ "
-              "optimum; gain err: ||du/dx + L|| / ||L||; wall: seconds per run (training + evaluations).", "",
+              "optimum; gain err: ||du/dx + L|| / ||L||; wall: seconds per run (training + evaluations). Tracking rows "
+              "(slalom, experiments/tuning_tracking.py): course cost (undiscounted sum of the cost over the whole "
+              "course from its start: 1,000 steps, slalom_fast 2,000; eval seeds 1000-1003 x 8 starts), the signed "
+              "and absolute lateral error (mean over the course) and the fraction of runs off course, in the columns "
+              "shown.", "",
               "| system | variant | method | seed | cost/LQR | offset / LQR's | offset ok | du(eq) true | gain err | wall s |",
               "|---|---|---|---|---|---|---|---|---|---|"]
     lines += [fmt(r) for r in rows]
