@@ -100,6 +100,8 @@ VARIANTS["swing_cri_elu_rel"] = dict(VARIANTS["swing_cri"], activation="elu", ba
 #: The relative weighting with a larger offset ``c`` (in value units): 1 / (V + 10) flattens the weights of a
 #: swing-up's large values (0-300) more than those near a reference (V ~ 1).
 VARIANTS["swing_cri_rel_c10"] = dict(VARIANTS["swing_cri"], batch_weighting="relative", batch_weight_offset=10.0)
+VARIANTS["swing_cri_rel_c3"] = dict(VARIANTS["swing_cri_rel_c10"], batch_weight_offset=3.0)
+VARIANTS["swing_cri_rel_c30"] = dict(VARIANTS["swing_cri_rel_c10"], batch_weight_offset=30.0)
 
 
 def _trained(system: str, method: str, seed: int, algorithm: dict[str, Any], systems: dict[str, Any]
