@@ -154,6 +154,18 @@ def policy_gap(task: Task, policy: torch.nn.Module, noise_mean: Any, noise_cov: 
     }
 
 
+def _linearised(task: Task) -> tuple[Linearisation | None, str | None]:
+    """``(task.linearisation(), None)``, or ``(None, reason)`` when the task has no equilibrium or its
+    linearisation fails (a ``ValueError``, or a ``RuntimeError`` of autograd on a non-differentiable ``f``/``cost``)."""
+    try:
+        lin = task.linearisation()
+    except (ValueError, RuntimeError) as exc:  # RuntimeError: f or cost not differentiable by torch.func
+        return None, f"no linearisation at the equilibrium: {type(exc).__name__}: {exc}"
+    if lin is None:
+        return None, f"task {getattr(task, 'name', type(task).__name__)!r} defines no equilibrium (Task.equilibrium)"
+    return lin, None
+
+
 def run_policy_gap(trainer: Any, policy: torch.nn.Module | None = None) -> tuple[dict[str, Any] | None, str | None]:
     """:func:`policy_gap` of a trainer's policy for the method's own noise mean, or ``(None, reason)``.
 
@@ -183,12 +195,9 @@ def run_policy_gap(trainer: Any, policy: torch.nn.Module | None = None) -> tuple
     """
     task: Task = trainer.task
     policy = trainer.policy if policy is None else policy
-    try:
-        lin = task.linearisation()
-    except (ValueError, RuntimeError) as exc:  # RuntimeError: f or cost not differentiable by torch.func
-        return None, f"no linearisation at the equilibrium: {type(exc).__name__}: {exc}"
+    lin, reason = _linearised(task)
     if lin is None:
-        return None, f"task {getattr(task, 'name', type(task).__name__)!r} defines no equilibrium (Task.equilibrium)"
+        return None, reason
     critic = getattr(trainer, "critic", None)
     mean, cov = own_noise(trainer, lin, policy)
     if getattr(trainer, "noise", None) is None:
@@ -268,12 +277,9 @@ def run_references(trainer: Any, seeds: list[int]) -> tuple[dict[str, Any] | Non
         return None, f"task {name!r} has a state-dependent true mean: no constant feed-forward"
     if getattr(task, "plant_evaluation", "simulated") != "simulated":
         return None, "the run is evaluated on a plant: a reference would cost plant transitions"
-    try:
-        lin = task.linearisation()
-    except (ValueError, RuntimeError) as exc:
-        return None, f"no linearisation at the equilibrium: {type(exc).__name__}: {exc}"
+    lin, reason = _linearised(task)
     if lin is None:
-        return None, f"task {name!r} defines no equilibrium (Task.equilibrium)"
+        return None, reason
     try:
         policy = LQRPolicy(task, task.true_mean, lin)
     except (ValueError, np.linalg.LinAlgError) as exc:

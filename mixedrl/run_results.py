@@ -279,17 +279,9 @@ def training_curve(rows: list[dict[str, Any]], results: dict[str, Any]) -> bytes
         The PNG; ``None`` without evaluations or without matplotlib (an optional extra, ``plots``).
     """
     evals = np.asarray([(r["iteration"], r["eval/cost"]) for r in rows if "eval/cost" in r], dtype=float)
-    if evals.size == 0:
+    plt = pyplot() if evals.size else None
+    if plt is None:
         return None
-    try:
-        import matplotlib
-
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-    except ImportError:
-        return None
-    import io
-
     fig, ax = plt.subplots(figsize=(5.5, 3.6))
     ax.plot(evals[:, 0], evals[:, 1], marker="o", markersize=3, label=f"{results['method']} (seed {results['seed']})")
     reference = (results.get("references") or {}).get("lqr_true_mean")
@@ -303,8 +295,29 @@ def training_curve(rows: list[dict[str, Any]], results: dict[str, Any]) -> bytes
     ax.set_ylabel("evaluated cost")
     ax.set_title(f"task {results['task']}: final cost {results['final'].get('cost', float('nan')):.4g}", fontsize=9)
     ax.legend(fontsize=8)
+    return png(fig, dpi=100)
+
+
+def pyplot() -> Any:
+    """``matplotlib.pyplot`` on the non-interactive Agg backend, or ``None`` without matplotlib (extra ``plots``)."""
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        return None
+    return plt
+
+
+def png(fig: Any, dpi: int) -> bytes:
+    """A figure of :func:`pyplot`, laid out tightly, as PNG bytes; the figure is closed."""
+    import io
+
+    import matplotlib.pyplot as plt
+
     fig.tight_layout()
     buffer = io.BytesIO()
-    fig.savefig(buffer, format="png", dpi=100)
+    fig.savefig(buffer, format="png", dpi=dpi)
     plt.close(fig)
     return buffer.getvalue()

@@ -43,7 +43,6 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import functools
-import io
 import json
 import logging
 import os
@@ -56,6 +55,7 @@ import numpy as np
 from mixedrl import sweep_engines, sweep_spec
 from mixedrl.config import flatten_table
 from mixedrl.runs import LOCK_NAME, atomic_write_bytes, atomic_write_text, hold_lock, is_lock_file
+from mixedrl.run_results import png, pyplot
 from mixedrl.tables import bootstrap_interval, csv_text, mean_std
 from mixedrl.sweep_spec import (MAX_RUNS, SEED_MAX, SPEC_KEYS, SweepRun, SweepSpec, apply_dotted, config_hash, expand,
                                 format_value, load_spec, parse_spec, resolve_observer, run_name)
@@ -211,12 +211,8 @@ def make_figure(out: str | Path, summary: list[dict[str, Any]], grid: dict[str, 
     """
     if not grid:
         return None
-    try:
-        import matplotlib
-
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-    except ImportError:
+    plt = pyplot()
+    if plt is None:
         logger.info("matplotlib not installed: no sweep figure")
         return None
     key = next(iter(grid))
@@ -241,13 +237,9 @@ def make_figure(out: str | Path, summary: list[dict[str, Any]], grid: dict[str, 
     ax.set_xlabel(key + ("" if not others else f"  ({', '.join(f'{k}={v}' for k, v in others.items())})"))
     ax.set_ylabel("course cost (mean ± std over seeds)")
     ax.legend()
-    fig.tight_layout()
     path = Path(out) / "figures" / f"cost_vs_{format_value(key)}.png"
     path.parent.mkdir(parents=True, exist_ok=True)
-    buffer = io.BytesIO()
-    fig.savefig(buffer, format="png", dpi=120)
-    plt.close(fig)
-    atomic_write_bytes(path, buffer.getvalue())
+    atomic_write_bytes(path, png(fig, dpi=120))
     return path
 
 

@@ -329,9 +329,6 @@ class BatchedAGPI(BatchedRuns):
         #: ``algorithm.compile`` (a shared field) chooses the eager, compiled or functional step (:mod:`mixedrl.compiled`).
         self.critic_descent = Descent(self.critic.leaves, self._critic_params, [m.critic_opt for m in self.members],
                                       [m.config.algorithm.grad_clip for m in self.members], algo.compile)
-        #: The MVC loop's values of ``h`` (:func:`mixedrl.algorithms.algorithm2.mvc_values`), without gradient.
-        self.mvc_values = Evaluation(partial(algorithm2.mvc_values, self.task, self.actor, self.critic.frozen()),
-                                     algo.compile)
         self.actor_descent = Descent(self.actor.leaves, self._actor_params, [m.actor_opt for m in self.members],
                                      [m.config.algorithm.grad_clip for m in self.members], algo.compile)
         #: The MVC loop's values of ``h`` (:func:`mixedrl.algorithms.algorithm2.mvc_values`), without gradient.
