@@ -109,11 +109,12 @@ class AlgorithmConfig:
     """Departure (tuning add-on): how the states of the batch are weighted in PEV and PIM (eqs. 50 and
     52): ``"uniform"`` = the plain batch mean (the paper's); ``"relative"`` (the default) = each state by its relative
     error: PEV squares the relative TD error ``(V - V_target) / (|V_target| + c)`` and PIM weights state
-    ``x`` by ``1 / (V(x) + c)`` (batch mean 1), ``c = batch_weight_offset``
+    ``x`` by ``1 / (V(x) + c)`` (batch mean 1), ``c = batch_weight_offset * task.value_scale``
     (:func:`mixedrl.pev.critic_loss`, :func:`mixedrl.pim.actor_objective`)."""
 
     batch_weight_offset: float = 1.0
-    """Departure (tuning add-on): ``c`` of ``batch_weighting = "relative"``, in the units of the value."""
+    """Departure (tuning add-on): ``c`` of ``batch_weighting = "relative"``, in units of the task's ``value_scale``
+    (``c = batch_weight_offset * value_scale``)."""
 
     actor_average: float = 0.0
     """Departure (tuning add-on): decay ``beta`` of an exponential moving average of the actor's weights,

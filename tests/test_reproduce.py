@@ -150,6 +150,16 @@ def test_reproduce_quick_end_to_end(tmp_path: Path, capsys: pytest.CaptureFixtur
     for mean in res["mixed"]["final_ibe_mean"]:
         assert abs(mean[vx] - true_mean) <= 0.02 * true_mean
     assert res["targets"]["ibe_mean_within_2pct"]
+    # model-driven RL's estimate stays at the prior (43% off the truth, so the check can tell); every
+    # Algorithm-2 run stays on the road
+    prior = task.prior_mean[vx]
+    assert abs(prior - true_mean) > 0.4 * true_mean
+    for method in ("mixed", "model"):
+        for r in res[method]["runs"]:
+            run = json.loads((out / r["run_dir"] / "results.json").read_text())
+            assert run["final"]["terminated"] == 0.0
+            if method == "model":
+                assert run["final_ibe_mean"][vx] == pytest.approx(prior, rel=1e-9)
     assert res["mixed"]["theory"]["mvc_held_after_inner_loop"] >= 0.5
     # the paper preset's rows (first seed in quick mode) and the paired comparison under both settings
     assert [r["seed"] for r in res["mixed_paper"]["runs"]] == [r["seed"] for r in res["model_paper"]["runs"]] == [0]

@@ -93,6 +93,7 @@ def test_model_based_spec_reproduces_the_old_designs() -> None:
     assert len({c.to_json() if hasattr(c, "to_json") else str(c.to_dict()) for c in configs.values()}) == 23
 
 
+@pytest.mark.studies
 def test_model_based_study_ships_a_sweep_directory(tmp_path: Path) -> None:
     """The script only analyses: a (tiny) sweep of two variants, shipped through the command line."""
     spec = parse_spec('methods = ["model"]\nseeds = [0]\n[base]\n"algorithm.iterations" = 10\n'
@@ -157,6 +158,7 @@ def test_preview_spec_p12s_is_the_old_patched_obs_scale() -> None:
         assert not torch.equal(task.obs_scale, plain.obs_scale)
 
 
+@pytest.mark.studies
 def test_preview_study_ships_a_sweep_directory(tmp_path: Path) -> None:
     """preview_study.py only analyses: a (tiny) sweep of one variant of its spec's form, shipped through the
     command line into per-run files and the summary."""
@@ -239,6 +241,7 @@ def test_the_theory_observer_reads_the_run_and_changes_none_of_its_numbers(tmp_p
         parse_spec('observer = 3\n' + text)
 
 
+@pytest.mark.studies
 def test_long_training_spec_and_its_observer_only_reads_the_runs() -> None:
     from experiments.analysis.long_training_observer import LongTrainingObserver
     from mixedrl.runs import make_trainer, train_batch
@@ -292,6 +295,7 @@ def test_precision_spec_reproduces_the_old_script_configs() -> None:
     assert seen == {(m, s, n) for m in ("mixed", "model", "oracle") for s in (0, 1, 2) for n in (1, 10)}
 
 
+@pytest.mark.studies
 def test_precision_study_ships_a_sweep_directory(tmp_path: Path) -> None:
     """precision_study.py only analyses: a tiny pendulum sweep (2 iterations) of the spec's form, shipped
     through the command line into the table."""
@@ -317,6 +321,7 @@ def test_precision_study_ships_a_sweep_directory(tmp_path: Path) -> None:
     assert table[2] in proc.stdout
 
 
+@pytest.mark.studies
 def test_analyses_with_the_lq_feedforward_evaluate_the_same_checkpoints_again(tmp_path: Path) -> None:
     """precision_study.py and seed_statistics.py --feedforward lq: each run's final actor evaluated again with
     the LQ feed-forward (its action at the equilibrium is the optimum's for the run's own noise mean), the
@@ -361,6 +366,7 @@ def _run_script(name: str, *args: object) -> subprocess.CompletedProcess:
                           text=True, cwd=ROOT, env={**os.environ, "PYTHONPATH": str(ROOT)}, timeout=600)
 
 
+@pytest.mark.studies
 def test_precision_study_lqr_yardstick_is_the_lq_optimums_affine_policy(tmp_path: Path) -> None:
     """precision_study.py ship --lqr on an "lq_affine" pendulum sweep: the LQR is evaluated on each run's own
     evaluation seeds and summarised per method; the yardstick policy has the optimum's action and gain at
@@ -393,6 +399,7 @@ def test_precision_study_lqr_yardstick_is_the_lq_optimums_affine_policy(tmp_path
     assert max(abs(e) for e in prior["action_error"]) > 0.1  # the prior's LQR has another feed-forward
 
 
+@pytest.mark.studies
 def test_custom_defaults_spec_varies_only_the_two_settings_and_its_script_ships_the_table(tmp_path: Path) -> None:
     """experiments/studies/custom_defaults.toml: each variant differs from the generic defaults of its task only in
     algorithm.batch_weighting and sampler.box; experiments/analysis/custom_defaults.py turns a tiny sweep of that form into
@@ -485,6 +492,7 @@ def _per_seed_csv(path: Path, iterations: int, costs: dict[str, list[float]], le
     return path
 
 
+@pytest.mark.studies
 def test_budget_plateau_measures_the_rise_of_the_mean_and_the_diverged_seeds(tmp_path: Path) -> None:
     """budget_plateau.py: the ratio of mean costs from one budget to the next (paired over the seeds), the
     5% target met or missed on it, a seed whose cost rose by more than 50% or that left the road named as
@@ -513,6 +521,7 @@ def test_budget_plateau_measures_the_rise_of_the_mean_and_the_diverged_seeds(tmp
     assert _run_script("budget_plateau.py", a, "--dest", tmp_path / "x").returncode == 2
 
 
+@pytest.mark.studies
 def test_win_odds_is_the_normal_model_of_the_paired_speed_difference(tmp_path: Path) -> None:
     """win_odds.py: p = Phi(mean(d) / std(d)) of d = model - mixed, P(Binomial(20, p) >= 18), and mixed RL's
     mean + 1.8675 std, computed here from the definitions on hand-made figures."""
@@ -615,6 +624,7 @@ def _course_run(root: Path, method: str, seed: int, losses: list[float], speed: 
             writer.writerow([k, loss, speed.get(k, "")])
 
 
+@pytest.mark.studies
 def test_course_switch_measures_the_critics_rise_against_the_speed_error(tmp_path: Path) -> None:
     """course_switch.py: rise = the largest critic loss over the 3 w iterations after course_start (ramp 0) over the
     median of the w before; change = last evaluation - the one at course_start; Spearman's rho of the two
@@ -643,6 +653,7 @@ def test_course_switch_measures_the_critics_rise_against_the_speed_error(tmp_pat
     assert bad.returncode == 2 and "mixed_seed0: no evaluation at the course start (iteration 4)" in bad.stderr
 
 
+@pytest.mark.studies
 def test_course_switch_counts_the_ramp_and_keeps_variants_apart(tmp_path: Path) -> None:
     """With ``sampler.course_ramp = r`` the rise is taken over the r + 3 w iterations after course_start; runs
     of a spec's variants are separate rows (``method[variant]``) with their median and largest rise."""
@@ -661,6 +672,7 @@ def test_course_switch_counts_the_ramp_and_keeps_variants_apart(tmp_path: Path) 
     assert {r["peak_iteration"] for r in doc["runs"] if r["course_ramp"] == 2} == {11}
 
 
+@pytest.mark.studies
 def test_budget_plateau_compares_a_row_over_the_budgets_it_was_measured_at(tmp_path: Path) -> None:
     """budget_plateau.py with a row missing at one budget (an unfinished sweep read with --partial): the row
     is compared over its measured budgets only and shown as "not run" at the other; the other rows keep
@@ -678,6 +690,7 @@ def test_budget_plateau_compares_a_row_over_the_budgets_it_was_measured_at(tmp_p
     assert proc.stdout.splitlines()[5].startswith("Model-driven RL") and proc.stdout.splitlines()[5].endswith("not run")
 
 
+@pytest.mark.studies
 def test_budget_plateau_merges_the_sources_of_one_budget(tmp_path: Path) -> None:
     """budget_plateau.py with two sources of one budget, each of its own rows (two methods shipped in a
     per_seed.csv, the third run later): the rows are merged into that budget and compared as if they came
@@ -693,6 +706,7 @@ def test_budget_plateau_merges_the_sources_of_one_budget(tmp_path: Path) -> None
     assert doc["rows"]["mixed"]["steps"][0]["mean_ratio"] == pytest.approx(38.0 / 42.0, rel=1e-12)
 
 
+@pytest.mark.studies
 def test_seed_statistics_refuses_an_unfinished_sweep_unless_partial(tmp_path: Path) -> None:
     """A sweep with runs that have no results yet is refused by name, with the way out (--partial); with
     --partial the unfinished runs are skipped, not read."""
@@ -752,6 +766,7 @@ def test_speed_anatomy_splits_the_course_mean_by_stretch_and_prices_the_target()
     assert sum(shares.values()) == pytest.approx(1.0)
 
 
+@pytest.mark.studies
 def test_speed_anatomy_drives_each_run_again_and_the_lqr_references(tmp_path: Path) -> None:
     """speed_anatomy.py on a tiny DLC sweep: every run driven again equals its results.json (else it stops), the
     two LQR references are listed with the LQR's known course speed error, and a bad sweep is refused."""
@@ -778,6 +793,7 @@ def test_speed_anatomy_drives_each_run_again_and_the_lqr_references(tmp_path: Pa
     assert bad.returncode != 0 and "sweep.json" in bad.stderr
 
 
+@pytest.mark.studies
 def test_target_matrix_reads_each_rows_targets_and_counts_the_seeds_within_the_speed_target(tmp_path: Path) -> None:
     """target_matrix.py: one line per seed_statistics.py output directory, each target's figure and met / NO as
     summary.json has it, the seeds within 0.010 m/s counted from per_seed.csv; a directory without them refused."""

@@ -102,6 +102,13 @@ VARIANTS["swing_cri_elu_rel"] = dict(VARIANTS["swing_cri"], activation="elu", ba
 VARIANTS["swing_cri_rel_c10"] = dict(VARIANTS["swing_cri"], batch_weighting="relative", batch_weight_offset=10.0)
 VARIANTS["swing_cri_rel_c3"] = dict(VARIANTS["swing_cri_rel_c10"], batch_weight_offset=3.0)
 VARIANTS["swing_cri_rel_c30"] = dict(VARIANTS["swing_cri_rel_c10"], batch_weight_offset=30.0)
+#: The rows of the three variants above were measured with ``c`` in absolute value units; since then ``c =
+#: batch_weight_offset * value_scale`` (mixedrl.departures.state_weights), so on swing_up (value_scale 50) their c = 3,
+#: 10, 30 are batch_weight_offset 0.06, 0.2, 0.6 and on slalom_fast (value_scale 10) 0.3, 1, 3; on cart_friction
+#: (value_scale 1) nothing changed.
+#: One offset in value units for the swing-up and the fast tracking (c = 0.6 and 0.3 value_scale), at H = 16.
+VARIANTS["swing_cri_h16_rv06"] = dict(VARIANTS["swing_cri_h16"], batch_weighting="relative", batch_weight_offset=0.6)
+VARIANTS["swing_cri_h16_rv03"] = dict(VARIANTS["swing_cri_h16_rv06"], batch_weight_offset=0.3)
 
 
 def _trained(system: str, method: str, seed: int, algorithm: dict[str, Any], systems: dict[str, Any]
@@ -291,6 +298,9 @@ def main(argv: list[str] | None = None) -> None:
              "experiments/analysis/learner_tuning.py from rows.json", "",
              "Variants (algorithm.* settings over the defaults):", ""]
     lines += [f"- {name}: {json.dumps(VARIANTS[name])}" for name in VARIANTS if any(r["variant"] == name for r in rows)]
+    lines += ["", "batch_weight_offset is in units of the system's value_scale (c = batch_weight_offset * value_scale); "
+              "the rows of swing_cri_rel_c3, _c10 and _c30 were measured when it was in absolute value units (their c = "
+              "3, 10, 30 is 0.06, 0.2, 0.6 value_scale on swing_up, 0.3, 1, 3 on slalom_fast, unchanged on cart_friction)."]
     lines += [f"- {REFERENCE}: not a learner: EnergyLQR of this script (energy pumping, the discounted LQR near the "
               "top, the true torque compensated; k 5, switch 0.5): the best known return; on slalom (LQR+ff) "
               "SlalomReference of experiments/tuning_tracking.py (the reference's feed-forward, the true current's "

@@ -191,9 +191,9 @@ class AGPI:
     # -------------------------------------------------------------------------------------- helpers
     @property
     def relative_offset(self) -> float | None:
-        """``batch_weight_offset`` if ``batch_weighting == "relative"``, else ``None`` (the plain batch mean):
-        :func:`mixedrl.departures.state_weights.offset`."""
-        return state_weights.offset(self.config)
+        """``batch_weight_offset * value_scale`` if ``batch_weighting == "relative"``, else ``None`` (the plain
+        batch mean): :func:`mixedrl.departures.state_weights.offset`."""
+        return state_weights.offset(self.config, getattr(self.task, "value_scale", 1.0))
 
     @property
     def learned_policy(self) -> torch.nn.Module:

@@ -68,7 +68,8 @@ def iteration(engine: Any, active: Sequence[bool] | None = None) -> list[dict[st
         return [None] * engine.runs
     runs, task, R = engine.members, engine.task, engine.runs
     # the fields the runs share (batched.SHARED_FIELDS): the departure hooks of PEV and PIM
-    rel, steps = state_weights.offset(runs[0].config), bellman_steps.steps(runs[0].config)
+    rel = state_weights.offset(runs[0].config, getattr(task, "value_scale", 1.0))
+    steps = bellman_steps.steps(runs[0].config)
 
     # ---- 1. data: the batch x and the residuals xi^D (eq. 10) of each active run, under pi^k
     batches: list[torch.Tensor] = []

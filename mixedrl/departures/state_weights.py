@@ -3,7 +3,9 @@
 The paper's eqs. (50) and (52) average over the batch: every state counts alike (``algorithm.batch_weighting
 = "uniform"``). With ``"relative"`` (the library default) PEV squares the relative TD error
 ``(V - V_target) / (|V_target| + c)`` and PIM weights state ``x`` by ``1 / (V(x) + c)`` (batch mean 1),
-``c = algorithm.batch_weight_offset`` (:func:`mixedrl.pev.critic_loss`, :func:`mixedrl.pim.actor_objective`).
+``c = algorithm.batch_weight_offset * task.value_scale`` (:func:`mixedrl.pev.critic_loss`,
+:func:`mixedrl.pim.actor_objective`): the offset is given in the task's value units, so the weights do not change
+when the cost is rescaled.
 Measured effect (docs/tuning.rst): states near the reference, whose values are small, are fitted as
 precisely in relative terms as far ones; on the double lane change the course errors fall.
 """
@@ -23,6 +25,17 @@ def active(config: Any) -> bool:
     return config.algorithm.batch_weighting != PAPER
 
 
-def offset(config: Any) -> float | None:
-    """The hook of PEV and PIM: ``c`` of the relative weights, or ``None`` (the paper's batch mean)."""
-    return config.algorithm.batch_weight_offset if active(config) else None
+def offset(config: Any, value_scale: float = 1.0) -> float | None:
+    """The hook of PEV and PIM: ``c`` of the relative weights, or ``None`` (the paper's batch mean).
+
+    Parameters
+    ----------
+    config : TrainConfig
+    value_scale : float
+        The task's ``value_scale``: ``c = algorithm.batch_weight_offset * value_scale``.
+
+    Returns
+    -------
+    float or None
+    """
+    return config.algorithm.batch_weight_offset * float(value_scale) if active(config) else None
