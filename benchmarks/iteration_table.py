@@ -2,7 +2,7 @@
 
     python benchmarks/iteration_table.py [--sizes 1 5 15] [--blocks 6] [--block 5] [--run-iterations N]
                                          [--cache-ab | --compile-ab [--cache-dir DIR]]
-                                         [--table-only | --split-only] [--out FILE.json]
+                                         [--table-only | --split-only] [--out FILE.json] [--algorithm JSON]
 
 **Table**: for each ``R`` (``--sizes``; seeds x mixed / model / oracle at the double lane change's
 defaults, one :class:`mixedrl.algorithms.batched.BatchedAGPI`; ``R = 1`` is a run alone, as
@@ -20,6 +20,10 @@ iterations) in a fresh, empty compile cache (a temporary ``MIXEDRL_CACHE_DIR``, 
 names one), and after the timing ``torch._dynamo.reset()`` and a new compiled engine per size give the
 **warm** compile (the graphs loaded from that on-disk cache; the same process, so Python modules and
 inductor's in-memory caches are warm too, a fresh process pays some more).
+
+``--algorithm '{"rollout_horizon": 16, ...}'`` times the table's engines with these ``algorithm.*`` settings over the
+double lane change's defaults (e.g. the rollout learner of :mod:`mixedrl.departures.rollout`, eager against
+compiled).
 
 **Split**: one default run (``TrainConfig(method="mixed", seed=0, task="dlc")``, its budget or ``--run-iterations``,
 trained by :func:`mixedrl.runs.train` in memory) in a fresh subprocess, its wall time split into
@@ -71,13 +75,17 @@ def machine() -> dict[str, Any]:
             "load_avg_1min": os.getloadavg()[0]}
 
 
+#: ``algorithm.*`` settings over the double lane change's defaults for every engine timed (``--algorithm``).
+SETTINGS: dict[str, Any] = {}
+
+
 def _engine(size: int, first_seed: int, compile: str = "off") -> Any:
     from mixedrl.algorithms.batched import BatchedAGPI
     from mixedrl.config import TrainConfig
     from mixedrl.runs import make_trainer
 
     trainers = [make_trainer(TrainConfig(method=METHODS[i % 3], seed=first_seed + i // 3, task="dlc",
-                                         algorithm={"compile": compile})) for i in range(size)]
+                                         algorithm={**SETTINGS, "compile": compile})) for i in range(size)]
     return trainers[0] if size == 1 else BatchedAGPI(trainers)
 
 
@@ -202,13 +210,16 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--split-only", action="store_true")
     p.add_argument("--split-child", action="store_true", help=argparse.SUPPRESS)
     p.add_argument("--out", type=Path, default=None)
+    p.add_argument("--algorithm", type=json.loads, default={}, metavar="JSON",
+                   help='algorithm.* settings over the defaults for the table\'s engines, e.g. \'{"rollout_horizon": 16}\'')
     args = p.parse_args(argv)
     if args.split_child:
         print(json.dumps(split_child(args.run_iterations)))
         return 0
     import mixedrl  # noqa: F401  (for the header)
 
-    doc: dict[str, Any] = {"machine": machine()}
+    SETTINGS.update(args.algorithm)
+    doc: dict[str, Any] = {"machine": machine(), "algorithm": dict(SETTINGS)}
     print("  ".join(f"{k}={v}" for k, v in doc["machine"].items()))
     if not args.split_only:
         if args.compile_ab:

@@ -266,10 +266,6 @@ class AlgorithmConfig:
                              f"{w}.rollout_horizon > 0 with a state-independent noise source (ibe_case 1 or 2), got "
                              f"{self.rollout_region!r} (rollout_horizon {self.rollout_horizon}, "
                              f"ibe_case {self.ibe_case})")
-        if self.rollout_horizon > 0 and self.compile != "off":
-            # the rollout departure's steps are eager (mixedrl.departures.rollout): refuse rather than ignore
-            raise ValueError(f"{w}.compile: the rollout departure ({w}.rollout_horizon = {self.rollout_horizon}) "
-                             f"runs eagerly; expected 'off' with it, got {self.compile!r}")
 
 
 @dataclass

@@ -27,14 +27,21 @@ METHODS = ("mixed", "model", "oracle")
 RTOL = 1e-5
 
 
-def config(compile: str, seed: int = 0, method: str = "mixed") -> TrainConfig:
+#: The rollout learner (mixedrl.departures.rollout) with the inward-clipped actor and region starts: its steps go
+#: through the same compiled update.
+ROLLOUT = {"rollout_horizon": 3, "critic_target": 0.8, "actor_output": "clip_inward", "rollout_region": 0.5,
+           "batch_weighting": "relative", "batch_weight_offset": 0.3, "rollout_discount_start": 0.95}
+
+
+def config(compile: str, seed: int = 0, method: str = "mixed", **algorithm: object) -> TrainConfig:
     return TrainConfig(method=method, seed=seed, task="linear",
-                       algorithm={"iterations": 6, "batch_size": 32, "hidden_sizes": [8, 8], "compile": compile},
+                       algorithm={"iterations": 6, "batch_size": 32, "hidden_sizes": [8, 8], "compile": compile,
+                                  **algorithm},
                        run={"eval_every": 1000, "checkpoint_every": 1000, "eval_seeds": 1})
 
 
-def engine(compile: str, runs: int = 1, first_seed: int = 0) -> tuple[list, object]:
-    members = [make_trainer(config(compile, first_seed + r, METHODS[r % 3])) for r in range(runs)]
+def engine(compile: str, runs: int = 1, first_seed: int = 0, **algorithm: object) -> tuple[list, object]:
+    members = [make_trainer(config(compile, first_seed + r, METHODS[r % 3], **algorithm)) for r in range(runs)]
     return members, (members[0] if runs == 1 else BatchedAGPI(members))
 
 
@@ -47,8 +54,8 @@ def losses(rows: list) -> torch.Tensor:
     return torch.tensor([[r["train/critic_loss"], r["train/actor_objective"]] for r in rows], dtype=torch.float64)
 
 
-def train(compile: str, runs: int = 1, iterations: int = 4) -> tuple[list, list]:
-    members, e = engine(compile, runs)
+def train(compile: str, runs: int = 1, iterations: int = 4, **algorithm: object) -> tuple[list, list]:
+    members, e = engine(compile, runs, **algorithm)
     return members, [e.iteration() for _ in range(iterations)]
 
 
@@ -81,10 +88,11 @@ def test_the_default_leaves_config_json_as_before() -> None:
 
 
 # ---------------------------------------------------------------------------------------------- functional = eager
+@pytest.mark.parametrize("learner", [{}, ROLLOUT], ids=["one_step", "rollout"])
 @pytest.mark.parametrize("runs", [1, 2])
-def test_the_functional_step_gives_the_eager_numbers(runs: int) -> None:
-    eager_members, eager_rows = train("off", runs)
-    members, rows = train("functional", runs)
+def test_the_functional_step_gives_the_eager_numbers(runs: int, learner: dict) -> None:
+    eager_members, eager_rows = train("off", runs, **learner)
+    members, rows = train("functional", runs, **learner)
     torch.testing.assert_close(flat(members), flat(eager_members), rtol=RTOL, atol=1e-7)
     torch.testing.assert_close(losses(rows), losses(eager_rows), rtol=RTOL, atol=1e-9)
     for m, e in zip(members, eager_members):  # the random streams untouched: the same draws in the same order
@@ -163,9 +171,9 @@ def test_a_loss_of_ones_own_through_descent_minimise() -> None:
 
 
 # --------------------------------------------------------------------------------------------------------- compiled
-def compiled_like_eager(runs: int) -> tuple[list, list]:
-    eager_members, eager_rows = train("off", runs)
-    members, rows = train("on", runs)
+def compiled_like_eager(runs: int, **algorithm: object) -> tuple[list, list]:
+    eager_members, eager_rows = train("off", runs, **algorithm)
+    members, rows = train("on", runs, **algorithm)
     torch.testing.assert_close(flat(members), flat(eager_members), rtol=RTOL, atol=1e-7)
     torch.testing.assert_close(losses(rows), losses(eager_rows), rtol=RTOL, atol=1e-9)
     return members, rows
@@ -182,3 +190,9 @@ def test_the_compiled_step_gives_the_eager_numbers_and_the_same_seed_the_same_re
 @pytest.mark.compiled
 def test_the_compiled_step_of_stacked_runs(compile_cache: Path) -> None:
     compiled_like_eager(2)
+
+
+@pytest.mark.compiled
+def test_the_compiled_rollout_learner_gives_the_eager_numbers(compile_cache: Path) -> None:
+    """The rollout learner's actor and critic steps (mixedrl.departures.rollout) compiled: the eager numbers."""
+    compiled_like_eager(2, **ROLLOUT)

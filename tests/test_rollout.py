@@ -173,11 +173,30 @@ def test_discount_ramp() -> None:
     assert rollout.discount(_config(), 0, 0.97) == 0.97
 
 
-def test_the_compiled_step_does_not_silently_skip_the_rollout() -> None:
-    """The rollout departure's steps are eager: asking to compile them is refused, naming the key."""
-    with pytest.raises(ValueError, match=r"algorithm.compile: the rollout departure"):
-        TrainConfig(task="linear", algorithm={"rollout_horizon": 4, "compile": "on"})
-    assert TrainConfig(task="linear", algorithm={"rollout_horizon": 4}).algorithm.compile == "off"
+def test_the_compiled_step_runs_the_rollout() -> None:
+    """``algorithm.compile`` with the rollout departure steps the rollout's own losses (not the one-step ones): the
+    functional step calls :func:`rollout.actor_loss_at` and :func:`rollout.critic_loss_at` (tests/test_compiled.py
+    checks their numbers against the eager step)."""
+    calls: list[str] = []
+    real_actor, real_critic = rollout.actor_loss_at, rollout.critic_loss_at
+
+    def actor(*a, **k):  # type: ignore[no-untyped-def]
+        calls.append("actor")
+        return real_actor(*a, **k)
+
+    def critic(*a, **k):  # type: ignore[no-untyped-def]
+        calls.append("critic")
+        return real_critic(*a, **k)
+
+    mp = pytest.MonkeyPatch()
+    mp.setattr(rollout, "actor_loss_at", actor)
+    mp.setattr(rollout, "critic_loss_at", critic)
+    try:
+        run = AGPI(CartFriction(), _config(compile="functional", j_max=1))
+        run.iteration()
+    finally:
+        mp.undo()
+    assert calls[:2] == ["actor", "critic"] and set(calls[2:]) <= {"actor"}  # then the MVC loop's PIM steps
 
 
 def test_critic_steps_split_the_rollout_over_time() -> None:

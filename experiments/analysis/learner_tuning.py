@@ -109,6 +109,8 @@ VARIANTS["swing_cri_rel_c30"] = dict(VARIANTS["swing_cri_rel_c10"], batch_weight
 #: One offset in value units for the swing-up and the fast tracking (c = 0.6 and 0.3 value_scale), at H = 16.
 VARIANTS["swing_cri_h16_rv06"] = dict(VARIANTS["swing_cri_h16"], batch_weighting="relative", batch_weight_offset=0.6)
 VARIANTS["swing_cri_h16_rv03"] = dict(VARIANTS["swing_cri_h16_rv06"], batch_weight_offset=0.3)
+#: Without the region starts (the double lane change's held-out seeds drift with them: its region is its course starts).
+VARIANTS["swing_cri_h16_rv03_nr"] = dict(VARIANTS["swing_cri_h16_rv03"], rollout_region=0.0)
 
 
 def _trained(system: str, method: str, seed: int, algorithm: dict[str, Any], systems: dict[str, Any]

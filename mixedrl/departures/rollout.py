@@ -28,8 +28,9 @@ draw in place of the quadrature (``tests/test_rollout.py``). The state weights o
 :mod:`~mixedrl.departures.state_weights` apply as in the paper's losses (relative TD error; the actor's
 states weighted by ``1 / (V_target(x_0) + c)``).
 
-The losses are pure functions of tensors and callables (no numpy, no data-dependent Python branches), so
-they can be compiled. ``R >= 1`` stacked runs (:mod:`mixedrl.algorithms.batched`) are supported: every
+The losses are pure functions of tensors and callables (no numpy, no data-dependent Python branches): with
+``algorithm.compile`` on, each step is one compiled graph (:func:`actor_loss_at`, :func:`critic_loss_at` through
+:meth:`mixedrl.schedule.Descent.minimise`; the noise draws stay eager, in the same order). ``R >= 1`` stacked runs (:mod:`mixedrl.algorithms.batched`) are supported: every
 function takes ``runs`` and returns one loss per run, each run's noise drawn from its own generator and its
 discount per row.
 
@@ -63,11 +64,13 @@ work: the spread is its load's).
 
 from __future__ import annotations
 
+from functools import partial
 from typing import Any, Callable, Sequence
 
 import numpy as np
 import torch
 
+from mixedrl.compiled import network_at
 from mixedrl.config import PAPER_SETTINGS
 from mixedrl.departures import region
 from mixedrl.gaussian import psd_factor
@@ -77,8 +80,8 @@ NAME = "rollout"
 KEY = "algorithm.rollout_horizon"
 PAPER = PAPER_SETTINGS["algorithm"]["rollout_horizon"]
 
-__all__ = ["NAME", "KEY", "PAPER", "active", "discount", "noise_draws", "rollout", "actor_loss", "lambda_returns",
-           "critic_loss", "update", "improve"]
+__all__ = ["NAME", "KEY", "PAPER", "active", "discount", "noise_draws", "rollout", "actor_loss", "actor_loss_at",
+           "lambda_returns", "critic_loss", "critic_loss_at", "update", "improve"]
 
 Network = Callable[[torch.Tensor], torch.Tensor]
 
@@ -265,6 +268,21 @@ def critic_loss(task: Any, critic: Network, states: torch.Tensor, targets: torch
     return 0.5 * run_mean(err.pow(2), runs)
 
 
+def actor_loss_at(params: Sequence[torch.Tensor], s: torch.Tensor, draws: torch.Tensor, gamma: torch.Tensor, *,
+                  task: Any, actor: Any, value_target: Network, runs: int = 1,
+                  relative_offset: float | None = None) -> torch.Tensor:
+    """:func:`actor_loss` of the rollout from ``s`` under ``draws`` with the actor at ``params``: the pure loss the
+    compiled step differentiates (:meth:`mixedrl.schedule.Descent.minimise`, ``algorithm.compile``)."""
+    states, costs = rollout(task, network_at(actor, params), s, draws)
+    return actor_loss(task, value_target, states, costs, gamma, runs, relative_offset)
+
+
+def critic_loss_at(params: Sequence[torch.Tensor], states: torch.Tensor, targets: torch.Tensor, *, task: Any,
+                   critic: Any, runs: int = 1, relative_offset: float | None = None) -> torch.Tensor:
+    """:func:`critic_loss` with the critic at ``params`` (the pure loss of the compiled step)."""
+    return critic_loss(task, network_at(critic, params), states, targets, runs, relative_offset)
+
+
 # ----------------------------------------------------------------------------------------------------
 # the hooks of the loop (mixedrl.algorithms.algorithm2.iteration)
 # ----------------------------------------------------------------------------------------------------
@@ -309,10 +327,21 @@ def improve(engine: Any, s: torch.Tensor, moments: Sequence[tuple[np.ndarray, np
     gamma = _gamma(engine, s)
     # only the runs that step draw (a run's stream does not depend on its neighbours' MVC outcomes)
     own = [mo if r in active_runs else None for r, mo in enumerate(moments)]
-    states, costs = rollout(engine.task, engine.actor, s, _draws(engine, own, s))
-    obj = actor_loss(engine.task, _target(engine), states, costs, gamma, engine.runs, relative_offset)
-    engine.actor_descent(obj, active_runs)
-    return obj.detach(), states.detach(), costs.detach(), gamma
+    draws = _draws(engine, own, s)
+    if engine.actor_descent.mode == "off":
+        states, costs = rollout(engine.task, engine.actor, s, draws)
+        obj = actor_loss(engine.task, _target(engine), states, costs, gamma, engine.runs, relative_offset)
+        engine.actor_descent(obj, active_runs)
+        return obj.detach(), states.detach(), costs.detach(), gamma
+    # algorithm.compile: the same loss as a pure function, one compiled step; the rollout the critic is fitted
+    # on is the step's own (the actor before the step, the same draws), taken again without gradient
+    with torch.no_grad():
+        states, costs = rollout(engine.task, engine.actor, s, draws)
+    loss = partial(actor_loss_at, task=engine.task, actor=engine.actor, value_target=_target(engine),
+                   runs=engine.runs, relative_offset=relative_offset)
+    obj = engine.actor_descent.minimise(loss, (s, draws, gamma), active_runs,
+                                        key=("rollout_pim", engine.runs, relative_offset))
+    return obj, states, costs, gamma
 
 
 def update(engine: Any, s: torch.Tensor, moments: Sequence[tuple[np.ndarray, np.ndarray] | None],
@@ -348,8 +377,14 @@ def update(engine: Any, s: torch.Tensor, moments: Sequence[tuple[np.ndarray, np.
             targets = lambda_returns(costs, next_values, gamma, algo.rollout_lambda)
         steps = algo.rollout_critic_steps
         for i in range(steps):  # the i-th of the rollout's time steps i, i + n, .. (all of them for n = 1)
-            loss = critic_loss(engine.task, engine.critic, states[:-1][i::steps], targets[i::steps], engine.runs,
-                               relative_offset)
-            engine.critic_descent(loss, active_runs)
+            fit = (states[:-1][i::steps], targets[i::steps])
+            if engine.critic_descent.mode == "off":
+                loss = critic_loss(engine.task, engine.critic, *fit, engine.runs, relative_offset)
+                engine.critic_descent(loss, active_runs)
+            else:
+                pure = partial(critic_loss_at, task=engine.task, critic=engine.critic, runs=engine.runs,
+                               relative_offset=relative_offset)
+                loss = engine.critic_descent.minimise(pure, fit, active_runs,
+                                                      key=("rollout_pev", engine.runs, relative_offset))
     region.remember(engine, states[-1], active_runs)  # departure hook: the end states the next starts carry over
     return loss.detach(), obj
