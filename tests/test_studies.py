@@ -819,3 +819,26 @@ def test_target_matrix_reads_each_rows_targets_and_counts_the_seeds_within_the_s
     (tmp_path / "empty").mkdir()
     bad = _run_script("target_matrix.py", tmp_path / "empty", "--out", tmp_path / "x.txt")
     assert bad.returncode != 0 and "summary.json does not exist" in bad.stderr
+
+
+@pytest.mark.studies
+def test_learner_targets_trains_the_missing_runs_in_parallel_and_resumes(tmp_path: Path) -> None:
+    """learner_targets.py --jobs 2 --settings paper: the pool trains each missing run once (its per_run JSON), the
+    table holds the chosen setting only, and a second call reads the runs back (the same rows, nothing trained)."""
+    spec = tmp_path / "spec.toml"
+    spec.write_text('systems = ["linear"]\nsettings = ["default", "paper"]\nmethods = ["mixed"]\nseeds = [0, 1]\n'
+                    'iterations = 3\n')
+    args = ["--spec", spec, "--dest", tmp_path / "out", "--settings", "paper", "--jobs", "2"]
+    first = _run_script("learner_targets.py", *args)
+    assert first.returncode == 0, first.stderr
+    files = sorted(p.name for p in (tmp_path / "out" / "per_run").iterdir())
+    assert files == ["linear_mixed_paper_0.json", "linear_mixed_paper_1.json"]
+    rows = json.loads((tmp_path / "out" / "rows.json").read_text())
+    assert [(r["setting"], r["seed"]) for r in rows] == [("paper", 0), ("paper", 1)]
+    stamps = [p.stat().st_mtime_ns for p in sorted((tmp_path / "out" / "per_run").iterdir())]
+    again = _run_script("learner_targets.py", *args)
+    assert again.returncode == 0, again.stderr
+    assert json.loads((tmp_path / "out" / "rows.json").read_text()) == rows
+    assert [p.stat().st_mtime_ns for p in sorted((tmp_path / "out" / "per_run").iterdir())] == stamps
+    bad = _run_script("learner_targets.py", "--spec", spec, "--dest", tmp_path / "x", "--settings", "papers")
+    assert bad.returncode != 0 and "--settings" in bad.stderr

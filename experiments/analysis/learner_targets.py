@@ -14,12 +14,17 @@ with a paired bootstrap 95% interval).
 Usage::
 
     PYTHONPATH=. python experiments/analysis/learner_targets.py [--spec ...] [--dest ...] [--only SYSTEM]
+        [--settings default paper] [--jobs N]
+
+``--jobs N`` trains the missing runs in ``N`` processes (one torch thread each) before the table is written;
+``--settings`` trains and tables only those of the spec's settings (the table of all of them needs every run).
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import multiprocessing
 import sys
 import tomllib
 from pathlib import Path
@@ -81,23 +86,41 @@ def summarise(rows: list[dict[str, Any]], systems: list[str], settings: list[str
     return lines
 
 
+def _job(job: tuple[str, str, str, int, dict[str, Any], Path]) -> dict[str, Any]:
+    """One run of the pool (one torch thread per process)."""
+    torch.set_num_threads(1)
+    return run_or_read(*job)
+
+
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--spec", type=Path, default=SPEC)
     ap.add_argument("--dest", type=Path, default=OUT)
     ap.add_argument("--only", default=None, help="only this system")
+    ap.add_argument("--settings", nargs="+", default=None, help="only these of the spec's settings")
+    ap.add_argument("--jobs", type=int, default=1, help="processes for the runs not yet measured")
     args = ap.parse_args(argv)
     spec = tomllib.loads(args.spec.read_text())
+    if args.jobs < 1:
+        raise SystemExit(f"--jobs: expected at least 1, got {args.jobs}")
+    settings = spec["settings"] if args.settings is None else args.settings
+    unknown = sorted(set(settings) - set(spec["settings"]))
+    if unknown:
+        raise SystemExit(f"--settings: {unknown} are not settings of {args.spec.name} ({spec['settings']})")
     torch.set_num_threads(1)
     systems = [s for s in spec["systems"] if args.only in (None, s)]
+    keys = [(system, method, setting, seed) for system in systems for setting in settings
+            for method in spec["methods"] for seed in spec["seeds"]]
+    if args.jobs > 1:  # the missing runs first, in parallel; each writes its own per_run JSON
+        with multiprocessing.get_context("fork").Pool(args.jobs) as pool:
+            for i, row in enumerate(pool.imap_unordered(_job, [(*k, spec, args.dest) for k in keys]), 1):
+                print(f"[{i}/{len(keys)}] [{row['setting']}] " + format_row(row), file=sys.stderr, flush=True)
     rows = []
-    for system in systems:
-        for setting in spec["settings"]:
-            for method in spec["methods"]:
-                for seed in spec["seeds"]:
-                    row = run_or_read(system, method, setting, seed, spec, args.dest)
-                    print(f"[{setting}] " + format_row(row), file=sys.stderr, flush=True)
-                    rows.append(row)
+    for key in keys:
+        row = run_or_read(*key, spec, args.dest)
+        print(f"[{key[2]}] " + format_row(row), file=sys.stderr, flush=True)
+        rows.append(row)
+    spec = {**spec, "settings": settings}
     lines = [f"Issue 42 targets near an equilibrium: {', '.join(systems)}; settings {spec['settings']}; seeds "
              f"{spec['seeds']}; written by experiments/analysis/learner_targets.py from {args.spec.name}.", "",
              "Columns as experiments/results/tuning_baseline/table.md.", "",
