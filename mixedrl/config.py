@@ -95,6 +95,23 @@ def __getattr__(name: str) -> Any:
 FLAT_FORM_RELEASE = "mixedrl 0.1.0 at git commit b510485"
 
 
+#: Settings deleted from the library (a departure without a measured effect), each with the value at which a
+#: saved config's run behaves as today's code: such a record is read (the key dropped); any other value is
+#: refused, naming the key (the run cannot be re-created).
+DELETED_SETTINGS: dict[tuple[str, str], Any] = {("algorithm", "rollout_critic_steps"): 1}
+
+
+def _drop_deleted_settings(data: dict[str, Any]) -> None:
+    """Drop the :data:`DELETED_SETTINGS` of ``data`` that hold today's behaviour; refuse the others."""
+    for (section, name), value in DELETED_SETTINGS.items():
+        part = data.get(section)
+        if isinstance(part, dict) and name in part:
+            if part[name] != value:
+                raise ValueError(f"{section}.{name}: this setting was deleted (no measured effect); only "
+                                 f"{value!r}, today's behaviour, can be read, got {part[name]!r}")
+            del part[name]
+
+
 def _refuse_flat_form(keys: Any) -> None:
     """Raise naming :data:`FLAT_FORM_RELEASE` if a top-level key of a configuration is one of the flat
     form's: a field of ``algorithm`` or ``run`` (``iterations``), ``ddpg_<field>``, ``state_source``, a
@@ -339,6 +356,7 @@ class TrainConfig:
             raise ValueError(f"config: expected a dict, got {type(data).__name__}")
         data = copy.deepcopy(data)
         _refuse_flat_form(data)
+        _drop_deleted_settings(data)
         check_unknown_keys(data, {f.name for f in dataclasses.fields(cls)}, "config")
         for section, name in (("algorithm", "grad_clip"), ("sampler", "box")):
             if isinstance(data.get(section), dict) and data[section].get(name) == "inf":

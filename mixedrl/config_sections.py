@@ -191,10 +191,6 @@ class AlgorithmConfig:
     rollout_updates: int = 1
     """Departure (learner): actor-then-critic updates on fresh rollouts per iteration (``rollout_horizon > 0``)."""
 
-    rollout_critic_steps: int = 1
-    """Departure (learner): critic steps on each rollout (``rollout_horizon > 0``), the ``i``-th on the rollout's
-    time steps ``i, i + n, ..``; 1 (the default) = one step on the whole rollout."""
-
     rollout_discount_start: float = 0.0
     """Departure (learner): with ``rollout_horizon > 0``, the rollouts' discount starts at this value and ramps
     linearly to the task's ``gamma`` over the first ``rollout_discount_ramp`` of the budget; 0 (the default) =
@@ -249,10 +245,6 @@ class AlgorithmConfig:
         self.batch_weight_offset = check_number(self.batch_weight_offset, f"{w}.batch_weight_offset", positive=True)
         self.rollout_horizon = check_nonnegative_int(self.rollout_horizon, f"{w}.rollout_horizon")
         self.rollout_updates = check_positive_int(self.rollout_updates, f"{w}.rollout_updates")
-        self.rollout_critic_steps = check_positive_int(self.rollout_critic_steps, f"{w}.rollout_critic_steps")
-        if self.rollout_critic_steps > max(self.rollout_horizon, 1):
-            raise ValueError(f"{w}.rollout_critic_steps: at most rollout_horizon ({self.rollout_horizon}) steps on a "
-                             f"rollout, got {self.rollout_critic_steps}")
         check_fraction(self.rollout_lambda, f"{w}.rollout_lambda")
         check_fraction(self.rollout_discount_start, f"{w}.rollout_discount_start", high_open=True)
         check_fraction(self.rollout_discount_ramp, f"{w}.rollout_discount_ramp")

@@ -312,3 +312,16 @@ def test_a_seed_beyond_64_bits_is_refused_naming_it(seed: int) -> None:
     with pytest.raises(ValueError, match=r"^seed: "):
         TrainConfig(seed=seed)
     assert TrainConfig(seed=2**64 - 1).seed == 2**64 - 1
+
+
+def test_a_deleted_setting_is_read_at_todays_behaviour_and_refused_otherwise() -> None:
+    """A saved config holding a deleted setting (algorithm.rollout_critic_steps) at the value that is today's
+    behaviour loads as the config without it; another value is refused, naming the key."""
+    data = TrainConfig(task="linear", algorithm={"rollout_horizon": 4}).to_dict()
+    kept = json.loads(json.dumps(data))
+    data["algorithm"]["rollout_critic_steps"] = 1
+    assert TrainConfig.from_dict(data) == TrainConfig.from_dict(kept)
+    assert data["algorithm"]["rollout_critic_steps"] == 1  # the caller's dict is left as it was
+    data["algorithm"]["rollout_critic_steps"] = 4
+    with pytest.raises(ValueError, match=r"^algorithm\.rollout_critic_steps: this setting was deleted"):
+        TrainConfig.from_dict(data)

@@ -158,8 +158,7 @@ def test_batched_runs_do_not_depend_on_their_neighbours(task: type, extra: dict)
 
 @pytest.mark.parametrize("key, bad", [("rollout_horizon", -1), ("rollout_horizon", 1.5), ("rollout_lambda", 1.5),
                                       ("rollout_updates", 0), ("rollout_discount_start", 1.0),
-                                      ("rollout_discount_ramp", -0.1), ("rollout_critic_steps", 0),
-                                      ("rollout_critic_steps", 4)])
+                                      ("rollout_discount_ramp", -0.1)])
 def test_bad_values_are_refused_naming_the_key(key: str, bad: object) -> None:
     with pytest.raises(ValueError, match=f"algorithm.{key}"):
         _config(**{key: bad})
@@ -197,23 +196,3 @@ def test_the_compiled_step_runs_the_rollout() -> None:
     finally:
         mp.undo()
     assert calls[:2] == ["actor", "critic"] and set(calls[2:]) <= {"actor"}  # then the MVC loop's PIM steps
-
-
-def test_critic_steps_split_the_rollout_over_time() -> None:
-    """``rollout_critic_steps = n``: n critic steps, the i-th on time steps i, i + n, ..: with n = H each sees one
-    time step (a step on the whole rollout, or on the same slice each time, fails)."""
-    run = AGPI(CartFriction(), _config(rollout_critic_steps=3))
-    engine = BatchedAGPI([run])
-    seen = []
-    real = rollout.critic_loss
-
-    def spy(task, critic, states, targets, *args):
-        seen.append((states.shape[0], targets.clone()))
-        return real(task, critic, states, targets, *args)
-    rollout.critic_loss = spy
-    try:
-        engine.iteration()
-    finally:
-        rollout.critic_loss = real
-    assert [n for n, _ in seen] == [1, 1, 1]
-    assert not torch.equal(seen[0][1], seen[1][1]) and not torch.equal(seen[1][1], seen[2][1])

@@ -85,7 +85,6 @@ VARIANTS["swing_cri_clip2"] = dict(VARIANTS["swing_cri"], actor_output="clip")
 VARIANTS["swing_cri_relative"] = dict(VARIANTS["swing_cri"], batch_weighting="relative")
 VARIANTS["swing_cri_j5"] = dict(VARIANTS["swing_cri"], j_max=5)
 VARIANTS["swing_cri_500"] = dict(VARIANTS["swing_cri"], iterations=500)
-VARIANTS["swing_cri_cs4"] = dict(VARIANTS["swing_cri"], rollout_critic_steps=4)
 #: Cheaper forms of swing_cri (issue 42 allows a default at most 1.5x today's default's wall time).
 VARIANTS["swing_cri_h16"] = dict(VARIANTS["swing_cri"], rollout_horizon=16)
 VARIANTS["swing_cri_b128"] = dict(VARIANTS["swing_cri"], batch_size=128)
@@ -111,6 +110,13 @@ VARIANTS["swing_cri_h16_rv06"] = dict(VARIANTS["swing_cri_h16"], batch_weighting
 VARIANTS["swing_cri_h16_rv03"] = dict(VARIANTS["swing_cri_h16_rv06"], batch_weight_offset=0.3)
 #: Without the region starts (the double lane change's held-out seeds drift with them: its region is its course starts).
 VARIANTS["swing_cri_h16_rv03_nr"] = dict(VARIANTS["swing_cri_h16_rv03"], rollout_region=0.0)
+
+
+#: Variants of settings deleted since their rows were measured (not runnable now): name -> what they were.
+RETIRED: dict[str, str] = {
+    "swing_cri_cs4": "swing_cri with rollout_critic_steps = 4 (4 critic steps per rollout, the i-th on its time steps "
+                     "i, i + 4, ..; deleted: no measured effect)",
+}
 
 
 def _trained(system: str, method: str, seed: int, algorithm: dict[str, Any], systems: dict[str, Any]
@@ -293,13 +299,15 @@ def main(argv: list[str] | None = None) -> None:
             new.append(row)
     done = {(r["variant"], r["system"], r["method"], r["seed"]) for r in new}
     rows = [r for r in rows if (r["variant"], r["system"], r["method"], r["seed"]) not in done] + new
-    order = [REFERENCE, *VARIANTS]
+    order = [REFERENCE, *VARIANTS, *RETIRED]
     rows.sort(key=lambda r: (r["system"], r["method"], r["seed"], order.index(r["variant"])))
     lines = ["Learner tuning (issue 42): the rollout learner (mixedrl.departures.rollout) against the library "
              "defaults (baseline), held-out tuning systems and seeds only; written by "
              "experiments/analysis/learner_tuning.py from rows.json", "",
              "Variants (algorithm.* settings over the defaults):", ""]
     lines += [f"- {name}: {json.dumps(VARIANTS[name])}" for name in VARIANTS if any(r["variant"] == name for r in rows)]
+    lines += [f"- {name} (a setting since deleted): {text}" for name, text in RETIRED.items()
+              if any(r["variant"] == name for r in rows)]
     lines += ["", "batch_weight_offset is in units of the system's value_scale (c = batch_weight_offset * value_scale); "
               "the rows of swing_cri_rel_c3, _c10 and _c30 were measured when it was in absolute value units (their c = "
               "3, 10, 30 is 0.06, 0.2, 0.6 value_scale on swing_up, 0.3, 1, 3 on slalom_fast, unchanged on cart_friction)."]

@@ -58,8 +58,7 @@ AGPI = Any
 #: sampler, MVC settings, ...) may differ between them.
 SHARED_FIELDS = ("batch_size", "hidden_sizes", "activation", "value_output", "bellman_steps", "batch_weighting",
                  "batch_weight_offset", "expectation", "noise_samples", "critic_target", "compile", "rollout_horizon",
-                 "rollout_lambda", "rollout_updates", "rollout_region", "actor_output",
-                 "rollout_critic_steps")
+                 "rollout_lambda", "rollout_updates", "rollout_region", "actor_output")
 
 #: The ``algorithm`` fields the DDPG runs of one batch (:class:`mixedrl.algorithms.batched_ddpg.BatchedDDPG`)
 #: must share: the network shapes and the minibatch size. Everything else (seed, budget, learning rates and

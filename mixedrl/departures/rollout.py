@@ -18,8 +18,6 @@ gradient of SHAC (Xu et al., ICLR 2022) and the model-based value expansion of F
   ``algorithm.critic_target`` when that is on, else the critic itself without gradient;
 * ``algorithm.rollout_updates`` such actor-then-critic updates per iteration (:func:`update`), each on a
   fresh draw of the noise; the MVC loop's extra PIM steps are rollout actor steps (:func:`improve`);
-* ``algorithm.rollout_critic_steps = n`` critic steps on each rollout, the ``i``-th on its time steps
-  ``i, i + n, ..`` (minibatches of the rollout without a draw; ``n = 1``: one step on all of it);
 * optionally the discount of the rollouts ramps linearly from ``algorithm.rollout_discount_start`` to the
   task's ``gamma`` over the first ``algorithm.rollout_discount_ramp`` of the budget (:func:`discount`).
 
@@ -49,7 +47,7 @@ straight-through gradient back inside (:mod:`.actor_output`, ``"clip_inward"``),
 law, so the IBE's estimate does not matter on this task), and near an equilibrium 0.959-0.961 on the cart
 (offset 3 of 3) and 0.999 on the tanks (offset 0 of 3, 0.012-0.013). Single-seed ablations of ``swing_cri``
 (seed 100): ``tanh`` output -605, two-sided clip -1174, relative state weights -863, ``j_max = 5`` -135,
-``rollout_critic_steps = 4`` -136, no region starts -138 (seeds 101-102: -134, -143), 500 iterations -137
+no region starts -138 (seeds 101-102: -134, -143), 500 iterations -137
 (-141, -150), ``H = 16`` -135.6 (-135.3, -135.9), batch 128 -136.2 (-131.5, -131.9).
 
 ``swing_cri_h16`` (``H = 16``) on cart and tanks: 0.960-0.962 (offset 3 of 3) and 0.999 (0 of 3); on SwingUp
@@ -375,16 +373,14 @@ def update(engine: Any, s: torch.Tensor, moments: Sequence[tuple[np.ndarray, np.
             horizon, batch = costs.shape
             next_values = target(engine.task.observe(states[1:].reshape(horizon * batch, -1))).reshape(horizon, batch)
             targets = lambda_returns(costs, next_values, gamma, algo.rollout_lambda)
-        steps = algo.rollout_critic_steps
-        for i in range(steps):  # the i-th of the rollout's time steps i, i + n, .. (all of them for n = 1)
-            fit = (states[:-1][i::steps], targets[i::steps])
-            if engine.critic_descent.mode == "off":
-                loss = critic_loss(engine.task, engine.critic, *fit, engine.runs, relative_offset)
-                engine.critic_descent(loss, active_runs)
-            else:
-                pure = partial(critic_loss_at, task=engine.task, critic=engine.critic, runs=engine.runs,
-                               relative_offset=relative_offset)
-                loss = engine.critic_descent.minimise(pure, fit, active_runs,
-                                                      key=("rollout_pev", engine.runs, relative_offset))
+        fit = (states[:-1], targets)
+        if engine.critic_descent.mode == "off":
+            loss = critic_loss(engine.task, engine.critic, *fit, engine.runs, relative_offset)
+            engine.critic_descent(loss, active_runs)
+        else:
+            pure = partial(critic_loss_at, task=engine.task, critic=engine.critic, runs=engine.runs,
+                           relative_offset=relative_offset)
+            loss = engine.critic_descent.minimise(pure, fit, active_runs,
+                                                  key=("rollout_pev", engine.runs, relative_offset))
     region.remember(engine, states[-1], active_runs)  # departure hook: the end states the next starts carry over
     return loss.detach(), obj
