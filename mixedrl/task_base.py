@@ -158,12 +158,11 @@ class Task(abc.ABC):
     def sample_initial(self, n: int, generator: torch.Generator) -> torch.Tensor:
         """``n`` initial states of the training environments, float64, (n, state_dim)."""
 
-    def sample_region(self, n: int, generator: torch.Generator) -> torch.Tensor | None:
+    def sample_region(self, n: int, generator: torch.Generator) -> torch.Tensor:
         """``n`` states drawn over the task's whole state region, float64, (n, state_dim): where the rollouts of
-        ``algorithm.rollout_region`` start (:mod:`mixedrl.departures.region`). ``None`` here: the task declares
-        no region, and those rollouts start from the sampler's batch (the states training visits); a global task
-        overrides it with its whole region."""
-        return None
+        ``algorithm.rollout_region`` start (:mod:`mixedrl.departures.region`). Here the training distribution
+        (:meth:`sample_initial`); a global task overrides it with its whole region."""
+        return self.sample_initial(n, generator)
 
     def is_terminal(self, s: torch.Tensor) -> torch.Tensor:
         """Boolean (B,): the episode of this copy ends (left the domain, course finished, not finite)."""

@@ -91,8 +91,10 @@ def test_region_sampler_covers_the_region_and_follows_the_generator() -> None:
         assert abs(float(x[:, i].mean())) < 0.02 * high  # uniform, centred
         assert abs(float((x[:, i].abs() < high / 2).double().mean()) - 0.5) < 0.02
     assert torch.equal(x, task.sample_region(20000, torch.Generator().manual_seed(7)))
-    # a task declares no region by default
-    assert CartFriction().sample_region(50, torch.Generator().manual_seed(8)) is None
+    # the default region is the training distribution
+    cart = CartFriction()
+    assert torch.equal(cart.sample_region(50, torch.Generator().manual_seed(8)),
+                       cart.sample_initial(50, torch.Generator().manual_seed(8)))
 
 
 def test_starts_mix_region_draws_and_carried_end_states() -> None:
@@ -113,21 +115,6 @@ def test_starts_mix_region_draws_and_carried_end_states() -> None:
     assert torch.equal(region.starts(engine, s, []), s)
     off = BatchedAGPI([AGPI(SwingUp(), _config(rollout_region=0.0))])
     assert region.starts(off, s, [0]) is s
-
-
-def test_without_a_region_the_fresh_starts_are_the_samplers_states() -> None:
-    """A task that declares no region (CartFriction): the fresh half are distinct rows of the sampler's batch, the
-    carried half the end states (the course sampler of a tracking task keeps its states along the course)."""
-    run = AGPI(CartFriction(), _config())
-    engine = BatchedAGPI([run])
-    s = torch.arange(32, dtype=torch.float32).reshape(16, 2) + 100.0
-    first = region.starts(engine, s, [0])
-    assert sorted(first[:, 0].tolist()) == sorted(s[:, 0].tolist())  # all 16 from the batch, none twice
-    ends = -torch.arange(32, dtype=torch.float32).reshape(16, 2) * 0.001
-    region.remember(engine, ends, [0])
-    nxt = region.starts(engine, s, [0])
-    assert all(any(torch.equal(f, b) for b in s) for f in nxt[:8]) and len({float(f[0]) for f in nxt[:8]}) == 8
-    assert all(any(torch.equal(k, e) for e in ends) for k in nxt[8:])
 
 
 def test_reproducible_and_listed() -> None:

@@ -111,15 +111,16 @@ VARIANTS["swing_cri_h16_rv03"] = dict(VARIANTS["swing_cri_h16_rv06"], batch_weig
 #: Without the region starts (the double lane change's held-out seeds drift with them: its region was its course
 #: starts). On swing_up (seeds 101, 100; the run was stopped there, no row kept): -164.6 and -170.8.
 VARIANTS["swing_cri_h16_rv03_nr"] = dict(VARIANTS["swing_cri_h16_rv03"], rollout_region=0.0)
-#: The same settings as swing_cri_h16_rv03, measured after a task without a declared region (every system here
-#: but swing_up) takes its fresh region starts from the sampler's batch instead of ``sample_initial``.
-VARIANTS["swing_cri_h16_rv03_bs"] = dict(VARIANTS["swing_cri_h16_rv03"])
 
 
-#: Variants of settings deleted since their rows were measured (not runnable now): name -> what they were.
+#: Variants whose setting or code was deleted or reverted after their rows were measured (not runnable now): name ->
+#: what they were.
 RETIRED: dict[str, str] = {
     "swing_cri_cs4": "swing_cri with rollout_critic_steps = 4 (4 critic steps per rollout, the i-th on its time steps "
                      "i, i + 4, ..; deleted: no measured effect)",
+    "swing_cri_h16_rv03_bs": "swing_cri_h16_rv03's settings with the fresh region starts of a task without a declared "
+                             "region (every system here but swing_up) taken from the sampler's batch instead of "
+                             "sample_initial (commit 4ca6aca; reverted: worse on cart_friction and two_tank)",
 }
 
 
@@ -310,7 +311,7 @@ def main(argv: list[str] | None = None) -> None:
              "experiments/analysis/learner_tuning.py from rows.json", "",
              "Variants (algorithm.* settings over the defaults):", ""]
     lines += [f"- {name}: {json.dumps(VARIANTS[name])}" for name in VARIANTS if any(r["variant"] == name for r in rows)]
-    lines += [f"- {name} (a setting since deleted): {text}" for name, text in RETIRED.items()
+    lines += [f"- {name} (not runnable now): {text}" for name, text in RETIRED.items()
               if any(r["variant"] == name for r in rows)]
     lines += ["", "batch_weight_offset is in units of the system's value_scale (c = batch_weight_offset * value_scale); "
               "the rows of swing_cri_rel_c3, _c10 and _c30 were measured when it was in absolute value units (their c = "

@@ -7,8 +7,7 @@ distribution ``sample_initial``). With ``algorithm.rollout_region = rho > 0`` ea
 (``B = algorithm.batch_size``) are instead, every iteration (:func:`starts`),
 
 * ``B - n_c`` states drawn afresh from the task's whole state region, ``task.sample_region(n, generator)``
-  (:meth:`mixedrl.task_base.Task.sample_region`), or, for a task that declares no region (``None``, the
-  default), a random subset of the sampler's batch, and
+  (:meth:`mixedrl.task_base.Task.sample_region`; by default the training distribution ``sample_initial``), and
 * ``n_c = round((1 - rho) B)`` end states ``x_H`` of the previous iteration's rollouts, a random subset drawn
   with the run's generator (:func:`remember`); non-finite and terminal ones are dropped (their rows are drawn
   from the region). The first iteration, and a run resumed from a checkpoint (the carried states are not part
@@ -101,11 +100,8 @@ def starts(engine: Any, s: torch.Tensor, active_runs: Sequence[int]) -> torch.Te
                              f"({m.config.method}) has a state-dependent one")
         kept = getattr(m, "region_carry", None)
         kept = rows[:0] if kept is None else kept.to(rows.dtype)
-        n = rows.shape[0] - kept.shape[0]
-        fresh = engine.task.sample_region(n, m.generator)
-        # a task without a region: a random subset of the sampler's batch (the states training visits)
-        fresh = rows[torch.randperm(rows.shape[0], generator=m.generator)[:n]] if fresh is None else fresh
-        parts.append(torch.cat([fresh.to(rows.dtype), kept]))
+        fresh = engine.task.sample_region(rows.shape[0] - kept.shape[0], m.generator).to(rows.dtype)
+        parts.append(torch.cat([fresh, kept]))
     return torch.cat(parts)
 
 
