@@ -28,9 +28,9 @@ states weighted by ``1 / (V_target(x_0) + c)``).
 
 The losses are pure functions of tensors and callables (no numpy, no data-dependent Python branches): with
 ``algorithm.compile`` on, each step is one compiled graph (:func:`actor_loss_at`, :func:`critic_loss_at` through
-:meth:`mixedrl.schedule.Descent.minimise`; the noise draws stay eager, in the same order). ``R >= 1`` stacked runs (:mod:`mixedrl.algorithms.batched`) are supported: every
-function takes ``runs`` and returns one loss per run, each run's noise drawn from its own generator and its
-discount per row.
+:meth:`mixedrl.schedule.Descent.minimise`; the noise draws stay eager, in the same order). ``R >= 1`` stacked
+runs (:mod:`mixedrl.algorithms.batched`) are supported: every function takes ``runs`` and returns one loss per
+run, each run's noise drawn from its own generator and its discount per row.
 
 Measured effect (``experiments/results/learner_tuning/table.md``, held-out tuning systems, seeds 100-102, mixed
 RL): with ``H = 8``, ``critic_target = 0.8``, ``actor_lr = 2e-3`` and 700 iterations the evaluated cost over the
@@ -47,8 +47,8 @@ straight-through gradient back inside (:mod:`.actor_output`, ``"clip_inward"``),
 law, so the IBE's estimate does not matter on this task), and near an equilibrium 0.959-0.961 on the cart
 (offset 3 of 3) and 0.999 on the tanks (offset 0 of 3, 0.012-0.013). Single-seed ablations of ``swing_cri``
 (seed 100): ``tanh`` output -605, two-sided clip -1174, relative state weights -863, ``j_max = 5`` -135,
-no region starts -138 (seeds 101-102: -134, -143), 500 iterations -137
-(-141, -150), ``H = 16`` -135.6 (-135.3, -135.9), batch 128 -136.2 (-131.5, -131.9).
+no region starts -138 (seeds 101-102: -134, -143), 500 iterations -137 (-141, -150), ``H = 16`` -135.6
+(-135.3, -135.9), batch 128 -136.2 (-131.5, -131.9).
 
 ``swing_cri_h16`` (``H = 16``) on cart and tanks: 0.960-0.962 (offset 3 of 3) and 0.999 (0 of 3); on SwingUp
 model-driven -131.3, oracle -135.2 (seed 100). ``swing_cri_h16_500`` (500 iterations): SwingUp -138.8, -137.9,
