@@ -11,7 +11,7 @@ Usage::
 
     PYTHONPATH=. python scripts/ship_reproduction.py [--seeds 5] [--out runs/reproduce] [--resume]
 
-About 18 minutes on this 2-core machine for 5 seeds (1060 s measured with other jobs running; see
+About 13 minutes on this 2-core machine for 5 seeds (753 s measured quiet, 2026-12-06; see
 ``docs/reproduction.rst``): the Algorithm-2 runs train in batches, the five long DDPG runs (not batched)
 are most of it.
 """
