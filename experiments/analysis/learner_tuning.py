@@ -109,7 +109,7 @@ VARIANTS["swing_cri_rel_c30"] = dict(VARIANTS["swing_cri_rel_c10"], batch_weight
 VARIANTS["swing_cri_h16_rv06"] = dict(VARIANTS["swing_cri_h16"], batch_weighting="relative", batch_weight_offset=0.6)
 VARIANTS["swing_cri_h16_rv03"] = dict(VARIANTS["swing_cri_h16_rv06"], batch_weight_offset=0.3)
 #: Without the region starts (the double lane change's held-out seeds drift with them: its region draws are its
-#: sample_initial states). On swing_up (seeds 101, 100; the run was stopped there, no row kept): -164.6 and -170.8.
+#: sample_initial states).
 VARIANTS["swing_cri_h16_rv03_nr"] = dict(VARIANTS["swing_cri_h16_rv03"], rollout_region=0.0)
 
 
