@@ -172,7 +172,7 @@ def test_discount_ramp() -> None:
     assert rollout.discount(_config(), 0, 0.97) == 0.97
 
 
-def test_the_compiled_step_runs_the_rollout() -> None:
+def test_the_compiled_step_runs_the_rollout(monkeypatch: pytest.MonkeyPatch) -> None:
     """``algorithm.compile`` with the rollout departure steps the rollout's own losses (not the one-step ones): the
     functional step calls :func:`rollout.actor_loss_at` and :func:`rollout.critic_loss_at` (tests/test_compiled.py
     checks their numbers against the eager step)."""
@@ -187,12 +187,7 @@ def test_the_compiled_step_runs_the_rollout() -> None:
         calls.append("critic")
         return real_critic(*a, **k)
 
-    mp = pytest.MonkeyPatch()
-    mp.setattr(rollout, "actor_loss_at", actor)
-    mp.setattr(rollout, "critic_loss_at", critic)
-    try:
-        run = AGPI(CartFriction(), _config(compile="functional", j_max=1))
-        run.iteration()
-    finally:
-        mp.undo()
+    monkeypatch.setattr(rollout, "actor_loss_at", actor)
+    monkeypatch.setattr(rollout, "critic_loss_at", critic)
+    AGPI(CartFriction(), _config(compile="functional", j_max=1)).iteration()
     assert calls[:2] == ["actor", "critic"] and set(calls[2:]) <= {"actor"}  # then the MVC loop's PIM steps
