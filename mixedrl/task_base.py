@@ -160,9 +160,21 @@ class Task(abc.ABC):
 
     def sample_region(self, n: int, generator: torch.Generator) -> torch.Tensor:
         """``n`` states drawn over the task's whole state region, float64, (n, state_dim): where the rollouts of
-        ``algorithm.rollout_region`` start (:mod:`mixedrl.departures.region`). Here the training distribution
-        (:meth:`sample_initial`); a global task overrides it with its whole region."""
-        return self.sample_initial(n, generator)
+        ``algorithm.rollout_region`` start (:mod:`mixedrl.departures.region`). A task declares a region by
+        overriding this method (:meth:`declares_region`); a task without one (here) gets no region starts, its
+        rollouts start from the sampler's batch.
+
+        Raises
+        ------
+        NotImplementedError
+            The task declares no state region.
+        """
+        raise NotImplementedError(f"{type(self).__name__} declares no state region (override sample_region)")
+
+    @classmethod
+    def declares_region(cls) -> bool:
+        """Whether the task overrides :meth:`sample_region` with a state region of its own."""
+        return cls.sample_region is not Task.sample_region
 
     def is_terminal(self, s: torch.Tensor) -> torch.Tensor:
         """Boolean (B,): the episode of this copy ends (left the domain, course finished, not finite)."""

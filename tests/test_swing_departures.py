@@ -91,10 +91,20 @@ def test_region_sampler_covers_the_region_and_follows_the_generator() -> None:
         assert abs(float(x[:, i].mean())) < 0.02 * high  # uniform, centred
         assert abs(float((x[:, i].abs() < high / 2).double().mean()) - 0.5) < 0.02
     assert torch.equal(x, task.sample_region(20000, torch.Generator().manual_seed(7)))
-    # the default region is the training distribution
-    cart = CartFriction()
-    assert torch.equal(cart.sample_region(50, torch.Generator().manual_seed(8)),
-                       cart.sample_initial(50, torch.Generator().manual_seed(8)))
+    assert SwingUp.declares_region() and not CartFriction.declares_region()
+    with pytest.raises(NotImplementedError, match="CartFriction declares no state region"):
+        CartFriction().sample_region(50, torch.Generator().manual_seed(8))
+
+
+def test_a_task_without_a_region_keeps_the_samplers_batch() -> None:
+    """rollout_region > 0 on a task that declares no region: the starts are the sampler's batch, nothing carried."""
+    engine = BatchedAGPI([AGPI(CartFriction(), _config())])
+    s = torch.randn(16, engine.task.state_dim, generator=torch.Generator().manual_seed(9))
+    assert region.active(engine.members[0].config) and not region.applies(engine.members[0].config, engine.task)
+    assert region.starts(engine, s, [0]) is s
+    region.remember(engine, s, [0])
+    assert getattr(engine.members[0], "region_carry", None) is None
+    assert region.starts(engine, s, [0]) is s
 
 
 def test_starts_mix_region_draws_and_carried_end_states() -> None:
