@@ -54,9 +54,9 @@ from typing import Any
 
 from mixedrl import config_sections, config_tasks
 from mixedrl.checks import check_nonnegative_int, check_unknown_keys
-from mixedrl.config_sections import (PRESETS, SAMPLERS, AlgorithmConfig, DDPGConfig, ModelRolloutsSampler, RunConfig,
-                                     SamplerConfig, TrueCopiesSampler, register_preset, register_sampler,
-                                     sampler_config)
+from mixedrl.config_sections import (OPTIMISER_FIELDS, PRESETS, SAMPLERS, AlgorithmConfig, DDPGConfig,
+                                     ModelRolloutsSampler, RunConfig, SamplerConfig, TrueCopiesSampler, register_preset,
+                                     register_sampler, sampler_config)
 from mixedrl.config_tasks import (AFFINE_FEEDFORWARDS, ANCHORED_FEEDFORWARDS, BATCH_WEIGHTINGS, BUILTIN_NAMES,
                                   DISTURBANCE_LAWS, FEEDFORWARDS, METHODS, MODEL_COURSE_STARTS, TASKS,
                                   ForceDisturbanceConfig, GaussianNoiseConfig, LinearTaskConfig, build_section,
@@ -66,6 +66,7 @@ from mixedrl.config_tasks import (AFFINE_FEEDFORWARDS, ANCHORED_FEEDFORWARDS, BA
 #: This module's own names, those of the task configurations (:mod:`mixedrl.config_tasks`), of the other sections
 #: (:mod:`mixedrl.config_sections`) and what the double lane change registers (read through ``__getattr__``).
 __all__ = ["TrainConfig", "PAPER_SETTINGS", "CONFIG_PRESETS", "FLAT_FORM_RELEASE", "memory_lower_bounds",
+           "optimiser_section", "optimiser_prefix",
            "machine_memory", "apply_overrides", "flatten_table", "TaskConfig", "DoubleLaneChangeTaskConfig",
            "CostWeights", "CourseSampler", "DLC_EXPERIMENT", *config_tasks.__all__, *config_sections.__all__]
 
@@ -112,12 +113,36 @@ def _drop_deleted_settings(data: dict[str, Any]) -> None:
             del part[name]
 
 
+def _ddpg_settings_from_algorithm(data: dict[str, Any]) -> None:
+    """A DDPG run's config written before DDPG had its own :data:`OPTIMISER_FIELDS` (``ddpg.batch_size``, ...)
+    held DDPG's values in ``algorithm``: for ``method = "ddpg"``, each of them that ``ddpg`` lacks and
+    ``algorithm`` has is taken from ``algorithm`` (the same run)."""
+    algo, ddpg = data.get("algorithm"), data.get("ddpg", {})
+    if data.get("method") != "ddpg" or not isinstance(algo, dict) or not isinstance(ddpg, dict):
+        return
+    data["ddpg"] = {**{name: algo[name] for name in OPTIMISER_FIELDS if name in algo}, **ddpg}
+
+
+def optimiser_prefix(config: Any) -> str:
+    """The section that holds the network and optimiser settings (:data:`OPTIMISER_FIELDS`) of ``config``'s
+    method: ``"ddpg"`` for DDPG, ``"algorithm"`` for Algorithm 2 (the prefix of their dotted keys)."""
+    return "ddpg" if config.method == "ddpg" else "algorithm"
+
+
+def optimiser_section(config: Any) -> Any:
+    """The section of ``config`` (a :class:`TrainConfig`) whose minibatch size, hidden activation, learning
+    rates and gradient clip (:data:`OPTIMISER_FIELDS`) the run trains with: ``config.ddpg`` for
+    ``method = "ddpg"``, else ``config.algorithm``."""
+    return getattr(config, optimiser_prefix(config))
+
+
 def _refuse_flat_form(keys: Any) -> None:
     """Raise naming :data:`FLAT_FORM_RELEASE` if a top-level key of a configuration is one of the flat
     form's: a field of ``algorithm`` or ``run`` (``iterations``), ``ddpg_<field>``, ``state_source``, a
     sampler option (``model_*``, ``true_*``) or ``train_half_widths``."""
     fields = {f.name for cls in (AlgorithmConfig, RunConfig) for f in dataclasses.fields(cls)}
-    fields |= {f"ddpg_{f.name}" for f in dataclasses.fields(DDPGConfig)} | {"state_source", "train_half_widths"}
+    fields |= {f"ddpg_{f.name}" for f in dataclasses.fields(DDPGConfig) if f.name not in OPTIMISER_FIELDS}
+    fields |= {"state_source", "train_half_widths"}
     flat = sorted(k for k in keys if k in fields or str(k).startswith(("model_", "true_")))
     if flat:
         raise ValueError(f"config: {flat} at the top level is the flat form, read by {FLAT_FORM_RELEASE}; this "
@@ -215,16 +240,18 @@ def memory_lower_bounds(config: TrainConfig) -> dict[str, int]:
     * ``algorithm.hidden_sizes``: the actor and the critic, each at least ``P = sum_i (h_{i-1} + 1) h_i
       + h_last + 1`` parameters (``h_0 = 1``), float32, each with its gradient and the two Adam moments
       (16 bytes a parameter);
-    * ``algorithm.batch_size``: the batch's states (float64) and one network's hidden activations on them
-      (float32): ``batch_size (8 + 4 sum(hidden_sizes))`` bytes;
+    * ``algorithm.batch_size`` (``ddpg.batch_size`` for DDPG: :func:`optimiser_section`): the batch's states
+      (float64) and one network's hidden activations on them (float32): ``batch_size (8 + 4 sum(hidden_sizes))``
+      bytes;
     * ``ddpg.buffer_size`` (DDPG only): the replay buffer's observation, next observation, action, cost
       and terminal flag, float32: 20 bytes a transition.
     """
     alg = config.algorithm
     widths = (1, *alg.hidden_sizes, 1)
     params = sum((a + 1) * b for a, b in zip(widths[:-1], widths[1:]))
+    batch = optimiser_section(config).batch_size
     out = {"algorithm.hidden_sizes": 2 * 16 * params,
-           "algorithm.batch_size": alg.batch_size * (8 + 4 * sum(alg.hidden_sizes))}
+           f"{optimiser_prefix(config)}.batch_size": batch * (8 + 4 * sum(alg.hidden_sizes))}
     if config.method == "ddpg":
         out["ddpg.buffer_size"] = 20 * config.ddpg.buffer_size
     return out
@@ -244,6 +271,9 @@ def _check_memory(config: TrainConfig) -> None:
                          f"{sum(need.values()) / 2**30:.3g} GiB), more than this machine's {total / 2**30:.3g} GiB "
                          f"of memory")
 
+
+#: The fields that may be ``math.inf``, written ``"inf"`` in ``config.json`` (section, field).
+_INFINITE_FIELDS = (("algorithm", "grad_clip"), ("ddpg", "grad_clip"), ("sampler", "box"))
 
 #: The largest seed: torch and numpy generators take seeds of 64 bits.
 MAX_SEED = 2**64 - 1
@@ -273,7 +303,8 @@ class TrainConfig:
     (:func:`task_config`)."""
 
     algorithm: AlgorithmConfig
-    """Algorithm 2 and the networks, optimiser and budget every method shares (:class:`AlgorithmConfig`)."""
+    """Algorithm 2, and the network sizes, critic head, budget and learning-rate decay every method shares
+    (:class:`AlgorithmConfig`)."""
 
     sampler: SamplerConfig
     """Where Algorithm 2's PEV/PIM states come from, chosen by ``sampler.name`` (:data:`SAMPLERS`):
@@ -281,7 +312,8 @@ class TrainConfig:
     change's :class:`mixedrl.envs.dlc_task.CourseSampler`."""
 
     ddpg: DDPGConfig
-    """What only DDPG has (:class:`DDPGConfig`)."""
+    """What only DDPG has, its own minibatch size, activation, learning rates and gradient clip included
+    (:class:`DDPGConfig`)."""
 
     run: RunConfig
     """Evaluation, checkpoints, threads (:class:`RunConfig`)."""
@@ -330,7 +362,7 @@ class TrainConfig:
         string; the double lane change's ``task.obs_scale`` left out when it is ``None``, its default, and
         ``algorithm.compile`` when it is ``"off"``, its default)."""
         out = to_jsonable(self)
-        for section, name in (("algorithm", "grad_clip"), ("sampler", "box")):
+        for section, name in _INFINITE_FIELDS:
             if name in out[section] and math.isinf(out[section][name]):
                 out[section][name] = "inf"
         if out["task"].get("name") == "dlc" and out["task"].get("obs_scale", 0) is None:
@@ -344,6 +376,9 @@ class TrainConfig:
         """Build a config from a dictionary (the content of ``config.json``), nested sections included.
 
         ``"task": "dlc"`` (a name) stands for that task's defaults; a dict without ``task`` names ``"dlc"``.
+        A DDPG run's dict without one of ``ddpg.batch_size``, ``ddpg.activation``, ``ddpg.critic_lr``,
+        ``ddpg.actor_lr``, ``ddpg.grad_clip`` (a ``config.json`` written before DDPG had them) takes the
+        ``algorithm`` section's value of it, where DDPG read it then.
 
         Raises
         ------
@@ -358,7 +393,8 @@ class TrainConfig:
         _refuse_flat_form(data)
         _drop_deleted_settings(data)
         check_unknown_keys(data, {f.name for f in dataclasses.fields(cls)}, "config")
-        for section, name in (("algorithm", "grad_clip"), ("sampler", "box")):
+        _ddpg_settings_from_algorithm(data)
+        for section, name in _INFINITE_FIELDS:
             if isinstance(data.get(section), dict) and data[section].get(name) == "inf":
                 data[section] = {**data[section], name: math.inf}
         return cls(**{"task": "dlc", **data})

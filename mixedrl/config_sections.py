@@ -17,16 +17,34 @@ from mixedrl.checks import check_fraction, check_int, check_nonnegative_int, che
 from mixedrl.config_tasks import (ANCHORED_FEEDFORWARDS, BATCH_WEIGHTINGS, COMPILE_MODES, FEEDFORWARDS, build_section,
                                    check_choice)
 
-__all__ = ["AlgorithmConfig", "DDPGConfig", "RunConfig", "SamplerConfig", "TrueCopiesSampler", "ModelRolloutsSampler",
-           "SAMPLERS", "PRESETS", "register_sampler", "register_preset", "sampler_config"]
+__all__ = ["AlgorithmConfig", "DDPGConfig", "OPTIMISER_FIELDS", "RunConfig", "SamplerConfig", "TrueCopiesSampler",
+           "ModelRolloutsSampler", "SAMPLERS", "PRESETS", "register_sampler", "register_preset", "sampler_config"]
 
 # ----------------------------------------------------------------------------------------------------
 # sections of TrainConfig
 # ----------------------------------------------------------------------------------------------------
+#: The network and optimiser settings each of Algorithm 2 (``algorithm.<field>``) and DDPG (``ddpg.<field>``)
+#: has its own of: minibatch size, hidden activation, the two Adam learning rates, the gradient clip.
+OPTIMISER_FIELDS = ("batch_size", "activation", "critic_lr", "actor_lr", "grad_clip")
+
+
+def _check_optimiser(section: Any, where: str) -> None:
+    """Check the :data:`OPTIMISER_FIELDS` of ``section`` (an :class:`AlgorithmConfig` or a :class:`DDPGConfig`),
+    naming ``<where>.<field>``."""
+    section.batch_size = check_positive_int(section.batch_size, f"{where}.batch_size")
+    check_choice(section.activation, f"{where}.activation", ("elu", "tanh", "relu"))
+    for name in ("critic_lr", "actor_lr"):
+        check_number(getattr(section, name), f"{where}.{name}", positive=True)
+    check_number(section.grad_clip, f"{where}.grad_clip", positive=True, allow_inf=True)
+
+
 @dataclass
 class AlgorithmConfig:
-    """The training algorithm shared by every method: Algorithm 2 (mixed, model, oracle) and the networks,
-    optimiser and budget DDPG uses too. Dotted keys: ``algorithm.<field>``.
+    """The training algorithm: Algorithm 2 (mixed, model, oracle), and the network sizes, critic head and
+    budget DDPG shares with it. Dotted keys: ``algorithm.<field>``.
+
+    ``batch_size``, ``activation``, ``critic_lr``, ``actor_lr`` and ``grad_clip`` are Algorithm 2's only:
+    DDPG has its own (:class:`DDPGConfig`, ``ddpg.<field>``).
 
     ``batch_weighting``, ``batch_weight_offset`` and ``actor_average`` are tuning add-ons, departures from
     the paper's Algorithm 2 (docs/algorithm2.rst). ``batch_weighting`` defaults to ``"relative"``, measured
@@ -35,43 +53,50 @@ class AlgorithmConfig:
     """
 
     iterations: int = 1500
-    """Budget: number of outer iterations ``k`` (one PEV + PIM step of Algorithm 2, or one DDPG update)."""
+    """Budget: number of outer iterations ``k`` (one PEV + PIM step of Algorithm 2, or one DDPG update); the
+    same budget rule for every method, DDPG included."""
 
     batch_size: int = 512
-    """Number of states of the PEV/PIM batch per iteration (Algorithm 2; made by the sampler), or the
-    replay minibatch size (DDPG)."""
+    """Number of states of the PEV/PIM batch per iteration (Algorithm 2; made by the sampler). DDPG's
+    replay minibatch is ``ddpg.batch_size``."""
 
     horizon: int = 60
     """Steps after which a training copy (a true-environment copy or a model rollout started from the
-    training distribution) is reset to a fresh initial state."""
+    training distribution, or one of DDPG's environment copies) is reset to a fresh initial state; shared by
+    every method."""
 
     hidden_sizes: tuple[int, ...] = (64, 64)
-    """Hidden layer widths of the actor and the critic (the same for every method)."""
+    """Hidden layer widths of the actor and the critic (shared by every method, DDPG's actor and
+    Q-critic included: the same networks' sizes)."""
 
     activation: str = "elu"
-    """Hidden activation of the MLPs: ``"elu"``, ``"tanh"`` or ``"relu"``."""
+    """Hidden activation of Algorithm 2's MLPs: ``"elu"``, ``"tanh"`` or ``"relu"`` (DDPG's:
+    ``ddpg.activation``)."""
 
     value_output: str = "square"
-    """Output head of the critic (and of DDPG's Q-critic): ``"softplus"``, ``"square"`` (sum of squares)
-    or ``"linear"``; see :class:`mixedrl.networks.Critic`."""
+    """Output head of the critic (shared: also DDPG's Q-critic): ``"softplus"``, ``"square"`` (sum of
+    squares) or ``"linear"``; see :class:`mixedrl.networks.Critic`."""
 
     critic_lr: float = 3e-3
-    """Adam learning rate alpha of the critic (eq. 50), also DDPG's Q-critic."""
+    """Adam learning rate alpha of Algorithm 2's critic (eq. 50); DDPG's Q-critic has ``ddpg.critic_lr``."""
 
     actor_lr: float = 3e-4
-    """Adam learning rate beta of the actor (eq. 52), also DDPG's actor."""
+    """Adam learning rate beta of Algorithm 2's actor (eq. 52); DDPG's actor has ``ddpg.actor_lr``."""
 
     lr_decay_to: float = 0.01
     """Learning rates decay linearly from their value to ``lr_decay_to`` times it over the budget
-    (1.0 = constant), or over ``lr_decay_iterations`` iterations if that is set."""
+    (1.0 = constant), or over ``lr_decay_iterations`` iterations if that is set; shared by every method
+    (DDPG's rates decay by the same rule, from ``ddpg.critic_lr`` and ``ddpg.actor_lr``)."""
 
     lr_decay_iterations: int = 0
     """Length of the learning-rate decay in iterations; after it the rates stay at ``lr_decay_to`` times
     their start. 0 (the default) = the budget (``iterations``), so the decay is tied to the budget; a
-    budget shorter than the length decays over the budget (see :func:`mixedrl.schedule.lr_factor`)."""
+    budget shorter than the length decays over the budget (see :func:`mixedrl.schedule.lr_factor`).
+    Shared by every method, DDPG included."""
 
     grad_clip: float = 10.0
-    """Clip of the global gradient norm of each update (``math.inf`` disables it)."""
+    """Clip of the global gradient norm of each update of Algorithm 2 (``math.inf`` disables it); DDPG's is
+    ``ddpg.grad_clip``."""
 
     expectation: str = "sigma"
     """How the expectation over ``xi_hat ~ N(mu_hat, K_hat)`` in eqs. (49)-(52) is computed:
@@ -215,15 +240,14 @@ class AlgorithmConfig:
     def __post_init__(self) -> None:
         w = "algorithm"
         check_choice(self.compile, f"{w}.compile", COMPILE_MODES)
-        for name in ("iterations", "batch_size", "horizon", "noise_samples", "j_max", "stop_patience",
-                     "bellman_steps"):
+        for name in ("iterations", "horizon", "noise_samples", "j_max", "stop_patience", "bellman_steps"):
             setattr(self, name, check_positive_int(getattr(self, name), f"{w}.{name}"))
+        _check_optimiser(self, w)
         self.lr_decay_iterations = check_nonnegative_int(self.lr_decay_iterations, f"{w}.lr_decay_iterations")
         if isinstance(self.hidden_sizes, (str, bytes)) or not isinstance(self.hidden_sizes, (list, tuple)) \
                 or not self.hidden_sizes:
             raise ValueError(f"{w}.hidden_sizes: expected positive widths, got {self.hidden_sizes!r}")
         self.hidden_sizes = tuple(check_positive_int(h, f"{w}.hidden_sizes") for h in self.hidden_sizes)
-        check_choice(self.activation, f"{w}.activation", ("elu", "tanh", "relu"))
         check_choice(self.value_output, f"{w}.value_output", ("softplus", "square", "linear"))
         check_choice(self.expectation, f"{w}.expectation", ("sigma", "samples"))
         check_choice(self.mvc_check, f"{w}.mvc_check", ("mean", "all"))
@@ -235,9 +259,6 @@ class AlgorithmConfig:
         if self.ibe_case != 2 and self.ibe_recursion != "exact":
             raise ValueError(f"{w}.ibe_recursion: 'paper' is eq. (18), a Case 2 recursion; "
                              f"{w}.ibe_case is {self.ibe_case}")
-        for name in ("critic_lr", "actor_lr"):
-            check_number(getattr(self, name), f"{w}.{name}", positive=True)
-        check_number(self.grad_clip, f"{w}.grad_clip", positive=True, allow_inf=True)
         check_fraction(self.lr_decay_to, f"{w}.lr_decay_to", low_open=True)
         check_fraction(self.actor_average, f"{w}.actor_average", high_open=True)
         check_fraction(self.critic_target, f"{w}.critic_target", high_open=True)
@@ -263,7 +284,13 @@ class AlgorithmConfig:
 @dataclass
 class DDPGConfig:
     """What DDPG has and the model-based methods do not (replay buffer, target networks, exploration
-    noise; textbook values, not tuned). Dotted keys: ``ddpg.<field>``."""
+    noise; textbook values, not tuned), and DDPG's own network and optimiser settings (replay minibatch
+    size, hidden activation, learning rates, gradient clip: :data:`OPTIMISER_FIELDS`, the paper's Section VI
+    values, independent of Algorithm 2's ``algorithm.<field>``). The network sizes, the critic's output head,
+    the budget, the training horizon and the learning-rate decay are shared with Algorithm 2
+    (``algorithm.hidden_sizes``, ``value_output``, ``iterations``, ``horizon``, ``lr_decay_*``). Dotted
+    keys: ``ddpg.<field>``. A DDPG run's ``config.json`` written before DDPG had its own optimiser settings
+    holds them in ``algorithm``; :meth:`mixedrl.config.TrainConfig.from_dict` reads them from there."""
 
     envs: int = 16
     """Parallel true-environment copies stepped once per iteration (transitions per iteration)."""
@@ -280,12 +307,33 @@ class DDPGConfig:
     noise_std: float = 0.2
     """Standard deviation of the Gaussian exploration noise, as a fraction of each action bound."""
 
+    batch_size: int = 512
+    """Replay minibatch size of each update (transitions drawn from the buffer). DDPG's own, the paper's
+    Section VI value, independent of Algorithm 2's ``algorithm.batch_size``."""
+
+    activation: str = "elu"
+    """Hidden activation of the actor's and the Q-critic's MLPs: ``"elu"``, ``"tanh"`` or ``"relu"``.
+    DDPG's own, the paper's Section VI value, independent of Algorithm 2's ``algorithm.activation``."""
+
+    critic_lr: float = 3e-3
+    """Adam learning rate of the Q-critic (decayed by the shared ``algorithm.lr_decay_*`` rule). DDPG's own,
+    the paper's Section VI value, independent of Algorithm 2's ``algorithm.critic_lr``."""
+
+    actor_lr: float = 3e-4
+    """Adam learning rate of the actor (decayed by the shared ``algorithm.lr_decay_*`` rule). DDPG's own,
+    the paper's Section VI value, independent of Algorithm 2's ``algorithm.actor_lr``."""
+
+    grad_clip: float = 10.0
+    """Clip of the global gradient norm of each critic and actor update (``math.inf`` disables it). DDPG's
+    own, the paper's Section VI value, independent of Algorithm 2's ``algorithm.grad_clip``."""
+
     def __post_init__(self) -> None:
         self.envs = check_positive_int(self.envs, "ddpg.envs")
         self.buffer_size = check_positive_int(self.buffer_size, "ddpg.buffer_size")
         self.warmup = check_nonnegative_int(self.warmup, "ddpg.warmup")
         check_fraction(self.tau, "ddpg.tau", low_open=True)
         check_number(self.noise_std, "ddpg.noise_std", positive=True)
+        _check_optimiser(self, "ddpg")
 
 
 @dataclass

@@ -7,7 +7,7 @@ import torch
 
 from typing import Any, Callable, Hashable, Sequence
 
-from mixedrl.config import TrainConfig
+from mixedrl.config import TrainConfig, optimiser_section
 
 __all__ = ["lr_factor", "set_learning_rates", "descend", "Descent"]
 
@@ -52,17 +52,20 @@ def set_learning_rates(config: TrainConfig, k: int, critic_opt: torch.optim.Opti
     Parameters
     ----------
     config : TrainConfig
-        Supplies ``critic_lr``, ``actor_lr``, ``iterations`` and ``lr_decay_to``.
+        Supplies ``critic_lr`` and ``actor_lr`` (the method's own: ``algorithm.*`` for Algorithm 2,
+        ``ddpg.*`` for DDPG, :func:`mixedrl.config.optimiser_section`) and the shared ``iterations``,
+        ``lr_decay_iterations`` and ``lr_decay_to``.
     k : int
         Iteration index.
     critic_opt, actor_opt : torch.optim.Optimizer
         Their parameter groups get the decayed rates.
     """
     factor = lr_factor(config, k)
+    rates = optimiser_section(config)
     for group in critic_opt.param_groups:
-        group["lr"] = config.algorithm.critic_lr * factor
+        group["lr"] = rates.critic_lr * factor
     for group in actor_opt.param_groups:
-        group["lr"] = config.algorithm.actor_lr * factor
+        group["lr"] = rates.actor_lr * factor
 
 
 def descend(loss: torch.Tensor, leaves: Sequence[torch.Tensor], run_params: Sequence[Sequence[torch.Tensor]],

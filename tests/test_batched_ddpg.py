@@ -21,7 +21,7 @@ import torch
 from mixedrl.algorithms.batched import batch_key
 from mixedrl.algorithms.batched_ddpg import BatchedDDPG
 from mixedrl.algorithms.ddpg import DDPG
-from mixedrl.config import TrainConfig
+from mixedrl.config import OPTIMISER_FIELDS, TrainConfig
 from mixedrl.runs import RunDirectory, evaluate_run, load_checkpoint, make_trainer, train_batch
 from mixedrl.schedule import set_learning_rates
 from mixedrl.sweep import expand, parse_spec, plan_batches, run_points
@@ -29,10 +29,13 @@ from mixedrl.sweep import expand, parse_spec, plan_batches, run_points
 NETS = ("critic", "actor", "critic_target", "actor_target")
 
 
-def config(seed: int, task: str = "linear", ddpg: dict | None = None, **algorithm: object) -> TrainConfig:
-    algo = {"iterations": 8, "batch_size": 32, **algorithm}
+def config(seed: int, task: str = "linear", ddpg: dict | None = None, **fields: object) -> TrainConfig:
+    """A small DDPG run; ``fields``: ``algorithm.*`` settings, DDPG's own (minibatch size, activation,
+    learning rates, gradient clip: ``OPTIMISER_FIELDS``) going to ``ddpg.*``."""
+    algo = {"iterations": 8, **{k: v for k, v in fields.items() if k not in OPTIMISER_FIELDS}}
+    own = {"batch_size": 32, **{k: v for k, v in fields.items() if k in OPTIMISER_FIELDS}}
     return TrainConfig(method="ddpg", seed=seed, task=task, algorithm=algo,
-                       ddpg={"envs": 4, "warmup": 40, **(ddpg or {})},
+                       ddpg={"envs": 4, "warmup": 40, **own, **(ddpg or {})},
                        run={"eval_every": 1000, "checkpoint_every": 1000, "eval_seeds": 1})
 
 
@@ -63,7 +66,7 @@ def textbook_iteration(agent: DDPG) -> dict[str, float]:
     mean_cost = agent.collect()
     while agent.buffer.size < cfg.ddpg.warmup:
         agent.collect()
-    obs, act, cost, next_obs, terminal = agent.buffer.sample(cfg.algorithm.batch_size, agent.generator)
+    obs, act, cost, next_obs, terminal = agent.buffer.sample(cfg.ddpg.batch_size, agent.generator)
     scale = float(task.value_scale)
     with torch.no_grad():
         target = cost + task.gamma * (1.0 - terminal) * agent.critic_target(next_obs, agent.actor_target(next_obs))
@@ -71,7 +74,7 @@ def textbook_iteration(agent: DDPG) -> dict[str, float]:
     def step(loss: torch.Tensor, net: torch.nn.Module, opt: torch.optim.Optimizer) -> None:
         opt.zero_grad(set_to_none=True)
         loss.backward()
-        torch.nn.utils.clip_grad_norm_(net.parameters(), cfg.algorithm.grad_clip)
+        torch.nn.utils.clip_grad_norm_(net.parameters(), cfg.ddpg.grad_clip)
         opt.step()
 
     q = agent.critic(obs, act)
@@ -237,11 +240,12 @@ def test_a_sweep_resumes_a_batch_beside_its_finished_member(tmp_path: Path) -> N
 
 def test_plan_batches_groups_ddpg_runs_in_batches_of_their_own() -> None:
     text = ('methods = ["mixed", "ddpg"]\nseeds = [0, 1, 2]\n[base]\ntask = "linear"\n"algorithm.iterations" = 20\n'
-            '"algorithm.batch_size" = 32\n[variants.short]\n[variants.long]\nmethods = ["ddpg"]\n"algorithm.iterations" = 40\n'
-            '[variants.wide]\nmethods = ["ddpg"]\nseeds = [0]\n"algorithm.batch_size" = 16\n')
+            '"algorithm.batch_size" = 32\n"ddpg.batch_size" = 32\n[variants.short]\n[variants.long]\n'
+            'methods = ["ddpg"]\n"algorithm.iterations" = 40\n[variants.wide]\nmethods = ["ddpg"]\nseeds = [0]\n'
+            '"ddpg.batch_size" = 16\n')
     runs = expand(parse_spec(text))
-    ddpg = [i for i, r in enumerate(runs) if r.config.method == "ddpg" and r.config.algorithm.batch_size == 32]
-    wide = [i for i, r in enumerate(runs) if r.config.algorithm.batch_size == 16]
+    ddpg = [i for i, r in enumerate(runs) if r.config.method == "ddpg" and r.config.ddpg.batch_size == 32]
+    wide = [i for i, r in enumerate(runs) if r.config.ddpg.batch_size == 16]
     assert len(ddpg) == 6 and len(wide) == 1
     assert batch_key(runs[ddpg[0]].config) == batch_key(runs[ddpg[-1]].config)  # budgets may differ
     for workers, batch, sizes in ((1, 16, [6]), (2, 16, [3, 3]), (1, 4, [3, 3]), (4, 16, [2, 2, 2])):
@@ -256,8 +260,10 @@ def test_plan_batches_groups_ddpg_runs_in_batches_of_their_own() -> None:
 
 
 def test_bad_batches_are_refused_by_name(tmp_path: Path) -> None:
-    with pytest.raises(ValueError, match="algorithm.batch_size"):
+    with pytest.raises(ValueError, match="ddpg.batch_size"):
         BatchedDDPG([make_trainer(config(0)), make_trainer(config(1, batch_size=16))])
+    with pytest.raises(ValueError, match="ddpg.activation"):
+        BatchedDDPG([make_trainer(config(0)), make_trainer(config(1, activation="tanh"))])
     with pytest.raises(ValueError, match="algorithm.hidden_sizes"):
         BatchedDDPG([make_trainer(config(0)), make_trainer(config(1, hidden_sizes=(32, 32)))])
     with pytest.raises(ValueError, match="another task"):
@@ -274,7 +280,7 @@ def test_bad_batches_are_refused_by_name(tmp_path: Path) -> None:
     dirs = [RunDirectory(tmp_path / f"d{i}") for i in range(2)]
     with pytest.raises(ValueError, match="^trainers: entry 1 is AGPI .*batches of their own kind"):
         train_batch([make_trainer(config(0)), mixed], dirs, progress=False)
-    with pytest.raises(ValueError, match="algorithm.batch_size"):
+    with pytest.raises(ValueError, match="ddpg.batch_size"):
         train_batch([make_trainer(config(0)), make_trainer(config(1, batch_size=16))], dirs, progress=False)
     assert not any(d.path.exists() for d in dirs)
 
@@ -286,7 +292,7 @@ def test_mixedrl_sweep_batches_ddpg_only_when_asked(tmp_path: Path) -> None:
 
     spec = tmp_path / "spec.toml"
     spec.write_text('methods = ["ddpg"]\nseeds = [0, 1]\n[base]\n"task.name" = "linear"\n"algorithm.iterations" = 3\n'
-                    '"algorithm.batch_size" = 16\n"ddpg.warmup" = 16\n"run.eval_every" = 3\n"run.eval_seeds" = 1\n')
+                    '"ddpg.batch_size" = 16\n"ddpg.warmup" = 16\n"run.eval_every" = 3\n"run.eval_seeds" = 1\n')
     for flag, size in (([], 1), (["--batch-ddpg"], 2)):
         out = tmp_path / f"out{size}"
         assert main(["sweep", str(spec), "--out", str(out), "--workers", "1", "--no-progress", *flag]) == 0

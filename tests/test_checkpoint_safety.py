@@ -19,7 +19,7 @@ from mixedrl.config import TrainConfig
 from mixedrl.runs import RunDirectory, load_checkpoint, make_trainer, save_checkpoint, train
 
 V1, V2 = "mixedrl-checkpoint-v1", "mixedrl-checkpoint-v2"
-FAST = dict(task="linear", algorithm=dict(iterations=12, batch_size=32), ddpg=dict(warmup=20),
+FAST = dict(task="linear", algorithm=dict(iterations=12, batch_size=32), ddpg=dict(warmup=20, batch_size=32),
             run=dict(eval_every=6, checkpoint_every=5, eval_seeds=1))
 
 

@@ -19,7 +19,7 @@ from mixedrl.runs import RunDirectory
 
 REPO = Path(__file__).resolve().parents[1]
 SMALL = ["task=\"linear\"", "algorithm.batch_size=32", "run.eval_every=20", "run.checkpoint_every=10",
-         "run.eval_seeds=1", "ddpg.warmup=64", "ddpg.envs=8"]
+         "run.eval_seeds=1", "ddpg.warmup=64", "ddpg.envs=8", "ddpg.batch_size=32"]
 
 
 def test_parse_overrides() -> None:

@@ -193,20 +193,21 @@ def test_limits_are_one_line_errors_before_anything_is_created(tmp_path: Any, ca
 def test_the_memory_bound_follows_the_machine(monkeypatch: pytest.MonkeyPatch) -> None:
     import mixedrl.config as config
 
-    cfg = TrainConfig(method="ddpg", task="linear", algorithm=dict(batch_size=1000, hidden_sizes=(100, 100)),
-                      ddpg=dict(buffer_size=10**6))
+    cfg = TrainConfig(method="ddpg", task="linear", algorithm=dict(batch_size=7, hidden_sizes=(100, 100)),
+                      ddpg=dict(buffer_size=10**6, batch_size=1000))
     need = config.memory_lower_bounds(cfg)
-    # actor and critic: (1 + 1) 100 + 101 * 100 + 101 parameters each, 16 bytes a parameter
-    assert need == {"algorithm.hidden_sizes": 2 * 16 * 10401, "algorithm.batch_size": 1000 * (8 + 800),
+    # actor and critic: (1 + 1) 100 + 101 * 100 + 101 parameters each, 16 bytes a parameter; DDPG's own minibatch
+    assert need == {"algorithm.hidden_sizes": 2 * 16 * 10401, "ddpg.batch_size": 1000 * (8 + 800),
                     "ddpg.buffer_size": 20 * 10**6}
-    assert "ddpg.buffer_size" not in config.memory_lower_bounds(cfg.replace(method="mixed"))
+    assert config.memory_lower_bounds(cfg.replace(method="mixed")) == {"algorithm.hidden_sizes": 2 * 16 * 10401,
+                                                                     "algorithm.batch_size": 7 * (8 + 800)}
     monkeypatch.setattr(config, "machine_memory", lambda: sum(need.values()))
     cfg.validate()  # exactly enough
     monkeypatch.setattr(config, "machine_memory", lambda: sum(need.values()) - 1)
     with pytest.raises(ValueError, match=r"^ddpg\.buffer_size: 1000000 needs at least 0\.0186 GiB"):
         cfg.validate()
     monkeypatch.setattr(config, "machine_memory", lambda: None)  # a system that does not report it
-    cfg.replace(**{"algorithm.batch_size": 10**12}).validate()
+    cfg.replace(**{"ddpg.batch_size": 10**12}).validate()
 
 
 def test_as_many_threads_as_cores_is_accepted() -> None:

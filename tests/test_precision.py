@@ -221,7 +221,7 @@ def test_bad_equilibria_are_clear_errors() -> None:
 
 def _config(method: str, **run: object) -> TrainConfig:
     return TrainConfig(method=method, task="linear", seed=0, algorithm={"batch_size": 16, "hidden_sizes": (8,)},
-                       run=run)
+                       ddpg={"batch_size": 16}, run=run)
 
 
 @pytest.mark.parametrize("method, mean", [("model", "prior_mean"), ("oracle", "true_mean"), ("mixed", "prior_mean")])

@@ -22,7 +22,7 @@ from mixedrl.runs import (
     train,
 )
 
-FAST = dict(task="linear", algorithm=dict(iterations=40, batch_size=32), ddpg=dict(warmup=64, envs=8),
+FAST = dict(task="linear", algorithm=dict(iterations=40, batch_size=32), ddpg=dict(warmup=64, envs=8, batch_size=32),
             run=dict(eval_every=20, checkpoint_every=10, eval_seeds=1))
 
 

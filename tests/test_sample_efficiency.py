@@ -208,7 +208,8 @@ def test_records_from_a_reproduction_folder(tmp_path: Path) -> None:
     runs = tmp_path / "runs"
     made = {}
     for label, method in (("mixed", "mixed"), ("ddpg", "ddpg"), ("ddpg_long", "ddpg")):
-        cfg = TrainConfig(method=method, seed=1, algorithm=dict(iterations=6, batch_size=16), ddpg=dict(warmup=16),
+        cfg = TrainConfig(method=method, seed=1, algorithm=dict(iterations=6, batch_size=16),
+                          ddpg=dict(warmup=16, batch_size=16),
                           run=dict(eval_every=3, eval_seeds=1, checkpoint_every=6))
         made[label] = train(make_trainer(cfg), RunDirectory(runs / f"{label}_seed1"))
     records = records_from_reproduction(runs)
@@ -226,7 +227,8 @@ def test_records_from_a_reproduction_folder(tmp_path: Path) -> None:
     from mixedrl.sweep import parse_spec, run_sweep
 
     text = ('methods = ["mixed", "ddpg"]\nseeds = [1]\n[base]\n"algorithm.iterations" = 6\n'
-            '"algorithm.batch_size" = 16\n"ddpg.warmup" = 16\n"run.eval_every" = 3\n"run.eval_seeds" = 1\n'
+            '"algorithm.batch_size" = 16\n"ddpg.batch_size" = 16\n"ddpg.warmup" = 16\n"run.eval_every" = 3\n'
+            '"run.eval_seeds" = 1\n'
             '"run.checkpoint_every" = 6\n[variants.paper]\n[variants.ddpg_long]\nmethods = ["ddpg"]\n'
             '"algorithm.iterations" = 9\n')  # the longer DDPG run (two equal configs are refused)
     run_sweep(parse_spec(text), tmp_path / "repro" / "sweep", workers=1, progress=False)

@@ -450,7 +450,7 @@ def test_seed_statistics_keys_variants_apart_and_reads_its_own_csv_back(tmp_path
     algo2 = parse_spec('methods = ["mixed"]\nseeds = [0, 1]\n[base]\n"algorithm.iterations" = 2\n'
                        '"algorithm.batch_size" = 16\n"run.eval_every" = 2\n"run.eval_seeds" = 1\n')
     ddpg = parse_spec('methods = ["ddpg"]\nseeds = [0, 1]\n[base]\n"algorithm.iterations" = 2\n"ddpg.envs" = 2\n'
-                      '"ddpg.warmup" = 8\n"algorithm.batch_size" = 8\n"run.eval_every" = 2\n"run.eval_seeds" = 1\n'
+                      '"ddpg.warmup" = 8\n"ddpg.batch_size" = 8\n"run.eval_every" = 2\n"run.eval_seeds" = 1\n'
                       '[variants.short]\n[variants.longer]\n"algorithm.iterations" = 3\n')
     run_sweep(algo2, tmp_path / "a2", workers=1, progress=False)
     doc = run_sweep(ddpg, tmp_path / "ddpg", workers=1, progress=False)

@@ -432,7 +432,8 @@ def test_sweep_on_the_local_pool_equals_train_alone_and_resumes(pool_sweep, tmp_
 
 def test_plan_batches_groups_by_shape_spreads_over_workers_and_never_leaves_a_run_alone() -> None:
     text = ('methods = ["mixed", "model", "oracle", "ddpg"]\nseeds = [0, 1, 2, 3, 4]\n' + BASE +
-            '\n[variants.a]\n[variants.b]\n"algorithm.batch_size" = 16\nseeds = [0]\nmethods = ["mixed"]\n')
+            '"ddpg.batch_size" = 32\n[variants.a]\n[variants.b]\n"algorithm.batch_size" = 16\nseeds = [0]\n'
+            'methods = ["mixed"]\n')
     runs = expand(parse_spec(text))
     assert len(runs) == 21
     ddpg = [i for i, r in enumerate(runs) if r.config.method == "ddpg"]

@@ -45,6 +45,7 @@ from torch.func import functional_call, stack_module_state, vmap
 
 from mixedrl.algorithms import algorithm2
 from mixedrl.compiled import Evaluation
+from mixedrl.config import optimiser_section
 from mixedrl.departures.anchor import ANCHORED
 from mixedrl.schedule import Descent, descend
 
@@ -53,18 +54,26 @@ __all__ = ["BatchedAGPI", "BatchedRuns", "StackedNetwork", "SHARED_FIELDS", "DDP
 #: A member of a batch: an :class:`mixedrl.algorithms.agpi.AGPI` run (not imported: agpi imports this module).
 AGPI = Any
 
-#: The ``algorithm`` fields the runs of one batch must share (network shapes, batch size, the form of
+#: The fields (dotted keys) the runs of one batch must share (network shapes, batch size, the form of
 #: the losses and of the quadrature); every other field (method, seed, budget, learning rates, IBE,
 #: sampler, MVC settings, ...) may differ between them.
-SHARED_FIELDS = ("batch_size", "hidden_sizes", "activation", "value_output", "bellman_steps", "batch_weighting",
-                 "batch_weight_offset", "expectation", "noise_samples", "critic_target", "compile", "rollout_horizon",
-                 "rollout_lambda", "rollout_updates", "rollout_region", "actor_output")
+SHARED_FIELDS = tuple(f"algorithm.{name}" for name in (
+    "batch_size", "hidden_sizes", "activation", "value_output", "bellman_steps", "batch_weighting",
+    "batch_weight_offset", "expectation", "noise_samples", "critic_target", "compile", "rollout_horizon",
+    "rollout_lambda", "rollout_updates", "rollout_region", "actor_output"))
 
-#: The ``algorithm`` fields the DDPG runs of one batch (:class:`mixedrl.algorithms.batched_ddpg.BatchedDDPG`)
-#: must share: the network shapes and the minibatch size. Everything else (seed, budget, learning rates and
-#: their decay, gradient clip, and every ``ddpg.*`` field: environment copies, buffer, warm-up, ``tau``,
-#: exploration noise) may differ between them.
-DDPG_SHARED_FIELDS = ("batch_size", "hidden_sizes", "activation", "value_output")
+#: The fields (dotted keys) the DDPG runs of one batch (:class:`mixedrl.algorithms.batched_ddpg.BatchedDDPG`)
+#: must share: the network shapes (the shared ``algorithm.hidden_sizes`` and ``value_output``, DDPG's own
+#: activation) and DDPG's minibatch size. Everything else (seed, budget, learning rates and their decay,
+#: gradient clip, and the other ``ddpg.*`` fields: environment copies, buffer, warm-up, ``tau``, exploration
+#: noise) may differ between them.
+DDPG_SHARED_FIELDS = ("ddpg.batch_size", "algorithm.hidden_sizes", "ddpg.activation", "algorithm.value_output")
+
+
+def _setting(config: Any, key: str) -> Any:
+    """The value of the dotted ``section.field`` key of ``config``."""
+    section, name = key.split(".")
+    return getattr(getattr(config, section), name)
 
 
 def batch_key(config: Any) -> tuple[Any, ...]:
@@ -83,9 +92,9 @@ def batch_key(config: Any) -> tuple[Any, ...]:
     """
     if config.method == "ddpg":
         return ("ddpg", repr(config.task), config.run.num_threads) + tuple(
-            repr(getattr(config.algorithm, f)) for f in DDPG_SHARED_FIELDS)
+            repr(_setting(config, f)) for f in DDPG_SHARED_FIELDS)
     return (repr(config.task), config.run.num_threads, _anchored(config)) + tuple(
-        repr(getattr(config.algorithm, f)) for f in SHARED_FIELDS)
+        repr(_setting(config, f)) for f in SHARED_FIELDS)
 
 
 def _anchored(config: Any) -> bool:
@@ -201,8 +210,8 @@ def _check_members(members: Sequence[AGPI]) -> None:
 
 
 def check_shared(members: Sequence[Any], fields: Sequence[str]) -> None:
-    """Refuse runs that cannot share a batch: another task or architecture than run 0, an ``algorithm``
-    field of ``fields`` that differs from run 0's, or the same run twice (the checks common to
+    """Refuse runs that cannot share a batch: another task or architecture than run 0, a field of
+    ``fields`` that differs from run 0's, or the same run twice (the checks common to
     :class:`BatchedAGPI` and :class:`mixedrl.algorithms.batched_ddpg.BatchedDDPG`).
 
     Parameters
@@ -210,7 +219,7 @@ def check_shared(members: Sequence[Any], fields: Sequence[str]) -> None:
     members : sequence of AGPI or DDPG
         The runs, at least one, all of one kind.
     fields : sequence of str
-        The ``algorithm`` fields they must share (:data:`SHARED_FIELDS` or :data:`DDPG_SHARED_FIELDS`).
+        The fields (dotted keys) they must share (:data:`SHARED_FIELDS` or :data:`DDPG_SHARED_FIELDS`).
 
     Raises
     ------
@@ -224,17 +233,17 @@ def check_shared(members: Sequence[Any], fields: Sequence[str]) -> None:
             raise ValueError(f"members: run {i} ({m.config.method}, seed {m.config.seed}) has another task or "
                              f"architecture than run 0; a batch shares one task")
         for f in fields:
-            if getattr(m.config.algorithm, f) != getattr(first.config.algorithm, f):
-                raise ValueError(f"members: run {i} has algorithm.{f} = {getattr(m.config.algorithm, f)!r}, run 0 "
-                                 f"{getattr(first.config.algorithm, f)!r}; the runs of a batch share "
-                                 f"{', '.join(fields)}")
+            if _setting(m.config, f) != _setting(first.config, f):
+                raise ValueError(f"members: run {i} has {f} = {_setting(m.config, f)!r}, run 0 "
+                                 f"{_setting(first.config, f)!r}; the runs of a batch share {', '.join(fields)}")
     if len({id(m) for m in members}) != len(members):
         raise ValueError("members: the same run appears twice")
 
 
 class BatchedRuns:
     """What the engines of many runs share (:class:`BatchedAGPI`, :class:`mixedrl.algorithms.batched_ddpg.BatchedDDPG`):
-    the checked members, ``R`` (:attr:`runs`), the minibatch size ``B`` (:attr:`batch`), the task, and the
+    the checked members, ``R`` (:attr:`runs`), the minibatch size ``B`` (:attr:`batch`: ``algorithm.batch_size``,
+    or ``ddpg.batch_size`` for DDPG, :func:`mixedrl.config.optimiser_section`), the task, and the
     runs' critics and actors as :class:`StackedNetwork` with each run's parameters (:meth:`StackedNetwork.run_params`).
 
     Parameters
@@ -252,7 +261,7 @@ class BatchedRuns:
         self.check_members(members)
         self.members = list(members)
         self.runs = len(self.members)
-        self.batch = self.members[0].config.algorithm.batch_size
+        self.batch = optimiser_section(self.members[0].config).batch_size
         self.task = self.members[0].task
         self.critic = StackedNetwork([m.critic for m in self.members], self.batch)
         self.actor = StackedNetwork([m.actor for m in self.members], self.batch)
@@ -274,9 +283,14 @@ class BatchedRuns:
 
     def descend_critics(self, loss: torch.Tensor, active: list[int]) -> None:
         """Each active run's clipped Adam step of its critic on its loss (shape () for one run, (R,) for
-        ``R``; :func:`mixedrl.schedule.descend`)."""
+        ``R``; :func:`mixedrl.schedule.descend`), clipped at the run's own gradient clip
+        (:func:`mixedrl.config.optimiser_section`)."""
         descend(loss, self.critic.leaves, self._critic_params, [m.critic_opt for m in self.members],
-                [m.config.algorithm.grad_clip for m in self.members], active)
+                self.grad_clips(), active)
+
+    def grad_clips(self) -> list[float]:
+        """Per run, its gradient clip (``algorithm.grad_clip``, or ``ddpg.grad_clip`` for DDPG)."""
+        return [optimiser_section(m.config).grad_clip for m in self.members]
 
     def descend_actors(self, objective: Callable[[Any], torch.Tensor], active: list[int]) -> torch.Tensor:
         """Each active run's clipped Adam step of its actor on ``objective(critic)``, the critics frozen
@@ -288,7 +302,7 @@ class BatchedRuns:
         try:
             loss = objective(self.critic.frozen())
             descend(loss, self.actor.leaves, self._actor_params, [m.actor_opt for m in self.members],
-                    [m.config.algorithm.grad_clip for m in self.members], active)
+                    self.grad_clips(), active)
         finally:
             if self.runs == 1:
                 for p in self.critic.leaves:
@@ -327,9 +341,9 @@ class BatchedAGPI(BatchedRuns):
         #: Each run's clipped Adam step of its critic / its actor (:class:`mixedrl.schedule.Descent`).
         #: ``algorithm.compile`` (a shared field) chooses the eager, compiled or functional step (:mod:`mixedrl.compiled`).
         self.critic_descent = Descent(self.critic.leaves, self._critic_params, [m.critic_opt for m in self.members],
-                                      [m.config.algorithm.grad_clip for m in self.members], algo.compile)
+                                      self.grad_clips(), algo.compile)
         self.actor_descent = Descent(self.actor.leaves, self._actor_params, [m.actor_opt for m in self.members],
-                                     [m.config.algorithm.grad_clip for m in self.members], algo.compile)
+                                     self.grad_clips(), algo.compile)
         #: The MVC loop's values of ``h`` (:func:`mixedrl.algorithms.algorithm2.mvc_values`), without gradient.
         self.mvc_values = Evaluation(partial(algorithm2.mvc_values, self.task, self.actor, self.critic.frozen()),
                                      algo.compile)

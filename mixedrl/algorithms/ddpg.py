@@ -2,11 +2,15 @@
 
 DDPG never calls the model ``f`` for planning: it learns ``Q(x, u; w)`` and ``pi(x; theta)`` only from
 transitions ``(x, u, l, x')`` of the true environment (:meth:`mixedrl.tasks.Task.true_step`), stored in
-a replay buffer, with target networks and Gaussian exploration noise. Everything the algorithm allows is
-shared with Algorithm 2 (:mod:`mixedrl.algorithms.agpi`): the MLP class, hidden sizes and activation,
-Adam with the same learning rates and decay, the gradient clip, the batch size, the discount factor, the
-same observation and the same cost. One iteration = ``ddpg_envs`` environment steps + one critic and
-one actor update (the unit in which "iterations to converge" is counted for every method).
+a replay buffer, with target networks and Gaussian exploration noise. Shared with Algorithm 2
+(:mod:`mixedrl.algorithms.agpi`): the MLP class, the hidden sizes and the critic's output head
+(``algorithm.hidden_sizes``, ``algorithm.value_output``), Adam with the same learning-rate decay
+(``algorithm.lr_decay_*``), the budget and training horizon (``algorithm.iterations``, ``algorithm.horizon``),
+the discount factor, the observation and the cost. DDPG has its own minibatch size, hidden activation,
+learning rates and gradient clip (``ddpg.batch_size``, ``ddpg.activation``, ``ddpg.critic_lr``,
+``ddpg.actor_lr``, ``ddpg.grad_clip``: the paper's Section VI values, independent of Algorithm 2's
+``algorithm.*`` ones). One iteration = ``ddpg.envs`` environment steps + one critic and one actor update
+(the unit in which "iterations to converge" is counted for every method).
 """
 
 from __future__ import annotations
@@ -92,7 +96,8 @@ class DDPG:
         The true environment (``true_step``, ``cost``, ``observe``); ``f`` is used only inside
         ``true_step`` to simulate the environment, never for learning.
     config : TrainConfig
-        ``method == "ddpg"``; the ``ddpg_*`` fields configure buffer, warm-up, targets and exploration.
+        ``method == "ddpg"``; the ``ddpg.*`` fields configure buffer, warm-up, targets, exploration, the
+        minibatch size, the hidden activation, the learning rates and the gradient clip.
 
     Raises
     ------
@@ -109,17 +114,17 @@ class DDPG:
             raise ValueError(f"algorithm.actor_output: DDPG trains the tanh actor; got {config.algorithm.actor_output!r}")
         self.task, self.config = task, config
         self.generator = torch.Generator().manual_seed(config.seed)
-        g = self.generator
-        self.critic = QCritic(task.obs_dim, task.action_dim, config.algorithm.hidden_sizes, config.algorithm.activation, g,
+        g, own = self.generator, config.ddpg
+        self.critic = QCritic(task.obs_dim, task.action_dim, config.algorithm.hidden_sizes, own.activation, g,
                               task.action_bound, task.obs_scale, task.value_scale, config.algorithm.value_output)
-        self.actor = Actor(task.obs_dim, task.action_dim, config.algorithm.hidden_sizes, config.algorithm.activation, g,
+        self.actor = Actor(task.obs_dim, task.action_dim, config.algorithm.hidden_sizes, own.activation, g,
                            task.action_bound, task.obs_scale)
         self.critic_target = copy.deepcopy(self.critic)
         self.actor_target = copy.deepcopy(self.actor)
         for p in list(self.critic_target.parameters()) + list(self.actor_target.parameters()):
             p.requires_grad_(False)
-        self.critic_opt = torch.optim.Adam(self.critic.parameters(), lr=config.algorithm.critic_lr)
-        self.actor_opt = torch.optim.Adam(self.actor.parameters(), lr=config.algorithm.actor_lr)
+        self.critic_opt = torch.optim.Adam(self.critic.parameters(), lr=own.critic_lr)
+        self.actor_opt = torch.optim.Adam(self.actor.parameters(), lr=own.actor_lr)
         self.buffer = ReplayBuffer(config.ddpg.buffer_size, task.obs_dim, task.action_dim)
         self.states = task.sample_initial(config.ddpg.envs, g)
         # desynchronised episode clocks, so the copies do not all reset at the same iteration
@@ -180,14 +185,14 @@ class DDPG:
             The mean cost of the first step (``train/env_cost``).
         minibatch : tuple of torch.Tensor
             ``(obs, action, cost, next_obs, terminal)``, shapes (B, obs_dim), (B, action_dim), (B,),
-            (B, obs_dim), (B,) with ``B = algorithm.batch_size``.
+            (B, obs_dim), (B,) with ``B = ddpg.batch_size``.
         """
         cfg = self.config
         set_learning_rates(cfg, self.k, self.critic_opt, self.actor_opt)
         mean_cost = self.collect()
         while self.buffer.size < cfg.ddpg.warmup:
             self.collect()
-        return mean_cost, self.buffer.sample(cfg.algorithm.batch_size, self.generator)
+        return mean_cost, self.buffer.sample(cfg.ddpg.batch_size, self.generator)
 
     def finish_iteration(self, critic_loss: float, actor_loss: float, value_mean: float,
                          mean_cost: float) -> dict[str, float]:
