@@ -142,8 +142,6 @@ def test_reproducible_and_listed() -> None:
 
 @pytest.mark.parametrize("key, bad, extra", [("actor_output", "sigmoid", {}), ("actor_output", "inward", {}),
                                              ("rollout_region", 1.5, {}),
-                                             ("rollout_region", 0.5, {"rollout_horizon": 0}),
-                                             ("rollout_region", 0.5, {"ibe_case": 3}),
                                              ("actor_output", "clip", {"feedforward": "lq_train"})])
 def test_bad_values_are_refused_naming_the_key(key: str, bad: object, extra: dict) -> None:
     with pytest.raises(ValueError, match=f"algorithm.{key}"):

@@ -85,8 +85,9 @@ Network = Callable[[torch.Tensor], torch.Tensor]
 
 
 def active(config: Any) -> bool:
-    """Whether PEV and PIM work on ``H``-step model rollouts (``algorithm.rollout_horizon > 0``)."""
-    return config.algorithm.rollout_horizon != PAPER
+    """Whether PEV and PIM work on ``H``-step model rollouts (``algorithm.rollout_horizon > 0``; Algorithm 2
+    only, DDPG learns from its replay buffer)."""
+    return config.algorithm.rollout_horizon != PAPER and config.method != "ddpg"
 
 
 def discount(config: Any, k: int, gamma: float) -> float:
