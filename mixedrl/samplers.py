@@ -88,8 +88,8 @@ class ModelStateSampler:
 
     Attributes
     ----------
-    states : torch.Tensor, shape (batch_size, state_dim)
-        Current model-rollout states (float64).
+    states : torch.Tensor, shape (B, state_dim)
+        Current model-rollout states (float64), ``B = algorithm.batch_size``.
     true_transitions : int
         True-environment transitions used so far.
     transitions : tuple of torch.Tensor or None
@@ -175,8 +175,8 @@ class ModelStateSampler:
 
         Returns
         -------
-        torch.Tensor, shape (batch_size, state_dim)
-            The batch ``x`` (float32): the states before the step.
+        torch.Tensor, shape (B, state_dim)
+            The batch ``x`` (float32): the states before the step (``B = algorithm.batch_size``).
         """
         task, s = self.task, self.states
         with torch.no_grad():
@@ -248,7 +248,7 @@ class ModelStateSampler:
 
         Returns
         -------
-        states : torch.Tensor, shape (batch_size, state_dim)
+        states : torch.Tensor, shape (B, state_dim)
             The batch (float32).
         residuals : torch.Tensor, shape (M, noise_dim)
             Residuals for the IBE (``M = 0`` for a fixed noise source or between collections).

@@ -46,16 +46,13 @@ if str(ROOT) not in sys.path:
 
 from experiments.tuning_systems import TUNING_SYSTEMS, LQRPolicy, lqr_reference  # noqa: E402
 from mixedrl.algorithms.agpi import AGPI  # noqa: E402
-from mixedrl.config import TrainConfig  # noqa: E402
+from mixedrl.config import ONE_STEP_LEARNER, TrainConfig  # noqa: E402
 from mixedrl.runs import atomic_write_text, eval_seeds, train  # noqa: E402
 from mixedrl.tasks import Task, task_from_config  # noqa: E402
 
 #: The library's ``algorithm`` defaults before issue 42's learner became the default (the one-step learner): what
 #: the rows of this study and of learner_tuning.py's variants were measured over; their runs pin them.
-ONESTEP: dict[str, Any] = {"iterations": 1500, "batch_size": 512, "activation": "elu", "critic_lr": 3e-3,
-                           "actor_lr": 3e-4, "grad_clip": 10.0, "j_max": 5, "batch_weight_offset": 1.0,
-                           "critic_target": 0.0, "rollout_horizon": 0, "rollout_discount_start": 0.0,
-                           "rollout_region": 0.0, "actor_output": "tanh"}
+ONESTEP: dict[str, Any] = dict(ONE_STEP_LEARNER)
 
 OUT = ROOT / "experiments" / "results" / "tuning_baseline"
 #: The component whose offset is the controlled quantity.
