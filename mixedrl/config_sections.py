@@ -279,8 +279,9 @@ class AlgorithmConfig:
 class DDPGConfig:
     """What DDPG has and the model-based methods do not (replay buffer, target networks, exploration
     noise; textbook values, not tuned), and DDPG's own network and optimiser settings (replay minibatch
-    size, hidden activation, learning rates, gradient clip: :data:`OPTIMISER_FIELDS`, the paper's Section VI
-    values, independent of Algorithm 2's ``algorithm.<field>``). The network sizes, the critic's output head,
+    size, hidden activation, learning rates, gradient clip: :data:`OPTIMISER_FIELDS`: the values every
+    shipped DDPG row was trained with, when it shared Algorithm 2's; the paper gives none; independent of
+    Algorithm 2's ``algorithm.<field>``). The network sizes, the critic's output head,
     the budget, the training horizon and the learning-rate decay are shared with Algorithm 2
     (``algorithm.hidden_sizes``, ``value_output``, ``iterations``, ``horizon``, ``lr_decay_*``). Dotted
     keys: ``ddpg.<field>``. A DDPG run's ``config.json`` written before DDPG had its own optimiser settings
@@ -302,24 +303,24 @@ class DDPGConfig:
     """Standard deviation of the Gaussian exploration noise, as a fraction of each action bound."""
 
     batch_size: int = 512
-    """Replay minibatch size of each update (transitions drawn from the buffer). DDPG's own, the paper's
-    Section VI value, independent of Algorithm 2's ``algorithm.batch_size``."""
+    """Replay minibatch size of each update (transitions drawn from the buffer). DDPG's own (the shipped rows'
+    value, not tuned), independent of Algorithm 2's ``algorithm.batch_size``."""
 
     activation: str = "elu"
     """Hidden activation of the actor's and the Q-critic's MLPs: ``"elu"``, ``"tanh"`` or ``"relu"``.
-    DDPG's own, the paper's Section VI value, independent of Algorithm 2's ``algorithm.activation``."""
+    DDPG's own (the shipped rows' value, not tuned), independent of Algorithm 2's ``algorithm.activation``."""
 
     critic_lr: float = 3e-3
-    """Adam learning rate of the Q-critic (decayed by the shared ``algorithm.lr_decay_*`` rule). DDPG's own,
-    the paper's Section VI value, independent of Algorithm 2's ``algorithm.critic_lr``."""
+    """Adam learning rate of the Q-critic (decayed by the shared ``algorithm.lr_decay_*`` rule). DDPG's own
+    (the shipped rows' value, not tuned), independent of Algorithm 2's ``algorithm.critic_lr``."""
 
     actor_lr: float = 3e-4
-    """Adam learning rate of the actor (decayed by the shared ``algorithm.lr_decay_*`` rule). DDPG's own,
-    the paper's Section VI value, independent of Algorithm 2's ``algorithm.actor_lr``."""
+    """Adam learning rate of the actor (decayed by the shared ``algorithm.lr_decay_*`` rule). DDPG's own
+    (the shipped rows' value, not tuned), independent of Algorithm 2's ``algorithm.actor_lr``."""
 
     grad_clip: float = 10.0
     """Clip of the global gradient norm of each critic and actor update (``math.inf`` disables it). DDPG's
-    own, the paper's Section VI value, independent of Algorithm 2's ``algorithm.grad_clip``."""
+    own (the shipped rows' value, not tuned), independent of Algorithm 2's ``algorithm.grad_clip``."""
 
     def __post_init__(self) -> None:
         self.envs = check_positive_int(self.envs, "ddpg.envs")

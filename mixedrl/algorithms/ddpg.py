@@ -8,8 +8,8 @@ a replay buffer, with target networks and Gaussian exploration noise. Shared wit
 (``algorithm.lr_decay_*``), the budget and training horizon (``algorithm.iterations``, ``algorithm.horizon``),
 the discount factor, the observation and the cost. DDPG has its own minibatch size, hidden activation,
 learning rates and gradient clip (``ddpg.batch_size``, ``ddpg.activation``, ``ddpg.critic_lr``,
-``ddpg.actor_lr``, ``ddpg.grad_clip``: the paper's Section VI values, independent of Algorithm 2's
-``algorithm.*`` ones). One iteration = ``ddpg.envs`` environment steps + one critic and one actor update
+``ddpg.actor_lr``, ``ddpg.grad_clip``: the values of the shipped DDPG rows, not tuned; independent of
+Algorithm 2's ``algorithm.*`` ones). One iteration = ``ddpg.envs`` environment steps + one critic and one actor update
 (the unit in which "iterations to converge" is counted for every method).
 """
 
