@@ -210,16 +210,16 @@ def test_the_reproductions_spec_is_the_shipped_spec_with_the_theory_observer() -
 
 
 def test_the_theory_observer_reads_the_run_and_changes_none_of_its_numbers(tmp_path: Path) -> None:
-    """A batch of two runs (the reproduction's quick config cut to 60 iterations) with the theory observer
-    and without: the same rows bit for bit, plus the theory checks every 50th iteration."""
+    """A batch of two runs (the reproduction's quick config cut to 60 iterations, a batch of 32 states and
+    4-step model rollouts) with the theory observer and without: the same rows bit for bit, plus the theory
+    checks every 50th iteration."""
     from validation.reproduce import run_config
 
-    config = run_config("mixed", 0, quick=True).replace(**{"algorithm.iterations": 60, "run.eval_every": 30,
-                                                             "run.checkpoint_every": 30})
+    short = {"algorithm.iterations": 60, "algorithm.batch_size": 32, "algorithm.rollout_horizon": 4,
+             "run.eval_every": 30, "run.checkpoint_every": 30}
+    config = run_config("mixed", 0, quick=True).replace(**short)
     text = 'methods = ["mixed", "oracle"]\nseeds = [0]\n[base]\n' + "".join(
-        f'"{k}" = {json.dumps(v)}\n' for k, v in {"algorithm.iterations": 60, "run.eval_every": 30,
-                                                  "run.checkpoint_every": 30, "run.eval_seeds": 1,
-                                                  "ddpg.warmup": 500}.items())
+        f'"{k}" = {json.dumps(v)}\n' for k, v in {**short, "run.eval_seeds": 1, "ddpg.warmup": 500}.items())
     plain = parse_spec(text)
     observed = parse_spec('observer = "validation.reproduce:quick_theory_observer"\n' + text)
     assert expand(plain)[0].config == config
