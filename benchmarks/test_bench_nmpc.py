@@ -26,7 +26,7 @@ import torch
 
 casadi = pytest.importorskip("casadi", reason="the NMPC benchmark needs CasADi: pip install -e '.[nmpc]'")
 
-from mixedrl.config import TrainConfig  # noqa: E402
+from mixedrl.config import ONE_STEP_LEARNER, TrainConfig  # noqa: E402
 from mixedrl.envs import DoubleLaneChangeModel  # noqa: E402
 from mixedrl.networks import Actor  # noqa: E402
 from mixedrl.tasks import DoubleLaneChangeTask  # noqa: E402
@@ -68,7 +68,7 @@ def _preview_policy() -> tuple[DoubleLaneChangeTask, Actor, str]:
     the same shape, which costs the same)."""
     preview = PREVIEW_P12
     task = DoubleLaneChangeTask(preview_distances=preview)
-    cfg = TrainConfig()
+    cfg = TrainConfig(algorithm=ONE_STEP_LEARNER)  # the learner the preview study trained (ELU hidden layers)
     actor = Actor(task.obs_dim, task.action_dim, cfg.algorithm.hidden_sizes, cfg.algorithm.activation, torch.Generator().manual_seed(0),
                   task.action_bound, task.obs_scale)
     path = _ROOT / "experiments" / "results" / "preview" / "per_run" / "S" / "P12" / "mixed_s0.json"

@@ -65,8 +65,8 @@ from mixedrl.config_tasks import (AFFINE_FEEDFORWARDS, ANCHORED_FEEDFORWARDS, BA
 
 #: This module's own names, those of the task configurations (:mod:`mixedrl.config_tasks`), of the other sections
 #: (:mod:`mixedrl.config_sections`) and what the double lane change registers (read through ``__getattr__``).
-__all__ = ["TrainConfig", "PAPER_SETTINGS", "CONFIG_PRESETS", "FLAT_FORM_RELEASE", "memory_lower_bounds",
-           "optimiser_section", "optimiser_prefix",
+__all__ = ["TrainConfig", "PAPER_SETTINGS", "PAPER_HYPERPARAMETERS", "ONE_STEP_LEARNER", "CONFIG_PRESETS", "FLAT_FORM_RELEASE",
+           "memory_lower_bounds", "optimiser_section", "optimiser_prefix",
            "machine_memory", "apply_overrides", "flatten_table", "TaskConfig", "DoubleLaneChangeTaskConfig",
            "CostWeights", "CourseSampler", "DLC_EXPERIMENT", *config_tasks.__all__, *config_sections.__all__]
 
@@ -336,9 +336,6 @@ class TrainConfig:
         if self.method == "ddpg" and self.algorithm.feedforward != "learned":
             raise ValueError(f"algorithm.feedforward: {self.algorithm.feedforward!r} takes the feed-forward from "
                              f"the method's noise model; method 'ddpg' has none (use 'learned')")
-        if self.method == "ddpg" and self.algorithm.critic_target != 0.0:
-            raise ValueError(f"algorithm.critic_target: {self.algorithm.critic_target!r} is PEV's target critic "
-                             f"(Algorithm 2); method 'ddpg' has its own target networks (ddpg.tau; use 0)")
         _check_memory(self)
 
     @classmethod
@@ -416,14 +413,28 @@ class TrainConfig:
     def preset(cls, name: str, **fields: Any) -> "TrainConfig":
         """The config of the named preset of :data:`CONFIG_PRESETS` (``"paper"``: the paper's literal
         Algorithm 2; ``"library"``: ``TrainConfig(**fields)``, the library defaults), with ``fields``
-        (``method``, ``seed``, ``task``, sections) given as to the constructor; the preset's settings win.
+        (``method``, ``seed``, ``task``, sections) given as to the constructor and applied over the preset:
+        a section given as a dict changes only the settings it names (``algorithm=dict(iterations=60)`` keeps
+        the preset's other settings), one given as a section object replaces it.
 
         Raises
         ------
         ValueError
             An unknown preset name (naming ``preset``), or as the constructor.
         """
-        return cls(**{"method": "mixed", "seed": 0, **fields}).with_preset(name)
+        head = {k: fields.pop(k) for k in ("method", "seed", "task") if k in fields}
+        data = cls(**{"method": "mixed", "seed": 0, **head}).with_preset(name).to_dict()
+        for section, value in fields.items():
+            if value is None:  # the preset's
+                continue
+            if isinstance(value, str) and section == "sampler":
+                value = {"name": value}
+            if isinstance(value, dict) and isinstance(data.get(section), dict):
+                keep = section != "sampler" or value.get("name", data[section].get("name")) == data[section].get("name")
+                data[section] = {**(data[section] if keep else {}), **to_jsonable(value)}
+            else:
+                data[section] = TrainConfig(**{section: value}).to_dict()[section]
+        return cls.from_dict(data)
 
     def with_preset(self, name: str) -> "TrainConfig":
         """A copy with the settings of the preset ``name`` (:data:`CONFIG_PRESETS`) applied (its sampler
@@ -491,5 +502,19 @@ PAPER_SETTINGS: dict[str, dict[str, Any]] = {
                   "feedforward": "learned", "actor_average": 0.0, "rollout_horizon": 0,
                   "rollout_region": 0.0, "actor_output": "tanh"},
 }
+#: The budget, networks and step sizes of the ``paper`` preset: the library's values for the paper's one-step
+#: Algorithm 2 (the paper gives none of them), kept when the library's defaults moved to the rollout learner
+#: (issue 42), so the preset's runs are those of the one-step learner they were measured with. Not departures:
+#: the paper fixes none of these.
+PAPER_HYPERPARAMETERS: dict[str, Any] = {
+    "iterations": 1500, "batch_size": 512, "activation": "elu", "critic_lr": 3e-3, "actor_lr": 3e-4,
+    "grad_clip": 10.0, "j_max": 5, "batch_weight_offset": 1.0, "rollout_discount_start": 0.0}
+#: The ``algorithm`` settings of the one-step learner, the library's default before issue 42's rollout learner:
+#: :data:`PAPER_HYPERPARAMETERS` with the rollout learner's departures off (the library's sampler, state weights
+#: and learning-rate decay kept). The study specs trained with it pin these (``experiments/studies/*.toml``).
+ONE_STEP_LEARNER: dict[str, Any] = {**PAPER_HYPERPARAMETERS, "critic_target": 0.0, "rollout_horizon": 0,
+                                    "rollout_region": 0.0, "actor_output": "tanh"}
 #: Preset name -> section -> settings applied over ``TrainConfig(**fields)`` (:meth:`TrainConfig.preset`).
-CONFIG_PRESETS: dict[str, dict[str, dict[str, Any]]] = {"library": {}, "paper": PAPER_SETTINGS}
+CONFIG_PRESETS: dict[str, dict[str, dict[str, Any]]] = {
+    "library": {},
+    "paper": {**PAPER_SETTINGS, "algorithm": {**PAPER_SETTINGS["algorithm"], **PAPER_HYPERPARAMETERS}}}

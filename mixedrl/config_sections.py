@@ -52,11 +52,11 @@ class AlgorithmConfig:
     plain batch mean is ``"uniform"``. ``actor_average`` is off by default.
     """
 
-    iterations: int = 1500
+    iterations: int = 800
     """Budget: number of outer iterations ``k`` (one PEV + PIM step of Algorithm 2, or one DDPG update); the
     same budget rule for every method, DDPG included."""
 
-    batch_size: int = 512
+    batch_size: int = 128
     """Number of states of the PEV/PIM batch per iteration (Algorithm 2; made by the sampler). DDPG's
     replay minibatch is ``ddpg.batch_size``."""
 
@@ -69,7 +69,7 @@ class AlgorithmConfig:
     """Hidden layer widths of the actor and the critic (shared by every method, DDPG's actor and
     Q-critic included: the same networks' sizes)."""
 
-    activation: str = "elu"
+    activation: str = "tanh"
     """Hidden activation of Algorithm 2's MLPs: ``"elu"``, ``"tanh"`` or ``"relu"`` (DDPG's:
     ``ddpg.activation``)."""
 
@@ -77,10 +77,10 @@ class AlgorithmConfig:
     """Output head of the critic (shared: also DDPG's Q-critic): ``"softplus"``, ``"square"`` (sum of
     squares) or ``"linear"``; see :class:`mixedrl.networks.Critic`."""
 
-    critic_lr: float = 3e-3
+    critic_lr: float = 2e-3
     """Adam learning rate alpha of Algorithm 2's critic (eq. 50); DDPG's Q-critic has ``ddpg.critic_lr``."""
 
-    actor_lr: float = 3e-4
+    actor_lr: float = 2e-3
     """Adam learning rate beta of Algorithm 2's actor (eq. 52); DDPG's actor has ``ddpg.actor_lr``."""
 
     lr_decay_to: float = 0.01
@@ -94,7 +94,7 @@ class AlgorithmConfig:
     budget shorter than the length decays over the budget (see :func:`mixedrl.schedule.lr_factor`).
     Shared by every method, DDPG included."""
 
-    grad_clip: float = 10.0
+    grad_clip: float = 1.0
     """Clip of the global gradient norm of each update of Algorithm 2 (``math.inf`` disables it); DDPG's is
     ``ddpg.grad_clip``."""
 
@@ -106,7 +106,7 @@ class AlgorithmConfig:
     noise_samples: int = 4
     """Number of reparameterised samples per state when ``expectation == "samples"``."""
 
-    j_max: int = 5
+    j_max: int = 1
     """Maximum number of extra PIM steps of the AGPI inner loop (Algorithm 2)."""
 
     mvc_check: str = "mean"
@@ -137,7 +137,7 @@ class AlgorithmConfig:
     ``x`` by ``1 / (V(x) + c)`` (batch mean 1), ``c = batch_weight_offset * task.value_scale``
     (:func:`mixedrl.pev.critic_loss`, :func:`mixedrl.pim.actor_objective`)."""
 
-    batch_weight_offset: float = 1.0
+    batch_weight_offset: float = 0.3
     """Departure (tuning add-on): ``c`` of ``batch_weighting = "relative"``, in units of the task's ``value_scale``
     (``c = batch_weight_offset * value_scale``)."""
 
@@ -149,8 +149,8 @@ class AlgorithmConfig:
     and the gradient steps. 0 (the default) = no averaging. The window is about ``1 / (1 - beta)``
     iterations."""
 
-    critic_target: float = 0.0
-    """Departure (precision add-on): decay ``beta`` of a target critic for PEV's target. 0 (the default) =
+    critic_target: float = 0.8
+    """Departure (precision add-on): decay ``beta`` of a target critic for PEV's target (0.8 by default). 0 =
     eq. (50) as written: ``V_target = l(x', u) + gamma V^k(x'; w)`` with the critic being trained. ``beta > 0``:
     ``V_target`` takes ``V(x'; w_bar)`` instead, ``w_bar <- beta w_bar + (1 - beta) w`` after every iteration
     (an exponential moving average of the critic's weights, the target networks of DQN and DDPG;
@@ -203,8 +203,8 @@ class AlgorithmConfig:
     fallback of ``"on"``). The three give the same numbers to float32 rounding; ``"off"`` is the reference,
     bit for bit. The runs of one batch share it."""
 
-    rollout_horizon: int = 0
-    """Departure (learner, issue 42): model steps ``H`` of the rollouts PEV and PIM work on. 0 (the default) =
+    rollout_horizon: int = 16
+    """Departure (learner, issue 42): model steps ``H`` of the rollouts PEV and PIM work on (16 by default). 0 =
     the paper's one-step PEV (eqs. 49-50) and PIM (eqs. 51-52). ``H > 0``: the actor's loss is the discounted
     cost of an ``H``-step rollout of the planning model under ``N(mu_hat_k, K_hat_k)`` plus the target critic at
     its end, differentiated through the model, and the critic is fitted to ``lambda``-returns along the same
@@ -216,26 +216,28 @@ class AlgorithmConfig:
     rollout_updates: int = 1
     """Departure (learner): actor-then-critic updates on fresh rollouts per iteration (``rollout_horizon > 0``)."""
 
-    rollout_discount_start: float = 0.0
+    rollout_discount_start: float = 0.95
     """Departure (learner): with ``rollout_horizon > 0``, the rollouts' discount starts at this value and ramps
-    linearly to the task's ``gamma`` over the first ``rollout_discount_ramp`` of the budget; 0 (the default) =
+    linearly to the task's ``gamma`` over the first ``rollout_discount_ramp`` of the budget (0.95 by default); 0 =
     the task's ``gamma`` throughout."""
 
     rollout_discount_ramp: float = 0.4
     """Departure (learner): fraction of the budget over which the discount ramps (``rollout_discount_start > 0``)."""
 
-    rollout_region: float = 0.0
+    rollout_region: float = 0.5
     """Departure (learner, :mod:`mixedrl.departures.region`): with ``rollout_horizon > 0``, the fraction of the
     rollouts' start states drawn afresh each iteration from the task's whole state region
-    (``task.sample_region``), the rest being end states of the previous iteration's rollouts; 0 (the default) =
-    the rollouts start from the sampler's batch. Needs a state-independent noise source (not ``ibe_case = 3``)."""
+    (``task.sample_region``), the rest being end states of the previous iteration's rollouts (0.5 by default);
+    0 = the rollouts start from the sampler's batch. It applies only with ``rollout_horizon > 0`` on a task
+    that declares a state region (:meth:`mixedrl.task_base.Task.declares_region`), where it needs a
+    state-independent noise source (not ``ibe_case = 3``: refused when the first rollouts start)."""
 
-    actor_output: str = "tanh"
+    actor_output: str = "clip_inward"
     """Departure (learner, :mod:`mixedrl.departures.actor_output`): how the actor's output is bounded:
-    ``"tanh"`` (the default, ``u_bar tanh(MLP)``), ``"clip"`` (``u_bar clip(MLP, -1, 1)``, the clip's gradient
+    ``"tanh"`` (``u_bar tanh(MLP)``), ``"clip"`` (``u_bar clip(MLP, -1, 1)``, the clip's gradient
     passed straight through for the parameters only) or ``"clip_inward"`` (the same, straight through only where
-    the step moves a clipped output back inside). Algorithm 2's plain actor only (not with an anchored
-    ``feedforward``, not DDPG)."""
+    the step moves a clipped output back inside; the default). Algorithm 2's plain actor only: an anchored
+    ``feedforward`` needs ``"tanh"``, and DDPG's actor is always ``tanh``-bounded."""
 
     def __post_init__(self) -> None:
         w = "algorithm"
@@ -270,15 +272,7 @@ class AlgorithmConfig:
         check_fraction(self.rollout_discount_start, f"{w}.rollout_discount_start", high_open=True)
         check_fraction(self.rollout_discount_ramp, f"{w}.rollout_discount_ramp")
         check_choice(self.actor_output, f"{w}.actor_output", ("tanh", "clip", "clip_inward"))
-        if self.actor_output != "tanh" and self.feedforward in ANCHORED_FEEDFORWARDS:
-            raise ValueError(f"{w}.actor_output: {self.actor_output!r} is for the plain actor; {w}.feedforward = "
-                             f"{self.feedforward!r} trains an anchored (tanh) actor")
         check_fraction(self.rollout_region, f"{w}.rollout_region")
-        if self.rollout_region > 0 and (self.rollout_horizon == 0 or self.ibe_case == 3):
-            raise ValueError(f"{w}.rollout_region: the start states of the rollout departure; expected 0 unless "
-                             f"{w}.rollout_horizon > 0 with a state-independent noise source (ibe_case 1 or 2), got "
-                             f"{self.rollout_region!r} (rollout_horizon {self.rollout_horizon}, "
-                             f"ibe_case {self.ibe_case})")
 
 
 @dataclass

@@ -11,9 +11,9 @@ Usage::
 
     PYTHONPATH=. python scripts/ship_reproduction.py [--seeds 5] [--out runs/reproduce] [--resume]
 
-About 13 minutes on this 2-core machine for 5 seeds (753 s measured quiet, 2026-12-06; see
-``docs/reproduction.rst``): the Algorithm-2 runs train in batches, the five long DDPG runs (not batched)
-are most of it.
+About 16 minutes on this 2-core machine for 5 seeds (968 s measured quiet, 2026-12-06; see
+``docs/reproduction.rst``): the Algorithm-2 runs train in batches; those batches and the five long DDPG runs
+(not batched) are most of it.
 """
 
 from __future__ import annotations

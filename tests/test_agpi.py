@@ -19,7 +19,7 @@ from mixedrl.algorithms.agpi import (
     make_noise_source,
     mvc_check,
 )
-from mixedrl.config import TrainConfig
+from mixedrl.config import PAPER_HYPERPARAMETERS, TrainConfig
 from mixedrl.networks import QuadraticCritic
 from mixedrl.runs import train
 from mixedrl.schedule import set_learning_rates
@@ -237,8 +237,13 @@ def test_same_seed_identical_weights_different_seed_different() -> None:
 # the package's defaults -- model batch, relative weighting, 1500-iteration decay -- the oracle's P was 18.9 vs
 # the DARE's 7.14 after these 5000 iterations with relative weighting, 7.138 with the model batch alone:
 # the relative weighting slows the quadratic critic's convergence on this task; docs/model_based.rst.)
+#: The one-step learner of the paper's Algorithm 2 (eqs. 49-52) with the library's budget-free settings: what
+#: the tests of the one-step PEV, PIM and MVC steps below train (the library default is the rollout learner).
+ONE_STEP = {k: PAPER_HYPERPARAMETERS[k] for k in ("grad_clip", "j_max")} | {"rollout_horizon": 0,
+                                                                            "critic_target": 0.0}
+
 LQ_CONFIG = dict(task="linear", algorithm=dict(iterations=5000, batch_size=256, critic_lr=5e-2, actor_lr=2e-2,
-                 horizon=5, lr_decay_to=0.05, batch_weighting="uniform", lr_decay_iterations=0),
+                 horizon=5, lr_decay_to=0.05, batch_weighting="uniform", lr_decay_iterations=0, **ONE_STEP),
                  sampler="true_copies", run=dict(eval_every=5000))
 
 
@@ -331,7 +336,7 @@ def test_iteration_plans_with_the_current_ibe_posterior(monkeypatch: pytest.Monk
     posterior, and the critic after the iteration is the one a PEV step under the posterior gives --
     not the one under the prior -- while the IBE still updates and reports."""
     task = LinearTask(prior_mean=[0.0, -1.0])  # prior far from the true mean (0, 0.5)
-    cfg = TrainConfig(method="mixed", task="linear", seed=3, algorithm=dict(batch_size=32, iterations=10),
+    cfg = TrainConfig(method="mixed", task="linear", seed=3, algorithm=dict(batch_size=32, iterations=10, **ONE_STEP),
                       sampler="true_copies")
     ag = AGPI(task, cfg)
     ag.iteration()  # the IBE has seen data: its posterior is not the prior any more
@@ -396,7 +401,7 @@ def test_inner_loop_takes_extra_pim_steps_while_the_mvc_fails(monkeypatch: pytes
     """Eq. (38) fails (the noise jumps by 3 in velocity): the inner loop must take PIM steps until
     j = j_max, each a real step of the actor under xi_hat_k."""
     task = LinearTask()
-    cfg = TrainConfig(method="mixed", task="linear", algorithm=dict(batch_size=32, iterations=10, j_max=3,
+    cfg = TrainConfig(method="mixed", task="linear", algorithm=dict(batch_size=32, iterations=10, **{**ONE_STEP, "j_max": 3},
                       mvc_check="all"), sampler="true_copies")
     ag = AGPI(task, cfg, noise_source=JumpingNoise())
     calls: list[torch.Tensor] = []
@@ -424,7 +429,8 @@ def test_bellman_steps_reaches_pev_and_pim() -> None:
 
     task = LinearTask()
     cfg = TrainConfig(method="mixed", task="linear", seed=4,
-                      algorithm={"batch_size": 32, "iterations": 5, "bellman_steps": 3, "batch_weighting": "uniform"})  # the losses below: plain means
+                      algorithm={"batch_size": 32, "iterations": 5, "bellman_steps": 3, "batch_weighting": "uniform",
+                                 **ONE_STEP})  # the losses below: plain means
     agent, twin = AGPI(task, cfg), AGPI(task, cfg)
     twin.load_state_dict(copy.deepcopy(agent.state_dict()))
     metrics = agent.iteration()
@@ -458,6 +464,10 @@ def test_paper_preset_is_the_papers_algorithm2_and_results_list_the_departures()
         assert PAPER_SETTINGS[section][name] == d.PAPER
     with pytest.raises(ValueError, match="preset"):
         TrainConfig.preset("papers")
+    # the caller's settings apply over the preset's, a dict section only where it names a setting
+    mine = TrainConfig.preset("paper", algorithm=dict(iterations=60, batch_size=64), sampler="model_rollouts")
+    assert (mine.algorithm.iterations, mine.algorithm.batch_size, mine.sampler.name) == (60, 64, "model_rollouts")
+    assert (mine.algorithm.j_max, mine.algorithm.rollout_horizon, mine.algorithm.batch_weighting) == (5, 0, "uniform")
     short = {"algorithm.iterations": 3, "algorithm.batch_size": 32, "run.eval_every": 3}
     assert train(AGPI(LinearTask(), paper.replace(**short)), progress=False)["departures"] == []
     assert train(AGPI(LinearTask(), library.replace(**short)), progress=False)["departures"] == departures.used(library)
@@ -494,7 +504,8 @@ def test_relative_weight_offset_is_in_units_of_the_tasks_value_scale(monkeypatch
     monkeypatch.setattr(algorithm2, "critic_step", spy)
     config = TrainConfig(method="mixed", seed=1, task="linear").replace(
         **{"algorithm.iterations": 1, "algorithm.batch_size": 16, "algorithm.batch_weighting": "relative",
-           "algorithm.batch_weight_offset": 0.5, "run.eval_every": 1})
+           "algorithm.batch_weight_offset": 0.5, "run.eval_every": 1,
+           **{f"algorithm.{k}": v for k, v in ONE_STEP.items()}})
     task = LinearTask()
     task.value_scale = 4.0
     run = AGPI(task, config)

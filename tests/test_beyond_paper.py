@@ -15,7 +15,7 @@ from pathlib import Path
 
 import pytest
 
-from mixedrl.config import TrainConfig
+from mixedrl.config import ONE_STEP_LEARNER, TrainConfig
 from mixedrl.sweep import expand, load_spec, parse_spec
 from experiments.analysis import beyond_paper as BP
 
@@ -39,11 +39,15 @@ def _comparable(cfg: TrainConfig, drop: str | None = None) -> dict:
 # ----------------------------------------------------------------------------------------------------
 @pytest.mark.parametrize("name", sorted(BP.STUDIES))
 def test_study_specs_leave_training_settings_to_the_defaults(name: str) -> None:
+    """Only the experiment (``task.*``) and the one-step learner's settings the study was trained with
+    (:data:`mixedrl.config.ONE_STEP_LEARNER`, pinned), never other training settings."""
     spec = load_spec(ROOT / BP.STUDIES[name].spec)
-    assert all(key.startswith("task.") for key in spec.base), spec.base  # only the experiment, never training
+    pinned = {f"algorithm.{k}": v for k, v in ONE_STEP_LEARNER.items()}
+    assert all(key.startswith("task.") or spec.base[key] == pinned.get(key, object()) for key in spec.base), spec.base
+    assert set(pinned) <= set(spec.base)
     assert all(key.startswith("task.") or key == "algorithm.ibe_case" for key in spec.grid), spec.grid
     assert len(spec.seeds) == 5 and "oracle" in spec.methods and "mixed" in spec.methods
-    defaults = TrainConfig(task="dlc").to_dict()
+    defaults = TrainConfig(task="dlc", algorithm=ONE_STEP_LEARNER).to_dict()
     for run in expand(spec):
         data = run.config.to_dict()
         data["algorithm"].pop("ibe_case"), defaults["algorithm"].pop("ibe_case", None)
@@ -104,7 +108,8 @@ def test_the_parts_are_the_spec_runs_with_the_shared_method_once_per_seed(name: 
 
 def test_reduced_spec() -> None:
     spec = BP.reduce_spec(load_spec(ROOT / BP.STUDIES["prior_mismatch"].spec))
-    assert spec.seeds == (0,) and spec.base == {"algorithm.iterations": BP.REDUCED_ITERATIONS}
+    full = load_spec(ROOT / BP.STUDIES["prior_mismatch"].spec)
+    assert spec.seeds == (0,) and spec.base == {**full.base, "algorithm.iterations": BP.REDUCED_ITERATIONS}
     assert spec.grid == {"task.prior_force_mean": (-300.0, 0.0)} and len(expand(spec)) == 6
 
 

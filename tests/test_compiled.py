@@ -19,7 +19,7 @@ import torch
 from mixedrl.algorithms.batched import BatchedAGPI, StackedNetwork
 from mixedrl.checkpoint import load_checkpoint, save_checkpoint
 from mixedrl.compiled import Update, network_at
-from mixedrl.config import TrainConfig
+from mixedrl.config import ONE_STEP_LEARNER, TrainConfig
 from mixedrl.runs import make_trainer
 from mixedrl.schedule import Descent
 
@@ -34,9 +34,11 @@ ROLLOUT = {"rollout_horizon": 3, "critic_target": 0.8, "actor_output": "clip_inw
 
 
 def config(compile: str, seed: int = 0, method: str = "mixed", **algorithm: object) -> TrainConfig:
+    """A tiny run of the one-step learner (:data:`~mixedrl.config.ONE_STEP_LEARNER`); ``algorithm`` on top
+    (:data:`ROLLOUT`: the rollout learner at 3 steps; the default's 16 steps would compile 16 unrolled steps)."""
     return TrainConfig(method=method, seed=seed, task="linear",
-                       algorithm={"iterations": 6, "batch_size": 32, "hidden_sizes": [8, 8], "compile": compile,
-                                  **algorithm},
+                       algorithm={**ONE_STEP_LEARNER, "iterations": 6, "batch_size": 32, "hidden_sizes": [8, 8],
+                                  "compile": compile, **algorithm},
                        run={"eval_every": 1000, "checkpoint_every": 1000, "eval_seeds": 1})
 
 

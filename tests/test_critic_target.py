@@ -1,5 +1,5 @@
-"""``AlgorithmConfig.critic_target``: PEV's target takes an EMA of the critic's weights (a departure, off by
-default)."""
+"""``AlgorithmConfig.critic_target``: PEV's target takes an EMA of the critic's weights (a departure; 0.8 by
+default, with the rollout learner). The one-step PEV's target (eq. 50) is tested here: ``rollout_horizon = 0``."""
 
 from __future__ import annotations
 
@@ -13,7 +13,7 @@ from mixedrl.expectation import h_value
 from mixedrl.runs import make_trainer
 
 FAST = dict(task="linear", run=dict(eval_every=10, eval_seeds=1, checkpoint_every=10))
-ALGORITHM = dict(batch_size=32, iterations=30, hidden_sizes=(8,), batch_weighting="uniform")
+ALGORITHM = dict(batch_size=32, iterations=30, hidden_sizes=(8,), batch_weighting="uniform", rollout_horizon=0)
 
 
 def _flat(module: torch.nn.Module) -> torch.Tensor:
@@ -44,8 +44,9 @@ def test_pev_regresses_on_the_targets_value() -> None:
     assert abs(with_target - with_critic) > 1e-3 * with_target
 
 
-def test_off_by_default_and_a_batch_equals_its_runs_alone() -> None:
-    trainer: AGPI = make_trainer(TrainConfig(method="mixed", algorithm=ALGORITHM, **FAST))
+def test_off_at_zero_and_a_batch_equals_its_runs_alone() -> None:
+    assert TrainConfig().algorithm.critic_target == 0.8
+    trainer: AGPI = make_trainer(TrainConfig(method="mixed", algorithm=dict(ALGORITHM, critic_target=0.0), **FAST))
     trainer.iteration()
     assert trainer.critic_target is None and "critic_target" not in trainer.state_dict()
     cfgs = [TrainConfig(method=m, seed=s, algorithm=dict(ALGORITHM, critic_target=0.95), **FAST)
@@ -68,6 +69,10 @@ def test_critic_target_is_validated(bad: object) -> None:
         TrainConfig(algorithm=dict(critic_target=bad))
 
 
-def test_ddpg_refuses_a_pev_target() -> None:
-    with pytest.raises(ValueError, match="^algorithm.critic_target"):
-        TrainConfig(method="ddpg", algorithm=dict(critic_target=0.99))
+def test_ddpg_ignores_the_pev_target() -> None:
+    """DDPG has its own target networks (``ddpg.tau``): Algorithm 2's target critic is no departure of a DDPG run."""
+    from mixedrl import departures
+
+    cfg = TrainConfig(method="ddpg", algorithm=dict(critic_target=0.99))
+    assert "critic_target" not in departures.used(cfg)
+    assert "critic_target" in departures.used(cfg.replace(method="mixed"))

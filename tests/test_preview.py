@@ -20,7 +20,7 @@ import torch
 
 from mixedrl.algorithms.model_data import ModelStateSampler
 from mixedrl.cli import main
-from mixedrl.config import TrainConfig
+from mixedrl.config import ONE_STEP_LEARNER, TrainConfig
 from mixedrl.runs import RunDirectory, load_checkpoint, make_trainer, train
 from mixedrl.sweep import expand, load_spec
 from mixedrl.tasks import task_from_config
@@ -44,7 +44,9 @@ def _tanh_path(X: np.ndarray) -> np.ndarray:
 
 
 def _config(**extra: object) -> TrainConfig:
-    return TrainConfig(method="mixed", task="dlc").replace(**{**FAST, **extra, "task.preview_distances": list(PREVIEW)})
+    """The preview study's config: the one-step learner it was run with (its specs pin it), FAST, the preview."""
+    return TrainConfig(method="mixed", task="dlc", algorithm=ONE_STEP_LEARNER).replace(
+        **{**FAST, **extra, "task.preview_distances": list(PREVIEW)})
 
 
 def test_preview_observation_is_the_path_ahead() -> None:
@@ -137,9 +139,9 @@ def test_numpy_actor_equals_the_torch_actor() -> None:
 
 
 def test_study_spec_is_the_default_but_preview() -> None:
-    """The study (experiments/studies/preview.toml) changes no training setting but the preview (and the
-    reporting/checkpoint periods), on its batch design: S is today's default, M the default when the study
-    first ran."""
+    """The study (experiments/studies/preview.toml) changes no training setting of the one-step learner it
+    pins (:data:`mixedrl.config.ONE_STEP_LEARNER`) but the preview (and the reporting/checkpoint periods), on
+    its batch design: S is that learner's default, M the default when the study first ran."""
     def dotted(d: dict) -> dict:
         return {f"{k}.{kk}" if isinstance(v, dict) and k != "task" else k: vv
                 for k, v in d.items() for kk, vv in (v.items() if isinstance(v, dict) and k != "task" else [(k, v)])}
@@ -149,7 +151,7 @@ def test_study_spec_is_the_default_but_preview() -> None:
     for run in (r for r in runs if "_n" not in r.point["variant"]):  # the default budget
         design = run.point["variant"].split("_")[0]
         cfg = run.config.to_dict()
-        base = TrainConfig(task="dlc").replace(seed=run.config.seed).to_dict()
+        base = TrainConfig(task="dlc", algorithm=ONE_STEP_LEARNER).replace(seed=run.config.seed).to_dict()
         assert cfg["task"].pop("preview_distances") == list(run.config.task.preview_distances)
         base["task"].pop("preview_distances")
         if run.point["variant"] == "M_P12s":  # scales its preview terms (task.obs_scale; tests/test_studies.py)

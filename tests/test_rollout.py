@@ -169,7 +169,7 @@ def test_discount_ramp() -> None:
     assert rollout.discount(cfg, 0, 0.99) == pytest.approx(0.95)
     assert rollout.discount(cfg, 20, 0.99) == pytest.approx(0.97)
     assert rollout.discount(cfg, 60, 0.99) == pytest.approx(0.99)
-    assert rollout.discount(_config(), 0, 0.97) == 0.97
+    assert rollout.discount(_config(rollout_discount_start=0.0), 0, 0.97) == 0.97
 
 
 def test_the_compiled_step_runs_the_rollout(monkeypatch: pytest.MonkeyPatch) -> None:

@@ -289,15 +289,15 @@ def test_second_writer_refused_and_killed_holder_recovered(tmp_path: Path,
 def test_two_trainers_on_one_out(tmp_path: Path) -> None:
     out = tmp_path / "run"
     args = [sys.executable, "-c", "import sys; from mixedrl.cli import main; sys.exit(main(sys.argv[1:]))",
-            "train", *RUN, "--out", str(out), "--iterations", "200", "--set", "run.checkpoint_every=50",
-            "run.eval_seeds=1", "--no-progress"]
+            "train", *RUN, "--out", str(out), "--iterations", "100", "--set", "run.checkpoint_every=25",
+            "run.eval_seeds=1", "algorithm.rollout_horizon=4", "--no-progress"]
     env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
     procs = [subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
              for _ in range(2)]
     results = [p.communicate(timeout=600) for p in procs]
     codes = sorted(p.returncode for p in procs)
     assert codes == [0, 2], results
-    assert [r["iteration"] for r in RunDirectory(out).read_metrics()] == list(range(1, 201))
+    assert [r["iteration"] for r in RunDirectory(out).read_metrics()] == list(range(1, 101))
 
 
 # ---------------------------------------------------------------------------------------------------

@@ -24,7 +24,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from mixedrl.config import TrainConfig
+from mixedrl.config import ONE_STEP_LEARNER, TrainConfig
 from mixedrl.runs import RunDirectory
 from mixedrl.sweep import expand, load_spec, parse_spec, run_sweep
 
@@ -64,7 +64,8 @@ def test_every_study_spec_is_valid(path: Path) -> None:
 
 
 def _old_config(design: str, method: str, seed: int, iterations: int) -> TrainConfig:
-    return TrainConfig().replace(method=method, seed=seed, **_budget(iterations, max(100, iterations // 5)),
+    return TrainConfig(algorithm=ONE_STEP_LEARNER).replace(method=method, seed=seed,
+                                                        **_budget(iterations, max(100, iterations // 5)),
                                  **OLD_DESIGNS[design])
 
 
@@ -133,7 +134,7 @@ def test_preview_spec_reproduces_the_old_config_of() -> None:
         if candidate == "P12s":
             continue  # test_preview_spec_p12s_is_the_old_patched_obs_scale
         # the old config_of(candidate, method, seed, iterations=n, design=design)
-        old = TrainConfig(task="dlc").replace(method=run.config.method, seed=run.config.seed, **_budget(n, max(100, n // 5)),
+        old = TrainConfig(task="dlc", algorithm=ONE_STEP_LEARNER).replace(method=run.config.method, seed=run.config.seed, **_budget(n, max(100, n // 5)),
                                     **{"sampler.course_starts": OLD_PREVIEW_DESIGNS[design],
                                        "task.preview_distances": OLD_PREVIEW[candidate]})
         assert run.config == old, run.name
@@ -150,7 +151,7 @@ def test_preview_spec_p12s_is_the_old_patched_obs_scale() -> None:
     runs = [r for r in expand(load_spec(ROOT / "experiments" / "studies" / "preview.toml")) if r.point["variant"] == "M_P12s"]
     assert len(runs) == 5
     for run in runs:
-        old = TrainConfig(task="dlc").replace(method=run.config.method, seed=run.config.seed, **_budget(1500, 300),
+        old = TrainConfig(task="dlc", algorithm=ONE_STEP_LEARNER).replace(method=run.config.method, seed=run.config.seed, **_budget(1500, 300),
                                     **{"sampler.course_starts": "start", "task.preview_distances": OLD_PREVIEW["P12"]})
         assert run.config.replace(**{"task.obs_scale": None}) == old, run.name
         task, plain = task_from_config(run.config.task), task_from_config(old.task)
@@ -209,16 +210,16 @@ def test_the_reproductions_spec_is_the_shipped_spec_with_the_theory_observer() -
 
 
 def test_the_theory_observer_reads_the_run_and_changes_none_of_its_numbers(tmp_path: Path) -> None:
-    """A batch of two runs (the reproduction's quick config cut to 60 iterations) with the theory observer
-    and without: the same rows bit for bit, plus the theory checks every 50th iteration."""
+    """A batch of two runs (the reproduction's quick config cut to 60 iterations, a batch of 32 states and
+    4-step model rollouts) with the theory observer and without: the same rows bit for bit, plus the theory
+    checks every 50th iteration."""
     from validation.reproduce import run_config
 
-    config = run_config("mixed", 0, quick=True).replace(**{"algorithm.iterations": 60, "run.eval_every": 30,
-                                                             "run.checkpoint_every": 30})
+    short = {"algorithm.iterations": 60, "algorithm.batch_size": 32, "algorithm.rollout_horizon": 4,
+             "run.eval_every": 30, "run.checkpoint_every": 30}
+    config = run_config("mixed", 0, quick=True).replace(**short)
     text = 'methods = ["mixed", "oracle"]\nseeds = [0]\n[base]\n' + "".join(
-        f'"{k}" = {json.dumps(v)}\n' for k, v in {"algorithm.iterations": 60, "run.eval_every": 30,
-                                                  "run.checkpoint_every": 30, "run.eval_seeds": 1,
-                                                  "ddpg.warmup": 500}.items())
+        f'"{k}" = {json.dumps(v)}\n' for k, v in {**short, "run.eval_seeds": 1, "ddpg.warmup": 500}.items())
     plain = parse_spec(text)
     observed = parse_spec('observer = "validation.reproduce:quick_theory_observer"\n' + text)
     assert expand(plain)[0].config == config
@@ -271,7 +272,7 @@ def _old_precision_config(method: str, seed: int, bellman_steps: int, iterations
     """``experiments/analysis/precision_study.py``'s ``run`` before the move (``--set algorithm.bellman_steps=N``): the
     placeholder ``task="linear"`` config it trained ``PendulumTask()`` with, its task the pendulum's."""
     cfg = TrainConfig(method=method, task="linear", seed=seed,
-                      algorithm={"iterations": iterations, "batch_size": 256, "horizon": 100,
+                      algorithm={**ONE_STEP_LEARNER, "iterations": iterations, "batch_size": 256, "horizon": 100,
                                  "batch_weighting": "relative", "lr_decay_iterations": iterations,
                                  "bellman_steps": bellman_steps},
                       sampler={"name": "model_rollouts", "true_horizon": 100, "box": 3.0}, run={"eval_every": 300})
@@ -431,15 +432,30 @@ def test_custom_defaults_spec_varies_only_the_two_settings_and_its_script_ships_
 
 
 def test_ddpg_seeds20_spec_is_the_reproductions_ddpg_on_more_seeds() -> None:
-    """experiments/studies/table1_seeds20_ddpg.toml: its runs of seeds 0-4 are exactly the reproduction's DDPG runs (so the
-    shipped Table I's DDPG rows are five of its twenty seeds), and seeds 0-19 each once per variant."""
+    """experiments/studies/table1_seeds20_ddpg.toml: its ``ddpg_long`` runs of seeds 0-4 are exactly the
+    reproduction's (so the shipped Table I's longer-DDPG rows are five of its twenty seeds) in every setting DDPG
+    reads; its ``paper`` runs are DDPG at the one-step learner's 1500 iterations, the reproduction's at the
+    library's budget; seeds 0-19 each once per variant."""
+    reads = ("iterations", "horizon", "hidden_sizes", "value_output", "lr_decay_to", "lr_decay_iterations")
+
+    def ddpg_view(config: TrainConfig) -> dict:
+        data = config.to_dict()
+        data["algorithm"] = {k: data["algorithm"][k] for k in reads}
+        return data
+
     ours = expand(load_spec(ROOT / "experiments" / "studies" / "table1_seeds20_ddpg.toml"))
     repro = [r for r in expand(load_spec(ROOT / "experiments" / "studies" / "reproduction.toml")) if r.config.method == "ddpg"]
     assert len(ours) == 40 and len(repro) == 10
-    key = {(r.point["variant"], r.config.seed): r.config.to_dict() for r in ours}
+    key = {(r.point["variant"], r.config.seed): r.config for r in ours}
     assert sorted(s for v, s in key if v == "ddpg_long") == list(range(20))
     for r in repro:
-        assert key[(r.point["variant"], r.config.seed)] == r.config.to_dict(), r.name
+        mine = key[(r.point["variant"], r.config.seed)]
+        if r.point["variant"] == "ddpg_long":
+            assert ddpg_view(mine) == ddpg_view(r.config), r.name
+        else:
+            assert (mine.algorithm.iterations, r.config.algorithm.iterations) == (1500, TrainConfig().algorithm.iterations)
+            assert ddpg_view(mine.replace(**{"algorithm.iterations": r.config.algorithm.iterations})) == \
+                ddpg_view(r.config), r.name
 
 
 def test_seed_statistics_keys_variants_apart_and_reads_its_own_csv_back(tmp_path: Path) -> None:

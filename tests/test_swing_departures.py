@@ -141,10 +141,17 @@ def test_reproducible_and_listed() -> None:
 
 
 @pytest.mark.parametrize("key, bad, extra", [("actor_output", "sigmoid", {}), ("actor_output", "inward", {}),
-                                             ("rollout_region", 1.5, {}),
-                                             ("rollout_region", 0.5, {"rollout_horizon": 0}),
-                                             ("rollout_region", 0.5, {"ibe_case": 3}),
-                                             ("actor_output", "clip", {"feedforward": "lq_train"})])
+                                             ("rollout_region", 1.5, {})])
 def test_bad_values_are_refused_naming_the_key(key: str, bad: object, extra: dict) -> None:
     with pytest.raises(ValueError, match=f"algorithm.{key}"):
         _config(**{key: bad, **extra})
+
+
+def test_the_clipped_output_is_the_plain_actors_only() -> None:
+    """An anchored feed-forward trains its own tanh-bounded actor and DDPG its tanh actor: the setting is no
+    departure of theirs (the library default is ``"clip_inward"``)."""
+    from mixedrl.departures import actor_output
+
+    assert actor_output.active(_config(actor_output="clip"))
+    assert not actor_output.active(_config(actor_output="clip", feedforward="lq_train"))
+    assert not actor_output.active(_config(actor_output="clip").replace(method="ddpg"))

@@ -50,11 +50,12 @@ from experiments.tuning_tracking import TRACKING_TUNING_SYSTEMS, SlalomReference
 from mixedrl.algorithms.agpi import AGPI  # noqa: E402
 from mixedrl.config import TrainConfig  # noqa: E402
 from mixedrl.runs import atomic_write_text, train  # noqa: E402
-from tuning_baseline import COST_REL, one_run  # noqa: E402
+from tuning_baseline import COST_REL, ONESTEP, one_run  # noqa: E402
 
 OUT = ROOT / "experiments" / "results" / "learner_tuning"
 
-#: Variant name -> ``algorithm.*`` settings over the library defaults.
+#: Variant name -> ``algorithm.*`` settings over the library's one-step defaults of before issue 42's learner
+#: (``tuning_baseline.ONESTEP``, pinned: what every row here was measured over).
 VARIANTS: dict[str, dict[str, Any]] = {
     "baseline": {},
     "h16": {"rollout_horizon": 16, "critic_target": 0.8, "iterations": 600},
@@ -206,7 +207,7 @@ def job(args: tuple[str, str, str, int]) -> dict[str, Any]:
         t0 = time.time()
         return {"system": system, "method": "energy+LQR", "seed": seed, "variant": variant,
                 "returns": task.evaluate_return(EnergyLQR(task), episodes=20), "wall_seconds": time.time() - t0}
-    algorithm = VARIANTS[variant]
+    algorithm = {**ONESTEP, **VARIANTS[variant]}
     if system in GLOBAL_TUNING_SYSTEMS:
         row = {"system": system, "method": method, "seed": seed, **global_run(system, method, seed, algorithm)}
     elif system in TRACKING_TUNING_SYSTEMS:
@@ -226,7 +227,8 @@ def timing(system: str, variants: list[str], seed: int = 100) -> list[str]:
     torch.set_num_threads(1)
     for variant in variants:
         c0, t0 = resource.getrusage(resource.RUSAGE_SELF), time.time()
-        r = one_run(system, "mixed", seed, None, OUT / "timing", algorithm=VARIANTS[variant], tag=f"_{variant}")
+        r = one_run(system, "mixed", seed, None, OUT / "timing", algorithm={**ONESTEP, **VARIANTS[variant]},
+                    tag=f"_{variant}")
         c1 = resource.getrusage(resource.RUSAGE_SELF)
         cpu = c1.ru_utime - c0.ru_utime + c1.ru_stime - c0.ru_stime
         lines.append(f"| {system} | {variant} | {seed} | {time.time() - t0:.1f} | {cpu:.1f} | {r['cost_ratio']:.4f} |")

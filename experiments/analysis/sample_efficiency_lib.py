@@ -28,7 +28,7 @@ import numpy as np
 import torch
 
 from mixedrl.checks import check_positive_int
-from mixedrl.config import TrainConfig
+from mixedrl.config import ONE_STEP_LEARNER, TrainConfig
 from mixedrl.tables import mean_std
 from mixedrl.runs import (
     CONVERGENCE_RTOL,
@@ -209,7 +209,7 @@ def rows_from_metrics(metrics: Sequence[dict[str, Any]]) -> list[dict[str, Any]]
 def ours_config(method: str, seed: int, iterations: int, overrides: dict[str, Any] | None = None) -> TrainConfig:
     """The :class:`TrainConfig` of one of mixedrl's runs in the study.
 
-    ``TrainConfig(task="dlc").replace(method=..., seed=..., algorithm.iterations=..., run.eval_every=choose_eval_every(
+    ``TrainConfig(task="dlc", algorithm=ONE_STEP_LEARNER).replace(method=..., seed=..., algorithm.iterations=..., run.eval_every=choose_eval_every(
     iterations), run.num_threads=1, **overrides)`` (``overrides``: dotted keys, ``run.eval_every`` among them).
 
     Raises
@@ -223,7 +223,8 @@ def ours_config(method: str, seed: int, iterations: int, overrides: dict[str, An
     overrides = dict(overrides or {})
     base = {"method": method, "seed": seed, "algorithm.iterations": iterations,
             "run.eval_every": choose_eval_every(iterations), "run.num_threads": 1}
-    return TrainConfig(task="dlc").replace(**{**base, **overrides})
+    # the one-step learner the study was run with (experiments/studies/sample_efficiency.toml pins it)
+    return TrainConfig(task="dlc", algorithm=ONE_STEP_LEARNER).replace(**{**base, **overrides})
 
 
 def train_ours(method: str, seed: int, iterations: int, overrides: dict[str, Any] | None = None,

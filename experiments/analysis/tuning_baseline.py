@@ -46,9 +46,13 @@ if str(ROOT) not in sys.path:
 
 from experiments.tuning_systems import TUNING_SYSTEMS, LQRPolicy, lqr_reference  # noqa: E402
 from mixedrl.algorithms.agpi import AGPI  # noqa: E402
-from mixedrl.config import TrainConfig  # noqa: E402
+from mixedrl.config import ONE_STEP_LEARNER, TrainConfig  # noqa: E402
 from mixedrl.runs import atomic_write_text, eval_seeds, train  # noqa: E402
 from mixedrl.tasks import Task, task_from_config  # noqa: E402
+
+#: The library's ``algorithm`` defaults before issue 42's learner became the default (the one-step learner): what
+#: the rows of this study and of learner_tuning.py's variants were measured over; their runs pin them.
+ONESTEP: dict[str, Any] = dict(ONE_STEP_LEARNER)
 
 OUT = ROOT / "experiments" / "results" / "tuning_baseline"
 #: The component whose offset is the controlled quantity.
@@ -177,7 +181,7 @@ def main(argv: list[str] | None = None) -> None:
     for system in args.systems:
         for method in args.methods:
             for seed in args.seeds:
-                row = one_run(system, method, seed, args.iterations, args.dest)
+                row = one_run(system, method, seed, args.iterations, args.dest, algorithm=ONESTEP)
                 print(format_row(row), flush=True)
                 rows.append(row)
     refs = {s: lqr_reference(TUNING_SYSTEMS[s]()) for s in args.systems}

@@ -110,8 +110,6 @@ class DDPG:
             raise ValueError(f"config: method must be 'ddpg', got {config.method!r}")
         check_task(task)
         check_plant_sampler(task, config)
-        if config.algorithm.actor_output != "tanh":
-            raise ValueError(f"algorithm.actor_output: DDPG trains the tanh actor; got {config.algorithm.actor_output!r}")
         self.task, self.config = task, config
         self.generator = torch.Generator().manual_seed(config.seed)
         g, own = self.generator, config.ddpg

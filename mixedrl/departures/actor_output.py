@@ -29,6 +29,7 @@ from __future__ import annotations
 from typing import Any
 
 from mixedrl.config import PAPER_SETTINGS
+from mixedrl.config_tasks import ANCHORED_FEEDFORWARDS
 
 NAME = "actor_output"
 KEY = "algorithm.actor_output"
@@ -38,5 +39,8 @@ __all__ = ["NAME", "KEY", "PAPER", "active"]
 
 
 def active(config: Any) -> bool:
-    """Whether the actor's output is clipped (``algorithm.actor_output = "clip"``) instead of ``tanh``-squashed."""
-    return config.algorithm.actor_output != PAPER
+    """Whether the actor's output is clipped (``algorithm.actor_output`` ``"clip"`` or ``"clip_inward"``) instead
+    of ``tanh``-squashed: Algorithm 2's plain actor only (an anchored ``algorithm.feedforward`` trains its own
+    ``tanh``-bounded actor, DDPG its ``tanh`` actor)."""
+    return (config.algorithm.actor_output != PAPER and config.algorithm.feedforward not in ANCHORED_FEEDFORWARDS
+            and config.method != "ddpg")

@@ -23,8 +23,9 @@ PAPER = PAPER_SETTINGS["algorithm"]["critic_target"]
 
 
 def active(config: Any) -> bool:
-    """Whether PEV's target uses the average critic."""
-    return config.algorithm.critic_target > 0
+    """Whether PEV's target uses the average critic (Algorithm 2 only: DDPG has its own target networks,
+    ``ddpg.tau``)."""
+    return config.algorithm.critic_target > 0 and config.method != "ddpg"
 
 
 def make(critic: torch.nn.Module, config: Any) -> AveragedModel | None:

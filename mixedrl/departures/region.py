@@ -59,8 +59,8 @@ __all__ = ["NAME", "KEY", "PAPER", "active", "applies", "carried", "starts", "re
 
 
 def active(config: Any) -> bool:
-    """Whether the rollouts start from region draws and carried states (``algorithm.rollout_region > 0``)."""
-    return config.algorithm.rollout_region != PAPER
+    """Whether the setting is on: ``algorithm.rollout_region > 0`` with the rollouts (``rollout_horizon > 0``)."""
+    return config.algorithm.rollout_region != PAPER and config.algorithm.rollout_horizon > 0 and config.method != "ddpg"
 
 
 def applies(config: Any, task: Any) -> bool:

@@ -58,6 +58,17 @@ one after the other in one process; CPU seconds, the wall in brackets): the defa
 ``swing_cri_h16_500`` 23.4 (34.1). So ``H = 32`` costs 2.6-3.1x the defaults, ``H = 16`` 1.2-1.9x (the means:
 41.9 s against 27.8 s, 1.51x) and ``H = 16`` with 500 iterations 0.75-0.9x (the machine was shared with other
 work: the spread is its load's).
+
+**The library default since issue 42** is ``swing_cri_h16_rv03_b128`` (``H = 16``, the inward-clipped actor,
+region starts where a task declares a region, relative state weights with ``c = 0.3`` value scales, ``j_max =
+1``, 800 iterations of batch 128, tanh, Adam at 2e-3, clip 1): SwingUp -139.3, -140.4, -139.2; cart 0.9605-0.9618
+(offset within tolerance on 2 of 3: 0.0382 against the LQR's 0.0341 on seed 101); tanks 0.9999-1.0006 (0 of 3,
+as every learner and the oracle); the fast slalom's course cost 23.2-23.6 (its reference 22.4, the one-step
+learner 26.4). Batch 128 rather than 256 (``swing_cri_h16_rv03``, the cart's offset on 3 of 3 without region
+draws, the other systems within 1%) for its cost: the cart, seed 100, one process after the other: the one-step
+learner 28.4 s, batch 256 43.3 and 39.2 s, batch 128 36.1 and 33.9 s. On the double lane change (one process
+after the other, seed 100, 2026-12-06) a default run trains in 66.7 and 67.5 s against the one-step learner's
+32.1 and 38.3 s (1.8-2.1x; wall 1.5-1.8x with the evaluations): issue 42's cost target (1.5x) is missed there.
 """
 
 from __future__ import annotations
@@ -85,8 +96,9 @@ Network = Callable[[torch.Tensor], torch.Tensor]
 
 
 def active(config: Any) -> bool:
-    """Whether PEV and PIM work on ``H``-step model rollouts (``algorithm.rollout_horizon > 0``)."""
-    return config.algorithm.rollout_horizon != PAPER
+    """Whether PEV and PIM work on ``H``-step model rollouts (``algorithm.rollout_horizon > 0``; Algorithm 2
+    only, DDPG learns from its replay buffer)."""
+    return config.algorithm.rollout_horizon != PAPER and config.method != "ddpg"
 
 
 def discount(config: Any, k: int, gamma: float) -> float:
