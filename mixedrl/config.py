@@ -96,10 +96,15 @@ def __getattr__(name: str) -> Any:
 FLAT_FORM_RELEASE = "mixedrl 0.1.0 at git commit b510485"
 
 
-#: Settings deleted from the library (a departure without a measured effect), each with the value at which a
+#: Settings deleted from the library (departures neither the default nor the ``paper`` preset uses), each with the value at which a
 #: saved config's run behaves as today's code: such a record is read (the key dropped); any other value is
 #: refused, naming the key (the run cannot be re-created).
-DELETED_SETTINGS: dict[tuple[str, str], Any] = {("algorithm", "rollout_critic_steps"): 1}
+DELETED_SETTINGS: dict[tuple[str, str], Any] = {
+    ("algorithm", "rollout_critic_steps"): 1,
+    ("algorithm", "rollout_updates"): 1,
+    ("algorithm", "actor_average"): 0.0,
+    ("algorithm", "bellman_steps"): 1,
+}
 
 
 def _drop_deleted_settings(data: dict[str, Any]) -> None:
@@ -108,7 +113,7 @@ def _drop_deleted_settings(data: dict[str, Any]) -> None:
         part = data.get(section)
         if isinstance(part, dict) and name in part:
             if part[name] != value:
-                raise ValueError(f"{section}.{name}: this setting was deleted (no measured effect); only "
+                raise ValueError(f"{section}.{name}: this setting was deleted (docs: results, 'Deleted settings'); only "
                                  f"{value!r}, today's behaviour, can be read, got {part[name]!r}")
             del part[name]
 
@@ -498,8 +503,8 @@ def _sampler(value: Any, preset: dict[str, Any], task: str) -> Any:
 #: default and why.
 PAPER_SETTINGS: dict[str, dict[str, Any]] = {
     "sampler": {"name": "true_copies"},
-    "algorithm": {"batch_weighting": "uniform", "lr_decay_to": 1.0, "critic_target": 0.0, "bellman_steps": 1,
-                  "feedforward": "learned", "actor_average": 0.0, "rollout_horizon": 0,
+    "algorithm": {"batch_weighting": "uniform", "lr_decay_to": 1.0, "critic_target": 0.0,
+                  "feedforward": "learned", "rollout_horizon": 0,
                   "rollout_region": 0.0, "actor_output": "tanh"},
 }
 #: The budget, networks and step sizes of the ``paper`` preset: the library's values for the paper's one-step

@@ -46,10 +46,10 @@ class AlgorithmConfig:
     ``batch_size``, ``activation``, ``critic_lr``, ``actor_lr`` and ``grad_clip`` are Algorithm 2's only:
     DDPG has its own (:class:`DDPGConfig`, ``ddpg.<field>``).
 
-    ``batch_weighting``, ``batch_weight_offset`` and ``actor_average`` are tuning add-ons, departures from
+    ``batch_weighting`` and ``batch_weight_offset`` are tuning add-ons, departures from
     the paper's Algorithm 2 (docs/algorithm2.rst). ``batch_weighting`` defaults to ``"relative"``, measured
     over the pendulum and the linear test bed (``experiments/studies/custom_defaults.toml``, docs/tuning.rst); the paper's
-    plain batch mean is ``"uniform"``. ``actor_average`` is off by default.
+    plain batch mean is ``"uniform"``.
     """
 
     iterations: int = 800
@@ -141,14 +141,6 @@ class AlgorithmConfig:
     """Departure (tuning add-on): ``c`` of ``batch_weighting = "relative"``, in units of the task's ``value_scale``
     (``c = batch_weight_offset * value_scale``)."""
 
-    actor_average: float = 0.0
-    """Departure (tuning add-on): decay ``beta`` of an exponential moving average of the actor's weights,
-    ``theta_bar <- beta theta_bar + (1 - beta) theta`` after every iteration (Polyak averaging). With
-    ``beta > 0`` the *averaged* actor is the run's policy (evaluated, saved, deployed:
-    :attr:`mixedrl.algorithms.agpi.AGPI.policy`), while the iterate keeps driving the training rollouts
-    and the gradient steps. 0 (the default) = no averaging. The window is about ``1 / (1 - beta)``
-    iterations."""
-
     critic_target: float = 0.8
     """Departure (precision add-on): decay ``beta`` of a target critic for PEV's target (0.8 by default). 0 =
     eq. (50) as written: ``V_target = l(x', u) + gamma V^k(x'; w)`` with the critic being trained. ``beta > 0``:
@@ -157,14 +149,6 @@ class AlgorithmConfig:
     :func:`mixedrl.pev.critic_loss`), so the target moves slowly when the batch's distribution changes.
     PIM and the MVC keep the critic ``V^k(x; w)`` itself. The same for every method of Algorithm 2; the
     window is about ``1 / (1 - beta)`` iterations. DDPG has its own (``ddpg.tau``)."""
-
-    bellman_steps: int = 1
-    """Departure (precision add-on): model steps ``n`` of the Bellman operator in PEV and PIM. 1 (the
-    default) = the one-step ``h`` of eq. (37), the paper's Algorithm 2. ``n > 1``: the critic's target
-    and the actor's objective are the ``n``-step ``h_n`` on a rollout of the planning model under the
-    actor, the noise at its mean for ``n - 1`` steps and ``V^k`` with the quadrature of ``xi_hat_k``
-    after them (:func:`mixedrl.pev.h_steps`; the actor's gradient back-propagated through the rollout).
-    The same for every method; the MVC (eq. 38) keeps the one-step ``h``."""
 
     feedforward: str = "learned"
     """Departure (precision add-on): where the run's policy takes its action at the task's equilibrium.
@@ -213,9 +197,6 @@ class AlgorithmConfig:
     rollout_lambda: float = 0.95
     """Departure (learner): ``lambda`` in [0, 1] of the critic's ``lambda``-returns (``rollout_horizon > 0``)."""
 
-    rollout_updates: int = 1
-    """Departure (learner): actor-then-critic updates on fresh rollouts per iteration (``rollout_horizon > 0``)."""
-
     rollout_discount_start: float = 0.95
     """Departure (learner): with ``rollout_horizon > 0``, the rollouts' discount starts at this value and ramps
     linearly to the task's ``gamma`` over the first ``rollout_discount_ramp`` of the budget (0.95 by default); 0 =
@@ -242,7 +223,7 @@ class AlgorithmConfig:
     def __post_init__(self) -> None:
         w = "algorithm"
         check_choice(self.compile, f"{w}.compile", COMPILE_MODES)
-        for name in ("iterations", "horizon", "noise_samples", "j_max", "stop_patience", "bellman_steps"):
+        for name in ("iterations", "horizon", "noise_samples", "j_max", "stop_patience"):
             setattr(self, name, check_positive_int(getattr(self, name), f"{w}.{name}"))
         _check_optimiser(self, w)
         self.lr_decay_iterations = check_nonnegative_int(self.lr_decay_iterations, f"{w}.lr_decay_iterations")
@@ -262,12 +243,10 @@ class AlgorithmConfig:
             raise ValueError(f"{w}.ibe_recursion: 'paper' is eq. (18), a Case 2 recursion; "
                              f"{w}.ibe_case is {self.ibe_case}")
         check_fraction(self.lr_decay_to, f"{w}.lr_decay_to", low_open=True)
-        check_fraction(self.actor_average, f"{w}.actor_average", high_open=True)
         check_fraction(self.critic_target, f"{w}.critic_target", high_open=True)
         check_number(self.stop_epsilon, f"{w}.stop_epsilon", nonneg=True)
         self.batch_weight_offset = check_number(self.batch_weight_offset, f"{w}.batch_weight_offset", positive=True)
         self.rollout_horizon = check_nonnegative_int(self.rollout_horizon, f"{w}.rollout_horizon")
-        self.rollout_updates = check_positive_int(self.rollout_updates, f"{w}.rollout_updates")
         check_fraction(self.rollout_lambda, f"{w}.rollout_lambda")
         check_fraction(self.rollout_discount_start, f"{w}.rollout_discount_start", high_open=True)
         check_fraction(self.rollout_discount_ramp, f"{w}.rollout_discount_ramp")

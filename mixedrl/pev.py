@@ -21,11 +21,11 @@ import numpy as np
 import torch
 
 from mixedrl.checks import as_vector, check_covariance, check_number, check_positive_int
-from mixedrl.expectation import h_value, weighted_sum
+from mixedrl.expectation import h_value
 from mixedrl.schedule import Descent
 from mixedrl.quadratic import AffinePolicy, LinearDynamics, QuadraticCost, QuadraticValue, check_problem, lyapunov_solve
 
-__all__ = ["evaluate_policy", "bellman_backup", "ExactPEV", "pev_step", "h_steps", "critic_loss", "critic_loss_at", "critic_step", "run_mean", "check_runs"]
+__all__ = ["evaluate_policy", "bellman_backup", "ExactPEV", "pev_step", "critic_loss", "critic_loss_at", "critic_step", "run_mean", "check_runs"]
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -220,88 +220,9 @@ def pev_step(evaluate: Callable[[Any, Any], Any], policy: Any, noise: Any) -> An
 # ----------------------------------------------------------------------------------------------------
 # parameterised PEV (eqs. 49-50)
 # ----------------------------------------------------------------------------------------------------
-def h_steps(task: Any, critic: torch.nn.Module, actor: torch.nn.Module | None, s: torch.Tensor, u: torch.Tensor,
-            offsets: torch.Tensor, weights: torch.Tensor, steps: int = 1) -> torch.Tensor:
-    """Implements eq. (37) for ``steps = 1``, and its ``n``-step form on model rollouts for ``steps = n > 1``.
-
-    .. math::
-
-        h_n(x, u) = \\sum_{i=1}^{n-1} \\gamma^{i-1} l(x_i, u_{i-1})
-            + \\gamma^{n-1} h(x_{n-1}, u_{n-1}, \\hat\\xi),
-        \\qquad x_0 = x,\\ u_0 = u,\\ x_{i} = f(x_{i-1}, u_{i-1}) + \\bar\\xi,\\ u_i = \\pi(x_i; \\theta),
-
-    with ``h`` of eq. (37) (:func:`mixedrl.expectation.h_value`, the quadrature of ``xi_hat_k``) at the
-    last step and ``xi_bar = sum_p w_p xi_p``, the mean of the quadrature, on the ``n - 1`` steps before it.
-    ``h_1 = h``.
-
-    Parameters
-    ----------
-    task : Task
-        Model ``f`` (differentiable), utility, ``gamma``, ``observe``.
-    critic : torch.nn.Module
-        ``V^k``.
-    actor : torch.nn.Module or None
-        ``pi(x; theta)``, which acts on the steps after the first (not used, may be ``None``, when
-        ``steps = 1``).
-    s : torch.Tensor, shape (B, state_dim)
-        States ``x``.
-    u : torch.Tensor, shape (B, action_dim)
-        First actions.
-    offsets, weights : torch.Tensor
-        Quadrature of ``xi_hat_k``, shapes ``(P, state_dim)`` (or ``(P, B, state_dim)``) and ``(P,)``.
-    steps : int, optional
-        ``n >= 1`` (``TrainConfig.algorithm.bellman_steps``).
-
-    Returns
-    -------
-    torch.Tensor, shape (B,)
-        ``h_n`` per state, differentiable in ``u``, in the actor's weights (through every step: the
-        gradient is back-propagated through the model rollout) and in the critic's.
-
-    Raises
-    ------
-    ValueError
-        ``steps`` is not an integer >= 1, or ``steps > 1`` without an actor.
-
-    Notes
-    -----
-    A departure from the paper, whose PEV and PIM use the one-step ``h`` (``algorithm.bellman_steps = 1``,
-    the default). With ``n`` steps the critic enters the target only through ``gamma^n V(x_n)``: its
-    error near the equilibrium, where a constant disturbance's feed-forward is decided, is weighted by
-    ``gamma^n`` instead of ``gamma``, and the cost of a steady offset is charged by the model itself on
-    ``n`` steps. The
-    steps before the last use the noise mean only (certainty equivalence); for additive noise and a
-    quadratic utility on linear dynamics that moves ``h_n`` by a constant, which changes neither
-    minimiser nor semi-gradient.
-    """
-    if isinstance(steps, bool) or not isinstance(steps, int) or steps < 1:
-        raise ValueError(f"steps: expected an integer >= 1, got {steps!r}")
-    if steps == 1:
-        return h_value(task, critic, s, u, offsets, weights)
-    if actor is None:
-        raise ValueError("actor: steps > 1 needs the actor that acts after the first step")
-    # xi_bar = sum_p w_p xi_p: the quadrature's mean, (state_dim,) or (B, state_dim)
-    if weights.ndim == 2:  # per-state weights (a batch of runs)
-        mean = weighted_sum(weights.to(offsets.dtype), offsets).to(s.dtype)
-    else:
-        mean = torch.tensordot(weights.to(offsets.dtype), offsets, dims=([0], [0])).to(s.dtype)
-    total = torch.zeros(s.shape[0], dtype=s.dtype)
-    discount = 1.0
-    x, a = s, u
-    for _ in range(steps - 1):
-        # x_i = f(x_{i-1}, u_{i-1}) + xi_bar;  sum gamma^(i-1) l(x_i, u_{i-1})
-        x = task.f(x, a) + mean
-        total = total + discount * task.cost(x, a).reshape(-1)
-        discount *= float(task.gamma)
-        a = actor(task.observe(x))
-    # + gamma^(n-1) h(x_{n-1}, u_{n-1}, xi_hat)
-    return total + discount * h_value(task, critic, x, a, offsets, weights)
-
-
 def critic_loss(task: Any, critic: torch.nn.Module, s: torch.Tensor, u: torch.Tensor, offsets: torch.Tensor,
-                weights: torch.Tensor, relative_offset: float | None = None, actor: torch.nn.Module | None = None,
-                steps: int = 1, runs: int = 1, target_critic: Callable[[torch.Tensor], torch.Tensor] | None = None
-                ) -> torch.Tensor:
+                weights: torch.Tensor, relative_offset: float | None = None, runs: int = 1,
+                target_critic: Callable[[torch.Tensor], torch.Tensor] | None = None) -> torch.Tensor:
     """Implements eqs. (49)-(50): the PEV loss whose gradient is the critic's semi-gradient.
 
     .. math::
@@ -330,10 +251,6 @@ def critic_loss(task: Any, critic: torch.nn.Module, s: torch.Tensor, u: torch.Te
         ``c > 0``: the *relative* TD error ``(V - E V_target) / (|E V_target| + c)`` is squared instead,
         so that states of small value (near the reference) are fitted as precisely, in relative terms,
         as states of large value (``TrainConfig.batch_weighting = "relative"``).
-    actor : torch.nn.Module, optional
-        ``pi(x; theta)``, needed only when ``steps > 1`` (it acts on the rollout's later steps).
-    steps : int, optional
-        Model steps of the target (:func:`h_steps`; ``algorithm.bellman_steps``): 1 = eq. (37), the paper's.
     runs : int, optional
         ``R >= 1``: the batch holds ``R`` runs' batches one after the other (``s`` of shape ``(R B, n)``,
         ``critic`` and ``actor`` stacked networks, :mod:`mixedrl.algorithms.batched`); the loss is taken
@@ -367,19 +284,18 @@ def critic_loss(task: Any, critic: torch.nn.Module, s: torch.Tensor, u: torch.Te
     if s.shape[0] != u.shape[0]:
         raise ValueError(f"u: batch size {u.shape[0]} differs from s's {s.shape[0]}")
     runs = check_runs(runs, s.shape[0])
-    return _critic_loss(task, critic, s, u, offsets, weights, relative_offset, actor, steps, runs, target_critic)
+    return _critic_loss(task, critic, s, u, offsets, weights, relative_offset, runs, target_critic)
 
 
 def _critic_loss(task: Any, critic: Callable[..., torch.Tensor], s: torch.Tensor, u: torch.Tensor,
-                 offsets: torch.Tensor, weights: torch.Tensor, relative_offset: float | None,
-                 actor: Callable[..., torch.Tensor] | None, steps: int, runs: int,
+                 offsets: torch.Tensor, weights: torch.Tensor, relative_offset: float | None, runs: int,
                  target_critic: Callable[[torch.Tensor], torch.Tensor] | None) -> torch.Tensor:
     """:func:`critic_loss` on checked arguments (pure tensor arithmetic: the hot path, compiled by
     :mod:`mixedrl.compiled`)."""
     with torch.no_grad():
-        # V_target = l(x', u_theta) + gamma V^k(x'),  x' = f(x, u_theta) + xi_hat   (h of eq. 37; h_n if steps > 1;
-        # V(x'; w_bar) of the target critic instead of V^k(x'; w) when one is given)
-        target = h_steps(task, critic if target_critic is None else target_critic, actor, s, u, offsets, weights, steps)
+        # V_target = l(x', u_theta) + gamma V^k(x'),  x' = f(x, u_theta) + xi_hat   (h of eq. 37; V(x'; w_bar) of
+        # the target critic instead of V^k(x'; w) when one is given)
+        target = h_value(task, critic if target_critic is None else target_critic, s, u, offsets, weights)
     value = critic(task.observe(s))
     if relative_offset is not None:
         # relative TD error: a per-state weight 1 / (|E V_target| + c)^2 of the squared error
@@ -390,8 +306,7 @@ def _critic_loss(task: Any, critic: Callable[..., torch.Tensor], s: torch.Tensor
 
 def critic_loss_at(params: tuple[torch.Tensor, ...], s: torch.Tensor, offsets: torch.Tensor, weights: torch.Tensor, *,
                    task: Any, critic: Any, actor: Callable[..., torch.Tensor], relative_offset: float | None = None,
-                   steps: int = 1, runs: int = 1,
-                   target_critic: Callable[[torch.Tensor], torch.Tensor] | None = None) -> torch.Tensor:
+                   runs: int = 1, target_critic: Callable[[torch.Tensor], torch.Tensor] | None = None) -> torch.Tensor:
     """Eqs. (49)-(50) as a pure loss of the critic's parameters (:mod:`mixedrl.compiled`): :func:`critic_loss`
     of the critic at ``params`` (:func:`mixedrl.compiled.network_at`) on ``u = pi(x)`` (no gradient), the
     arguments already checked (:func:`critic_step` checks them once, outside the compiled step)."""
@@ -399,8 +314,8 @@ def critic_loss_at(params: tuple[torch.Tensor, ...], s: torch.Tensor, offsets: t
 
     with torch.no_grad():
         u = actor(task.observe(s))
-    return _critic_loss(task, network_at(critic, params), s, u, offsets, weights, relative_offset, actor, steps,
-                        runs, target_critic)
+    return _critic_loss(task, network_at(critic, params), s, u, offsets, weights, relative_offset, runs,
+                        target_critic)
 
 
 def check_runs(runs: int, batch: int) -> int:
@@ -423,7 +338,7 @@ def run_mean(values: torch.Tensor, runs: int = 1) -> torch.Tensor:
 def critic_step(task: Any, critic: Callable[..., torch.Tensor], actor: Callable[..., torch.Tensor],
                 optimizer: torch.optim.Optimizer | Descent, s: torch.Tensor, offsets: torch.Tensor,
                 weights: torch.Tensor, grad_clip: float | None = None, relative_offset: float | None = None,
-                steps: int = 1, target_critic: Callable[[torch.Tensor], torch.Tensor] | None = None, *,
+                target_critic: Callable[[torch.Tensor], torch.Tensor] | None = None, *,
                 runs: int = 1, active: list[int] | None = None) -> torch.Tensor:
     """Implements eqs. (49)-(50): PEV, one semi-gradient step of the critic under ``xi_hat_k`` (of one run,
     or of ``R`` runs at once: the step Algorithm 2 takes, :func:`mixedrl.algorithms.algorithm2.iteration`).
@@ -450,8 +365,6 @@ def critic_step(task: Any, critic: Callable[..., torch.Tensor], actor: Callable[
         Largest gradient norm (with an optimizer; a ``Descent`` holds its own).
     relative_offset : float or None, optional
         Departure hook *state weights* (:mod:`mixedrl.departures.state_weights`); see :func:`critic_loss`.
-    steps : int, optional
-        Departure hook *Bellman steps*: model steps of the target (:func:`h_steps`); 1 = eq. (37), the paper's.
     target_critic : callable, optional
         Departure hook *target values* (:mod:`mixedrl.departures.critic_target`); see :func:`critic_loss`.
     runs : int, optional
@@ -475,12 +388,12 @@ def critic_step(task: Any, critic: Callable[..., torch.Tensor], actor: Callable[
             relative_offset = check_number(relative_offset, "relative_offset", positive=True)
         runs = check_runs(runs, s.shape[0])
         loss = partial(critic_loss_at, task=task, critic=critic, actor=actor, relative_offset=relative_offset,
-                       steps=steps, runs=runs, target_critic=target_critic)
-        key = ("pev", id(task), id(critic), id(actor), id(target_critic), relative_offset, steps, runs)
+                       runs=runs, target_critic=target_critic)
+        key = ("pev", id(task), id(critic), id(actor), id(target_critic), relative_offset, runs)
         return step.minimise(loss, (s, offsets, weights), active, key)
     with torch.no_grad():
         u = actor(task.observe(s))
-    loss = critic_loss(task, critic, s, u, offsets, weights, relative_offset, actor, steps, runs, target_critic)
+    loss = critic_loss(task, critic, s, u, offsets, weights, relative_offset, runs, target_critic)
     # w^{k+1} = w^k - alpha dJ_critic/dw   (Adam, per run)
     step(loss, active)
     return loss.detach()

@@ -23,7 +23,7 @@ import torch
 
 from mixedrl.checks import as_vector, check_number
 from mixedrl.expectation import h_value
-from mixedrl.pev import check_runs, h_steps, run_mean
+from mixedrl.pev import check_runs, run_mean
 from mixedrl.schedule import Descent
 from mixedrl.quadratic import AffinePolicy, LinearDynamics, QuadraticCost, QuadraticValue, check_problem
 
@@ -143,7 +143,7 @@ def pim_step(improve: Callable[[Any, Any], Any], value: Any, noise: Any) -> Any:
 # ----------------------------------------------------------------------------------------------------
 def actor_objective(task: Any, critic: torch.nn.Module, actor: torch.nn.Module, s: torch.Tensor,
                     offsets: torch.Tensor, weights: torch.Tensor, relative_offset: float | None = None,
-                    steps: int = 1, runs: int = 1) -> torch.Tensor:
+                    runs: int = 1) -> torch.Tensor:
     """Implements eqs. (51)-(52): the PIM objective, differentiated through the model ``f``.
 
     .. math::
@@ -170,10 +170,6 @@ def actor_objective(task: Any, critic: torch.nn.Module, actor: torch.nn.Module, 
         are not outweighed by far ones (``TrainConfig.batch_weighting = "relative"``). A positive
         weight per state does not move the minimiser of ``h`` at any state: it changes which states
         the batch gradient favours, as another state distribution of the batch would.
-    steps : int, optional
-        Model steps of the objective (:func:`mixedrl.pev.h_steps`; ``algorithm.bellman_steps``): 1 =
-        ``h`` of eq. (37), the paper's; ``n > 1`` = the ``n``-step ``h_n``, its gradient back-propagated
-        through the model rollout and the actor at every step.
     runs : int, optional
         ``R >= 1``: the batch holds ``R`` runs' batches one after the other (stacked networks,
         :mod:`mixedrl.algorithms.batched`); the objective (and ``rho``'s normalisation) is per run.
@@ -194,19 +190,19 @@ def actor_objective(task: Any, critic: torch.nn.Module, actor: torch.nn.Module, 
     if relative_offset is not None:
         relative_offset = check_number(relative_offset, "relative_offset", positive=True)
     runs = check_runs(runs, s.shape[0])
-    return _actor_objective(task, critic, actor, s, offsets, weights, relative_offset, steps, runs)
+    return _actor_objective(task, critic, actor, s, offsets, weights, relative_offset, runs)
 
 
 def _actor_objective(task: Any, critic: Callable[..., torch.Tensor], actor: Callable[..., torch.Tensor],
                      s: torch.Tensor, offsets: torch.Tensor, weights: torch.Tensor, relative_offset: float | None,
-                     steps: int, runs: int) -> torch.Tensor:
+                     runs: int) -> torch.Tensor:
     """:func:`actor_objective` on checked arguments (pure tensor arithmetic: the hot path, compiled by
     :mod:`mixedrl.compiled`)."""
     obs = task.observe(s)
     u = actor(obs)
     scale = float(getattr(task, "value_scale", 1.0))
-    # J_actor = mean_x h(x, pi(x; theta), xi_hat_k)   (eq. 37; h_n if steps > 1)
-    h = h_steps(task, critic, actor, s, u, offsets, weights, steps)
+    # J_actor = mean_x h(x, pi(x; theta), xi_hat_k)   (eq. 37)
+    h = h_value(task, critic, s, u, offsets, weights)
     if relative_offset is None:
         return run_mean(h, runs) / scale
     with torch.no_grad():
@@ -218,20 +214,19 @@ def _actor_objective(task: Any, critic: Callable[..., torch.Tensor], actor: Call
 
 def actor_objective_at(params: tuple[torch.Tensor, ...], s: torch.Tensor, offsets: torch.Tensor,
                        weights: torch.Tensor, *, task: Any, critic: Callable[..., torch.Tensor], actor: Any,
-                       relative_offset: float | None = None, steps: int = 1, runs: int = 1) -> torch.Tensor:
+                       relative_offset: float | None = None, runs: int = 1) -> torch.Tensor:
     """Eqs. (51)-(52) as a pure loss of the actor's parameters (:mod:`mixedrl.compiled`): :func:`actor_objective`
     of the actor at ``params`` (:func:`mixedrl.compiled.network_at`), the critic ``V^k`` frozen (not
     differentiated), the arguments already checked (:func:`actor_step` checks them once)."""
     from mixedrl.compiled import network_at
 
-    return _actor_objective(task, critic, network_at(actor, params), s, offsets, weights, relative_offset, steps,
-                            runs)
+    return _actor_objective(task, critic, network_at(actor, params), s, offsets, weights, relative_offset, runs)
 
 
 def actor_step(task: Any, critic: Callable[..., torch.Tensor], actor: Callable[..., torch.Tensor],
                optimizer: torch.optim.Optimizer | Descent, s: torch.Tensor, offsets: torch.Tensor,
-               weights: torch.Tensor, grad_clip: float | None = None, relative_offset: float | None = None,
-               steps: int = 1, *, runs: int = 1, active: list[int] | None = None) -> torch.Tensor:
+               weights: torch.Tensor, grad_clip: float | None = None, relative_offset: float | None = None, *,
+               runs: int = 1, active: list[int] | None = None) -> torch.Tensor:
     """Implements eqs. (51)-(52): PIM, one gradient step of the actor under ``xi_hat_k`` (of one run, or of
     ``R`` runs at once: the step Algorithm 2 takes, :func:`mixedrl.algorithms.algorithm2.iteration`).
 
@@ -257,8 +252,6 @@ def actor_step(task: Any, critic: Callable[..., torch.Tensor], actor: Callable[.
         Largest gradient norm (with an optimizer).
     relative_offset : float or None, optional
         Departure hook *state weights*; see :func:`actor_objective`.
-    steps : int, optional
-        Departure hook *Bellman steps*; see :func:`actor_objective`.
     runs : int, optional
         ``R``.
     active : list of int, optional
@@ -279,14 +272,14 @@ def actor_step(task: Any, critic: Callable[..., torch.Tensor], actor: Callable[.
             relative_offset = check_number(relative_offset, "relative_offset", positive=True)
         runs = check_runs(runs, s.shape[0])
         loss = partial(actor_objective_at, task=task, critic=critic, actor=actor, relative_offset=relative_offset,
-                       steps=steps, runs=runs)
-        key = ("pim", id(task), id(critic), id(actor), relative_offset, steps, runs)
+                       runs=runs)
+        key = ("pim", id(task), id(critic), id(actor), relative_offset, runs)
         return step.minimise(loss, (s, offsets, weights), active, key)
     frozen = list(critic.parameters()) if isinstance(critic, torch.nn.Module) else []
     for p in frozen:
         p.requires_grad_(False)
     try:
-        obj = actor_objective(task, critic, actor, s, offsets, weights, relative_offset, steps, runs)
+        obj = actor_objective(task, critic, actor, s, offsets, weights, relative_offset, runs)
         # theta^{k+1} = theta^k - beta dJ_actor/dtheta   (Adam, per run)
         step(obj, active)
     finally:

@@ -94,7 +94,6 @@ def quick_runs() -> dict[str, list[dict[str, float]]]:
         "dlc_lq_affine_ss": {"algorithm.feedforward": "lq_affine_ss"},
         "dlc_lq_train": {"algorithm.feedforward": "lq_train"},
         "dlc_critic_target": {"algorithm.critic_target": 0.9},
-        "dlc_actor_average": {"algorithm.actor_average": 0.99},
         "dlc_ibe_case1": {"algorithm.ibe_case": 1},
         "dlc_mean_weighting": {"algorithm.batch_weighting": "uniform"},
     }

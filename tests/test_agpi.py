@@ -421,33 +421,6 @@ def test_inner_loop_takes_extra_pim_steps_while_the_mvc_fails(monkeypatch: pytes
         assert all(torch.equal(c, calls[0]) for c in calls)  # all under xi_hat_k
 
 
-def test_bellman_steps_reaches_pev_and_pim() -> None:
-    """algorithm.bellman_steps = 3: the iteration's critic loss and actor objective are those of the
-    3-step h_3 (mixedrl.pev.h_steps) on the iteration's batch, and differ from the one-step ones."""
-    from mixedrl.pev import critic_loss
-    from mixedrl.pim import actor_objective
-
-    task = LinearTask()
-    cfg = TrainConfig(method="mixed", task="linear", seed=4,
-                      algorithm={"batch_size": 32, "iterations": 5, "bellman_steps": 3, "batch_weighting": "uniform",
-                                 **ONE_STEP})  # the losses below: plain means
-    agent, twin = AGPI(task, cfg), AGPI(task, cfg)
-    twin.load_state_dict(copy.deepcopy(agent.state_dict()))
-    metrics = agent.iteration()
-    # the twin recomputes the losses on the same batch, before any step
-    s, _ = twin.collect()
-    nodes = twin.nodes(*twin.planning_moments(s, twin.actor(task.observe(s))))
-    with torch.no_grad():
-        u = twin.actor(task.observe(s))
-    losses = {n: float(critic_loss(task, twin.critic, s, u, *nodes, None, twin.actor, n)) for n in (1, 3)}
-    assert metrics["train/critic_loss"] == pytest.approx(losses[3], rel=1e-6)
-    assert abs(losses[3] - losses[1]) > 1e-3 * losses[1]
-    twin.pev(s, *nodes)  # the critic step of the iteration, then the actor objective it was taken on
-    objectives = {n: float(actor_objective(task, twin.critic, twin.actor, s, *nodes, None, n)) for n in (1, 3)}
-    assert metrics["train/actor_objective"] == pytest.approx(objectives[3], rel=1e-6)
-    assert abs(objectives[3] - objectives[1]) > 1e-3 * abs(objectives[1])
-
-
 def test_paper_preset_is_the_papers_algorithm2_and_results_list_the_departures() -> None:
     """Issue 40: TrainConfig.preset("paper") switches every departure off (mixedrl.departures.used is empty),
     one argument away from the library defaults, and a run's results.json lists the departures it used."""

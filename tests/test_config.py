@@ -200,7 +200,7 @@ def test_a_task_without_a_preset_gets_generic_defaults() -> None:
     # the relative batch weighting
     assert cfg.sampler.name == "model_rollouts" and cfg.sampler.box == 3.0
     assert cfg.algorithm.lr_decay_iterations == 0  # the decay is tied to the budget
-    assert cfg.algorithm.batch_weighting == "relative" and cfg.algorithm.actor_average == 0.0
+    assert cfg.algorithm.batch_weighting == "relative"
     assert not hasattr(cfg.sampler, "kick_prob")
 
 
@@ -314,14 +314,21 @@ def test_a_seed_beyond_64_bits_is_refused_naming_it(seed: int) -> None:
     assert TrainConfig(seed=2**64 - 1).seed == 2**64 - 1
 
 
-def test_a_deleted_setting_is_read_at_todays_behaviour_and_refused_otherwise() -> None:
-    """A saved config holding a deleted setting (algorithm.rollout_critic_steps) at the value that is today's
-    behaviour loads as the config without it; another value is refused, naming the key."""
+@pytest.mark.parametrize("section, name, other", [("algorithm", "rollout_critic_steps", 4),
+                                                   ("algorithm", "rollout_updates", 2),
+                                                   ("algorithm", "actor_average", 0.995),
+                                                   ("algorithm", "bellman_steps", 10)])
+def test_a_deleted_setting_is_read_at_todays_behaviour_and_refused_otherwise(section: str, name: str,
+                                                                            other: object) -> None:
+    """A saved config holding a deleted setting at the value that is today's behaviour loads as the config
+    without it; another value is refused, naming the key."""
+    from mixedrl.config import DELETED_SETTINGS
+
     data = TrainConfig(task="linear", algorithm={"rollout_horizon": 4}).to_dict()
     kept = json.loads(json.dumps(data))
-    data["algorithm"]["rollout_critic_steps"] = 1
+    data[section][name] = DELETED_SETTINGS[(section, name)]
     assert TrainConfig.from_dict(data) == TrainConfig.from_dict(kept)
-    assert data["algorithm"]["rollout_critic_steps"] == 1  # the caller's dict is left as it was
-    data["algorithm"]["rollout_critic_steps"] = 4
-    with pytest.raises(ValueError, match=r"^algorithm\.rollout_critic_steps: this setting was deleted"):
+    assert name in data[section]  # the caller's dict is left as it was
+    data[section][name] = other
+    with pytest.raises(ValueError, match=rf"^{section}\.{name}: this setting was deleted"):
         TrainConfig.from_dict(data)

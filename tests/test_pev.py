@@ -104,11 +104,10 @@ def test_relative_critic_loss_weights_each_state_by_its_target() -> None:
             critic_loss(task, V, s, u, d, w, relative_offset=bad)
 
 
-def test_h_steps_on_an_lq_problem_is_the_value_minus_the_skipped_variance_terms() -> None:
-    """algorithm.bellman_steps = n: for an affine policy and its exact value V (eq. 21), the n-step h_n
-    of :func:`h_steps` on the certainty-equivalent rollout is V(x) - sum_{i<n-1} gamma^i tr((Q + gamma P) K)
-    at every x (the steps before the last use the noise mean only), and h_1 = h of eq. (37) = V."""
-    from mixedrl.pev import h_steps
+def test_h_at_the_exact_value_of_an_affine_policy_is_that_value() -> None:
+    """Eq. (37) against eq. (21): for an affine policy and its exact value V, h(x, pi(x), xi_hat) (the
+    quadrature of the noise) is V(x) at every x, to the precision of V's linear solves."""
+    from mixedrl.expectation import h_value
     from mixedrl.pim import improve_policy
 
     task = LinearTask()
@@ -128,28 +127,7 @@ def test_h_steps_on_an_lq_problem_is_the_value_minus_the_skipped_variance_terms(
 
     s = torch.tensor([[1.0, -0.5], [0.2, 0.8], [-1.0, 0.3], [0.0, 0.0]], dtype=torch.float64)
     d, w = expectation_nodes(mu, K, task.noise_matrix, "sigma", dtype=torch.float64)
-    skipped = float(np.sum((task.Q + task.gamma * V.P) * K))   # tr(S K) per certainty-equivalent step
-    # V satisfies eq. (21) to the precision of its linear solves: the one-step Bellman residual |h_1 - V|
-    # (the n = 1 case, which is eq. 37 itself); each of the n - 1 steps may add one such residual
-    residual = float((h_steps(task, critic, actor, s, actor(s), d, w, 1) - critic(s)).abs().max())
+    residual = float((h_value(task, critic, s, actor(s), d, w) - critic(s)).abs().max())
     assert residual < 1e-8 * float(critic(s).abs().max())
-    for n in (2, 5):
-        h_n = h_steps(task, critic, actor, s, actor(s), d, w, n)
-        expected = critic(s) - sum(task.gamma**i for i in range(n - 1)) * skipped
-        np.testing.assert_allclose(h_n.numpy(), expected.numpy(), rtol=0, atol=2 * n * residual + 1e-12)
-    for bad in (0, 1.5, True):
-        with pytest.raises(ValueError, match="^steps"):
-            h_steps(task, critic, actor, s, actor(s), d, w, bad)
-    with pytest.raises(ValueError, match="^actor"):
-        h_steps(task, critic, None, s, actor(s), d, w, 3)
-
-
-def test_bellman_steps_config_default_and_checks() -> None:
-    from mixedrl.config import AlgorithmConfig, TrainConfig
-
-    assert AlgorithmConfig().bellman_steps == 1    # the paper's one-step h (eq. 37)
-    cfg = TrainConfig(method="mixed", task="linear", seed=0, algorithm={"bellman_steps": 4})
-    assert cfg.algorithm.bellman_steps == 4 and TrainConfig.from_dict(cfg.to_dict()).algorithm.bellman_steps == 4
-    for bad in (0, -2, 2.5):
-        with pytest.raises(ValueError, match="algorithm.bellman_steps"):
-            AlgorithmConfig(bellman_steps=bad)
+    # the test can tell: another policy's value is not a fixed point of this policy's h
+    assert float((h_value(task, critic, s, 0.5 * actor(s), d, w) - critic(s)).abs().max()) > 1e-3

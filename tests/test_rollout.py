@@ -157,7 +157,7 @@ def test_batched_runs_do_not_depend_on_their_neighbours(task: type, extra: dict)
 
 
 @pytest.mark.parametrize("key, bad", [("rollout_horizon", -1), ("rollout_horizon", 1.5), ("rollout_lambda", 1.5),
-                                      ("rollout_updates", 0), ("rollout_discount_start", 1.0),
+                                      ("rollout_discount_start", 1.0),
                                       ("rollout_discount_ramp", -0.1)])
 def test_bad_values_are_refused_naming_the_key(key: str, bad: object) -> None:
     with pytest.raises(ValueError, match=f"algorithm.{key}"):

@@ -51,7 +51,6 @@ OLD_DESIGNS: dict[str, dict[str, Any]] = {
     "I": {**_G, "algorithm.lr_decay_iterations": 1500, "algorithm.actor_lr": 1e-3},
     "K": {**_G, "algorithm.lr_decay_iterations": 1500, "algorithm.batch_size": 1024},
     "M": _M,
-    "Q1": {**_M, "algorithm.actor_average": 0.995},
     "S": {**_M, "sampler.course_starts": "along"},
     "T": {**_M, "sampler.course_starts": "loop"},
 }
@@ -77,7 +76,7 @@ def _budget(iterations: int, eval_every: int) -> dict[str, int]:
 
 def test_model_based_spec_reproduces_the_old_designs() -> None:
     runs = {r.name: r for r in expand(load_spec(ROOT / "experiments" / "studies" / "model_based.toml"))}
-    assert len(runs) == 23 * 3 * 5
+    assert len(runs) == 22 * 3 * 5
     checked = 0
     for name, run in runs.items():
         variant = run.point["variant"]
@@ -91,7 +90,7 @@ def test_model_based_spec_reproduces_the_old_designs() -> None:
     # the designs differ from each other (a variant that silently took the defaults would not)
     configs = {run.point["variant"]: run.config for run in runs.values() if run.config.seed == 0
                and run.config.method == "mixed"}
-    assert len({c.to_json() if hasattr(c, "to_json") else str(c.to_dict()) for c in configs.values()}) == 23
+    assert len({c.to_json() if hasattr(c, "to_json") else str(c.to_dict()) for c in configs.values()}) == 22
 
 
 @pytest.mark.studies
@@ -268,13 +267,12 @@ def test_long_training_spec_and_its_observer_only_reads_the_runs() -> None:
         assert a["final"] == b["final"]
 
 
-def _old_precision_config(method: str, seed: int, bellman_steps: int, iterations: int = 1500) -> TrainConfig:
-    """``experiments/analysis/precision_study.py``'s ``run`` before the move (``--set algorithm.bellman_steps=N``): the
+def _old_precision_config(method: str, seed: int, iterations: int = 1500) -> TrainConfig:
+    """``experiments/analysis/precision_study.py``'s ``run`` before the move (its ``bellman1`` runs): the
     placeholder ``task="linear"`` config it trained ``PendulumTask()`` with, its task the pendulum's."""
     cfg = TrainConfig(method=method, task="linear", seed=seed,
                       algorithm={**ONE_STEP_LEARNER, "iterations": iterations, "batch_size": 256, "horizon": 100,
-                                 "batch_weighting": "relative", "lr_decay_iterations": iterations,
-                                 "bellman_steps": bellman_steps},
+                                 "batch_weighting": "relative", "lr_decay_iterations": iterations},
                       sampler={"name": "model_rollouts", "true_horizon": 100, "box": 3.0}, run={"eval_every": 300})
     return TrainConfig.from_dict({**cfg.to_dict(), "task": {"name": "pendulum"}})
 
@@ -284,16 +282,16 @@ def test_precision_spec_reproduces_the_old_script_configs() -> None:
     from mixedrl.tasks import task_from_config
 
     runs = expand(load_spec(ROOT / "experiments" / "studies" / "precision_pendulum.toml"))
-    assert len(runs) == 2 * 3 * 3
+    assert len(runs) == 3 * 3
     seen = set()
     for run in runs:
-        steps = {"bellman1": 1, "bellman10": 10}[run.point["variant"]]
-        assert run.config == _old_precision_config(run.config.method, run.config.seed, steps), run.name
+        assert run.point["variant"] == "bellman1"
+        assert run.config == _old_precision_config(run.config.method, run.config.seed), run.name
         task = task_from_config(run.config.task)
         assert isinstance(task, PendulumTask) and vars(task).keys() == vars(PendulumTask()).keys()
         assert all(np.array_equal(np.asarray(getattr(task, k)), np.asarray(v)) for k, v in vars(PendulumTask()).items())
-        seen.add((run.config.method, run.config.seed, steps))
-    assert seen == {(m, s, n) for m in ("mixed", "model", "oracle") for s in (0, 1, 2) for n in (1, 10)}
+        seen.add((run.config.method, run.config.seed))
+    assert seen == {(m, s) for m in ("mixed", "model", "oracle") for s in (0, 1, 2)}
 
 
 @pytest.mark.studies
@@ -302,7 +300,7 @@ def test_precision_study_ships_a_sweep_directory(tmp_path: Path) -> None:
     through the command line into the table."""
     spec = parse_spec('methods = ["mixed"]\nseeds = [0]\n[base]\n"task.name" = "pendulum"\n'
                       '"algorithm.iterations" = 2\n"algorithm.batch_size" = 16\n"run.eval_every" = 2\n'
-                      '"run.eval_seeds" = 1\n[variants.bellman10]\n"algorithm.bellman_steps" = 10\n')
+                      '"run.eval_seeds" = 1\n[variants.bellman1]\n')
     doc = run_sweep(spec, tmp_path / "sweep", workers=1, progress=False)
     dest = tmp_path / "ship"
     proc = subprocess.run([sys.executable, str(ROOT / "experiments" / "analysis" / "precision_study.py"), "ship",
@@ -312,13 +310,13 @@ def test_precision_study_ships_a_sweep_directory(tmp_path: Path) -> None:
     (row,) = doc["runs"]
     (rec,) = json.loads((dest / "rows.json").read_text())
     results = json.loads((tmp_path / "sweep" / row["run_dir"] / "results.json").read_text())
-    assert (rec["variant"], rec["method"], rec["bellman_steps"], rec["iterations"]) == ("bellman10", "mixed", 10, 2)
+    assert (rec["variant"], rec["method"], rec["iterations"]) == ("bellman1", "mixed", 2)
     assert (rec["cost"], rec["theta"]) == (row["metrics"]["cost"], results["final"]["mean_state_0"])
     # the IBE estimate of the loaded checkpoint is the run's final one (0.05 / 1 = xi per N m of the default)
     assert rec["tau_hat"] == pytest.approx(results["final_ibe_mean"][0] / 0.05, rel=1e-12)
     assert rec["tau_hat"] != 0.0  # mixed RL moved off the prior's 0
     table = (dest / "table.md").read_text().splitlines()
-    assert table[0].startswith("variant | method | seed | cost") and table[2].startswith("bellman10 | mixed | 0 | ")
+    assert table[0].startswith("variant | method | seed | cost") and table[2].startswith("bellman1 | mixed | 0 | ")
     assert table[2] in proc.stdout
 
 

@@ -1,6 +1,5 @@
-"""What the two EMAs of weights share, ``algorithm.actor_average`` (the run's policy) and
-``algorithm.critic_target`` (PEV's target critic): both follow the same recurrence, and both are state of the
-run, saved in its checkpoints."""
+"""The EMA of weights of ``algorithm.critic_target`` (PEV's target critic): it follows the EMA recurrence, and
+it is state of the run, saved in its checkpoints."""
 
 from __future__ import annotations
 
@@ -19,7 +18,6 @@ ALGORITHM = dict(batch_size=32, iterations=30, hidden_sizes=(8,))
 
 #: (config field, its key in AGPI.state_dict(), the averaged network, the network it averages)
 AVERAGES: list[tuple[str, str, Callable[[AGPI], torch.nn.Module], Callable[[AGPI], torch.nn.Module]]] = [
-    ("actor_average", "actor_avg", lambda t: t.policy, lambda t: t.actor),
     ("critic_target", "critic_target", lambda t: t.critic_target.module, lambda t: t.critic),
 ]
 

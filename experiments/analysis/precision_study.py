@@ -3,7 +3,7 @@ equilibrium, and which training option makes it? Analysis only; prints and ships
 
 The runs are the sweep ``experiments/studies/precision_pendulum.toml`` (the pendulum of :mod:`mixedrl.envs.pendulum`,
 ``task.name = "pendulum"``, trained with the settings of docs/pendulum.rst, variant ``bellman1``: the
-paper's Algorithm 2, ``bellman10``: ``algorithm.bellman_steps = 10``); this script only analyses them::
+paper's Algorithm 2); this script only analyses them::
 
     mixedrl sweep experiments/studies/precision_pendulum.toml --out runs/precision_pendulum
     PYTHONPATH=. python experiments/analysis/precision_study.py ship runs/precision_pendulum [--dest DIR]
@@ -129,7 +129,7 @@ def analyse(run_dir: Path, variant: str = "", feedforward: str | None = None) ->
     ulqr_ss = float((-(L @ ss.double().numpy()[0]) - l0)[0])
     return dict(variant=variant, feedforward=config.algorithm.feedforward, method=config.method, seed=config.seed,
                 iterations=res["iterations"],
-                bellman_steps=config.algorithm.bellman_steps, cost=ev["cost"], theta=ev["mean_state_0"],
+                cost=ev["cost"], theta=ev["mean_state_0"],
                 terminated=ev["terminated_fraction"], u0=u0, u_lqr0=float(-l0[0]), u_h0=uh0, dhdu0=g0,
                 lqr_theta=lqr_theta, tau_hat=float(task.torque_from_xi(mean[0])), s_star=float(ss[0, 0]),
                 u_ss=uss, u_h_ss=uhs, dhdu_ss=gs, u_lqr_ss=ulqr_ss, seconds=res["train_seconds"],

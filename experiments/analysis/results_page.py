@@ -278,6 +278,20 @@ DELETED: tuple[tuple[str, str], ...] = (
      "``n`` critic steps per rollout of the rollout learner, the ``i``-th on its time steps ``i, i + n, ..``; "
      "on the swing-up tuning system (``experiments/results/learner_tuning``, variant ``swing_cri``, seed 100) "
      "``n = 4`` returned -135.9 against -135.5 with one step: no measured effect."),
+    ("algorithm.rollout_updates",
+     "``n`` actor-then-critic updates of the rollout learner per iteration, each on a fresh rollout; only "
+     "``n = 1`` was ever trained (every variant of ``experiments/results/learner_tuning``): no measurement."),
+    ("algorithm.actor_average",
+     "the deployed policy is an exponential moving average of the actor's weights; on the double lane change "
+     "(``experiments/results/model_based/summary.csv``, design Q1 against M, the one-step learner, seeds 0-4) "
+     "``beta = 0.995`` gave lateral 0.119 m and course cost 30.0 against M's 0.110 m and 27.1, and held-out "
+     "seed 6 still left the lane (0.593 m; M: 0.514 m): no gain."),
+    ("algorithm.bellman_steps",
+     "PEV's target and PIM's objective on an ``n``-step model rollout (the one-step learner); on the pendulum "
+     "(``experiments/results/precision/FINDINGS.md``, seeds 0-2) ``n = 10`` gave mixed RL a steady offset of "
+     "-0.013 to -0.016 rad (the LQR with the IBE's feed-forward: -0.023 to -0.025; ``n = 1``: -0.019, +0.085, "
+     "+0.049), short of its target; on the double lane change (seed 0) it lost lateral precision and course "
+     "cost. The default rollout learner's ``H``-step rollouts took its place."),
 )
 
 

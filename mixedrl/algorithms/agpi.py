@@ -38,7 +38,7 @@ from torch.optim.swa_utils import AveragedModel
 from mixedrl.config import TrainConfig
 from mixedrl.algorithms import algorithm2
 from mixedrl.samplers import SAMPLER_CLASSES
-from mixedrl.departures import actor_average, actor_output, anchor, critic_target, state_weights
+from mixedrl.departures import actor_output, anchor, critic_target, state_weights
 from mixedrl.departures.anchor import equilibrium_gain, equilibrium_observation, feedforward_policy
 from mixedrl.expectation import NodeCache, expectation_nodes, h_value
 from mixedrl.networks import (Actor, AffineActor, AffineAnchoredActor, AnchoredActor, ClippedActor, Critic,
@@ -179,9 +179,6 @@ class AGPI:
             sampler_class.check_task(task, config)
         self.sampler = sampler_class(task, config, self.generator) if sampler_class is not None else None
         self._solo: Any = None  # the batched engine of this run alone (iteration)
-        #: The Polyak (EMA) average of the actor's weights (departure ``algorithm.actor_average > 0``), else
-        #: ``None`` (:mod:`mixedrl.departures.actor_average`).
-        self.actor_avg: AveragedModel | None = actor_average.make(self.actor, config)
         #: The target critic ``V(x; w_bar)`` of PEV (departure ``algorithm.critic_target > 0``: the EMA of the
         #: critic's weights), else ``None`` (PEV's target takes the critic itself, eq. 50;
         #: :mod:`mixedrl.departures.critic_target`).
@@ -197,9 +194,8 @@ class AGPI:
 
     @property
     def learned_policy(self) -> torch.nn.Module:
-        """The learned policy: the actor ``pi(x; theta)``, or its weight average ``pi(x; theta_bar)`` when
-        ``config.algorithm.actor_average > 0``."""
-        return self.actor_avg.module if self.actor_avg is not None else self.actor
+        """The learned policy: the actor ``pi(x; theta)`` (before a feed-forward of :attr:`policy`)."""
+        return self.actor
 
     def refresh_anchor(self) -> None:
         """Anchor an anchored actor (and its average) at the LQ optimum for the current own noise moments
@@ -279,8 +275,7 @@ class AGPI:
         """
         target = None if self.critic_target is None else self.critic_target.module
         return float(critic_step(self.task, self.critic, self.actor, self.critic_opt, s, offsets, weights,
-                                 self.config.algorithm.grad_clip, self.relative_offset,
-                                 self.config.algorithm.bellman_steps, target))
+                                 self.config.algorithm.grad_clip, self.relative_offset, target_critic=target))
 
     def pim(self, s: torch.Tensor, offsets: torch.Tensor, weights: torch.Tensor) -> float:
         """Implements eqs. (51)-(52): PIM, one gradient step of this run's actor under ``xi_hat_k``
@@ -289,8 +284,7 @@ class AGPI:
         .. math:: \\theta^{k+1} = \\theta^k - \\beta\\, \\partial J_{\\rm actor} / \\partial \\theta
         """
         return float(actor_step(self.task, self.critic, self.actor, self.actor_opt, s, offsets, weights,
-                                self.config.algorithm.grad_clip, self.relative_offset,
-                                self.config.algorithm.bellman_steps))
+                                self.config.algorithm.grad_clip, self.relative_offset))
 
     def ibe(self, residuals: torch.Tensor) -> None:
         """Implements eq. (20): the IBE update of this run's noise source (:func:`mixedrl.algorithms.algorithm2.ibe`)."""
@@ -376,8 +370,8 @@ class AGPI:
 
     def plug_ins(self) -> dict[str, Any]:
         """The run's parts that departures add, by checkpoint key: ``sampler`` (a model-rollout sampler),
-        ``actor_avg`` (averaging), ``critic_target`` (target values); only those the run has."""
-        parts = {"sampler": self.sampler, "actor_avg": self.actor_avg, "critic_target": self.critic_target}
+        ``critic_target`` (target values); only those the run has."""
+        parts = {"sampler": self.sampler, "critic_target": self.critic_target}
         return {key: part for key, part in parts.items() if part is not None}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:

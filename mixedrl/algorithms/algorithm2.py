@@ -37,8 +37,7 @@ from typing import Any, Sequence
 import numpy as np
 import torch
 
-from mixedrl.departures import (actor_average, anchor, bellman_steps, critic_target, region, rollout, sampler,
-                                schedule, state_weights)
+from mixedrl.departures import anchor, critic_target, region, rollout, sampler, schedule, state_weights
 from mixedrl.expectation import expectation_nodes, h_value
 from mixedrl.pev import critic_step
 from mixedrl.pim import MVCResult, actor_step, mvc_check
@@ -69,7 +68,6 @@ def iteration(engine: Any, active: Sequence[bool] | None = None) -> list[dict[st
     runs, task, R = engine.members, engine.task, engine.runs
     # the fields the runs share (batched.SHARED_FIELDS): the departure hooks of PEV and PIM
     rel = state_weights.offset(runs[0].config, getattr(task, "value_scale", 1.0))
-    steps = bellman_steps.steps(runs[0].config)
 
     # ---- 1. data: the batch x and the residuals xi^D (eq. 10) of each active run, under pi^k
     batches: list[torch.Tensor] = []
@@ -115,13 +113,13 @@ def iteration(engine: Any, active: Sequence[bool] | None = None) -> list[dict[st
     else:
         # ---- 2. PEV (eqs. 49-50) under xi_hat_k: w^{k+1} = w^k - alpha dJ_critic/dw
         critic_losses = critic_step(task, engine.critic, engine.actor, engine.critic_descent, s, *nodes_k,
-                                    relative_offset=rel, steps=steps, target_critic=engine.critic_target,
+                                    relative_offset=rel, target_critic=engine.critic_target,
                                     runs=R, active=on)
 
         # ---- 3. PIM (eqs. 51-52) under xi_hat_k, critics frozen: theta^{k+1} = theta^k - beta dJ_actor/dtheta
         def pim(which: list[int]) -> torch.Tensor:
             return actor_step(task, engine.critic.frozen(), engine.actor, engine.actor_descent, s, *nodes_k,
-                              relative_offset=rel, steps=steps, runs=R, active=which)
+                              relative_offset=rel, runs=R, active=which)
 
         actor_objs = pim(on)
 
@@ -172,7 +170,6 @@ def iteration(engine: Any, active: Sequence[bool] | None = None) -> list[dict[st
         else:
             m.stop_count = 0
         m.stopped = cfg.stop_epsilon > 0 and m.stop_count >= cfg.stop_patience
-        actor_average.end(m)  # departure hook: theta_bar <- beta theta_bar + (1 - beta) theta^{k+1}
         critic_target.end(m)  # departure hook: w_bar <- beta w_bar + (1 - beta) w^{k+1}
         anchor.refresh(m)  # departure hook: the evaluated policy anchored at the next iteration's moments
         m.k += 1

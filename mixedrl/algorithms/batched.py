@@ -58,9 +58,9 @@ AGPI = Any
 #: the losses and of the quadrature); every other field (method, seed, budget, learning rates, IBE,
 #: sampler, MVC settings, ...) may differ between them.
 SHARED_FIELDS = tuple(f"algorithm.{name}" for name in (
-    "batch_size", "hidden_sizes", "activation", "value_output", "bellman_steps", "batch_weighting",
+    "batch_size", "hidden_sizes", "activation", "value_output", "batch_weighting",
     "batch_weight_offset", "expectation", "noise_samples", "critic_target", "compile", "rollout_horizon",
-    "rollout_lambda", "rollout_updates", "rollout_region", "actor_output"))
+    "rollout_lambda", "rollout_region", "actor_output"))
 
 #: The fields (dotted keys) the DDPG runs of one batch (:class:`mixedrl.algorithms.batched_ddpg.BatchedDDPG`)
 #: must share: the network shapes (the shared ``algorithm.hidden_sizes`` and ``value_output``, DDPG's own

@@ -57,7 +57,7 @@ def refresh(run: Any) -> None:
     (:func:`steady_anchor`). Otherwise nothing."""
     if not isinstance(run.actor, AnchoredActor):
         return
-    actors = [run.actor] + ([] if run.actor_avg is None else [run.actor_avg.module])
+    actors = [run.actor]
     if run.config.algorithm.feedforward == "lq_affine_ss":
         obs, u_ss = steady_anchor(run, run._linearisation, run.actor)
         for actor in actors:

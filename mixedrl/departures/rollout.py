@@ -16,8 +16,8 @@ gradient of SHAC (Xu et al., ICLR 2022) and the model-based value expansion of F
   ``G_t = l_t + gamma ((1 - lambda) V_target(x_{t+1}) + lambda G_{t+1})``, ``G_{H-1} = l_{H-1} + gamma
   V_target(x_H)`` (:func:`lambda_returns`, :func:`critic_loss`), ``V_target`` the Polyak-averaged critic of
   ``algorithm.critic_target`` when that is on, else the critic itself without gradient;
-* ``algorithm.rollout_updates`` such actor-then-critic updates per iteration (:func:`update`), each on a
-  fresh draw of the noise; the MVC loop's extra PIM steps are rollout actor steps (:func:`improve`);
+* one actor-then-critic update per iteration (:func:`update`); the MVC loop's extra PIM steps are rollout
+  actor steps (:func:`improve`);
 * optionally the discount of the rollouts ramps linearly from ``algorithm.rollout_discount_start`` to the
   task's ``gamma`` over the first ``algorithm.rollout_discount_ramp`` of the budget (:func:`discount`).
 
@@ -356,8 +356,8 @@ def improve(engine: Any, s: torch.Tensor, moments: Sequence[tuple[np.ndarray, np
 
 def update(engine: Any, s: torch.Tensor, moments: Sequence[tuple[np.ndarray, np.ndarray] | None],
            active_runs: list[int], relative_offset: float | None) -> tuple[torch.Tensor, torch.Tensor]:
-    """PEV and PIM hook: ``algorithm.rollout_updates`` times an actor step (:func:`improve`) and a critic step on
-    the ``lambda``-returns of the same rollout (:func:`lambda_returns`, :func:`critic_loss`).
+    """PEV and PIM hook: an actor step (:func:`improve`) and a critic step on the ``lambda``-returns of the same
+    rollout (:func:`lambda_returns`, :func:`critic_loss`).
 
     Parameters
     ----------
@@ -375,24 +375,23 @@ def update(engine: Any, s: torch.Tensor, moments: Sequence[tuple[np.ndarray, np.
     Returns
     -------
     critic_losses, actor_objectives : torch.Tensor, shape () or (R,)
-        Of the last update, before its steps.
+        Before the steps.
     """
     algo = engine.members[0].config.algorithm
     target = _target(engine)
-    for _ in range(algo.rollout_updates):
-        obj, states, costs, gamma = improve(engine, s, moments, active_runs, relative_offset)
-        with torch.no_grad():
-            horizon, batch = costs.shape
-            next_values = target(engine.task.observe(states[1:].reshape(horizon * batch, -1))).reshape(horizon, batch)
-            targets = lambda_returns(costs, next_values, gamma, algo.rollout_lambda)
-        fit = (states[:-1], targets)
-        if engine.critic_descent.mode == "off":
-            loss = critic_loss(engine.task, engine.critic, *fit, engine.runs, relative_offset)
-            engine.critic_descent(loss, active_runs)
-        else:
-            pure = partial(critic_loss_at, task=engine.task, critic=engine.critic, runs=engine.runs,
-                           relative_offset=relative_offset)
-            loss = engine.critic_descent.minimise(pure, fit, active_runs,
-                                                  key=("rollout_pev", engine.runs, relative_offset))
+    obj, states, costs, gamma = improve(engine, s, moments, active_runs, relative_offset)
+    with torch.no_grad():
+        horizon, batch = costs.shape
+        next_values = target(engine.task.observe(states[1:].reshape(horizon * batch, -1))).reshape(horizon, batch)
+        targets = lambda_returns(costs, next_values, gamma, algo.rollout_lambda)
+    fit = (states[:-1], targets)
+    if engine.critic_descent.mode == "off":
+        loss = critic_loss(engine.task, engine.critic, *fit, engine.runs, relative_offset)
+        engine.critic_descent(loss, active_runs)
+    else:
+        pure = partial(critic_loss_at, task=engine.task, critic=engine.critic, runs=engine.runs,
+                       relative_offset=relative_offset)
+        loss = engine.critic_descent.minimise(pure, fit, active_runs,
+                                              key=("rollout_pev", engine.runs, relative_offset))
     region.remember(engine, states[-1], active_runs)  # departure hook: the end states the next starts carry over
     return loss.detach(), obj
