@@ -92,6 +92,21 @@ def test_numpy_statistics_equal_rliable_definitions() -> None:
     assert a["lo"] == pytest.approx(b["lo"], abs=0.1) and a["hi"] == pytest.approx(b["hi"], abs=0.1)
 
 
+@pytest.mark.skipif(not gb.have_rliable(), reason="rliable not installed (extra 'benchmark')")
+def test_rliable_intervals_are_reproducible_from_the_seed_and_leave_numpy_global_state() -> None:
+    """rliable's stratified bootstrap draws from NumPy's global generator, not from its ``random_state``:
+    the same seed gives the same intervals, another seed others, and the caller's global state is kept."""
+    rng = np.random.default_rng(5)
+    x, y = rng.normal(size=(10, 1)), rng.normal(0.3, 1, size=(10, 1))
+    np.random.seed(123)
+    before = np.random.get_state()[1].copy()
+    runs = [(gb.interval_estimates({"x": x}, reps=2000, seed=s, backend="rliable")["x"],
+             gb.improvement_estimates({"p": (x, y)}, reps=2000, seed=s, backend="rliable")["p"]) for s in (0, 0, 1)]
+    assert runs[0] == runs[1]
+    assert runs[0][0]["lo"] != runs[2][0]["lo"] and runs[0][1]["lo"] != runs[2][1]["lo"]
+    assert np.array_equal(np.random.get_state()[1], before)
+
+
 # ------------------------------------------------------------------------------------------ spec, task
 def test_spec_runs() -> None:
     spec = gb.load_spec(gb.SPEC)

@@ -39,6 +39,7 @@ writes the table and the figure::
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import sys
@@ -47,7 +48,7 @@ import tomllib
 import warnings
 from copy import deepcopy
 from pathlib import Path
-from typing import Any, Callable, Sequence
+from typing import Any, Callable, Iterator, Sequence
 
 import gymnasium as gym
 import numpy as np
@@ -124,6 +125,19 @@ def have_rliable() -> bool:
     return True
 
 
+@contextlib.contextmanager
+def _global_numpy_seed(seed: int) -> Iterator[None]:
+    """NumPy's global generator seeded with ``seed`` inside the block, restored after it: rliable's stratified
+    bootstraps (``StratifiedBootstrap.update_indices``, rliable 1.2) draw their indices from ``np.random``, not
+    from the ``random_state`` they are given, so without this the intervals change from one call to the next."""
+    state = np.random.get_state()
+    np.random.seed(seed)
+    try:
+        yield
+    finally:
+        np.random.set_state(state)
+
+
 def interval_estimates(scores: dict[str, np.ndarray], reps: int = 50_000, confidence: float = 0.95,
                        seed: int = 0, backend: str = "auto") -> dict[str, dict[str, float]]:
     """IQM and its stratified bootstrap interval of each method's scores (runs, tasks).
@@ -138,7 +152,7 @@ def interval_estimates(scores: dict[str, np.ndarray], reps: int = 50_000, confid
         if use:
             from rliable import library as rly, metrics
 
-            with warnings.catch_warnings():  # arch: "random_state is deprecated" (rliable passes a RandomState)
+            with warnings.catch_warnings(), _global_numpy_seed(seed):  # arch: "random_state is deprecated"
                 warnings.simplefilter("ignore", FutureWarning)
                 point, ci = rly.get_interval_estimates({name: s}, lambda x: np.array([metrics.aggregate_iqm(x)]),
                                                        reps=reps, confidence_interval_size=confidence,
@@ -162,7 +176,7 @@ def improvement_estimates(pairs: dict[str, tuple[np.ndarray, np.ndarray]], reps:
         if use:
             from rliable import library as rly, metrics
 
-            with warnings.catch_warnings():
+            with warnings.catch_warnings(), _global_numpy_seed(seed):
                 warnings.simplefilter("ignore", FutureWarning)
                 point, ci = rly.get_interval_estimates({name: (x, y)}, metrics.probability_of_improvement,
                                                        reps=reps, confidence_interval_size=confidence,
