@@ -96,9 +96,9 @@ def __getattr__(name: str) -> Any:
 FLAT_FORM_RELEASE = "mixedrl 0.1.0 at git commit b510485"
 
 
-#: Settings deleted from the library (departures neither the default nor the ``paper`` preset uses), each with the value at which a
-#: saved config's run behaves as today's code: such a record is read (the key dropped); any other value is
-#: refused, naming the key (the run cannot be re-created).
+#: Settings deleted from the library (departures neither the default nor the ``paper`` preset uses), each
+#: with the value at which a saved config's run behaves as today's code: such a record is read (the key
+#: dropped); any other value is refused, naming the key (the run cannot be re-created).
 DELETED_SETTINGS: dict[tuple[str, str], Any] = {
     ("algorithm", "rollout_critic_steps"): 1,
     ("algorithm", "rollout_updates"): 1,
@@ -113,8 +113,8 @@ def _drop_deleted_settings(data: dict[str, Any]) -> None:
         part = data.get(section)
         if isinstance(part, dict) and name in part:
             if part[name] != value:
-                raise ValueError(f"{section}.{name}: this setting was deleted (docs: results, 'Deleted settings'); only "
-                                 f"{value!r}, today's behaviour, can be read, got {part[name]!r}")
+                raise ValueError(f"{section}.{name}: this setting was deleted (docs: results, 'Deleted settings'); "
+                                 f"only {value!r}, today's behaviour, can be read, got {part[name]!r}")
             del part[name]
 
 

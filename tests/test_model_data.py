@@ -17,9 +17,9 @@ from mixedrl.config import TrainConfig
 from mixedrl.runs import RunDirectory, make_trainer, train
 from mixedrl.tasks import LinearTask
 
-FAST = dict(task="linear", algorithm=dict(iterations=40, batch_size=32, rollout_horizon=4), run=dict(eval_every=20, checkpoint_every=10,
-            eval_seeds=1), sampler={"name": "model_rollouts", "true_horizon": 30, "true_envs": 2, "true_steps": 3,
-                                    "true_every": 4})
+FAST = dict(task="linear", algorithm=dict(iterations=40, batch_size=32, rollout_horizon=4),
+            run=dict(eval_every=20, checkpoint_every=10, eval_seeds=1),
+            sampler={"name": "model_rollouts", "true_horizon": 30, "true_envs": 2, "true_steps": 3, "true_every": 4})
 
 
 def _forbid_true_steps(monkeypatch: pytest.MonkeyPatch, task: object) -> None:

@@ -24,8 +24,8 @@ from mixedrl.runs import (
 
 #: A short run of the default learner (its model rollouts cut to 4 steps: the plumbing, not the learning, is
 #: under test).
-FAST = dict(task="linear", algorithm=dict(iterations=40, batch_size=32, rollout_horizon=4), ddpg=dict(warmup=64, envs=8, batch_size=32),
-            run=dict(eval_every=20, checkpoint_every=10, eval_seeds=1))
+FAST = dict(task="linear", algorithm=dict(iterations=40, batch_size=32, rollout_horizon=4),
+            ddpg=dict(warmup=64, envs=8, batch_size=32), run=dict(eval_every=20, checkpoint_every=10, eval_seeds=1))
 
 
 # ------------------------------------------------------------------------------ config

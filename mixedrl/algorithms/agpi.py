@@ -198,7 +198,7 @@ class AGPI:
         return self.actor
 
     def refresh_anchor(self) -> None:
-        """Anchor an anchored actor (and its average) at the LQ optimum for the current own noise moments
+        """Anchor an anchored actor at the LQ optimum for the current own noise moments
         (:func:`mixedrl.departures.anchor.refresh`, the hook the loop calls at the start and the end of every
         iteration; also called at construction). Otherwise nothing."""
         anchor.refresh(self)

@@ -50,22 +50,17 @@ def active(config: Any) -> bool:
 
 
 def refresh(run: Any) -> None:
-    """The hook at the start and at the end of every iteration (and at construction): an anchored actor (and
-    its average) is anchored at the LQ optimum for the run's current own noise moments, in place (a batch's
-    stacked buffers follow): ``"lq_train"`` / ``"lq_affine"`` at the optimum's action ``u_ff``
+    """The hook at the start and at the end of every iteration (and at construction): an anchored actor is
+    anchored at the LQ optimum for the run's current own noise moments, in place (a batch's stacked buffers
+    follow): ``"lq_train"`` / ``"lq_affine"`` at the optimum's action ``u_ff``
     (:func:`feedforward_action`), ``"lq_affine_ss"`` at the optimum's steady state and its action there
     (:func:`steady_anchor`). Otherwise nothing."""
     if not isinstance(run.actor, AnchoredActor):
         return
-    actors = [run.actor]
     if run.config.algorithm.feedforward == "lq_affine_ss":
-        obs, u_ss = steady_anchor(run, run._linearisation, run.actor)
-        for actor in actors:
-            actor.set_anchor(obs, u_ss)
+        run.actor.set_anchor(*steady_anchor(run, run._linearisation, run.actor))
     else:
-        u_ff = feedforward_action(run, run._linearisation, run.actor)
-        for actor in actors:
-            actor.set_anchor_action(u_ff)
+        run.actor.set_anchor_action(feedforward_action(run, run._linearisation, run.actor))
 
 
 @dataclass(frozen=True)
