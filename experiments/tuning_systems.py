@@ -35,7 +35,7 @@ if str(_ANALYSIS) not in sys.path:
     sys.path.insert(0, str(_ANALYSIS))
 from precision_study import LQRPolicy  # noqa: E402  (the discounted LQR with a mean's feed-forward, as a policy)
 
-__all__ = ["CartFriction", "TwoTank", "SwingUp", "TUNING_SYSTEMS", "GLOBAL_TUNING_SYSTEMS", "LQRPolicy", "lqr_reference"]
+__all__ = ["CartFriction", "TwoTank", "SwingUp", "SwingUpEquilibrium", "TUNING_SYSTEMS", "GLOBAL_TUNING_SYSTEMS", "LQRPolicy", "lqr_reference"]
 
 
 class _OriginTask(Task):
@@ -238,7 +238,16 @@ class SwingUp(Task):
 #: The tuning systems by name (constructors with their default parameters).
 TUNING_SYSTEMS: dict[str, type[Task]] = {"cart_friction": CartFriction, "two_tank": TwoTank}
 #: The global tuning systems by name (no equilibrium to compare with an LQR: measured by their return).
-GLOBAL_TUNING_SYSTEMS: dict[str, type[Task]] = {"swing_up": SwingUp}
+class SwingUpEquilibrium(SwingUp):
+    """:class:`SwingUp` that declares its upright rest point (``theta = 0``, ``u = 0``; the model's), so that
+    ``algorithm.feedforward = "lq_ss"`` (``"auto"``) shifts its policy: the check that a shift at the top leaves a
+    global swing-up intact."""
+
+    def equilibrium(self) -> Equilibrium:
+        return Equilibrium(state=np.zeros(2), action=np.zeros(1))
+
+
+GLOBAL_TUNING_SYSTEMS: dict[str, type[Task]] = {"swing_up": SwingUp, "swing_up_eq": SwingUpEquilibrium}
 
 
 def lqr_reference(task: Task) -> dict[str, Any]:

@@ -338,7 +338,7 @@ class TrainConfig:
         for name, value in (("algorithm", algorithm), ("ddpg", ddpg), ("run", run)):
             setattr(self, name, _section(_SECTION_CLASSES[name], value, preset.get(name, {}), name))
         self.sampler = _sampler(sampler, preset.get("sampler", {}), self.task.name)
-        if self.method == "ddpg" and self.algorithm.feedforward != "learned":
+        if self.method == "ddpg" and self.algorithm.feedforward not in ("learned", "auto"):
             raise ValueError(f"algorithm.feedforward: {self.algorithm.feedforward!r} takes the feed-forward from "
                              f"the method's noise model; method 'ddpg' has none (use 'learned')")
         _check_memory(self)
@@ -518,7 +518,7 @@ PAPER_HYPERPARAMETERS: dict[str, Any] = {
 #: :data:`PAPER_HYPERPARAMETERS` with the rollout learner's departures off (the library's sampler, state weights
 #: and learning-rate decay kept). The study specs trained with it pin these (``experiments/studies/*.toml``).
 ONE_STEP_LEARNER: dict[str, Any] = {**PAPER_HYPERPARAMETERS, "critic_target": 0.0, "rollout_horizon": 0,
-                                    "rollout_region": 0.0, "actor_output": "tanh"}
+                                    "rollout_region": 0.0, "actor_output": "tanh", "feedforward": "learned"}
 #: Preset name -> section -> settings applied over ``TrainConfig(**fields)`` (:meth:`TrainConfig.preset`).
 CONFIG_PRESETS: dict[str, dict[str, dict[str, Any]]] = {
     "library": {},

@@ -39,7 +39,7 @@ COMPILE_MODES = ("off", "on", "functional")
 BATCH_WEIGHTINGS = ("uniform", "relative")
 
 #: Where the policy takes its action at the equilibrium (``algorithm.feedforward``).
-FEEDFORWARDS = ("learned", "lq", "lq_train", "lq_affine", "lq_affine_ss")
+FEEDFORWARDS = ("auto", "learned", "lq", "lq_ss", "lq_train", "lq_affine", "lq_affine_ss")
 
 #: The ``algorithm.feedforward`` values that change the actor's class during training.
 ANCHORED_FEEDFORWARDS = ("lq_train", "lq_affine", "lq_affine_ss")

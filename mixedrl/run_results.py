@@ -253,11 +253,12 @@ def summarize(trainer: Any, rows: list[dict[str, Any]], elapsed: float, seeds: l
     results["references"], reason = run_references(trainer, seeds)
     if reason is not None:
         results["references_reason"] = reason
-    feedforward = cfg.algorithm.feedforward
+    feedforward = getattr(trainer, "feedforward", cfg.algorithm.feedforward)  # "auto" resolved by the trainer
     if feedforward != "learned":
-        # the evaluated policy's action at the equilibrium is the LQ optimum's by construction
+        # the evaluated policy's action at the equilibrium (lq) or at the optimum's steady state (lq_ss) is the
+        # LQ optimum's by construction
         results["feedforward"] = feedforward
-    if feedforward == "lq":  # ... and the trained actor's own, before the shift
+    if feedforward in ("lq", "lq_ss"):  # ... and the trained actor's own, before the shift
         results["policy_gap_learned"], _ = run_policy_gap(trainer, trainer.learned_policy)
     return results
 

@@ -229,9 +229,18 @@ def test_stacking_is_refused_for_modules_it_cannot_represent() -> None:
 
 # ------------------------------------------------------------------------------------- runs of a batch
 def test_a_batch_of_runs_evaluated_at_once_gives_each_run_its_own_numbers(tmp_path) -> None:
+    # the trained actors as deployed ("learned"): the batched calls' float32 last bits against the per-course ones
+    # (the default's shifted policies are checked bit for bit below)
     configs = [TrainConfig(method=m, seed=s).replace(**{"algorithm.iterations": 2, "run.eval_every": 1,
-                                                        "task.course_length": 18.0})
+                                                        "task.course_length": 18.0,
+                                                        "algorithm.feedforward": "learned"})
                for m, s in (("mixed", 0), ("model", 1), ("oracle", 2))]
+    shifted = [make_trainer(c.replace(**{"algorithm.feedforward": "auto"})) for c in configs]
+    for t, seed in zip(shifted, (5, 6, 7)):
+        shake(t.learned_policy, seed)
+    alone = [t.evaluate(eval_seeds(c)) for t, c in zip(shifted, configs)]
+    assert all(t.feedforward == "lq_ss" for t in shifted)
+    assert evaluate_together(shifted, [eval_seeds(c) for c in configs], exact=True) == alone
     trainers = [make_trainer(c) for c in configs]
     for t, seed in zip(trainers, (5, 6, 7)):  # distinct policies that do something
         shake(t.policy, seed)

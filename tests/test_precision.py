@@ -379,6 +379,69 @@ def test_feedforward_lq_errors_name_the_option(tmp_path: Path) -> None:
         AGPI(_NoEquilibrium(), _ff("model"))
 
 
+# ------------------------------------------- algorithm.feedforward = "lq_ss" and "auto" (the library default)
+def test_auto_is_lq_ss_where_the_task_declares_an_equilibrium_else_learned(caplog: pytest.LogCaptureFixture) -> None:
+    from mixedrl.departures.anchor import resolve
+
+    assert TrainConfig().algorithm.feedforward == "auto"
+    assert TrainConfig.preset("paper").algorithm.feedforward == "learned"
+    assert AGPI(LinearTask(), _config("mixed")).feedforward == "lq_ss"
+    assert AGPI(_NoEquilibrium(), _config("mixed")).feedforward == "learned"
+    assert resolve(TrainConfig(method="ddpg", task="linear"), LinearTask()) == "learned"
+    for value in ("learned", "lq", "lq_ss", "lq_train"):
+        assert resolve(TrainConfig(task="linear", algorithm={"feedforward": value}), _NoEquilibrium()) == value
+    with caplog.at_level("WARNING", logger="mixedrl.algorithms.agpi"):
+        assert AGPI(_NotARestPoint(), _config("model")).feedforward == "learned"  # an equilibrium that fails
+    assert "algorithm.feedforward 'auto': no LQ problem" in caplog.text
+    with pytest.raises(ValueError, match=r"algorithm.feedforward: 'lq_ss' needs a task with an equilibrium"):
+        AGPI(_NoEquilibrium(), TrainConfig(method="model", task="linear", algorithm={"feedforward": "lq_ss"}))
+    with pytest.raises(ValueError, match=r"algorithm.feedforward_width: "):
+        TrainConfig(algorithm={"feedforward_width": -0.5})
+
+
+@pytest.mark.parametrize("width", [0.0, 0.5])
+def test_lq_ss_takes_the_optimums_steady_action_at_its_steady_state(width: float) -> None:
+    """With ``"lq_ss"`` the deployed policy takes, at the LQ optimum's steady state for the oracle's mean (derived
+    here from scipy's DARE: ``x_ss = (I - A + B L)^-1 (E mu - B l0)``), the optimum's action there ``-L x_ss -
+    l0``; away from it the shift is the same constant (``width`` 0) or fades (``width`` > 0)."""
+    task = LinearTask()
+    trainer = AGPI(task, TrainConfig(method="oracle", task="linear", seed=0, algorithm={
+        "batch_size": 16, "hidden_sizes": (8,), "feedforward": "lq_ss", "feedforward_width": width}))
+    lin = task.linearisation()
+    L, l0 = scipy_optimum(lin.A, lin.B, lin.Q, lin.R, lin.gamma, lin.E @ task.true_mean)
+    x_ss = np.linalg.solve(np.eye(2) - lin.A + lin.B @ L, lin.E @ task.true_mean - lin.B @ l0)
+    assert np.abs(x_ss).max() > 0.05  # the steady state is not the equilibrium here
+    with torch.no_grad():
+        u_ss = trainer.policy(torch.as_tensor(x_ss, dtype=torch.float32)[None])[0].numpy()
+        far = torch.as_tensor(x_ss, dtype=torch.float32)[None] + 20.0 * task.obs_scale
+        far_shift = (trainer.policy(far) - trainer.learned_policy(far))[0].numpy()
+        u_eq = trainer.policy(torch.zeros(1, 2))[0].numpy()
+    assert u_ss == pytest.approx(-L @ x_ss - l0, abs=1e-5)
+    assert abs(float(u_eq[0] + l0[0])) > 1e-3  # the shift is not the one at the equilibrium ("lq")
+    learned_ss = trainer.learned_policy(torch.as_tensor(x_ss, dtype=torch.float32)[None])[0].detach().numpy()
+    if width == 0.0:
+        assert far_shift == pytest.approx(-L @ x_ss - l0 - learned_ss, abs=1e-5)
+    else:
+        assert np.abs(far_shift).max() < 1e-6
+
+
+def test_a_local_shift_keeps_the_gain_at_its_centre() -> None:
+    from mixedrl.precision import FeedForwardPolicy
+
+    torch.manual_seed(1)
+    net = torch.nn.Sequential(torch.nn.Linear(3, 5), torch.nn.Tanh(), torch.nn.Linear(5, 1))
+    o_star = torch.tensor([0.2, -0.1, 0.4])
+    pol = FeedForwardPolicy(net, o_star, torch.tensor([0.9]), width=torch.tensor([0.3, 0.3, 0.3]))
+    jac = torch.autograd.functional.jacobian(lambda o: pol(o[None])[0], o_star)
+    jac_net = torch.autograd.functional.jacobian(lambda o: net(o[None])[0], o_star)
+    assert torch.allclose(jac, jac_net, atol=1e-6)
+    assert pol(o_star[None])[0].item() == pytest.approx(0.9, abs=ACTION_ATOL)
+    obs = torch.randn(4, 3)
+    with torch.no_grad():  # one observation as a batched one; batched rows as each alone
+        assert pol(obs[0]).shape == net(obs[0]).shape == (1,)
+        assert torch.allclose(pol(obs), torch.stack([pol(o) for o in obs]), atol=1e-7)
+
+
 def test_evaluate_with_feedforward_lq_reports_both_gaps(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     from mixedrl.cli import main
 

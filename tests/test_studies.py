@@ -251,7 +251,9 @@ def test_long_training_spec_and_its_observer_only_reads_the_runs() -> None:
         [("mixed", 0, 10000), ("oracle", 0, 10000)]
     # the old script's config: TrainConfig(method, seed=0, iterations=10000, eval_every=10000)
     for r in runs:
-        old = TrainConfig(method=r.config.method, seed=0, task="dlc", algorithm={"iterations": 10000}, run={"eval_every": 10000})
+        # ... with the one-step learner of its time (ONE_STEP_LEARNER, the spec's pins)
+        old = TrainConfig(method=r.config.method, seed=0, task="dlc", algorithm={**ONE_STEP_LEARNER, "iterations": 10000},
+                          run={"eval_every": 10000})
         assert r.config.replace(**{"run.checkpoint_every": old.run.checkpoint_every}) == old
     small = [r.config.replace(**{"algorithm.iterations": 6, "run.eval_every": 100, "run.checkpoint_every": 100,
                                  "run.eval_seeds": 1, "algorithm.batch_size": 64}) for r in runs]
@@ -407,7 +409,7 @@ def test_custom_defaults_spec_varies_only_the_two_settings_and_its_script_ships_
     assert len(runs) == 80
     for r in runs:
         generic = TrainConfig(method=r.config.method, seed=r.config.seed, task=r.config.task.name,
-                              algorithm={"batch_weighting": r.config.algorithm.batch_weighting},
+                              algorithm={**ONE_STEP_LEARNER, "batch_weighting": r.config.algorithm.batch_weighting},
                               sampler={"box": r.config.sampler.box}, run={"eval_every": 300})
         assert r.config.to_dict() == generic.to_dict(), r.name
     spec = parse_spec('methods = ["mixed"]\nseeds = [0, 1]\n[base]\n"task.name" = "pendulum"\n'

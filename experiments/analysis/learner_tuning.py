@@ -118,6 +118,15 @@ VARIANTS["swing_cri_h16_rv03_nr"] = dict(VARIANTS["swing_cri_h16_rv03"], rollout
 #: of swing_cri_h16_rv03 measured now on them is one of swing_cri_h16_rv03_nr.
 #: Half the batch (the cost of an iteration halves; swing_cri_b128 at H = 32: -136.2 / -131.5 / -131.9).
 VARIANTS["swing_cri_h16_rv03_b128"] = dict(VARIANTS["swing_cri_h16_rv03"], batch_size=128)
+#: The library default (swing_cri_h16_rv03_b128's settings) deployed with the LQ feed-forward of the run's own noise
+#: mean at the task's equilibrium (algorithm.feedforward = "lq": training unchanged, the actor shifted).
+VARIANTS["default_lq"] = dict(VARIANTS["swing_cri_h16_rv03_b128"], feedforward="lq")
+#: ... shifted at the LQ optimum's steady state for the own noise mean instead (feedforward = "lq_ss").
+VARIANTS["default_lqss"] = dict(VARIANTS["swing_cri_h16_rv03_b128"], feedforward="lq_ss", feedforward_width=0.0)
+#: ... with the shift local (feedforward_width: exp(-|(o - o_ss) / (rho obs_scale)|^2 / 2)), rho 0.25 and 1.
+#: default_lqss_w025 is the library default since (feedforward "auto" on a task with an equilibrium).
+VARIANTS["default_lqss_w025"] = dict(VARIANTS["default_lqss"], feedforward_width=0.25)
+VARIANTS["default_lqss_w1"] = dict(VARIANTS["default_lqss"], feedforward_width=1.0)
 
 
 #: Variants whose setting or code was deleted or reverted after their rows were measured (not runnable now): name ->

@@ -87,6 +87,13 @@ def pairs(keys: Any) -> list[tuple[str, str]]:
     return [(a, b) for a, b in [*PAIRS, *extra] if a in keys and b in keys]
 
 
+#: What each evaluation-time ``algorithm.feedforward`` does to the trained actor (the table's heading).
+SHIFTS = {"lq": "shifted to the LQ optimum's action at the equilibrium for each method's own noise mean",
+          "lq_ss": "shifted, near the LQ optimum's steady state for each method's own noise mean (within "
+                   "algorithm.feedforward_width), to the optimum's action there: the library default 'auto' "
+                   "on this task"}
+
+
 def _evaluated(path: Path, feedforward: str) -> dict[str, Any]:
     """A run's final policy evaluated with ``algorithm.feedforward = feedforward`` (:func:`evaluate_run`), in
     the keys of ``results.json`` that :func:`load_rows` reads."""
@@ -275,7 +282,7 @@ def format_table(rows: dict[str, list[dict[str, Any]]], stats: dict[str, Any], f
         lines += [f"Rows from {src}: {', '.join(keys)}" for src, keys in sources.items()]
     if feedforward is not None:
         lines.append(f"Policies evaluated with algorithm.feedforward = {feedforward!r} (the same trained actors, "
-                     f"shifted to the LQ optimum's action at the equilibrium for each method's own noise mean)")
+                     f"{SHIFTS.get(feedforward, 'shifted')})")
     trained = sorted({r.get("trained_feedforward") or "learned" for runs in rows.values() for r in runs} - {"learned"})
     if trained:
         lines.append(f"Runs trained with algorithm.feedforward = {', '.join(map(repr, trained))} ('lq_train': the actor "
@@ -376,7 +383,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--dest", type=Path, required=True, help="where to write the tables and the figure")
     parser.add_argument("--feedforward", choices=FEEDFORWARDS, default=None,
                         help="evaluate each run's final checkpoint again with this algorithm.feedforward "
-                             "('lq': the actor shifted to the LQ optimum's action at the equilibrium)")
+                             "('lq': the actor shifted to the LQ optimum's action at the equilibrium; 'lq_ss': "
+                             "at the optimum's steady state, locally)")
     parser.add_argument("--partial", action="store_true",
                         help="read only the finished runs of an unfinished sweep (default: refuse it)")
     args = parser.parse_args(argv)

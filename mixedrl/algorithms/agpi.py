@@ -134,10 +134,18 @@ class AGPI:
         self.config = config
         self.architecture = architecture
         self.generator = torch.Generator().manual_seed(config.seed)
-        # algorithm.feedforward "lq" / "lq_train" / "lq_affine" / "lq_affine_ss": the equilibrium's LQ problem,
-        # checked here (a task without one is an error); "lq_train" trains the AnchoredActor, "lq_affine" and
-        # "lq_affine_ss" the AffineAnchoredActor (refresh_anchor)
-        feedforward = config.algorithm.feedforward
+        # algorithm.feedforward "lq" / "lq_ss" / "lq_train" / "lq_affine" / "lq_affine_ss": the equilibrium's LQ
+        # problem, checked here (a task without one is an error); "lq_train" trains the AnchoredActor, "lq_affine"
+        # and "lq_affine_ss" the AffineAnchoredActor (refresh_anchor). "auto" is "lq_ss" where the task declares
+        # an equilibrium whose LQ problem solves, else "learned" (with a warning naming the reason)
+        feedforward = self.feedforward = anchor.resolve(config, task)
+        if config.algorithm.feedforward == "auto" and feedforward != "learned":
+            try:
+                anchor.lq_reference(task.linearisation(), task.prior_mean, task.prior_cov)
+            except (ValueError, np.linalg.LinAlgError) as err:
+                logger.warning("algorithm.feedforward 'auto': no LQ problem at the task's equilibrium (%s: %s); "
+                               "the learned feed-forward is deployed", type(err).__name__, err)
+                feedforward = self.feedforward = "learned"
         self._linearisation = None
         if feedforward in anchor.ANCHORED and architecture != "mlp":
             raise ValueError(f"algorithm.feedforward: {feedforward!r} anchors the MLP actor; architecture "
@@ -208,10 +216,12 @@ class AGPI:
         """The run's policy as a module on observations (what is evaluated and deployed): the
         :attr:`learned_policy`, or, with ``config.algorithm.feedforward = "lq"``, that policy shifted to the
         discounted LQ optimum's action at the equilibrium for the current noise mean
-        (:func:`mixedrl.precision.feedforward_policy`); with ``"lq_train"`` and ``"lq_affine"`` the learned
+        (:func:`mixedrl.precision.feedforward_policy`), with ``"lq_ss"`` (``"auto"``'s value on a task with an
+        equilibrium, :attr:`feedforward`) at the optimum's steady state; with ``"lq_train"`` and ``"lq_affine"`` the learned
         policy is the anchored actor itself (:meth:`refresh_anchor`)."""
-        if self.config.algorithm.feedforward == "lq":
-            return feedforward_policy(self, self.learned_policy, self._linearisation)
+        if self.feedforward in ("lq", "lq_ss"):
+            return feedforward_policy(self, self.learned_policy, self._linearisation,
+                                      steady=self.feedforward == "lq_ss")
         return self.learned_policy
 
     def nodes(self, mean: np.ndarray, cov: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
