@@ -469,3 +469,17 @@ def test_gymnasium_plant_documented_for_its_three_envs() -> None:
     for env_id in ('gym.make("Pendulum-v1")', 'gym.make("MountainCarContinuous-v0")',
                    'gym.make("mixedrl/DoubleLaneChange-v0")'):
         assert env_id in section and env_id in doc, env_id
+
+
+def test_pendulum_v1_declares_the_envs_state_region() -> None:
+    """The region starts of the default learner (``algorithm.rollout_region``) cover Pendulum-v1's speed range
+    (``max_speed`` 8, read from the env), not only its resets (``|theta_dot| <= 1``)."""
+    task = PendulumV1Task()
+    assert task.declares_region()
+    gen = torch.Generator().manual_seed(0)
+    s = task.sample_region(4096, gen)
+    max_speed = gym.make("Pendulum-v1").unwrapped.max_speed
+    assert s.shape == (4096, 2) and s.dtype == torch.float64
+    assert s[:, 0].abs().max() <= math.pi and s[:, 1].abs().max() <= max_speed
+    assert s[:, 1].abs().max() > 0.9 * max_speed and s[:, 0].abs().max() > 0.9 * math.pi
+    assert task.sample_initial(4096, gen)[:, 1].abs().max() <= 1.0

@@ -148,6 +148,12 @@ class PendulumV1Task(Task):
         high = torch.tensor([math.pi, 1.0], dtype=torch.float64)
         return (2 * torch.rand(n, 2, generator=generator, dtype=torch.float64) - 1) * high
 
+    def sample_region(self, n: int, generator: torch.Generator) -> torch.Tensor:
+        """The env's whole state region (``algorithm.rollout_region``): ``theta in [-pi, pi]``, ``theta_dot`` in
+        the env's ``[-max_speed, max_speed] = [-8, 8]``; its resets cover only ``|theta_dot| <= 1``."""
+        high = torch.tensor([math.pi, 8.0], dtype=torch.float64)
+        return (2 * torch.rand(n, 2, generator=generator, dtype=torch.float64) - 1) * high
+
 
 class MountainCarTask(Task):
     """MountainCarContinuous-v0 as a task: the model is the env's own step
