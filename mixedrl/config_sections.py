@@ -154,10 +154,11 @@ class AlgorithmConfig:
     """Departure (precision add-on): where the run's policy takes its action at the task's equilibrium.
     ``"auto"`` (the default) = ``"lq_ss"`` on a task that declares an equilibrium (``Task.equilibrium``),
     ``"learned"`` on one that does not, and for DDPG (:func:`mixedrl.departures.anchor.resolve`).
-    ``"learned"`` (the paper's) = the actor's own. ``"lq_ss"`` = the actor shifted by a constant so that at the
-    discounted LQ optimum's steady state ``x_ss`` for the method's own noise mean it takes the optimum's action
-    there (:func:`mixedrl.departures.anchor.steady_anchor`): the closed loop rests where the optimum's does, to
-    first order, whatever the learned gain; training is unchanged. ``"lq"`` = the actor shifted by a constant so
+    ``"learned"`` (the paper's) = the actor's own. ``"lq_ss"`` = the actor shifted (by a constant that fades with
+    the distance from ``x_ss``, :attr:`feedforward_width`) so that at the discounted LQ optimum's steady state
+    ``x_ss`` for the method's own noise mean it takes the optimum's action there
+    (:func:`mixedrl.departures.anchor.steady_anchor`): the closed loop rests where the optimum's does, to first
+    order, whatever the learned gain; training is unchanged. ``"lq"`` = the actor shifted by a constant so
     that at the equilibrium it takes the discounted LQ optimum's action for the method's own noise mean,
     ``pi_ff(o) = pi(o) - pi(o(s*)) + u* - l0(E mu)`` (:class:`mixedrl.precision.FeedForwardPolicy`; the
     mean is the IBE posterior for mixed RL, the prior for model-driven RL, the truth for the oracle).

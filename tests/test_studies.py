@@ -252,8 +252,8 @@ def test_long_training_spec_and_its_observer_only_reads_the_runs() -> None:
     # the old script's config: TrainConfig(method, seed=0, iterations=10000, eval_every=10000)
     for r in runs:
         # ... with the one-step learner of its time (ONE_STEP_LEARNER, the spec's pins)
-        old = TrainConfig(method=r.config.method, seed=0, task="dlc", algorithm={**ONE_STEP_LEARNER, "iterations": 10000},
-                          run={"eval_every": 10000})
+        old = TrainConfig(method=r.config.method, seed=0, task="dlc",
+                          algorithm={**ONE_STEP_LEARNER, "iterations": 10000}, run={"eval_every": 10000})
         assert r.config.replace(**{"run.checkpoint_every": old.run.checkpoint_every}) == old
     small = [r.config.replace(**{"algorithm.iterations": 6, "run.eval_every": 100, "run.checkpoint_every": 100,
                                  "run.eval_seeds": 1, "algorithm.batch_size": 64}) for r in runs]

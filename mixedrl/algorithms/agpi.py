@@ -217,8 +217,8 @@ class AGPI:
         :attr:`learned_policy`, or, with ``config.algorithm.feedforward = "lq"``, that policy shifted to the
         discounted LQ optimum's action at the equilibrium for the current noise mean
         (:func:`mixedrl.precision.feedforward_policy`), with ``"lq_ss"`` (``"auto"``'s value on a task with an
-        equilibrium, :attr:`feedforward`) at the optimum's steady state; with ``"lq_train"`` and ``"lq_affine"`` the learned
-        policy is the anchored actor itself (:meth:`refresh_anchor`)."""
+        equilibrium, :attr:`feedforward`) near the optimum's steady state; with ``"lq_train"`` and
+        ``"lq_affine"`` the learned policy is the anchored actor itself (:meth:`refresh_anchor`)."""
         if self.feedforward in ("lq", "lq_ss"):
             return feedforward_policy(self, self.learned_policy, self._linearisation,
                                       steady=self.feedforward == "lq_ss")
