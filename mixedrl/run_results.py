@@ -253,7 +253,7 @@ def summarize(trainer: Any, rows: list[dict[str, Any]], elapsed: float, seeds: l
     results["references"], reason = run_references(trainer, seeds)
     if reason is not None:
         results["references_reason"] = reason
-    feedforward = getattr(trainer, "feedforward", cfg.algorithm.feedforward)  # "auto" resolved by the trainer
+    feedforward = getattr(trainer, "feedforward", "learned")  # the trainer's, "auto" resolved
     if feedforward != "learned":
         # the evaluated policy's action at the equilibrium (lq) or at the optimum's steady state (lq_ss) is the
         # LQ optimum's by construction

@@ -399,6 +399,19 @@ def test_auto_is_lq_ss_where_the_task_declares_an_equilibrium_else_learned(caplo
         TrainConfig(algorithm={"feedforward_width": -0.5})
 
 
+def test_results_record_the_resolved_feed_forward(tmp_path: Path) -> None:
+    """``results.json`` names the deployed feed-forward ("auto" resolved); DDPG's, deployed as trained, none."""
+    from mixedrl.cli import main
+
+    for method in ("mixed", "ddpg"):
+        out = tmp_path / method
+        assert main(["train", "--method", method, "--out", str(out), "--iterations", "2", "--no-progress", "--set",
+                     "task.name=linear", "algorithm.batch_size=16", "algorithm.hidden_sizes=[8]", "ddpg.batch_size=16",
+                     "run.eval_seeds=1"]) == 0
+        saved = json.loads((out / "results.json").read_text())
+        assert saved.get("feedforward") == {"mixed": "lq_ss", "ddpg": None}[method]
+
+
 @pytest.mark.parametrize("width", [0.0, 0.5])
 def test_lq_ss_takes_the_optimums_steady_action_at_its_steady_state(width: float) -> None:
     """With ``"lq_ss"`` the deployed policy takes, at the LQ optimum's steady state for the oracle's mean (derived

@@ -137,15 +137,8 @@ class AGPI:
         # algorithm.feedforward "lq" / "lq_ss" / "lq_train" / "lq_affine" / "lq_affine_ss": the equilibrium's LQ
         # problem, checked here (a task without one is an error); "lq_train" trains the AnchoredActor, "lq_affine"
         # and "lq_affine_ss" the AffineAnchoredActor (refresh_anchor). "auto" is "lq_ss" where the task declares
-        # an equilibrium whose LQ problem solves, else "learned" (with a warning naming the reason)
+        # an equilibrium whose LQ problem solves, else "learned" (anchor.resolve)
         feedforward = self.feedforward = anchor.resolve(config, task)
-        if config.algorithm.feedforward == "auto" and feedforward != "learned":
-            try:
-                anchor.lq_reference(task.linearisation(), task.prior_mean, task.prior_cov)
-            except (ValueError, np.linalg.LinAlgError) as err:
-                logger.warning("algorithm.feedforward 'auto': no LQ problem at the task's equilibrium (%s: %s); "
-                               "the learned feed-forward is deployed", type(err).__name__, err)
-                feedforward = self.feedforward = "learned"
         self._linearisation = None
         if feedforward in anchor.ANCHORED and architecture != "mlp":
             raise ValueError(f"algorithm.feedforward: {feedforward!r} anchors the MLP actor; architecture "

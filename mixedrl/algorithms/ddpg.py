@@ -105,6 +105,10 @@ class DDPG:
         ``config.method`` is not ``"ddpg"``.
     """
 
+    #: The deployed policy is the actor as trained (``algorithm.feedforward = "auto"`` resolves to this for DDPG:
+    #: it has no noise model to take an LQ feed-forward from; :func:`mixedrl.departures.anchor.resolve`).
+    feedforward = "learned"
+
     def __init__(self, task: Task, config: TrainConfig) -> None:
         if config.method != "ddpg":
             raise ValueError(f"config: method must be 'ddpg', got {config.method!r}")

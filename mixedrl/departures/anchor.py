@@ -27,6 +27,7 @@ runs (``"lq"`` 4 of 6, the learned one 2 of 6), cost over the LQR within -0.07% 
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass
 from typing import Any
 
@@ -41,6 +42,8 @@ from mixedrl.task_base import Linearisation, Task
 __all__ = ["NAME", "KEY", "PAPER", "active", "resolve", "refresh", "LQReference", "lq_reference", "own_noise",
            "FeedForwardPolicy", "feedforward_policy", "equilibrium_observation", "equilibrium_gain",
            "feedforward_action", "steady_anchor"]
+
+logger = logging.getLogger(__name__)
 
 NAME = "anchor"
 KEY = "algorithm.feedforward"
@@ -58,12 +61,21 @@ def active(config: Any) -> bool:
 
 def resolve(config: Any, task: Task) -> str:
     """The run's ``algorithm.feedforward`` with ``"auto"`` resolved: ``"lq_ss"`` for Algorithm 2 on a task that
-    declares an equilibrium (:meth:`mixedrl.task_base.Task.equilibrium`), ``"learned"`` on one that does not
-    and for DDPG (no noise model to take the mean from); any other value as set."""
+    declares an equilibrium (:meth:`mixedrl.task_base.Task.equilibrium`) whose LQ problem solves, ``"learned"``
+    on one that does not (a declared equilibrium that fails is logged as a warning naming the reason) and for
+    DDPG (no noise model to take the mean from); any other value as set."""
     value = config.algorithm.feedforward
     if value != "auto":
         return value
-    return "lq_ss" if config.method != "ddpg" and task.equilibrium() is not None else "learned"
+    if config.method == "ddpg" or task.equilibrium() is None:
+        return "learned"
+    try:
+        lq_reference(task.linearisation(), task.prior_mean, task.prior_cov)
+    except (ValueError, np.linalg.LinAlgError) as err:
+        logger.warning("algorithm.feedforward 'auto': no LQ problem at the task's equilibrium (%s: %s); the "
+                       "learned feed-forward is deployed", type(err).__name__, err)
+        return "learned"
+    return "lq_ss"
 
 
 def refresh(run: Any) -> None:
@@ -216,12 +228,12 @@ class FeedForwardPolicy(torch.nn.Module):
         self.register_buffer("observation", torch.as_tensor(observation, dtype=torch.float32).reshape(1, -1).clone())
         self.register_buffer("action", torch.as_tensor(action, dtype=torch.float32).reshape(-1).clone())
         self.bound = None if bound is None else torch.as_tensor(bound, dtype=torch.float32)
-        self.width = None if width is None else torch.as_tensor(width, dtype=torch.float32).reshape(1, -1)
+        self.width = None if width is None else torch.as_tensor(width, dtype=torch.float32).reshape(-1)
 
     def forward(self, obs: torch.Tensor) -> torch.Tensor:
         shift = self.action - self.policy(self.observation)[0]
         if self.width is not None:
-            distance = (obs - self.observation[0]) / self.width[0]  # obs batched (B, obs_dim) or one (obs_dim,)
+            distance = (obs - self.observation[0]) / self.width  # obs batched (B, obs_dim) or one (obs_dim,)
             shift = shift * torch.exp(-0.5 * (distance ** 2).sum(-1, keepdim=True))
         u = self.policy(obs) + shift
         return u if self.bound is None else torch.maximum(torch.minimum(u, self.bound), -self.bound)
@@ -259,13 +271,14 @@ def feedforward_policy(trainer: Any, policy: torch.nn.Module, lin: Linearisation
         raise ValueError(f"algorithm.feedforward: {'lq_ss' if steady else 'lq'!r} needs a task with an equilibrium "
                          f"(Task.equilibrium); "
                          f"task {getattr(task, 'name', type(task).__name__)!r} defines none")
+    width = None
     if steady:
         obs, action = steady_anchor(trainer, lin, policy)
         rho = float(trainer.config.algorithm.feedforward_width)
         width = rho * task.obs_scale if rho > 0 else None
-        return FeedForwardPolicy(policy, obs, action, getattr(policy, "action_bound", None), width)
-    return FeedForwardPolicy(policy, equilibrium_observation(task, lin), feedforward_action(trainer, lin, policy),
-                             getattr(policy, "action_bound", None))
+    else:
+        obs, action = equilibrium_observation(task, lin), feedforward_action(trainer, lin, policy)
+    return FeedForwardPolicy(policy, obs, action, getattr(policy, "action_bound", None), width)
 
 
 def equilibrium_observation(task: Task, lin: Linearisation) -> torch.Tensor:
