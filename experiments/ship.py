@@ -5,9 +5,9 @@ results (``mixedrl sweep`` of the spec into ``runs/``, then the analysis scripts
 writing into ``experiments/results``). This script is the one command that runs them, from the repository
 root with the repository on the path::
 
-    python experiments/ship.py table1_seeds20_lq_train              # train and write the results
-    python experiments/ship.py table1_seeds20_lq_train --dry-run    # print the commands only
-    python experiments/ship.py table1_seeds20_lq_train --analysis   # the runs exist: only the analysis
+    python experiments/ship.py table1_seeds20_default              # train and write the results
+    python experiments/ship.py table1_seeds20_default --dry-run    # print the commands only
+    python experiments/ship.py table1_seeds20_default --analysis   # the runs exist: only the analysis
 
 A command line of a spec's header is a comment line ``#   mixedrl ...``, ``#   python ...`` or
 ``#   PYTHONPATH=. python ...``; a trailing backslash continues it on the next comment line. The header ends at

@@ -153,8 +153,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seeds", type=int, default=None, help="number of noise seeds (default: the run's)")
     p.add_argument("--feedforward", choices=FEEDFORWARDS, default=None,
                    help="evaluate with this algorithm.feedforward instead of the run's ('lq': the actor shifted "
-                        "to the LQ optimum's action at the equilibrium for the method's own noise mean; 'lq_train' "
-                        "changes training and is only accepted for a run trained with it)")
+                        "to the LQ optimum's action at the equilibrium for the method's own noise mean)")
     p.set_defaults(handler=_evaluate)
 
     add_sweep_parser(sub)  # mixedrl sweep SPEC --out DIR (mixedrl.sweep; Ray is imported only when it runs)

@@ -57,8 +57,8 @@ from mixedrl.checks import check_nonnegative_int, check_unknown_keys
 from mixedrl.config_sections import (OPTIMISER_FIELDS, PRESETS, SAMPLERS, AlgorithmConfig, DDPGConfig,
                                      ModelRolloutsSampler, RunConfig, SamplerConfig, TrueCopiesSampler, register_preset,
                                      register_sampler, sampler_config)
-from mixedrl.config_tasks import (AFFINE_FEEDFORWARDS, ANCHORED_FEEDFORWARDS, BATCH_WEIGHTINGS, BUILTIN_NAMES,
-                                  DISTURBANCE_LAWS, FEEDFORWARDS, METHODS, MODEL_COURSE_STARTS, TASKS,
+from mixedrl.config_tasks import (BATCH_WEIGHTINGS, BUILTIN_NAMES, DISTURBANCE_LAWS, FEEDFORWARDS, METHODS,
+                                  MODEL_COURSE_STARTS, RETIRED_AT, RETIRED_FEEDFORWARDS, TASKS,
                                   ForceDisturbanceConfig, GaussianNoiseConfig, LinearTaskConfig, build_section,
                                   check_choice, register_builtin_task, register_task, task_config, task_config_union,
                                   task_names, to_jsonable)
@@ -104,7 +104,10 @@ DELETED_SETTINGS: dict[tuple[str, str], Any] = {
     ("algorithm", "rollout_updates"): 1,
     ("algorithm", "actor_average"): 0.0,
     ("algorithm", "bellman_steps"): 1,
+    ("sampler", "course_ramp"): 0,
 }
+#: The commit that can still run a deleted setting at another value (where the refusal names it).
+DELETED_AT: dict[tuple[str, str], str] = {("sampler", "course_ramp"): RETIRED_AT}
 
 
 def _drop_deleted_settings(data: dict[str, Any]) -> None:
@@ -113,8 +116,10 @@ def _drop_deleted_settings(data: dict[str, Any]) -> None:
         part = data.get(section)
         if isinstance(part, dict) and name in part:
             if part[name] != value:
+                commit = DELETED_AT.get((section, name))
                 raise ValueError(f"{section}.{name}: this setting was deleted (docs: results, 'Deleted settings'); "
-                                 f"only {value!r}, today's behaviour, can be read, got {part[name]!r}")
+                                 f"only {value!r}, today's behaviour, can be read, got {part[name]!r}"
+                                 + (f"; git commit {commit} can still run it" if commit else ""))
             del part[name]
 
 

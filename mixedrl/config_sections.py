@@ -14,8 +14,8 @@ from dataclasses import dataclass
 from typing import Any, ClassVar, Union
 
 from mixedrl.checks import check_fraction, check_int, check_nonnegative_int, check_number, check_positive_int
-from mixedrl.config_tasks import (ANCHORED_FEEDFORWARDS, BATCH_WEIGHTINGS, COMPILE_MODES, FEEDFORWARDS, build_section,
-                                   check_choice)
+from mixedrl.config_tasks import (BATCH_WEIGHTINGS, COMPILE_MODES, FEEDFORWARDS, RETIRED_FEEDFORWARDS,
+                                   build_section, check_choice)
 
 __all__ = ["AlgorithmConfig", "DDPGConfig", "OPTIMISER_FIELDS", "RunConfig", "SamplerConfig", "TrueCopiesSampler",
            "ModelRolloutsSampler", "SAMPLERS", "PRESETS", "register_sampler", "register_preset", "sampler_config"]
@@ -163,27 +163,10 @@ class AlgorithmConfig:
     ``pi_ff(o) = pi(o) - pi(o(s*)) + u* - l0(E mu)`` (:class:`mixedrl.precision.FeedForwardPolicy`; the
     mean is the IBE posterior for mixed RL, the prior for model-driven RL, the truth for the oracle).
     Training is unchanged (the same bits); the shifted actor is what is evaluated and deployed
-    (:attr:`mixedrl.algorithms.agpi.AGPI.policy`). ``"lq_train"`` = the same anchor as the actor's policy
-    class *during training*: ``u(o) = u_bar tanh(MLP(o) - MLP(o*) + atanh(clip(u_ff / u_bar, -0.999, 0.999)))``
-    (:class:`mixedrl.networks.AnchoredActor`; smooth, bounded, ``u(o*) = u_ff``), ``u_ff`` the LQ optimum's
-    action for the run's current own noise moments, refreshed at the start of every iteration (before the
-    data collection, PEV, PIM and the MVC use the actor); the trained actor is what is evaluated and
-    deployed. A departure from the paper too, off by default, the same for mixed, model and oracle
-    (only the noise moments differ); needs ``architecture="mlp"``; runs with ``"lq_train"`` and runs without
-    it are trained in separate batches (:func:`mixedrl.algorithms.batched.batch_key`). Algorithm 2 only
-    (DDPG has no noise model to take the mean from; it refuses every value but ``"learned"``), and only for
-    a task with an equilibrium. ``"lq_affine"`` = ``"lq_train"`` with the LQ optimum's feedback gain too:
-    ``u(o) = u_bar tanh(z* + G_z (o - o*) + MLP(o) - MLP(o*) - J_MLP(o*) (o - o*))``
-    (:class:`mixedrl.networks.AffineAnchoredActor`), so the policy is the discounted LQ optimum's affine
-    policy to first order at the equilibrium (``u(o*) = u_ff``, ``du/dx = -L``,
-    :func:`mixedrl.precision.equilibrium_gain`) and training shapes only the terms of second and higher
-    order; it needs observations that determine the linearisation's coordinates there. ``"lq_affine_ss"``
-    = ``"lq_affine"`` expanded about the LQ optimum's steady state ``x_ss`` for the own noise mean instead
-    of the equilibrium: ``o*`` = the observation of ``x_ss`` and ``u(o*)`` = the optimum's action there,
-    both refreshed with the noise moments (:func:`mixedrl.precision.steady_anchor`), so the learned
-    remainder vanishes, with its slope, where the closed loop comes to rest (with ``"lq_affine"`` it
-    vanishes at the equilibrium, and at ``x_ss`` the remainder and the tanh's curvature shift the resting
-    point)."""
+    (:attr:`mixedrl.algorithms.agpi.AGPI.policy`). Algorithm 2 only (DDPG has no noise model to take the mean
+    from; it refuses every value but ``"learned"`` and ``"auto"``), and ``"lq"`` / ``"lq_ss"`` only for a task
+    with an equilibrium. The trained anchored actors ``"lq_train"``, ``"lq_affine"`` and ``"lq_affine_ss"`` were
+    retired (their rows stay on the results page; git commit ee954d7 runs them)."""
 
     feedforward_width: float = 0.25
     """Departure (precision add-on): with ``feedforward = "lq_ss"`` (``"auto"``) the shift is local, weighted by
@@ -231,8 +214,8 @@ class AlgorithmConfig:
     """Departure (learner, :mod:`mixedrl.departures.actor_output`): how the actor's output is bounded:
     ``"tanh"`` (``u_bar tanh(MLP)``), ``"clip"`` (``u_bar clip(MLP, -1, 1)``, the clip's gradient
     passed straight through for the parameters only) or ``"clip_inward"`` (the same, straight through only where
-    the step moves a clipped output back inside; the default). Algorithm 2's plain actor only: an anchored
-    ``feedforward`` needs ``"tanh"``, and DDPG's actor is always ``tanh``-bounded."""
+    the step moves a clipped output back inside; the default). Algorithm 2's actor only: DDPG's actor is always
+    ``tanh``-bounded."""
 
     def __post_init__(self) -> None:
         w = "algorithm"
@@ -250,7 +233,7 @@ class AlgorithmConfig:
         check_choice(self.mvc_check, f"{w}.mvc_check", ("mean", "all"))
         check_choice(self.ibe_recursion, f"{w}.ibe_recursion", ("exact", "paper"))
         check_choice(self.batch_weighting, f"{w}.batch_weighting", BATCH_WEIGHTINGS)
-        check_choice(self.feedforward, f"{w}.feedforward", FEEDFORWARDS)
+        check_choice(self.feedforward, f"{w}.feedforward", FEEDFORWARDS, RETIRED_FEEDFORWARDS)
         self.feedforward_width = check_number(self.feedforward_width, f"{w}.feedforward_width", nonneg=True)
         if check_int(self.ibe_case, f"{w}.ibe_case") not in (1, 2, 3):
             raise ValueError(f"{w}.ibe_case: expected 1, 2 or 3 (the IBE's Case), got {self.ibe_case!r}")

@@ -19,8 +19,8 @@ from mixedrl.checks import as_matrix, as_vector, check_covariance, check_number,
 from mixedrl.envs.disturbance import DISTURBANCE_LAWS, Disturbance
 from mixedrl.lq import LQProblem
 
-__all__ = ["METHODS", "TASKS", "MODEL_COURSE_STARTS", "BATCH_WEIGHTINGS", "FEEDFORWARDS", "ANCHORED_FEEDFORWARDS",
-           "AFFINE_FEEDFORWARDS", "DISTURBANCE_LAWS", "ForceDisturbanceConfig", "GaussianNoiseConfig",
+__all__ = ["METHODS", "TASKS", "MODEL_COURSE_STARTS", "BATCH_WEIGHTINGS", "FEEDFORWARDS", "RETIRED_FEEDFORWARDS",
+           "RETIRED_AT", "DISTURBANCE_LAWS", "ForceDisturbanceConfig", "GaussianNoiseConfig",
            "LinearTaskConfig", "register_task", "register_builtin_task", "task_names", "task_config",
            "task_config_union", "build_section", "to_jsonable", "check_choice", "BUILTIN_NAMES"]
 
@@ -39,12 +39,12 @@ COMPILE_MODES = ("off", "on", "functional")
 BATCH_WEIGHTINGS = ("uniform", "relative")
 
 #: Where the policy takes its action at the equilibrium (``algorithm.feedforward``).
-FEEDFORWARDS = ("auto", "learned", "lq", "lq_ss", "lq_train", "lq_affine", "lq_affine_ss")
-
-#: The ``algorithm.feedforward`` values that change the actor's class during training.
-ANCHORED_FEEDFORWARDS = ("lq_train", "lq_affine", "lq_affine_ss")
-#: The ``algorithm.feedforward`` values whose actor has the LQ optimum's gain as its first-order part.
-AFFINE_FEEDFORWARDS = ("lq_affine", "lq_affine_ss")
+FEEDFORWARDS = ("auto", "learned", "lq", "lq_ss")
+#: The commit that still runs the options retired since (neither the default nor the ``paper`` preset; their
+#: measured rows stay on the results page, docs/results.rst).
+RETIRED_AT = "ee954d7"
+#: The retired values of ``algorithm.feedforward``: actors anchored at the LQ optimum during training.
+RETIRED_FEEDFORWARDS = ("lq_train", "lq_affine", "lq_affine_ss")
 
 
 def _law(value: Any, name: str) -> str:
@@ -324,7 +324,12 @@ def task_config(value: Any = "dlc") -> Any:
     return build_section(_TASK_CLASSES[name], {**value, "name": name}, "task")
 
 
-def check_choice(value: Any, name: str, options: tuple) -> Any:
+def check_choice(value: Any, name: str, options: tuple, retired: tuple = ()) -> Any:
+    """``value`` if it is one of ``options``, else a ``ValueError`` naming ``name`` (and, for a value of
+    ``retired``, the commit that can still run it, :data:`RETIRED_AT`)."""
+    if value in retired:
+        raise ValueError(f"{name}: {value!r} was retired (its measured rows stay on the results page, "
+                         f"docs/results.rst); expected one of {options}; git commit {RETIRED_AT} can still run it")
     if value not in options:
         raise ValueError(f"{name}: expected one of {options}, got {value!r}")
     return value

@@ -13,7 +13,7 @@ from typing import Any, Callable, Sequence
 import torch
 from torch import nn
 
-__all__ = ["MLP", "Critic", "Actor", "ClippedActor", "AnchoredActor", "AffineAnchoredActor", "QCritic", "QuadraticCritic", "AffineActor", "init_uniform_", "stacked_actors"]
+__all__ = ["MLP", "Critic", "Actor", "ClippedActor", "QCritic", "QuadraticCritic", "AffineActor", "init_uniform_", "stacked_actors"]
 
 _ACTIVATIONS = {"elu": nn.ELU, "tanh": nn.Tanh, "relu": nn.ReLU}
 
@@ -57,17 +57,6 @@ def init_uniform_(module: nn.Module, generator: torch.Generator, last_scale: flo
     return module
 
 
-def _activation_slope(layer: nn.Module, h: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
-    """The derivative of a hidden activation of :data:`_ACTIVATIONS` at ``h`` (``y`` its value)."""
-    if isinstance(layer, nn.ELU):
-        return torch.where(h > 0, torch.ones_like(h), y + layer.alpha)
-    if isinstance(layer, nn.Tanh):
-        return 1.0 - y * y
-    if isinstance(layer, nn.ReLU):
-        return (h > 0).to(h.dtype)
-    raise ValueError(f"layer: no derivative for {type(layer).__name__}")
-
-
 class MLP(nn.Module):
     """Multilayer perceptron ``in_dim -> hidden_sizes -> out_dim`` with a fixed input scaling.
 
@@ -109,21 +98,6 @@ class MLP(nn.Module):
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         """Evaluate on ``x`` of shape ``(..., in_dim)``; returns ``(..., out_dim)``."""
         return self.body(x / self.input_scale)
-
-    def jacobian(self, x: torch.Tensor) -> torch.Tensor:
-        """``d MLP / d x`` at one input ``x`` (in_dim,), shape (out_dim, in_dim): the chain rule through the
-        layers (the same as :func:`torch.func.jacfwd` of :meth:`forward`, tested; a few small products
-        instead of a vectorised forward pass, so it is cheap inside training)."""
-        h = x / self.input_scale
-        jac = torch.diag(1.0 / self.input_scale)
-        for layer in self.body:
-            if isinstance(layer, nn.Linear):
-                h, jac = layer(h), layer.weight @ jac
-            else:
-                y = layer(h)
-                jac = _activation_slope(layer, h, y)[:, None] * jac
-                h = y
-        return jac
 
 
 #: Output heads of the value networks: the MLP's output width and how it becomes a value.
@@ -280,116 +254,6 @@ def stacked_actors(actors: Sequence[nn.Module]) -> Callable[[torch.Tensor], torc
         return bound * torch.tanh(h)
 
     return call
-
-
-#: How close to the bound an anchored action may be (``atanh`` of it stays finite).
-ANCHOR_CLAMP = 0.999
-
-
-class AnchoredActor(Actor):
-    """An :class:`Actor` that takes a given action at a given observation (``algorithm.feedforward = "lq_train"``).
-
-    .. math:: u(o) = \\bar u \\tanh\\big(\\mathrm{MLP}(o) - \\mathrm{MLP}(o^*) + z^*\\big),
-        \\quad z^* = \\operatorname{atanh}\\big(\\operatorname{clip}(u_{ff} / \\bar u, -0.999, 0.999)\\big)
-
-    so ``u(o*) = u_ff`` (within float32 and the clip): smooth, bounded, the same parameters as the
-    :class:`Actor`. ``o*`` and ``z*`` are buffers (``anchor_obs``, shape (obs_dim,); ``anchor_z``, shape
-    (action_dim,)), part of the state dict; :meth:`set_anchor_action` changes ``z*`` in place (so a
-    stacked copy bound to the buffer, :class:`mixedrl.algorithms.batched.StackedNetwork`, follows).
-
-    Parameters
-    ----------
-    anchor_obs : torch.Tensor, shape (obs_dim,)
-        ``o*``.
-    *args, **kwargs
-        As :class:`Actor`. The anchored action starts at 0.
-    """
-
-    def __init__(self, *args: object, anchor_obs: torch.Tensor, **kwargs: object) -> None:
-        super().__init__(*args, **kwargs)
-        obs = torch.as_tensor(anchor_obs, dtype=torch.float32).reshape(-1)
-        if obs.shape != (self.net.input_scale.shape[0],) or not bool(torch.isfinite(obs).all()):
-            raise ValueError(f"anchor_obs: expected {self.net.input_scale.shape[0]} finite numbers, got "
-                             f"{tuple(obs.shape)}")
-        self.register_buffer("anchor_obs", obs.clone())
-        self.register_buffer("anchor_z", torch.zeros_like(self.action_bound))
-
-    def set_anchor(self, obs: torch.Tensor, action: torch.Tensor) -> None:
-        """Move the anchor to ``o* = obs`` (shape (obs_dim,)) and make ``u(o*) = action`` there
-        (:meth:`set_anchor_action`), in place (``algorithm.feedforward = "lq_affine_ss"``).
-
-        Raises
-        ------
-        ValueError
-            If ``obs`` has the wrong size or is not finite (the anchor is left as it was).
-        """
-        o = torch.as_tensor(obs, dtype=torch.float32).reshape(-1)
-        if o.shape != self.anchor_obs.shape or not bool(torch.isfinite(o).all()):
-            raise ValueError(f"obs: expected {self.anchor_obs.shape[0]} finite numbers, got {tuple(o.shape)}")
-        with torch.no_grad():
-            self.anchor_obs.copy_(o)
-        self.set_anchor_action(action)
-
-    def set_anchor_action(self, action: torch.Tensor) -> None:
-        """Make ``u(o*) = action`` (clipped to 0.999 of the bound), in place; shape (action_dim,)."""
-        a = torch.as_tensor(action, dtype=torch.float32).reshape(self.anchor_z.shape)
-        with torch.no_grad():
-            self.anchor_z.copy_(torch.atanh((a / self.action_bound).clamp(-ANCHOR_CLAMP, ANCHOR_CLAMP)))
-
-    def forward(self, obs: torch.Tensor) -> torch.Tensor:
-        return self.action_bound * torch.tanh(self.net(obs) - self.net(self.anchor_obs) + self.anchor_z)
-
-
-class AffineAnchoredActor(AnchoredActor):
-    """An :class:`AnchoredActor` whose first-order part at the anchor is a given gain
-    (``algorithm.feedforward = "lq_affine"``; ``"lq_affine_ss"`` moves ``o*`` to the optimum's steady state,
-    :meth:`AnchoredActor.set_anchor`): the affine policy of the LQ optimum plus a learned remainder of
-    second order.
-
-    .. math::
-
-        u(o) = \\bar u \\tanh\\big(z^* + G_z (o - o^*) + r(o)\\big), \\qquad
-        r(o) = \\mathrm{MLP}(o) - \\mathrm{MLP}(o^*) - J_{\\mathrm{MLP}}(o^*)\\,(o - o^*),
-
-    ``G_z = G / (\\bar u (1 - \\tanh^2 z^*))`` row by row, so ``u(o*) = u_ff`` and ``du/do (o*) = G``
-    exactly, whatever the MLP's weights: training shapes only the terms of second and higher order
-    (``J_MLP`` is :meth:`MLP.jacobian` at ``o*``, differentiated through in training).
-    ``G`` is a buffer (``anchor_gain``, shape (action_dim, obs_dim), action units per observation unit),
-    ``G_z`` another (``anchor_gain_z``), recomputed by :meth:`set_anchor_action` in place.
-
-    Parameters
-    ----------
-    anchor_obs : torch.Tensor, shape (obs_dim,)
-        ``o*``.
-    gain : torch.Tensor, shape (action_dim, obs_dim)
-        ``G`` (for ``"lq_affine"`` the LQ optimum's ``-L`` in observation coordinates,
-        :func:`mixedrl.precision.equilibrium_gain`).
-    *args, **kwargs
-        As :class:`Actor`.
-    """
-
-    def __init__(self, *args: object, anchor_obs: torch.Tensor, gain: torch.Tensor, **kwargs: object) -> None:
-        super().__init__(*args, anchor_obs=anchor_obs, **kwargs)
-        g = torch.as_tensor(gain, dtype=torch.float32)
-        shape = (self.anchor_z.shape[0], self.anchor_obs.shape[0])
-        if g.shape != shape or not bool(torch.isfinite(g).all()):
-            raise ValueError(f"gain: expected a finite {shape} matrix (action_dim, obs_dim), got {tuple(g.shape)}")
-        self.register_buffer("anchor_gain", g.clone())
-        self.register_buffer("anchor_gain_z", torch.zeros_like(g))
-        self.set_anchor_action(torch.zeros_like(self.anchor_z))
-
-    def set_anchor_action(self, action: torch.Tensor) -> None:
-        """Make ``u(o*) = action`` (as :meth:`AnchoredActor.set_anchor_action`) and ``du/do (o*) = G``."""
-        super().set_anchor_action(action)
-        with torch.no_grad():
-            slope = self.action_bound * (1.0 - torch.tanh(self.anchor_z) ** 2)  # du/dz at z*
-            self.anchor_gain_z.copy_(self.anchor_gain / slope[:, None])
-
-    def forward(self, obs: torch.Tensor) -> torch.Tensor:
-        d = obs - self.anchor_obs
-        jac = self.net.jacobian(self.anchor_obs)  # J_MLP(o*), (action_dim, obs_dim)
-        z = self.anchor_z + d @ (self.anchor_gain_z - jac).T + self.net(obs) - self.net(self.anchor_obs)
-        return self.action_bound * torch.tanh(z)
 
 
 class QCritic(nn.Module):

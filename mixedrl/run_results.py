@@ -15,7 +15,7 @@ import numpy as np
 
 from mixedrl.algorithms.agpi import AGPI
 from mixedrl.algorithms.ddpg import DDPG
-from mixedrl.config import ANCHORED_FEEDFORWARDS, TrainConfig
+from mixedrl.config import TrainConfig
 from mixedrl import departures
 from mixedrl.plant import credit_evaluations, plant_transitions
 from mixedrl.precision import run_policy_gap, run_references
@@ -101,8 +101,7 @@ def evaluate_run(path: str | Path, *, seeds: int | None = None, feedforward: str
     feedforward : str, optional
         Evaluate with this ``algorithm.feedforward`` instead of the run's (``"lq"``: the actor shifted to
         the LQ optimum's action at the equilibrium for the method's own noise mean). Training does not
-        read ``"lq"``, so this evaluates what the run would have deployed with it; ``"lq_train"``,
-        ``"lq_affine"`` and ``"lq_affine_ss"`` change training and are refused unless they are the run's own.
+        read ``"lq"``, so this evaluates what the run would have deployed with it.
     task : Task, optional
         The task object of a user's own task (not rebuilt from the config).
 
@@ -125,12 +124,6 @@ def evaluate_run(path: str | Path, *, seeds: int | None = None, feedforward: str
     if seeds is not None:
         config = config.replace(**{"run.eval_seeds": seeds})
     if feedforward is not None:
-        trained = {feedforward, config.algorithm.feedforward} & set(ANCHORED_FEEDFORWARDS)
-        if trained and feedforward != config.algorithm.feedforward:
-            raise ValueError(f"feedforward: {sorted(trained)[0]!r} is a training-time policy class (an anchored "
-                             f"actor); the run "
-                             f"was trained with algorithm.feedforward = {config.algorithm.feedforward!r}, it cannot be "
-                             f"evaluated with {feedforward!r}")
         config = config.replace(**{"algorithm.feedforward": feedforward})
     trainer = make_trainer(config, task)
     load_trainer(trainer, run.checkpoint_path)

@@ -12,8 +12,8 @@ Measured on the machine of issue 40 (torch 2.13.0, CPU, 2 cores): the code befor
 the reference is that code's own output on this machine, ``scripts/guard_reference.json`` (``--save``);
 ``--against scripts/guard_reference.json`` is the bitwise check.
 
-``quick save|check``: a few short seeded runs (mixed/model/oracle; R = 1 and R = 2; ``lq_affine_ss``,
-``critic_target``, the dlc course sampler, true copies) are trained and their metrics rows saved to / compared
+``quick save|check``: a few short seeded runs (mixed/model/oracle; R = 1 and R = 2; ``critic_target``, the
+dlc course sampler, true copies) are trained and their metrics rows saved to / compared
 with a JSON file (``repr`` of every float: bitwise).
 
     python scripts/guard_reproduction.py full OUT [--save REF.json] [--against REF.json]
@@ -91,8 +91,6 @@ def quick_runs() -> dict[str, list[dict[str, float]]]:
         "dlc_default": dict(),
         "dlc_true_copies": dict(sampler={"name": "true_copies"}),
         "dlc_model_rollouts": dict(sampler={"name": "model_rollouts"}),
-        "dlc_lq_affine_ss": {"algorithm.feedforward": "lq_affine_ss"},
-        "dlc_lq_train": {"algorithm.feedforward": "lq_train"},
         "dlc_critic_target": {"algorithm.critic_target": 0.9},
         "dlc_ibe_case1": {"algorithm.ibe_case": 1},
         "dlc_mean_weighting": {"algorithm.batch_weighting": "uniform"},

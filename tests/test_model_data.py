@@ -271,14 +271,13 @@ def test_start_course_copies_drive_past_the_course_end() -> None:
     assert sampler.restarts == restarts and float(sampler.states[:, 5].min()) > 120.0
 
 
-@pytest.mark.parametrize("ramp", [0, 8])
-def test_course_ramp_moves_the_course_copies_onto_the_course_evenly_over_its_iterations(ramp: int) -> None:
+def test_the_course_copies_drive_the_course_from_course_start_on() -> None:
     from mixedrl.noise import GaussianNoise
     from mixedrl.tasks import make_task
 
     task = make_task("dlc")
     cfg = TrainConfig(algorithm=dict(batch_size=64, horizon=1), sampler=dict(name="dlc_course",
-                      course_fraction=0.5, course_start=2, course_ramp=ramp, true_horizon=1, course_horizon=1,
+                      course_fraction=0.5, course_start=2, true_horizon=1, course_horizon=1,
                       course_starts="start", kick_prob=0.0))
     sampler = ModelStateSampler(task, cfg, torch.Generator().manual_seed(0))
     actor = torch.nn.Linear(5, 2)
@@ -287,13 +286,7 @@ def test_course_ramp_moves_the_course_copies_onto_the_course_evenly_over_its_ite
     noise = GaussianNoise(task.prior_mean, task.prior_cov)
     for k in range(12):  # every copy restarts every step (horizon 1): course copies at X = 0 once switched
         sampler.collect(actor, noise, k)
-        # course copy i of 32 switches at 2 + floor(i ramp / 32)
-        switched = 0 if k < 2 else 32 if ramp == 0 else min(32, 4 * (k - 2 + 1))
+        switched = 0 if k < 2 else 32  # the 32 course copies switch together at course_start
         at_start = sampler.states[:, 5] == 0.0
         assert bool(at_start[:switched].all()), k
         assert not bool(at_start[switched:].any()), k  # the others (and every wide copy) restart wide
-
-
-def test_course_ramp_is_validated() -> None:
-    with pytest.raises(ValueError, match="^sampler.course_ramp"):
-        TrainConfig(sampler=dict(name="dlc_course", course_ramp=-1))

@@ -379,6 +379,76 @@ def test_feedforward_lq_errors_name_the_option(tmp_path: Path) -> None:
         AGPI(_NoEquilibrium(), _ff("model"))
 
 
+RETIRED = ("lq_train", "lq_affine", "lq_affine_ss")
+
+
+def _retired_message(value: str) -> str:
+    return (rf"^algorithm\.feedforward: '{value}' was retired \(.*results page.*\); expected one of "
+            rf"\('auto', 'learned', 'lq', 'lq_ss'\); git commit ee954d7 can still run it$")
+
+
+@pytest.mark.parametrize("value", RETIRED)
+def test_a_retired_feedforward_is_refused_naming_the_commit_that_runs_it(value: str, tmp_path: Path) -> None:
+    """The trained anchored actors were retired: a config, a spec or a saved run naming one is refused with the
+    key, the value, the allowed values and the commit that still runs it, before anything is built."""
+    from mixedrl.run_results import evaluate_run
+    from mixedrl.runs import make_trainer
+    from mixedrl.sweep import expand, parse_spec
+
+    with pytest.raises(ValueError, match=_retired_message(value)):
+        TrainConfig(task="linear", algorithm={"feedforward": value})
+    with pytest.raises(ValueError, match=_retired_message(value)):
+        TrainConfig.from_dict({"method": "mixed", "task": "linear", "algorithm": {"feedforward": value}})
+    with pytest.raises(ValueError, match=_retired_message(value)):
+        TrainConfig(task="linear").replace(**{"algorithm.feedforward": value})
+    with pytest.raises(ValueError, match=rf"algorithm\.feedforward: '{value}' was retired"):
+        expand(parse_spec(f'methods = ["mixed"]\nseeds = [0]\n[base]\n"task.name" = "linear"\n'
+                          f'"algorithm.feedforward" = "{value}"\n', "retired"))
+    # a run saved by a commit that trained it: its config.json (digest and all) is refused as it is read
+    cfg = TrainConfig(method="mixed", task="linear", seed=0,
+                      algorithm={"batch_size": 16, "hidden_sizes": (8,), "iterations": 2})
+    run = RunDirectory(tmp_path / "run")
+    train(make_trainer(cfg), run, progress=False)
+    record = run.read_record()
+    record["algorithm"]["feedforward"] = value
+    from mixedrl.checkpoint import write_with_digest
+    write_with_digest(run.config_path, (json.dumps(record, indent=2, sort_keys=True) + "\n").encode())
+    with pytest.raises(ValueError, match=_retired_message(value)):
+        run.read_config()
+    with pytest.raises(ValueError, match=_retired_message(value)):
+        evaluate_run(run.path)
+    with pytest.raises(ValueError, match=_retired_message(value)):
+        train(make_trainer(cfg.replace(**{"algorithm.iterations": 4})), run, progress=False, resume=True)
+
+
+def test_gain_in_observation_coordinates_maps_back_to_minus_l() -> None:
+    """The pendulum observes (theta, theta_dot) scaled; G J_o = -L (the LQR's gain, LQRPolicy)."""
+    from mixedrl.precision import equilibrium_gain
+
+    task = PendulumTask()
+    lin = task.linearisation()
+    G = equilibrium_gain(task, lin).numpy()
+    J_o = torch.func.jacrev(lambda x: task.observe(lin.to_state(x[None]))[0])(
+        torch.zeros(lin.A.shape[0], dtype=torch.float64)).numpy()
+    L = lq_reference(lin, np.zeros(lin.E.shape[1])).solution.gain
+    assert np.allclose(G @ J_o, -L, rtol=1e-10, atol=1e-10)
+
+
+class _Blind(LinearTask):
+    """Observes only the first coordinate: the observation does not determine the state."""
+
+    def observe(self, s: torch.Tensor) -> torch.Tensor:
+        return s[..., :1]
+
+
+def test_an_observation_that_misses_a_coordinate_has_no_gain() -> None:
+    from mixedrl.precision import equilibrium_gain
+
+    task = _Blind()
+    with pytest.raises(ValueError, match=r"task: the LQ gain in observation coordinates needs observations .* rank 1"):
+        equilibrium_gain(task, task.linearisation())
+
+
 # ------------------------------------------- algorithm.feedforward = "lq_ss" and "auto" (the library default)
 def test_auto_is_lq_ss_where_the_task_declares_an_equilibrium_else_learned(caplog: pytest.LogCaptureFixture) -> None:
     from mixedrl.departures.anchor import resolve
@@ -388,7 +458,7 @@ def test_auto_is_lq_ss_where_the_task_declares_an_equilibrium_else_learned(caplo
     assert AGPI(LinearTask(), _config("mixed")).feedforward == "lq_ss"
     assert AGPI(_NoEquilibrium(), _config("mixed")).feedforward == "learned"
     assert resolve(TrainConfig(method="ddpg", task="linear"), LinearTask()) == "learned"
-    for value in ("learned", "lq", "lq_ss", "lq_train"):
+    for value in ("learned", "lq", "lq_ss"):
         assert resolve(TrainConfig(task="linear", algorithm={"feedforward": value}), _NoEquilibrium()) == value
     with caplog.at_level("WARNING", logger="mixedrl.algorithms.agpi"):
         assert AGPI(_NotARestPoint(), _config("model")).feedforward == "learned"  # an equilibrium that fails

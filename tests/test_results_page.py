@@ -3,7 +3,8 @@ of the rows it lists: every shipped row of the double lane change's precision st
 
 * the shipped page is the script's output (never edited by hand);
 * every shipped row holds exactly the runs its specs expand to (method, variant and seed; the budget and the
-  trained feed-forward of each), so a row is re-trained by ``mixedrl sweep`` of its specs;
+  trained feed-forward of each), so a row is re-trained by ``mixedrl sweep`` of its specs; a retired row (its
+  option retired, its specs at ``RP.RETIRED_AT``) holds its per-seed files, trained with a retired value;
 * every shipped ``summary.json`` is the statistics of its shipped ``per_seed.csv`` (``seed_statistics.py``), and the
   derived files (``budgets_lq_train``, ``targets.txt``, ``win_odds.txt``) are those scripts' outputs on the
   shipped rows, byte for byte.
@@ -23,6 +24,7 @@ import pytest
 
 from experiments.analysis import results_page as RP
 from experiments.analysis import seed_statistics as SS
+from mixedrl.config import RETIRED_FEEDFORWARDS
 from mixedrl.sweep import expand, load_spec
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -56,7 +58,7 @@ def test_every_shipped_result_directory_is_on_the_page() -> None:
     assert shipped == {r.folder for r in ROWS + (RP.BUDGETS,)}
 
 
-@pytest.mark.parametrize("row", ROWS, ids=lambda r: r.folder)
+@pytest.mark.parametrize("row", [r for r in ROWS if not r.retired], ids=lambda r: r.folder)
 def test_every_shipped_row_holds_the_runs_of_its_specs(row: RP.Row) -> None:
     runs = {}
     for spec in row.specs:
@@ -69,6 +71,30 @@ def test_every_shipped_row_holds_the_runs_of_its_specs(row: RP.Row) -> None:
         cfg = runs[key]
         assert int(rec["iterations"]) == cfg.algorithm.iterations, (row.folder, key)
         assert (rec.get("trained_feedforward") or "learned") == cfg.algorithm.feedforward, (row.folder, key)
+
+
+@pytest.mark.parametrize("row", [r for r in ROWS + (RP.BUDGETS,) if r.retired], ids=lambda r: r.folder)
+def test_a_retired_row_keeps_its_per_seed_files_and_names_the_commit_of_its_specs(row: RP.Row) -> None:
+    """A retired row's specs are gone (they cannot be expanded: their option is refused) and the page names them at
+    RP.RETIRED_AT; its folder keeps its measured files, one run per (row, seed), each trained with a retired
+    ``algorithm.feedforward``."""
+    for spec in row.specs:
+        assert not (RP.STUDIES / f"{spec}.toml").exists(), spec
+        assert f"``git show {RP.RETIRED_AT}:experiments/studies/{spec}.toml``" in RP.render()
+    folder = RP.RESULTS / row.folder
+    if row is RP.BUDGETS:
+        assert {p.name for p in folder.iterdir()} >= {"budgets.json", "budgets.txt"}
+        return
+    assert {p.name for p in folder.iterdir()} >= {"per_seed.csv", "summary.json", "table.txt"}
+    shipped = RP.per_seed(row.folder)
+    keys = [(SS.row_key(r["method"], r.get("variant")), int(r["seed"])) for r in shipped]
+    assert shipped and len(keys) == len(set(keys)), row.folder
+    assert {r["trained_feedforward"] for r in shipped} <= set(RETIRED_FEEDFORWARDS), row.folder
+
+
+def test_a_live_rows_specs_are_in_the_studies() -> None:
+    for row in ROWS + (RP.BUDGETS,):
+        assert row.retired or all((RP.STUDIES / f"{s}.toml").is_file() for s in row.specs), row.folder
 
 
 @pytest.mark.parametrize("row", ROWS, ids=lambda r: r.folder)
@@ -132,7 +158,7 @@ def test_every_shipped_row_of_the_study_is_written_by_a_specs_commands() -> None
     dests = {argv[argv.index("--dest") + 1] for spec in (ROOT / "experiments" / "studies").glob("*.toml")
              for argv in _ship().commands(spec) if "--dest" in argv}
     for row in ROWS + (RP.BUDGETS,):
-        assert f"experiments/results/table1_seeds20/{row.folder}" in dests, row.folder
+        assert row.retired or f"experiments/results/table1_seeds20/{row.folder}" in dests, row.folder
 
 
 @pytest.mark.sweep

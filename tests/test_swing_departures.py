@@ -147,11 +147,9 @@ def test_bad_values_are_refused_naming_the_key(key: str, bad: object, extra: dic
         _config(**{key: bad, **extra})
 
 
-def test_the_clipped_output_is_the_plain_actors_only() -> None:
-    """An anchored feed-forward trains its own tanh-bounded actor and DDPG its tanh actor: the setting is no
-    departure of theirs (the library default is ``"clip_inward"``)."""
+def test_the_clipped_output_is_algorithm_2s_only() -> None:
+    """DDPG trains its tanh actor: the setting is no departure of its (the library default is ``"clip_inward"``)."""
     from mixedrl.departures import actor_output
 
     assert actor_output.active(_config(actor_output="clip"))
-    assert not actor_output.active(_config(actor_output="clip", feedforward="lq_train"))
     assert not actor_output.active(_config(actor_output="clip").replace(method="ddpg"))

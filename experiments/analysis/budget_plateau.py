@@ -3,9 +3,9 @@ iteration budget grows, and does any seed diverge?
 
 Reads the sources of each budget -- a finished sweep directory of ``mixedrl sweep`` or a ``per_seed.csv`` of
 ``experiments/analysis/seed_statistics.py`` (:func:`seed_statistics.load_sources`) -- each holding the runs of one
-iteration budget on the same seeds (for example ``experiments/studies/table1_seeds20_lq_train.toml`` at 1500,
-``..._n4000.toml`` at 4000 and ``..._n10000.toml`` at 10,000 iterations; several sources may give one
-budget, each its own rows), and writes into ``--dest``:
+iteration budget on the same seeds (for example the shipped rows ``feedforward_lq_train`` at 1500,
+``..._n4000`` at 4000 and ``..._n10000`` at 10,000 iterations, whose option was retired at commit ee954d7;
+several sources may give one budget, each its own rows), and writes into ``--dest``:
 
 * ``budgets.json``: per row (method, or ``method[variant]``) and budget the mean course cost with its 95%
   bootstrap interval, the runs that left the road, the worst seed; per step from one budget to the next the
@@ -22,7 +22,8 @@ at the others.
 Usage::
 
     python experiments/analysis/budget_plateau.py experiments/results/table1_seeds20/feedforward_lq_train/per_seed.csv \\
-        experiments/results/table1_seeds20/feedforward_lq_train_n4000/per_seed.csv runs/table1_seeds20_lq_train_n10000 \\
+        experiments/results/table1_seeds20/feedforward_lq_train_n4000/per_seed.csv \
+        experiments/results/table1_seeds20/feedforward_lq_train_n10000/per_seed.csv \\
         --dest experiments/results/table1_seeds20/budgets_lq_train
 """
 

@@ -8,9 +8,8 @@ the wide training distribution. For each Algorithm-2 run of a finished sweep dir
 evaluations:
 
 * ``before``: the median critic loss over the ``--window`` iterations up to ``course_start``;
-* ``rise``: the largest critic loss over the ``sampler.course_ramp + 3 --window`` iterations after
-  ``course_start`` (the switch and the ``3 --window`` iterations after its end), over ``before`` (and the
-  iteration of that peak);
+* ``rise``: the largest critic loss over the ``3 --window`` iterations after ``course_start``, over ``before``
+  (and the iteration of that peak);
 * ``speed_at_switch``: the evaluated course speed error at iteration ``course_start`` (the run must evaluate
   there: ``run.eval_every`` divides it), ``final``: at the last evaluation, and ``change = final -
   speed_at_switch``;
@@ -23,7 +22,7 @@ Writes ``course_switch.json`` and ``course_switch.txt`` into ``--dest`` and prin
 
 Usage::
 
-    python experiments/analysis/course_switch.py runs/table1_seeds20_lq_affine_ss --dest experiments/results/table1_seeds20/feedforward_lq_affine_ss
+    python experiments/analysis/course_switch.py runs/table1_seeds20_default --dest runs/course_switch_default
 """
 
 from __future__ import annotations
@@ -59,7 +58,6 @@ def run_record(run: Path, config: dict[str, Any], window: int) -> dict[str, Any]
     if start is None:
         raise ValueError(f"{run}: sampler {config.get('sampler', {}).get('name')!r} has no course_start")
     start = int(start)
-    ramp = int(config["sampler"].get("course_ramp", 0))
     loss: dict[int, float] = {}
     speed: dict[int, float] = {}
     with (run / "metrics.csv").open(newline="") as fh:
@@ -68,7 +66,7 @@ def run_record(run: Path, config: dict[str, Any], window: int) -> dict[str, Any]
             loss[k] = float(row["train/critic_loss"])
             if row.get("eval/speed_mae"):
                 speed[k] = float(row["eval/speed_mae"])
-    end = start + ramp + 3 * window
+    end = start + 3 * window
     after = [k for k in range(start + 1, end + 1) if k in loss]
     ahead = [loss[k] for k in range(start - window + 1, start + 1) if k in loss]
     if len(after) < end - start or len(ahead) < window:
@@ -80,7 +78,7 @@ def run_record(run: Path, config: dict[str, Any], window: int) -> dict[str, Any]
     last = max(speed)
     variant = run.name.split("__")[0][len("variant="):] if run.name.startswith("variant=") else ""
     return {"method": config["method"], "seed": int(config["seed"]), "row": row_key(config["method"], variant),
-            "course_start": start, "course_ramp": ramp, "before": before,
+            "course_start": start, "before": before,
             "peak": loss[peak_at], "peak_iteration": peak_at, "rise": loss[peak_at] / before,
             "speed_at_switch": speed[start], "final": speed[last], "final_iteration": last,
             "change": speed[last] - speed[start]}
@@ -125,7 +123,7 @@ def _rho(c: dict[str, Any] | None, key: str) -> str:
 def render(doc: dict[str, Any]) -> str:
     w = doc["window"]
     lines = [f"The critic's loss after the course switch against the course speed error ({doc['source']})",
-             f"rise = largest critic loss over the sampler.course_ramp + {3 * w} iterations after sampler.course_start "
+             f"rise = largest critic loss over the {3 * w} iterations after sampler.course_start "
              f"/ median over the {w} before; change = final speed error - speed error at course_start [m/s]", "",
              "Spearman's rank correlation of the rise with the change and with the final speed error:",
              f"  {'all runs':<22} change {_rho(doc['pooled'], 'change')}   final {_rho(doc['pooled'], 'final')}"]

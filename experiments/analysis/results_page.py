@@ -4,8 +4,9 @@
 Every number on the page is read from the shipped result files under ``experiments/results/table1_seeds20``
 (``summary.json`` and ``per_seed.csv`` of :mod:`seed_statistics`, ``course_switch.json`` of
 :mod:`course_switch`, ``budgets.json`` of :mod:`budget_plateau`); the questions and outcomes below are the only
-words written here, and they hold no numbers. The page is generated, never edited by hand (a test checks that
-the shipped page is this script's output)::
+words written here, and they hold no numbers. A row whose option was retired from the library keeps its measured
+row; its spec column names the spec at :data:`RETIRED_AT`, the commit whose code still trains it. The page is
+generated, never edited by hand (a test checks that the shipped page is this script's output)::
 
     PYTHONPATH=. python experiments/analysis/results_page.py            # writes docs/results.rst
     PYTHONPATH=. python experiments/analysis/results_page.py --check    # exit 1 if docs/results.rst differs
@@ -30,12 +31,15 @@ PAGE = ROOT / "docs" / "results.rst"
 LINK = "../experiments/results/table1_seeds20"
 #: The precision issue's per-seed speed target [m/s].
 SPEED_TARGET = 0.010
+#: The commit that holds the specs (and the code) of the retired rows.
+RETIRED_AT = "ee954d7"
 
 
 @dataclasses.dataclass(frozen=True)
 class Row:
     """One shipped row: its directory under :data:`RESULTS`, the specs whose runs it holds (under
-    :data:`STUDIES`), the question it was run to answer and what became of the option."""
+    :data:`STUDIES`, or at :data:`RETIRED_AT` for a ``retired`` row), the question it was run to answer and what
+    became of the option."""
 
     folder: str
     specs: tuple[str, ...]
@@ -43,6 +47,8 @@ class Row:
     outcome: str
     #: ``seed_statistics.py --feedforward``: the checkpoints of the specs evaluated again with it.
     feedforward: str | None = None
+    #: The option the row trains was retired: its specs are gone from :data:`STUDIES` (kept at :data:`RETIRED_AT`).
+    retired: bool = False
 
 
 #: Table I's Algorithm-2 rows over seeds 0-19 (the one-step learner's 1500 iterations unless the spec says
@@ -60,36 +66,37 @@ TWENTY_SEEDS = (
     Row("feedforward_lq_train", ("table1_seeds20_lq_train",),
         "Does anchoring the actor at that action during training resolve the feed-forward and the targets?",
         "Training becomes reliable for model-driven RL and the oracle; speed is ordered as the physics orders "
-        "it; the targets are missed. Off by default."),
+        "it; the targets are missed. Retired.", retired=True),
     Row("feedforward_lq_train_n4000", ("table1_seeds20_lq_train_n4000",),
         "Does the plateau hold at 4000 iterations, and does mixed RL reach the oracle?",
-        "The plateau holds; mixed RL is the oracle on speed; the per-seed targets are missed."),
+        "The plateau holds; mixed RL is the oracle on speed; the per-seed targets are missed.", retired=True),
     Row("feedforward_lq_train_n10000", ("table1_seeds20_lq_train_n10000", "table1_seeds20_lq_train_n10000_oracle"),
         "At 10,000 iterations?",
-        "Every target but speed on every seed is met; the oracle misses that one too. A budget, not a default."),
+        "Every target but speed on every seed is met; the oracle misses that one too. A budget, not a default.",
+        retired=True),
     Row("feedforward_lq_affine", ("table1_seeds20_lq_affine",),
         "Does fixing the gain at the equilibrium too (the LQ optimum's affine part) order the speed error?",
         "Speed is ordered by the noise estimate; the course gets worse for every method (the gain is the straight "
-        "road's). Off by default."),
+        "road's). Retired.", retired=True),
     Row("feedforward_lq_affine_ss", ("table1_seeds20_lq_affine_ss",),
         "The affine part expanded about the steady state?",
-        "As lq_affine: one speed win more, within the spread, and an outlying seed after the course switch. Off by "
-        "default."),
+        "As lq_affine: one speed win more, within the spread, and an outlying seed after the course switch. "
+        "Retired.", retired=True),
     Row("feedforward_lq_affine_ss_ramp", ("table1_seeds20_lq_affine_ss_ramp",),
         "Does a gradual course switch (sampler.course_ramp = 500) remove the outlying seeds?",
-        "The paired speed targets are met together; the lateral and cost targets are not. Off by default."),
+        "The paired speed targets are met together; the lateral and cost targets are not. Retired.", retired=True),
     Row("feedforward_lq_train_n4000_ramp", ("table1_seeds20_lq_train_n4000_ramp",),
         "Does the gradual switch help lq_train at 4000 iterations?",
-        "No: it hurts on the worst seed. Not promoted."),
+        "No: it hurts on the worst seed. Not promoted.", retired=True),
     Row("feedforward_lq_affine_ss_target90", ("table1_seeds20_lq_affine_ss_target90",),
         "Does PEV's target critic (algorithm.critic_target = 0.9) cut the seed-to-seed spread?",
-        "The spread collapses for every method; the ratio and speed on every seed are missed. Off by default."),
+        "The spread collapses for every method; the ratio and speed on every seed are missed. Retired.", retired=True),
     Row("feedforward_lq_affine_ss_ramp_target90", ("table1_seeds20_lq_affine_ss_ramp_target90",),
         "The gradual switch and the target critic together?",
-        "Worse on speed than either alone. Not promoted."),
+        "Worse on speed than either alone. Not promoted.", retired=True),
     Row("feedforward_lq_affine_ss_target90_n4000", ("table1_seeds20_lq_affine_ss_target90_n4000",),
         "Does more training bring mixed RL's speed error within 0.010 m/s on every seed? (mixed RL only)",
-        "No: cost and lateral fall on every seed, speed rises (spent in the lane changes)."),
+        "No: cost and lateral fall on every seed, speed rises (spent in the lane changes).", retired=True),
     Row("default", ("table1_seeds20_default",),
         "The library's default learner (issue 42: H = 16 model rollouts, 800 iterations, batch 128): does it "
         "carry the paper's claims seed by seed?",
@@ -125,21 +132,21 @@ DDPG = Row("seeds20_ddpg", ("table1_seeds20", "table1_seeds20_ddpg"),
 HELD_OUT = (
     Row("course_ramp_heldout", ("course_ramp_heldout",),
         "Does a gradual course switch lower the critic's rise after the switch (criterion fixed before the runs)?",
-        "Criterion met; the twenty-seed row followed (feedforward_lq_affine_ss_ramp)."),
+        "Criterion met; the twenty-seed row followed (feedforward_lq_affine_ss_ramp).", retired=True),
     Row("critic_target_heldout", ("critic_target_heldout",),
         "Does PEV's target critic at 0.99 lower the rise?",
-        "Criterion met, but every target run leaves the road: not promoted, no twenty-seed row."),
+        "Criterion met, but every target run leaves the road: not promoted, no twenty-seed row.", retired=True),
     Row("critic_target90_heldout", ("critic_target90_heldout",),
         "The faster target critic, 0.9?",
         "Criterion not met, the course figures improved; the twenty-seed row tested it "
-        "(feedforward_lq_affine_ss_target90)."),
+        "(feedforward_lq_affine_ss_target90).", retired=True),
 )
 
 #: The course cost of ``lq_train`` over the budgets 1500, 4000 and 10,000 iterations.
 BUDGETS = Row("budgets_lq_train", ("table1_seeds20_lq_train", "table1_seeds20_lq_train_n4000",
                                    "table1_seeds20_lq_train_n10000", "table1_seeds20_lq_train_n10000_oracle"),
               "Does each method keep its course-cost plateau as the budget grows, with no seed diverging?",
-              "Yes for every method at both steps.")
+              "Yes for every method at both steps.", retired=True)
 
 LABELS = {"mixed": "mixed RL", "model": "model-driven RL", "oracle": "oracle"}
 
@@ -228,6 +235,8 @@ def measured_budgets(row: Row) -> str:
 
 
 def _spec_links(row: Row) -> str:
+    if row.retired:
+        return "retired: " + ", ".join(f"``git show {RETIRED_AT}:experiments/studies/{s}.toml``" for s in row.specs)
     return ", ".join(f"``{s}.toml``" for s in row.specs) + (
         f" evaluated with ``--feedforward {row.feedforward}``" if row.feedforward else "")
 
@@ -256,6 +265,9 @@ def render() -> str:
         "the conclusions). Each row is one shipped directory of ``experiments/results/table1_seeds20``, produced "
         "from its spec in ``experiments/studies`` by ``mixedrl sweep`` and the analysis scripts of "
         "``experiments/analysis``: the commands at the top of each spec, run by ``python experiments/ship.py SPEC``. "
+        f"A row marked retired trains an option since retired from the library: its measured row stays here, its "
+        f"spec and the code that trains it are at commit {RETIRED_AT} (``git show {RETIRED_AT}:<spec>``, "
+        f"``git worktree add ../old {RETIRED_AT}``). "
         "None of these options became a default; the library's default learner (row ``default``, the rollout "
         "learner of issue 42) was chosen on other systems and seeds (:doc:`tuning`) and is measured here on "
         "seeds 0-19. The ``paper`` preset keeps Algorithm 2 as written; each option's result is its row here.",
@@ -278,8 +290,8 @@ def render() -> str:
               "course figures (looked at after the criterion).", ""]
     lines += _table(HELD_OUT, measured_held_out)
     lines += ["Budgets", "-------", "",
-              "The course cost of ``lq_train`` over the budgets: the ratio of mean costs from one budget to the next "
-              "[paired 95% interval] (the plateau target: at most 1.05 and no seed diverged).", ""]
+              "The course cost of ``lq_train`` (retired) over the budgets: the ratio of mean costs from one budget to "
+              "the next [paired 95% interval] (the plateau target: at most 1.05 and no seed diverged).", ""]
     lines += _table((BUDGETS,), measured_budgets)
     lines += ["Every row against the targets", "-----------------------------", "",
               "``experiments/analysis/target_matrix.py`` over the shipped twenty-seed rows (re-derived by the tests, as "
@@ -289,8 +301,8 @@ def render() -> str:
               f".. include:: {LINK}/win_odds.txt", "   :literal:", ""]
     lines += ["Deleted settings", "----------------", "",
               "Departures deleted because neither the default nor the ``paper`` preset uses them (a saved config that "
-              "holds one at today's behaviour still loads, :data:`mixedrl.config.DELETED_SETTINGS`): what each "
-              "measured.", ""]
+              "holds one at today's behaviour still loads, :data:`mixedrl.config.DELETED_SETTINGS`; a retired value "
+              "is refused naming the commit that still runs it): what each measured.", ""]
     lines += [f"* ``{name}``: {text}" for name, text in DELETED]
     lines.append("")
     return "\n".join(lines)
@@ -316,6 +328,17 @@ DELETED: tuple[tuple[str, str], ...] = (
      "-0.013 to -0.016 rad (the LQR with the IBE's feed-forward: -0.023 to -0.025; ``n = 1``: -0.019, +0.085, "
      "+0.049), short of its target; on the double lane change (seed 0) it lost lateral precision and course "
      "cost. The default rollout learner's ``H``-step rollouts took its place."),
+    ("algorithm.feedforward = \"lq_train\", \"lq_affine\", \"lq_affine_ss\"",
+     f"the actor anchored during training at the LQ optimum's action (and, for the affine two, its gain, about the "
+     f"equilibrium or the optimum's steady state); retired at commit {RETIRED_AT}, which still runs them. Their "
+     f"twenty-seed rows are above (``feedforward_lq_*``, the held-out rows, ``budgets_lq_train``): on the double "
+     f"lane change no variant met every target; on the pendulum (:doc:`pendulum`) ``lq_affine_ss`` met the offset "
+     f"target on every seed. The deployed shifts ``lq_ss`` (the default) and ``lq`` stay."),
+    ("sampler.course_ramp",
+     f"the course copies of the double lane change's sampler moved onto the course over ``r`` iterations; only "
+     f"the retired rows above trained with ``r > 0`` (``course_ramp_heldout``, ``feedforward_lq_affine_ss_ramp``, "
+     f"``feedforward_lq_train_n4000_ramp``); retired at commit {RETIRED_AT} with them. A saved config with "
+     f"``r = 0`` still loads."),
 )
 
 

@@ -285,10 +285,7 @@ def format_table(rows: dict[str, list[dict[str, Any]]], stats: dict[str, Any], f
                      f"{SHIFTS.get(feedforward, 'shifted')})")
     trained = sorted({r.get("trained_feedforward") or "learned" for runs in rows.values() for r in runs} - {"learned"})
     if trained:
-        lines.append(f"Runs trained with algorithm.feedforward = {', '.join(map(repr, trained))} ('lq_train': the actor "
-                     f"anchored at the LQ optimum's action at the equilibrium during training; 'lq_affine': at its "
-                     f"action and gain" + ("; 'lq_affine_ss': at its action and gain about its steady state"
-                                           if "lq_affine_ss" in trained else "") + ")")
+        lines.append(f"Runs with algorithm.feedforward = {', '.join(map(repr, trained))}")
     lines.append("")
     head = f"{'method':<22}" + "".join(f"{f + (' [' + UNITS[f] + ']' if UNITS[f] else ''):>36}" for f in FIGURES[:3])
     lines += [head, "-" * len(head)]

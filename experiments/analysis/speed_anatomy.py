@@ -24,8 +24,7 @@ Writes ``speed_anatomy.json`` and ``speed_anatomy.txt`` into ``--dest`` and prin
 
 Usage::
 
-    python experiments/analysis/speed_anatomy.py runs/table1_seeds20_lq_affine_ss_target90 \
-        --dest experiments/results/table1_seeds20/feedforward_lq_affine_ss_target90
+    python experiments/analysis/speed_anatomy.py runs/table1_seeds20_default --dest runs/speed_anatomy_default
 """
 
 from __future__ import annotations

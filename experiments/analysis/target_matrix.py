@@ -7,8 +7,8 @@ also counts the seeds within 0.010 m/s from ``per_seed.csv``. Nothing is measure
 
 Usage::
 
-    python experiments/analysis/target_matrix.py experiments/results/table1_seeds20/feedforward_lq_train_n10000 \
-        experiments/results/table1_seeds20/feedforward_lq_affine_ss_target90 --out experiments/results/table1_seeds20/targets.txt
+    python experiments/analysis/target_matrix.py experiments/results/table1_seeds20/seeds20 \
+        experiments/results/table1_seeds20/feedforward --out experiments/results/table1_seeds20/targets.txt
 """
 
 from __future__ import annotations

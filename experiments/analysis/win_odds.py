@@ -18,7 +18,7 @@ Writes ``--out`` (text) and prints it.
 
 Usage::
 
-    python experiments/analysis/win_odds.py experiments/results/table1_seeds20/feedforward_lq_train_n4000/per_seed.csv ... --out experiments/results/table1_seeds20/win_odds.txt
+    python experiments/analysis/win_odds.py experiments/results/table1_seeds20/default/per_seed.csv ... --out experiments/results/table1_seeds20/win_odds.txt
 """
 
 from __future__ import annotations

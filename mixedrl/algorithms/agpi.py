@@ -39,10 +39,9 @@ from mixedrl.config import TrainConfig
 from mixedrl.algorithms import algorithm2
 from mixedrl.samplers import SAMPLER_CLASSES
 from mixedrl.departures import actor_output, anchor, critic_target, state_weights
-from mixedrl.departures.anchor import equilibrium_gain, equilibrium_observation, feedforward_policy
+from mixedrl.departures.anchor import feedforward_policy
 from mixedrl.expectation import NodeCache, expectation_nodes, h_value
-from mixedrl.networks import (Actor, AffineActor, AffineAnchoredActor, AnchoredActor, ClippedActor, Critic,
-                              QuadraticCritic)
+from mixedrl.networks import Actor, AffineActor, ClippedActor, Critic, QuadraticCritic
 from mixedrl.noise import make_noise_source
 from mixedrl.plant import check_plant_sampler
 from mixedrl.pev import critic_loss, critic_step
@@ -67,15 +66,12 @@ logger = logging.getLogger(__name__)
 # ----------------------------------------------------------------------------------------------------
 # Algorithm 2
 # ----------------------------------------------------------------------------------------------------
-def build_networks(task: Task, config: TrainConfig, generator: torch.Generator, architecture: str = "mlp",
-                   anchor_obs: torch.Tensor | None = None, anchor_gain: torch.Tensor | None = None
+def build_networks(task: Task, config: TrainConfig, generator: torch.Generator, architecture: str = "mlp"
                    ) -> tuple[torch.nn.Module, torch.nn.Module]:
     """Critic ``V(x; w)`` and actor ``pi(x; theta)`` of eq. (48) for ``task``.
 
     ``architecture="mlp"``: :class:`~mixedrl.networks.Critic` and :class:`~mixedrl.networks.Actor`
-    (the same for every method; with ``anchor_obs`` the :class:`~mixedrl.networks.AnchoredActor` anchored
-    there, ``algorithm.feedforward = "lq_train"``, same parameters and draws; with ``anchor_gain`` too the
-    :class:`~mixedrl.networks.AffineAnchoredActor`, ``"lq_affine"``); ``"quadratic"``: the exact LQ
+    (the same for every method); ``"quadratic"``: the exact LQ
     classes :class:`~mixedrl.networks.QuadraticCritic` and :class:`~mixedrl.networks.AffineActor`.
     """
     if architecture == "quadratic":
@@ -86,14 +82,9 @@ def build_networks(task: Task, config: TrainConfig, generator: torch.Generator, 
                     task.value_scale, config.algorithm.value_output)
     args = (task.obs_dim, task.action_dim, config.algorithm.hidden_sizes, config.algorithm.activation, generator,
             task.action_bound, task.obs_scale)
-    if anchor_obs is None:
-        # departure hook (actor_output): the clipped actor with a straight-through gradient for its parameters
-        actor: torch.nn.Module = (ClippedActor(*args, inward=config.algorithm.actor_output == "clip_inward")
-                                  if actor_output.active(config) else Actor(*args))
-    elif anchor_gain is None:
-        actor = AnchoredActor(*args, anchor_obs=anchor_obs)
-    else:
-        actor = AffineAnchoredActor(*args, anchor_obs=anchor_obs, gain=anchor_gain)
+    # departure hook (actor_output): the clipped actor with a straight-through gradient for its parameters
+    actor: torch.nn.Module = (ClippedActor(*args, inward=config.algorithm.actor_output == "clip_inward")
+                              if actor_output.active(config) else Actor(*args))
     return critic, actor
 
 
@@ -134,25 +125,18 @@ class AGPI:
         self.config = config
         self.architecture = architecture
         self.generator = torch.Generator().manual_seed(config.seed)
-        # algorithm.feedforward "lq" / "lq_ss" / "lq_train" / "lq_affine" / "lq_affine_ss": the equilibrium's LQ
-        # problem, checked here (a task without one is an error); "lq_train" trains the AnchoredActor, "lq_affine"
-        # and "lq_affine_ss" the AffineAnchoredActor (refresh_anchor). "auto" is "lq_ss" where the task declares
-        # an equilibrium whose LQ problem solves, else "learned" (anchor.resolve)
+        # algorithm.feedforward "lq" / "lq_ss": the equilibrium's LQ problem, checked here (a task without one is
+        # an error). "auto" is "lq_ss" where the task declares an equilibrium whose LQ problem solves, else
+        # "learned" (anchor.resolve)
         feedforward = self.feedforward = anchor.resolve(config, task)
         self._linearisation = None
-        if feedforward in anchor.ANCHORED and architecture != "mlp":
-            raise ValueError(f"algorithm.feedforward: {feedforward!r} anchors the MLP actor; architecture "
-                             f"{architecture!r} has none (use architecture 'mlp', or feedforward 'learned' or 'lq')")
         if feedforward != "learned":
             self._linearisation = task.linearisation()
             if self._linearisation is None:
                 raise ValueError(f"algorithm.feedforward: {feedforward!r} needs a task with an equilibrium "
                                  f"(Task.equilibrium); task {getattr(task, 'name', type(task).__name__)!r} "
                                  f"defines none")
-        anchor_obs = (equilibrium_observation(task, self._linearisation) if feedforward in anchor.ANCHORED
-                      else None)
-        gain = equilibrium_gain(task, self._linearisation) if feedforward in anchor.AFFINE else None
-        self.critic, self.actor = build_networks(task, config, self.generator, architecture, anchor_obs, gain)
+        self.critic, self.actor = build_networks(task, config, self.generator, architecture)
         self.critic_opt = torch.optim.Adam(self.critic.parameters(), lr=config.algorithm.critic_lr)
         self.actor_opt = torch.optim.Adam(self.actor.parameters(), lr=config.algorithm.actor_lr)
         # Case 1 / 2 / 3 of the IBE (config.algorithm.ibe_case; mixed RL only)
@@ -184,7 +168,6 @@ class AGPI:
         #: critic's weights), else ``None`` (PEV's target takes the critic itself, eq. 50;
         #: :mod:`mixedrl.departures.critic_target`).
         self.critic_target: AveragedModel | None = critic_target.make(self.critic, config)
-        self.refresh_anchor()
 
     # -------------------------------------------------------------------------------------- helpers
     @property
@@ -198,20 +181,13 @@ class AGPI:
         """The learned policy: the actor ``pi(x; theta)`` (before a feed-forward of :attr:`policy`)."""
         return self.actor
 
-    def refresh_anchor(self) -> None:
-        """Anchor an anchored actor at the LQ optimum for the current own noise moments
-        (:func:`mixedrl.departures.anchor.refresh`, the hook the loop calls at the start and the end of every
-        iteration; also called at construction). Otherwise nothing."""
-        anchor.refresh(self)
-
     @property
     def policy(self) -> torch.nn.Module:
         """The run's policy as a module on observations (what is evaluated and deployed): the
         :attr:`learned_policy`, or, with ``config.algorithm.feedforward = "lq"``, that policy shifted to the
         discounted LQ optimum's action at the equilibrium for the current noise mean
         (:func:`mixedrl.precision.feedforward_policy`), with ``"lq_ss"`` (``"auto"``'s value on a task with an
-        equilibrium, :attr:`feedforward`) near the optimum's steady state; with ``"lq_train"`` and
-        ``"lq_affine"`` the learned policy is the anchored actor itself (:meth:`refresh_anchor`)."""
+        equilibrium, :attr:`feedforward`) near the optimum's steady state."""
         if self.feedforward in ("lq", "lq_ss"):
             return feedforward_policy(self, self.learned_policy, self._linearisation,
                                       steady=self.feedforward == "lq_ss")

@@ -18,7 +18,7 @@ their networks and batches) is
 
 The noise source is the only difference between mixed RL (an IBE posterior), model-driven RL (the prior,
 eq. 55) and the oracle (the true noise). Where the library departs from the paper the loop calls a named hook
-of :mod:`mixedrl.departures` (schedule, anchor, sampler, state weights, target values, Bellman steps,
+of :mod:`mixedrl.departures` (schedule, sampler, state weights, target values, Bellman steps,
 averaging, model rollouts in PEV and PIM); with every departure off (``TrainConfig.preset("paper")``) the loop is the paper's.
 
 Order: the paper's loop is IBE -> PEV -> PIM -> MVC. The MVC of eq. (38) needs ``xi_hat_{k+1}``, so the IBE
@@ -37,7 +37,7 @@ from typing import Any, Sequence
 import numpy as np
 import torch
 
-from mixedrl.departures import anchor, critic_target, region, rollout, sampler, schedule, state_weights
+from mixedrl.departures import critic_target, region, rollout, sampler, schedule, state_weights
 from mixedrl.expectation import expectation_nodes, h_value
 from mixedrl.pev import critic_step
 from mixedrl.pim import MVCResult, actor_step, mvc_check
@@ -77,7 +77,6 @@ def iteration(engine: Any, active: Sequence[bool] | None = None) -> list[dict[st
             batches.append(engine.placeholder(m))
             residuals.append(None)
             continue
-        anchor.refresh(m)  # departure hook: u_ff of xi_hat_k, before the actor is used
         schedule.start(m)  # departure hook: the learning rates of iteration k
         s_r, xi_r = sampler.collect(m)  # hook: the paper's true copies, or model rollouts
         batches.append(s_r)
@@ -171,7 +170,6 @@ def iteration(engine: Any, active: Sequence[bool] | None = None) -> list[dict[st
             m.stop_count = 0
         m.stopped = cfg.stop_epsilon > 0 and m.stop_count >= cfg.stop_patience
         critic_target.end(m)  # departure hook: w_bar <- beta w_bar + (1 - beta) w^{k+1}
-        anchor.refresh(m)  # departure hook: the evaluated policy anchored at the next iteration's moments
         m.k += 1
         m.last_batch = batches[r]
         rows[r] = metrics_row(m, residuals[r], v_before[sl], critic_losses[r], actor_objs[r], dv, dpi, mvc, j_r)

@@ -46,7 +46,6 @@ from torch.func import functional_call, stack_module_state, vmap
 from mixedrl.algorithms import algorithm2
 from mixedrl.compiled import Evaluation
 from mixedrl.config import optimiser_section
-from mixedrl.departures.anchor import ANCHORED
 from mixedrl.schedule import Descent, descend
 
 __all__ = ["BatchedAGPI", "BatchedRuns", "StackedNetwork", "SHARED_FIELDS", "DDPG_SHARED_FIELDS", "batch_key"]
@@ -93,15 +92,7 @@ def batch_key(config: Any) -> tuple[Any, ...]:
     if config.method == "ddpg":
         return ("ddpg", repr(config.task), config.run.num_threads) + tuple(
             repr(_setting(config, f)) for f in DDPG_SHARED_FIELDS)
-    return (repr(config.task), config.run.num_threads, _anchored(config)) + tuple(
-        repr(_setting(config, f)) for f in SHARED_FIELDS)
-
-
-def _anchored(config: Any) -> bool:
-    """The anchored actor class the run trains (``algorithm.feedforward`` in
-    :data:`~mixedrl.departures.anchor.ANCHORED`: other buffers, another forward), else ``""``."""
-    ff = config.algorithm.feedforward
-    return ff if ff in ANCHORED else ""
+    return (repr(config.task), config.run.num_threads) + tuple(repr(_setting(config, f)) for f in SHARED_FIELDS)
 
 
 class StackedNetwork:
@@ -122,8 +113,7 @@ class StackedNetwork:
     ``(R, ...)`` (:attr:`leaves`) and each module's parameters are rebound to their views, so a step on
     the stacked tensors is a step of every module and the modules stay usable on their own. The buffers
     are stacked too (:attr:`buffers`) and each module's buffers rebound to their views, so a change of a
-    module's buffer in place (the anchor of :class:`mixedrl.networks.AnchoredActor`) reaches the stacked
-    call.
+    module's buffer in place reaches the stacked call.
     """
 
     def __init__(self, modules: Sequence[torch.nn.Module], batch: int) -> None:
@@ -201,12 +191,6 @@ def _check_members(members: Sequence[AGPI]) -> None:
             raise ValueError(f"members: entry {i} is a {type(m).__name__}, not an AGPI run (DDPG runs train in a "
                              f"BatchedDDPG)")
     check_shared(members, SHARED_FIELDS)
-    first = members[0]
-    for i, m in enumerate(members[1:], start=1):
-        if _anchored(m.config) != _anchored(first.config):
-            raise ValueError(f"members: run {i} has algorithm.feedforward = {m.config.algorithm.feedforward!r}, run 0 "
-                             f"{first.config.algorithm.feedforward!r}; runs with 'lq_train', 'lq_affine' or "
-                             f"'lq_affine_ss' (anchored actors) train in batches of their own kind")
 
 
 def check_shared(members: Sequence[Any], fields: Sequence[str]) -> None:

@@ -9,7 +9,7 @@ the only difference between them).
 hook                   module                                       where the loop calls it
 =====================  ===========================================  ==========================================
 schedule               :mod:`~mixedrl.departures.schedule`          start of the iteration (learning rates)
-actor class / anchor   :mod:`~mixedrl.departures.anchor`            start and end of the iteration
+anchor                 :mod:`~mixedrl.departures.anchor`            the deployed policy (``AGPI.policy``)
 sampler                :mod:`~mixedrl.departures.sampler`           data (the batch and the true transitions)
 state weights          :mod:`~mixedrl.departures.state_weights`     PEV and PIM (per-state weights)
 target values          :mod:`~mixedrl.departures.critic_target`     PEV (the network inside ``V_target``)

@@ -9,7 +9,7 @@ also where the output is clipped (so a saturated actor still receives the gradie
 only where the descent step moves the clipped output back inside (``dJ/dz * z > 0``), so a saturated output
 cannot wind up. The value of the action is exactly the clip's. Applied identically to mixed RL, model-driven RL
 and the oracle; ``R >= 1`` stacked runs train it (the stacked call is the module's own ``forward``,
-:class:`mixedrl.algorithms.batched.StackedNetwork`); an anchored ``feedforward`` and DDPG refuse it.
+:class:`mixedrl.algorithms.batched.StackedNetwork`); DDPG refuses it.
 
 Why: with ``H``-step rollouts on a global task the gradient of a ``tanh`` output vanishes where it saturates and
 the policy sets into bang-bang control; passing the clip's gradient straight through for the state as well
@@ -29,7 +29,6 @@ from __future__ import annotations
 from typing import Any
 
 from mixedrl.config import PAPER_SETTINGS
-from mixedrl.config_tasks import ANCHORED_FEEDFORWARDS
 
 NAME = "actor_output"
 KEY = "algorithm.actor_output"
@@ -40,7 +39,5 @@ __all__ = ["NAME", "KEY", "PAPER", "active"]
 
 def active(config: Any) -> bool:
     """Whether the actor's output is clipped (``algorithm.actor_output`` ``"clip"`` or ``"clip_inward"``) instead
-    of ``tanh``-squashed: Algorithm 2's plain actor only (an anchored ``algorithm.feedforward`` trains its own
-    ``tanh``-bounded actor, DDPG its ``tanh`` actor)."""
-    return (config.algorithm.actor_output != PAPER and config.algorithm.feedforward not in ANCHORED_FEEDFORWARDS
-            and config.method != "ddpg")
+    of ``tanh``-squashed: Algorithm 2's actor only (DDPG trains its ``tanh`` actor)."""
+    return config.algorithm.actor_output != PAPER and config.method != "ddpg"

@@ -1,4 +1,4 @@
-"""Departure hook *actor class / anchor*: the actor is anchored at the discounted LQ optimum of the equilibrium.
+"""Departure hook *anchor*: the deployed policy is anchored at the discounted LQ optimum of the equilibrium.
 
 The paper's actor is an MLP ``pi(x; theta)`` (eq. 48) whose action at the task's equilibrium is whatever
 training makes it (``algorithm.feedforward = "learned"``). This departure uses the discounted LQ optimum on
@@ -10,19 +10,15 @@ IBE posterior; model-driven RL: the prior; the oracle: the truth; :func:`own_noi
 * ``"lq_ss"``: training unchanged; the deployed policy is the actor shifted to the optimum's action at the
   optimum's steady state for the own noise mean (:func:`feedforward_policy` with ``steady=True``);
 * ``"lq"``: training unchanged; the deployed policy is the actor shifted to the optimum's action at the
-  equilibrium (:func:`feedforward_policy`, :class:`FeedForwardPolicy`);
-* ``"lq_train"``: the actor class :class:`mixedrl.networks.AnchoredActor`, anchored at the optimum's action
-  ``u_ff`` (:func:`feedforward_action`);
-* ``"lq_affine"``: :class:`mixedrl.networks.AffineAnchoredActor`, with the optimum's gain too
-  (:func:`equilibrium_gain`);
-* ``"lq_affine_ss"``: the same expanded about the optimum's steady state (:func:`steady_anchor`).
+  equilibrium (:func:`feedforward_policy`, :class:`FeedForwardPolicy`).
 
-The anchor is refreshed (:func:`refresh`) at the start of every iteration (before the actor is used) and at
-its end. Measured effect (docs/precision.rst, issue 21): ``lq_affine_ss`` with the target critic gives the
-speed win on 20 of 20 seeds of the double lane change. ``"lq_ss"`` became the default where a task declares an
-equilibrium on the tuning systems' held-out seeds (``experiments/results/learner_tuning/table.md``, variants
-``default_lqss`` / ``default_lq`` against the learned feed-forward): steady offsets within the target on 6 of 6
-runs (``"lq"`` 4 of 6, the learned one 2 of 6), cost over the LQR within -0.07% to +0.15% of the learned one's.
+Training is unchanged by every value. The trained anchored actors (``"lq_train"``, ``"lq_affine"``,
+``"lq_affine_ss"``) were retired: their rows stay on the results page (docs/results.rst), git commit ee954d7
+runs them. ``"lq_ss"`` became the default
+where a task declares an equilibrium on the tuning systems' held-out seeds
+(``experiments/results/learner_tuning/table.md``, variants ``default_lqss`` / ``default_lq`` against the learned
+feed-forward): steady offsets within the target on 6 of 6 runs (``"lq"`` 4 of 6, the learned one 2 of 6), cost
+over the LQR within -0.07% to +0.15% of the learned one's.
 """
 
 from __future__ import annotations
@@ -34,12 +30,11 @@ from typing import Any
 import numpy as np
 import torch
 
-from mixedrl.config import AFFINE_FEEDFORWARDS, ANCHORED_FEEDFORWARDS, PAPER_SETTINGS
+from mixedrl.config import PAPER_SETTINGS
 from mixedrl.lq import LQSolution, discounted_lq_optimum
-from mixedrl.networks import AnchoredActor
 from mixedrl.task_base import Linearisation, Task
 
-__all__ = ["NAME", "KEY", "PAPER", "active", "resolve", "refresh", "LQReference", "lq_reference", "own_noise",
+__all__ = ["NAME", "KEY", "PAPER", "active", "resolve", "LQReference", "lq_reference", "own_noise",
            "FeedForwardPolicy", "feedforward_policy", "equilibrium_observation", "equilibrium_gain",
            "feedforward_action", "steady_anchor"]
 
@@ -48,10 +43,6 @@ logger = logging.getLogger(__name__)
 NAME = "anchor"
 KEY = "algorithm.feedforward"
 PAPER = PAPER_SETTINGS["algorithm"]["feedforward"]
-#: The values of ``algorithm.feedforward`` that train an anchored actor class.
-ANCHORED = ANCHORED_FEEDFORWARDS
-#: The anchored classes with the optimum's gain (:class:`mixedrl.networks.AffineAnchoredActor`).
-AFFINE = AFFINE_FEEDFORWARDS
 
 
 def active(config: Any) -> bool:
@@ -76,20 +67,6 @@ def resolve(config: Any, task: Task) -> str:
                        "learned feed-forward is deployed", type(err).__name__, err)
         return "learned"
     return "lq_ss"
-
-
-def refresh(run: Any) -> None:
-    """The hook at the start and at the end of every iteration (and at construction): an anchored actor is
-    anchored at the LQ optimum for the run's current own noise moments, in place (a batch's stacked buffers
-    follow): ``"lq_train"`` / ``"lq_affine"`` at the optimum's action ``u_ff``
-    (:func:`feedforward_action`), ``"lq_affine_ss"`` at the optimum's steady state and its action there
-    (:func:`steady_anchor`). Otherwise nothing."""
-    if not isinstance(run.actor, AnchoredActor):
-        return
-    if run.config.algorithm.feedforward == "lq_affine_ss":
-        run.actor.set_anchor(*steady_anchor(run, run._linearisation, run.actor))
-    else:
-        run.actor.set_anchor_action(feedforward_action(run, run._linearisation, run.actor))
 
 
 @dataclass(frozen=True)
@@ -287,7 +264,8 @@ def equilibrium_observation(task: Task, lin: Linearisation) -> torch.Tensor:
 
 
 def equilibrium_gain(task: Task, lin: Linearisation) -> torch.Tensor:
-    """The LQ optimum's feedback gain in observation coordinates at the equilibrium (``"lq_affine"``).
+    """The LQ optimum's feedback gain in observation coordinates at the equilibrium (the LQR's,
+    :class:`mixedrl.precision.LQRPolicy`).
 
     .. math:: G = -L\\, J_o^{+}, \\qquad J_o = \\frac{\\partial\\, o(s(x))}{\\partial x}\\Big|_{x=0}
 
@@ -302,15 +280,14 @@ def equilibrium_gain(task: Task, lin: Linearisation) -> torch.Tensor:
     Raises
     ------
     ValueError
-        If ``J_o`` is not of full column rank (the message names ``algorithm.feedforward``), or as
-        :func:`lq_reference`.
+        If ``J_o`` is not of full column rank, or as :func:`lq_reference`.
     """
     n = lin.A.shape[0]
     J_o = torch.func.jacrev(lambda x: task.observe(lin.to_state(x[None]))[0])(
         torch.zeros(n, dtype=torch.float64)).detach().double().numpy()
     if np.linalg.matrix_rank(J_o) < n:
-        raise ValueError(f"algorithm.feedforward: 'lq_affine' and 'lq_affine_ss' need observations that "
-                         f"determine the linearisation's {n} coordinates at the equilibrium; d o / d x there has rank "
+        raise ValueError(f"task: the LQ gain in observation coordinates needs observations that determine the "
+                         f"linearisation's {n} coordinates at the equilibrium; d o / d x there has rank "
                          f"{np.linalg.matrix_rank(J_o)}")
     L = lq_reference(lin, np.zeros(lin.E.shape[1])).solution.gain
     return torch.as_tensor(-L @ np.linalg.pinv(J_o))
@@ -340,16 +317,14 @@ def _own_reference(trainer: Any, lin: Linearisation, policy: torch.nn.Module | N
 
 def steady_anchor(trainer: Any, lin: Linearisation, policy: torch.nn.Module | None = None
                   ) -> tuple[torch.Tensor, torch.Tensor]:
-    """The anchor of ``algorithm.feedforward = "lq_affine_ss"``: the observation of the LQ optimum's steady
-    state for the trainer's own noise (:func:`own_noise`; ``policy`` as there) and the optimum's action
-    there (:attr:`LQReference.steady_state`, :attr:`LQReference.steady_action`).
+    """The anchor of ``algorithm.feedforward = "lq_ss"``: the observation of the LQ optimum's steady state
+    for the trainer's own noise (:func:`own_noise`; ``policy`` as there) and the optimum's action there
+    (:attr:`LQReference.steady_state`, :attr:`LQReference.steady_action`).
 
     .. math:: o^* = o\\big(s(x_{ss})\\big), \\qquad u(o^*) = u^* - L x_{ss} - l_0
 
-    The optimum's affine policy ``u* - l0 - L x`` takes this action at ``x_ss``, and its gain there is
-    ``-L`` as everywhere, so the :class:`~mixedrl.networks.AffineAnchoredActor` anchored here equals it to
-    first order about the state its closed loop holds (where an observation is affine in the coordinates,
-    as on the pendulum, ``G = -L J_o^+`` of :func:`equilibrium_gain` is its gain at ``x_ss`` too).
+    The optimum's affine policy ``u* - l0 - L x`` takes this action at ``x_ss``: a policy shifted to it there
+    (:func:`feedforward_policy` with ``steady=True``) rests where the optimum's closed loop does, to first order.
 
     Returns
     -------

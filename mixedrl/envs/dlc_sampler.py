@@ -37,7 +37,7 @@ class CourseSampler(ModelRolloutsSampler):
     course; docs/model_based.rst). Model rollouts as :class:`ModelRolloutsSampler`, of two kinds:
 
     * *course* copies (a fraction ``course_fraction`` of the batch) drive the course, from iteration
-      ``course_start`` on (spread over ``course_ramp`` iterations), for ``course_horizon`` steps,
+      ``course_start`` on, for ``course_horizon`` steps,
       restarting as ``course_starts`` says, and are
       *kicked* (``kick_prob`` per step, ``kick_scale`` times ``obs_scale``) so that the batch spreads
       around the course trajectory;
@@ -65,12 +65,6 @@ class CourseSampler(ModelRolloutsSampler):
     """Iteration from which the course copies drive the course; before it they restart from the wide
     distribution like the others."""
 
-    course_ramp: int = 0
-    """Iterations over which the course copies switch to the course (a departure, docs/precision.rst): 0 =
-    all at ``course_start`` (the DLC experiment's configuration); ``r > 0`` = copy ``i`` of the ``n``
-    course copies from iteration ``course_start + floor(i r / n)`` on, so the batch moves onto the course
-    gradually, at the same rate for every method."""
-
     course_starts: str = "along"
     """Where a course copy restarts once ``course_start`` has passed: ``"start"`` = at the course start
     (``X = 0``), not at the course's end (a copy drives on past it until its horizon); ``"along"`` = on
@@ -93,7 +87,6 @@ class CourseSampler(ModelRolloutsSampler):
         check_fraction(self.course_fraction, f"{w}.course_fraction")
         check_fraction(self.kick_prob, f"{w}.kick_prob")
         self.course_start = check_nonnegative_int(self.course_start, f"{w}.course_start")
-        self.course_ramp = check_nonnegative_int(self.course_ramp, f"{w}.course_ramp")
         if self.course_starts not in MODEL_COURSE_STARTS:
             raise ValueError(f"{w}.course_starts: expected one of {MODEL_COURSE_STARTS}, got {self.course_starts!r}")
         self.course_horizon = check_positive_int(self.course_horizon, f"{w}.course_horizon")
@@ -126,19 +119,15 @@ class CourseStateSampler(ModelStateSampler):
 
     def copy_horizons(self, batch: int) -> torch.Tensor:
         """Course copies: ``course_horizon``; wide copies: ``algorithm.horizon``. Sets :attr:`course` (the
-        course copies) and :attr:`switch` (the iteration from which each, if a course copy, drives the
-        course: ``course_start``, or spread evenly over ``course_ramp`` iterations after it, copy ``i`` of
-        ``n`` at ``course_start + floor(i course_ramp / n)``)."""
+        course copies)."""
         opts = self.options
-        n_course = int(round(opts.course_fraction * batch))
-        self.course = torch.arange(batch) < n_course
-        self.switch = opts.course_start + (torch.arange(batch) * opts.course_ramp) // max(n_course, 1)
+        self.course = torch.arange(batch) < int(round(opts.course_fraction * batch))
         return torch.where(self.course, opts.course_horizon, self.config.algorithm.horizon)
 
     def on_course(self) -> torch.Tensor:
-        """The copies that drive the course at the current iteration: the course copies whose
-        :attr:`switch` has passed (all of them from ``course_start + course_ramp`` on); shape (B,), bool."""
-        return self.course & (self.k >= self.switch)
+        """The copies that drive the course at the current iteration: the course copies from iteration
+        ``course_start`` on; shape (B,), bool."""
+        return self.course & (self.k >= self.options.course_start)
 
     def expired(self, s_next: torch.Tensor) -> torch.Tensor:
         """Clock past the copy's horizon (a course copy's only once it drives the course), or a course copy
