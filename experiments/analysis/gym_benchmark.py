@@ -268,6 +268,8 @@ def expand_runs(spec: dict[str, Any], reduced: bool = False) -> list[dict[str, A
                 per_env = method.get("envs", {}).get(env_id, {})
                 if method["kind"] == "sb3" and not per_env:
                     continue
+                if method["kind"] == "mixedrl" and "envs" in method and env_id not in method["envs"]:
+                    continue  # an Algorithm-2 row restricted to some envs (its "envs" table names them)
                 seeds = per_env.get("seeds", method.get("seeds", spec["seeds"]))
                 if red is not None:
                     seeds = [s for s in red["seeds"] if s in seeds] or list(red["seeds"])
@@ -546,6 +548,15 @@ def analyse(spec: dict[str, Any], results: list[dict[str, Any]], results_dir: Pa
             gap = est["oracle"]["iqm"] - est["model"]["iqm"]
             lines += ["", f"What the disturbance costs the prior-model policy: oracle IQM - model IQM = {_fmt(gap)}."]
             cell["disturbance_cost"] = gap
+        extra = {f"{a} > {b}": (scores[a], scores[b]) for a, b in stats_spec.get("pairs", [])
+                 if a in scores and b in scores}
+        if extra:  # the spec's further pairs (paired by seed): P(a > b), and on how many seeds a is higher
+            cell["pairs"] = improvement_estimates(extra, reps=reps, confidence=conf, seed=bseed, backend=backend)
+            for name, (x, y) in extra.items():
+                p, wins = cell["pairs"][name], int(np.sum(x[:, 0] > y[:, 0]))
+                cell["pairs"][name]["higher_on"] = wins
+                lines += ["", f"P({name}) = {p['p']:.2f} [{p['lo']:.2f}, {p['hi']:.2f}]; higher on {wins} of "
+                          f"{len(x)} seeds."]
         lines.append("")
         table["cells"].append(cell)
     timing = timing_table(results)
@@ -570,7 +581,8 @@ def timing_table(results: list[dict[str, Any]]) -> list[dict[str, Any]]:
         if r["steps"] > 0:
             key = (r["config"]["env"], r["config"]["method"])
             groups.setdefault(key, []).append(1000 * r["train_seconds"] / r["steps"])
-    return [{"env": e, "method": m, "unit": "iterations" if m in ("mixed", "model", "oracle") else "env steps",
+    kinds = {(r["config"]["env"], r["config"]["method"]): r["config"]["kind"] for r in results}
+    return [{"env": e, "method": m, "unit": "iterations" if kinds[(e, m)] == "mixedrl" else "env steps",
              "seconds_per_1k": float(np.median(v)), "runs": len(v)} for (e, m), v in groups.items()]
 
 
