@@ -35,7 +35,8 @@ if str(_ANALYSIS) not in sys.path:
     sys.path.insert(0, str(_ANALYSIS))
 from precision_study import LQRPolicy  # noqa: E402  (the discounted LQR with a mean's feed-forward, as a policy)
 
-__all__ = ["CartFriction", "TwoTank", "SwingUp", "SwingUpEquilibrium", "TUNING_SYSTEMS", "GLOBAL_TUNING_SYSTEMS", "LQRPolicy", "lqr_reference"]
+__all__ = ["CartFriction", "TwoTank", "SwingUp", "SwingUpEquilibrium", "SwingUpBias",
+           "TUNING_SYSTEMS", "GLOBAL_TUNING_SYSTEMS", "LQRPolicy", "lqr_reference"]
 
 
 class _OriginTask(Task):
@@ -247,7 +248,16 @@ class SwingUpEquilibrium(SwingUp):
         return Equilibrium(state=np.zeros(2), action=np.zeros(1))
 
 
-GLOBAL_TUNING_SYSTEMS: dict[str, type[Task]] = {"swing_up": SwingUp, "swing_up_eq": SwingUpEquilibrium}
+class SwingUpBias(SwingUp):
+    """:class:`SwingUp` with a torque twice as large (true 1.2 N m, about half the 2.5 N m bound; prior 0): a
+    second global tuning system, where the unmodelled torque takes half the actuator's authority on one side."""
+
+    def __init__(self, **kwargs: Any) -> None:
+        super().__init__(**{"torque_bias": 1.2, **kwargs})
+
+
+GLOBAL_TUNING_SYSTEMS: dict[str, type[Task]] = {"swing_up": SwingUp, "swing_up_eq": SwingUpEquilibrium,
+                                                "swing_up_bias": SwingUpBias}
 
 
 def lqr_reference(task: Task) -> dict[str, Any]:
