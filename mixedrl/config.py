@@ -527,4 +527,5 @@ ONE_STEP_LEARNER: dict[str, Any] = {**PAPER_HYPERPARAMETERS, "critic_target": 0.
 #: Preset name -> section -> settings applied over ``TrainConfig(**fields)`` (:meth:`TrainConfig.preset`).
 CONFIG_PRESETS: dict[str, dict[str, dict[str, Any]]] = {
     "library": {},
-    "paper": {**PAPER_SETTINGS, "algorithm": {**PAPER_SETTINGS["algorithm"], **PAPER_HYPERPARAMETERS}}}
+    "paper": {**PAPER_SETTINGS, "algorithm": {**PAPER_SETTINGS["algorithm"], **PAPER_HYPERPARAMETERS,
+                                              "region_budget": 1}}}

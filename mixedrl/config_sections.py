@@ -54,7 +54,17 @@ class AlgorithmConfig:
 
     iterations: int = 800
     """Budget: number of outer iterations ``k`` (one PEV + PIM step of Algorithm 2, or one DDPG update); the
-    same budget rule for every method, DDPG included."""
+    same budget rule for every method, DDPG included (Algorithm 2 on a global task: :attr:`region_budget`)."""
+
+    region_budget: int = 4
+    """Algorithm 2 on a task that declares a state region (a global task such as the swing-up:
+    :meth:`mixedrl.task_base.Task.declares_region`) trains ``region_budget * iterations`` iterations, and
+    its sampler drives the true system and its periodic evaluations run ``region_budget`` times less often
+    (``sampler.true_every``, ``run.eval_every``), so the true transitions stay those of ``iterations``
+    (:func:`mixedrl.schedule.resolve_budget`; the run's
+    ``config.json`` holds the resolved budget, with ``region_budget`` 1). 1 turns the rule off (the
+    ``paper`` preset). Chosen on the tuning swing-ups before the Pendulum-v1 runs under it (docs/tuning.rst);
+    a task without a region is unaffected."""
 
     batch_size: int = 128
     """Number of states of the PEV/PIM batch per iteration (Algorithm 2; made by the sampler). DDPG's
@@ -224,6 +234,7 @@ class AlgorithmConfig:
             setattr(self, name, check_positive_int(getattr(self, name), f"{w}.{name}"))
         _check_optimiser(self, w)
         self.lr_decay_iterations = check_nonnegative_int(self.lr_decay_iterations, f"{w}.lr_decay_iterations")
+        self.region_budget = check_positive_int(self.region_budget, f"{w}.region_budget")
         if isinstance(self.hidden_sizes, (str, bytes)) or not isinstance(self.hidden_sizes, (list, tuple)) \
                 or not self.hidden_sizes:
             raise ValueError(f"{w}.hidden_sizes: expected positive widths, got {self.hidden_sizes!r}")

@@ -246,6 +246,8 @@ def summarize(trainer: Any, rows: list[dict[str, Any]], elapsed: float, seeds: l
     results["references"], reason = run_references(trainer, seeds)
     if reason is not None:
         results["references_reason"] = reason
+    if getattr(trainer, "region_budget", 1) != 1:  # a global task's budget (schedule.resolve_budget)
+        results["region_budget"] = trainer.region_budget
     feedforward = getattr(trainer, "feedforward", "learned")  # the trainer's, "auto" resolved
     if feedforward != "learned":
         # the evaluated policy's action at the equilibrium (lq) or at the optimum's steady state (lq_ss) is the

@@ -1,5 +1,6 @@
-"""The optimiser steps of Algorithm 2 (:func:`descend`, one run or many stacked) and the learning-rate
-schedule shared by Algorithm 2 (:mod:`mixedrl.algorithms.agpi`) and DDPG."""
+"""The budget and the optimiser steps of Algorithm 2: the budget of a run on its task (:func:`resolve_budget`),
+one gradient step (:func:`descend`, one run or many stacked) and the learning-rate schedule shared by
+Algorithm 2 (:mod:`mixedrl.algorithms.agpi`) and DDPG."""
 
 from __future__ import annotations
 
@@ -9,7 +10,47 @@ from typing import Any, Callable, Hashable, Sequence
 
 from mixedrl.config import TrainConfig, optimiser_section
 
-__all__ = ["lr_factor", "set_learning_rates", "descend", "Descent"]
+__all__ = ["resolve_budget", "lr_factor", "set_learning_rates", "descend", "Descent"]
+
+
+def resolve_budget(config: TrainConfig, task: Any) -> tuple[TrainConfig, int]:
+    """The config an Algorithm-2 run on ``task`` trains with, and the factor its budget was scaled by.
+
+    On a task that declares a state region (``task.declares_region()``, a global task) Algorithm 2 trains
+    ``f = algorithm.region_budget`` times ``algorithm.iterations`` iterations; a sampler with a
+    ``true_every`` period drives the true system ``f`` times less often, and the periodic evaluations come
+    every ``f * run.eval_every`` iterations, so the true transitions of training
+    (``true_envs * true_steps * iterations / true_every``) and of evaluation stay those of ``iterations``.
+    Everything that runs over the budget (the learning-rate decay, the rollouts' discount ramp) stretches
+    with it; the checkpoint period and an explicit ``lr_decay_iterations`` do not. The
+    resolved config has ``region_budget`` 1, so resolving it again changes nothing (a saved ``config.json``
+    is the resolved one, and a resume or ``evaluate_run`` built from it trains the same budget).
+
+    Parameters
+    ----------
+    config : TrainConfig
+        The run's config as given.
+    task : Task
+        Its task (any object; one without ``declares_region`` declares no region).
+
+    Returns
+    -------
+    config : TrainConfig
+        ``config`` itself where the rule does not apply (DDPG, a task without a region, ``region_budget``
+        1), else a copy with ``iterations``, ``sampler.true_every`` and ``run.eval_every`` scaled and
+        ``region_budget`` 1.
+    factor : int
+        ``region_budget`` where the rule applied, else 1.
+    """
+    factor = config.algorithm.region_budget
+    declares = getattr(task, "declares_region", None)
+    if factor == 1 or config.method == "ddpg" or declares is None or not declares():
+        return config, 1
+    changes: dict[str, Any] = {"algorithm.iterations": factor * config.algorithm.iterations,
+                               "run.eval_every": factor * config.run.eval_every, "algorithm.region_budget": 1}
+    if hasattr(config.sampler, "true_every"):
+        changes["sampler.true_every"] = factor * config.sampler.true_every
+    return config.replace(**changes), factor
 
 
 def lr_factor(config: TrainConfig, k: int) -> float:

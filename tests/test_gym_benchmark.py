@@ -120,13 +120,7 @@ def test_spec_runs() -> None:
     assert count[("Pendulum-v1", "td3")] == 10 and count[("MountainCarContinuous-v0", "td3")] == 3
     assert count[("MountainCarContinuous-v0", "ddpg")] == 3 and count[("MountainCarContinuous-v0", "sac")] == 10
     assert count[("Pendulum-v1", "mixed")] == 10
-    # the budget rows: Pendulum-v1 only, four times the iterations, the plant touched as often
-    assert count[("Pendulum-v1", "mixed_n3200")] == count[("Pendulum-v1", "model_n3200")] == 10
-    assert count[("Pendulum-v1", "oracle_n3200")] == 10
-    assert ("MountainCarContinuous-v0", "mixed_n3200") not in count
-    budget = next(r for r in runs if r["method"] == "mixed_n3200")
-    assert budget["mixedrl_method"] == "mixed" and budget["config"]["algorithm"]["iterations"] == 3200
-    assert budget["config"]["sampler"]["true_every"] == 40
+    assert spec["statistics"]["pairs"] == [["mixed", "model"], ["mixed", "oracle"]]
     sac = next(r for r in runs if r["method"] == "sac" and r["env"] == "MountainCarContinuous-v0")
     assert sac["hyperparams"]["n_timesteps"] == 50000 and sac["hyperparams"]["use_sde"] is True
     reduced = gb.expand_runs(spec, reduced=True)
@@ -157,7 +151,7 @@ def test_reduced_study_end_to_end(tmp_path: Path) -> None:
     spec = gb.load_spec(gb.SPEC)
     runs = gb.expand_runs(spec, reduced=True)
     files = sorted(out.glob("*.json"))
-    assert len(files) == len(runs) == 2 * (6 * 2 + 3)  # 2 seeds; 6 methods on 2 envs, 3 budget rows on one
+    assert len(files) == len(runs) == 2 * 6 * 2  # 2 seeds; 6 methods on 2 envs
     for run in runs:
         res = json.loads((out / f"{run['id']}.json").read_text())
         assert res["config"] == json.loads(json.dumps(run))  # its full config
@@ -175,11 +169,13 @@ def test_reduced_study_end_to_end(tmp_path: Path) -> None:
                 arch = built["net_arch"]
                 arch = arch if isinstance(arch, list) else arch["pi"]
                 assert arch == published["policy_kwargs"]["net_arch"], run["id"]
-        elif run["mixedrl_method"] == "mixed":  # the plant's: 20 steps at every true_every-th iteration from the first
-            every = run["config"].get("sampler", {}).get("true_every", 10)
-            assert res["true_transitions"] == math.ceil(run["reduced"]["iterations"] / every) * 20
-        else:
-            assert res["true_transitions"] == 0
+        else:  # Pendulum-v1 declares its state region: 4 x the iterations, the true drive 4 x less often
+            factor = 4 if run["env"] == "Pendulum-v1" else 1
+            assert res["region_budget"] == factor and res["steps"] == factor * run["reduced"]["iterations"]
+            assert res["trainconfig"]["sampler"]["true_every"] == factor * 10
+            # the plant's: 20 steps at every true_every-th iteration from the first, as without the factor
+            expected = math.ceil(run["reduced"]["iterations"] / 10) * 20
+            assert res["true_transitions"] == (expected if run["mixedrl_method"] == "mixed" else 0)
     # the same policy, the same episode seeds, the same returns: the initial policies of seed 0
     m0 = json.loads((out / "Pendulum-v1__torque1.0__model__s0.json").read_text())
     o0 = json.loads((out / "Pendulum-v1__torque1.0__oracle__s0.json").read_text())
@@ -187,6 +183,7 @@ def test_reduced_study_end_to_end(tmp_path: Path) -> None:
     results = out / "results"
     table = (results / "table.md").read_text()
     assert "| mixed |" in table and "-157.0 +- 88.7 at 20000" in table and "P(mixed > method)" in table
+    assert "P(mixed > model) = " in table and "; higher on " in table  # statistics.pairs, with per-seed wins
     assert (results / "returns.png").stat().st_size > 10_000
     cells = json.loads((results / "table.json").read_text())["cells"]
     assert len(cells) == 2 and all(set(c["methods"]) == {r["method"] for r in runs if r["env"] == c["env"]}

@@ -20,6 +20,7 @@ from mixedrl.ibe.common import check_noise_matrix, noise_coordinates, residuals
 from mixedrl.plant import (CheckedPlant, DisturbedEnv, GymnasiumPlant, PlantError, SimulatedPlant, attach_plant,
                            evaluate_on_plant)
 from mixedrl.runs import RunDirectory, load_checkpoint, train
+from mixedrl.schedule import resolve_budget
 from mixedrl.task_base import Task, check_task
 
 
@@ -254,8 +255,9 @@ def test_gymnasium_plant_needs_box_spaces() -> None:
 
 
 def _config(**sampler: object) -> TrainConfig:
+    # the budget as given (region_budget 1): these tests count the plant's steps per iteration
     return TrainConfig(method="mixed", task="linear", seed=0,
-                       algorithm=dict(iterations=12, batch_size=16, hidden_sizes=(8,)),
+                       algorithm=dict(iterations=12, batch_size=16, hidden_sizes=(8,), region_budget=1),
                        sampler=dict(name="model_rollouts", true_steps=2, true_every=1, **sampler),
                        run=dict(eval_every=6, eval_seeds=2, checkpoint_every=4))
 
@@ -483,3 +485,57 @@ def test_pendulum_v1_declares_the_envs_state_region() -> None:
     assert s[:, 0].abs().max() <= math.pi and s[:, 1].abs().max() <= max_speed
     assert s[:, 1].abs().max() > 0.9 * max_speed and s[:, 0].abs().max() > 0.9 * math.pi
     assert task.sample_initial(4096, gen)[:, 1].abs().max() <= 1.0
+
+
+def _budget_config(**algorithm: object) -> TrainConfig:
+    return TrainConfig(method="mixed", task="linear", seed=3,
+                       algorithm=dict(iterations=5, batch_size=16, hidden_sizes=(8,), rollout_horizon=4, **algorithm),
+                       sampler=dict(name="model_rollouts", true_steps=2, true_every=2),
+                       run=dict(eval_every=2, eval_seeds=1, checkpoint_every=1000))
+
+
+def test_a_global_task_trains_region_budget_times_longer_at_the_same_true_transitions(tmp_path) -> None:
+    """``algorithm.region_budget``: on a task that declares a region, 4 x 5 iterations with the true drive every
+    4 x 2 iterations; the run is the one configured so by hand, parameter for parameter; its config.json holds
+    the resolved budget, its results.json the factor, and a resume from it trains the same budget."""
+    auto = AGPI(PendulumV1Task(), _budget_config())
+    assert auto.region_budget == 4
+    assert (auto.config.algorithm.iterations, auto.config.sampler.true_every, auto.config.run.eval_every) == (20, 8, 8)
+    assert auto.config.algorithm.region_budget == 1 and auto.config.run.checkpoint_every == 1000
+    by_hand = AGPI(PendulumV1Task(), _budget_config(region_budget=1).replace(
+        **{"algorithm.iterations": 20, "sampler.true_every": 8, "run.eval_every": 8}))
+    assert by_hand.region_budget == 1
+    run = RunDirectory(tmp_path / "auto")
+    out = train(auto, run, progress=False)
+    out_hand = train(by_hand, progress=False)
+    assert out["iterations"] == 20 and out["region_budget"] == 4 and "region_budget" not in out_hand
+    # the evaluations at k = 8, 16 and the final one, 20: as at 5 iterations every 2 (k = 2, 4, 5)
+    assert [r["iteration"] for r in run.read_metrics() if "eval/cost" in r] == [8, 16, 20]
+    assert out["true_transitions"] == out_hand["true_transitions"]
+    # the true drive ran at k = 0, 8, 16: 3 collections of 2 steps, as at 5 iterations every 2 (k = 0, 2, 4)
+    assert auto.sampler.true_transitions == by_hand.sampler.true_transitions == 6
+    for a, b in zip(auto.actor.parameters(), by_hand.actor.parameters()):
+        assert torch.equal(a, b)
+    saved = json.loads(run.config_path.read_text())
+    assert saved["algorithm"]["iterations"] == 20 and saved["algorithm"]["region_budget"] == 1
+    assert saved["sampler"]["true_every"] == 8
+    assert resolve_budget(auto.config, PendulumV1Task()) == (auto.config, 1)  # resolved once
+    # a resume with the config as given resolves to the saved one (no conflict) and has nothing left to train
+    resumed = AGPI(PendulumV1Task(), _budget_config())
+    assert train(resumed, run, resume=True, progress=False)["iterations"] == 20 and resumed.k == 20
+
+
+def test_region_budget_leaves_tasks_without_a_region_ddpg_and_the_paper_preset_alone() -> None:
+    from mixedrl.tasks import task_from_config
+
+    linear = task_from_config(_budget_config().task)
+    assert not linear.declares_region()
+    plain = AGPI(linear, _budget_config())
+    assert plain.region_budget == 1 and plain.config == _budget_config()
+    paper = TrainConfig.preset("paper").replace(method="mixed", seed=0)
+    assert paper.algorithm.region_budget == 1
+    assert AGPI(PendulumV1Task(), paper).config.algorithm.iterations == paper.algorithm.iterations
+    ddpg = _budget_config().replace(method="ddpg")
+    assert DDPG(PendulumV1Task(), ddpg).config.algorithm.iterations == 5
+    with pytest.raises(ValueError, match=r"algorithm.region_budget"):
+        _budget_config(region_budget=0)

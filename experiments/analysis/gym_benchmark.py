@@ -268,8 +268,6 @@ def expand_runs(spec: dict[str, Any], reduced: bool = False) -> list[dict[str, A
                 per_env = method.get("envs", {}).get(env_id, {})
                 if method["kind"] == "sb3" and not per_env:
                     continue
-                if method["kind"] == "mixedrl" and "envs" in method and env_id not in method["envs"]:
-                    continue  # an Algorithm-2 row restricted to some envs (its "envs" table names them)
                 seeds = per_env.get("seeds", method.get("seeds", spec["seeds"]))
                 if red is not None:
                     seeds = [s for s in red["seeds"] if s in seeds] or list(red["seeds"])
@@ -411,7 +409,7 @@ def run_mixedrl(run: dict[str, Any], progress: bool = False) -> dict[str, Any]:
         algorithm["iterations"] = run["reduced"]["iterations"]
     sampler = {"name": "model_rollouts", **cfg.pop("sampler", {})}
     probe = TrainConfig(method=run["mixedrl_method"], task="linear", seed=run["seed"], algorithm=algorithm)
-    iterations = probe.algorithm.iterations
+    iterations = probe.algorithm.iterations  # a global task's budget and eval_every are region_budget x these
     points = run["evaluation"]["points"]
     config = TrainConfig(method=run["mixedrl_method"], task="linear", seed=run["seed"], algorithm=algorithm,
                          sampler=sampler, run={"eval_every": max(1, iterations // points), "eval_seeds": 1,
@@ -438,7 +436,8 @@ def run_mixedrl(run: dict[str, Any], progress: bool = False) -> dict[str, Any]:
         evaluate(trainer.policy, [])
     return {"rows": rows, "true_transitions": int(results["plant_transitions"]["training"]),
             "train_seconds": float(train_seconds), "steps": int(results["iterations"]),
-            "trainconfig": config.to_dict(), "final_ibe_mean": results.get("final_ibe_mean"),
+            "trainconfig": trainer.config.to_dict(), "region_budget": trainer.region_budget,
+            "final_ibe_mean": results.get("final_ibe_mean"),
             "plant_transitions": results["plant_transitions"]}
 
 

@@ -52,7 +52,9 @@ from mixedrl.tasks import Task, task_from_config  # noqa: E402
 
 #: The library's ``algorithm`` defaults before issue 42's learner became the default (the one-step learner): what
 #: the rows of this study and of learner_tuning.py's variants were measured over; their runs pin them.
-ONESTEP: dict[str, Any] = dict(ONE_STEP_LEARNER)
+#: ``region_budget`` 1: every variant's budget is the one it names (the rows of the global tuning systems were
+#: measured before the region budget rule, which they chose: variants default / default_n1600 / default_n3200).
+ONESTEP: dict[str, Any] = {**ONE_STEP_LEARNER, "region_budget": 1}
 
 OUT = ROOT / "experiments" / "results" / "tuning_baseline"
 #: The component whose offset is the controlled quantity.

@@ -46,6 +46,7 @@ from mixedrl.noise import make_noise_source
 from mixedrl.plant import check_plant_sampler
 from mixedrl.pev import critic_loss, critic_step
 from mixedrl.pim import MVCResult, actor_objective, actor_step, mvc_check
+from mixedrl.schedule import resolve_budget
 from mixedrl.task_base import Task, check_task
 
 __all__ = [
@@ -122,6 +123,9 @@ class AGPI:
             raise ValueError("config: method 'ddpg' is not Algorithm 2; use mixedrl.algorithms.ddpg.DDPG")
         check_task(task)
         self.task = task
+        # the budget on this task: a global task's is region_budget times longer (schedule.resolve_budget);
+        # self.config is the resolved config (what config.json holds), region_budget the factor applied
+        config, self.region_budget = resolve_budget(config, task)
         self.config = config
         self.architecture = architecture
         self.generator = torch.Generator().manual_seed(config.seed)
