@@ -36,7 +36,7 @@ if str(_ANALYSIS) not in sys.path:
 from precision_study import LQRPolicy  # noqa: E402  (the discounted LQR with a mean's feed-forward, as a policy)
 
 __all__ = ["CartFriction", "TwoTank", "SwingUp", "SwingUpEquilibrium", "SwingUpBias",
-           "TUNING_SYSTEMS", "GLOBAL_TUNING_SYSTEMS", "LQRPolicy", "lqr_reference"]
+           "CartNoisy", "TUNING_SYSTEMS", "GLOBAL_TUNING_SYSTEMS", "LQRPolicy", "lqr_reference"]
 
 
 class _OriginTask(Task):
@@ -236,8 +236,17 @@ class SwingUp(Task):
         return {"mean": float(r.mean()), "iqm": float(r[q:len(r) - q].mean()), "min": float(r[0])}
 
 
+class CartNoisy(CartFriction):
+    """:class:`CartFriction` with a force noise five times as large (std 1.0 N beside the 1.5 N bias; the prior
+    zero-mean with std 1.0 N): the noise keeps the velocity in a cloud about half the feed-forward's width
+    (``algorithm.feedforward_width`` 0.25 of ``obs_scale``; the cart's is a tenth), as on the linear test bed."""
+
+    def __init__(self, **kwargs: Any) -> None:
+        super().__init__(**{"force_std": 1.0, "prior_force_std": 1.0, **kwargs})
+
+
 #: The tuning systems by name (constructors with their default parameters).
-TUNING_SYSTEMS: dict[str, type[Task]] = {"cart_friction": CartFriction, "two_tank": TwoTank}
+TUNING_SYSTEMS: dict[str, type[Task]] = {"cart_friction": CartFriction, "two_tank": TwoTank, "cart_noisy": CartNoisy}
 #: The global tuning systems by name (no equilibrium to compare with an LQR: measured by their return).
 class SwingUpEquilibrium(SwingUp):
     """:class:`SwingUp` that declares its upright rest point (``theta = 0``, ``u = 0``; the model's), so that
