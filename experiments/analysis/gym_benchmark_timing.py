@@ -92,7 +92,9 @@ def estimate(spec: dict, measured: dict[tuple[str, str], dict[str, float]]) -> l
             warm = min(total, int(run["hyperparams"].get("learning_starts", 100)))
             train = rate.get("warm_s_per_1k", 0.2) * warm / 1000 + rate["learn_s_per_1k"] * (total - warm) / 1000
         else:
-            train = rate["learn_s_per_1k"] * AlgorithmConfig().iterations / 1000
+            algo = AlgorithmConfig()  # a task that declares its state region trains region_budget x the iterations
+            factor = algo.region_budget if gb.make_task(run["env_spec"], run["disturbance"]).declares_region() else 1
+            train = rate["learn_s_per_1k"] * factor * algo.iterations / 1000
         ev = run["evaluation"]
         evals = (ev["points"] + 1) * len(ev["episode_seeds"]) * episode[env] * measured.get(
             (env, method), rate)["eval_ms"] / 1000
