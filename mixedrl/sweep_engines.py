@@ -21,6 +21,8 @@ from mixedrl.algorithms.batched import batch_key
 from mixedrl.checks import check_positive_int
 from mixedrl.sweep_spec import SweepRun, resolve_observer
 from mixedrl.runs import RunDirectory, check_run_directory, load_trainer, make_trainer, train_batch
+from mixedrl.schedule import resolve_budget
+from mixedrl.tasks import task_from_config
 
 __all__ = ["run_point", "run_points", "plan_batches", "DEFAULT_BATCH"]
 
@@ -107,6 +109,10 @@ def _train_points(configs: list[dict[str, Any]], paths: list[str], resume: bool,
     todo, finished = [], []
     for i, (cfg, run_dir) in enumerate(zip(cfgs, dirs)):
         try:
+            # what the trainer trains and its run directory holds: the budget resolved on the task (a global
+            # task's is region_budget times longer, mixedrl.schedule.resolve_budget)
+            if cfg.method != "ddpg":
+                cfg = resolve_budget(cfg, task_from_config(cfg.task))[0]
             if resume and run_dir.results_path.is_file():
                 if run_dir.read_config().to_dict() != cfg.to_dict():
                     raise ValueError(f"config: differs from the saved {run_dir.config_path}; resume with the same "

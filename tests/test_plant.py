@@ -539,3 +539,20 @@ def test_region_budget_leaves_tasks_without_a_region_ddpg_and_the_paper_preset_a
     assert DDPG(PendulumV1Task(), ddpg).config.algorithm.iterations == 5
     with pytest.raises(ValueError, match=r"algorithm.region_budget"):
         _budget_config(region_budget=0)
+
+
+def test_a_resumed_global_run_is_the_uninterrupted_one(tmp_path) -> None:
+    """On a task that declares a region, the region starts carry end states from one iteration to the next
+    (:mod:`mixedrl.departures.region`): they are in the checkpoint, so a run killed at iteration 8 and resumed
+    ends where the uninterrupted run ends, bit for bit."""
+    config = _budget_config(region_budget=1).replace(**{"algorithm.iterations": 12, "run.checkpoint_every": 4})
+    whole = AGPI(PendulumV1Task(), config)
+    out = train(whole, progress=False)
+    run = RunDirectory(tmp_path / "cut")
+    cut = AGPI(PendulumV1Task(), config)
+    train(cut, run, stop_after=8, progress=False)
+    assert cut.region_carry is not None and "region_carry" in load_checkpoint(run.checkpoint_path)["trainer"]
+    resumed = AGPI(PendulumV1Task(), config)
+    assert train(resumed, run, resume=True, progress=False)["final"] == out["final"]
+    for a, b in zip(whole.actor.parameters(), resumed.actor.parameters()):
+        assert torch.equal(a, b)

@@ -519,3 +519,45 @@ def test_a_failed_run_is_recorded_and_does_not_stop_the_others(tmp_path: Path,
     assert doc["runs"][1]["error"] is None and doc["runs"][1]["results"]["cost"] == \
         RunDirectory(out / "runs" / runs[1].name).read_results()["cost"]
     assert [(s["runs"], s["failed"]) for s in doc["summary"]] == [(0, 1), (1, 0)]
+
+
+def test_a_resumed_sweep_of_a_global_task_compares_the_resolved_budget(tmp_path) -> None:
+    """A registered task that declares a state region trains ``region_budget`` times the spec's iterations,
+    and its ``config.json`` holds that budget; resuming the sweep (a finished run, an interrupted one) compares
+    the saved config with the resolved one, not with the spec's."""
+    from dataclasses import dataclass
+
+    from mixedrl.config import LinearTaskConfig, task_names
+    from mixedrl.linear_task import LinearTask
+    from mixedrl.sweep import run_points
+    from mixedrl.tasks import register_task
+
+    @dataclass
+    class RegionLinearConfig:
+        name: str = "region_linear_sweep_test"
+
+    class RegionLinear(LinearTask):
+        """The linear test bed with the box [-1, 1]^2 declared as its state region."""
+
+        name = "region_linear_sweep_test"
+
+        @classmethod
+        def from_config(cls, config: RegionLinearConfig) -> "RegionLinear":
+            return cls.from_problem(LinearTaskConfig().problem())
+
+        def sample_region(self, n: int, generator: torch.Generator) -> torch.Tensor:
+            return 2 * torch.rand(n, self.state_dim, generator=generator, dtype=torch.float64) - 1
+
+    if "region_linear_sweep_test" not in task_names():
+        register_task(RegionLinear, RegionLinearConfig)
+    cfg = TrainConfig(method="mixed", seed=0, task="region_linear_sweep_test",
+                      algorithm=dict(iterations=3, batch_size=16, hidden_sizes=(8,), rollout_horizon=2),
+                      run=dict(eval_every=3, eval_seeds=1, checkpoint_every=4))
+    done, cut = tmp_path / "done", tmp_path / "cut"
+    (first,) = run_points([cfg.to_dict()], [str(done)])
+    assert first["iterations"] == 12 and first["region_budget"] == 4
+    assert RunDirectory(done).read_config().algorithm.iterations == 12
+    assert run_points([cfg.to_dict()], [str(done)], resume=True)[0]["iterations"] == 12  # finished: read back
+    train(make_trainer(cfg), RunDirectory(cut), stop_after=8, progress=False)  # checkpoints at 4 and 8
+    resumed = run_points([cfg.to_dict()], [str(cut)], resume=True)[0]
+    assert resumed["iterations"] == 12 and resumed["final"] == first["final"]

@@ -172,6 +172,9 @@ class AGPI:
         #: critic's weights), else ``None`` (PEV's target takes the critic itself, eq. 50;
         #: :mod:`mixedrl.departures.critic_target`).
         self.critic_target: AveragedModel | None = critic_target.make(self.critic, config)
+        #: End states of the last rollouts that the next iteration's region starts carry over
+        #: (:mod:`mixedrl.departures.region`), else ``None``; part of the checkpoint once set.
+        self.region_carry: torch.Tensor | None = None
 
     # -------------------------------------------------------------------------------------- helpers
     @property
@@ -349,6 +352,9 @@ class AGPI:
             "stopped": self.stopped,
             "evaluation_transitions": self.task.evaluation_transitions,
             **{key: part.state_dict() for key, part in self.plug_ins().items()},
+            # the region starts' carried end states (departures.region), once there are any: a fresh trainer's
+            # state (the template a checkpoint is checked against) has none
+            **({"region_carry": self.region_carry.clone()} if self.region_carry is not None else {}),
         }
 
     def plug_ins(self) -> dict[str, Any]:
@@ -393,4 +399,6 @@ class AGPI:
         self.stop_count = int(state["stop_count"])
         self.stopped = bool(state["stopped"])
         self.task.evaluation_transitions = int(state.get("evaluation_transitions", 0))
+        carry = state.get("region_carry")
+        self.region_carry = None if carry is None else carry.clone()
 

@@ -11,8 +11,8 @@ region of its own (:meth:`mixedrl.task_base.Task.declares_region`: it overrides 
   (:meth:`mixedrl.task_base.Task.sample_region`), and
 * ``n_c = round((1 - rho) B)`` end states ``x_H`` of the previous iteration's rollouts, a random subset drawn
   with the run's generator (:func:`remember`); non-finite and terminal ones are dropped (their rows are drawn
-  from the region). The first iteration, and a run resumed from a checkpoint (the carried states are not part
-  of it), start from the region alone.
+  from the region). The first iteration starts from the region alone; the carried states are part of the
+  run's checkpoint (``region_carry``), so a resumed run is the uninterrupted one.
 
 A task that declares no region (its training distribution is where its policy must act: an equilibrium's
 neighbourhood, a course) keeps the sampler's batch: the setting is a no-op there (:func:`applies`).
