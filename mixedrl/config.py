@@ -105,6 +105,7 @@ DELETED_SETTINGS: dict[tuple[str, str], Any] = {
     ("algorithm", "actor_average"): 0.0,
     ("algorithm", "bellman_steps"): 1,
     ("sampler", "course_ramp"): 0,
+    ("algorithm", "feedforward_spread"): 0.0,
 }
 #: The commit that can still run a deleted setting at another value (where the refusal names it).
 DELETED_AT: dict[tuple[str, str], str] = {("sampler", "course_ramp"): RETIRED_AT}
