@@ -73,7 +73,8 @@ def estimate(spec: dict, measured: dict[tuple[str, str], dict[str, float]]) -> l
     pair not measured borrows the same method's rate on the other env, or mixed RL's on the same env:
     ``borrowed``), evaluation as (points + 1) evaluations of every episode seed at the env's full episode
     length (an upper bound for the car, which can end early)."""
-    from mixedrl.config import AlgorithmConfig
+    from mixedrl.config import TrainConfig
+    from mixedrl.schedule import resolve_budget
 
     episode = {"Pendulum-v1": 200, "MountainCarContinuous-v0": 999}
     groups: dict[tuple[str, str], list[dict]] = {}
@@ -92,9 +93,10 @@ def estimate(spec: dict, measured: dict[tuple[str, str], dict[str, float]]) -> l
             warm = min(total, int(run["hyperparams"].get("learning_starts", 100)))
             train = rate.get("warm_s_per_1k", 0.2) * warm / 1000 + rate["learn_s_per_1k"] * (total - warm) / 1000
         else:
-            algo = AlgorithmConfig()  # a task that declares its state region trains region_budget x the iterations
-            factor = algo.region_budget if gb.make_task(run["env_spec"], run["disturbance"]).declares_region() else 1
-            train = rate["learn_s_per_1k"] * factor * algo.iterations / 1000
+            # the budget its trainer resolves (a task that declares its state region: region_budget x the iterations)
+            config = resolve_budget(TrainConfig(method=run["mixedrl_method"]),
+                                    gb.make_task(run["env_spec"], run["disturbance"]))[0]
+            train = rate["learn_s_per_1k"] * config.algorithm.iterations / 1000
         ev = run["evaluation"]
         evals = (ev["points"] + 1) * len(ev["episode_seeds"]) * episode[env] * measured.get(
             (env, method), rate)["eval_ms"] / 1000
