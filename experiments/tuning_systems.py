@@ -36,7 +36,7 @@ if str(_ANALYSIS) not in sys.path:
 from precision_study import LQRPolicy  # noqa: E402  (the discounted LQR with a mean's feed-forward, as a policy)
 
 __all__ = ["CartFriction", "TwoTank", "SwingUp", "SwingUpEquilibrium", "SwingUpBias",
-           "CartNoisy", "TUNING_SYSTEMS", "GLOBAL_TUNING_SYSTEMS", "LQRPolicy", "lqr_reference"]
+           "CartNoisy", "CartDrift", "CartDrift3", "CartDriftBias", "TUNING_SYSTEMS", "GLOBAL_TUNING_SYSTEMS", "LQRPolicy", "lqr_reference"]
 
 
 class _OriginTask(Task):
@@ -245,8 +245,38 @@ class CartNoisy(CartFriction):
         super().__init__(**{"force_std": 1.0, "prior_force_std": 1.0, **kwargs})
 
 
+class CartDrift(CartFriction):
+    """:class:`CartFriction` whose training (and evaluation) starts lie in a smaller box (``box``: 0.1 m and
+    0.1 m/s by default, a fifth of the cart's; ``obs_scale`` kept at 0.5): the prior LQR's rest point under the
+    true force (about 0.195 m) lies outside the states a run trains from, as the prior's rest point (2.93) lies
+    outside the linear test bed's box (1). :class:`CartDrift3` matches the test bed's ratio of the two (3)."""
+
+    def __init__(self, box: float = 0.1, **kwargs: Any) -> None:
+        super().__init__(**kwargs)
+        self.init = (box, box)
+
+
+class CartDrift3(CartDrift):
+    """:class:`CartDrift` with the box at 0.065: the prior LQR's rest point at three times the box, as on the
+    linear test bed."""
+
+    def __init__(self, **kwargs: Any) -> None:
+        super().__init__(**{"box": 0.065, **kwargs})
+
+
+class CartDriftBias(CartDrift):
+    """:class:`CartDrift` (box 0.1) with twice the force (true 3 N, 60% of the 5 N bound; the linear test bed's
+    needs half its bound): the action that holds the cart is about four times what the prior's LQR takes at the
+    box's edge (the test bed's: 3.5 times), so an actor must extrapolate far beyond what it was trained on."""
+
+    def __init__(self, **kwargs: Any) -> None:
+        super().__init__(**{"force_bias": 3.0, **kwargs})
+
+
 #: The tuning systems by name (constructors with their default parameters).
-TUNING_SYSTEMS: dict[str, type[Task]] = {"cart_friction": CartFriction, "two_tank": TwoTank, "cart_noisy": CartNoisy}
+TUNING_SYSTEMS: dict[str, type[Task]] = {"cart_friction": CartFriction, "two_tank": TwoTank, "cart_noisy": CartNoisy,
+                                         "cart_drift": CartDrift, "cart_drift3": CartDrift3,
+                                         "cart_drift_bias": CartDriftBias}
 #: The global tuning systems by name (no equilibrium to compare with an LQR: measured by their return).
 class SwingUpEquilibrium(SwingUp):
     """:class:`SwingUp` that declares its upright rest point (``theta = 0``, ``u = 0``; the model's), so that

@@ -377,6 +377,8 @@ class TrainConfig:
             del out["task"]["obs_scale"]  # the default: config.json and config hashes as before the field
         if out["algorithm"].get("compile") == "off":
             del out["algorithm"]["compile"]  # the default (issue 44): config.json and config hashes as before the field
+        if out["algorithm"].get("feedforward_handover") is False:
+            del out["algorithm"]["feedforward_handover"]  # the default: config.json and config hashes as before it
         return out
 
     @classmethod

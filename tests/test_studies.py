@@ -790,3 +790,20 @@ def test_learner_targets_trains_the_missing_runs_in_parallel_and_resumes(tmp_pat
     assert [p.stat().st_mtime_ns for p in sorted((tmp_path / "out" / "per_run").iterdir())] == stamps
     bad = _run_script("learner_targets.py", "--spec", spec, "--dest", tmp_path / "x", "--settings", "papers")
     assert bad.returncode != 0 and "--settings" in bad.stderr
+
+
+@pytest.mark.studies
+def test_learner_targets_runs_an_override_setting_on_its_systems_only(tmp_path: Path) -> None:
+    """A setting of the spec's ``[overrides]`` table trains the defaults with its ``algorithm.*`` settings (saved in
+    each run's config), on the systems ``[setting_systems]`` names, with per-run files ending in its name."""
+    spec = tmp_path / "spec.toml"
+    spec.write_text('systems = ["linear", "pendulum"]\nsettings = ["default", "handover"]\nmethods = ["model"]\n'
+                    'seeds = [0]\niterations = 3\n[overrides.handover]\nfeedforward_handover = true\n'
+                    '[setting_systems]\nhandover = ["linear"]\n')
+    proc = _run_script("learner_targets.py", "--spec", spec, "--dest", tmp_path / "out", "--settings", "handover")
+    assert proc.returncode == 0, proc.stderr
+    assert sorted(p.name for p in (tmp_path / "out" / "per_run").iterdir()) == ["linear_model_0_handover.json"]
+    record = json.loads((tmp_path / "out" / "per_run" / "linear_model_0_handover.json").read_text())
+    assert record["config"]["algorithm"]["feedforward_handover"] is True
+    assert record["row"]["setting"] == "handover"
+    assert [r["setting"] for r in json.loads((tmp_path / "out" / "rows.json").read_text())] == ["handover"]

@@ -48,13 +48,30 @@ OUT = ROOT / "experiments" / "results" / "learner_targets"
 
 
 def run_or_read(system: str, method: str, setting: str, seed: int, spec: dict[str, Any], dest: Path) -> dict[str, Any]:
-    """The row of one run: read from its ``per_run`` JSON when the run exists, else trained and measured."""
-    preset = None if setting == "default" else setting
+    """The row of one run: read from its ``per_run`` JSON when the run exists, else trained and measured.
+
+    A setting is ``"default"``, a preset's name, or a key of the spec's ``[overrides]`` table (``algorithm.*``
+    settings over the library defaults; its per-run files end in ``_<setting>``)."""
+    overrides = spec.get("overrides", {}).get(setting)
+    preset = None if setting == "default" or overrides is not None else setting
+    tag = "" if overrides is None else f"_{setting}"
     name = f"{system}_{method}_{seed}" if preset is None else f"{system}_{method}_{preset}_{seed}"
-    path = dest / "per_run" / f"{name}.json"
+    path = dest / "per_run" / f"{name}{tag}.json"
     if path.exists():
         return json.loads(path.read_text())["row"]
-    return one_run(system, method, seed, spec.get("iterations"), dest, systems=TARGET_SYSTEMS, preset=preset)
+    row = one_run(system, method, seed, spec.get("iterations"), dest, systems=TARGET_SYSTEMS, preset=preset,
+                  algorithm=overrides, tag=tag)
+    if overrides is not None:
+        row["setting"] = setting
+        record = json.loads(path.read_text())
+        record["row"] = row
+        atomic_write_text(path, json.dumps(record, indent=1) + "\n")
+    return row
+
+
+def setting_systems(spec: dict[str, Any], setting: str) -> list[str]:
+    """The systems a setting is measured on: the spec's ``[setting_systems]`` entry, else every system."""
+    return spec.get("setting_systems", {}).get(setting, spec["systems"])
 
 
 def summarise(rows: list[dict[str, Any]], systems: list[str], settings: list[str]) -> list[str]:
@@ -110,7 +127,7 @@ def main(argv: list[str] | None = None) -> None:
     torch.set_num_threads(1)
     systems = [s for s in spec["systems"] if args.only in (None, s)]
     keys = [(system, method, setting, seed) for system in systems for setting in settings
-            for method in spec["methods"] for seed in spec["seeds"]]
+            if system in setting_systems(spec, setting) for method in spec["methods"] for seed in spec["seeds"]]
     if args.jobs > 1:  # the missing runs first, in parallel; each writes its own per_run JSON
         with multiprocessing.get_context("fork").Pool(args.jobs) as pool:
             for i, row in enumerate(pool.imap_unordered(_job, [(*k, spec, args.dest) for k in keys]), 1):

@@ -134,6 +134,9 @@ VARIANTS["default_n3200"] = dict(VARIANTS["default"], iterations=3200)
 #: The default's budget with larger steps instead (the same wall time): learning rates 4e-3, or a shallower decay.
 VARIANTS["default_lr4"] = dict(VARIANTS["default"], actor_lr=4e-3, critic_lr=4e-3)
 VARIANTS["default_decay01"] = dict(VARIANTS["default"], lr_decay_to=0.1)
+#: The default with the deployed policy handing over to the method's own discounted LQ optimum outside the box of the
+#: training starts (algorithm.feedforward_handover; training unchanged, so each pair shares its trained actor).
+VARIANTS["default_handover"] = dict(VARIANTS["default"], feedforward_handover=True)
 
 
 #: Variants whose setting or code was deleted or reverted after their rows were measured (not runnable now): name ->
