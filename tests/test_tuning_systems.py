@@ -34,7 +34,8 @@ def test_check_task_and_equilibrium(name):
     u0 = torch.as_tensor(eq.action)[None]
     assert torch.allclose(task.f(s0, u0), s0, atol=1e-12)
     assert task.name == {"cart_friction": "CartFriction", "two_tank": "TwoTank", "cart_noisy": "CartNoisy", "cubic_spring": "CubicSpring",
-                         "hanging_pendulum": "HangingPendulum"}[name]
+                         "hanging_pendulum": "HangingPendulum", "cart_drift": "CartDrift", "cart_drift3": "CartDrift3",
+                         "cart_drift_bias": "CartDriftBias"}[name]
 
 
 @pytest.mark.parametrize("name", SYSTEMS)
@@ -69,7 +70,8 @@ def test_lqr_reference_is_stable_and_the_prior_offset_is_visibly_worse(name):
     assert abs(summary["true_mean"]["action_at_equilibrium"][0]) < 0.75 * float(task.action_bound[0])
     # on the nonlinear true system (noise-free rollouts at the true mean), the prior's LQR holds the
     # controlled component several times further from the setpoint than the LQR with the true feed-forward
-    c = {"cart_friction": 0, "two_tank": 1, "cart_noisy": 0, "cubic_spring": 0, "hanging_pendulum": 0}[name]
+    c = {"cart_friction": 0, "two_tank": 1, "cart_noisy": 0, "cubic_spring": 0, "hanging_pendulum": 0, "cart_drift": 0,
+         "cart_drift3": 0, "cart_drift_bias": 0}[name]
     xi = torch.as_tensor(task.true_mean) @ task.noise_matrix.double().T
     offsets = {}
     for key in ("true_mean", "prior_mean"):
