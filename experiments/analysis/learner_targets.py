@@ -59,14 +59,8 @@ def run_or_read(system: str, method: str, setting: str, seed: int, spec: dict[st
     path = dest / "per_run" / f"{name}{tag}.json"
     if path.exists():
         return json.loads(path.read_text())["row"]
-    row = one_run(system, method, seed, spec.get("iterations"), dest, systems=TARGET_SYSTEMS, preset=preset,
-                  algorithm=overrides, tag=tag)
-    if overrides is not None:
-        row["setting"] = setting
-        record = json.loads(path.read_text())
-        record["row"] = row
-        atomic_write_text(path, json.dumps(record, indent=1) + "\n")
-    return row
+    return one_run(system, method, seed, spec.get("iterations"), dest, systems=TARGET_SYSTEMS, preset=preset,
+                   algorithm=overrides, tag=tag, setting=setting)
 
 
 def setting_systems(spec: dict[str, Any], setting: str) -> list[str]:

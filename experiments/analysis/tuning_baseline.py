@@ -84,14 +84,14 @@ def task_parameters(task: Any) -> dict[str, Any]:
 def one_run(system: str, method: str, seed: int, iterations: int | None, out: Path = OUT,
             systems: dict[str, Any] | None = None, preset: str | None = None,
             overrides: dict[str, Any] | None = None, algorithm: dict[str, Any] | None = None,
-            tag: str = "") -> dict[str, Any]:
+            tag: str = "", setting: str | None = None) -> dict[str, Any]:
     """Train one run and measure it (module docstring).
 
     ``systems`` maps the system's name to its task class (default :data:`TUNING_SYSTEMS`); a name missing
     from it is a built-in task named in the config (``"pendulum"``, ``"linear"``: the task the config
     builds). ``preset`` (e.g. ``"paper"``) and ``overrides`` (config sections, e.g. ``{"algorithm": {...}}``)
     change the library defaults; ``algorithm``: further ``algorithm.*`` settings; ``tag``: a suffix of the
-    per-run file's name.
+    per-run file's name; ``setting``: the row's setting name (default: ``preset`` or ``"default"``).
     """
     systems = TUNING_SYSTEMS if systems is None else systems
     sections = {k: dict(v) for k, v in (overrides or {}).items()}
@@ -128,7 +128,7 @@ def one_run(system: str, method: str, seed: int, iterations: int | None, out: Pa
               for i in range(task.state_dim)]
     c = CONTROLLED.get(system, 0)
     i_xi = int(np.argmax(np.abs(task.true_mean)))  # the disturbance's largest component
-    row = {"system": system, "method": method, "seed": seed, "setting": preset or "default",
+    row = {"system": system, "method": method, "seed": seed, "setting": setting or preset or "default",
            "iterations": results["iterations"],
            "cost": final["cost"], "lqr_true_cost": lqr["true_mean"]["cost"], "lqr_prior_cost": lqr["prior_mean"]["cost"],
            "cost_ratio": final["cost"] / lqr["true_mean"]["cost"],

@@ -286,7 +286,7 @@ def training_box(task: Task, seed: int, n: int = 4096) -> tuple[torch.Tensor, to
 
 
 def feedforward_policy(trainer: Any, policy: torch.nn.Module, lin: Linearisation | None = None,
-                       steady: bool = False) -> FeedForwardPolicy:
+                       steady: bool = False) -> FeedForwardPolicy | HandoverPolicy:
     """``policy`` shifted to the LQ optimum's action at the equilibrium for the trainer's own noise mean.
 
     ``algorithm.feedforward = "lq"`` (a departure from the paper, docs page ``precision.rst``): the
@@ -326,7 +326,7 @@ def feedforward_policy(trainer: Any, policy: torch.nn.Module, lin: Linearisation
         obs, action = equilibrium_observation(task, lin), feedforward_action(trainer, lin, policy)
     bound = getattr(policy, "action_bound", None)
     shifted = FeedForwardPolicy(policy, obs, action, bound, width)
-    if not (steady and getattr(trainer.config.algorithm, "feedforward_handover", False)):
+    if not (steady and trainer.config.algorithm.feedforward_handover):
         return shifted
     low, high = training_box(task, trainer.config.seed)
     return HandoverPolicy(shifted, low, high, equilibrium_gain(task, lin), obs, action, width, bound)
