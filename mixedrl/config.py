@@ -106,9 +106,11 @@ DELETED_SETTINGS: dict[tuple[str, str], Any] = {
     ("algorithm", "bellman_steps"): 1,
     ("sampler", "course_ramp"): 0,
     ("algorithm", "feedforward_spread"): 0.0,
+    ("algorithm", "feedforward_handover"): False,
 }
 #: The commit that can still run a deleted setting at another value (where the refusal names it).
-DELETED_AT: dict[tuple[str, str], str] = {("sampler", "course_ramp"): RETIRED_AT}
+DELETED_AT: dict[tuple[str, str], str] = {("sampler", "course_ramp"): RETIRED_AT,
+                                          ("algorithm", "feedforward_handover"): "2488be5"}
 
 
 def _drop_deleted_settings(data: dict[str, Any]) -> None:
@@ -377,8 +379,6 @@ class TrainConfig:
             del out["task"]["obs_scale"]  # the default: config.json and config hashes as before the field
         if out["algorithm"].get("compile") == "off":
             del out["algorithm"]["compile"]  # the default (issue 44): config.json and config hashes as before the field
-        if out["algorithm"].get("feedforward_handover") is False:
-            del out["algorithm"]["feedforward_handover"]  # the default: config.json and config hashes as before it
         return out
 
     @classmethod

@@ -186,14 +186,6 @@ class AlgorithmConfig:
     (seeds 100-102): a constant shift cost a swing-up whose top is declared as its equilibrium 25-38 of return
     IQM (``rho`` 1: 0.1-1.2, ``rho`` 0.25: none), with the same offsets and costs near an equilibrium."""
 
-    feedforward_handover: bool = False
-    """Departure (precision add-on, under test): with ``feedforward = "lq_ss"`` (``"auto"``) the deployed policy
-    hands over, outside the box of the task's training starts (per observation component, the range of 4,096
-    ``sample_initial`` draws, and of 4,096 ``sample_region`` draws on a task that declares a region), to the method's own discounted LQ optimum, affine in the observation
-    (:class:`mixedrl.departures.anchor.HandoverPolicy`; the weight of the learned policy fades as
-    ``exp(-|d / (rho obs_scale)|^2 / 2)`` with ``d`` the distance outside the box and ``rho`` =
-    :attr:`feedforward_width`). Training is unchanged."""
-
     compile: str = "off"
     """How the PEV and PIM steps run (:mod:`mixedrl.compiled`, issue 44): ``"off"`` (the default) = eagerly,
     ``torch.autograd`` and ``torch.optim.Adam.step``; ``"on"`` = each step (loss, gradient by ``torch.func``,
@@ -254,8 +246,6 @@ class AlgorithmConfig:
         check_choice(self.batch_weighting, f"{w}.batch_weighting", BATCH_WEIGHTINGS)
         check_choice(self.feedforward, f"{w}.feedforward", FEEDFORWARDS, RETIRED_FEEDFORWARDS)
         self.feedforward_width = check_number(self.feedforward_width, f"{w}.feedforward_width", nonneg=True)
-        if not isinstance(self.feedforward_handover, bool):
-            raise ValueError(f"{w}.feedforward_handover: expected true or false, got {self.feedforward_handover!r}")
         if check_int(self.ibe_case, f"{w}.ibe_case") not in (1, 2, 3):
             raise ValueError(f"{w}.ibe_case: expected 1, 2 or 3 (the IBE's Case), got {self.ibe_case!r}")
         if self.ibe_case != 2 and self.ibe_recursion != "exact":

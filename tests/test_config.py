@@ -318,12 +318,13 @@ def test_a_seed_beyond_64_bits_is_refused_naming_it(seed: int) -> None:
                                                    ("algorithm", "rollout_updates", 2),
                                                    ("algorithm", "actor_average", 0.995),
                                                    ("algorithm", "bellman_steps", 10),
+                                                   ("algorithm", "feedforward_handover", True),
                                                    ("sampler", "course_ramp", 500)])
 def test_a_deleted_setting_is_read_at_todays_behaviour_and_refused_otherwise(section: str, name: str,
                                                                             other: object) -> None:
     """A saved config holding a deleted setting at the value that is today's behaviour loads as the config
     without it; another value is refused, naming the key."""
-    from mixedrl.config import DELETED_SETTINGS
+    from mixedrl.config import DELETED_AT, DELETED_SETTINGS
 
     data = TrainConfig(task="linear", algorithm={"rollout_horizon": 4}).to_dict()
     kept = json.loads(json.dumps(data))
@@ -335,3 +336,5 @@ def test_a_deleted_setting_is_read_at_todays_behaviour_and_refused_otherwise(sec
         TrainConfig.from_dict(data)
     if (section, name) == ("sampler", "course_ramp"):  # retired with the trained feed-forward family
         assert str(err.value).endswith("; git commit ee954d7 can still run it")
+    if (section, name) == ("algorithm", "feedforward_handover"):
+        assert str(err.value).endswith(f"; git commit {DELETED_AT[(section, name)]} can still run it")

@@ -508,49 +508,6 @@ def test_lq_ss_takes_the_optimums_steady_action_at_its_steady_state(width: float
         assert np.abs(far_shift).max() < 1e-6
 
 
-@pytest.mark.parametrize("method", ["model", "oracle"])
-def test_handover_is_the_shifted_actor_inside_the_training_box_and_the_lq_optimum_outside(method: str) -> None:
-    """``algorithm.feedforward_handover``: inside the box of the training starts (LinearTask: ``[-1, 1]^2``) the
-    deployed policy is the ``lq_ss`` one; far outside it is the method's own discounted LQ optimum ``-L x - l0``
-    (derived here from scipy's DARE for the prior's mean, model-driven RL, or the truth's, the oracle)."""
-    task = LinearTask()
-    algorithm = {"batch_size": 16, "hidden_sizes": (8,), "feedforward": "lq_ss"}
-    plain = AGPI(task, TrainConfig(method=method, task="linear", seed=0, algorithm=algorithm))
-    handover = AGPI(task, TrainConfig(method=method, task="linear", seed=0,
-                                      algorithm={**algorithm, "feedforward_handover": True}))
-    lin = task.linearisation()
-    mean = {"model": task.prior_mean, "oracle": task.true_mean}[method]
-    L, l0 = scipy_optimum(lin.A, lin.B, lin.Q, lin.R, lin.gamma, lin.E @ mean)
-    inside = torch.tensor([[0.3, -0.2], [-0.9, 0.95], [0.0, 0.0]])
-    far = torch.tensor([[20.0, 0.0], [-15.0, 3.0], [2.5, -30.0]])
-    with torch.no_grad():
-        assert torch.equal(handover.policy(inside), plain.policy(inside))
-        u_far = handover.policy(far).numpy()
-        u_plain_far = plain.policy(far).numpy()
-    expected = np.clip(-far.numpy().astype(np.float64) @ L.T - l0, -10.0, 10.0)  # the actor's bound
-    assert u_far == pytest.approx(expected, abs=1e-4)
-    assert np.abs(u_plain_far - expected).max() > 0.5  # the learned actor alone is not the optimum there
-
-
-def test_handover_box_blends_continuously_and_is_refused_when_not_a_bool() -> None:
-    from mixedrl.departures.anchor import HandoverPolicy, training_box
-
-    low, high = training_box(LinearTask(), seed=3)
-    assert torch.all(low < -0.99) and torch.all(low >= -1.0) and torch.all(high > 0.99) and torch.all(high <= 1.0)
-    net = torch.nn.Linear(2, 1)
-    pol = HandoverPolicy(net, low, high, gain=torch.tensor([[-2.0, -1.0]]), observation=torch.zeros(2),
-                         action=torch.tensor([0.5]), width=torch.tensor([0.25, 0.25]))
-    xs = torch.linspace(0.5, 3.0, 200)[:, None] * torch.tensor([[1.0, 0.0]])
-    with torch.no_grad():
-        u = pol(xs)[:, 0]
-    assert torch.abs(torch.diff(u)).max() < 0.1  # no jump at the box's edge
-    with torch.no_grad():
-        assert pol(xs[-1]).shape == (1,)
-        assert pol(xs[-1]).item() == pytest.approx(0.5 - 2.0 * 3.0, abs=1e-3)
-    with pytest.raises(ValueError, match=r"algorithm.feedforward_handover: expected true or false"):
-        TrainConfig(algorithm={"feedforward_handover": "yes"})
-
-
 def test_a_local_shift_keeps_the_gain_at_its_centre() -> None:
     from mixedrl.precision import FeedForwardPolicy
 

@@ -797,13 +797,14 @@ def test_learner_targets_runs_an_override_setting_on_its_systems_only(tmp_path: 
     """A setting of the spec's ``[overrides]`` table trains the defaults with its ``algorithm.*`` settings (saved in
     each run's config), on the systems ``[setting_systems]`` names, with per-run files ending in its name."""
     spec = tmp_path / "spec.toml"
-    spec.write_text('systems = ["linear", "pendulum"]\nsettings = ["default", "handover"]\nmethods = ["model"]\n'
-                    'seeds = [0]\niterations = 3\n[overrides.handover]\nfeedforward_handover = true\n'
-                    '[setting_systems]\nhandover = ["linear"]\n')
-    proc = _run_script("learner_targets.py", "--spec", spec, "--dest", tmp_path / "out", "--settings", "handover")
+    spec.write_text('systems = ["linear", "pendulum"]\nsettings = ["default", "wide"]\nmethods = ["model"]\n'
+                    'seeds = [0]\niterations = 3\n[overrides.wide]\nfeedforward_width = 0.5\n'
+                    '[setting_systems]\nwide = ["linear"]\n')
+    proc = _run_script("learner_targets.py", "--spec", spec, "--dest", tmp_path / "out", "--settings", "wide")
     assert proc.returncode == 0, proc.stderr
-    assert sorted(p.name for p in (tmp_path / "out" / "per_run").iterdir()) == ["linear_model_0_handover.json"]
-    record = json.loads((tmp_path / "out" / "per_run" / "linear_model_0_handover.json").read_text())
-    assert record["config"]["algorithm"]["feedforward_handover"] is True
-    assert record["row"]["setting"] == "handover"
-    assert [r["setting"] for r in json.loads((tmp_path / "out" / "rows.json").read_text())] == ["handover"]
+    assert sorted(p.name for p in (tmp_path / "out" / "per_run").iterdir()) == ["linear_model_0_wide.json"]
+    record = json.loads((tmp_path / "out" / "per_run" / "linear_model_0_wide.json").read_text())
+    assert record["config"]["algorithm"]["feedforward_width"] == 0.5
+    assert TrainConfig().algorithm.feedforward_width != 0.5  # the override, not the default
+    assert record["row"]["setting"] == "wide"
+    assert [r["setting"] for r in json.loads((tmp_path / "out" / "rows.json").read_text())] == ["wide"]

@@ -341,6 +341,17 @@ DELETED: tuple[tuple[str, str], ...] = (
      "``default_spread3`` against ``default``, seeds 100-102, the same trained actors) ``k = 3``, fixed before the "
      "runs, moved every offset by +0.0003 to +0.0006 toward the LQR's against gaps of -13% to +11%, the cost by at "
      "most +0.0003; offsets within target: mixed 1/3 both, oracle 2/3 to 3/3: no gain that decides a target."),
+    ("algorithm.feedforward_handover",
+     "the deployed ``lq_ss`` policy handed over, outside the box of the training starts (per observation component, "
+     "the range of 4,096 ``sample_initial`` draws), to the method's own discounted LQ optimum, affine in the "
+     "observation; deleted at commit 2488be5, which runs it. It met its criteria on the tuning systems "
+     "(:doc:`tuning`; ``experiments/results/learner_tuning``, variant ``default_handover``) and fixed model-driven "
+     "RL's offset on the linear test bed (seeds 0-9: +2.936 to +2.949 against the prior LQR's +2.931 to +2.944; "
+     "without it +17.9 to +19.2; mixed RL's and the oracle's costs within 0.003%). On the double lane change's "
+     "held-out seeds 100-101 (mixed, model-driven and the oracle, the same trained actors; "
+     "``experiments/analysis/handover_dlc.py`` at that commit) 26-27% of the course's policy calls lay outside the "
+     "box (the heading component) and the course cost rose by 22% to 51% (lateral MAE by 16% to 39%): not a "
+     "default."),
     ("sampler.course_ramp",
      f"the course copies of the double lane change's sampler moved onto the course over ``r`` iterations; only "
      f"the retired rows above trained with ``r > 0`` (``course_ramp_heldout``, ``feedforward_lq_affine_ss_ramp``, "

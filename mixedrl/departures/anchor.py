@@ -12,13 +12,6 @@ IBE posterior; model-driven RL: the prior; the oracle: the truth; :func:`own_noi
 * ``"lq"``: training unchanged; the deployed policy is the actor shifted to the optimum's action at the
   equilibrium (:func:`feedforward_policy`, :class:`FeedForwardPolicy`).
 
-With ``algorithm.feedforward_handover`` (under test, off by default) the ``"lq_ss"`` policy hands over, outside
-the box of the task's training starts (:func:`training_box`), to the method's own discounted LQ optimum
-(:class:`HandoverPolicy`): an actor trained near an equilibrium levels off outside the states it saw, where the
-affine optimum keeps its gain. On the tuning system ``cart_drift_bias`` (seeds 100-102) model-driven RL's offset
-went from 38-61% beyond the prior LQR's to 1.1-1.3%; mixed RL's and the oracle's costs on the other tuning
-systems moved by -0.03% to +0.09% (docs/tuning.rst).
-
 Training is unchanged by every value. The trained anchored actors (``"lq_train"``, ``"lq_affine"``,
 ``"lq_affine_ss"``) were retired: their rows stay on the results page (docs/results.rst), git commit ee954d7
 runs them. ``"lq_ss"`` became the default
@@ -42,7 +35,7 @@ from mixedrl.lq import LQSolution, discounted_lq_optimum
 from mixedrl.task_base import Linearisation, Task
 
 __all__ = ["NAME", "KEY", "PAPER", "active", "resolve", "LQReference", "lq_reference", "own_noise",
-           "FeedForwardPolicy", "HandoverPolicy", "training_box", "feedforward_policy", "equilibrium_observation", "equilibrium_gain",
+           "FeedForwardPolicy", "feedforward_policy", "equilibrium_observation", "equilibrium_gain",
            "feedforward_action", "steady_anchor"]
 
 logger = logging.getLogger(__name__)
@@ -223,70 +216,8 @@ class FeedForwardPolicy(torch.nn.Module):
         return u if self.bound is None else torch.maximum(torch.minimum(u, self.bound), -self.bound)
 
 
-class HandoverPolicy(torch.nn.Module):
-    """A policy inside a box of observations, an affine policy outside it (``algorithm.feedforward_handover``).
-
-    .. math::
-
-        \pi_h(o) = \operatorname{clip}\big(w(o)\, \pi(o) + (1 - w(o))\, (u_a + G (o - o_a)),\ -\bar u,\ \bar u\big),
-        \qquad w(o) = \exp\Big(-\tfrac12 \big|d(o) / \rho\big|^2\Big)
-
-    with ``d_i(o) = max(0, o_i - high_i) + max(0, low_i - o_i)`` the distance outside the box ``[low, high]``
-    (``w = 1`` inside) and the affine policy the discounted LQ optimum's ``u* - l0 - L x`` written in
-    observations: ``G`` its gain (:func:`equilibrium_gain`), ``u_a`` its action at ``o_a``
-    (:func:`steady_anchor`). ``width`` (``rho``) ``None``: ``w`` drops from 1 to 0 at the box's edge.
-
-    Parameters
-    ----------
-    policy : torch.nn.Module
-        Observations (B, obs_dim) or (obs_dim,) -> actions.
-    low, high : torch.Tensor, shape (obs_dim,)
-        The box.
-    gain : torch.Tensor, shape (action_dim, obs_dim)
-    observation : torch.Tensor, shape (obs_dim,)
-    action : torch.Tensor, shape (action_dim,)
-    width : torch.Tensor, shape (obs_dim,), optional
-    bound : torch.Tensor, shape (action_dim,), optional
-    """
-
-    def __init__(self, policy: torch.nn.Module, low: torch.Tensor, high: torch.Tensor, gain: torch.Tensor,
-                 observation: torch.Tensor, action: torch.Tensor, width: torch.Tensor | None = None,
-                 bound: torch.Tensor | None = None) -> None:
-        super().__init__()
-        self.policy = policy
-        f32 = dict(dtype=torch.float32)
-        self.low, self.high = torch.as_tensor(low, **f32).reshape(-1), torch.as_tensor(high, **f32).reshape(-1)
-        self.gain = torch.as_tensor(gain, **f32)
-        self.observation = torch.as_tensor(observation, **f32).reshape(-1)
-        self.action = torch.as_tensor(action, **f32).reshape(-1)
-        self.width = None if width is None else torch.as_tensor(width, **f32).reshape(-1)
-        self.bound = None if bound is None else torch.as_tensor(bound, **f32)
-
-    def forward(self, obs: torch.Tensor) -> torch.Tensor:
-        outside = torch.relu(obs - self.high) + torch.relu(self.low - obs)
-        if self.width is None:
-            w = (outside.sum(-1, keepdim=True) == 0).to(obs.dtype)
-        else:
-            w = torch.exp(-0.5 * ((outside / self.width) ** 2).sum(-1, keepdim=True))
-        affine = self.action + (obs - self.observation) @ self.gain.T
-        u = w * self.policy(obs) + (1.0 - w) * affine
-        return u if self.bound is None else torch.maximum(torch.minimum(u, self.bound), -self.bound)
-
-
-def training_box(task: Task, seed: int, n: int = 4096) -> tuple[torch.Tensor, torch.Tensor]:
-    """Per observation component, the range of ``n`` of the task's training starts (``sample_initial``) and, on
-    a task that declares a state region (:meth:`~mixedrl.task_base.Task.declares_region`), of ``n`` draws over
-    the region as well (drawn from a generator seeded with ``seed``), float32 ``(low, high)``."""
-    g = torch.Generator().manual_seed(int(seed))
-    s = task.sample_initial(n, g)
-    if task.declares_region():
-        s = torch.cat([s, task.sample_region(n, g).to(s.dtype)])
-    o = task.observe(s.float()).float()
-    return o.min(0).values, o.max(0).values
-
-
 def feedforward_policy(trainer: Any, policy: torch.nn.Module, lin: Linearisation | None = None,
-                       steady: bool = False) -> FeedForwardPolicy | HandoverPolicy:
+                       steady: bool = False) -> FeedForwardPolicy:
     """``policy`` shifted to the LQ optimum's action at the equilibrium for the trainer's own noise mean.
 
     ``algorithm.feedforward = "lq"`` (a departure from the paper, docs page ``precision.rst``): the
@@ -325,11 +256,7 @@ def feedforward_policy(trainer: Any, policy: torch.nn.Module, lin: Linearisation
     else:
         obs, action = equilibrium_observation(task, lin), feedforward_action(trainer, lin, policy)
     bound = getattr(policy, "action_bound", None)
-    shifted = FeedForwardPolicy(policy, obs, action, bound, width)
-    if not (steady and trainer.config.algorithm.feedforward_handover):
-        return shifted
-    low, high = training_box(task, trainer.config.seed)
-    return HandoverPolicy(shifted, low, high, equilibrium_gain(task, lin), obs, action, width, bound)
+    return FeedForwardPolicy(policy, obs, action, bound, width)
 
 
 def equilibrium_observation(task: Task, lin: Linearisation) -> torch.Tensor:
