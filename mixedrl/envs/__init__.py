@@ -1,22 +1,9 @@
-"""Environments: the double-lane-change vehicle (eq. 53) and its Gymnasium face.
+"""Environments: the double-lane-change vehicle (eq. 53) and its Gymnasium face (docs/vehicle.rst).
 
 Importing this package registers the Gymnasium id ``mixedrl/DoubleLaneChange-v0``
-(:class:`~mixedrl.envs.dlc_env.DoubleLaneChangeEnv`).
-
-Configuration: :class:`~mixedrl.envs.dlc_config.DoubleLaneChangeConfig` (the environment) and
-:class:`~mixedrl.envs.dlc_config.DoubleLaneChangeTaskConfig` (the same with the discount and the prior:
-a run's ``task``), with the true force :class:`~mixedrl.envs.disturbance.Disturbance` and the
-:class:`~mixedrl.envs.dlc_config.CostWeights` of eq. (54). Planning API (torch, batched):
-:class:`~mixedrl.envs.model.DoubleLaneChangeModel` (``step`` = the shared deterministic ``f``,
-``observe``, ``cost``, ``reset_states``, ``NOISE_INDEX``); data collection:
-:class:`~mixedrl.envs.vector_env.DoubleLaneChangeVectorEnv` (same ``f`` plus the true noise) or the
-Gymnasium env; Table I metrics: :func:`~mixedrl.envs.evaluation.evaluate_tracking` (many courses in lock step:
-:func:`~mixedrl.envs.evaluation.evaluate_courses`).
-:mod:`mixedrl.envs.tracking` gathers these names (and says how the reference enters).
-
-The task the algorithms train on, :class:`~mixedrl.envs.dlc_task.DoubleLaneChangeTask` (with its course
-sampler and preset), is in :mod:`mixedrl.envs.dlc_task`, which this package does not import (it builds
-on :mod:`mixedrl.task_base`; importing :mod:`mixedrl` imports it, through :mod:`mixedrl.tasks`).
+(:class:`~mixedrl.envs.dlc_env.DoubleLaneChangeEnv`). The task the algorithms train on,
+:class:`~mixedrl.envs.dlc_task.DoubleLaneChangeTask`, is not imported here (importing :mod:`mixedrl`
+imports it).
 """
 
 import gymnasium as gym

@@ -1,10 +1,5 @@
-"""Column functions of the double lane change: the relative quantities, the observation and the cost
-of eq. (54), on one backend's columns.
-
-Each works on Python floats (the Gymnasium environment's fast single step,
-:class:`~mixedrl.envs.dlc_env.DoubleLaneChangeEnv`), numpy arrays and torch tensors alike;
-:class:`~mixedrl.envs.model.DoubleLaneChangeModel` calls them on the columns of a batched state. How the
-reference enters the errors is in :mod:`mixedrl.envs.tracking`.
+"""Column functions of the double lane change: the tracking errors, the observation and the cost of
+eq. (54), on Python floats, numpy arrays or torch tensors alike.
 """
 
 from __future__ import annotations
@@ -17,7 +12,7 @@ __all__ = ["observation_columns", "observation_from_errors", "stage_cost", "trac
 
 
 def tracking_errors(cfg: DoubleLaneChangeConfig, phi: Any, Y: Any, X: Any) -> tuple[Any, Any]:
-    """Lateral and heading errors of a tracking state against the reference (:mod:`mixedrl.envs.tracking`).
+    """Lateral and heading errors of a tracking state against the reference.
 
     .. math:: e_y = Y - Y_{ref}(X), \\qquad e_\\phi = \\phi - \\psi_{ref}(X)
 
@@ -34,7 +29,6 @@ def tracking_errors(cfg: DoubleLaneChangeConfig, phi: Any, Y: Any, X: Any) -> tu
         ``(e_y, e_phi)``, each of the type and shape of ``X``.
     """
     y_ref, psi_ref = cfg.reference.lateral_and_heading(X)
-    # e_y = Y - Y_ref(X) ;  e_phi = phi - psi_ref(X)
     return Y - y_ref, phi - psi_ref
 
 
@@ -107,7 +101,6 @@ def stage_cost(cfg: DoubleLaneChangeConfig, dv: Any, e_y: Any, delta: Any, ax: A
     float, numpy.ndarray or torch.Tensor, shape (...)
         The cost (>= 0).
     """
-    # l(x', u) = T (45 (v_x - 12)^2 + 60 y^2 + u^T diag(800, 1) u)   (eq. 54, charged on the next state)
     w = cfg.cost
     return cfg.dt * (w.q_speed * dv * dv + w.q_lateral * e_y * e_y
                      + w.r_steer * delta * delta + w.r_accel * ax * ax)

@@ -1,9 +1,7 @@
 """The random longitudinal disturbance of the double lane change: ``F_dis`` (eq. 53) and its laws.
 
-:class:`Disturbance` is the one description of the true force: the environments draw from it
-(:meth:`~mixedrl.envs.model.DoubleLaneChangeModel.sample_force`) and a run's configuration holds it as
-``task.disturbance`` (:class:`mixedrl.config.ForceDisturbanceConfig` is the same class). Its noise on
-``v_x`` is ``xi = F_dis T / m`` (eq. 54).
+:class:`Disturbance` is the true force the environments draw from; a run holds it as
+``task.disturbance``. Its noise on ``v_x`` is ``xi = F_dis T / m`` (eq. 54).
 """
 
 from __future__ import annotations
@@ -20,10 +18,8 @@ from mixedrl.checks import check_number
 
 __all__ = ["DISTURBANCE_LAWS", "Disturbance"]
 
-#: Laws of the true disturbance a task configuration may name (the IBE itself assumes a Gaussian):
-#: ``"gaussian"`` (the paper's), ``"student_t"`` (heavy tails, ``dof`` degrees of freedom) and ``"bumps"`` (a
-#: symmetric two-point law), all with the configured mean and variance (:class:`Disturbance`).
-#: The double lane change simulates all three; the linear task only ``"gaussian"``.
+#: Laws of the true disturbance, all with the configured mean and variance (:class:`Disturbance`); the
+#: double lane change simulates all three, the linear task only ``"gaussian"``.
 DISTURBANCE_LAWS = ("gaussian", "student_t", "bumps")
 
 
@@ -34,12 +30,12 @@ class Disturbance:
     Attributes
     ----------
     law : str
-        Distribution of ``F_dis`` around its mean, one of :data:`DISTURBANCE_LAWS`; every
-        law has the mean and the variance below (see Notes). Default ``"gaussian"`` (the paper's).
+        Distribution of ``F_dis`` around its mean, one of :data:`DISTURBANCE_LAWS` (see Notes). Default
+        ``"gaussian"`` (the paper's).
     mean : float
         Mean force on a level road [N]. Paper: 261.
     variance : float
-        Variance of ``F_dis`` [N^2]. Paper: 32 (``N(mean, covariance)``; EQUATIONS.md, point 7).
+        Variance of ``F_dis`` [N^2]. Paper: 32.
     dof : float
         Degrees of freedom ``nu`` of the ``"student_t"`` law (> 2, so that the variance is finite);
         ignored by the other laws. Default 3.
@@ -58,25 +54,19 @@ class Disturbance:
 
     Notes
     -----
-    State-dependent mean (for the Case-3 estimator, eq. 19): with a road grade
-    ``theta(X) = grade_amplitude * sin(2 pi X / grade_wavelength + grade_phase)`` the mean force is
-    ``mean - m g sin(theta(X))`` (an uphill grade slows the car), evaluated at the state *before* the
-    step. ``F_dis`` has that mean and variance ``variance``, independent across steps:
+    With a road grade ``theta(X) = grade_amplitude * sin(2 pi X / grade_wavelength + grade_phase)`` the
+    mean force is ``mean - m g sin(theta(X))``, at the state before the step (a state-dependent mean for
+    Case 3, eq. 19). Independent across steps,
 
     .. math:: F_{dis} = \\bar F(X) + \\sigma z, \\qquad E z = 0, \\quad \\mathrm{Var}\\, z = 1,
 
-    with the standardised draw ``z`` of the law (:meth:`standard_noise`):
+    with the law's standardised draw ``z`` (:meth:`standard_noise`; docs/vehicle.rst):
 
-    * ``"gaussian"``: ``z ~ N(0, 1)`` (the paper's ``N(261, 32)``); excess kurtosis 0;
-    * ``"student_t"``: ``z = t sqrt((nu - 2) / nu)``, ``t`` Student-t with ``nu = dof`` degrees of
-      freedom (variance ``nu / (nu - 2)``, hence the rescale), i.e. ``F_dis`` is Student-t with scale
-      ``sqrt(variance (nu - 2) / nu)``; heavy tails: excess kurtosis ``6 / (nu - 4)`` for ``nu > 4``,
-      infinite for ``2 < nu <= 4``;
-    * ``"bumps"``: ``z = -1`` or ``+1`` with probability 1/2 each, i.e. ``F_dis = mean -+ sqrt(variance)``
-      (a symmetric two-point law); excess kurtosis -2, the smallest of any law.
+    * ``"gaussian"``: ``z ~ N(0, 1)``;
+    * ``"student_t"``: ``z = t sqrt((nu - 2) / nu)``, ``t`` Student-t with ``nu = dof`` degrees of freedom;
+    * ``"bumps"``: ``z = -1`` or ``+1`` with probability 1/2 each.
 
-    The planners (IBE, prior, oracle) model the noise as a Gaussian; only the true environment draws
-    from the law.
+    The planners model the noise as a Gaussian whatever the law.
     """
 
     law: str = "gaussian"
@@ -109,8 +99,6 @@ class Disturbance:
                        device: str | torch.device = "cpu") -> Any:
         """Draw the law's standardised noise ``z`` (mean 0, variance 1; class Notes) from ``generator``.
 
-        .. math:: F_{dis} = \\bar F(X) + \\sigma z
-
         Parameters
         ----------
         generator : torch.Generator, numpy.random.Generator or None
@@ -133,13 +121,8 @@ class Disturbance:
 
         Notes
         -----
-        The Gaussian law draws exactly what the package drew before the other laws existed
-        (``torch.randn`` / ``Generator.standard_normal``, one normal per state, in order), so every
-        published number is unchanged. The Student-t draw uses ``Generator.standard_t`` on numpy and
-        Bailey's polar method on torch (uniform pairs ``(U, V)`` in the unit disc, ``W = U^2 + V^2``,
-        ``t = U sqrt(nu (W^(-2/nu) - 1) / W)``, exact for any ``nu > 0``; R. W. Bailey, Math. Comp. 62
-        (1994) 779-781), since torch has no Student-t sampler that takes a generator. The two-point law
-        draws one uniform per state: ``z = -1`` if it is below 1/2, else ``+1``.
+        On torch the Student-t draw uses Bailey's polar method (torch has no Student-t sampler that
+        takes a generator); the two-point law draws one uniform per state.
         """
         if generator is None or isinstance(generator, torch.Generator):
             if shape is None:
@@ -184,10 +167,10 @@ class Disturbance:
         return self.mean - m * g * ops.sin(theta)
 
 
-
 def _student_t_torch(dof: float, n: int, generator: torch.Generator | None, device: str | torch.device
                      ) -> torch.Tensor:
-    """``n`` Student-t draws with ``dof`` degrees of freedom (float64), Bailey's polar method."""
+    """``n`` Student-t draws with ``dof`` degrees of freedom (float64), Bailey's polar method
+    (R. W. Bailey, Math. Comp. 62 (1994) 779-781)."""
     out = torch.empty(n, dtype=torch.float64, device=device)
     filled = 0
     while filled < n:

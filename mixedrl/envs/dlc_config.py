@@ -1,18 +1,9 @@
-"""The configuration of the double lane change, defined once: the environment's and the run's task.
+"""The configuration of the double lane change, defined once for the environment and a run's task.
 
-* :class:`DoubleLaneChangeConfig` is everything the environment needs (vehicle, discretisation,
-  reference, the true :class:`~mixedrl.envs.disturbance.Disturbance`, the :class:`CostWeights` of
-  eq. 54, bounds, start distributions);
-* :class:`DoubleLaneChangeTaskConfig` is the same class with what the learning problem adds: the
-  discount of eq. (2) and the designer's prior of eq. (55). It is the ``task`` section of a run's
-  :class:`mixedrl.config.TrainConfig` (``name = "dlc"``), and the environments take it as it is.
-
-A new parameter of the task is one field here: the environment reads it from its config, and a run sets
-it with the dotted key ``task.<field>`` (``task.disturbance.<field>``, ``task.cost.<field>``,
-``task.params.<field>``, ``task.reference.<field>`` for the nested ones).
-
-Every class is a frozen dataclass; :func:`make_config` and :meth:`DoubleLaneChangeConfig.from_dict`
-build one from (JSON-like) dicts, nested fields included, with errors that name the (dotted) field.
+:class:`DoubleLaneChangeConfig` is what the environment needs; :class:`DoubleLaneChangeTaskConfig` adds
+the discount of eq. (2) and the prior of eq. (55) and is a run's ``task`` section (dotted keys
+``task.<field>``, ``task.cost.<field>``, ...; docs/vehicle.rst). The classes are frozen dataclasses;
+:func:`make_config` and :meth:`DoubleLaneChangeConfig.from_dict` build them from (JSON-like) dicts.
 """
 
 from __future__ import annotations
@@ -79,7 +70,7 @@ def _numbers(value: Any, name: str, **kind: bool) -> tuple[float, ...]:
 
 @dataclass(frozen=True)
 class DoubleLaneChangeConfig:
-    """Everything that defines the double-lane-change environment (one typed, documented object).
+    """Everything that defines the double-lane-change environment.
 
     Attributes
     ----------
@@ -94,8 +85,8 @@ class DoubleLaneChangeConfig:
     disturbance : Disturbance
         The true disturbance (used by the environments only; planners bring their own noise model).
     cost : CostWeights
-        Weights of eq. (54): 45, 60, 800, 1. (``q_speed``, ``q_lateral``, ``r_steer`` and ``r_accel`` are
-        also readable on the config itself, and :func:`make_config` accepts them as flat keys.)
+        Weights of eq. (54): 45, 60, 800, 1 (also readable, and accepted by :func:`make_config`, as the
+        flat ``q_speed``, ``q_lateral``, ``r_steer``, ``r_accel``).
     v_des : float
         Desired speed [m/s]. Paper: 12.
     course_length : float
@@ -159,7 +150,7 @@ class DoubleLaneChangeConfig:
                 raise ValueError(f"{name}: expected 5 half-widths [v_y, r, v_x, e_phi, e_y], got {len(widths)}")
             object.__setattr__(self, name, widths)
 
-    # the weights of eq. (54), also readable flat (the form before CostWeights)
+    # the weights of eq. (54), also readable flat
     q_speed = property(lambda self: self.cost.q_speed, doc="``cost.q_speed``.")
     q_lateral = property(lambda self: self.cost.q_lateral, doc="``cost.q_lateral``.")
     r_steer = property(lambda self: self.cost.r_steer, doc="``cost.r_steer``.")
@@ -181,8 +172,7 @@ class DoubleLaneChangeConfig:
             Field values.
         where : str, optional
             The dotted place of ``values`` in a larger configuration (``"task"`` in a run's
-            :class:`~mixedrl.config.TrainConfig`): errors then name the full dotted key
-            (``config: unknown key(s) ['task.disturbance.maen']``, ``task.cost.q_speed: ...``).
+            :class:`~mixedrl.config.TrainConfig`); errors then name the full dotted key.
 
         Raises
         ------
@@ -204,12 +194,9 @@ class DoubleLaneChangeConfig:
 class DoubleLaneChangeTaskConfig(DoubleLaneChangeConfig):
     """The experiment of Section VI: the double lane change with a random longitudinal force.
 
-    Every field of :class:`DoubleLaneChangeConfig` (the environment: the true law ``disturbance``, the
-    weights ``cost``, ``preview_distances``, ``train_half_widths``, ...) and what the learning problem
-    adds. A run's ``task`` section (``name = "dlc"``); dotted keys ``task.<field>``. The prior of
-    eq. (55) is given in force units and acts on ``v_x`` (EQUATIONS.md, point 6):
-    ``mu_M = prior_force_mean T / m``, ``K_M = (prior_force_std T / m)^2`` on ``v_x``, ``1e-20`` on the
-    other four components of ``xi`` (:class:`mixedrl.envs.dlc_task.DoubleLaneChangeTask`).
+    :class:`DoubleLaneChangeConfig` plus the learning problem: a run's ``task`` section. The prior of
+    eq. (55) is given in force units and acts on ``v_x``: ``mu_M = prior_force_mean T / m``,
+    ``K_M = (prior_force_std T / m)^2``, ``1e-20`` on the other four components of ``xi``.
 
     Attributes
     ----------
@@ -222,10 +209,9 @@ class DoubleLaneChangeTaskConfig(DoubleLaneChangeConfig):
     prior_force_std : float
         The designer's prior standard deviation ``sqrt(K_M)`` in force units [N] (paper: 4).
     obs_scale : tuple of float or None
-        The observation's typical magnitudes (the task's ``obs_scale``: the networks' input scaling, the
-        model sampler's box and kicks), ``5 + len(preview_distances)`` positive numbers. ``None`` (the
-        default): ``(0.3, 0.2, 0.5, 0.1, 0.5)`` and 2 m for every preview column
-        (:class:`mixedrl.envs.dlc_task.DoubleLaneChangeTask`); a run's ``config.json`` omits it then.
+        The observation's typical magnitudes (the networks' input scaling, the sampler's box and kicks),
+        ``5 + len(preview_distances)`` positive numbers. ``None`` (default): ``(0.3, 0.2, 0.5, 0.1, 0.5)``
+        and 2 m for every preview column.
 
     Raises
     ------
@@ -285,9 +271,8 @@ def _jsonable(value: Any) -> Any:
 
 
 def _merge(base: _C, values: dict[str, Any], where: str, dotted: bool) -> _C:
-    """``base`` with ``values`` applied; a dict given for a nested configuration field is merged into its
-    current value. ``where`` is the dotted place of ``values`` (``""`` at the top); ``dotted`` reports
-    unknown keys with their full dotted name (a run's configuration) instead of per level."""
+    """``base`` with ``values`` applied, dicts merged into nested fields. ``where`` is the dotted place of
+    ``values`` (``""`` at the top); ``dotted`` reports unknown keys by their full dotted name."""
     prefix = f"{where}." if where else ""
     allowed = {f.name for f in dataclasses.fields(base) if f.init}
     if dotted or not where:
@@ -331,9 +316,7 @@ def make_config(config: DoubleLaneChangeConfig | dict[str, Any] | None = None, *
     Raises
     ------
     ValueError
-        Unknown keys (at any level) or invalid values; the message starts with the (dotted) field name
-        (``config: unknown key(s) [...]`` at the top level, ``disturbance: unknown key(s) [...]`` and
-        ``disturbance.variance: ...`` below it).
+        Unknown keys (at any level) or invalid values; the message starts with the (dotted) field name.
     """
     if isinstance(config, dict):
         overrides = {**config, **overrides}

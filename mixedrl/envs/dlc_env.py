@@ -1,8 +1,4 @@
-"""Gymnasium face of the double lane change: ``mixedrl/DoubleLaneChange-v0``.
-
-The full description, under Gymnasium's usual headings, is on the docs page ``vehicle.rst`` and in
-the docstring of :class:`DoubleLaneChangeEnv`.
-"""
+"""Gymnasium face of the double lane change: ``mixedrl/DoubleLaneChange-v0`` (docs/vehicle.rst)."""
 
 from __future__ import annotations
 
@@ -22,18 +18,13 @@ __all__ = ["DoubleLaneChangeEnv"]
 
 
 def _pair(value: Any, name: str, space: str) -> tuple[float, float]:
-    """Validate a length-2 finite action as two floats (the cheap single-step path).
-
-    Raises ``TypeError`` naming the value's type and ``space`` when it is not numeric or not real
-    (complex: the cast would drop the imaginary part), ``ValueError`` for a wrong shape or a NaN/inf
-    component.
-    """
+    """Validate a length-2 finite action as two floats: ``TypeError`` (naming the type and ``space``) if
+    it is not real numbers, ``ValueError`` for a wrong shape or a NaN/inf component."""
     kind = ""
     try:
         a = np.asarray(value)
         kind = a.dtype.kind
-        # strings, raw bytes and a lone object (None) would convert to float or NaN silently, complex
-        # values would lose their imaginary part; refuse them
+        # refuse what would convert silently: strings, bytes, a lone object, complex numbers
         if kind in "USVc" or (kind == "O" and a.ndim == 0):
             raise TypeError
         a = a.astype(np.float64, copy=False)
@@ -55,24 +46,17 @@ def _clip(v: float, bound: float) -> float:
 class DoubleLaneChangeEnv(gym.Env):
     """Double lane change at 12 m/s with a random longitudinal disturbance (the paper's Section VI task).
 
-    **Description.** A front-steered car (eq. 53, Fiala tires, paper parameters) must follow the tanh
-    double-lane-change path ``Y_ref(X)`` while holding 12 m/s against a random longitudinal force
-    ``F_dis ~ N(261 N, 32 N^2)``. Discretised with forward Euler at ``T = 1/200 s``; the
-    deterministic part is exactly :meth:`DoubleLaneChangeModel.step` (the same ``f`` the planner uses)
-    and one step is :meth:`DoubleLaneChangeModel.true_step` (the same function training and the vector
-    env call), with ``F_dis`` drawn from ``self.np_random``. ``disturbance={"law": ...}`` selects the
-    law of ``F_dis`` with the same mean and variance: ``"gaussian"`` (default), ``"student_t"`` (``dof``
-    degrees of freedom, rescaled to the variance) or ``"bumps"`` (mean -+ standard deviation, probability
-    1/2 each); see :class:`~mixedrl.envs.disturbance.Disturbance`.
+    **Description.** A front-steered car (eq. 53, Fiala tires) follows the tanh double-lane-change path
+    ``Y_ref(X)`` at 12 m/s against a random longitudinal force ``F_dis ~ N(261 N, 32 N^2)``, forward
+    Euler at ``T = 1/200 s``. One step is :meth:`DoubleLaneChangeModel.true_step` with ``F_dis`` drawn
+    from ``self.np_random``; ``disturbance={"law": ...}`` selects another law
+    (:class:`~mixedrl.envs.disturbance.Disturbance`).
 
-    **Action Space.** ``Box(-1, 1, (2,), float64)``, *normalised* (as Gymnasium's checker asks): the
-    physical input is ``u = [delta, a_x] = a * [delta_max, ax_max]``, front wheel angle ``delta`` [rad]
-    (default bound 0.4 rad, positive = left) and longitudinal acceleration command ``a_x`` [m/s^2]
-    (default bound 4 m/s^2). Actions outside ``[-1, 1]`` are *clipped* (the clipped input is applied and
-    charged; ``info["action_clipped"]`` says so). A NaN/inf action or a wrong shape raises
-    ``ValueError`` and leaves the state unchanged; a non-numeric action (a string, an object) raises
-    ``TypeError`` naming its type and the space. (The torch model, the vector env and
-    :func:`~mixedrl.envs.evaluate_tracking` take the physical ``u``.)
+    **Action Space.** ``Box(-1, 1, (2,), float64)``, normalised: ``u = [delta, a_x] = a * [delta_max,
+    ax_max]``, front wheel angle [rad] (default bound 0.4, positive = left) and longitudinal acceleration
+    [m/s^2] (default bound 4). Actions outside ``[-1, 1]`` are clipped (``info["action_clipped"]``). A
+    NaN/inf action or a wrong shape raises ``ValueError`` and leaves the state unchanged; a non-numeric
+    action raises ``TypeError``. :meth:`step_physical` takes the physical ``u``.
 
     **Observation Space.** ``Box(-f_max, f_max, (5 + n_preview,), float64)`` (any finite value):
     ``[v_y [m/s], r [rad/s], v_x - 12 [m/s], e_phi [rad], e_y [m]]`` with
@@ -83,18 +67,16 @@ class DoubleLaneChangeEnv(gym.Env):
     charged on the next state.
 
     **Starting State.** ``X = 0`` on the reference at 12 m/s, with ``[v_y, r, v_x - 12, e_phi, e_y]``
-    uniform in ``+-reset_half_widths`` (default ``(0, 0, 0.1, 0.02, 0.1)``), drawn from
-    ``self.np_random``. ``reset(options={"state": s})`` starts from a given tracking state
-    ``s = [v_y, r, v_x, phi, Y, X]``.
+    uniform in ``+-reset_half_widths``, from ``self.np_random``. ``reset(options={"state": s})`` starts
+    from a given tracking state ``s = [v_y, r, v_x, phi, Y, X]``.
 
-    **Episode End.** Terminated when ``|e_y| > max_lateral_error`` (3 m: the car left the road),
-    ``v_x < min_speed`` (1 m/s) or a state component is not finite; truncated after
-    ``round(course_length / (12 T))`` steps (2000 steps = 10 s = 120 m at 12 m/s). Stepping an ended
-    episode without :meth:`reset` raises ``RuntimeError``.
+    **Episode End.** Terminated when ``|e_y| > max_lateral_error`` (3 m), ``v_x < min_speed`` (1 m/s) or
+    a state component is not finite; truncated after ``round(course_length / (12 T))`` steps (2000).
+    Stepping an ended episode without :meth:`reset` raises ``RuntimeError``.
 
     **Arguments.** ``gym.make("mixedrl/DoubleLaneChange-v0", config=None, **overrides)``: any field of
-    :class:`~mixedrl.envs.dlc_config.DoubleLaneChangeConfig` (``disturbance``, ``reference``, ``cost`` and
-    ``params`` also as dicts); unknown keys raise ``ValueError``.
+    :class:`~mixedrl.envs.dlc_config.DoubleLaneChangeConfig` (nested ones also as dicts); unknown keys
+    raise ``ValueError``.
 
     **Version History.** v0: initial version.
 
@@ -183,16 +165,7 @@ class DoubleLaneChangeEnv(gym.Env):
     def step_physical(self, u: Any) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
         """Same as :meth:`step`, with the physical input ``u = [delta, a_x]`` [rad, m/s^2].
 
-        ``u`` is clipped to ``[-delta_max, delta_max] x [-ax_max, ax_max]``.
-
-        Raises
-        ------
-        TypeError
-            ``u`` not numeric; the message names its type.
-        ValueError
-            ``u`` not of shape (2,) or not finite (the state is left unchanged).
-        RuntimeError
-            If called before :meth:`reset`, or after the episode ended without a new :meth:`reset`.
+        ``u`` is clipped to ``[-delta_max, delta_max] x [-ax_max, ax_max]``; errors as :meth:`step`.
         """
         delta, ax = _pair(u, "u", f"[-{self._delta_max}, {self._delta_max}] x [-{self._ax_max}, {self._ax_max}]")
         delta_c, ax_c = _clip(delta, self._delta_max), _clip(ax, self._ax_max)
@@ -208,8 +181,7 @@ class DoubleLaneChangeEnv(gym.Env):
         cfg = self.config
         model = self.model
         s = self._state
-        # F_dis = mean(X) + std z (z: the law's standardised draw) at the current state, from Gymnasium's
-        # np_random; xi = F_dis T / m
+        # F_dis = mean(X) + std z at the current state, from np_random; xi = F_dis T / m
         force = model.sample_force(s, self.np_random)
         xi = model.xi_from_force(force)
         # s' = f(s, u) + xi e_vx   (eq. 54): the one true step, on Python floats

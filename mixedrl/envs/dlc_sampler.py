@@ -2,19 +2,7 @@
 (:class:`CourseSampler`) and its code (:class:`CourseStateSampler`), registered with the task.
 
 A departure from the paper, which does not say how its states were drawn (the hook *sampler*,
-:mod:`mixedrl.departures.sampler`), applied identically to every method. Model rollouts as
-:class:`mixedrl.samplers.ModelStateSampler`, of two kinds:
-
-* *course* copies (a fraction ``course_fraction`` of the batch) drive the course from its start
-  (the task's episode start) for ``course_horizon`` steps, so the batch holds the states the
-  current policy visits on the job it is evaluated on; ``course_starts`` says whether they also
-  restart when they pass the course's end (``"loop"``: at its start; ``"along"``: at a random point
-  along it) or drive on beyond it (``"start"``);
-* the course copies are *kicked* (``kick_prob`` per step): a random offset of the size of the
-  task's ``obs_scale`` is added to the state and the policy has to recover, so the batch spreads around
-  the course trajectory in every direction instead of lying on it;
-* *wide* copies restart from the task's wide training distribution (``sample_initial``) every
-  ``horizon`` steps, as the true-environment batch does, so large errors stay covered.
+:mod:`mixedrl.departures.sampler`; docs/model_based.rst), applied identically to every method.
 """
 
 from __future__ import annotations
@@ -37,8 +25,7 @@ class CourseSampler(ModelRolloutsSampler):
     course; docs/model_based.rst). Model rollouts as :class:`ModelRolloutsSampler`, of two kinds:
 
     * *course* copies (a fraction ``course_fraction`` of the batch) drive the course, from iteration
-      ``course_start`` on, for ``course_horizon`` steps,
-      restarting as ``course_starts`` says, and are
+      ``course_start`` on, for ``course_horizon`` steps, restarting as ``course_starts`` says, and are
       *kicked* (``kick_prob`` per step, ``kick_scale`` times ``obs_scale``) so that the batch spreads
       around the course trajectory;
     * *wide* copies restart from the training distribution every ``algorithm.horizon`` steps.
@@ -66,10 +53,9 @@ class CourseSampler(ModelRolloutsSampler):
     distribution like the others."""
 
     course_starts: str = "along"
-    """Where a course copy restarts once ``course_start`` has passed: ``"start"`` = at the course start
-    (``X = 0``), not at the course's end (a copy drives on past it until its horizon); ``"along"`` = on
-    the reference at a point drawn uniformly along the course (``X ~ U(0, course_length)``), also when it
-    passes the course's end; ``"loop"`` = at the course start, also when it passes the course's end."""
+    """Where a course copy restarts: ``"start"``, at ``X = 0`` after its horizon (driving on past the
+    course's end); ``"along"``, on the reference at ``X ~ U(0, course_length)``, also at the course's
+    end; ``"loop"``, at ``X = 0``, also at the course's end."""
 
     course_horizon: int = 2000
     """Steps after which a course copy restarts (2000 = the whole double lane change)."""
@@ -93,13 +79,9 @@ class CourseSampler(ModelRolloutsSampler):
         check_number(self.kick_scale, f"{w}.kick_scale", nonneg=True)
 
 
-
-
 class CourseStateSampler(ModelStateSampler):
     """The code of ``sampler.name = "dlc_course"`` (:class:`CourseSampler`): the hooks of
-    :class:`~mixedrl.samplers.ModelStateSampler` for course copies, their restarts and their kicks.
-
-    """
+    :class:`~mixedrl.samplers.ModelStateSampler` for course copies, their restarts and their kicks."""
 
     @staticmethod
     def check_task(task: Any, config: Any) -> None:

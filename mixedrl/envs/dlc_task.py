@@ -1,16 +1,9 @@
 """The double lane change of Section VI as a :class:`mixedrl.tasks.Task`: :class:`DoubleLaneChangeTask`.
 
-An adapter on the vehicle model of :mod:`mixedrl.envs` (:class:`~mixedrl.envs.model.DoubleLaneChangeModel`,
-:func:`~mixedrl.envs.evaluation.evaluate_tracking`), built by name (``make_task("dlc")``) or from a run's
-:class:`~mixedrl.envs.dlc_config.DoubleLaneChangeTaskConfig` (:func:`mixedrl.tasks.task_from_config`).
-
-The double lane change's experiment lives here with its task: the options of its course sampler
-(:class:`CourseSampler`, ``sampler.name = "dlc_course"``) and its preset (:data:`DLC_EXPERIMENT`), which
-this module registers with :mod:`mixedrl.config` (importing :mod:`mixedrl` imports this module), as it
-registers the task's configuration (:class:`~mixedrl.envs.dlc_config.DoubleLaneChangeTaskConfig`, ``task.name =
-"dlc"``, with :func:`mixedrl.config.register_builtin_task`): the generic configuration imports no task module.
-``from mixedrl.tasks import DoubleLaneChangeTask, CourseSampler, DLC_EXPERIMENT`` still works (:mod:`mixedrl.tasks`
-imports this module; this module imports the interface from :mod:`mixedrl.task_base`).
+Built by name (``make_task("dlc")``) or from a run's
+:class:`~mixedrl.envs.dlc_config.DoubleLaneChangeTaskConfig`. This module registers the task's
+configuration (``task.name = "dlc"``), its course sampler (:class:`CourseSampler`) and its preset
+(:data:`DLC_EXPERIMENT`) with :mod:`mixedrl.config`.
 """
 
 from __future__ import annotations
@@ -31,8 +24,6 @@ from mixedrl.task_base import Equilibrium, Linearisation, Task, check_policies_a
 __all__ = ["DoubleLaneChangeTask", "CourseSampler", "DLC_EXPERIMENT"]
 
 
-
-
 class DoubleLaneChangeTask(Task):
     """The double lane change of Section VI as a :class:`~mixedrl.tasks.Task` (an adapter on :mod:`mixedrl.envs`).
 
@@ -40,21 +31,16 @@ class DoubleLaneChangeTask(Task):
       :class:`~mixedrl.envs.DoubleLaneChangeModel`; ``f`` = its ``step`` (eq. 53, forward Euler);
     * noise: the paper's five-component ``xi`` on ``x = [v_y, r, v_x, phi, y]`` (eq. 54), entering the
       first five state components (``E = [I_5; 0]``); the true noise is ``F_dis T / m`` on ``v_x``
-      (component :attr:`noise_index`; ``T / m`` is :attr:`force_scale`) with ``F_dis ~ N(261, 32)`` by
-      default (drawn by the model's ``sample_force``, so a configured road grade and law -- Gaussian,
-      Student-t or two-point, :class:`mixedrl.envs.Disturbance` -- are honoured);
-    * prior (eq. 55): ``mu_M = 150 T/m`` and ``K_M = (4 T/m)^2`` on ``v_x``, ``1e-20`` on the other four
-      diagonal entries (EQUATIONS.md point 6: the paper's prior is read as acting on ``v_x``);
-    * observation: :meth:`~mixedrl.envs.DoubleLaneChangeModel.observe` (the paper's relative state
-      ``[v_y, r, v_x - 12, e_phi, e_y]`` by default); utility: eq. (54) on the next state, discount
-      :attr:`gamma` (0.99 by default);
-    * training states: :meth:`~mixedrl.envs.DoubleLaneChangeModel.reset_states` (anywhere on the
-      course); evaluation: :func:`mixedrl.envs.evaluate_tracking` (one full course from the reference
-      start, per seed).
+      (:attr:`noise_index`; ``T / m`` is :attr:`force_scale`) with ``F_dis ~ N(261, 32)`` by default
+      (any law of :class:`mixedrl.envs.Disturbance`);
+    * prior (eq. 55): ``mu_M = 150 T/m``, ``K_M = (4 T/m)^2`` on ``v_x``, ``1e-20`` on the others;
+    * observation: :meth:`~mixedrl.envs.DoubleLaneChangeModel.observe`; utility: eq. (54) on the next
+      state, discount :attr:`gamma`;
+    * training states: :meth:`~mixedrl.envs.DoubleLaneChangeModel.reset_states`; evaluation:
+      :func:`mixedrl.envs.evaluate_tracking`, one full course per seed.
 
-    Its configuration is one object, :class:`~mixedrl.envs.dlc_config.DoubleLaneChangeTaskConfig` (the
-    run's ``task.*`` settings, :meth:`from_config`), which the model and the environments take as it is:
-    the environment's fields and the discount and prior. The constructor builds it from keywords.
+    The constructor builds a :class:`~mixedrl.envs.dlc_config.DoubleLaneChangeTaskConfig` from keywords
+    (:meth:`from_config` takes one).
 
     Parameters
     ----------
@@ -65,9 +51,8 @@ class DoubleLaneChangeTask(Task):
     gamma : float, optional
         Discount factor of eq. (2) (default 0.99).
     **config
-        Any other field of :class:`~mixedrl.envs.dlc_config.DoubleLaneChangeTaskConfig` (e.g.
-        ``disturbance``, ``cost`` -- or the flat ``q_speed``, ... --, ``preview_distances``,
-        ``train_half_widths``; nested ones also as dicts, :func:`mixedrl.envs.make_config`).
+        Any other field of :class:`~mixedrl.envs.dlc_config.DoubleLaneChangeTaskConfig` (nested ones
+        also as dicts, :func:`mixedrl.envs.make_config`).
 
     Attributes
     ----------
@@ -76,16 +61,15 @@ class DoubleLaneChangeTask(Task):
     noise_index : int
         Component of ``xi`` (and of the state) the disturbance acts on: ``v_x`` (2).
     force_scale : float
-        ``T / m`` [s/kg]: ``xi = force_scale * F_dis`` (eq. 54); see :meth:`force_to_xi`,
-        :meth:`xi_to_force`.
+        ``T / m`` [s/kg]: ``xi = force_scale * F_dis`` (eq. 54).
     true_mean_varies : bool
         ``True`` on a road grade (``grade_amplitude != 0``): the true mean is :meth:`true_mean_at`.
     mean_harmonics : int
         Harmonics ``H`` of the Fourier series along the course that Case 3 of the IBE fits
         (:meth:`mean_features`; 8).
     lqr_reference : bool
-        ``False``: the course is no equilibrium, so the LQR at the straight-road equilibrium is not the
-        yardstick of a run (the course's are the NMPC references of ``validation/nmpc.py``).
+        ``False``: the course is no equilibrium, so the LQR is not a run's yardstick (the NMPC
+        references of ``validation/nmpc.py`` are).
 
     Raises
     ------
@@ -132,12 +116,10 @@ class DoubleLaneChangeTask(Task):
 
     @classmethod
     def from_config(cls, config: DoubleLaneChangeTaskConfig) -> "DoubleLaneChangeTask":
-        """Build the task of a :class:`~mixedrl.envs.dlc_config.DoubleLaneChangeTaskConfig` (``task.*`` of a
-        run's config), which is also the environment's configuration (``self.config``, ``self.model.config``).
+        """Build the task of a :class:`~mixedrl.envs.dlc_config.DoubleLaneChangeTaskConfig` (used as it is).
 
-        Every law of :data:`mixedrl.config.DISTURBANCE_LAWS` is simulated (``task.disturbance.law``,
-        ``task.disturbance.dof``); the task's ``true_mean`` / ``true_cov`` are the law's mean and variance
-        (the same for every law), so the oracle plans with the Gaussian of the true moments.
+        The task's ``true_mean`` / ``true_cov`` are the law's mean and variance whatever the law, so the
+        oracle plans with the Gaussian of the true moments.
 
         Raises
         ------
@@ -165,10 +147,8 @@ class DoubleLaneChangeTask(Task):
 
         .. math:: g(x, u) = \\big[1,\\ \\sin(2\\pi k X / L),\\ \\cos(2\\pi k X / L)\\big]_{k = 1..H}
 
-        with ``L`` the course length (120 m) and ``H`` = :attr:`mean_harmonics` (8: wavelengths down to
-        15 m). A road grade's mean force ``mean - m g sin(theta(X))`` is represented exactly when its
-        wavelength is ``L / k`` for some ``k <= H`` (up to the ``sin(theta)`` nonlinearity, third order
-        in the grade), approximately otherwise.
+        with ``L`` the course length and ``H`` = :attr:`mean_harmonics`. A road grade's mean force is
+        represented exactly (up to third order in the grade) when its wavelength is ``L / k``, ``k <= H``.
         """
         X = s[:, 5].to(torch.float64)
         k = torch.arange(1, self.mean_harmonics + 1, dtype=torch.float64)
@@ -185,10 +165,9 @@ class DoubleLaneChangeTask(Task):
 
     def equilibrium(self) -> Equilibrium:
         """On the reference at the course start at the desired speed: ``s* = [0, 0, v_des, psi_ref(0), Y_ref(0), 0]``,
-        ``u* = 0`` -- the origin of the tracking errors (the observation is 0 without preview).
+        ``u* = 0``, the origin of the tracking errors.
 
-        It is a rest point of the errors on a straight road (eq. 53 at ``v_y = r = 0``, ``delta = a_x = 0``), not
-        of the six-component state (``X`` advances): :meth:`linearisation` is taken on the paper's state.
+        A rest point of the errors on a straight road, not of the six-component state (``X`` advances).
         """
         cfg = self.model.config
         X0 = torch.zeros((), dtype=torch.float64)
@@ -198,12 +177,9 @@ class DoubleLaneChangeTask(Task):
     def linearisation(self) -> Linearisation:
         """The discounted LQ problem of the tracking errors at :meth:`equilibrium` (the LQR reference's problem).
 
-        Coordinates: the paper's relative state ``x = [v_y, r, v_x - v_des, e_phi, e_y]`` (eq. 53), ``v = u``;
-        ``A``, ``B`` are the Jacobians of the shared ``f`` (:class:`~mixedrl.envs.VehicleDynamics`) at
-        ``[0, 0, v_des, 0, 0]`` on a straight road (as :func:`validation.nmpc.linearise_straight`), ``Q``,
-        ``R`` half the Hessian of eq. (54) (``T diag(0, 0, q_speed, 0, q_lateral)``, ``T diag(r_steer, r_accel)``),
-        ``E = I_5`` (the noise's five components are those of ``x``). ``x`` embeds into the task state at
-        ``X = 0``: ``s = [x_0, x_1, v_des + x_2, psi_ref(0) + x_3, Y_ref(0) + x_4, 0]``.
+        Coordinates: ``x = [v_y, r, v_x - v_des, e_phi, e_y]``, ``v = u``; ``A``, ``B`` the Jacobians of
+        ``f`` at ``[0, 0, v_des, 0, 0]`` on a straight road, ``Q``, ``R`` half the Hessian of eq. (54),
+        ``E = I_5``. ``x`` embeds at ``X = 0``: ``s = [x_0, x_1, v_des + x_2, psi_ref(0) + x_3, Y_ref(0) + x_4, 0]``.
         """
         eq = self.equilibrium()
         cfg = self.model.config
@@ -237,7 +213,7 @@ class DoubleLaneChangeTask(Task):
         return self.model.is_terminated(s)
 
     def true_step(self, s: torch.Tensor, u: torch.Tensor, generator: torch.Generator) -> torch.Tensor:
-        # s' = f(s, u) + xi e_vx,  xi = F_dis T / m  (eq. 54): the environments' one true step
+        # s' = f(s, u) + xi e_vx,  xi = F_dis T / m  (eq. 54)
         return self.model.true_step(s, u.to(s.dtype), generator)
 
     def evaluate(self, policy: torch.nn.Module, seeds: list[int], keep_trajectory: bool = False
@@ -247,16 +223,12 @@ class DoubleLaneChangeTask(Task):
         Returns ``lateral_mae`` [m], ``speed_mae`` [m/s], ``lateral_max``, ``speed_max``, ``cost`` (total
         eq. 54 cost of the course), ``terminated`` (fraction of runs that left the road); with
         ``keep_trajectory`` also ``trajectories`` (the :class:`~mixedrl.envs.TrackingResult` objects).
-        The courses are driven by :func:`mixedrl.envs.evaluate_courses` with ``exact=True`` (in lock step
-        from :data:`~mixedrl.envs.evaluation.NUMPY_MIN_ROWS` seeds on, else one after the other): the
-        numbers are those of :func:`~mixedrl.envs.evaluate_tracking` per seed, bit for bit. Their steps
-        (the simulated plant's) are added to :attr:`evaluation_transitions`.
+        The courses are driven by :func:`mixedrl.envs.evaluate_courses` with ``exact=True`` (bit for bit
+        :func:`~mixedrl.envs.evaluate_tracking`'s); their steps are added to :attr:`evaluation_transitions`.
 
-        With a plant attached (:func:`mixedrl.plant.attach_plant`, e.g. a
-        :class:`~mixedrl.plant.GymnasiumPlant` of ``mixedrl/DoubleLaneChange-v0``) the evaluation is
-        :attr:`plant_evaluate`'s instead: one plant episode of at most a course (:attr:`eval_horizon`,
-        ``max_steps``) per seed, :func:`mixedrl.plant.evaluate_on_plant`'s ``cost`` (discounted eq. 54),
-        plant return and terminations (no Table I metrics, which need the simulated course), or none.
+        With a plant attached (:func:`mixedrl.plant.attach_plant`) the evaluation is
+        :attr:`plant_evaluate`'s instead: one episode of at most a course per seed, without the Table I
+        metrics.
 
         Raises
         ------
@@ -271,15 +243,13 @@ class DoubleLaneChangeTask(Task):
 
     def evaluate_many(self, policies: list[torch.nn.Module], seeds: list[list[int]], *, exact: bool = False
                       ) -> list[dict[str, Any]]:
-        """:meth:`evaluate` of several policies, each on its own seeds, in one lock-step drive of all the
-        courses (:func:`mixedrl.envs.evaluate_courses`).
+        """:meth:`evaluate` of several policies, each on its own seeds, in one lock-step drive
+        (:func:`mixedrl.envs.evaluate_courses`).
 
-        With ``exact=False`` (default) the policies are called once per step on all their courses (a batch
-        of rows, or one call of the stacked policies): the metrics may differ from :meth:`evaluate`'s in
-        the float32 last bits of the policy (about 1e-8 relative; docs/reproduction.rst).
-        With ``exact=True`` each is bit-identical to :meth:`evaluate`. The courses' steps are counted as
-        :meth:`Task.evaluate_many <mixedrl.tasks.Task.evaluate_many>` says (``last_evaluation_counts``); with
-        a plant the policies are evaluated on it one after the other.
+        With ``exact=False`` (default) the metrics may differ from :meth:`evaluate`'s in the float32 last
+        bits of the policy (docs/reproduction.rst); with ``exact=True`` they are bit-identical. Steps are
+        counted as :meth:`Task.evaluate_many <mixedrl.tasks.Task.evaluate_many>` says; with a plant the
+        policies are evaluated on it one after the other.
 
         Raises
         ------
@@ -310,16 +280,12 @@ def _course_metrics(runs: list[TrackingResult], keep_trajectory: bool) -> dict[s
     return out
 
 
-# ----------------------------------------------------------------------------------------------------
-# the double lane change's experiment: its configuration, its course sampler and its preset, registered here
-# ----------------------------------------------------------------------------------------------------
+# the double lane change's configuration and preset, registered here
 register_builtin_task(DoubleLaneChangeTaskConfig, DoubleLaneChangeTaskConfig.from_dict, CostWeights=CostWeights)
 
-#: The double lane change's experiment configuration (the reproduction of Table I, ``mixedrl reproduce``):
-#: the shared settings (learning rates, their decay, ``horizon``, ``value_output``, ``batch_size``, the
-#: budget) were chosen by a small search on mixed-RL runs of the double lane change (seeds 0-2) and then
-#: applied unchanged to every method; the course sampler and the relative batch weighting are the
-#: departures docs/algorithm2.rst lists.
+#: The double lane change's experiment configuration (the reproduction of Table I, ``mixedrl reproduce``),
+#: applied to every method; the course sampler and the relative batch weighting are departures listed
+#: on docs/algorithm2.rst.
 DLC_EXPERIMENT: dict[str, dict[str, Any]] = {
     "algorithm": {"lr_decay_iterations": 1500, "batch_weighting": "relative"},
     "sampler": {"name": CourseSampler.NAME},

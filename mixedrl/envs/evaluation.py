@@ -1,8 +1,7 @@
 """Table I metrics: drive the double lane change with a policy and measure the tracking errors.
 
-:func:`evaluate_tracking` drives one course with one policy through the Gymnasium environment;
-:func:`evaluate_courses` drives many courses (evaluation seeds) of many policies in lock step, with the
-vehicle vectorised over the courses, and gives the same numbers (bit for bit with ``exact=True``).
+:func:`evaluate_tracking` drives one course; :func:`evaluate_courses` drives many courses of many
+policies in lock step, with the same numbers (bit for bit with ``exact=True``).
 """
 
 from __future__ import annotations
@@ -125,8 +124,7 @@ def evaluate_tracking(policy: Callable[[np.ndarray], Any] | torch.nn.Module,
     seed : int, optional
         Seed of the disturbance sequence (and of the start perturbation if ``start_state`` is None).
     start_state : numpy.ndarray, shape (6,), optional
-        Start tracking state. Default: exactly on the reference at ``X = 0``, 12 m/s, zero ``v_y``,
-        ``r`` (deterministic start, so methods are compared on the same footing).
+        Start tracking state. Default: on the reference at ``X = 0``, 12 m/s, ``v_y = r = 0``.
     max_steps : int, optional
         Stop after this many steps (default: the full course, ``config.max_steps``).
     normalized_actions : bool, optional
@@ -148,11 +146,8 @@ def evaluate_tracking(policy: Callable[[np.ndarray], Any] | torch.nn.Module,
     Notes
     -----
     The paper does not say over which time span Table I averages; here it is the whole course (or until
-    termination, which ``TrackingResult.terminated`` reports).
-
-    Each step is the package's one true step, :meth:`~mixedrl.envs.DoubleLaneChangeModel.true_step`
-    (called by the Gymnasium env this function drives), with ``F_dis`` drawn from the env's
-    ``np_random`` seeded with ``seed``: the same transition as in training, on Python floats.
+    termination). Each step is :meth:`~mixedrl.envs.DoubleLaneChangeModel.true_step`, through the
+    Gymnasium env, with ``F_dis`` drawn from its ``np_random`` seeded with ``seed``.
     """
     env = DoubleLaneChangeEnv(config)
     cfg = env.config
@@ -186,8 +181,7 @@ def evaluate_tracking(policy: Callable[[np.ndarray], Any] | torch.nn.Module,
 def _tracking_result(dt: float, states: np.ndarray, observations: np.ndarray, actions: np.ndarray,
                      forces: np.ndarray, costs: np.ndarray, lat: np.ndarray, spd: np.ndarray,
                      terminated: bool) -> TrackingResult:
-    """The :class:`TrackingResult` of one course from its contiguous per-step arrays (one place, so the
-    sequential and the batched evaluation reduce the same arrays in the same way)."""
+    """The :class:`TrackingResult` of one course from its per-step arrays (sequential and batched)."""
     n = actions.shape[0]
     return TrackingResult(
         mean_abs_lateral_error=float(np.mean(np.abs(lat[1:]))),
@@ -210,8 +204,8 @@ def _start_state(cfg: DoubleLaneChangeConfig, start_state: np.ndarray | None) ->
 
 @dataclass(frozen=True)
 class _RowColumns:
-    """The fields :func:`mixedrl.envs.columns.observation_from_errors` reads, with the reference on float64
-    rows (:class:`~mixedrl.envs.reference.LibmReference`: bit-identical to the Python-float reference)."""
+    """The fields :func:`~mixedrl.envs.columns.observation_from_errors` reads, with a
+    :class:`~mixedrl.envs.reference.LibmReference`."""
 
     v_des: float
     preview_distances: tuple[float, ...]
@@ -220,13 +214,11 @@ class _RowColumns:
 
 def _stacked_call(policies: Sequence[Any]) -> Callable[[np.ndarray], np.ndarray] | None:
     """One call of ``P`` modules of one architecture on ``(P, S, obs_dim)`` rows
-    (:func:`mixedrl.networks.stacked_actors` for plain actors, else :func:`torch.func.vmap`), or ``None``
-    when the policies cannot be stacked (not modules of one type with the same parameter and buffer
-    shapes, or holding tensors outside their parameters and buffers, which a stacked call would not
-    see). The stacked state is a copy: the modules are not changed."""
+    (:func:`mixedrl.networks.stacked_actors`, else :func:`torch.func.vmap`), or ``None`` when they cannot
+    be stacked (different types or shapes, or tensors outside parameters and buffers)."""
     if not all(isinstance(p, torch.nn.Module) for p in policies):
         return None
-    # plain actors (even one): one batched product per layer, cheaper than vmap and than the modules' calls
+    # plain actors (even one): one batched product per layer
     actors = stacked_actors(policies)
     if actors is not None:
         def call_actors(obs: np.ndarray) -> np.ndarray:
@@ -265,8 +257,7 @@ def _stacked_call(policies: Sequence[Any]) -> Callable[[np.ndarray], np.ndarray]
 
 
 def _checked_actions(actions: Any, rows: int, what: str, finite: bool = True) -> np.ndarray:
-    """A policy's output as float64 ``(rows, 2)``, with ``finite`` also checked finite (the checks of the
-    environment's step)."""
+    """A policy's output as float64 ``(rows, 2)``, checked for shape (and, with ``finite``, NaN/inf)."""
     a = np.asarray(actions, dtype=np.float64)
     if a.size != rows * 2:
         raise ValueError(f"{what} returned an action of shape {a.shape}, expected {(rows, 2) if rows > 1 else (2,)}")
@@ -276,9 +267,7 @@ def _checked_actions(actions: Any, rows: int, what: str, finite: bool = True) ->
     return a
 
 
-#: From this many courses on, :func:`evaluate_courses` steps the vehicles as numpy rows (``stepper="auto"``);
-#: below it each course's own Gymnasium environment is faster (a numpy call costs about a microsecond
-#: whatever its length, a Python-float step of one car about 15; measured on 2 cores, AMD EPYC).
+#: From this many courses on, :func:`evaluate_courses` steps the vehicles as numpy rows (``stepper="auto"``).
 NUMPY_MIN_ROWS = 6
 
 
@@ -328,7 +317,7 @@ class _EnvRows:
 
 
 class _NumpyRows:
-    """Courses stepped as float64 numpy rows, bit-identical to :class:`_EnvRows` (:func:`evaluate_courses`, Notes)."""
+    """Courses stepped as float64 numpy rows, bit-identical to :class:`_EnvRows`."""
 
     def __init__(self, cfg: DoubleLaneChangeConfig, row_seeds: list[int], start_state: np.ndarray,
                  normalized_actions: bool, n_max: int) -> None:
@@ -336,7 +325,7 @@ class _NumpyRows:
         self.model = DoubleLaneChangeModel(cfg)
         env = DoubleLaneChangeEnv(cfg)
         n, obs_dim = len(row_seeds), self.model.obs_dim
-        # each course's generator is the one its environment seeds; all its draws at once (the same numbers)
+        # each course's draws from the generator its environment seeds, all at once (the same numbers)
         self.z = np.empty((n_max, n))
         obs0, info0 = env.reset(seed=0, options={"state": start_state})
         for i, seed in enumerate(row_seeds):
@@ -405,45 +394,30 @@ def evaluate_courses(policies: Sequence[Callable[[np.ndarray], Any] | torch.nn.M
                      seeds: Sequence[int] | Sequence[Sequence[int]], start_state: np.ndarray | None = None,
                      max_steps: int | None = None, normalized_actions: bool = False,
                      exact: bool = True, stepper: str = "auto") -> list[list[TrackingResult]]:
-    """Drive the double lane change with several policies on several seeds at once: every course of
-    :func:`evaluate_tracking` in lock step.
+    """Drive the double lane change with several policies on several seeds at once, in lock step.
 
-    Implements the same evaluation as :func:`evaluate_tracking` (the Table I metrics, eq. 54's cost) for
-    ``N = sum_p S_p`` courses: step ``k`` calls the policies on the courses' observations, then steps
-    every course still running, ``s_{k+1} = f(s_k, u_k) + \\xi_k e_{v_x}``, the disturbance of course
-    ``(p, j)`` drawn from the generator the environment seeds with ``seeds[p][j]``. A course that
-    terminates (left the road, too slow, non-finite) or reaches the end is masked from then on: its
-    record ends where the sequential drive ends.
+    The evaluation of :func:`evaluate_tracking` for ``N = sum_p S_p`` courses: the disturbance of course
+    ``(p, j)`` comes from the generator the environment seeds with ``seeds[p][j]``, and a course that
+    ends is masked from then on (its record ends where the sequential drive ends).
 
     Parameters
     ----------
     policies : sequence of callable or torch.nn.Module, length P
         Each as ``policy`` of :func:`evaluate_tracking`.
-    config : DoubleLaneChangeConfig or dict, optional
-        The task (default: the paper's).
     seeds : sequence of int, or sequence of P sequences of int
         The evaluation seeds: one list shared by every policy, or one (non-empty) list per policy.
-    start_state : numpy.ndarray, shape (6,), optional
+    config, start_state, max_steps, normalized_actions : optional
         As for :func:`evaluate_tracking` (the same start for every course).
-    max_steps : int, optional
-        As for :func:`evaluate_tracking`.
-    normalized_actions : bool, optional
-        As for :func:`evaluate_tracking`.
     exact : bool, optional
-        True (default): each course's policy is called on that course's observation alone, a 1-D array
-        as in :func:`evaluate_tracking`, so every number equals the sequential evaluation's bit for bit.
-        False: each step is one call per policy on all its courses' observations ``(S_p, obs_dim)``, or
-        one call of the stacked policies when they are modules of one architecture with equally many
-        seeds (:func:`mixedrl.networks.stacked_actors` for plain actors, else :func:`torch.func.vmap`);
-        finished courses stay in the batch (fixed shapes: a course's action does not depend on which
-        others still run). Faster; a float32 network then gives outputs that may differ in the last
-        bits from its single-row outputs (a batched matrix product sums in another order), and so do the
-        metrics, by about 1e-8 relative (docs/reproduction.rst).
+        True (default): each policy is called on one course's observation at a time, so every number
+        equals :func:`evaluate_tracking`'s bit for bit. False: one call per policy on all its courses
+        ``(S_p, obs_dim)``, or one call of the stacked policies when they are modules of one
+        architecture with equally many seeds; faster, but a float32 network may then differ in the last
+        bits (docs/reproduction.rst).
     stepper : {"auto", "numpy", "env"}, optional
-        How the vehicles are stepped, with the same numbers either way: ``"numpy"``, float64 rows of one
-        array (:meth:`~mixedrl.envs.VehicleDynamics.step_rows`); ``"env"``, each course's own Gymnasium
-        environment on Python floats (with ``exact`` this is :func:`evaluate_tracking` course by course:
-        nothing is shared then); ``"auto"`` (default), numpy from :data:`NUMPY_MIN_ROWS` courses on.
+        How the vehicles are stepped, with the same numbers either way: ``"numpy"``, float64 rows
+        (:meth:`~mixedrl.envs.VehicleDynamics.step_rows`); ``"env"``, each course's own Gymnasium
+        environment; ``"auto"`` (default), numpy from :data:`NUMPY_MIN_ROWS` courses on.
 
     Returns
     -------
@@ -459,12 +433,8 @@ def evaluate_courses(policies: Sequence[Callable[[np.ndarray], Any] | torch.nn.M
 
     Notes
     -----
-    Why the numpy rows are bit-identical to the environment's Python floats: ``+ - * /``, ``abs`` and
-    clipping are correctly rounded on every backend, in the same order of operations (one formula,
-    :mod:`mixedrl.envs.vehicle`), and the transcendental functions (``tanh``, ``atan``, ``atan2``,
-    ``tan``, ``sin``, ``cos``) are :mod:`math`'s, element by element (:class:`mixedrl.envs.libm.LibmOps`);
-    numpy's own vectorised versions differ in the last bit for some arguments. A course's disturbance
-    draws are made in one call of its generator, which gives the numbers of one draw per step.
+    The numpy rows are bit-identical to the environment's Python floats: the arithmetic is correctly
+    rounded and the transcendental functions are :mod:`math`'s (:mod:`mixedrl.envs.libm`).
     """
     if isinstance(policies, (torch.nn.Module, str, bytes)) or not isinstance(policies, Sequence) \
             or len(policies) == 0:
@@ -483,7 +453,7 @@ def evaluate_courses(policies: Sequence[Callable[[np.ndarray], Any] | torch.nn.M
     n_rows = len(row_seeds)
     use_numpy = stepper == "numpy" or (stepper == "auto" and n_rows >= NUMPY_MIN_ROWS)
     if exact and not use_numpy:
-        # per-course policy calls and per-course environments: that is the sequential drive itself
+        # the sequential drive itself
         results: list[list[TrackingResult]] = [[] for _ in policies]
         for p, (policy, s) in enumerate(zip(policies, seed_lists)):
             for seed in s:
@@ -516,7 +486,7 @@ def evaluate_courses(policies: Sequence[Callable[[np.ndarray], Any] | torch.nn.M
                 for i, out in zip(idx, raw):
                     _checked_actions(out, 1, f"policies: entry {owner[i]} (seed {row_seeds[i]})")
         else:
-            # a finished course's row is still computed (its last observation) but not checked or used
+            # a finished course's row is still computed but not checked or used
             full = np.empty((n_rows, 2))
             if stacked is not None:
                 full[:] = _checked_actions(stacked(obs.reshape(len(policies), -1, obs.shape[1])), n_rows,

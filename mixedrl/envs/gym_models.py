@@ -1,20 +1,13 @@
-"""The nominal physics of two Gymnasium environments in torch, as a designer's model ``f`` (issue 41).
+"""The nominal physics of two Gymnasium environments in torch, as a designer's model ``f``.
 
-* :func:`pendulum_v1_step`: Gymnasium's ``Pendulum-v1`` (semi-implicit Euler, the torque clipped to
-  ``max_torque``, the rate to ``max_speed``); state ``[theta, theta_dot]`` (the angle not wrapped);
-* :func:`mountain_car_step`: ``MountainCarContinuous-v0`` (the force clipped to ``[-1, 1]``, the speed
-  and the position clipped, the left wall stopping the car); state ``[position, velocity]``;
+* :func:`pendulum_v1_step`: ``Pendulum-v1``, state ``[theta, theta_dot]`` (the angle not wrapped);
+* :func:`mountain_car_step`: ``MountainCarContinuous-v0``, state ``[position, velocity]``;
 * :func:`pendulum_noise_matrix`, :func:`mountain_car_noise_matrix`: ``E`` of a force added after the
-  action clip (what :class:`mixedrl.plant.DisturbedEnv` adds); not 0/1 selections (the residual is
-  the least-squares solve, :func:`mixedrl.ibe.common.noise_coordinates`);
-* :class:`PendulumV1Task`: Pendulum-v1 as a :class:`~mixedrl.tasks.Task` (the model of the tutorial's
-  plant section): Gymnasium's cost charged on the next state (eq. 2), the actuator limit declared
-  (``action_limit``, the model clips as the plant does);
-* :class:`MountainCarTask`: MountainCarContinuous-v0 as a task (the benchmark's,
-  ``experiments/analysis/gym_benchmark.py``): the env's step, a force after the clip, an energy cost.
+  action clip (what :class:`mixedrl.plant.DisturbedEnv` adds);
+* :class:`PendulumV1Task`, :class:`MountainCarTask`: the two as :class:`~mixedrl.tasks.Task` objects
+  (docs/gym_benchmark.rst).
 
-Both step functions equal the envs' ``step`` up to float32 rounding (the envs mix float32 actions and
-states into float64 arithmetic; tests/test_plant.py checks them on many random states and actions).
+Both step functions equal the envs' ``step`` up to float32 rounding.
 """
 
 from __future__ import annotations
@@ -94,13 +87,10 @@ class PendulumV1Task(Task):
 
     Notes
     -----
-    With a ``saturation_margin`` (a bias entering before the clip, :class:`mixedrl.plant.DisturbedEnv`
-    ``before_clip=True``) :meth:`saturated` also drops the transitions near the env's speed clip.
-
     The utility is Gymnasium's, ``angle_normalize(theta)^2 + 0.1 theta_dot^2 + 0.001 u^2``, charged on the
-    next state (eq. 2; the env charges the current one). ``action_limit`` is the env's ``max_torque``: the
-    model clips there, and a transition at the limit is dropped from the IBE only if a disturbance could
-    enter before the clip (``saturation_margin``, 0 here: the torque is added after it).
+    next state (eq. 2; the env charges the current one). ``action_limit`` is the env's ``max_torque``.
+    With a ``saturation_margin`` (a bias entering before the clip) :meth:`saturated` also drops the
+    transitions near the env's speed clip.
     """
 
     state_dim, obs_dim, action_dim, noise_dim = 2, 3, 1, 1
@@ -134,8 +124,7 @@ class PendulumV1Task(Task):
 
     def saturated(self, s: torch.Tensor, u: torch.Tensor) -> torch.Tensor | None:
         """:meth:`Task.saturated`, plus (with a ``saturation_margin``) the rows whose rate the model brings
-        within the margin's reach (``E_rate * margin``) of the env's speed clip: a bias entering before the
-        clips is cut there too."""
+        within ``E_rate * margin`` of the env's speed clip."""
         rows = super().saturated(s, u)
         margin = float(torch.as_tensor(self.saturation_margin).max())
         if rows is None or margin <= 0:
@@ -149,8 +138,8 @@ class PendulumV1Task(Task):
         return (2 * torch.rand(n, 2, generator=generator, dtype=torch.float64) - 1) * high
 
     def sample_region(self, n: int, generator: torch.Generator) -> torch.Tensor:
-        """The env's whole state region (``algorithm.rollout_region``): ``theta in [-pi, pi]``, ``theta_dot`` in
-        the env's ``[-max_speed, max_speed] = [-8, 8]``; its resets cover only ``|theta_dot| <= 1``."""
+        """The env's whole state region (``algorithm.rollout_region``): ``theta in [-pi, pi]``,
+        ``theta_dot in [-8, 8]``."""
         high = torch.tensor([math.pi, 8.0], dtype=torch.float64)
         return (2 * torch.rand(n, 2, generator=generator, dtype=torch.float64) - 1) * high
 
@@ -160,11 +149,10 @@ class MountainCarTask(Task):
     (:func:`mixedrl.envs.gym_models.mountain_car_step`), the uncertainty a force ``xi ~ N(mu, K)`` (action
     units) added after the actuator clip (``E = power [1, 1]^T``, :func:`mountain_car_noise_matrix`).
 
-    The designer's cost (the env's own reward is sparse: +100 at the flag, ``-0.1 u^2`` a step) is the
-    energy the car still lacks to stand at the flag, ``max(0, E_goal - E(s')) / (E_goal - E_min)`` with
-    ``E(p, v) = 0.0025 / 3 sin(3 p) + v^2 / 2`` (the env's gravity ``-0.0025 cos(3 p)`` per step is
-    ``-dE/dp``), plus ``0.001 u^2``; a state past the flag (``p >= 0.45``) is terminal. The evaluation
-    reports the env's own return.
+    The designer's cost (the env's reward is sparse) is the energy the car still lacks to stand at the
+    flag, ``max(0, E_goal - E(s')) / (E_goal - E_min)`` with ``E(p, v) = 0.0025 / 3 sin(3 p) + v^2 / 2``,
+    plus ``0.001 u^2``; a state past the flag (``p >= 0.45``) is terminal. The evaluation reports the
+    env's own return.
     """
 
     state_dim, obs_dim, action_dim, noise_dim = 2, 2, 1, 1

@@ -1,11 +1,8 @@
 """Python's :mod:`math` functions mapped over float64 arrays (the bit-exact numpy backend).
 
-numpy's own ``tanh``, ``arctan``, ``arctan2`` and ``tan`` are vectorised implementations (SIMD on
-x86-64) that differ from the C library's in the last bit for some arguments; Python's :mod:`math` calls
-the C library. The Gymnasium environment steps on Python floats (:mod:`math`), so a batched evaluation
-that must reproduce it bit for bit (:func:`mixedrl.envs.evaluate_courses`) evaluates its transcendental
-functions with :func:`elementwise` and everything else (``+ - * /``, ``abs``, ``clip``: correctly
-rounded in IEEE 754 on every backend) with numpy.
+numpy's vectorised transcendental functions may differ from the C library's in the last bit, so a
+batched evaluation that must reproduce the Python-float environment bit for bit
+(:func:`mixedrl.envs.evaluate_courses`; docs/reproduction.rst) uses :func:`elementwise` for them.
 """
 
 from __future__ import annotations
@@ -48,7 +45,7 @@ def elementwise(f: Callable[..., float]) -> Callable[..., np.ndarray]:
 
 class LibmOps:
     """The operations the vehicle and the reference need, on float64 arrays, bit-identical to :mod:`math`
-    on each element (the ``ops`` backend of :mod:`mixedrl.envs.vehicle` and :mod:`mixedrl.envs.reference`)."""
+    on each element."""
 
     atan2 = staticmethod(elementwise(math.atan2))
     tan = staticmethod(elementwise(math.tan))

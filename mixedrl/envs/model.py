@@ -1,9 +1,7 @@
 """The double-lane-change model Algorithm 2 plans with: :class:`DoubleLaneChangeModel`.
 
-The deterministic ``f`` (eq. 53 discretised, the shared :class:`~mixedrl.envs.vehicle.VehicleDynamics`),
-the observation and the cost of eq. (54) (:mod:`mixedrl.envs.columns`), the true step ``f + E xi``
-(:meth:`DoubleLaneChangeModel.true_step`, the one true-environment step of the package; see
-:mod:`mixedrl.envs.tracking`) and the start distributions, batched, on torch tensors and numpy arrays.
+The deterministic ``f`` (eq. 53 discretised), the observation and cost of eq. (54), the true step
+``f + E xi`` and the start distributions, batched, on torch tensors and numpy arrays.
 """
 
 from __future__ import annotations
@@ -20,7 +18,7 @@ from mixedrl.envs.vehicle import VX_INDEX, VehicleDynamics
 
 __all__ = ["ACTION_DIM", "NOISE_INDEX", "STATE_DIM", "DoubleLaneChangeModel"]
 
-#: Index of the state component that the disturbance acts on (``v_x``; EQUATIONS.md, point 6).
+#: Index of the state component that the disturbance acts on (``v_x``).
 NOISE_INDEX = VX_INDEX
 #: Dimension of the tracking state ``s = [v_y, r, v_x, phi, Y, X]``.
 STATE_DIM = 6
@@ -60,19 +58,17 @@ def _check_action(u: Any, like: Any, name: str = "u") -> Any:
     return u
 
 
-
 def _check_numpy_generator(generator: Any) -> None:
     if not isinstance(generator, np.random.Generator):
         raise ValueError(f"generator: expected a numpy.random.Generator for a numpy state, got "
                          f"{type(generator).__name__}")
 
 
-
 class DoubleLaneChangeModel:
     """The deterministic model of the double-lane-change task, for planning (torch) and checking (numpy).
 
-    This is the object the Algorithm-2 code plans with. Every method is batched over leading dimensions
-    and works on torch tensors (differentiable, float32/float64) and numpy arrays.
+    Every method is batched over leading dimensions; torch tensors are differentiable. Methods raise
+    ``ValueError`` on a wrong last dimension or mixed backends (and NaN/inf in a numpy :meth:`step`).
 
     Parameters
     ----------
@@ -147,11 +143,6 @@ class DoubleLaneChangeModel:
         -------
         torch.Tensor or numpy.ndarray, shape (..., 6)
             ``f(s, u)``.
-
-        Raises
-        ------
-        ValueError
-            Wrong shapes, mixed backends/dtypes (and NaN/inf on the numpy path).
         """
         s = _check_state(s)
         u = _check_action(u, s)
@@ -186,11 +177,6 @@ class DoubleLaneChangeModel:
         -------
         torch.Tensor or numpy.ndarray, shape (..., obs_dim)
             ``obs_dim = 5 + len(preview_distances)``.
-
-        Raises
-        ------
-        ValueError
-            Wrong shape.
         """
         s = _check_state(s)
         cols = observation_columns(self.config, *(s[..., i] for i in range(STATE_DIM)))
@@ -212,11 +198,6 @@ class DoubleLaneChangeModel:
         -------
         torch.Tensor or numpy.ndarray, shape (...)
             Cost (>= 0).
-
-        Raises
-        ------
-        ValueError
-            Wrong shapes or mixed backends.
         """
         s_next = _check_state(s_next, "s_next")
         u = _check_action(u, s_next)
@@ -267,10 +248,8 @@ class DoubleLaneChangeModel:
         .. math:: F_{dis} = \\bar F(X) + \\sigma\\, z, \\qquad E z = 0,\\ \\mathrm{Var}\\, z = 1, \\qquad
                   \\bar F(X) = \\text{mean} - m g \\sin\\theta(X)
 
-        (:meth:`~mixedrl.envs.disturbance.Disturbance.mean_force`; ``sigma`` =
-        :attr:`~mixedrl.envs.disturbance.Disturbance.std`), one standardised draw ``z`` of the configured
-        law per state (:meth:`~mixedrl.envs.disturbance.Disturbance.standard_noise`: a standard normal
-        for the default ``"gaussian"``), drawn from ``generator``.
+        with one draw ``z`` of the configured law per state
+        (:meth:`~mixedrl.envs.disturbance.Disturbance.standard_noise`).
 
         Parameters
         ----------
@@ -288,7 +267,7 @@ class DoubleLaneChangeModel:
         Raises
         ------
         ValueError
-            Wrong shape, or a generator of the other backend.
+            A generator of the other backend.
         """
         cfg = self.config
         if isinstance(s, tuple):
@@ -318,14 +297,9 @@ class DoubleLaneChangeModel:
             s_{t+1} = f(s_t, u_t) + E\\, \\xi_t, \\qquad \\xi_t = F_{dis,t}\\, T / m, \\qquad
             F_{dis,t} = \\bar F(X_t) + \\sigma z_t
 
-        (``z_t`` the configured law's standardised draw, a standard normal by default: ``F_dis ~
-        N(mean, variance)``), where ``f`` is :meth:`step`, ``E`` the unit vector of ``v_x``
-        (:meth:`noise_vector`) and the force is drawn at the state *before* the step
-        (:meth:`sample_force`, so a road grade and the law are honoured).
-        This is the one true-environment step of the package:
-        :meth:`mixedrl.envs.dlc_task.DoubleLaneChangeTask.true_step` (training),
-        :class:`DoubleLaneChangeVectorEnv`, the Gymnasium env :class:`~mixedrl.envs.dlc_env.DoubleLaneChangeEnv`
-        and hence :func:`~mixedrl.envs.evaluate_tracking` all call it.
+        where ``f`` is :meth:`step`, ``E`` the unit vector of ``v_x`` and the force is drawn at the state
+        before the step (:meth:`sample_force`). Training, the vector env, the Gymnasium env and the
+        evaluation all call this method.
 
         Parameters
         ----------
@@ -347,18 +321,13 @@ class DoubleLaneChangeModel:
         Raises
         ------
         ValueError
-            Wrong shapes, mixed backends, both ``generator`` and ``force`` given.
+            Both ``generator`` and ``force`` given.
 
         Notes
         -----
-        Why the draw can be passed in: each caller keeps its own random stream (training and the vector
-        env a :class:`torch.Generator`; the Gymnasium env Gymnasium's ``np_random``, which seeds the
-        evaluation episodes of Table I). A caller that reports the force (the environments' ``info``)
-        draws it with :meth:`sample_force` and passes ``force=``; the others pass the generator. Either
-        way the draws are made in the same order from the same generator as before this function
-        existed, so the published numbers are unchanged. The tuple path adds ``xi`` to ``v_x`` alone
-        (the other components of ``E xi`` are zero) and returns Python floats: it is the same formula,
-        evaluated with :mod:`math` (:meth:`VehicleDynamics.step_scalar`), for speed.
+        Each caller keeps its own random stream; one that reports the force draws it with
+        :meth:`sample_force` and passes ``force=``. The tuple path is the same formula on Python floats
+        (:meth:`VehicleDynamics.step_scalar`).
         """
         if force is None:
             force = self.sample_force(s, generator)

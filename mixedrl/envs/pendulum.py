@@ -1,15 +1,8 @@
 """A second worked example beside the vehicle: the inverted pendulum with an unmodelled torque bias.
 
-:class:`PendulumTask` is a :class:`mixedrl.tasks.Task` that is not a vehicle: a nonlinear, open-loop
-unstable system with a bounded input whose true environment carries a constant torque the designer's
-prior misses. Its linearisation at the upright equilibrium (:meth:`PendulumTask.linearisation`) is
-the discounted LQ problem whose optimum with the noise-mean feed-forward is the precision yardstick of
-a learned policy (docs page ``pendulum.rst``).
-
-The task is registered under its name (:func:`mixedrl.tasks.register_task`, when :mod:`mixedrl` is
-imported) with its configuration :class:`PendulumTaskConfig` (the constructor's arguments as
-``task.<field>`` keys), so a run, ``--set task.name=\\"pendulum\\"`` and a sweep specification's
-``"task.name" = "pendulum"`` build it; ``config.json`` records ``"name": "pendulum"`` and its fields.
+:class:`PendulumTask` is nonlinear, open-loop unstable and input-bounded; its true environment carries a
+constant torque the designer's prior misses (docs/pendulum.rst). It is registered as
+``task.name = "pendulum"`` with its configuration :class:`PendulumTaskConfig`.
 """
 
 from __future__ import annotations
@@ -92,10 +85,7 @@ class PendulumTask(Task):
 
     Notes
     -----
-    ``obs_scale = (init_angle, init_rate)``; the default ``value_scale = 1`` is of the order of the
-    discounted LQ value at a typical start (docs page ``tuning.rst``), so the networks see inputs and
-    outputs of order 1. ``eval_horizon = 200`` steps (10 s at ``dt = 0.05``), long enough for the
-    second half to be the steady state.
+    ``obs_scale = (init_angle, init_rate)``; ``eval_horizon = 200`` steps (10 s at ``dt = 0.05``).
     """
 
     state_dim = 2
@@ -143,10 +133,8 @@ class PendulumTask(Task):
         -------
         Linearisation
             ``A`` (2, 2), ``B`` (2, 1): Jacobians of :meth:`f` at the origin; ``Q = diag(1, q_omega)``,
-            ``R = [[r]]`` (the utility is exactly quadratic, charged on the next state as in
-            :class:`validation.lq.LQProblem`); ``E`` (2, 1), the noise matrix; ``gamma``. Item access
-            (``lin["A"]``) works as with the dict this method returned before. The default
-            :meth:`mixedrl.tasks.Task.linearisation` (autograd) gives the same matrices (a test checks it).
+            ``R = [[r]]`` (the utility is exactly quadratic, charged on the next state); ``E`` (2, 1), the
+            noise matrix; ``gamma``. Item access (``lin["A"]``) works too.
         """
         k = self.xi_per_torque
         A = np.array([[1.0, self.dt], [k * self.mass * self.gravity * self.length, 1.0 - k * self.damping]])
@@ -181,7 +169,6 @@ class PendulumTask(Task):
         return ~torch.isfinite(s).all(dim=-1) | (s[:, 0].abs() > 0.5 * math.pi)
 
 
-
 @dataclass
 class PendulumTaskConfig:
     """Configuration of :class:`PendulumTask` (``task.name = "pendulum"``): its constructor's arguments,
@@ -194,39 +181,22 @@ class PendulumTaskConfig:
     """
 
     name: str = "pendulum"
-    """Always ``"pendulum"`` for this class (selects it when loading)."""
     dt: float = 0.05
-    """Sampling time [s]."""
     gravity: float = 9.81
-    """``g`` [m/s^2]."""
     length: float = 1.0
-    """``l`` [m]."""
     mass: float = 1.0
-    """``m`` [kg]."""
     damping: float = 0.1
-    """``b`` [N m s]."""
     torque_bound: float = 4.0
-    """Bound of the input torque [N m]."""
     torque_bias: float = 0.5
-    """Mean of the true disturbance torque [N m]."""
     torque_std: float = 0.2
-    """Standard deviation of the true disturbance torque [N m]."""
     prior_torque_bias: float = 0.0
-    """The designer's prior mean of the disturbance torque [N m] (eq. 8)."""
     prior_torque_std: float = 0.2
-    """The designer's prior standard deviation [N m]."""
     q_omega: float = 0.1
-    """Weight of ``omega'^2`` in the utility."""
     r: float = 0.01
-    """Weight of ``u^2`` in the utility."""
     gamma: float = 0.97
-    """Discount factor of eq. (2), in (0, 1)."""
     init_angle: float = 0.3
-    """Half-width of the start angles [rad]."""
     init_rate: float = 0.3
-    """Half-width of the start rates [rad/s]."""
     value_scale: float = 1.0
-    """Typical magnitude of the value (the critic's output scale)."""
 
     def __post_init__(self) -> None:
         if self.name != "pendulum":

@@ -1,7 +1,6 @@
-"""The double-lane-change reference path ``Y_ref(X)``, ``psi_ref(X)`` (EQUATIONS.md, "Facts").
+"""The double-lane-change reference path ``Y_ref(X)``, ``psi_ref(X)``.
 
-The paper gives no reference path; the project uses the common tanh double lane change of the
-predictive-steering literature,
+The paper gives none; this is the tanh double lane change of the predictive-steering literature,
 
 .. math::
 
@@ -9,8 +8,7 @@ predictive-steering literature,
     z_i = \\frac{s}{l_i}\\,(X - X_i) - \\frac{s}{2}, \\quad
     \\psi_{ref}(X) = \\arctan \\frac{dY_{ref}}{dX},
 
-with ``s = 2.4``, ``l_1 = 25``, ``l_2 = 21.95``, ``X_1 = 27.19``, ``X_2 = 56.46``, ``d_y1 = 4.05``,
-``d_y2 = 5.7`` (all lengths in metres). Every number is a field of :class:`DoubleLaneChangeReference`.
+with the fields of :class:`DoubleLaneChangeReference` (docs/vehicle.rst).
 """
 
 from __future__ import annotations
@@ -77,11 +75,6 @@ class DoubleLaneChangeReference:
     ------
     ValueError
         If a field is not finite, or a length or ``shape`` is not positive.
-
-    Notes
-    -----
-    With the defaults the path ends at ``Y = dy1 - dy2 = -1.65 m`` (as in the literature); the largest
-    reference heading is about 0.30 rad (second transition).
     """
 
     dy1: float = 4.05
@@ -148,14 +141,12 @@ class DoubleLaneChangeReference:
         return self._slope_from(th1, th2)
 
     def lateral_and_heading(self, X: Any) -> tuple[Any, Any]:
-        """``(Y_ref(X), psi_ref(X))`` from one evaluation of the tanh terms (same values as
-        :meth:`lateral` and :meth:`heading`); each of the shape of ``X``."""
+        """``(Y_ref(X), psi_ref(X))`` from one evaluation of the tanh terms, each of the shape of ``X``."""
         ops, th1, th2 = self._tanh_terms(X)
         return self._lateral_from(th1, th2), ops.atan(self._slope_from(th1, th2))
 
     def rows(self) -> "LibmReference":
-        """This reference on float64 arrays, bit-identical to its Python-float values element by element
-        (:class:`LibmReference`; the batched course evaluation uses it)."""
+        """This reference on float64 arrays, bit-identical to its Python-float values (:class:`LibmReference`)."""
         return LibmReference(self)
 
     def heading(self, X: Any) -> Any:
@@ -175,11 +166,9 @@ class DoubleLaneChangeReference:
 
 
 class LibmReference:
-    """A :class:`DoubleLaneChangeReference` evaluated on float64 arrays with :mod:`math`'s ``tanh`` and
-    ``atan`` element by element (:class:`mixedrl.envs.libm.LibmOps`): each element equals the reference's
-    value at that Python float exactly (numpy's vectorised ``tanh`` and ``arctan`` may differ in the last
-    bit). It has the reference's :meth:`lateral` and :meth:`lateral_and_heading`, so it can stand in for
-    it in :mod:`mixedrl.envs.columns`.
+    """A :class:`DoubleLaneChangeReference` on float64 arrays with :mod:`math`'s ``tanh`` and ``atan``
+    element by element (:class:`mixedrl.envs.libm.LibmOps`), so each element equals the Python-float
+    value; it can stand in for the reference in :mod:`mixedrl.envs.columns`.
 
     Parameters
     ----------

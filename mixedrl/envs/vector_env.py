@@ -1,8 +1,4 @@
-"""A batched torch double lane change: :class:`DoubleLaneChangeVectorEnv` (``num_envs`` cars, autoreset).
-
-Each step is the model's one true step (:meth:`~mixedrl.envs.model.DoubleLaneChangeModel.true_step`)
-with the force drawn from the env's own :class:`torch.Generator`.
-"""
+"""A batched torch double lane change: :class:`DoubleLaneChangeVectorEnv` (``num_envs`` cars, autoreset)."""
 
 from __future__ import annotations
 
@@ -42,11 +38,10 @@ class DoubleLaneChangeVectorEnv:
 
     Notes
     -----
-    ``step(u)`` clips ``u`` to the action box, applies ``s' = f(s, u) + xi e_vx`` with
-    ``xi = F_dis T / m`` drawn at the current state (:meth:`DoubleLaneChangeModel.true_step`), returns the reward ``-l(s', u)`` (eq. 54),
-    ``terminated`` (:meth:`DoubleLaneChangeModel.is_terminated`) and ``truncated`` (time limit), and
-    resets finished cars *in the same call* (their returned observation is the new start's; the
-    pre-reset next state and observation are in ``info["next_state"]`` and ``info["final_obs"]``).
+    ``step(u)`` clips ``u`` to the action box, applies :meth:`DoubleLaneChangeModel.true_step` with the
+    env's own generator, returns the reward ``-l(s', u)`` (eq. 54), ``terminated`` and ``truncated``
+    (time limit), and resets finished cars in the same call (the pre-reset next state and observation
+    are in ``info["next_state"]`` and ``info["final_obs"]``).
     ``info["state"]`` is the state the action was applied in, so
     ``(info["state"], info["action"], info["next_state"])`` are the data triples of eq. (9).
     """

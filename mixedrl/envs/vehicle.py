@@ -1,20 +1,12 @@
 """Vehicle body dynamics of the double-lane-change task: eq. (53) with the Fiala tire.
 
-State and input follow the paper (eq. 53):
-
-* ``x = [v_y, r, v_x, phi, y]`` -- lateral velocity [m/s], yaw rate [rad/s], longitudinal speed [m/s],
+* ``x = [v_y, r, v_x, phi, y]``: lateral velocity [m/s], yaw rate [rad/s], longitudinal speed [m/s],
   yaw angle [rad], lateral position [m];
-* ``u = [delta, a_x]`` -- front wheel angle [rad], longitudinal acceleration command [m/s^2].
+* ``u = [delta, a_x]``: front wheel angle [rad], longitudinal acceleration command [m/s^2].
 
-The same code also accepts the *tracking state* ``s = [v_y, r, v_x, phi, Y, X]`` (six components): the
-first five obey eq. (53) exactly and the sixth is the longitudinal position ``X`` in the road-fixed
-frame, ``dX/dt = v_x cos(phi) - v_y sin(phi)`` (see :mod:`mixedrl.envs.tracking`).
-
-One formula (:func:`_body_rhs`) serves three backends -- Python floats (:mod:`math`, the fast single
-step of the Gymnasium environment), numpy arrays and torch tensors (batched, differentiable, optionally
-fused with :func:`torch.compile`) -- so the environment that makes data and the model that plans share
-the same deterministic ``f`` by construction; tests hold the backends together to ``1e-9`` over 1,000
-steps.
+The tracking state ``s = [v_y, r, v_x, phi, Y, X]`` is accepted too: its first five components obey
+eq. (53) and ``dX/dt = v_x cos(phi) - v_y sin(phi)`` (docs/vehicle.rst). One formula is evaluated on
+Python floats, numpy arrays and torch tensors, so the environment and the planning model share ``f``.
 """
 
 from __future__ import annotations
@@ -41,7 +33,7 @@ STATE_NAMES = ("v_y", "r", "v_x", "phi", "y")
 TRACKING_STATE_NAMES = ("v_y", "r", "v_x", "phi", "Y", "X")
 #: Names of the input components (eq. 53), in order.
 ACTION_NAMES = ("delta", "a_x")
-#: Index of ``v_x``: the component on which the disturbance ``F_dis / m`` acts (EQUATIONS.md, point 6).
+#: Index of ``v_x``: the component on which the disturbance ``F_dis / m`` acts.
 VX_INDEX = 2
 
 
@@ -54,8 +46,7 @@ class VehicleParams:
     m : float
         Vehicle mass [kg]. Paper: 1500.
     I_z : float
-        Yaw moment of inertia about the centre of gravity [kg m^2]. Paper: 2420 (it prints the unit as
-        N/rad; EQUATIONS.md, point 9).
+        Yaw moment of inertia about the centre of gravity [kg m^2]. Paper: 2420 (printed as N/rad).
     a : float
         Distance from the centre of gravity to the front axle [m]. Paper: 1.14.
     b : float
@@ -67,17 +58,12 @@ class VehicleParams:
     mu : float
         Tire-road friction coefficient [-]. Paper: 1.0.
     g : float
-        Gravitational acceleration [m/s^2] (not in the paper; used for the static axle loads). 9.81.
+        Gravitational acceleration [m/s^2] for the static axle loads (not in the paper). 9.81.
 
     Raises
     ------
     ValueError
         If a parameter is not a finite positive number (the message starts with its name).
-
-    Notes
-    -----
-    The static normal loads are ``F_zf = m g b / (a + b)`` and ``F_zr = m g a / (a + b)``
-    (EQUATIONS.md, "Facts"); load transfer is neglected, as in the paper's model.
     """
 
     m: float = 1500.0
@@ -110,9 +96,7 @@ class VehicleParams:
         return self.m * self.g * self.a / self.L
 
 
-# ----------------------------------------------------------------------------------------------------
-# Backends: the same formula is evaluated on Python floats, numpy arrays and torch tensors.
-# ----------------------------------------------------------------------------------------------------
+# Backends: the same formula on Python floats, numpy arrays and torch tensors.
 class _MathOps:
     atan2 = staticmethod(math.atan2)
     tan = staticmethod(math.tan)
@@ -160,9 +144,7 @@ class _Tire:
 
 
 def _fiala(ops: Any, alpha: Any, tire: _Tire) -> Any:
-    # Clipping alpha to [-alpha_sl, alpha_sl] before the polynomial is exact: at t_sl = 3 mu F_z / C the
-    # polynomial equals -mu F_z sign(alpha) with zero slope, so this is the piecewise Fiala law itself,
-    # with no branch (and no inf/NaN gradients from tan near pi/2 in the unused branch).
+    # Clipping to +-alpha_sl gives the piecewise law exactly (zero slope there), with no branch.
     t = ops.tan(ops.clip(alpha, -tire.alpha_sl, tire.alpha_sl))
     # F_y = -C tan(a) + C^2 / (3 mu F_z) |tan(a)| tan(a) - C^3 / (27 mu^2 F_z^2) tan(a)^3
     return t * (-tire.C + tire.c2 * abs(t) - tire.c3 * t * t)
@@ -187,7 +169,6 @@ def _body_rhs(ops: Any, k: "_Coefficients", vy: Any, r: Any, vx: Any, phi: Any, 
     dr = (k.a * fyf_cos - k.b * fyr) * k.inv_iz
     # dv_x/dt = a_x + v_y r - F_yf sin(delta) / m + F_dis / m
     dvx = ax + vy * r - fyf * sin_d * k.inv_m + f_dis * k.inv_m
-    # dphi/dt = r
     dphi = r
     # dy/dt = v_x sin(phi) + v_y cos(phi)
     dy = vx * sin_p + vy * cos_p
@@ -218,8 +199,6 @@ def fiala_lateral_force(alpha: np.ndarray | torch.Tensor | float, C: float, mu: 
                         ) -> np.ndarray | torch.Tensor | float:
     """Fiala lateral tire force (Hsu 2009), as used in eq. (53).
 
-    Implements the tire law that closes eq. (53):
-
     .. math::
 
         F_y(\\alpha) = \\begin{cases}
@@ -249,12 +228,6 @@ def fiala_lateral_force(alpha: np.ndarray | torch.Tensor | float, C: float, mu: 
     ------
     ValueError
         If ``C``, ``mu`` or ``F_z`` is not a finite positive number.
-
-    Notes
-    -----
-    The two branches are evaluated as one expression, ``F_y(clip(alpha, -alpha_sl, alpha_sl))``: at
-    ``tan(alpha_sl) = 3 mu F_z / C`` the polynomial equals ``-mu F_z sign(alpha)`` and its slope is 0, so
-    the clipped form is the piecewise law exactly (continuous with a continuous first derivative).
 
     Examples
     --------
@@ -287,21 +260,15 @@ class VehicleDynamics:
     scheme : {"euler", "rk4"}, optional
         Discretisation of the deterministic part ``f`` (see :meth:`__call__`). Default ``"euler"``.
     compile : bool, optional
-        If True, the batched torch step ``__call__`` is fused with :func:`torch.compile` (lazily, at
-        the first torch call; about 5-15 s of one-off compile time per dtype, and once more for dynamic
-        batch sizes). The fused step returns a non-contiguous ``(..., n)`` view (same values as eager).
-        If compilation fails, a warning is logged and the eager code is used. Default False (eager).
+        If True, the batched torch step ``__call__`` is fused with :func:`torch.compile` at the first
+        torch call; it returns a non-contiguous ``(..., n)`` view. On failure a warning is logged and the
+        eager code is used. Default False.
 
     Raises
     ------
     ValueError
         If ``params`` is not a :class:`VehicleParams`, ``dt`` is not finite positive, or ``scheme`` is
         unknown.
-
-    Notes
-    -----
-    Inputs may be the paper's state ``x`` (last dimension 5) or the tracking state ``s = [x, X]`` (last
-    dimension 6); the first five components are the same eq. (53) in both cases.
     """
 
     def __init__(self, params: VehicleParams | None = None, dt: float = 1.0 / 200.0, scheme: str = "euler",
@@ -323,9 +290,7 @@ class VehicleDynamics:
     def __repr__(self) -> str:
         return f"VehicleDynamics(params={self.params!r}, dt={self.dt!r}, scheme={self.scheme!r}, compile={self.compile})"
 
-    # ------------------------------------------------------------------------------------------------
-    # validation
-    # ------------------------------------------------------------------------------------------------
+    # --- validation ---
     @staticmethod
     def _check_shapes(x: Any, u: Any) -> None:
         if x.ndim < 1 or x.shape[-1] not in (5, 6):
@@ -354,9 +319,7 @@ class VehicleDynamics:
         check_finite(f_dis, "f_dis")
         return "numpy", x, u, f_dis
 
-    # ------------------------------------------------------------------------------------------------
-    # continuous time
-    # ------------------------------------------------------------------------------------------------
+    # --- continuous time ---
     def _rhs_columns(self, ops: Any, cols: tuple[Any, ...], delta: Any, ax: Any, f_dis: Any) -> tuple[Any, ...]:
         d = _body_rhs(ops, self._k, cols[0], cols[1], cols[2], cols[3], delta, ax, f_dis)
         return d if len(cols) == 6 else d[:5]
@@ -407,13 +370,12 @@ class VehicleDynamics:
         ------
         ValueError
             Wrong last dimension; ``x`` and ``u`` of different backends or dtypes; a non-floating tensor;
-            NaN/inf on the numpy path. (The torch path does not scan for NaN, for speed: NaN propagates.)
+            NaN/inf on the numpy path (on torch, NaN propagates).
 
         Notes
         -----
-        ``atan((v_y + a r)/v_x)`` is computed as ``atan2(v_y + a r, v_x)``, identical for ``v_x > 0`` and
-        finite at ``v_x = 0``; the model is a forward-driving model and meaningless for ``v_x <= 0`` (the
-        environment terminates below a minimum speed). Normal loads are static (no load transfer).
+        ``atan`` is computed as ``atan2``, equal for ``v_x > 0``; the model is meaningless for
+        ``v_x <= 0``. Normal loads are static (no load transfer), as in the paper.
         """
         backend, x, u, f_dis = self._prepare(x, u, f_dis)
         if backend == "torch":
@@ -424,9 +386,7 @@ class VehicleDynamics:
         d = self._rhs_columns(_NumpyOps, cols, u[..., 0], u[..., 1], f_dis)
         return np.stack(np.broadcast_arrays(*d), axis=-1)
 
-    # ------------------------------------------------------------------------------------------------
-    # discrete time
-    # ------------------------------------------------------------------------------------------------
+    # --- discrete time ---
     def _step_cols(self, ops: Any, cols: tuple[Any, ...], delta: Any, ax: Any) -> tuple[Any, ...]:
         dt = self.dt
         if self.scheme == "euler":
@@ -452,10 +412,8 @@ class VehicleDynamics:
 
     def _step_torch(self, x: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
         if self.compile and not self._compile_failed:
-            # The fused kernel works on component-major (n, N) copies made *outside* the compiled graph:
-            # with every load contiguous, inductor emits SIMD code (on the interleaved (N, 6) layout it
-            # falls back to scalar libm calls and is ~3x slower). The result is returned as a (..., n)
-            # view of the component-major buffer, so a rollout feeding it back needs no further copy.
+            # component-major copies, made outside the compiled graph, let inductor emit SIMD code
+            # (docs/vehicle.rst, "Fused batched step"); the result is a (..., n) view of that buffer
             if self._compiled is None:
                 self._compiled = torch.compile(self._kernel_component_major, dynamic=None)
             xt = x.movedim(-1, 0).contiguous()
@@ -470,8 +428,6 @@ class VehicleDynamics:
     def step_scalar(self, x: tuple[float, ...] | list[float], u: tuple[float, float] | list[float]
                     ) -> tuple[float, ...]:
         """Deterministic step ``f`` on Python floats (the Gymnasium environment's fast path).
-
-        Implements eq. (53) discretised as in :meth:`__call__`, for one unbatched state.
 
         Parameters
         ----------
@@ -497,10 +453,8 @@ class VehicleDynamics:
     def step_rows(self, x: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, ...]:
         """Deterministic step ``f`` on float64 rows, bit-identical to :meth:`step_scalar` on each row.
 
-        Implements eq. (53) discretised as in :meth:`__call__`, with the transcendental functions of
-        :mod:`math` applied element by element (:class:`mixedrl.envs.libm.LibmOps`) and the rest
-        vectorised: the batched evaluation of the course (:func:`mixedrl.envs.evaluate_courses`) steps many
-        cars at once and still reproduces the Gymnasium environment's Python-float step exactly.
+        The transcendental functions are :mod:`math`'s, element by element
+        (:class:`mixedrl.envs.libm.LibmOps`); :func:`mixedrl.envs.evaluate_courses` relies on this.
 
         Parameters
         ----------
@@ -541,8 +495,7 @@ class VehicleDynamics:
             f(x_t, u_t) = x_t + T\\, \\dot x(x_t, u_t)\\big|_{F_{dis} = 0}, \\qquad
             \\xi_t = \\big[0, 0, F_{dis} T / m, 0, 0\\big]^\\top,
 
-        which is exactly forward Euler on eq. (53) with ``F_dis`` held over the step: the disturbance
-        then enters additively as the paper's ``xi_t = F_dis T / m`` on ``v_x`` (eq. 54).
+        i.e. forward Euler on eq. (53) with ``F_dis`` held over the step.
 
         Parameters
         ----------
@@ -563,14 +516,9 @@ class VehicleDynamics:
 
         Notes
         -----
-        Why forward Euler: (i) it is the only common scheme in which the paper's additive
-        ``xi_t = F_dis T / m`` on ``v_x`` alone *is* the discretised ``F_dis / m`` of eq. (53) (in RK4,
-        ``F_dis`` would leak into ``v_y``, ``r`` and the positions through the inner stages, and the noise
-        would no longer be additive on one component, against eq. (1)); (ii) the fastest mode at 12 m/s
-        has ``|lambda| T ~ 0.06``, far inside Euler's stability region (``|1 + lambda T| < 1`` holds for
-        ``v_x`` above about 0.3 m/s); (iii) it is one right-hand-side evaluation per step, which matters
-        for batched rollouts. ``scheme="rk4"`` is available for accuracy studies; with it ``f`` is still
-        deterministic and the environments add the same ``xi`` after ``f``.
+        Only under forward Euler is the additive ``xi`` on ``v_x`` alone the discretised ``F_dis / m``
+        (docs/vehicle.rst gives the reasons for the scheme). With ``scheme="rk4"`` the environments add
+        the same ``xi`` after ``f``.
         """
         backend, x, u, _ = self._prepare(x, u, 0.0)
         if backend == "torch":
