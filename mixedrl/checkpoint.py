@@ -1,14 +1,10 @@
 """Checkpoints and atomic files: the codec a run directory (:mod:`mixedrl.runs`) writes and reads.
 
-* :func:`atomic_write_bytes`, :func:`atomic_write_text`: a temporary file in the same directory, fsync,
-  ``os.replace`` (a crash leaves the previous file intact);
-* :func:`write_with_digest`, :func:`verify_digest`, :func:`digest_path`: the sha256 sidecar of a file
-  (``checkpoint.pt.sha256``, ``results.json.sha256``, ``sha256sum`` format), verified on every load;
-* :func:`save_checkpoint`, :func:`load_checkpoint`: a checkpoint as plain data (numpy arrays, numpy
-  scalars and generators encoded as marked dicts of tensors) read with ``torch.load(weights_only=True)``,
-  so loading a file someone else made runs no code; the CRC-32 of every zip member is verified too.
-  A file of the older format ``mixedrl-checkpoint-v1`` is refused with a message naming the release that
-  reads it (:data:`OLD_FORMAT_READER`).
+* :func:`atomic_write_bytes`, :func:`atomic_write_text`: a crash leaves the previous file intact;
+* :func:`write_with_digest`, :func:`verify_digest`, :func:`digest_path`: a file's sha256 sidecar
+  (``sha256sum`` format), verified on every load;
+* :func:`save_checkpoint`, :func:`load_checkpoint`: a checkpoint as plain data, read with
+  ``torch.load(weights_only=True)`` (loading a file someone else made runs no code).
 
 Every public name is also importable from :mod:`mixedrl.runs`.
 """
@@ -36,7 +32,7 @@ __all__ = ["save_checkpoint", "load_checkpoint", "regular_file", "OLD_FORMAT_REA
 
 #: Format tag of the checkpoints written now (plain data; see :func:`save_checkpoint`).
 _FORMAT = "mixedrl-checkpoint-v2"
-#: Older tags: v1 pickled numpy objects as such; this version does not read it.
+#: Older tags, refused with a message naming :data:`OLD_FORMAT_READER`.
 _OLD_FORMATS = ("mixedrl-checkpoint-v1",)
 #: The release that reads (and converts) a checkpoint of :data:`_OLD_FORMATS`.
 OLD_FORMAT_READER = "mixedrl 0.1.0 from git commit b510485 (mixedrl.checkpoint.convert_checkpoint)"
@@ -50,10 +46,8 @@ def default_file_mode() -> int:
 
 
 def atomic_write_bytes(path: str | Path, data: bytes) -> None:
-    """Write ``data`` to ``path`` atomically: a temporary file in the same directory, fsync, ``os.replace``.
-
-    A crash during the write leaves the previous file intact (the temporary file is removed).
-    """
+    """Write ``data`` to ``path`` atomically (a temporary file in the same directory, fsync, ``os.replace``):
+    a crash during the write leaves the previous file intact."""
     path = Path(path)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     try:
@@ -80,7 +74,7 @@ def atomic_write_text(path: str | Path, text: str) -> None:
 
 
 # ----------------------------------------------------------------------------------------------------
-# Integrity: a sha256 sidecar per file (``checkpoint.pt.sha256``, ``results.json.sha256``)
+# Integrity: a sha256 sidecar per file
 # ----------------------------------------------------------------------------------------------------
 def digest_path(path: str | Path) -> Path:
     """The sidecar of ``path`` holding its sha256 (``sha256sum`` format: ``<hex>  <name>``)."""
@@ -89,10 +83,8 @@ def digest_path(path: str | Path) -> Path:
 
 
 def _sidecar_digests(path: Path, what: str = "digest") -> list[str] | None:
-    """The digests listed in ``path``'s sidecar (None without a sidecar).
-
-    Raises ``ValueError`` (``<what>: ...``) for a sidecar that is a link, not UTF-8, or lists no sha256.
-    """
+    """The digests listed in ``path``'s sidecar (None without one); ``ValueError`` (``<what>: ...``) for a
+    sidecar that is a link, not UTF-8, or lists no sha256."""
     sidecar = digest_path(path)
     if not regular_file(sidecar, what):
         return None
@@ -109,16 +101,14 @@ def _sidecar_digests(path: Path, what: str = "digest") -> list[str] | None:
 def write_with_digest(path: str | Path, data: bytes) -> None:
     """Write ``data`` to ``path`` atomically together with its sha256 in the sidecar :func:`digest_path`.
 
-    Crash-safe in every order of events: the sidecar first lists the new digest (beside the old file's,
-    if there is one), then the file is replaced, then the sidecar is rewritten with the new digest only;
-    so at any moment the file on disk matches one digest of its sidecar (each step is an atomic replace),
-    and the file never exists without its sidecar (a sidecar without its file is what a write killed
-    before the file was in place leaves).
+    Crash-safe: the sidecar first lists the new digest beside the old one, then the file is replaced,
+    then the sidecar keeps the new digest only (each step an atomic replace), so the file on disk always
+    matches a digest of its sidecar.
     """
     path = Path(path)
     new = hashlib.sha256(data).hexdigest()
     old: list[str] = []
-    if path.is_file():  # a file written before digests existed: its own digest stands for the sidecar's
+    if path.is_file():  # without a sidecar, the old file's own digest
         old = _sidecar_digests(path) or [hashlib.sha256(path.read_bytes()).hexdigest()]
     atomic_write_text(digest_path(path), "".join(f"{d}  {path.name}\n" for d in [new, *old[:1]]))
     atomic_write_bytes(path, data)
@@ -137,7 +127,7 @@ def verify_digest(path: str | Path, data: bytes, what: str) -> None:
     path = Path(path)
     digests = _sidecar_digests(path, what)
     if digests is None:
-        return  # written before digests existed: still loads (documented in docs/run_directories)
+        return  # no sidecar: loads unverified (docs/algorithm2.rst, "Run directories")
     actual = hashlib.sha256(data).hexdigest()
     if actual not in digests:
         raise ValueError(f"{what}: {path} is corrupted: its sha256 {actual[:16]}... does not match "
@@ -163,10 +153,8 @@ def _tensor_of(arr: np.ndarray, where: str) -> torch.Tensor:
 
 
 def _encode(value: Any, where: str) -> Any:
-    """``value`` with numpy arrays/scalars and generators replaced by marked dicts of tensors and plain data.
-
-    Raises ``ValueError`` naming ``where`` (the key path) for anything else that is not plain data.
-    """
+    """``value`` with numpy arrays/scalars and generators replaced by marked dicts of tensors and plain data;
+    ``ValueError`` naming ``where`` (the key path) for anything else that is not plain data."""
     if isinstance(value, torch.Tensor) or type(value) in _PLAIN:
         return value
     if isinstance(value, np.ndarray):
@@ -234,11 +222,8 @@ def _decode(value: Any, path: Path) -> Any:
 
 
 def _format_tag(path: Path) -> str | None:
-    """The ``mixedrl-checkpoint-*`` tag of a torch zip checkpoint, read *without* unpickling.
-
-    :func:`pickletools.genops` only parses the opcodes of the archive's ``data.pkl``; nothing in the
-    file is created or run. None when the file is not a readable torch zip archive or has no tag.
-    """
+    """The ``mixedrl-checkpoint-*`` tag of a torch zip checkpoint, read without unpickling (the opcodes of
+    its ``data.pkl``, :func:`pickletools.genops`); None if unreadable or untagged."""
     try:
         with zipfile.ZipFile(path) as archive:
             names = [n for n in archive.namelist() if n.rsplit("/", 1)[-1] == "data.pkl"]
@@ -275,14 +260,9 @@ def save_checkpoint(path: str | Path, state: dict[str, Any]) -> None:
 
     The file is ``torch.save({"format": "mixedrl-checkpoint-v2", "state": encoded})``, where ``encoded``
     is ``state`` with every numpy array, numpy scalar, :class:`numpy.random.Generator` and
-    :class:`torch.Generator` replaced by a dict marked ``{"__mixedrl_encoded__": kind, ...}`` that holds
-    a tensor (or the generator's plain state); tensors, numbers, strings, lists, tuples and dicts are kept
-    as they are. :func:`load_checkpoint` turns the marks back into the original objects (same dtypes,
-    shapes and bits, so a resumed run continues exactly).
-
-    The data goes to a temporary file in the same directory, then ``os.replace``: a crash during the
-    write leaves the previous checkpoint intact. Its sha256 goes to ``<path>.sha256``
-    (:func:`write_with_digest`), which :func:`load_checkpoint` verifies.
+    :class:`torch.Generator` replaced by a dict marked ``{"__mixedrl_encoded__": kind, ...}`` holding a
+    tensor or plain state; :func:`load_checkpoint` restores them bit for bit. Written with
+    :func:`write_with_digest` (atomic, with ``<path>.sha256``).
 
     Parameters
     ----------
@@ -304,10 +284,7 @@ def save_checkpoint(path: str | Path, state: dict[str, Any]) -> None:
 
 
 def regular_file(path: str | Path, what: str) -> bool:
-    """Whether ``path`` exists, as a regular file; a link or a special file there is an error.
-
-    A run's files are regular files its writer created; a symbolic link (to ``/dev/zero``, to a file
-    elsewhere, a loop) or a device is not one of them, and reading through it would read something else.
+    """Whether ``path`` exists, as a regular file; a symbolic link or a special file there is an error.
 
     Parameters
     ----------
@@ -350,22 +327,16 @@ def _old_format(path: Path, tag: str) -> ValueError:
 def load_checkpoint(path: str | Path) -> dict[str, Any]:
     """Read a checkpoint written by :func:`save_checkpoint`, safely: nothing stored in the file is run.
 
-    The file is read with ``torch.load(..., weights_only=True)``, which builds only tensors and plain
-    containers and refuses any other pickled object (a function, a class whose ``__reduce__`` would run
-    code) *before* creating it; so evaluating or resuming a run directory made by someone else cannot
-    execute code. The marked values of :func:`save_checkpoint` are then turned back into numpy arrays and
-    generators. Before that the file's bytes are checked against their sha256 in ``<path>.sha256`` (when
-    the sidecar exists: checkpoints written before digests existed have none and still load) and the CRC-32
-    of every member of the zip archive is verified, so a flipped bit is an error, not a different policy.
+    The bytes are checked against ``<path>.sha256`` (if present) and the CRC-32 of every zip member, then
+    read with ``torch.load(..., weights_only=True)``, which refuses any pickled object but tensors and
+    plain containers before creating it.
 
     Raises
     ------
     ValueError
-        ``checkpoint: ...`` naming ``path`` if the file is missing, not a regular file (a symbolic link, a
-        device), truncated, corrupted (its digest or a zip CRC does not match), not a mixedrl checkpoint,
-        holds pickled objects other than plain data (refused, not run), or is an old
-        ``mixedrl-checkpoint-v1`` file (the message names the release that reads it,
-        :data:`OLD_FORMAT_READER`).
+        ``checkpoint: ...`` naming ``path``: missing, not a regular file, truncated, corrupted, not a
+        mixedrl checkpoint, holding pickled objects other than plain data, or of an older format (the
+        message names :data:`OLD_FORMAT_READER`).
     """
     path = Path(path)
     if not regular_file(path, "checkpoint"):

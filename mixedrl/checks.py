@@ -1,13 +1,7 @@
 """Input validation shared by every public function of mixedrl.
 
-Every check raises :class:`ValueError` whose message starts with the *argument name* and states the
-problem, so a user sees at once which input was wrong. Checks never modify their input: they return a
-validated float64 copy (numpy) or the tensor itself (torch).
-
-The tolerance for "symmetric" and "positive semi-definite" is relative to the matrix scale,
-``tol = 1e-10 * max(1, max|C_ij|)`` for symmetry and ``-1e-10 * max(1, max eig)`` for the smallest
-eigenvalue (so a covariance with entries of 1e-20, as in the paper's vehicle prior, is accepted, and
-a clearly indefinite one is not).
+Every check raises :class:`ValueError` whose message starts with the *argument name*. Checks never modify
+their input: they return a validated float64 copy (numpy) or the tensor itself (torch).
 """
 
 from __future__ import annotations
@@ -88,9 +82,9 @@ def as_batch(value: Any, name: str, n: int) -> np.ndarray:
 def check_covariance(value: Any, name: str, n: int | None = None) -> np.ndarray:
     """Return ``value`` as a symmetric positive semi-definite float64 ``(n, n)`` matrix.
 
-    Symmetry is checked to ``1e-10`` relative to the largest entry, and the smallest eigenvalue must be
-    ``>= -1e-10`` relative to the largest eigenvalue. The returned matrix is exactly symmetrised
-    (``(C + C^T) / 2``) so that downstream Cholesky/eigh calls see an exactly symmetric input.
+    Symmetry is checked to :data:`SYMMETRY_RTOL` times ``max(1, max|C_ij|)``, and the smallest eigenvalue
+    must be ``>= -PSD_RTOL`` times the largest (so tiny entries such as 1e-20 pass). The result is
+    exactly symmetrised, ``(C + C^T) / 2``.
 
     Raises
     ------
@@ -210,12 +204,9 @@ def check_seed_lists(seeds: Any, n: int, name: str = "seeds") -> list[list[int]]
 def check_task_types(task: Any) -> None:
     """Check the types of a task's array attributes and of its ``value_scale`` (what training relies on).
 
-    The training code moves ``noise_matrix``, ``action_bound`` and ``obs_scale`` between dtypes with
-    torch methods and reads the prior and true moments as arrays, so a numpy ``noise_matrix`` that has
-    the right shape fails only deep inside an iteration. This check refuses it up front, and probes
-    ``observe``, ``f`` and ``cost`` beyond a single batch: :data:`PROBE_BATCHES` batches of
-    :data:`PROBE_BATCH_SIZE` start states, each rolled :data:`PROBE_STEPS` steps forward under random
-    actions within the bounds (own generators: no random stream of a trainer is touched).
+    Also probes ``observe``, ``f`` and ``cost`` on :data:`PROBE_BATCHES` batches of
+    :data:`PROBE_BATCH_SIZE` start states, each rolled :data:`PROBE_STEPS` steps under random actions
+    (own generators: no random stream of a trainer is touched).
 
     Parameters
     ----------
@@ -226,11 +217,10 @@ def check_task_types(task: Any) -> None:
     Raises
     ------
     ValueError
-        ``noise_matrix``, ``action_bound`` or ``obs_scale`` not a real floating-point ``torch.Tensor`` of
-        its shape; ``prior_mean``, ``prior_cov``, ``true_mean`` or ``true_cov`` not a real array (numpy
-        or a list of numbers, not a tensor); ``value_scale`` not a positive finite number; ``observe``,
-        ``f`` or ``cost`` returning NaN or inf on a probed state. The message starts with
-        ``<TaskClass>.<attribute or function>``.
+        ``<TaskClass>.<attribute or function>: ...``: ``noise_matrix``, ``action_bound`` or ``obs_scale``
+        not a floating-point ``torch.Tensor`` of its shape; ``prior_mean``, ``prior_cov``, ``true_mean`` or
+        ``true_cov`` not a real array (not a tensor); ``value_scale`` not a positive finite number; or
+        ``observe``, ``f`` or ``cost`` returning NaN or inf on a probed state.
     """
     name = type(task).__name__
     n, m, o, d = (check_positive_int(getattr(task, a, None), f"{name}.{a}")
@@ -257,19 +247,16 @@ def check_task_types(task: Any) -> None:
                          f"multiplied by it), got {scale!r}")
 
 
-#: :func:`check_task_types` probes ``f``, ``cost`` and ``observe`` on this many batches of states (each
-#: its own seed) ...
+#: :func:`check_task_types` probes this many batches of states (each its own seed) ...
 PROBE_BATCHES = 4
-#: ... of this many states, each rolled this many steps forward through ``f`` under random actions.
+#: ... of this many states, each rolled this many steps forward.
 PROBE_BATCH_SIZE = 32
 PROBE_STEPS = 3
 
 
 def _probe_states(task: Any, name: str, n: int, m: int) -> None:
-    """Run ``f``, ``cost`` and ``observe`` on :data:`PROBE_BATCHES` batches from ``sample_initial`` (seeds
-    1, 2, ...), rolled :data:`PROBE_STEPS` steps forward under actions uniform within the bounds, in
-    float64 with own generators (no random stream of a trainer is touched); raise naming the function
-    and the probe when an output is not finite."""
+    """The probes of :func:`check_task_types` (seeds 1, 2, ..., float64, actions uniform within the bounds);
+    raise naming the function and the probe when an output is not finite."""
     bound = task.action_bound.detach().to(torch.float64)
     with torch.no_grad():
         for probe in range(1, PROBE_BATCHES + 1):
@@ -307,27 +294,23 @@ class NonFiniteTrainingError(ValueError):
         self.iteration, self.key, self.value = iteration, key, value
 
 
-#: Metrics whose name starts with one of these are checked by :func:`check_finite_metrics`: the
-#: training losses and value statistics (``train/``), the MVC's sides (``mvc/``) and the evaluation
-#: (``eval/``).
+#: Prefixes of the metrics :func:`check_finite_metrics` checks.
 MONITORED_PREFIXES = ("train/", "mvc/", "eval/")
-#: Monitored metrics that are NaN by design: DDPG's mean exploration cost of an iteration whose every
-#: transition was non-finite (DDPG skips such transitions, :meth:`mixedrl.algorithms.ddpg.DDPG.collect`).
+#: Monitored metrics that may be NaN by design (DDPG's exploration cost when every transition was
+#: non-finite, :meth:`mixedrl.algorithms.ddpg.DDPG.collect`).
 UNMONITORED_METRICS = frozenset({"train/env_cost"})
 
 
 def check_finite_metrics(row: Mapping[str, Any], where: str = "training") -> None:
     """Raise if a metrics row of training holds a non-finite loss or evaluation result.
 
-    Reads only (the row and the run are unchanged). The caller raises before the row is recorded, so a
-    run directory keeps its last checkpoint, which was written from finite iterations.
+    Reads only; raised before the row is recorded, so a run directory keeps its last (finite) checkpoint.
 
     Parameters
     ----------
     row : mapping
-        One iteration's metrics (``"iteration"`` and the ``train/``, ``mvc/``, ``eval/`` ... entries);
-        the entries under :data:`MONITORED_PREFIXES`, less :data:`UNMONITORED_METRICS`, are checked, in
-        the row's order (the order they were computed in).
+        One iteration's metrics; the entries under :data:`MONITORED_PREFIXES`, less
+        :data:`UNMONITORED_METRICS`, are checked in the row's order.
     where : str
         What the message starts with (the run).
 

@@ -5,39 +5,24 @@
     mixedrl train --method {mixed,model,ddpg,oracle} --seed S --out DIR [--iterations N]
                   [--config FILE.json] [--set key=value ...] [--resume] [--no-progress] [--tensorboard]
     mixedrl evaluate RUN_DIR [--seeds N]
-    mixedrl sweep SPEC.toml --out DIR [--force] [--address ADDR] [--num-cpus N] [--resume] [--no-progress]
+    mixedrl sweep SPEC.toml --out DIR [--workers N] [--batch N] [--force] [--address ADDR] [--resume] ...
     mixedrl reproduce [--seeds 5] [--out DIR] [--quick] [--resume] [--workers W] [--no-progress]
 
-``train`` writes a run directory (:mod:`mixedrl.runs`); ``--resume`` continues an interrupted run from
-its last checkpoint and ends with exactly the result of an uninterrupted run. ``--config FILE.json``
-reads a (possibly partial, nested) :class:`~mixedrl.config.TrainConfig` dict, like a run's
-``config.json``; ``--set KEY=VALUE ...`` then overrides fields, with dotted keys for the nested task
-configuration (values are JSON, else strings)::
+``train`` writes a run directory (:mod:`mixedrl.runs`); ``--config FILE.json`` reads a (partial, nested)
+:class:`~mixedrl.config.TrainConfig` dict like a run's ``config.json``, and ``--set KEY=VALUE ...`` then
+overrides fields by dotted keys (values are JSON, else strings; :func:`mixedrl.config.apply_overrides`).
+``train`` and ``evaluate`` print one JSON object on stdout and one line about the ``policy_gap`` on stderr.
 
-    mixedrl train --method mixed --out runs/p300 --set task.prior_force_mean=300 task.disturbance.variance=64
-    mixedrl train --method model --out runs/lin --set task.name=linear "task.prior_mean=[0, 2]"
-
-(:func:`mixedrl.config.apply_overrides` applies them; an unknown key, at any level, is an error naming
-its dotted name.) ``evaluate`` drives a run's final policy on its task. Both print one JSON object on
-stdout, with the ``policy_gap`` summary (the action at the task's equilibrium minus the LQ optimum's,
-:mod:`mixedrl.precision`), and one line about it on stderr. ``sweep`` runs a grid of configurations x
-methods x seeds on a local process pool, or on Ray with ``--address`` (:mod:`mixedrl.sweep`; Ray is the
-optional extra ``sweep``).
-
-**Command plug-ins.** Commands beyond ``train``, ``evaluate`` and ``sweep`` are plug-ins, so that the core package
-imports neither ``validation`` nor ``theory``: ``reproduce`` (Table I and the figures of the paper's
-Section VI, :mod:`validation.reproduce`) is one. A plug-in is an entry point of the group
-:data:`COMMAND_GROUP` (``"mixedrl.commands"``) in a distribution's metadata, e.g. in ``pyproject.toml``::
+**Command plug-ins.** Commands beyond ``train``, ``evaluate`` and ``sweep`` (e.g. ``reproduce``) are entry
+points of the group :data:`COMMAND_GROUP`, e.g. in ``pyproject.toml``::
 
     [project.entry-points."mixedrl.commands"]
     reproduce = "validation.reproduce:register"
 
 naming a function ``register(subparsers) -> handler``: it adds *one* sub-parser named like the entry
-point (``subparsers.add_parser(name, ...)``) and returns the handler, a callable taking the parsed
-``argparse.Namespace`` and returning the exit status. A ``ValueError`` raised by a handler is reported
-in one line with exit status 2, like the built-in commands' errors. A plug-in that fails to load is
-skipped with a warning (the other commands keep working). This module and the plug-ins' handlers are the
-only places that print.
+point and returns the handler, which takes the parsed ``argparse.Namespace`` and returns the exit status.
+A ``ValueError`` it raises is reported in one line with exit status 2. A plug-in that fails to load is
+skipped with a warning.
 """
 
 from __future__ import annotations
@@ -68,10 +53,8 @@ Handler = Callable[[argparse.Namespace], int]
 
 
 def parse_overrides(items: Sequence[str]) -> dict[str, Any]:
-    """Turn ``["key=value", ...]`` into a dict; values are parsed as JSON when possible (else strings).
-
-    Keys are kept as given (dotted keys such as ``task.prior_force_mean`` address nested fields, see
-    :func:`mixedrl.config.apply_overrides`).
+    """Turn ``["key=value", ...]`` into a dict; values are parsed as JSON when possible (else strings),
+    keys are kept as given (dotted).
 
     Raises
     ------
@@ -114,10 +97,7 @@ def _add_plugins(sub: Any) -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    """The argument parser of ``mixedrl``: the built-in commands and the installed plug-ins.
-
-    Every sub-parser carries its handler as the default of ``handler``.
-    """
+    """The argument parser of ``mixedrl`` (built-in commands and plug-ins; each sets the default ``handler``)."""
     parser = argparse.ArgumentParser(prog="mixedrl", description="Mixed RL with additive stochastic uncertainty.")
     parser.add_argument("-v", "--verbose", action="store_true", help="log at INFO level")
     sub = parser.add_subparsers(dest="command", required=True)
@@ -156,7 +136,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "to the LQ optimum's action at the equilibrium for the method's own noise mean)")
     p.set_defaults(handler=_evaluate)
 
-    add_sweep_parser(sub)  # mixedrl sweep SPEC --out DIR (mixedrl.sweep; Ray is imported only when it runs)
+    add_sweep_parser(sub)  # Ray is imported only when a sweep runs on it
     sub.choices["sweep"].set_defaults(handler=_sweep)
 
     _add_plugins(sub)
@@ -164,8 +144,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _sweep(args: argparse.Namespace) -> int:
-    """``mixedrl sweep``: 0 if every run finished, 1 if some failed (errors in ``sweep.json``), 2 for an invalid
-    spec or arguments, or ``--address`` without Ray (the message says which extra to install)."""
+    """``mixedrl sweep``: 0 if every run finished, 1 if some failed, 2 for invalid input or a missing Ray."""
     try:
         doc = run_sweep(load_spec(args.spec, force=args.force), args.out, address=args.address,
                         num_cpus=args.num_cpus, resume=args.resume, progress=not args.no_progress, workers=args.workers,
@@ -201,7 +180,7 @@ def _read_json(path: Path, flag: str) -> dict[str, Any]:
 
 def _requested_config(args: argparse.Namespace, run: RunDirectory) -> TrainConfig:
     """The config ``mixedrl train`` asks for: from the flags, or with ``--resume`` the saved config with the
-    flags given explicitly applied on top (so a contradicting flag shows up as a difference)."""
+    explicit flags on top (so a contradicting flag shows up as a difference)."""
     overrides = parse_overrides(args.set)
     for key, flag in _OWN_FLAGS.items():
         if key in overrides:
@@ -264,11 +243,8 @@ def _evaluate(args: argparse.Namespace) -> int:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Entry point of the ``mixedrl`` command; returns the exit status.
-
-    Errors in the user's input (``ValueError``) and file-system errors (``OSError``: a path that cannot
-    be read or written) are reported in one line with exit status 2.
-    """
+    """Entry point of the ``mixedrl`` command; returns the exit status (2, with one line on stderr, for a
+    ``ValueError`` or ``OSError``)."""
     args = build_parser().parse_args(argv)
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING, format="%(levelname)s %(message)s")
     try:

@@ -1,67 +1,50 @@
-"""One optimiser step on a loss written as a pure function, compiled as one graph (issue 44): :class:`Update`.
+"""One optimiser step on a loss written as a pure function, compiled as one graph: :class:`Update`.
 
-Algorithm 2's eager step (:func:`mixedrl.schedule.descend`) builds an autograd graph, calls
-``torch.autograd.grad``, sets ``.grad``, clips with :func:`torch.nn.utils.clip_grad_norm_` and calls
-``torch.optim.Adam.step`` once per run: most of an iteration's time is Python and dispatch. Here the same
-step is one function of tensors,
+The eager step (:func:`mixedrl.schedule.descend`) builds an autograd graph, clips with
+:func:`torch.nn.utils.clip_grad_norm_` and calls ``torch.optim.Adam.step`` once per run. Here the same step is
+one function of tensors -- the loss, its gradient (``torch.func.grad``), each run's gradient-norm clip, each
+run's Adam step written out on the optimiser's own state tensors -- compiled by :func:`torch.compile`
+(``fullgraph=True``) into one graph per loss and shape.
 
-    loss (eq. 49 or 51, or any other) -> its gradient (``torch.func.grad``) -> each run's gradient-norm clip
-    -> each run's Adam step, written out on the optimiser's own state tensors,
-
-compiled by :func:`torch.compile` (``fullgraph=True``) into one graph per loss and shape.
-
-**The loss** is any function ``loss(params, *tensors) -> Tensor`` that is *pure*: its result depends only
-on ``params`` (a tuple of tensors in the order of the network's leaves, :attr:`mixedrl.schedule.Descent.leaves`:
+**The loss** is any function ``loss(params, *tensors) -> Tensor`` that is *pure*: its result depends only on
+``params`` (a tuple of tensors in the order of the network's leaves, :attr:`mixedrl.schedule.Descent.leaves`:
 one run's parameters, or ``R`` runs' stacked ``(R, ...)`` parameters) and on the ``tensors`` passed at each
-call (the batch, the quadrature); networks, the task and constants it closes over are read, never
-changed, and nothing in it draws random numbers or converts a tensor to a Python number (no ``float(t)``,
-``t.item()``, numpy). It returns shape ``()`` for one run or ``(R,)`` (run ``r``'s loss depending on slice
-``r`` of the stacked parameters only). :func:`network_at` turns a network and ``params`` into the function
-to call inside the loss. Algorithm 2's two losses are :func:`mixedrl.pev.critic_loss_at` (eqs. 49-50) and
-:func:`mixedrl.pim.actor_objective_at` (eqs. 51-52): the functions :func:`~mixedrl.pev.critic_loss` and
-:func:`~mixedrl.pim.actor_objective` evaluate, at the given parameters, after their checks.
+call; networks, the task and constants it closes over are read, never changed, and nothing in it draws random
+numbers or converts a tensor to a Python number (no ``float(t)``, ``t.item()``, numpy). It returns shape
+``()`` for one run or ``(R,)`` (run ``r``'s loss depending on slice ``r`` of the parameters only).
+:func:`network_at` gives the network at ``params`` inside the loss. Algorithm 2's losses are
+:func:`mixedrl.pev.critic_loss_at` (eqs. 49-50) and :func:`mixedrl.pim.actor_objective_at` (eqs. 51-52); the
+rollout departure's are :func:`mixedrl.departures.rollout.actor_loss_at` and
+:func:`~mixedrl.departures.rollout.critic_loss_at`. Any such loss is stepped the same way, by
+:meth:`mixedrl.schedule.Descent.minimise` (``key`` names the loss: one compiled :class:`Update` per key;
+checks of the arguments belong before the call, outside the loss)::
 
-Another loss (e.g. a multi-step rollout learner's, written as a pure tensor function) is stepped the same
-way::
+    def my_loss(params, s, *, task, actor):
+        pi = network_at(actor, params)          # the actor at `params`, differentiable
+        ...                                     # pure tensor arithmetic
+        return per_run_loss                     # shape () or (R,)
 
-    from functools import partial
-    from mixedrl.compiled import network_at
+    value = engine.actor_descent.minimise(partial(my_loss, task=task, actor=engine.actor), (s,), active,
+                                          key="my_loss")
 
-    def rollout_loss(params, s, offsets, weights, *, task, actor, critic, horizon):
-        pi = network_at(actor, params)             # the actor at `params`, differentiable
-        ...                                        # pure tensor arithmetic, no float()/numpy/random draws
-        return per_run_loss                        # shape () or (R,)
+**Modes** (``algorithm.compile``, :data:`MODES`): ``"off"`` (the default) = the eager step; ``"on"`` = the
+compiled step; ``"functional"`` = this module's step run eagerly (``"on"`` falls back to it, with a warning,
+when compiling fails). The compiled and the functional step give the eager step's numbers to float32
+rounding (the Adam scalars are computed in float64 from the step count, as ``torch.optim.Adam`` does, then
+rounded to float32; the order of the sums of the gradient norm and of fused kernels may differ in the last
+bit).
 
-    loss = partial(rollout_loss, task=task, actor=engine.actor, critic=engine.critic.frozen(), horizon=5)
-    value = engine.actor_descent.minimise(loss, (s, offsets, weights), active, key=("rollout", 5))
+**Optimiser state**: the step reads and writes each run's ``torch.optim.Adam`` state (``step``, ``exp_avg``,
+``exp_avg_sq``, created as Adam creates them when missing); for ``R > 1`` runs each run's state tensors are
+rebound to views of one stacked tensor, so the optimisers' ``state_dict`` and checkpoints are those of the
+eager step, and an eager step after a compiled one (or a restored checkpoint) continues the same state. The
+learning rate, betas, ``eps`` and the gradient clip are read at every call and passed as tensors, so they
+never cause a recompilation. Adam with ``amsgrad``, ``maximize``, ``weight_decay`` or several parameter groups
+is refused (``ValueError``).
 
-(:meth:`mixedrl.schedule.Descent.minimise`: with ``algorithm.compile = "off"`` it takes the eager step
-on ``loss(leaves, *tensors)``, else it runs :class:`Update`; ``key`` names the loss, one compiled
-:class:`Update` per key; checks of the arguments belong before the call, outside the loss).
-
-**Modes** (``algorithm.compile``, :data:`MODES`): ``"off"`` (the default) = the eager step, bit for bit as
-before; ``"on"`` = the compiled step; ``"functional"`` = this module's step run eagerly, without
-:func:`torch.compile` (the fallback: ``"on"`` falls back to it, with a warning, when compiling fails). The
-compiled and the functional step give the eager step's numbers to float32 rounding (the Adam scalars are
-computed in float64 from the step count, as ``torch.optim.Adam`` does in Python, then rounded to
-float32 as Adam's kernels round them; the order of the sums of the gradient norm and of the fused
-kernels may differ in the last bit).
-
-**Optimiser state**: the step reads and writes each run's ``torch.optim.Adam`` state (``step``,
-``exp_avg``, ``exp_avg_sq``, created as Adam creates them when missing); for ``R > 1`` runs each run's state
-tensors are rebound to views of one stacked tensor (as the stacked parameters are,
-:class:`mixedrl.algorithms.batched.StackedNetwork`), so the optimisers' ``state_dict`` and checkpoints are
-those of the eager step, and an eager step after a compiled one (or a restored checkpoint, which replaces
-the state tensors: they are rebound at the next call) continues the same state. The learning rate,
-betas, ``eps`` and the gradient clip are read at every call (the schedule changes the learning rate each
-iteration) and passed as tensors, so they never cause a recompilation. Adam with ``amsgrad``,
-``maximize``, ``weight_decay`` or several parameter groups is refused (``ValueError``).
-
-**Cache**: :func:`torch.compile` keeps its compiled graphs in inductor's on-disk cache (FX graph and
-AOTAutograd caches); :func:`configure_cache` points it (``TORCHINDUCTOR_CACHE_DIR``, torch's documented
-setting) at :func:`cache_dir`: ``$MIXEDRL_CACHE_DIR``, default ``~/.cache/mixedrl``, in its ``inductor``
-folder. Delete the folder (or :func:`clear_cache`) to start cold. A cold compile of a default run's two
-updates takes tens of seconds, a warm one a few (docs/algorithm2.rst, the table of ``benchmarks/iteration_table.py``).
+**Cache**: :func:`configure_cache` points inductor's on-disk cache (``TORCHINDUCTOR_CACHE_DIR``) at the
+``inductor`` folder of :func:`cache_dir` (``$MIXEDRL_CACHE_DIR``, default ``~/.cache/mixedrl``). Delete it
+(:func:`clear_cache`) to start cold; compile times: docs/algorithm2.rst.
 """
 
 from __future__ import annotations

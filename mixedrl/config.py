@@ -1,33 +1,20 @@
-"""One typed, documented configuration object per training run, the experiment included.
+"""The configuration of a training run: :class:`TrainConfig`, in sections, and its dotted-key overrides.
 
-:class:`TrainConfig` holds a run of Algorithm 2 (``method`` = ``mixed``, ``model``, ``oracle``) or of
-the DDPG baseline (``method = "ddpg"``) in seven fields: ``method``, ``seed``, ``task`` (the experiment:
-system, prior, true disturbance law, discount, cost weights, preview), ``algorithm``
-(:class:`AlgorithmConfig`), ``sampler`` (where the PEV/PIM states come from, a registered options class
-chosen by ``name``: :data:`SAMPLERS`), ``ddpg`` (:class:`DDPGConfig`) and ``run`` (:class:`RunConfig`).
-It is saved as ``config.json`` beside the run's results; loading a dictionary with a key that is not a
-field, at any level, is an error naming the dotted key.
+:class:`TrainConfig` holds a run of Algorithm 2 (``method`` ``"mixed"``, ``"model"``, ``"oracle"``) or of
+DDPG (``"ddpg"``) in seven fields: ``method``, ``seed``, ``task`` (the experiment), ``algorithm``
+(:class:`AlgorithmConfig`), ``sampler`` (one of :data:`SAMPLERS`, chosen by ``name``), ``ddpg``
+(:class:`DDPGConfig`) and ``run`` (:class:`RunConfig`). It is saved as ``config.json`` beside the run's
+results; a key that is not a field, at any level, is an error naming the dotted key.
 
-The task configuration is one of two nested dataclasses, chosen by its ``name``:
+The task configuration is chosen by its ``name``: ``"dlc"`` (the paper's Section VI,
+:class:`~mixedrl.envs.dlc_config.DoubleLaneChangeTaskConfig`, with ``task.disturbance`` and ``task.cost``),
+``"linear"`` (:class:`LinearTaskConfig`) or a task registered with :func:`register_task`.
 
-* :class:`DoubleLaneChangeTaskConfig` (``name = "dlc"``, the paper's Section VI): the environment's own
-  configuration (:mod:`mixedrl.envs.dlc_config`, re-exported here) with the discount and the prior, so
-  every field of the environment is a ``task.<field>`` key, with the nested
-  :class:`ForceDisturbanceConfig` (``task.disturbance``, the environment's
-  :class:`~mixedrl.envs.disturbance.Disturbance`) and :class:`CostWeights` (``task.cost``);
-* :class:`LinearTaskConfig` (``name = "linear"``, a small LQ system with a known optimum), with the
-  nested :class:`GaussianNoiseConfig` (``task.disturbance``).
-
-``TrainConfig()`` (no task named) holds the library defaults of the section classes (model rollouts from
-the task's start distribution restarted outside 3 x ``obs_scale``, the decay tied to the budget, the relative
-batch weighting; docs/tuning.rst gives the measurement behind them): what a user's own task object, passed
-to the trainer, trains with. Its ``task`` field holds the double lane change's defaults, the task the CLI
-and :func:`mixedrl.runs.make_trainer` build when no task object is given. When a task is named
-(``task="dlc"``, and in a dictionary: ``config.json``, ``--config``, sweep specifications, where a missing
-``task`` is ``"dlc"``), a section that is not given takes that task's experiment configuration
-(:data:`PRESETS`): the double lane change registers :data:`mixedrl.envs.dlc_task.DLC_EXPERIMENT` (the
-reproduction of Table I: its course sampler :class:`mixedrl.envs.dlc_task.CourseSampler`, the learning-rate
-decay over 1500 iterations).
+``TrainConfig()`` (no task named) holds the library defaults (docs/algorithm2.rst), what a user's own task
+object trains with; its ``task`` field holds the double lane change's defaults. When a task is named
+(``task="dlc"``; in a dictionary a missing ``task`` is ``"dlc"``), a section that is not given takes that
+task's experiment configuration (:data:`PRESETS`; the double lane change's is
+:data:`mixedrl.envs.dlc_task.DLC_EXPERIMENT`).
 
 Dotted keys address nested fields, the same way on the command line, in :func:`apply_overrides` and in
 sweep specifications::
@@ -36,9 +23,8 @@ sweep specifications::
     mixedrl train --method mixed --out runs/true --set sampler.name=\\"true_copies\\"
     mixedrl train --method mixed --out runs/mine --config experiment.json   # nested JSON, like config.json
 
-``"task": "dlc"`` (a task's name) stands for that task's defaults. The flat form of the first release
-(45 top-level fields: ``iterations``, ``model_course_starts``, ``ddpg_tau`` ...) is refused with an error
-naming the release that reads it (:data:`FLAT_FORM_RELEASE`).
+The flat form of the first release (top-level ``iterations``, ``ddpg_tau`` ...) is refused with an error
+naming :data:`FLAT_FORM_RELEASE`.
 """
 
 from __future__ import annotations
@@ -63,8 +49,7 @@ from mixedrl.config_tasks import (BATCH_WEIGHTINGS, BUILTIN_NAMES, DISTURBANCE_L
                                   check_choice, register_builtin_task, register_task, task_config, task_config_union,
                                   task_names, to_jsonable)
 
-#: This module's own names, those of the task configurations (:mod:`mixedrl.config_tasks`), of the other sections
-#: (:mod:`mixedrl.config_sections`) and what the double lane change registers (read through ``__getattr__``).
+# this module's names, those of config_tasks and config_sections, and those served by __getattr__
 __all__ = ["TrainConfig", "PAPER_SETTINGS", "PAPER_HYPERPARAMETERS", "ONE_STEP_LEARNER", "CONFIG_PRESETS", "FLAT_FORM_RELEASE",
            "memory_lower_bounds", "optimiser_section", "optimiser_prefix",
            "machine_memory", "apply_overrides", "flatten_table", "TaskConfig", "DoubleLaneChangeTaskConfig",
@@ -72,12 +57,9 @@ __all__ = ["TrainConfig", "PAPER_SETTINGS", "PAPER_HYPERPARAMETERS", "ONE_STEP_L
 
 
 def __getattr__(name: str) -> Any:
-    """What the double lane change registers (:mod:`mixedrl.envs.dlc_task`, imported with the package) stays
-    readable here: its configuration classes (``DoubleLaneChangeTaskConfig``, ``CostWeights``:
-    :func:`register_builtin_task`), ``TaskConfig`` (the union of the built-in tasks' configurations), the
-    options class of its sampler (``CourseSampler``, ``SAMPLERS["dlc_course"]``) and its preset
-    (``DLC_EXPERIMENT``, ``PRESETS["dlc"]``)."""
-    if name in BUILTIN_NAMES:  # DoubleLaneChangeTaskConfig, CostWeights (mixedrl.config_tasks.register_builtin_task)
+    """The names the double lane change registers (:func:`register_builtin_task`, ``CourseSampler``,
+    ``DLC_EXPERIMENT``) and ``TaskConfig``, the union of the built-in tasks' configurations."""
+    if name in BUILTIN_NAMES:
         return BUILTIN_NAMES[name]
     if name == "TaskConfig":
         return task_config_union()
@@ -88,17 +70,13 @@ def __getattr__(name: str) -> Any:
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
-# ----------------------------------------------------------------------------------------------------
-# the flat configuration form (45 top-level fields) of the first release
-# ----------------------------------------------------------------------------------------------------
-#: The release that reads the flat configuration form (``config.json`` with 45 top-level fields, and the
-#: flat keys ``iterations``, ``model_course_starts``, ``ddpg_tau`` ...).
+# ---- the flat configuration form of the first release ----
+#: The release that reads the flat configuration form (top-level ``iterations``, ``ddpg_tau`` ...).
 FLAT_FORM_RELEASE = "mixedrl 0.1.0 at git commit b510485"
 
 
-#: Settings deleted from the library (departures neither the default nor the ``paper`` preset uses), each
-#: with the value at which a saved config's run behaves as today's code: such a record is read (the key
-#: dropped); any other value is refused, naming the key (the run cannot be re-created).
+#: Deleted settings (docs/results.rst, "Deleted settings") with the value that behaves as today's code: a saved
+#: config holding that value loads (the key dropped), any other value is refused naming the key.
 DELETED_SETTINGS: dict[tuple[str, str], Any] = {
     ("algorithm", "rollout_critic_steps"): 1,
     ("algorithm", "rollout_updates"): 1,
@@ -127,9 +105,8 @@ def _drop_deleted_settings(data: dict[str, Any]) -> None:
 
 
 def _ddpg_settings_from_algorithm(data: dict[str, Any]) -> None:
-    """A DDPG run's config written before DDPG had its own :data:`OPTIMISER_FIELDS` (``ddpg.batch_size``, ...)
-    held DDPG's values in ``algorithm``: for ``method = "ddpg"``, each of them that ``ddpg`` lacks and
-    ``algorithm`` has is taken from ``algorithm`` (the same run)."""
+    """For ``method = "ddpg"``, take each :data:`OPTIMISER_FIELDS` entry that ``ddpg`` lacks from ``algorithm``
+    (where older configs hold DDPG's values)."""
     algo, ddpg = data.get("algorithm"), data.get("ddpg", {})
     if data.get("method") != "ddpg" or not isinstance(algo, dict) or not isinstance(ddpg, dict):
         return
@@ -143,16 +120,14 @@ def optimiser_prefix(config: Any) -> str:
 
 
 def optimiser_section(config: Any) -> Any:
-    """The section of ``config`` (a :class:`TrainConfig`) whose minibatch size, hidden activation, learning
-    rates and gradient clip (:data:`OPTIMISER_FIELDS`) the run trains with: ``config.ddpg`` for
+    """The section of ``config`` whose :data:`OPTIMISER_FIELDS` the run trains with: ``config.ddpg`` for
     ``method = "ddpg"``, else ``config.algorithm``."""
     return getattr(config, optimiser_prefix(config))
 
 
 def _refuse_flat_form(keys: Any) -> None:
-    """Raise naming :data:`FLAT_FORM_RELEASE` if a top-level key of a configuration is one of the flat
-    form's: a field of ``algorithm`` or ``run`` (``iterations``), ``ddpg_<field>``, ``state_source``, a
-    sampler option (``model_*``, ``true_*``) or ``train_half_widths``."""
+    """Raise naming :data:`FLAT_FORM_RELEASE` if a top-level key is one of the flat form's (a field of
+    ``algorithm`` or ``run``, ``ddpg_<field>``, ``model_*``, ``true_*``, ``state_source``, ``train_half_widths``)."""
     fields = {f.name for cls in (AlgorithmConfig, RunConfig) for f in dataclasses.fields(cls)}
     fields |= {f"ddpg_{f.name}" for f in dataclasses.fields(DDPGConfig) if f.name not in OPTIMISER_FIELDS}
     fields |= {"state_source", "train_half_widths"}
@@ -165,8 +140,8 @@ def _refuse_flat_form(keys: Any) -> None:
 def flatten_table(table: dict[str, Any], prefix: str = "") -> dict[str, Any]:
     """Flatten nested TOML tables into dotted keys: ``{"a": {"b": 1}}`` -> ``{"a.b": 1}``.
 
-    TOML turns ``a.b = 1`` into a nested table; a quoted ``"a.b" = 1`` stays one key. Both end up as
-    ``"a.b"``. Lists and scalars are leaves.
+    TOML's ``a.b = 1`` (a nested table) and ``"a.b" = 1`` (one key) both become ``"a.b"``; lists and
+    scalars are leaves.
     """
     out: dict[str, Any] = {}
     for key, value in table.items():
@@ -182,9 +157,8 @@ def apply_overrides(data: dict[str, Any], overrides: dict[str, Any]) -> dict[str
     """Return a copy of the config dict ``data`` with dotted-key ``overrides`` applied.
 
     ``{"task.prior_force_mean": 300}`` sets ``data["task"]["prior_force_mean"]``; a plain key replaces a
-    top-level value. Intermediate levels are created as dicts when missing; a string ``task`` (a name,
-    ``"dlc"``) is first expanded to ``{"name": "dlc"}``. Keys are not checked here: building the config
-    (:meth:`TrainConfig.from_dict`) reports unknown ones with their dotted name.
+    top-level value. Missing levels are created as dicts; a string ``task`` or ``sampler`` (a name) is first
+    expanded to ``{"name": ...}``. Keys are not checked here (:meth:`TrainConfig.from_dict` does).
 
     Parameters
     ----------
@@ -247,17 +221,13 @@ def machine_memory() -> int | None:
 def memory_lower_bounds(config: TrainConfig) -> dict[str, int]:
     """Lower bounds, in bytes, of the memory a run of ``config`` allocates, by the key that sets it.
 
-    Every bound takes the smallest task (one observation, one action: the task's own sizes only add), so
-    a configuration above the machine's memory cannot run on it:
+    Every bound takes the smallest task (one observation, one action):
 
-    * ``algorithm.hidden_sizes``: the actor and the critic, each at least ``P = sum_i (h_{i-1} + 1) h_i
-      + h_last + 1`` parameters (``h_0 = 1``), float32, each with its gradient and the two Adam moments
-      (16 bytes a parameter);
-    * ``algorithm.batch_size`` (``ddpg.batch_size`` for DDPG: :func:`optimiser_section`): the batch's states
-      (float64) and one network's hidden activations on them (float32): ``batch_size (8 + 4 sum(hidden_sizes))``
-      bytes;
-    * ``ddpg.buffer_size`` (DDPG only): the replay buffer's observation, next observation, action, cost
-      and terminal flag, float32: 20 bytes a transition.
+    * ``algorithm.hidden_sizes``: the actor and the critic, each ``P = sum_i (h_{i-1} + 1) h_i + h_last + 1``
+      float32 parameters (``h_0 = 1``) with gradient and two Adam moments, 16 bytes a parameter;
+    * ``algorithm.batch_size`` (DDPG: ``ddpg.batch_size``): the batch's float64 states and one network's
+      float32 activations, ``batch_size (8 + 4 sum(hidden_sizes))`` bytes;
+    * ``ddpg.buffer_size`` (DDPG only): the float32 replay buffer, 20 bytes a transition.
     """
     alg = config.algorithm
     widths = (1, *alg.hidden_sizes, 1)
@@ -296,9 +266,8 @@ MAX_SEED = 2**64 - 1
 class TrainConfig:
     """Configuration of one training run (Algorithm 2 or DDPG), in sections.
 
-    A section left out (or given as a partial dict) takes the library defaults of the section's class; when
-    ``task`` is named, the named task's experiment configuration (:data:`PRESETS`, registered by the task;
-    the double lane change's is :data:`mixedrl.envs.dlc_task.DLC_EXPERIMENT`) over them.
+    A section left out (or given as a partial dict) takes the library defaults of the section's class, with
+    the named task's experiment configuration (:data:`PRESETS`) over them when ``task`` is named.
     ``to_dict`` / ``from_dict`` round-trip exactly through JSON.
     """
 
@@ -307,26 +276,21 @@ class TrainConfig:
     model of eq. 55, IBE off), ``"oracle"`` (Algorithm 2 with the true noise) or ``"ddpg"``."""
 
     seed: int
-    """Seed of every generator of the run (network initialisation, initial states, noise, exploration,
-    replay sampling). Same seed, same weights."""
+    """Seed of every generator of the run, in [0, 2**64 - 1]. Same seed, same weights."""
 
     task: TaskConfig
-    """The experiment: :class:`DoubleLaneChangeTaskConfig` (``name = "dlc"``, also when none is named) or
-    :class:`LinearTaskConfig` (``name = "linear"``); a task name or a nested dict is accepted
-    (:func:`task_config`)."""
+    """The experiment (``name``: ``"dlc"``, the default, ``"linear"`` or a registered task); a task name or
+    a nested dict is accepted (:func:`task_config`)."""
 
     algorithm: AlgorithmConfig
-    """Algorithm 2, and the network sizes, critic head, budget and learning-rate decay every method shares
-    (:class:`AlgorithmConfig`)."""
+    """Algorithm 2, and the settings every method shares (:class:`AlgorithmConfig`)."""
 
     sampler: SamplerConfig
-    """Where Algorithm 2's PEV/PIM states come from, chosen by ``sampler.name`` (:data:`SAMPLERS`):
-    :class:`TrueCopiesSampler`, :class:`ModelRolloutsSampler` (the library default) or the double lane
-    change's :class:`mixedrl.envs.dlc_task.CourseSampler`."""
+    """Where Algorithm 2's PEV/PIM states come from, chosen by ``sampler.name`` (:data:`SAMPLERS`); a
+    departure from the paper unless ``"true_copies"`` (docs/algorithm2.rst)."""
 
     ddpg: DDPGConfig
-    """What only DDPG has, its own minibatch size, activation, learning rates and gradient clip included
-    (:class:`DDPGConfig`)."""
+    """What only DDPG has, its own optimiser settings included (:class:`DDPGConfig`)."""
 
     run: RunConfig
     """Evaluation, checkpoints, threads (:class:`RunConfig`)."""
@@ -339,8 +303,7 @@ class TrainConfig:
         self.seed = check_nonnegative_int(seed, "seed")
         if self.seed > MAX_SEED:
             raise ValueError(f"seed: expected an integer in [0, 2**64 - 1] (torch's generator seed), got {seed!r}")
-        # no task named: the library defaults (a user's own task object trains with them); ``task`` holds
-        # the double lane change's defaults, the task the CLI and make_trainer build when none is given
+        # no task named: the library defaults, with the double lane change's task defaults
         self.task = task_config("dlc" if task is None else task)
         preset = PRESETS.get(self.task.name, {}) if task is not None else {}
         for name, value in (("algorithm", algorithm), ("ddpg", ddpg), ("run", run)):
@@ -368,17 +331,16 @@ class TrainConfig:
 
     # ------------------------------------------------------------------ serialisation
     def to_dict(self) -> dict[str, Any]:
-        """Return the fields as a JSON-compatible nested dictionary (tuples become lists; ``inf`` a
-        string; the double lane change's ``task.obs_scale`` left out when it is ``None``, its default, and
-        ``algorithm.compile`` when it is ``"off"``, its default)."""
+        """Return the fields as a JSON-compatible nested dictionary (tuples become lists, ``inf`` a string;
+        the double lane change's ``task.obs_scale`` and ``algorithm.compile`` left out at their defaults)."""
         out = to_jsonable(self)
         for section, name in _INFINITE_FIELDS:
             if name in out[section] and math.isinf(out[section][name]):
                 out[section][name] = "inf"
         if out["task"].get("name") == "dlc" and out["task"].get("obs_scale", 0) is None:
-            del out["task"]["obs_scale"]  # the default: config.json and config hashes as before the field
+            del out["task"]["obs_scale"]  # defaults left out keep config.json and config hashes unchanged
         if out["algorithm"].get("compile") == "off":
-            del out["algorithm"]["compile"]  # the default (issue 44): config.json and config hashes as before the field
+            del out["algorithm"]["compile"]
         return out
 
     @classmethod
@@ -386,16 +348,15 @@ class TrainConfig:
         """Build a config from a dictionary (the content of ``config.json``), nested sections included.
 
         ``"task": "dlc"`` (a name) stands for that task's defaults; a dict without ``task`` names ``"dlc"``.
-        A DDPG run's dict without one of ``ddpg.batch_size``, ``ddpg.activation``, ``ddpg.critic_lr``,
-        ``ddpg.actor_lr``, ``ddpg.grad_clip`` (a ``config.json`` written before DDPG had them) takes the
-        ``algorithm`` section's value of it, where DDPG read it then.
+        A DDPG run's dict lacking one of :data:`OPTIMISER_FIELDS` in ``ddpg`` takes it from ``algorithm``.
+        A deleted setting at today's behaviour is dropped (``DELETED_SETTINGS``).
 
         Raises
         ------
         ValueError
             ``data`` has a key that is not a field, at any level (``config: unknown key(s)
-            ['task.prior_mena']``), is in the flat form of :data:`FLAT_FORM_RELEASE` (the message names
-            that release), or a field is invalid (the message starts with its dotted name).
+            ['task.prior_mena']``), is in the flat form (naming :data:`FLAT_FORM_RELEASE`), or a field is
+            invalid (the message starts with its dotted name).
         """
         if not isinstance(data, dict):
             raise ValueError(f"config: expected a dict, got {type(data).__name__}")
@@ -424,11 +385,9 @@ class TrainConfig:
 
     @classmethod
     def preset(cls, name: str, **fields: Any) -> "TrainConfig":
-        """The config of the named preset of :data:`CONFIG_PRESETS` (``"paper"``: the paper's literal
-        Algorithm 2; ``"library"``: ``TrainConfig(**fields)``, the library defaults), with ``fields``
-        (``method``, ``seed``, ``task``, sections) given as to the constructor and applied over the preset:
-        a section given as a dict changes only the settings it names (``algorithm=dict(iterations=60)`` keeps
-        the preset's other settings), one given as a section object replaces it.
+        """The config of the preset ``name`` of :data:`CONFIG_PRESETS` (``"paper"``, ``"library"``), with
+        ``fields`` given as to the constructor applied over it: a section given as a dict changes only the
+        settings it names (``algorithm=dict(iterations=60)``), a section object replaces it.
 
         Raises
         ------
@@ -450,8 +409,7 @@ class TrainConfig:
         return cls.from_dict(data)
 
     def with_preset(self, name: str) -> "TrainConfig":
-        """A copy with the settings of the preset ``name`` (:data:`CONFIG_PRESETS`) applied (its sampler
-        section replaces the config's)."""
+        """A copy with the preset ``name`` (:data:`CONFIG_PRESETS`) applied; its sampler replaces the config's."""
         if name not in CONFIG_PRESETS:
             raise ValueError(f"preset: expected one of {tuple(CONFIG_PRESETS)}, got {name!r}")
         data = self.to_dict()
@@ -500,31 +458,23 @@ def _sampler(value: Any, preset: dict[str, Any], task: str) -> Any:
     return sampler_config(value, task)
 
 
-# ----------------------------------------------------------------------------------------------------
-# presets of Algorithm 2 (issue 40): the paper's literal form and the library defaults, one argument apart
-# ----------------------------------------------------------------------------------------------------
-#: The paper's value of every setting where the library departs from it (one module each in
-#: :mod:`mixedrl.departures`, which reads its paper value from here): ``TrainConfig.preset("paper")``
-#: (``mixedrl train --preset paper``) is the paper's Algorithm 2 -- the true copies as the batch, the plain
-#: batch mean in PEV and PIM, fixed step sizes, the critic itself in PEV's target, one-step ``h``, the
-#: MLP actor, the last actor deployed. The table of docs/algorithm2.rst gives each with the library's
-#: default and why.
+# ---- presets of Algorithm 2: the paper's literal form and the library defaults ----
+#: The paper's value of every setting where the library departs from it (:mod:`mixedrl.departures` reads
+#: them here): ``TrainConfig.preset("paper")`` is the paper's Algorithm 2. The table of docs/algorithm2.rst
+#: gives each with the library's default and why.
 PAPER_SETTINGS: dict[str, dict[str, Any]] = {
     "sampler": {"name": "true_copies"},
     "algorithm": {"batch_weighting": "uniform", "lr_decay_to": 1.0, "critic_target": 0.0,
                   "feedforward": "learned", "rollout_horizon": 0,
                   "rollout_region": 0.0, "actor_output": "tanh"},
 }
-#: The budget, networks and step sizes of the ``paper`` preset: the library's values for the paper's one-step
-#: Algorithm 2 (the paper gives none of them), kept when the library's defaults moved to the rollout learner
-#: (issue 42), so the preset's runs are those of the one-step learner they were measured with. Not departures:
-#: the paper fixes none of these.
+#: The budget, networks and step sizes of the ``paper`` preset, those of the one-step learner; not
+#: departures: the paper gives none of them.
 PAPER_HYPERPARAMETERS: dict[str, Any] = {
     "iterations": 1500, "batch_size": 512, "activation": "elu", "critic_lr": 3e-3, "actor_lr": 3e-4,
     "grad_clip": 10.0, "j_max": 5, "batch_weight_offset": 1.0, "rollout_discount_start": 0.0}
-#: The ``algorithm`` settings of the one-step learner, the library's default before issue 42's rollout learner:
-#: :data:`PAPER_HYPERPARAMETERS` with the rollout learner's departures off (the library's sampler, state weights
-#: and learning-rate decay kept). The study specs trained with it pin these (``experiments/studies/*.toml``).
+#: The ``algorithm`` settings of the one-step learner (docs/tuning.rst): :data:`PAPER_HYPERPARAMETERS` with the
+#: rollout learner's departures off, the library's sampler, state weights and decay kept.
 ONE_STEP_LEARNER: dict[str, Any] = {**PAPER_HYPERPARAMETERS, "critic_target": 0.0, "rollout_horizon": 0,
                                     "rollout_region": 0.0, "actor_output": "tanh", "feedforward": "learned"}
 #: Preset name -> section -> settings applied over ``TrainConfig(**fields)`` (:meth:`TrainConfig.preset`).

@@ -20,9 +20,7 @@ from mixedrl.config_tasks import (BATCH_WEIGHTINGS, COMPILE_MODES, FEEDFORWARDS,
 __all__ = ["AlgorithmConfig", "DDPGConfig", "OPTIMISER_FIELDS", "RunConfig", "SamplerConfig", "TrueCopiesSampler",
            "ModelRolloutsSampler", "SAMPLERS", "PRESETS", "register_sampler", "register_preset", "sampler_config"]
 
-# ----------------------------------------------------------------------------------------------------
-# sections of TrainConfig
-# ----------------------------------------------------------------------------------------------------
+# ---- sections of TrainConfig ----
 #: The network and optimiser settings each of Algorithm 2 (``algorithm.<field>``) and DDPG (``ddpg.<field>``)
 #: has its own of: minibatch size, hidden activation, the two Adam learning rates, the gradient clip.
 OPTIMISER_FIELDS = ("batch_size", "activation", "critic_lr", "actor_lr", "grad_clip")
@@ -43,13 +41,9 @@ class AlgorithmConfig:
     """The training algorithm: Algorithm 2 (mixed, model, oracle), and the network sizes, critic head and
     budget DDPG shares with it. Dotted keys: ``algorithm.<field>``.
 
-    ``batch_size``, ``activation``, ``critic_lr``, ``actor_lr`` and ``grad_clip`` are Algorithm 2's only:
-    DDPG has its own (:class:`DDPGConfig`, ``ddpg.<field>``).
-
-    ``batch_weighting`` and ``batch_weight_offset`` are tuning add-ons, departures from
-    the paper's Algorithm 2 (docs/algorithm2.rst). ``batch_weighting`` defaults to ``"relative"``, measured
-    over the pendulum and the linear test bed (``experiments/studies/custom_defaults.toml``, docs/tuning.rst); the paper's
-    plain batch mean is ``"uniform"``.
+    The :data:`OPTIMISER_FIELDS` are Algorithm 2's only (DDPG's: :class:`DDPGConfig`). The fields marked
+    *Departure* depart from the paper's Algorithm 2; docs/algorithm2.rst gives each with the paper's value
+    (:data:`mixedrl.config.PAPER_SETTINGS`), and docs/tuning.rst the measurements behind the defaults.
     """
 
     iterations: int = 800
@@ -57,27 +51,22 @@ class AlgorithmConfig:
     same budget rule for every method, DDPG included (Algorithm 2 on a global task: :attr:`region_budget`)."""
 
     region_budget: int = 4
-    """Algorithm 2 on a task that declares a state region (a global task such as the swing-up:
-    :meth:`mixedrl.task_base.Task.declares_region`) trains ``region_budget * iterations`` iterations, and
-    its sampler drives the true system and its periodic evaluations run ``region_budget`` times less often
-    (``sampler.true_every``, ``run.eval_every``), so the true transitions stay those of ``iterations``
-    (:func:`mixedrl.schedule.resolve_budget`; the run's
-    ``config.json`` holds the resolved budget, with ``region_budget`` 1). 1 turns the rule off (the
-    ``paper`` preset). Chosen on the tuning swing-ups before the Pendulum-v1 runs under it (docs/tuning.rst);
-    a task without a region is unaffected."""
+    """Budget factor, an integer >= 1, on a task that declares a state region
+    (:meth:`mixedrl.task_base.Task.declares_region`): Algorithm 2 trains ``region_budget * iterations``
+    iterations, driving the true system and evaluating ``region_budget`` times less often, so the true
+    transitions stay those of ``iterations`` (:func:`mixedrl.schedule.resolve_budget`; ``config.json`` holds
+    the resolved budget). 1 turns it off (the ``paper`` preset). Documented in docs/tuning.rst."""
 
     batch_size: int = 128
     """Number of states of the PEV/PIM batch per iteration (Algorithm 2; made by the sampler). DDPG's
     replay minibatch is ``ddpg.batch_size``."""
 
     horizon: int = 60
-    """Steps after which a training copy (a true-environment copy or a model rollout started from the
-    training distribution, or one of DDPG's environment copies) is reset to a fresh initial state; shared by
-    every method."""
+    """Steps after which a training copy (true copy, model rollout, DDPG's environment copy) restarts from
+    a fresh initial state; shared by every method."""
 
     hidden_sizes: tuple[int, ...] = (64, 64)
-    """Hidden layer widths of the actor and the critic (shared by every method, DDPG's actor and
-    Q-critic included: the same networks' sizes)."""
+    """Hidden layer widths of the actor and the critic (shared by every method, DDPG included)."""
 
     activation: str = "tanh"
     """Hidden activation of Algorithm 2's MLPs: ``"elu"``, ``"tanh"`` or ``"relu"`` (DDPG's:
@@ -94,19 +83,17 @@ class AlgorithmConfig:
     """Adam learning rate beta of Algorithm 2's actor (eq. 52); DDPG's actor has ``ddpg.actor_lr``."""
 
     lr_decay_to: float = 0.01
-    """Learning rates decay linearly from their value to ``lr_decay_to`` times it over the budget
-    (1.0 = constant), or over ``lr_decay_iterations`` iterations if that is set; shared by every method
-    (DDPG's rates decay by the same rule, from ``ddpg.critic_lr`` and ``ddpg.actor_lr``)."""
+    """Departure (schedule): the learning rates decay linearly to ``lr_decay_to`` times their value, in
+    (0, 1]; 1.0 = constant (the paper's). Over the budget, or ``lr_decay_iterations``; shared by every method
+    (:func:`mixedrl.schedule.lr_factor`)."""
 
     lr_decay_iterations: int = 0
-    """Length of the learning-rate decay in iterations; after it the rates stay at ``lr_decay_to`` times
-    their start. 0 (the default) = the budget (``iterations``), so the decay is tied to the budget; a
-    budget shorter than the length decays over the budget (see :func:`mixedrl.schedule.lr_factor`).
-    Shared by every method, DDPG included."""
+    """Length of the learning-rate decay in iterations (after it the rates stay at their final value);
+    0 = the budget, also when the budget is shorter (:func:`mixedrl.schedule.lr_factor`). Shared by every
+    method."""
 
     grad_clip: float = 1.0
-    """Clip of the global gradient norm of each update of Algorithm 2 (``math.inf`` disables it); DDPG's is
-    ``ddpg.grad_clip``."""
+    """Clip of the global gradient norm of each update of Algorithm 2 (``math.inf`` disables it)."""
 
     expectation: str = "sigma"
     """How the expectation over ``xi_hat ~ N(mu_hat, K_hat)`` in eqs. (49)-(52) is computed:
@@ -141,91 +128,70 @@ class AlgorithmConfig:
     ``ibe_recursion`` must be ``"exact"`` unless it is 2."""
 
     batch_weighting: str = "relative"
-    """Departure (tuning add-on): how the states of the batch are weighted in PEV and PIM (eqs. 50 and
-    52): ``"uniform"`` = the plain batch mean (the paper's); ``"relative"`` (the default) = each state by its relative
-    error: PEV squares the relative TD error ``(V - V_target) / (|V_target| + c)`` and PIM weights state
-    ``x`` by ``1 / (V(x) + c)`` (batch mean 1), ``c = batch_weight_offset * task.value_scale``
-    (:func:`mixedrl.pev.critic_loss`, :func:`mixedrl.pim.actor_objective`)."""
+    """Departure (state weights): how the states of the batch are weighted in PEV and PIM (eqs. 50, 52):
+    ``"uniform"`` = the plain batch mean (the paper's); ``"relative"`` = PEV squares the relative TD error
+    ``(V - V_target) / (|V_target| + c)`` and PIM weights state ``x`` by ``1 / (V(x) + c)`` (batch mean 1),
+    ``c = batch_weight_offset * task.value_scale`` (:func:`mixedrl.pev.critic_loss`,
+    :func:`mixedrl.pim.actor_objective`)."""
 
     batch_weight_offset: float = 0.3
-    """Departure (tuning add-on): ``c`` of ``batch_weighting = "relative"``, in units of the task's ``value_scale``
-    (``c = batch_weight_offset * value_scale``)."""
+    """Departure (state weights): ``c`` of ``batch_weighting = "relative"``, > 0, in units of ``value_scale``."""
 
     critic_target: float = 0.8
-    """Departure (precision add-on): decay ``beta`` of a target critic for PEV's target (0.8 by default). 0 =
-    eq. (50) as written: ``V_target = l(x', u) + gamma V^k(x'; w)`` with the critic being trained. ``beta > 0``:
-    ``V_target`` takes ``V(x'; w_bar)`` instead, ``w_bar <- beta w_bar + (1 - beta) w`` after every iteration
-    (an exponential moving average of the critic's weights, the target networks of DQN and DDPG;
-    :func:`mixedrl.pev.critic_loss`), so the target moves slowly when the batch's distribution changes.
-    PIM and the MVC keep the critic ``V^k(x; w)`` itself. The same for every method of Algorithm 2; the
-    window is about ``1 / (1 - beta)`` iterations. DDPG has its own (``ddpg.tau``)."""
+    """Departure (target values): decay ``beta`` in [0, 1) of a target critic for PEV's target. 0 = eq. (50)
+    as written (the critic being trained); ``beta > 0``: ``V_target`` takes ``V(x'; w_bar)``, with
+    ``w_bar <- beta w_bar + (1 - beta) w`` after every iteration (:func:`mixedrl.pev.critic_loss`), a window
+    of about ``1 / (1 - beta)`` iterations. PIM and the MVC keep the critic itself."""
 
     feedforward: str = "auto"
-    """Departure (precision add-on): where the run's policy takes its action at the task's equilibrium.
-    ``"auto"`` (the default) = ``"lq_ss"`` on a task that declares an equilibrium (``Task.equilibrium``),
-    ``"learned"`` on one that does not, and for DDPG (:func:`mixedrl.departures.anchor.resolve`).
-    ``"learned"`` (the paper's) = the actor's own. ``"lq_ss"`` = the actor shifted (by a constant that fades with
-    the distance from ``x_ss``, :attr:`feedforward_width`) so that at the discounted LQ optimum's steady state
-    ``x_ss`` for the method's own noise mean it takes the optimum's action there
-    (:func:`mixedrl.departures.anchor.steady_anchor`): the closed loop rests where the optimum's does, to first
-    order, whatever the learned gain; training is unchanged. ``"lq"`` = the actor shifted by a constant so
-    that at the equilibrium it takes the discounted LQ optimum's action for the method's own noise mean,
-    ``pi_ff(o) = pi(o) - pi(o(s*)) + u* - l0(E mu)`` (:class:`mixedrl.precision.FeedForwardPolicy`; the
-    mean is the IBE posterior for mixed RL, the prior for model-driven RL, the truth for the oracle).
-    Training is unchanged (the same bits); the shifted actor is what is evaluated and deployed
-    (:attr:`mixedrl.algorithms.agpi.AGPI.policy`). Algorithm 2 only (DDPG has no noise model to take the mean
-    from; it refuses every value but ``"learned"`` and ``"auto"``), and ``"lq"`` / ``"lq_ss"`` only for a task
-    with an equilibrium. The trained anchored actors ``"lq_train"``, ``"lq_affine"`` and ``"lq_affine_ss"`` were
-    retired (their rows stay on the results page; git commit ee954d7 runs them)."""
+    """Departure (anchor): where the deployed policy takes its action at the task's equilibrium; training is
+    unchanged. ``"learned"`` (the paper's) = the actor's own. ``"lq_ss"`` = the actor shifted, locally
+    (:attr:`feedforward_width`), so that at the discounted LQ optimum's steady state ``x_ss`` for the method's
+    own noise mean it takes the optimum's action (:func:`mixedrl.departures.anchor.steady_anchor`). ``"lq"`` =
+    shifted by a constant so that at the equilibrium ``pi_ff(o) = pi(o) - pi(o(s*)) + u* - l0(E mu)``
+    (:class:`mixedrl.precision.FeedForwardPolicy`). ``"auto"`` = ``"lq_ss"`` on a task that declares an
+    equilibrium, else and for DDPG ``"learned"`` (:func:`mixedrl.departures.anchor.resolve`). ``"lq"`` and
+    ``"lq_ss"`` need a task with an equilibrium and Algorithm 2; retired values are refused naming the commit
+    that runs them (docs/precision.rst)."""
 
     feedforward_width: float = 0.25
-    """Departure (precision add-on): with ``feedforward = "lq_ss"`` (``"auto"``) the shift is local, weighted by
-    ``exp(-|(o - o_ss) / (rho obs_scale)|^2 / 2)`` with ``rho`` this value
-    (:class:`mixedrl.departures.anchor.FeedForwardPolicy`): the action and its gain at ``o_ss`` are the shifted
-    ones, the policy far from it the learned one. 0 = a constant shift. 0.25 was chosen on the tuning systems
-    (seeds 100-102): a constant shift cost a swing-up whose top is declared as its equilibrium 25-38 of return
-    IQM (``rho`` 1: 0.1-1.2, ``rho`` 0.25: none), with the same offsets and costs near an equilibrium."""
+    """Departure (anchor): width ``rho`` >= 0 of the ``"lq_ss"`` shift, in units of ``obs_scale``: the shift
+    is weighted by ``exp(-|(o - o_ss) / (rho obs_scale)|^2 / 2)``
+    (:class:`mixedrl.departures.anchor.FeedForwardPolicy`); 0 = a constant shift (docs/tuning.rst)."""
 
     compile: str = "off"
-    """How the PEV and PIM steps run (:mod:`mixedrl.compiled`, issue 44): ``"off"`` (the default) = eagerly,
-    ``torch.autograd`` and ``torch.optim.Adam.step``; ``"on"`` = each step (loss, gradient by ``torch.func``,
-    clip, Adam on the optimiser's own state) compiled by ``torch.compile`` as one graph, cached on disk in
-    ``$MIXEDRL_CACHE_DIR`` (default ``~/.cache/mixedrl``); ``"functional"`` = that step without compiling (the
-    fallback of ``"on"``). The three give the same numbers to float32 rounding; ``"off"`` is the reference,
-    bit for bit. The runs of one batch share it."""
+    """How the PEV and PIM steps run (:mod:`mixedrl.compiled`): ``"off"`` = eagerly (the reference, bit for
+    bit); ``"on"`` = each step compiled by ``torch.compile`` as one graph, cached in ``$MIXEDRL_CACHE_DIR``
+    (default ``~/.cache/mixedrl``); ``"functional"`` = that step uncompiled. The three agree to float32
+    rounding; the runs of one batch share it."""
 
     rollout_horizon: int = 16
-    """Departure (learner, issue 42): model steps ``H`` of the rollouts PEV and PIM work on (16 by default). 0 =
-    the paper's one-step PEV (eqs. 49-50) and PIM (eqs. 51-52). ``H > 0``: the actor's loss is the discounted
-    cost of an ``H``-step rollout of the planning model under ``N(mu_hat_k, K_hat_k)`` plus the target critic at
-    its end, differentiated through the model, and the critic is fitted to ``lambda``-returns along the same
-    rollouts (:mod:`mixedrl.departures.rollout`). The same for every method of Algorithm 2."""
+    """Departure (rollouts): model steps ``H`` >= 0 of the rollouts PEV and PIM work on. 0 = the paper's
+    one-step PEV and PIM (eqs. 49-52). ``H > 0``: the actor's loss is the discounted cost of an ``H``-step
+    rollout of the planning model plus the target critic at its end, and the critic is fitted to
+    ``lambda``-returns along the same rollouts (:mod:`mixedrl.departures.rollout`)."""
 
     rollout_lambda: float = 0.95
-    """Departure (learner): ``lambda`` in [0, 1] of the critic's ``lambda``-returns (``rollout_horizon > 0``)."""
+    """Departure (rollouts): ``lambda`` in [0, 1] of the critic's ``lambda``-returns (``rollout_horizon > 0``)."""
 
     rollout_discount_start: float = 0.95
-    """Departure (learner): with ``rollout_horizon > 0``, the rollouts' discount starts at this value and ramps
-    linearly to the task's ``gamma`` over the first ``rollout_discount_ramp`` of the budget (0.95 by default); 0 =
-    the task's ``gamma`` throughout."""
+    """Departure (rollouts): discount in [0, 1) at which the rollouts (``rollout_horizon > 0``) start, ramped
+    linearly to the task's ``gamma`` over ``rollout_discount_ramp``; 0 = ``gamma`` throughout."""
 
     rollout_discount_ramp: float = 0.4
-    """Departure (learner): fraction of the budget over which the discount ramps (``rollout_discount_start > 0``)."""
+    """Departure (rollouts): fraction of the budget, in [0, 1], over which the discount ramps."""
 
     rollout_region: float = 0.5
-    """Departure (learner, :mod:`mixedrl.departures.region`): with ``rollout_horizon > 0``, the fraction of the
-    rollouts' start states drawn afresh each iteration from the task's whole state region
-    (``task.sample_region``), the rest being end states of the previous iteration's rollouts (0.5 by default);
-    0 = the rollouts start from the sampler's batch. It applies only with ``rollout_horizon > 0`` on a task
-    that declares a state region (:meth:`mixedrl.task_base.Task.declares_region`), where it needs a
-    state-independent noise source (not ``ibe_case = 3``: refused when the first rollouts start)."""
+    """Departure (region starts, :mod:`mixedrl.departures.region`): fraction in [0, 1] of the rollouts' start
+    states drawn each iteration from the task's state region (``Task.sample_region``), the rest being end
+    states of the previous rollouts; 0 = starts from the sampler's batch. Only with ``rollout_horizon > 0``
+    on a task that declares a region, and not with ``ibe_case = 3`` (refused when the rollouts start)."""
 
     actor_output: str = "clip_inward"
-    """Departure (learner, :mod:`mixedrl.departures.actor_output`): how the actor's output is bounded:
-    ``"tanh"`` (``u_bar tanh(MLP)``), ``"clip"`` (``u_bar clip(MLP, -1, 1)``, the clip's gradient
-    passed straight through for the parameters only) or ``"clip_inward"`` (the same, straight through only where
-    the step moves a clipped output back inside; the default). Algorithm 2's actor only: DDPG's actor is always
-    ``tanh``-bounded."""
+    """Departure (actor output, :mod:`mixedrl.departures.actor_output`): how Algorithm 2's actor bounds its
+    output: ``"tanh"`` (``u_bar tanh(MLP)``, the paper's), ``"clip"`` (``u_bar clip(MLP, -1, 1)``, the
+    gradient passed straight through for the parameters) or ``"clip_inward"`` (straight through only where
+    the step moves a clipped output back inside)."""
 
     def __post_init__(self) -> None:
         w = "algorithm"
@@ -265,15 +231,9 @@ class AlgorithmConfig:
 
 @dataclass
 class DDPGConfig:
-    """What DDPG has and the model-based methods do not (replay buffer, target networks, exploration
-    noise; textbook values, not tuned), and DDPG's own network and optimiser settings (replay minibatch
-    size, hidden activation, learning rates, gradient clip: :data:`OPTIMISER_FIELDS`: the values every
-    shipped DDPG row was trained with, when it shared Algorithm 2's; the paper gives none; independent of
-    Algorithm 2's ``algorithm.<field>``). The network sizes, the critic's output head,
-    the budget, the training horizon and the learning-rate decay are shared with Algorithm 2
-    (``algorithm.hidden_sizes``, ``value_output``, ``iterations``, ``horizon``, ``lr_decay_*``). Dotted
-    keys: ``ddpg.<field>``. A DDPG run's ``config.json`` written before DDPG had its own optimiser settings
-    holds them in ``algorithm``; :meth:`mixedrl.config.TrainConfig.from_dict` reads them from there."""
+    """The DDPG baseline's settings: replay buffer, target networks, exploration noise (textbook values, not
+    tuned) and its own :data:`OPTIMISER_FIELDS`, independent of Algorithm 2's. Network sizes, critic head,
+    budget, horizon and learning-rate decay are shared (``algorithm.<field>``). Dotted keys: ``ddpg.<field>``."""
 
     envs: int = 16
     """Parallel true-environment copies stepped once per iteration (transitions per iteration)."""
@@ -291,24 +251,19 @@ class DDPGConfig:
     """Standard deviation of the Gaussian exploration noise, as a fraction of each action bound."""
 
     batch_size: int = 512
-    """Replay minibatch size of each update (transitions drawn from the buffer). DDPG's own (the shipped rows'
-    value, not tuned), independent of Algorithm 2's ``algorithm.batch_size``."""
+    """Replay minibatch size of each update (transitions)."""
 
     activation: str = "elu"
-    """Hidden activation of the actor's and the Q-critic's MLPs: ``"elu"``, ``"tanh"`` or ``"relu"``.
-    DDPG's own (the shipped rows' value, not tuned), independent of Algorithm 2's ``algorithm.activation``."""
+    """Hidden activation of the actor's and the Q-critic's MLPs: ``"elu"``, ``"tanh"`` or ``"relu"``."""
 
     critic_lr: float = 3e-3
-    """Adam learning rate of the Q-critic (decayed by the shared ``algorithm.lr_decay_*`` rule). DDPG's own
-    (the shipped rows' value, not tuned), independent of Algorithm 2's ``algorithm.critic_lr``."""
+    """Adam learning rate of the Q-critic (decayed by the shared ``algorithm.lr_decay_*`` rule)."""
 
     actor_lr: float = 3e-4
-    """Adam learning rate of the actor (decayed by the shared ``algorithm.lr_decay_*`` rule). DDPG's own
-    (the shipped rows' value, not tuned), independent of Algorithm 2's ``algorithm.actor_lr``."""
+    """Adam learning rate of the actor (decayed by the shared ``algorithm.lr_decay_*`` rule)."""
 
     grad_clip: float = 10.0
-    """Clip of the global gradient norm of each critic and actor update (``math.inf`` disables it). DDPG's
-    own (the shipped rows' value, not tuned), independent of Algorithm 2's ``algorithm.grad_clip``."""
+    """Clip of the global gradient norm of each critic and actor update (``math.inf`` disables it)."""
 
     def __post_init__(self) -> None:
         self.envs = check_positive_int(self.envs, "ddpg.envs")
@@ -343,13 +298,9 @@ class RunConfig:
             raise ValueError(f"run.num_threads: {self.num_threads} threads, more than this machine's {cores} cores")
 
 
-# ----------------------------------------------------------------------------------------------------
-# samplers: where Algorithm 2's PEV/PIM states come from
-# ----------------------------------------------------------------------------------------------------
-#: The one registry of samplers: name -> its options class (``sampler.name`` selects it; filled by
-#: :func:`register_sampler`). Each class carries the tasks it needs (``TASKS``, ``None``: any) and the class that
-#: makes Algorithm 2's batch (``IMPLEMENTATION``, ``None``: the true copies), read through
-#: :data:`mixedrl.samplers.SAMPLER_CLASSES`.
+# ---- samplers: where Algorithm 2's PEV/PIM states come from ----
+#: The registry of samplers: ``sampler.name`` -> its options class (:func:`register_sampler`), which carries
+#: the tasks it needs (``TASKS``) and the class that makes Algorithm 2's batch (``IMPLEMENTATION``).
 SAMPLERS: dict[str, type] = {}
 
 
@@ -364,10 +315,9 @@ def register_sampler(cls: type, tasks: tuple[str, ...] | None = None, implementa
 
 @dataclass
 class TrueCopiesSampler:
-    """``sampler.name = "true_copies"``: Algorithm 2 as the paper writes it. The batch is the current
-    states of ``algorithm.batch_size`` copies of the true environment, each stepped once per iteration
-    under the current policy and reset every ``algorithm.horizon`` steps (``batch_size`` true transitions
-    per iteration); the IBE consumes their residuals. No options."""
+    """``sampler.name = "true_copies"``, the paper's: the batch is the states of ``algorithm.batch_size``
+    true-environment copies, each stepped once per iteration and reset every ``algorithm.horizon`` steps;
+    the IBE consumes their residuals. No options."""
 
     NAME: ClassVar[str] = "true_copies"
 
@@ -377,11 +327,10 @@ class TrueCopiesSampler:
 
 @dataclass
 class ModelRolloutsSampler:
-    """``sampler.name = "model_rollouts"``: the batch is ``algorithm.batch_size`` rollouts of the planning
-    model ``f + E xi_hat`` under the method's noise source, restarted from the task's training
-    distribution (``sample_initial``) every ``algorithm.horizon`` steps; for mixed RL ``true_envs`` copies
-    of the true environment collect the IBE's residuals (model-driven RL and the oracle collect none).
-    Dotted keys: ``sampler.<field>``."""
+    """``sampler.name = "model_rollouts"`` (departure, docs/model_based.rst): the batch is
+    ``algorithm.batch_size`` rollouts of the planning model, restarted from ``Task.sample_initial`` every
+    ``algorithm.horizon`` steps; for mixed RL ``true_envs`` true copies collect the IBE's residuals
+    (:class:`mixedrl.samplers.ModelStateSampler`). Dotted keys: ``sampler.<field>``."""
 
     NAME: ClassVar[str] = "model_rollouts"
 
@@ -417,15 +366,13 @@ class ModelRolloutsSampler:
 register_sampler(TrueCopiesSampler)
 register_sampler(ModelRolloutsSampler)
 
-#: The configuration of a run's sampler: one of the registered classes (:data:`SAMPLERS`), by ``name``
-#: (these two, or a task's own, such as the double lane change's :class:`mixedrl.envs.dlc_task.CourseSampler`).
+#: The configuration of a run's sampler: one of the registered classes (:data:`SAMPLERS`), by ``name``.
 SamplerConfig = Union[TrueCopiesSampler, ModelRolloutsSampler]
 
 
 def sampler_config(value: Any, task: str | None = None) -> Any:
     """Build a sampler configuration from its name, a dict (``name`` selects the class, default
-    ``"model_rollouts"``) or an options object (returned as is); ``task`` (a task name) is checked
-    against what the sampler needs.
+    ``"model_rollouts"``) or an options object (returned as is), checked against the task name ``task``.
 
     Raises
     ------
@@ -450,18 +397,15 @@ def sampler_config(value: Any, task: str | None = None) -> Any:
     return value
 
 
-# ----------------------------------------------------------------------------------------------------
-# presets: a task's experiment configuration
-# ----------------------------------------------------------------------------------------------------
-#: Task name -> its experiment configuration: section -> field values that replace the library defaults
-#: (a section not named keeps the library defaults). Filled by :func:`register_preset`.
+# ---- presets: a task's experiment configuration ----
+#: Task name -> section -> field values over the library defaults (:func:`register_preset`).
 PRESETS: dict[str, dict[str, dict[str, Any]]] = {}
 _SECTIONS = ("algorithm", "sampler", "ddpg", "run")
 
 
 def register_preset(task: str, sections: dict[str, dict[str, Any]]) -> None:
-    """Register the experiment configuration of the task named ``task``: the values ``TrainConfig`` gives
-    a section's missing fields when the run's task is ``task`` (``{"algorithm": {...}, "sampler": {...}}``)."""
+    """Register the experiment configuration of the task ``task``: the values ``TrainConfig`` gives a
+    section's missing fields when the run's task is ``task`` (``{"algorithm": {...}, "sampler": {...}}``)."""
     unknown = set(sections) - set(_SECTIONS)
     if unknown:
         raise ValueError(f"sections: unknown section(s) {sorted(unknown)}; allowed: {sorted(_SECTIONS)}")

@@ -1,10 +1,8 @@
 """The task configurations of :class:`mixedrl.config.TrainConfig` and their registry, with the vocabulary and
-the builders every section shares (:mod:`mixedrl.config` re-exports every public name of this module).
+builders every section shares (re-exported by :mod:`mixedrl.config`).
 
-The built-in linear test bed (:class:`LinearTaskConfig`, ``name = "linear"``) is defined here; the double
-lane change's configuration (:class:`mixedrl.envs.dlc_config.DoubleLaneChangeTaskConfig`, ``name = "dlc"``)
-is registered by its task module (:func:`register_builtin_task`, from :mod:`mixedrl.envs.dlc_task`, which
-importing :mod:`mixedrl` imports), so that the configuration imports no task module.
+:class:`LinearTaskConfig` is defined here; the double lane change's configuration is registered by its task
+module (:func:`register_builtin_task`), so that the configuration imports no task module.
 """
 
 from __future__ import annotations
@@ -26,22 +24,18 @@ __all__ = ["METHODS", "TASKS", "MODEL_COURSE_STARTS", "BATCH_WEIGHTINGS", "FEEDF
 
 #: The four methods of the reproduction (mixed RL, model-driven RL, oracle, DDPG).
 METHODS = ("mixed", "model", "oracle", "ddpg")
-#: The built-in tasks: the double lane change (paper) and a small linear system. Tasks registered with
-#: :func:`register_task` (the pendulum, a user's own) are listed by :func:`task_names`.
+#: The built-in tasks; :func:`task_names` lists these and the registered ones.
 TASKS = ("dlc", "linear")
-#: Where the course copies of the double lane change's sampler restart
-#: (:attr:`mixedrl.envs.dlc_task.CourseSampler.course_starts`).
+#: Where the course copies of the double lane change's sampler restart (``sampler.course_starts``).
 MODEL_COURSE_STARTS = ("start", "along", "loop")
-#: How Algorithm 2 weights the states of its batch (``AlgorithmConfig.batch_weighting``).
-#: The values of ``algorithm.compile`` (:mod:`mixedrl.compiled`): the eager step (the default), the compiled
-#: step, the functional step without compiling.
+#: The values of ``algorithm.compile`` (:mod:`mixedrl.compiled`).
 COMPILE_MODES = ("off", "on", "functional")
+#: How Algorithm 2 weights the states of its batch (``algorithm.batch_weighting``).
 BATCH_WEIGHTINGS = ("uniform", "relative")
 
 #: Where the policy takes its action at the equilibrium (``algorithm.feedforward``).
 FEEDFORWARDS = ("auto", "learned", "lq", "lq_ss")
-#: The commit that still runs the options retired since (neither the default nor the ``paper`` preset; their
-#: measured rows stay on the results page, docs/results.rst).
+#: The commit that still runs the retired options (docs/results.rst).
 RETIRED_AT = "ee954d7"
 #: The retired values of ``algorithm.feedforward``: actors anchored at the LQ optimum during training.
 RETIRED_FEEDFORWARDS = ("lq_train", "lq_affine", "lq_affine_ss")
@@ -65,10 +59,8 @@ def to_jsonable(value: Any) -> Any:
 def build_section(cls: type, data: Any, where: str) -> Any:
     """Instantiate the configuration dataclass ``cls`` from a JSON-like dict (or return an instance as is).
 
-    ``where`` is the dotted path of ``data`` in the run's configuration (``"task"``, ...); unknown keys are
-    reported with their full dotted name. Nested fields are passed on as given: each class's
-    ``__post_init__`` builds its own nested configurations (with their dotted paths), after checking the
-    fields they depend on.
+    ``where`` is the dotted path of ``data`` (``"task"``, ...), for unknown keys' names. Nested fields are
+    passed on as given: each class's ``__post_init__`` builds its own nested configurations.
     """
     if isinstance(data, cls):
         return data
@@ -79,8 +71,7 @@ def build_section(cls: type, data: Any, where: str) -> Any:
     return cls(**data)
 
 
-#: The true longitudinal force ``F_dis`` of the double lane change (``task.disturbance``): the
-#: environment's :class:`mixedrl.envs.disturbance.Disturbance` itself.
+#: The double lane change's true force ``F_dis`` (``task.disturbance``): :class:`mixedrl.envs.disturbance.Disturbance`.
 ForceDisturbanceConfig = Disturbance
 
 
@@ -91,9 +82,7 @@ def _gamma(value: Any) -> float:
     return gamma
 
 
-# ----------------------------------------------------------------------------------------------------
-# the linear test bed
-# ----------------------------------------------------------------------------------------------------
+# ---- the linear test bed ----
 @dataclass
 class GaussianNoiseConfig:
     """The true additive noise ``xi ~ N(mean, cov)`` of the linear task, in state coordinates.
@@ -127,12 +116,11 @@ def _rows(matrix: np.ndarray) -> tuple[tuple[float, ...], ...]:
 @dataclass
 class LinearTaskConfig:
     """The linear test bed :class:`mixedrl.linear_task.LinearTask`: ``s' = A s + B u + xi``, utility
-    ``s'^T Q s' + u^T R u`` (a sampled double integrator, ``dt = 0.1``, the noise on the velocity, by
-    default). Dotted keys: ``task.<field>``; ``n`` = ``A``'s size, ``m`` = ``B``'s columns.
+    ``s'^T Q s' + u^T R u`` (by default a sampled double integrator, ``dt = 0.1``, noise on the velocity).
+    Dotted keys: ``task.<field>``; ``n`` = ``A``'s size, ``m`` = ``B``'s columns.
 
-    The JSON face of the LQ problem: it is validated by, and :meth:`problem` returns, the problem's one
-    representation :class:`mixedrl.lq.LQProblem` (``(A, B)`` stabilisable, ``R`` positive definite);
-    ``init_box``, ``action_bound`` and the law are what the learning task adds.
+    Validated by, and :meth:`problem` returns, :class:`mixedrl.lq.LQProblem` (``(A, B)`` stabilisable,
+    ``R`` positive definite).
     """
 
     WHERE: ClassVar[str] = "task"
@@ -179,8 +167,7 @@ class LinearTaskConfig:
             raise ValueError(f"task.disturbance: expected a dict (a JSON object), got {dist!r}")
         mean, cov = (dist.get(k, getattr(GaussianNoiseConfig, k)) if isinstance(dist, dict) else getattr(dist, k)
                      for k in ("mean", "cov"))
-        # the problem is validated once, by its one representation (the system's size decides which of
-        # the noise's mean / cov is wrong)
+        # validated by LQProblem before the noise section, so the system's size decides which is wrong
         problem = _lq_problem(self, mean, cov)
         self.disturbance = build_section(GaussianNoiseConfig, dist, "task.disturbance")
         for name in _problem_fields():  # the validated values, as JSON (tuples)
@@ -193,8 +180,7 @@ class LinearTaskConfig:
 
 
     def problem(self) -> LQProblem:
-        """The LQ problem this configuration describes, in its one representation (:class:`mixedrl.lq.LQProblem`:
-        the true noise ``disturbance.mean`` / ``disturbance.cov``, the prior, the matrices, ``gamma``)."""
+        """The LQ problem this configuration describes (:class:`mixedrl.lq.LQProblem`)."""
         return _lq_problem(self, self.disturbance.mean, self.disturbance.cov)
 
 
@@ -203,8 +189,7 @@ _PROBLEM_KEYS = {"noise_mean": "disturbance.mean", "noise_cov": "disturbance.cov
 
 
 def _problem_fields() -> tuple[str, ...]:
-    """:class:`mixedrl.lq.LQProblem`'s fields that :class:`LinearTaskConfig` holds under the same name (every
-    field but the true noise, which is ``task.disturbance``)."""
+    """:class:`mixedrl.lq.LQProblem`'s fields that :class:`LinearTaskConfig` holds under the same name."""
     return tuple(f.name for f in dataclasses.fields(LQProblem) if f.name not in _PROBLEM_KEYS)
 
 
@@ -218,13 +203,11 @@ def _lq_problem(cfg: LinearTaskConfig, mean: Any, cov: Any) -> LQProblem:
         raise ValueError(f"task.{_PROBLEM_KEYS.get(name, name)}:{rest}") from None
 
 
-#: Task name -> its configuration class: the built-in ones (:data:`TASKS`: the linear test bed here, the double
-#: lane change registered by its task module, :func:`register_builtin_task`) and those of :func:`register_task`.
+#: Task name -> its configuration class (:func:`register_builtin_task`, :func:`register_task`).
 _TASK_CLASSES: dict[str, type] = {"linear": LinearTaskConfig}
 #: Built-in task name -> the reader of its configuration from a dict (``reader(values, where="task")``).
 _TASK_READERS: dict[str, Any] = {}
-#: Names a built-in task module registers to stay readable as ``mixedrl.config.<name>``
-#: (:func:`register_builtin_task`; e.g. ``DoubleLaneChangeTaskConfig``, ``CostWeights``).
+#: Names a built-in task module registers as ``mixedrl.config.<name>`` (:func:`register_builtin_task`).
 BUILTIN_NAMES: dict[str, Any] = {}
 
 
@@ -235,14 +218,11 @@ def _task_name(config_cls: type) -> Any:
 
 
 def register_builtin_task(config_cls: type, reader: Any = None, **names: Any) -> type:
-    """Register the configuration class of a built-in task (a name of :data:`TASKS`), from the task's own
-    module: the double lane change's :mod:`mixedrl.envs.dlc_task` registers
-    :class:`~mixedrl.envs.dlc_config.DoubleLaneChangeTaskConfig` when :mod:`mixedrl` is imported, so that the
-    configuration imports no task module.
+    """Register the configuration class of a built-in task (a name of :data:`TASKS`) from the task's own
+    module (:mod:`mixedrl.envs.dlc_task` registers the double lane change's).
 
     ``reader(values, where="task")`` builds the class from a JSON-like dict (default: the fields as keyword
-    arguments, unknown keys refused); ``names`` are further names readable as ``mixedrl.config.<name>``
-    (the class itself is, under its own name).
+    arguments); ``names`` (and the class) become readable as ``mixedrl.config.<name>``.
 
     Raises
     ------
@@ -268,10 +248,9 @@ def task_config_union() -> Any:
 def register_task(config_cls: type) -> type:
     """Register the configuration dataclass of a named task (usable as a decorator).
 
-    The name is the default of the class's ``name`` field; ``TrainConfig(task={"name": ..., ...})``,
-    ``--set task.name=...`` and a sweep specification's ``"task.name"`` then build ``config_cls`` from the
-    other ``task.<field>`` values. The task object itself is built by
-    :func:`mixedrl.tasks.register_task`'s factory (which calls this function).
+    The name is the default of the class's ``name`` field; ``TrainConfig(task={"name": ..., ...})`` and
+    ``--set task.name=...`` then build ``config_cls``. :func:`mixedrl.tasks.register_task` calls this
+    function and registers the task class too.
 
     Parameters
     ----------
@@ -326,7 +305,7 @@ def task_config(value: Any = "dlc") -> Any:
 
 def check_choice(value: Any, name: str, options: tuple, retired: tuple = ()) -> Any:
     """``value`` if it is one of ``options``, else a ``ValueError`` naming ``name`` (and, for a value of
-    ``retired``, the commit that can still run it, :data:`RETIRED_AT`)."""
+    ``retired``, :data:`RETIRED_AT`)."""
     if value in retired:
         raise ValueError(f"{name}: {value!r} was retired (its measured rows stay on the results page, "
                          f"docs/results.rst); expected one of {options}; git commit {RETIRED_AT} can still run it")

@@ -1,6 +1,5 @@
 """A task's rest point and the LQ problem it linearises to: :class:`Equilibrium`, :class:`Linearisation` and
-:func:`cost_hessian` (re-exported by :mod:`mixedrl.task_base` and :mod:`mixedrl.tasks`;
-:meth:`mixedrl.task_base.Task.linearisation` builds them)."""
+:func:`cost_hessian` (re-exported by :mod:`mixedrl.tasks`)."""
 
 from __future__ import annotations
 
@@ -14,7 +13,7 @@ __all__ = ["EQUILIBRIUM_ATOL", "Equilibrium", "Linearisation", "cost_hessian"]
 
 
 #: Largest ``|f(s*, u*) - s*|`` and ``|grad l|`` (relative to the state's and the cost's scale) accepted at an
-#: equilibrium by :meth:`mixedrl.task_base.Task.linearisation` (float64 round-off of the model and the cost).
+#: equilibrium (float64 round-off).
 EQUILIBRIUM_ATOL = 1e-9
 
 
@@ -43,9 +42,8 @@ class Linearisation:
 
     .. math:: x' = A x + B v + E \\xi, \\qquad l(x', v) = x'^\\top Q x' + v^\\top R v,\\qquad \\gamma,
 
-    the next-state convention of eq. (2) (EQUATIONS.md, last section). The item access ``lin["A"]``
-    (keys ``A``, ``B``, ``Q``, ``R``, ``E``, ``gamma``) is kept for the callers of the former dict of
-    :meth:`mixedrl.envs.pendulum.PendulumTask.linearisation`.
+    the next-state convention of eq. (2) (EQUATIONS.md, last section). Item access ``lin["A"]`` works for
+    the keys ``A``, ``B``, ``Q``, ``R``, ``E``, ``gamma``.
 
     The fields (float64 arrays): ``A`` (n, n), ``B`` (n, action_dim), ``Q`` (n, n, symmetric PSD), ``R``
     (action_dim, action_dim, symmetric positive definite), ``E`` (n, noise_dim: how ``xi`` enters ``x``), the
@@ -80,10 +78,9 @@ class Linearisation:
 def cost_hessian(cost: Callable[[torch.Tensor, torch.Tensor], torch.Tensor], x0: torch.Tensor, u0: torch.Tensor,
                  name: str, scale: float) -> tuple[np.ndarray, np.ndarray]:
     """``Q = l_xx / 2``, ``R = l_uu / 2`` of a batched cost ``l(x', u)`` at ``(x0, u0)`` (float64, ``torch.func``),
-    after checking that the gradient and the cross term ``l_xu`` vanish there (see :meth:`mixedrl.task_base.Task.linearisation`).
+    after checking that the gradient and the cross term ``l_xu`` vanish there.
 
-    The quadratic part of the LQ problem of a linearisation: :meth:`mixedrl.task_base.Task.linearisation` and the double lane
-    change's own :meth:`~mixedrl.envs.dlc_task.DoubleLaneChangeTask.linearisation` call it.
+    The quadratic part of a linearisation (:meth:`mixedrl.task_base.Task.linearisation`).
 
     Parameters
     ----------

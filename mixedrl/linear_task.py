@@ -1,11 +1,8 @@
 """The linear-quadratic test bed of Algorithm 2: :class:`LinearTask`.
 
-A small linear system with mean-shifted Gaussian noise and a quadratic utility, held as one
-:class:`mixedrl.lq.LQProblem` (``task.problem``), whose optimum :func:`mixedrl.lq.optimal_solution` is
-known in closed form. It is a :class:`mixedrl.tasks.Task` (the interface the algorithms see, defined in :mod:`mixedrl.task_base`,
-which this module imports), built by name
-(``make_task("linear")``) or from a run's :class:`mixedrl.config.LinearTaskConfig`
-(:func:`mixedrl.tasks.task_from_config`); ``from mixedrl.tasks import LinearTask`` still works.
+A small linear system with mean-shifted Gaussian noise and a quadratic utility, held as a
+:class:`mixedrl.lq.LQProblem`, whose optimum (:func:`mixedrl.lq.optimal_solution`) is known in closed form.
+Built by ``make_task("linear")`` or from a :class:`mixedrl.config.LinearTaskConfig`.
 """
 
 from __future__ import annotations
@@ -80,9 +77,8 @@ class LinearTask(Task):
     Attributes
     ----------
     problem : mixedrl.lq.LQProblem
-        The LQ problem in its one representation (``true_mean`` is its ``noise_mean``, ``true_cov`` its
-        ``noise_cov``); ``A``, ``B``, ``Q``, ``R``, ``gamma`` and the moments are its arrays. Its optimum
-        is :func:`mixedrl.lq.optimal_solution`.
+        The LQ problem (``true_mean``, ``true_cov`` are its ``noise_mean``, ``noise_cov``); ``A``, ``B``,
+        ``Q``, ``R``, ``gamma`` and the moments are its arrays.
 
     Raises
     ------
@@ -92,7 +88,7 @@ class LinearTask(Task):
     """
 
     name = "linear"
-    #: :meth:`evaluate`: 64 starts, 100 steps (also the horizon of an evaluation on a plant).
+    #: :meth:`evaluate`: 64 starts, 100 steps (the horizon also of an evaluation on a plant).
     eval_horizon = 100
     eval_starts = 64
     evaluates_on_plant = True
@@ -109,7 +105,6 @@ class LinearTask(Task):
             raise ValueError("problem: given together with matrices or moments (pass one or the other)")
         self.problem = problem
         n, m = problem.n, problem.m
-        # views of the problem's arrays (the same objects)
         self.A, self.B, self.Q, self.R = problem.A, problem.B, problem.Q, problem.R
         self.state_dim = self.obs_dim = self.noise_dim = n
         self.action_dim = m
@@ -134,8 +129,7 @@ class LinearTask(Task):
 
     @classmethod
     def from_config(cls, config: LinearTaskConfig) -> "LinearTask":
-        """Build the task of a :class:`mixedrl.config.LinearTaskConfig` (``task.*`` of a run's config), on
-        its problem (:meth:`mixedrl.config.LinearTaskConfig.problem`).
+        """Build the task of a :class:`mixedrl.config.LinearTaskConfig`, on its problem.
 
         Raises
         ------
@@ -177,9 +171,8 @@ class LinearTask(Task):
     def evaluate(self, policy: torch.nn.Module, seeds: list[int], horizon: int | None = None) -> dict[str, Any]:
         """Discounted cost of 100-step rollouts (``horizon``) from 64 seeded starts, averaged over ``seeds``.
 
-        Every simulated step (``64 * horizon`` per seed) is added to :attr:`evaluation_transitions`; with a
-        plant attached (:func:`mixedrl.plant.attach_plant`) the evaluation is :attr:`plant_evaluate`'s
-        (:func:`mixedrl.plant.evaluate_on_plant`, or none).
+        Counts its steps in :attr:`evaluation_transitions`; with a plant attached, returns
+        :attr:`plant_evaluate`'s evaluation instead.
         """
         if self.plant_evaluate is not None:  # on the task's plant, or none
             return self.plant_evaluate(policy, seeds, horizon)

@@ -170,12 +170,10 @@ class ClippedActor(Actor):
     with the gradients ``du/dtheta = u_bar dz/dtheta`` everywhere (straight through, also where ``|z| > 1``)
     and ``du/do = u_bar clip'(z) dz/do`` (the true one: zero where clipped). The value is exactly
     ``u_bar clip(z, -1, 1)``: the straight-through term ``z_p - detach(z_p)``, ``z_p = MLP(detach(o))``, adds 0.
-    With gradients enabled the MLP is evaluated twice (``o`` and ``detach(o)``); without, once. Same parameters,
-    initialisation and draws as the :class:`Actor`.
-
-    With ``inward=True`` (``actor_output = "clip_inward"``) the straight-through gradient of a clipped output is
-    kept only where a descent step moves ``z`` back inside (``dJ/dz * z > 0``) and is zero where it would push
-    ``z`` further out: without it a saturated output winds up (``|z|`` to 16 within 200 iterations on SwingUp).
+    With gradients enabled the MLP is evaluated twice (``o`` and ``detach(o)``). Same parameters,
+    initialisation and draws as the :class:`Actor`. With ``inward=True`` (``"clip_inward"``) the
+    straight-through gradient is kept only where a descent step moves ``z`` back inside (``dJ/dz * z > 0``),
+    so a saturated output cannot wind up.
     """
 
     def __init__(self, *args: Any, inward: bool = False, **kwargs: Any) -> None:
@@ -223,10 +221,9 @@ def stacked_actors(actors: Sequence[nn.Module]) -> Callable[[torch.Tensor], torc
     .. math:: u_p = \\bar u_p \\tanh\\big(\\mathrm{MLP}_p(o_p / s_p)\\big), \\qquad p = 1 \\dots P
 
     The returned function maps observations ``(P, S, obs_dim)`` to actions ``(P, S, action_dim)``; the
-    weights are copied when it is built (later changes of the modules are not seen). The course
-    evaluation of many runs uses it (:func:`mixedrl.envs.evaluate_courses` with ``exact=False``): one call
-    costs about a quarter of a :func:`torch.func.vmap` of the modules. Its float32 outputs agree with each
-    module's own to rounding (not bit for bit: a batched product sums in another order).
+    weights are copied when it is built (later changes of the modules are not seen). Used by the course
+    evaluation of many runs (:func:`mixedrl.envs.evaluate_courses` with ``exact=False``). Its float32 outputs
+    agree with each module's own to rounding, not bit for bit (a batched product sums in another order).
     """
     if len(actors) == 0 or any(type(a) is not Actor for a in actors):
         return None
@@ -276,10 +273,8 @@ class QCritic(nn.Module):
 
 
 class QuadraticCritic(nn.Module):
-    """Exact value class of the LQ case: ``V(x) = x^T P x + 2 p^T x + c`` with ``P = M M^T`` free.
-
-    Used to check Algorithm 2 against the DARE solution (the critic must reach ``x^T P x + 2 p^T x + c``).
-    """
+    """Exact value class of the LQ case: ``V(x) = x^T P x + 2 p^T x + c`` with ``P = M M^T`` free (to check
+    Algorithm 2 against the DARE solution)."""
 
     def __init__(self, obs_dim: int, generator: torch.Generator) -> None:
         super().__init__()

@@ -154,8 +154,8 @@ def bellman_backup(
 
     Notes
     -----
-    The fixed point of this map is :func:`evaluate_policy`; the theory tests use it to check the MVC
-    (eq. 38) and value decrease (eq. 29) for *all* x at once (:func:`is_nonnegative`).
+    The fixed point of this map is :func:`evaluate_policy`; the theory checks use it to check the MVC
+    (eq. 38) and the value decrease (eq. 29) for *all* x at once.
     """
     g = check_problem(dynamics, cost, gamma)
     n, m = dynamics.n, dynamics.m
@@ -176,17 +176,15 @@ def bellman_backup(
 
 @dataclass(frozen=True)
 class ExactPEV:
-    """PEV step (eq. 21) bound to a linear-quadratic problem: ``pev(policy, noise) -> QuadraticValue``.
-
-    ``noise`` is any object with ``.mean`` (n,) and ``.cov`` (n, n).
-    """
+    """PEV step (eq. 21) bound to a linear-quadratic problem: ``pev(policy, noise) -> QuadraticValue``
+    (``noise`` has ``.mean`` (n,) and ``.cov`` (n, n))."""
 
     dynamics: LinearDynamics
     cost: QuadraticCost
     gamma: float
 
     def __call__(self, policy: AffinePolicy, noise: Any) -> QuadraticValue:
-        """Return ``V^k`` of ``policy`` under ``N(noise.mean, noise.cov)`` (see :func:`evaluate_policy`)."""
+        """``V^k`` of ``policy`` under ``N(noise.mean, noise.cov)`` (:func:`evaluate_policy`)."""
         return evaluate_policy(self.dynamics, self.cost, self.gamma, policy, noise.mean, noise.cov)
 
 
@@ -199,10 +197,8 @@ def pev_step(evaluate: Callable[[Any, Any], Any], policy: Any, noise: Any) -> An
     ----------
     evaluate : callable
         ``evaluate(policy, noise) -> value``, e.g. :class:`ExactPEV`.
-    policy : object
-        ``pi^k``.
-    noise : object
-        Noise source with ``.mean`` (n,) and ``.cov`` (n, n).
+    policy, noise : object
+        ``pi^k``; the noise source, with ``.mean`` (n,) and ``.cov`` (n, n).
 
     Returns
     -------
@@ -236,7 +232,6 @@ def critic_loss(task: Any, critic: torch.nn.Module, s: torch.Tensor, u: torch.Te
     Parameters
     ----------
     task : Task
-        Model and utility.
     critic : torch.nn.Module
         ``V(x; w)``.
     s : torch.Tensor, shape (B, state_dim)
@@ -247,24 +242,20 @@ def critic_loss(task: Any, critic: torch.nn.Module, s: torch.Tensor, u: torch.Te
         Quadrature of ``xi_hat_k`` (:func:`mixedrl.expectation.expectation_nodes`), shapes
         ``(P, state_dim)`` (or ``(P, B, state_dim)``, per state) and ``(P,)``.
     relative_offset : float or None, optional
-        ``None`` (the paper's batch mean): the squared TD error of every state counts alike. A number
-        ``c > 0``: the *relative* TD error ``(V - E V_target) / (|E V_target| + c)`` is squared instead,
-        so that states of small value (near the reference) are fitted as precisely, in relative terms,
-        as states of large value (``TrainConfig.batch_weighting = "relative"``).
+        ``None`` (the paper's batch mean), or ``c > 0``: the *relative* TD error
+        ``(V - E V_target) / (|E V_target| + c)`` is squared instead (:mod:`mixedrl.departures.state_weights`).
     runs : int, optional
-        ``R >= 1``: the batch holds ``R`` runs' batches one after the other (``s`` of shape ``(R B, n)``,
-        ``critic`` and ``actor`` stacked networks, :mod:`mixedrl.algorithms.batched`); the loss is taken
-        per run.
+        ``R >= 1``: ``s`` holds ``R`` runs' batches one after the other, ``(R B, n)``, ``critic`` is their
+        stacked network (:mod:`mixedrl.algorithms.batched`); the loss is taken per run.
     target_critic : callable, optional
-        ``V(x; w_bar)``, the network inside ``V_target`` (``algorithm.critic_target > 0``: an exponential
-        moving average of the critic's weights). ``None`` (the paper's eq. 50): ``critic`` itself.
+        ``V(x; w_bar)``, the network inside ``V_target`` (:mod:`mixedrl.departures.critic_target`);
+        ``None`` (eq. 50): ``critic`` itself.
 
     Returns
     -------
     torch.Tensor, shape () or (R,)
         ``mean_x 1/2 (V(x; w) - E V_target)^2`` (or its relative form), one per run when ``runs > 1``;
-        its gradient in ``w`` is the semi-gradient of eq. (50), averaged over the batch (per state
-        weighted by ``1 / (|E V_target| + c)^2`` in the relative form).
+        its gradient in ``w`` is the semi-gradient of eq. (50), averaged over the batch.
 
     Raises
     ------
@@ -273,11 +264,10 @@ def critic_loss(task: Any, critic: torch.nn.Module, s: torch.Tensor, u: torch.Te
 
     Notes
     -----
-    *Semi-gradient*: ``V_target`` is computed without gradient (``torch.no_grad``), as eq. (50) says.
-    The expectation is moved inside the square: ``E{(T - V)^2}/2`` and ``(E T - V)^2/2`` differ by the
-    variance of ``T``, which does not depend on ``w`` through the semi-gradient, so both give the same
-    gradient. The loss is divided by ``value_scale^2`` so that its size does not depend on the units of
-    the cost.
+    *Semi-gradient*: ``V_target`` is computed without gradient, as eq. (50) says. The expectation is moved
+    inside the square: ``E{(T - V)^2}/2`` and ``(E T - V)^2/2`` differ by the variance of ``T``, which does
+    not depend on ``w`` through the semi-gradient, so both give the same gradient. The loss is divided by
+    ``value_scale^2`` so that its size does not depend on the units of the cost.
     """
     if relative_offset is not None:
         relative_offset = check_number(relative_offset, "relative_offset", positive=True)
@@ -308,8 +298,8 @@ def critic_loss_at(params: tuple[torch.Tensor, ...], s: torch.Tensor, offsets: t
                    task: Any, critic: Any, actor: Callable[..., torch.Tensor], relative_offset: float | None = None,
                    runs: int = 1, target_critic: Callable[[torch.Tensor], torch.Tensor] | None = None) -> torch.Tensor:
     """Eqs. (49)-(50) as a pure loss of the critic's parameters (:mod:`mixedrl.compiled`): :func:`critic_loss`
-    of the critic at ``params`` (:func:`mixedrl.compiled.network_at`) on ``u = pi(x)`` (no gradient), the
-    arguments already checked (:func:`critic_step` checks them once, outside the compiled step)."""
+    of the critic at ``params`` on ``u = pi(x)`` (no gradient), the arguments already checked by
+    :func:`critic_step`."""
     from mixedrl.compiled import network_at
 
     with torch.no_grad():
@@ -340,22 +330,21 @@ def critic_step(task: Any, critic: Callable[..., torch.Tensor], actor: Callable[
                 weights: torch.Tensor, grad_clip: float | None = None, relative_offset: float | None = None,
                 target_critic: Callable[[torch.Tensor], torch.Tensor] | None = None, *,
                 runs: int = 1, active: list[int] | None = None) -> torch.Tensor:
-    """Implements eqs. (49)-(50): PEV, one semi-gradient step of the critic under ``xi_hat_k`` (of one run,
-    or of ``R`` runs at once: the step Algorithm 2 takes, :func:`mixedrl.algorithms.algorithm2.iteration`).
+    """Implements eqs. (49)-(50): PEV, one semi-gradient step of the critic under ``xi_hat_k`` (of one run
+    or of ``R`` runs at once: the step of :func:`mixedrl.algorithms.algorithm2.iteration`).
 
     .. math:: w^{k+1} = w^k - \\alpha\\, \\partial J_{\\rm critic} / \\partial w
 
     Parameters
     ----------
     task : Task
-        Model and utility.
     critic : torch.nn.Module or StackedNetwork
-        ``V(x; w)``, updated in place (``R`` runs: their stacked critics).
+        ``V(x; w)``, updated in place.
     actor : torch.nn.Module or StackedNetwork
         ``pi(x; theta)`` (not moved: ``u_theta`` is computed without gradient).
     optimizer : torch.optim.Optimizer or Descent
-        One run: the optimiser over the critic's parameters (learning rate ``alpha``), with ``grad_clip``;
-        ``R`` runs: their :class:`mixedrl.schedule.Descent` (each run's optimiser and clip).
+        One run: the optimiser over the critic's parameters (learning rate ``alpha``); ``R`` runs: their
+        :class:`mixedrl.schedule.Descent` (each run's optimiser and clip).
     s : torch.Tensor, shape (R B, state_dim)
         The batch of states (float32), run ``r``'s in rows ``r B .. (r + 1) B - 1``.
     offsets, weights : torch.Tensor
@@ -363,10 +352,8 @@ def critic_step(task: Any, critic: Callable[..., torch.Tensor], actor: Callable[
         (or ``(P, R B)``).
     grad_clip : float, optional
         Largest gradient norm (with an optimizer; a ``Descent`` holds its own).
-    relative_offset : float or None, optional
-        Departure hook *state weights* (:mod:`mixedrl.departures.state_weights`); see :func:`critic_loss`.
-    target_critic : callable, optional
-        Departure hook *target values* (:mod:`mixedrl.departures.critic_target`); see :func:`critic_loss`.
+    relative_offset, target_critic : optional
+        Departure hooks *state weights* and *target values*; see :func:`critic_loss`.
     runs : int, optional
         ``R``.
     active : list of int, optional
@@ -379,11 +366,11 @@ def critic_step(task: Any, critic: Callable[..., torch.Tensor], actor: Callable[
 
     Notes
     -----
-    The step is Adam's (learning rate decayed linearly, :mod:`mixedrl.departures.schedule`), with the gradient
-    norm clipped at ``grad_clip``; the paper writes plain gradient descent.
+    The step is Adam's (:mod:`mixedrl.departures.schedule`), with the gradient norm clipped at ``grad_clip``;
+    the paper writes plain gradient descent.
     """
     step = optimizer if isinstance(optimizer, Descent) else Descent.single(critic, optimizer, grad_clip)
-    if step.mode != "off":  # algorithm.compile: the same loss as a pure function, one compiled step (issue 44)
+    if step.mode != "off":  # algorithm.compile: the same loss as a pure function, one compiled step
         if relative_offset is not None:
             relative_offset = check_number(relative_offset, "relative_offset", positive=True)
         runs = check_runs(runs, s.shape[0])

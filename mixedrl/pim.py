@@ -107,7 +107,7 @@ class ExactPIM:
     gamma: float
 
     def __call__(self, value: QuadraticValue, noise: Any) -> AffinePolicy:
-        """Return ``pi^{k+1}`` greedy w.r.t. ``value`` under ``N(noise.mean, .)`` (see :func:`improve_policy`)."""
+        """``pi^{k+1}`` greedy w.r.t. ``value`` under ``N(noise.mean, .)`` (:func:`improve_policy`)."""
         return improve_policy(self.dynamics, self.cost, self.gamma, value, noise.mean)
 
 
@@ -120,10 +120,8 @@ def pim_step(improve: Callable[[Any, Any], Any], value: Any, noise: Any) -> Any:
     ----------
     improve : callable
         ``improve(value, noise) -> policy``, e.g. :class:`ExactPIM`.
-    value : object
-        ``V^k``.
-    noise : object
-        Noise source with ``.mean`` (n,) and ``.cov`` (n, n).
+    value, noise : object
+        ``V^k``; the noise source, with ``.mean`` (n,) and ``.cov`` (n, n).
 
     Returns
     -------
@@ -156,7 +154,7 @@ def actor_objective(task: Any, critic: torch.nn.Module, actor: torch.nn.Module, 
     task : Task
         Model ``f`` (differentiable), utility, ``gamma``.
     critic : torch.nn.Module
-        ``V^k`` (its weights are not updated by this objective).
+        ``V^k`` (not updated by this objective).
     actor : torch.nn.Module
         ``pi(x; theta)``.
     s : torch.Tensor, shape (B, state_dim)
@@ -164,12 +162,10 @@ def actor_objective(task: Any, critic: torch.nn.Module, actor: torch.nn.Module, 
     offsets, weights : torch.Tensor
         Quadrature of ``xi_hat_k``, shapes ``(P, state_dim)`` and ``(P,)``.
     relative_offset : float or None, optional
-        ``None`` (the paper's batch mean): every state counts alike. A number ``c > 0``: state ``x``
-        is weighted by ``rho(x) = 1 / (V^k(x) + c)`` (normalised to batch mean 1, no gradient), so that
-        each state's *relative* improvement counts alike and states near the reference (small ``V``)
-        are not outweighed by far ones (``TrainConfig.batch_weighting = "relative"``). A positive
-        weight per state does not move the minimiser of ``h`` at any state: it changes which states
-        the batch gradient favours, as another state distribution of the batch would.
+        ``None`` (the paper's batch mean), or ``c > 0``: state ``x`` is weighted by
+        ``rho(x) = 1 / (V^k(x) + c)`` (normalised to batch mean 1, no gradient;
+        :mod:`mixedrl.departures.state_weights`). A positive weight per state does not move the minimiser
+        of ``h`` at any state, only which states the batch gradient favours.
     runs : int, optional
         ``R >= 1``: the batch holds ``R`` runs' batches one after the other (stacked networks,
         :mod:`mixedrl.algorithms.batched`); the objective (and ``rho``'s normalisation) is per run.
@@ -216,8 +212,7 @@ def actor_objective_at(params: tuple[torch.Tensor, ...], s: torch.Tensor, offset
                        weights: torch.Tensor, *, task: Any, critic: Callable[..., torch.Tensor], actor: Any,
                        relative_offset: float | None = None, runs: int = 1) -> torch.Tensor:
     """Eqs. (51)-(52) as a pure loss of the actor's parameters (:mod:`mixedrl.compiled`): :func:`actor_objective`
-    of the actor at ``params`` (:func:`mixedrl.compiled.network_at`), the critic ``V^k`` frozen (not
-    differentiated), the arguments already checked (:func:`actor_step` checks them once)."""
+    of the actor at ``params``, the critic ``V^k`` frozen, the arguments already checked by :func:`actor_step`."""
     from mixedrl.compiled import network_at
 
     return _actor_objective(task, critic, network_at(actor, params), s, offsets, weights, relative_offset, runs)
@@ -227,23 +222,21 @@ def actor_step(task: Any, critic: Callable[..., torch.Tensor], actor: Callable[.
                optimizer: torch.optim.Optimizer | Descent, s: torch.Tensor, offsets: torch.Tensor,
                weights: torch.Tensor, grad_clip: float | None = None, relative_offset: float | None = None, *,
                runs: int = 1, active: list[int] | None = None) -> torch.Tensor:
-    """Implements eqs. (51)-(52): PIM, one gradient step of the actor under ``xi_hat_k`` (of one run, or of
-    ``R`` runs at once: the step Algorithm 2 takes, :func:`mixedrl.algorithms.algorithm2.iteration`).
+    """Implements eqs. (51)-(52): PIM, one gradient step of the actor under ``xi_hat_k`` (of one run or of
+    ``R`` runs at once: the step of :func:`mixedrl.algorithms.algorithm2.iteration`).
 
     .. math:: \\theta^{k+1} = \\theta^k - \\beta\\, \\partial J_{\\rm actor} / \\partial \\theta
 
     Parameters
     ----------
     task : Task
-        Model ``f`` (differentiable), utility, ``gamma``.
     critic : torch.nn.Module or callable
-        ``V^k``, frozen during the step (a module's parameters are set not to require a gradient while the
-        step is taken; ``R`` runs: :meth:`mixedrl.algorithms.batched.StackedNetwork.frozen`).
+        ``V^k``, frozen during the step (``R`` runs: :meth:`mixedrl.algorithms.batched.StackedNetwork.frozen`).
     actor : torch.nn.Module or StackedNetwork
         ``pi(x; theta)``, updated in place.
     optimizer : torch.optim.Optimizer or Descent
-        One run: the optimiser over the actor's parameters (learning rate ``beta``), with ``grad_clip``;
-        ``R`` runs: their :class:`mixedrl.schedule.Descent`.
+        One run: the optimiser over the actor's parameters (learning rate ``beta``); ``R`` runs: their
+        :class:`mixedrl.schedule.Descent`.
     s : torch.Tensor, shape (R B, state_dim)
         The batch of states (float32).
     offsets, weights : torch.Tensor
@@ -264,10 +257,10 @@ def actor_step(task: Any, critic: Callable[..., torch.Tensor], actor: Callable[.
 
     Notes
     -----
-    Adam (``actor_lr`` decayed linearly) with gradient clipping; the paper writes plain gradient descent.
+    Adam with gradient clipping (:mod:`mixedrl.departures.schedule`); the paper writes plain gradient descent.
     """
     step = optimizer if isinstance(optimizer, Descent) else Descent.single(actor, optimizer, grad_clip)
-    if step.mode != "off":  # algorithm.compile: the same objective as a pure function, one compiled step (issue 44)
+    if step.mode != "off":  # algorithm.compile: the same objective as a pure function, one compiled step
         if relative_offset is not None:
             relative_offset = check_number(relative_offset, "relative_offset", positive=True)
         runs = check_runs(runs, s.shape[0])
@@ -394,12 +387,8 @@ def mvc_check(h_new_next: torch.Tensor, h_new_cur: torch.Tensor, h_old_cur: torc
 
     Parameters
     ----------
-    h_new_next : torch.Tensor, shape (B,)
-        ``h(x, u^{k+1}, xi_hat_{k+1})``.
-    h_new_cur : torch.Tensor, shape (B,)
-        ``h(x, u^{k+1}, xi_hat_k)``.
-    h_old_cur : torch.Tensor, shape (B,)
-        ``h(x, u^k, xi_hat_k)``.
+    h_new_next, h_new_cur, h_old_cur : torch.Tensor, shape (B,)
+        As in :func:`mvc_terms`.
     mode : {"mean", "all"}
         ``"mean"``: the inequality between batch means; ``"all"``: at every state (EQUATIONS.md point 12).
 

@@ -1,41 +1,15 @@
-"""The true system as a *plant*: something that can be reset and stepped, never set (issue 41).
+"""The true system as a *plant*: something that can be reset and stepped, never set.
 
-The paper's true environment is ``x' = f(x, u) + E xi`` (eq. 1). By default the package simulates it
-(:meth:`mixedrl.tasks.Task.true_step`, the *simulated plant*: the model plus noise drawn from the task's
-``true_mean`` and ``true_cov``). A user with a real system, or with a simulator the model only
-approximates, hands it to a task as a :class:`Plant`:
+By default the true system ``x' = f(x, u) + E xi`` (eq. 1) is simulated (:meth:`mixedrl.tasks.Task.true_step`,
+the *simulated plant*). A real system, or a simulator the model only approximates, is given to a task with
+:func:`attach_plant` as a :class:`Plant` (``reset(seed) -> x``, ``step(u) -> x'``):
+:class:`GymnasiumPlant` wraps a Gymnasium env, :class:`SimulatedPlant` the simulated plant, and
+:class:`DisturbedEnv` adds an unmodelled disturbance to Pendulum-v1 or MountainCarContinuous-v0.
 
-* :class:`Plant` (protocol): ``reset(seed) -> x`` starts an episode and returns the state the model uses;
-  ``step(u) -> x'`` applies one action. Optionally ``last_reward``, ``last_terminated`` and
-  ``last_truncated`` (the plant's own reward and episode end, reported beside the task's cost);
-* :class:`GymnasiumPlant`: any :class:`gymnasium.Env` with Box spaces, plus a function from the env to the
-  model's state (:func:`unwrapped_state` for Pendulum-v1, MountainCarContinuous-v0 and the package's
-  :class:`~mixedrl.envs.DoubleLaneChangeEnv`, whose ``unwrapped.state`` is that state);
-* :class:`SimulatedPlant`: the simulated plant as one sequential system (tests, examples);
-* :class:`DisturbedEnv`: a Gymnasium wrapper adding an unmodelled disturbance ``E xi`` after the step of
-  Pendulum-v1 or MountainCarContinuous-v0 (the additive model made true for a Gymnasium env).
-
-:func:`attach_plant` gives a task its plant(s). Training then drives the plant where it drove the
-simulated true copies (the ``model_rollouts`` and ``dlc_course`` samplers, :class:`PlantCopies`): the
-plant's ``reset``, the model's training states (``Task.sample_initial``) and the evaluation starts are
-three separate things. Every plant call is checked (:class:`CheckedPlant`): a plant that raises, returns a
-non-finite state or one of the wrong shape stops the run with a :class:`PlantError` naming the plant and
-the step; the run's last checkpoint is intact and ``--resume`` continues from it (the plant is reset, with
-the next episode seed: the sampler's checkpoint holds the episode counter, ``plant_episodes``).
-
-Evaluation (:func:`evaluate_on_plant`) runs one plant episode per evaluation seed, sequentially, with the
-deterministic policy, and reports the task's discounted cost beside the plant's own return and
-termination; ``attach_plant(..., evaluation="none")`` evaluates not at all. The tasks with their own
-evaluation (the double lane change's courses, the linear task's rollouts) evaluate on the plant too; a
-task whose own ``evaluate`` cannot (``Task.evaluates_on_plant`` False) is refused at :func:`attach_plant`
-unless ``evaluation="simulated"``. Plant transitions are counted, training and evaluation separately
-(``results.json``: ``plant_transitions``; a simulated evaluation's steps are the simulated plant's).
-
-Saturation (:meth:`mixedrl.tasks.Task.saturated`): a task may declare the actuator limit at which the
-plant clips (``Task.action_limit``, the model ``f`` applies the same clip) and a margin
-(``Task.saturation_margin``, the reach of a disturbance entering before the clip, in action units);
-transitions whose action lies within the margin of the limit are dropped from the IBE
-(:meth:`mixedrl.tasks.Task.residuals`).
+Training then drives the plant where it drove the simulated true copies (:class:`PlantCopies`); every call
+is checked (:class:`CheckedPlant`), and a failure stops the run with a :class:`PlantError` (``--resume``
+continues from the last checkpoint). Evaluation runs one plant episode per seed (:func:`evaluate_on_plant`).
+docs/tutorial.rst, section 4, describes the workflow: episode seeds, counting, saturation.
 """
 
 from __future__ import annotations
@@ -55,8 +29,8 @@ __all__ = ["CheckedPlant", "DisturbedEnv", "GymnasiumPlant", "PLANT_EVALUATIONS"
            "SimulatedPlant", "attach_plant", "check_plant_sampler", "credit_evaluations", "evaluate_on_plant",
            "episode_seed", "plant_copies", "plant_transitions", "unwrapped_state"]
 
-#: ``Task.plant_evaluation``: ``"simulated"`` (:meth:`Task.evaluate`, the model plus simulated noise; the
-#: default), ``"plant"`` (:func:`evaluate_on_plant`) or ``"none"`` (no evaluation).
+#: ``Task.plant_evaluation``: ``"simulated"`` (the default: :meth:`Task.evaluate`, the model plus simulated
+#: noise), ``"plant"`` (:func:`evaluate_on_plant`) or ``"none"``.
 PLANT_EVALUATIONS = ("simulated", "plant", "none")
 
 
@@ -175,8 +149,8 @@ def attach_plant(task: Task, plant: Any, evaluation: str = "plant") -> Task:
     Parameters
     ----------
     task : Task
-        The model (``f``, cost, prior); its ``true_mean``/``true_cov`` are then used only by
-        ``plant_evaluation = "simulated"`` and by the oracle.
+        The model (``f``, cost, prior); its ``true_mean``/``true_cov`` then serve only the simulated
+        evaluation and the oracle.
     plant : Plant or sequence of Plant
         The true system(s). Training drives ``sampler.true_envs`` copies: one plant, or that many.
     evaluation : {"plant", "simulated", "none"}, optional
@@ -190,10 +164,9 @@ def attach_plant(task: Task, plant: Any, evaluation: str = "plant") -> Task:
     Raises
     ------
     ValueError
-        ``plant`` lacks ``reset``/``step`` or ``evaluation`` is unknown (the message names the argument), or
-        ``evaluation`` is ``"plant"`` or ``"none"`` for a task whose own ``evaluate`` cannot run on a plant
-        (:attr:`Task.evaluates_on_plant <mixedrl.tasks.Task>` False: an override of :meth:`Task.evaluate`
-        that does not call ``task.plant_evaluate``).
+        ``plant`` lacks ``reset``/``step`` or ``evaluation`` is unknown (naming the argument), or
+        ``evaluation`` is not ``"simulated"`` for a task whose own ``evaluate`` cannot run on a plant
+        (``Task.evaluates_on_plant`` False).
     """
     if evaluation not in PLANT_EVALUATIONS:
         raise ValueError(f"evaluation: expected one of {PLANT_EVALUATIONS}, got {evaluation!r}")
@@ -249,8 +222,7 @@ class PlantCopies:
         return torch.as_tensor(np.stack(out)) if out else torch.zeros(0, self.plants[0].state_dim, dtype=torch.float64)
 
     def current(self, states: torch.Tensor) -> torch.Tensor:
-        """``states`` if every plant is in an episode this driver started, else fresh episodes of all
-        (after a resume, or after an evaluation used the plant)."""
+        """``states`` if every plant is in an episode this driver started, else fresh episodes of all."""
         if all(p.owner is self for p in self.plants):
             return states
         return self.reset()
@@ -279,9 +251,8 @@ def plant_copies(task: Task, config: Any) -> PlantCopies | None:
 
 
 def check_plant_sampler(task: Task, config: Any) -> None:
-    """Raise ``ValueError`` if ``task`` has a plant but ``config.sampler.name`` is ``"true_copies"`` (whose
-    batch is the true copies' states themselves, which a plant cannot provide in the numbers PEV needs) or
-    ``config.method`` is ``"ddpg"`` (which steps batches of simulated copies)."""
+    """Raise ``ValueError`` if ``task`` has a plant and ``config.method`` is ``"ddpg"`` or
+    ``config.sampler.name`` is ``"true_copies"`` (both need batches of true copies)."""
     if getattr(task, "plant", None) is not None and config.method == "ddpg":
         raise ValueError("config: method 'ddpg' steps batches of simulated true copies; a task with a plant "
                          "trains with Algorithm 2 (methods 'mixed', 'model', 'oracle')")
@@ -294,20 +265,17 @@ def evaluate_on_plant(task: Task, policy: torch.nn.Module, seeds: list[int], hor
                       ) -> dict[str, Any]:
     """Evaluate ``policy`` on the task's (first) plant: one episode per seed, one after the other.
 
-    Episode ``i`` starts with ``reset(episode_seed(seeds[i], 1, 0))``, the action is the deterministic
-    ``policy(observe(x))`` (float32 observations, as in training) and the episode runs ``horizon`` steps or
-    until the plant ends it (``last_terminated``/``last_truncated``) or the state is terminal for the task
-    (:meth:`Task.is_terminal`). Each step counts one evaluation transition
-    (``task.evaluation_transitions``).
+    Episode ``i`` starts with ``reset(episode_seed(seeds[i], 1, 0))``, acts with ``policy(observe(x))``
+    (float32 observations) and runs ``horizon`` steps (default ``task.eval_horizon``) or until the plant
+    ends it or the state is terminal for the task. Each step adds one to ``task.evaluation_transitions``.
 
     Returns
     -------
     dict
         Means over the episodes: ``cost`` (the task's discounted ``sum gamma^t l(x_{t+1}, u_t)``),
-        ``plant_return`` (the plant's undiscounted ``sum last_reward``; ``None`` for a plant without rewards),
-        ``plant_terminated_fraction`` (episodes the plant terminated), ``terminated_fraction`` (episodes
-        the plant terminated or that reached a state terminal for the task; a truncation, the plant's
-        time limit, is not a termination), ``episode_length`` (steps).
+        ``plant_return`` (the plant's undiscounted ``sum last_reward``; ``None`` without rewards),
+        ``plant_terminated_fraction``, ``terminated_fraction`` (by the plant or the task; a truncation
+        is not a termination) and ``episode_length`` (steps).
 
     Raises
     ------
@@ -350,16 +318,10 @@ def evaluate_on_plant(task: Task, policy: torch.nn.Module, seeds: list[int], hor
             "episode_length": float(np.mean(lengths))}
 
 
-# ----------------------------------------------------------------------------------------------------
-# plants
-# ----------------------------------------------------------------------------------------------------
+# ---- plants ----
 class SimulatedPlant:
-    """The simulated plant as one sequential system: ``reset(seed)`` draws the start from
-    ``task.sample_initial`` and each step is ``task.true_step`` (eq. 1), all from a generator seeded by
-    ``seed``.
-
-    (Training's default path calls ``task.true_step`` on its batch of copies directly; this class is the
-    same plant behind the :class:`Plant` interface.)
+    """The simulated plant behind the :class:`Plant` interface: ``reset(seed)`` draws the start from
+    ``task.sample_initial`` and each step is ``task.true_step`` (eq. 1), from a generator seeded by ``seed``.
     """
 
     def __init__(self, task: Task) -> None:
@@ -419,19 +381,17 @@ class GymnasiumPlant:
 
     Examples
     --------
-    The three environments it is documented for (``state_fn`` :func:`unwrapped_state` for each, the
-    default; docs/tutorial.rst, section 4):
+    The three environments it is documented for (``state_fn`` :func:`unwrapped_state`, the default; run by
+    ``tests/test_plant.py``):
 
     .. code-block:: python
 
        from mixedrl.envs.gym_models import MountainCarTask, PendulumV1Task
        from mixedrl.tasks import task_from_config
 
-       # Pendulum-v1: the state [theta, theta_dot] (angle not wrapped), the torque as it is
        pendulum = attach_plant(PendulumV1Task(), GymnasiumPlant(gym.make("Pendulum-v1")))
-       # MountainCarContinuous-v0: the state [position, velocity], the force as it is
        car = attach_plant(MountainCarTask(), GymnasiumPlant(gym.make("MountainCarContinuous-v0")))
-       # the package's double lane change: the simulator state, the env's actions normalised
+       # the package's double lane change: the env's actions are normalised
        import mixedrl.envs  # registers mixedrl/DoubleLaneChange-v0
        dlc = task_from_config("dlc")
        bound = dlc.action_bound.double().numpy()
@@ -483,17 +443,15 @@ class DisturbedEnv(gym.Wrapper):
     """Pendulum-v1 or MountainCarContinuous-v0 with an unmodelled force ``xi ~ N(mean, std^2)`` (action
     units: a torque for the pendulum, a force for the car) added after the env's action clip.
 
-    After the wrapped step the state moves by ``E xi`` with ``E`` the effect of the force over one step
-    of the env's semi-implicit Euler scheme (:func:`mixedrl.envs.gym_models.pendulum_noise_matrix`,
+    After the wrapped step the state moves by ``E xi``, ``E`` the force's effect over one step of the env's
+    semi-implicit Euler scheme (:func:`mixedrl.envs.gym_models.pendulum_noise_matrix`,
     :func:`~mixedrl.envs.gym_models.mountain_car_noise_matrix`), so the true system is exactly
-    ``x' = f(x, u) + E xi`` with ``f`` the env's own step (:mod:`mixedrl.envs.gym_models`). (Applied
-    after the env's speed and position clips: where those bind, a force inside the physics would differ.)
+    ``x' = f(x, u) + E xi`` with ``f`` the env's own step (applied after the env's speed and position clips).
     The observation is recomputed from the moved state; reward and termination are the env's.
 
-    With ``before_clip=True`` the force is an actuator bias instead: it is added to the action, which the
-    env then clips, so where ``|u + xi|`` exceeds the env's limit the clip removes part of it and the
-    additive model does not hold (declare ``action_limit`` and ``saturation_margin`` on the task,
-    :meth:`mixedrl.tasks.Task.saturated`).
+    With ``before_clip=True`` the force is an actuator bias added to the action before the env's clip, so
+    the additive model does not hold near the limit (declare ``action_limit`` and ``saturation_margin`` on
+    the task, :meth:`mixedrl.tasks.Task.saturated`).
 
     Parameters
     ----------
@@ -538,8 +496,7 @@ class DisturbedEnv(gym.Wrapper):
 def credit_evaluations(trainers: Sequence[Any], task: Task, results: list[dict[str, Any]]
                        ) -> list[dict[str, Any]]:
     """``results`` of ``task.evaluate_many`` on the ``trainers``' policies, after moving each policy's
-    evaluation transitions (``task.last_evaluation_counts``) from ``task``, which counted them all, to its
-    trainer's own task (:func:`mixedrl.runs.evaluate_together`: a batch evaluates with its first run's task)."""
+    evaluation transitions (``task.last_evaluation_counts``) from ``task`` to its trainer's own task."""
     counts = getattr(task, "last_evaluation_counts", None)
     if counts is not None and len(counts) == len(trainers):
         task.evaluation_transitions -= sum(counts)
@@ -555,11 +512,9 @@ def plant_transitions(trainer: Any) -> dict[str, Any]:
     Returns
     -------
     dict
-        ``training`` (the true transitions the IBE's data came from, ``trainer.true_transitions``),
-        ``evaluation`` (``task.evaluation_transitions``, the plant's or, with the simulated evaluation, the
-        simulated plant's: the default rollouts, the double lane change's courses, the linear task's;
-        ``None`` for a task whose own ``evaluate`` does not count them,
-        ``Task.counts_evaluation_transitions`` False) and ``plant`` (``"simulated"`` or the plant's repr).
+        ``training`` (``trainer.true_transitions``), ``evaluation`` (``task.evaluation_transitions``, the
+        plant's or the simulated plant's; ``None`` where ``Task.counts_evaluation_transitions`` is False
+        and the evaluation is simulated) and ``plant`` (``"simulated"`` or the plant's repr).
     """
     task = trainer.task
     training = getattr(trainer, "true_transitions", None)

@@ -10,12 +10,10 @@ linearisation; EQUATIONS.md, last section; :func:`mixedrl.lq.discounted_lq_optim
 .. math:: v = -L x - l_0(E\\mu), \\qquad V^*(x) = x^T P x + 2 p^T x + c(E\\mu, E K E^T),
 
 so at the equilibrium (``x = 0``) the optimal action is ``u* - l0`` and the optimal value is ``c``.
-:func:`lq_reference` computes these and the steady state the optimum holds under its own mean;
-:func:`policy_gap` compares a policy (and its critic) with them; :func:`run_policy_gap` does it for a
-trainer with the method's own noise mean (mixed RL: the IBE posterior at the end of training;
-model-driven RL: the prior; the oracle and DDPG: the true mean) and is what :func:`mixedrl.runs.summarize`
-writes to ``results.json`` as ``policy_gap``. Evaluation only: nothing here touches a trainer's weights,
-generators or buffers.
+:func:`lq_reference` computes these; :func:`policy_gap` compares a policy (and its critic) with them;
+:func:`run_policy_gap` does it for a trainer with the method's own noise mean and is what
+:func:`mixedrl.runs.summarize` writes to ``results.json`` as ``policy_gap``. Evaluation only: nothing here
+touches a trainer's weights, generators or buffers.
 """
 
 from __future__ import annotations
@@ -169,11 +167,8 @@ def _linearised(task: Task) -> tuple[Linearisation | None, str | None]:
 def run_policy_gap(trainer: Any, policy: torch.nn.Module | None = None) -> tuple[dict[str, Any] | None, str | None]:
     """:func:`policy_gap` of a trainer's policy for the method's own noise mean, or ``(None, reason)``.
 
-    The method's own noise: with a noise source (Algorithm 2: mixed, model, oracle) the planning moments
-    at the end (:meth:`~mixedrl.algorithms.agpi.AGPI.noise_moments`, for a state-dependent source
-    :meth:`~mixedrl.algorithms.agpi.AGPI.planning_moments` at the equilibrium); without one (DDPG, which
-    learns from the true environment) the true mean and covariance. The value is the critic at the
-    equilibrium (DDPG's ``Q(x*, pi(x*))``).
+    The method's own noise is that of :func:`own_noise` (DDPG, without a noise model: the true mean and
+    covariance). The value is the critic at the equilibrium (DDPG's ``Q(x*, pi(x*))``).
 
     Parameters
     ----------
@@ -188,10 +183,9 @@ def run_policy_gap(trainer: Any, policy: torch.nn.Module | None = None) -> tuple
     -------
     tuple
         ``(policy_gap dict, None)``, or ``(None, reason)`` when the task has no equilibrium, its
-        linearisation fails (a ``ValueError`` of :meth:`~mixedrl.tasks.Task.linearisation`, or a
-        ``RuntimeError`` of autograd on a non-differentiable ``f`` or ``cost``) or the LQ problem at it has
-        no solution; the reason says which. It does not raise for those, so a finished run always writes
-        its results.
+        linearisation fails (``ValueError``, or autograd's ``RuntimeError`` on a non-differentiable ``f`` or
+        ``cost``) or the LQ problem at it has no solution. It does not raise for those, so a finished run
+        always writes its results.
     """
     task: Task = trainer.task
     policy = trainer.policy if policy is None else policy
@@ -255,11 +249,9 @@ class LQRPolicy(torch.nn.Module):
 
 def run_references(trainer: Any, seeds: list[int]) -> tuple[dict[str, Any] | None, str | None]:
     """The yardstick of a run: the discounted LQR with the true mean's feed-forward (:class:`LQRPolicy`),
-    the optimum near the equilibrium, evaluated like the run (its task, its evaluation seeds, the same
-    evaluator), so the run's evaluated cost and its training curve can be read against it.
-
-    Evaluation only (one more simulated evaluation, :meth:`mixedrl.tasks.Task.evaluate`, which drives no
-    plant and is not counted among the run's evaluation transitions).
+    evaluated like the run (its task, its evaluation seeds, :meth:`mixedrl.tasks.Task.evaluate`), so the run's
+    evaluated cost can be read against it. The evaluation is simulated and not counted among the run's
+    evaluation transitions.
 
     Returns
     -------

@@ -1,33 +1,20 @@
 """The run-directory protocol: the files of a run, its one-writer lock, its records and their checks.
 
-The checkpoint codec, the atomic writes and the sha256 sidecars are :mod:`mixedrl.checkpoint`. The
-training driver that writes these files is :mod:`mixedrl.runs`, which re-exports every public name of this
-module (``mixedrl.runs.RunDirectory``, ``mixedrl.runs.hold_lock``, ...).
+:mod:`mixedrl.runs` re-exports every public name; the checkpoint codec, atomic writes and sha256 sidecars
+are :mod:`mixedrl.checkpoint`. A run directory holds::
 
-A run lives in one directory::
+    config.json          the run's TrainConfig
+    checkpoint.pt        the latest checkpoint (atomic; plain data, loaded with weights_only=True)
+    metrics.jsonl        one JSON object per iteration; metrics.csv: the same table, written at the end
+    training_curve.png   with matplotlib
+    results.json         final evaluation, convergence, wall time
+    <file>.sha256        sha256 of config.json, checkpoint.pt, results.json, verified on every load
+    .lock                the one-writer lock (hold_lock)
 
-    RUN_DIR/
-        config.json      the TrainConfig of the run (mixedrl.config)
-        checkpoint.pt    the latest checkpoint (written to a temporary file, then renamed: atomic;
-                         plain data, read with torch.load(weights_only=True): safe to share)
-        metrics.jsonl    one JSON object per iteration (namespaced keys, see below)
-        metrics.csv      the same table as CSV, written when the run ends
-        results.json     final evaluation, convergence, wall time
-        config.json.sha256, checkpoint.pt.sha256, results.json.sha256
-                         the sha256 of each (sha256sum format), verified on every load
-        .lock            the one-writer lock (fcntl.flock; holds the writer's pid, host, start time;
-                         created without following links, never truncated: :func:`hold_lock`)
-
-The writes come in an order that makes every kill point resumable: at each checkpoint ``config.json``
-(with the first one), the new ``metrics.jsonl`` rows, then ``checkpoint.pt``; at the end ``metrics.csv``
-and ``results.json``; each file after its digest (:func:`write_with_digest`). A directory is therefore
-always *fresh* (the lock, ``config.json``, rows up to the first checkpoint: resumed from scratch, the rows
-discarded) or *at checkpoint k* (rows beyond ``k`` discarded on resume).
-
-Training never replaces a run: without ``resume`` the directory must be absent or empty (anything the
-package did not write, a planted ``.lock`` included, makes it not a run); with it the saved config must
-match (a larger ``iterations`` extends the budget) and ``metrics.jsonl`` must be complete up to the
-checkpoint (docs/algorithm2.rst, "Run directories").
+The write order (per checkpoint: ``config.json`` with the first, new ``metrics.jsonl`` rows, then
+``checkpoint.pt``; at the end ``metrics.csv`` and ``results.json``; each file after its digest) makes
+every kill point resumable. Without ``resume`` the directory must be absent or empty; with it the saved
+config must match up to a larger ``iterations`` (docs/algorithm2.rst, "Run directories").
 """
 
 from __future__ import annotations
@@ -74,17 +61,15 @@ class RunLockedError(ValueError):
     """Another process holds the run directory's lock (a second writer is refused)."""
 
 
-#: The lock file's content: the holder's line, padded with spaces to this many bytes (so it is rewritten in
-#: place, never truncated).
+#: Size of the lock file: the holder's line padded with spaces (rewritten in place, never truncated).
 _LOCK_WIDTH = 256
 #: What a lock file this package wrote holds: nothing, or a holder's line and padding.
 _LOCK_TEXT = re.compile(rb"(pid [0-9]+ on \S+ since \S+\n)? *")
 
 
 def is_lock_file(path: Path) -> bool:
-    """Whether ``path`` is a lock file this package wrote: a regular file of one link holding nothing but a
-    holder's line (:data:`_LOCK_TEXT`); a symbolic link, a hard link to another file, or any other content
-    is not."""
+    """Whether ``path`` is a lock file this package wrote: a regular file of one link holding nothing but
+    a holder's line (not a symbolic link, a hard link or other content)."""
     try:
         st = os.lstat(path)
         if not stat.S_ISREG(st.st_mode) or st.st_nlink != 1 or st.st_size > _LOCK_WIDTH:
@@ -99,12 +84,9 @@ def is_lock_file(path: Path) -> bool:
 def hold_lock(path: str | Path, what: str = "out") -> Iterator[None]:
     """Hold the exclusive lock of the file ``path`` (``fcntl.flock``) for the duration of the ``with`` block.
 
-    The file is created if needed, without following a symbolic link (``O_NOFOLLOW``), and is never
-    truncated: an existing file is used only if it is one this package wrote (a regular file of one link
-    holding a holder's line), and the holder's line (pid, host, start time) is written over it in place,
-    padded to a fixed width. The kernel releases the lock when the holder exits, however it dies, so a lock
-    left by a killed process is recovered by the next holder. The descriptor is not inherited by child
-    processes (``O_CLOEXEC``).
+    The file is created without following a symbolic link and never truncated: an existing file is used
+    only if :func:`is_lock_file` would accept it, and the holder's line (pid, host, start time) is written
+    over it in place. The kernel releases the lock however the holder dies.
 
     Parameters
     ----------
@@ -118,8 +100,8 @@ def hold_lock(path: str | Path, what: str = "out") -> Iterator[None]:
     RunLockedError
         Another process holds the lock (the message names the directory and the holder).
     ValueError
-        ``path`` is a symbolic link, not a regular file, a hard link or holds something else than a
-        holder's line (nothing is written into it), or the directory cannot be written.
+        ``path`` is not a lock file this package wrote (nothing is written into it), or the directory
+        cannot be written.
     """
     import fcntl
 
@@ -206,14 +188,12 @@ class RunDirectory:
     def entries(self) -> list[str]:
         """Names in the directory other than its lock and leftover temporary files ([] if it does not exist).
 
-        The lock file is listed when it is not one this package wrote (a symbolic or hard link, other
-        content): such a directory is not a run.
+        A lock file this package did not write is listed (such a directory is not a run).
 
         Raises
         ------
         ValueError
-            ``path`` exists and is not a directory, is a symbolic link that does not resolve, or cannot be
-            listed.
+            ``path`` is not a directory, is a dangling symbolic link, or cannot be listed.
         """
         self._check_link()
         if not self.path.exists():
@@ -228,16 +208,13 @@ class RunDirectory:
                       and not (n == LOCK_NAME and is_lock_file(self.path / n)))
 
     def holds_run(self) -> bool:
-        """True if a run was started here: any of :data:`RUN_FILES`, a digest of one (a write that was
-        killed), or this package's lock file."""
+        """True if a run was started here: any of :data:`RUN_FILES`, a digest of one, or this package's lock."""
         return (any(name in _STARTED for name in self.entries())
                 or (self.lock_path.exists() and is_lock_file(self.lock_path)))
 
     def check_new(self) -> None:
-        """Refuse to start a new run here unless the directory is absent or empty; creates nothing.
-
-        Empty means: nothing but this package's lock file and temporary files (a run killed before it wrote
-        anything).
+        """Refuse to start a new run here unless the directory is absent or empty (but for this package's
+        lock and temporary files); creates nothing.
 
         Raises
         ------
@@ -256,8 +233,7 @@ class RunDirectory:
 
     @contextlib.contextmanager
     def lock(self) -> Iterator[None]:
-        """Hold the directory's one-writer lock (``<path>/.lock``, :func:`hold_lock`) for the duration of the
-        ``with`` block. The directory is created if needed.
+        """Hold the directory's one-writer lock (``<path>/.lock``, :func:`hold_lock`); creates the directory.
 
         Raises
         ------
@@ -271,8 +247,7 @@ class RunDirectory:
             yield
 
     def write_config(self, config: TrainConfig, task: Any = None) -> None:
-        """Save the run's config as ``config.json`` (:func:`config_record`: with the user's own ``task``,
-        its name), with its sha256 in ``config.json.sha256``."""
+        """Save :func:`config_record` as ``config.json``, with its sha256 in ``config.json.sha256``."""
         self._mkdir()
         text = json.dumps(config_record(config, task), indent=2, sort_keys=True) + "\n"
         write_with_digest(self.config_path, text.encode("utf-8"))
@@ -283,10 +258,8 @@ class RunDirectory:
         Raises
         ------
         ValueError
-            No ``config.json``, one that does not match its digest, or one that is not a valid config; one
-            recorded for the user's own task (``task.name`` not a built-in or registered task) is refused
-            with a message naming the task: its :class:`~mixedrl.tasks.Task` object is needed (read the raw
-            record with :meth:`read_record`).
+            No ``config.json``, one that does not match its digest or is not a valid config, or one of the
+            user's own task (not a built-in or registered one; :meth:`read_record` reads it).
         """
         record = self.read_record()
         task = record.get("task")
@@ -296,8 +269,7 @@ class RunDirectory:
         return TrainConfig.from_dict(record)
 
     def read_record(self) -> dict[str, Any]:
-        """The JSON object of ``config.json`` as written (:func:`config_record`), not migrated or validated;
-        verified against its sha256 sidecar (``config.json.sha256``) when it has one.
+        """The JSON object of ``config.json`` as written, not validated; verified against its sidecar if any.
 
         Raises
         ------
@@ -329,17 +301,13 @@ class RunDirectory:
                 fh.write(json.dumps(row, allow_nan=True) + "\n")
 
     def read_metrics(self) -> list[dict[str, Any]]:
-        """All rows of ``metrics.jsonl`` (an empty list if there is none).
-
-        A last line without its newline that is not JSON is the torn row of an interrupted write and is
-        left out.
+        """All rows of ``metrics.jsonl`` ([] without one); a torn last line (not JSON) is left out.
 
         Raises
         ------
         ValueError
-            ``metrics: ...`` naming the file and the line: the file is not a regular file, a line is not
-            UTF-8, not JSON (other than a torn last line), not an object, or has no positive integer
-            ``iteration``.
+            ``metrics: ...`` naming the line: not a regular file, or a line not UTF-8, not JSON (but a torn
+            last line), not an object, or without a positive integer ``iteration``.
         """
         if not regular_file(self.metrics_path, "metrics"):
             return []
@@ -363,8 +331,7 @@ class RunDirectory:
         Raises
         ------
         ValueError
-            ``metrics.jsonl`` is missing or lacks a row of some iteration ``1..k`` (resuming would lose
-            metrics); nothing is changed then.
+            ``metrics.jsonl`` is missing or lacks a row of some iteration ``1..k``; nothing is changed.
         """
         rows = self.check_metrics(k)
         atomic_write_text(self.metrics_path, "".join(json.dumps(r) + "\n" for r in rows))
@@ -410,8 +377,7 @@ class RunDirectory:
         Raises
         ------
         ValueError
-            ``results: ...`` naming the file if it is missing, not a regular file, does not match its digest,
-            or is not JSON.
+            ``results: ...``: missing, not a regular file, not matching its digest, or not JSON.
         """
         if not regular_file(self.results_path, "results"):
             raise ValueError(f"results: {self.results_path} does not exist")
@@ -425,13 +391,8 @@ class RunDirectory:
 
 
 def config_record(config: TrainConfig, task: Any = None) -> dict[str, Any]:
-    """The content of a run's ``config.json``: ``config.to_dict()``, naming the task the run trains.
-
-    A built-in task is built from ``config.task``, which is recorded in full. The user's own ``task`` (a
-    :class:`~mixedrl.tasks.Task` whose ``name`` is not ``config.task.name``, e.g. ``"Cruise"`` trained
-    with ``TrainConfig()``) does not use ``config.task``; the record's
-    ``task`` is then ``{"name": task.name}``.
-    """
+    """The content of a run's ``config.json``: ``config.to_dict()``; for the user's own ``task`` (whose
+    ``name`` is not ``config.task.name``) the record's ``task`` is ``{"name": task.name}``."""
     data = config.to_dict()
     name = getattr(task, "name", None)
     if task is not None and name != config.task.name:
@@ -444,9 +405,8 @@ def _real(value: Any) -> bool:
 
 
 def _check_fields(value: Any, template: Any, where: str, path: Path) -> None:
-    """Check ``value`` against ``template`` (what a fresh trainer's ``state_dict()`` holds there): the kind of
-    every field (dict with the template's keys, list, tensor or array of the template's dtype and number of
-    dimensions, bool, integer, real number, string, generator); ``None`` in the template is not checked."""
+    """Check that every field of ``value`` has the kind of ``template``'s (a fresh trainer's ``state_dict()``:
+    dict keys, tensor or array dtype and ndim, bool, integer, number, ...); ``None`` there is not checked."""
     def bad(problem: str) -> ValueError:
         return ValueError(f"checkpoint: {path} field {where} {problem}")
 
@@ -501,9 +461,9 @@ def check_state(state: Any, path: str | Path, budget: int | None = None,
     Raises
     ------
     ValueError
-        ``checkpoint: <path> field <name> ...``: ``trainer`` missing or not a dict, ``trainer.k`` not an
-        integer in ``[0, budget]``, ``elapsed`` not a finite number ``>= 0``, ``trainer.stop_count`` not an
-        integer ``>= 0``, or a field of ``template`` missing or of another kind.
+        ``checkpoint: <path> field <name> ...``: ``trainer`` not a dict, ``trainer.k`` not in
+        ``[0, budget]``, ``elapsed`` not finite ``>= 0``, ``trainer.stop_count`` not an integer ``>= 0``, or
+        a field of ``template`` missing or of another kind.
     """
     path = Path(path)
     if not isinstance(state, dict) or not isinstance(state.get("trainer"), dict):
@@ -524,8 +484,7 @@ def check_state(state: Any, path: str | Path, budget: int | None = None,
 
 
 def load_trainer(trainer: Any, path: str | Path, state: dict[str, Any] | None = None) -> dict[str, Any]:
-    """Restore ``trainer`` from the checkpoint ``path`` (or its already loaded ``state``), checked first
-    (:func:`check_state` against the trainer's own fields and budget).
+    """Restore ``trainer`` from the checkpoint ``path`` (or its loaded ``state``) after :func:`check_state`.
 
     Returns
     -------

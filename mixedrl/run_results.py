@@ -1,8 +1,6 @@
-"""The evaluation of runs and their summaries: the trainer of a configuration, the evaluation seeds, the
-evaluation of a saved run or of a batch of trainers together, the convergence criterion and the
-``results.json`` record of a finished run.
+"""The evaluation of runs, the convergence criterion and the ``results.json`` record of a finished run.
 
-:mod:`mixedrl.runs` (the training driver) re-exports every public name of this module.
+:mod:`mixedrl.runs` re-exports every public name of this module.
 """
 
 from __future__ import annotations
@@ -31,9 +29,8 @@ CONVERGENCE_RTOL = 0.10
 def iterations_to_converge(iterations: list[int], costs: list[float], rtol: float = CONVERGENCE_RTOL) -> int:
     """The convergence criterion applied identically to every method.
 
-    A run has converged at the first evaluated iteration ``k`` from which **every** later evaluation cost
-    stays within ``rtol`` (10%) of the run's final level, ``J_final`` = the median of its last three
-    evaluations:
+    The first evaluated iteration from which **every** later evaluation cost stays within ``rtol`` of the
+    final level ``J_final``, the median of the last three evaluations:
 
     .. math::
 
@@ -100,8 +97,7 @@ def evaluate_run(path: str | Path, *, seeds: int | None = None, feedforward: str
         Number of noise seeds (default the run's ``run.eval_seeds``; the seeds are :func:`eval_seeds`).
     feedforward : str, optional
         Evaluate with this ``algorithm.feedforward`` instead of the run's (``"lq"``: the actor shifted to
-        the LQ optimum's action at the equilibrium for the method's own noise mean). Training does not
-        read ``"lq"``, so this evaluates what the run would have deployed with it.
+        the LQ optimum's action at the equilibrium for the method's own noise mean).
     task : Task, optional
         The task object of a user's own task (not rebuilt from the config).
 
@@ -134,10 +130,8 @@ def evaluate_run(path: str | Path, *, seeds: int | None = None, feedforward: str
 
 
 def _shared_task(trainers: list[Any]) -> Any:
-    """The task all ``trainers`` evaluate on (a built-in task of one configuration, or one task object),
-    or ``None`` when they have none in common or a trainer evaluates otherwise than AGPI and DDPG do."""
-    # a trainer's own evaluate() might do something else: only AGPI's and DDPG's (the task's evaluate of
-    # the policy) are batched
+    """The task all ``trainers`` evaluate on, or ``None`` when they have none in common or one of them
+    overrides AGPI's and DDPG's ``evaluate``."""
     if not all(type(t).evaluate in (AGPI.evaluate, DDPG.evaluate) for t in trainers):
         return None
     first = trainers[0]
@@ -151,15 +145,12 @@ def _shared_task(trainers: list[Any]) -> Any:
 
 
 def evaluate_together(trainers: list[Any], seeds: list[list[int]], *, exact: bool = False) -> list[dict[str, Any]]:
-    """The evaluations of several runs at once: their policies on their seeds, in one call of the task's
+    """The evaluations of several runs at once, in one call of the task's
     :meth:`~mixedrl.tasks.Task.evaluate_many` (the courses in lock step).
 
-    With ``exact=False`` (the periodic evaluations of training: the ``eval/*`` metrics rows, a monitor, and
-    ``iterations_to_converge``) the policies are called once per step on all their courses, and the
-    numbers may differ from the trainer's own ``evaluate`` in the float32 last bits of a batched policy
-    call (about 1e-8 relative, docs/reproduction.rst). With ``exact=True`` (a run's last iteration, whose
-    evaluation is also its final one in ``results.json``) each equals ``trainer.evaluate(seeds)`` bit for
-    bit. Trainers without a common task are evaluated one by one with their own ``evaluate``.
+    With ``exact=True`` each equals ``trainer.evaluate(seeds)`` bit for bit; with ``exact=False`` (batched
+    policy calls) it may differ in the float32 last bits (docs/reproduction.rst). Trainers without a
+    common task are evaluated one by one.
 
     Parameters
     ----------
@@ -168,7 +159,7 @@ def evaluate_together(trainers: list[Any], seeds: list[list[int]], *, exact: boo
     seeds : list of list of int
         Each run's evaluation seeds (:func:`eval_seeds`).
     exact : bool, optional
-        Bit-identical to each trainer's ``evaluate`` (per-course policy calls) or not (batched calls).
+        Per-course policy calls (bit-identical) or batched ones.
 
     Returns
     -------
@@ -195,12 +186,9 @@ def summarize(trainer: Any, rows: list[dict[str, Any]], elapsed: float, seeds: l
               final: dict[str, Any] | None = None) -> dict[str, Any]:
     """Final evaluation and convergence figures of a finished run (the content of ``results.json``).
 
-    ``final`` is the trainer's exact evaluation on ``seeds`` when the caller already has it (the training
-    loop evaluates a run's last iteration exactly); otherwise ``trainer.evaluate(seeds)`` is called.
-
-    ``policy_gap`` is the policy at the task's equilibrium against the discounted LQ optimum for the
-    method's own noise mean (:func:`mixedrl.precision.run_policy_gap`), ``null`` with ``policy_gap_reason``
-    when the task has no equilibrium.
+    ``final``: the trainer's exact evaluation on ``seeds`` if the caller has it, else
+    ``trainer.evaluate(seeds)`` is called. ``policy_gap`` (:func:`mixedrl.precision.run_policy_gap`) is
+    ``null`` with ``policy_gap_reason`` when the task has no equilibrium.
     """
     cfg: TrainConfig = trainer.config
     if final is None:
@@ -226,9 +214,8 @@ def summarize(trainer: Any, rows: list[dict[str, Any]], elapsed: float, seeds: l
         results["true_transitions"] = None if count is None else int(count)
         results["plant_transitions"] = plant_transitions(trainer)
     if hasattr(trainer, "noise"):
-        # the departures from the paper's Algorithm 2 the run used (mixedrl.departures; [] = the paper's)
-        results["departures"] = departures.used(cfg)
-        # the planning noise at the end (for a state-dependent source its mean over the last batch)
+        results["departures"] = departures.used(cfg)  # [] = the paper's Algorithm 2
+        # the planning noise at the end (a state-dependent source: its mean over the last batch)
         mean, cov = trainer.noise_moments()
         results["final_ibe_mean"] = np.asarray(mean, dtype=float).tolist()
         results["final_ibe_cov_diag"] = np.diag(np.asarray(cov, dtype=float)).tolist()
@@ -236,13 +223,10 @@ def summarize(trainer: Any, rows: list[dict[str, Any]], elapsed: float, seeds: l
         results["mvc_held_fraction"] = float(np.mean(mvc)) if mvc else None
         inner = [r["mvc/inner_steps"] for r in rows if "mvc/inner_steps" in r]
         results["mean_inner_steps"] = float(np.mean(inner)) if inner else None
-    # the precision yardstick at the equilibrium (mixedrl.precision; evaluation only): null with a reason
-    # when the task has none
     results["policy_gap"], reason = run_policy_gap(trainer)
     if reason is not None:
         results["policy_gap_reason"] = reason
-    # the yardstick of the training curve (evaluation only): the LQR with the true mean's feed-forward,
-    # evaluated like the run; null with a reason where the task has none
+    # the LQR with the true mean's feed-forward, evaluated like the run (null with a reason where none)
     results["references"], reason = run_references(trainer, seeds)
     if reason is not None:
         results["references_reason"] = reason
@@ -250,17 +234,15 @@ def summarize(trainer: Any, rows: list[dict[str, Any]], elapsed: float, seeds: l
         results["region_budget"] = trainer.region_budget
     feedforward = getattr(trainer, "feedforward", "learned")  # the trainer's, "auto" resolved
     if feedforward != "learned":
-        # the evaluated policy's action at the equilibrium (lq) or at the optimum's steady state (lq_ss) is the
-        # LQ optimum's by construction
         results["feedforward"] = feedforward
-    if feedforward in ("lq", "lq_ss"):  # ... and the trained actor's own, before the shift
+    if feedforward in ("lq", "lq_ss"):  # the trained actor's own gap, before the shift
         results["policy_gap_learned"], _ = run_policy_gap(trainer, trainer.learned_policy)
     return results
 
 
 def training_curve(rows: list[dict[str, Any]], results: dict[str, Any]) -> bytes | None:
-    """The run's training curve as a PNG: the evaluated cost (``eval/cost``) against the iteration, with the
-    yardstick of ``results["references"]`` (the discounted LQR with the true mean's feed-forward) as a line.
+    """The run's training curve as a PNG: ``eval/cost`` against the iteration, with
+    ``results["references"]["lqr_true_mean"]`` as a line.
 
     Parameters
     ----------

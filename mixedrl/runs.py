@@ -1,30 +1,24 @@
 """The training loop shared by every method, and the public face of runs.
 
-The checkpoint codec, the atomic writes and the sha256 sidecars are :mod:`mixedrl.checkpoint`; their
-names are re-exported here (``mixedrl.runs.save_checkpoint``, ``load_checkpoint``, ...), as are those of
-:mod:`mixedrl.run_directory` (the run-directory protocol: the files, the lock, the records and their checks)
-and of :mod:`mixedrl.run_results` (evaluations, the convergence criterion, the results of a run).
-A run lives in one directory (its files, the order of its writes, when it may be resumed: the protocol of
-:mod:`mixedrl.run_directory`).
+Re-exports the public names of :mod:`mixedrl.checkpoint`, :mod:`mixedrl.run_directory` (the files of a
+run directory, its lock and resume rules) and :mod:`mixedrl.run_results` (evaluations, convergence,
+``results.json``).
 
 Metric keys (every row has ``iteration``):
 
 * ``train/critic_loss``, ``train/actor_objective`` (Algorithm 2) or ``train/actor_loss`` (DDPG),
   ``train/value_mean``, ``train/value_change``, ``train/policy_change``;
-* ``mvc/held`` (1 if the MVC held on the batch after the inner loop), ``mvc/fraction_states``,
-  ``mvc/lhs_mean``, ``mvc/e_mean``, ``mvc/e_nonnegative``, ``mvc/inner_steps`` (Algorithm 2 only);
-* ``ibe/mean_<i>``, ``ibe/cov_<i><i>``, ``ibe/mean_error`` (max abs error of the mean against the true
-  noise), ``ibe/mean_rel_error``, ``ibe/count`` (Algorithm 2 only);
-* ``eval/cost``, ``eval/lateral_mae``, ``eval/speed_mae``, ... every ``eval_every`` iterations (all runs
-  of a batch at once, :func:`evaluate_together`: the periodic ones with batched policy calls, which may
-  differ in the float32 last bits; the last one exact, and it is the final evaluation of ``results.json``);
+* Algorithm 2 only: ``mvc/held`` (the MVC held on the batch after the inner loop), ``mvc/fraction_states``,
+  ``mvc/lhs_mean``, ``mvc/e_mean``, ``mvc/e_nonnegative``, ``mvc/inner_steps``; ``ibe/mean_<i>``,
+  ``ibe/cov_<i><i>``, ``ibe/mean_error`` (max abs error of the mean against the true noise),
+  ``ibe/mean_rel_error``, ``ibe/count``;
+* ``eval/cost``, ``eval/lateral_mae``, ``eval/speed_mae``, ... every ``eval_every`` iterations
+  (:func:`evaluate_together`);
 * ``time/elapsed_s`` (wall time of the run so far, excluding evaluations).
 
-:func:`train` drives any trainer with the small interface of :class:`mixedrl.algorithms.agpi.AGPI`
-(``k``, ``iteration()``, ``evaluate(seeds)``, ``state_dict()``, ``load_state_dict()``, ``stopped``),
-checkpoints it, and writes the results. Resuming from the checkpoint continues with exactly the
-generator states, optimiser states, replay buffer, IBE state and counters of the interrupted run, so it
-ends with exactly the weights of an uninterrupted run.
+:func:`train` drives any trainer with the interface of :class:`mixedrl.algorithms.agpi.AGPI` (``k``,
+``iteration()``, ``evaluate(seeds)``, ``state_dict()``, ``load_state_dict()``, ``stopped``). A resumed
+run ends with exactly the weights of an uninterrupted one.
 """
 
 from __future__ import annotations
@@ -71,8 +65,7 @@ def _saved_record(run: RunDirectory) -> dict[str, Any]:
 
 
 def _evaluation_due(trainer: Any) -> bool:
-    """Whether ``trainer`` is evaluated after its current iteration: every ``run.eval_every`` iterations,
-    at the budget and when it stopped."""
+    """Whether ``trainer`` is evaluated now: every ``run.eval_every`` iterations and when finished."""
     return trainer.k % trainer.config.run.eval_every == 0 or _finished(trainer)
 
 
@@ -105,29 +98,19 @@ def check_run_directory(run: RunDirectory, config: TrainConfig, resume: bool = F
     Raises
     ------
     ValueError
-        As :func:`train` would: ``run`` holds a run or other files and ``resume`` is false; with
-        ``resume`` a config that contradicts the saved one, a corrupted or invalid checkpoint, or files but
-        no checkpoint.
+        As :func:`train` would.
     """
     _open_run(run, config, resume)
 
 
-#: What a run directory may hold without ``checkpoint.pt`` and still be resumed from scratch: a run killed
-#: before its first checkpoint was in place (its metrics rows are discarded).
+#: What a run killed before its first checkpoint leaves: resumed from scratch (the rows discarded).
 _BEFORE_FIRST_CHECKPOINT = ("config.json", "config.json.sha256", "checkpoint.pt.sha256", "metrics.jsonl", TB_DIR)
 
 
 def _open_run(run: RunDirectory, cfg: TrainConfig, resume: bool, task: Any = None,
               template: dict[str, Any] | None = None) -> dict[str, Any] | None:
-    """Validate ``run`` for training ``cfg`` (creating nothing) and return the checkpoint to resume from.
-
-    Without ``resume`` the directory must be absent or empty. With ``resume``: a checkpoint (its config
-    must equal ``cfg``, up to a larger ``iterations``: an extension; its record is checked field by field,
-    against ``template``, a fresh trainer's ``state_dict()``, when given; ``metrics.jsonl`` must hold every
-    iteration up to it), or what a run killed before its first checkpoint leaves (``config.json``, metrics
-    rows of iterations up to the first checkpoint: it starts again, the rows are discarded), or nothing
-    at all (a run not started yet).
-    """
+    """Validate ``run`` for training ``cfg`` (creating nothing) and return the checkpoint to resume from
+    (``None``: start from scratch). ``template``: a fresh trainer's ``state_dict()`` (:func:`check_state`)."""
     if not resume:
         run.check_new()
         return None
@@ -163,13 +146,12 @@ def _open_run(run: RunDirectory, cfg: TrainConfig, resume: bool, task: Any = Non
 
 
 class IterationObserver(Protocol):
-    """What :func:`train` calls around every iteration of a run (for example the empirical checks of the
-    paper's theorems, :class:`validation.reproduce.TheoryObserver`).
+    """What :func:`train` calls around every iteration of a run (e.g.
+    :class:`validation.reproduce.TheoryObserver`).
 
-    ``before(trainer)`` is called just before the iteration and returns anything (a snapshot of what the
-    check needs, or ``None`` to skip this iteration); ``after(trainer, token, row)`` just after it, with
-    that token and the iteration's metrics row, and returns extra metrics for the row (or ``None``). An
-    observer only reads the trainer: it must not draw from the run's generator or change its state.
+    ``before(trainer)`` returns a token (anything, e.g. a snapshot); ``after(trainer, token, row)`` gets it
+    with the iteration's metrics row and returns extra metrics for the row (or ``None``). An observer only
+    reads the trainer: it must not draw from the run's generator or change its state.
     """
 
     def before(self, trainer: Any) -> Any: ...
@@ -178,9 +160,8 @@ class IterationObserver(Protocol):
 
 
 class PeriodicObserver:
-    """An :class:`IterationObserver` that records every ``every`` iterations: after the iteration ``k`` with
-    ``k % every == 0`` it returns :meth:`record` ``(trainer)`` as extra metrics of the row; nothing before
-    the iteration. Subclasses implement :meth:`record` (reading the trainer only).
+    """An :class:`IterationObserver` whose :meth:`record` (implemented by subclasses) adds metrics to the
+    row of every ``every``-th iteration.
 
     Parameters
     ----------
@@ -209,8 +190,7 @@ def train(trainer: Any, run: RunDirectory | None = None, resume: bool = False, p
           tensorboard: bool = False, observer: IterationObserver | None = None) -> dict[str, Any]:
     """Run ``trainer`` to its budget (or its stopping test), with checkpoints, metrics and results.
 
-    A run directory has one writer: the run holds :meth:`RunDirectory.lock` from its validation to its
-    last write, and a second process training into the same directory is refused. Nothing is created or
+    The run holds :meth:`RunDirectory.lock` from its validation to its last write; nothing is created or
     changed in ``run`` before the validation has passed.
 
     Parameters
@@ -221,23 +201,19 @@ def train(trainer: Any, run: RunDirectory | None = None, resume: bool = False, p
         Where to write config, checkpoints, metrics and results; ``None`` keeps everything in memory.
         Without ``resume`` it must be absent or empty.
     resume : bool
-        Continue from ``run``'s checkpoint. A directory holding only ``config.json`` (killed before its
-        first checkpoint) or nothing starts from scratch; one holding other files but no checkpoint is
-        refused. The saved config must equal the trainer's, except a larger ``iterations`` (the budget
-        is extended).
+        Continue from ``run``'s checkpoint (a run killed before its first one starts from scratch). The
+        saved config must equal the trainer's, except a larger ``iterations`` (the budget is extended).
     progress : bool, optional
-        Show a tqdm progress bar (on stderr); by default shown when stderr is a terminal, as on the CLI.
-        ``False`` turns it off.
+        Show a tqdm progress bar on stderr; by default when stderr is a terminal.
     stop_after : int, optional
         Stop (after checkpointing) once ``trainer.k`` reaches this value: simulates an interruption.
     callback : callable, optional
         Called with every metrics row.
     tensorboard : bool
-        Also write the metrics rows as TensorBoard scalars into ``<run>/tb/`` (:mod:`mixedrl.tensorboard`;
-        needs ``run`` and the optional extra ``tensorboard``).
+        Also write the rows as TensorBoard scalars into ``<run>/tb/`` (:mod:`mixedrl.tensorboard`; needs
+        ``run`` and the optional extra ``tensorboard``).
     observer : IterationObserver, optional
-        Called around every iteration (:class:`IterationObserver`); the metrics it returns join the
-        iteration's row (the theory checks of ``mixedrl reproduce`` are one).
+        Called around every iteration; the metrics it returns join the iteration's row.
 
     Returns
     -------
@@ -252,9 +228,8 @@ def train(trainer: Any, run: RunDirectory | None = None, resume: bool = False, p
         Another process is writing ``run``.
     ValueError
         ``run`` holds a run (or other files) and ``resume`` is false; ``resume`` with a corrupted
-        checkpoint, a config that differs from the saved one, no checkpoint beside other files, or
-        ``metrics.jsonl`` missing rows up to the checkpoint (nothing is changed then); ``tensorboard``
-        without ``run``.
+        checkpoint, another config, no checkpoint beside other files, or ``metrics.jsonl`` missing rows
+        up to the checkpoint (nothing is changed then); ``tensorboard`` without ``run``.
     ImportError
         ``tensorboard`` without the optional extra.
     """
@@ -270,10 +245,8 @@ def train_batch(trainers: list[Any], runs: list[RunDirectory | None] | None = No
     """Train several runs as one computation (:class:`mixedrl.algorithms.batched.BatchedAGPI` or
     :class:`mixedrl.algorithms.batched_ddpg.BatchedDDPG`), each into its own directory.
 
-    :func:`train` is this function with one run. Every run keeps what a run alone has: its directory
-    (the same layout), its lock (all are taken before anything is written, so a batch never shares a
-    directory with another writer), its checkpoints, metrics, evaluation and ``results.json``, its
-    budget (a run that reached it, or stopped, leaves the batch's iterations), and ``resume``.
+    :func:`train` is this function with one run. Every run keeps its directory, lock (all taken before
+    anything is written), checkpoints, metrics, ``results.json``, budget and ``resume``.
 
     Parameters
     ----------
@@ -288,7 +261,7 @@ def train_batch(trainers: list[Any], runs: list[RunDirectory | None] | None = No
         As for :func:`train`, per run (``callback`` gets every run's rows; ``train_seconds`` and
         ``time/elapsed_s`` are the batch's wall time while the run was in it).
     observers : list of IterationObserver or None, optional
-        One per trainer (``None`` entries: none), as ``observer`` of :func:`train`.
+        One per trainer (``None``: none), as ``observer`` of :func:`train`.
 
     Returns
     -------
@@ -301,9 +274,8 @@ def train_batch(trainers: list[Any], runs: list[RunDirectory | None] | None = No
     RunLockedError
         Another process is writing one of the directories (nothing is written into any of them).
     ValueError
-        As for :func:`train` (for any run: nothing is then written into any of them); ``runs`` of another
-        length than ``trainers``; two runs on one directory; several trainers that cannot share a batch
-        (Algorithm-2 and DDPG runs mixed, another task or a shared field that differs).
+        As for :func:`train`, for any run (nothing is then written into any); ``runs`` of another length;
+        two runs on one directory; trainers that cannot share a batch.
     """
     trainers = list(trainers)
     if not trainers:
@@ -383,8 +355,7 @@ def _train(trainers: list[Any], engine: Callable[[list[bool]], list[dict[str, fl
     n = len(trainers)
     memory_rows: list[list[dict[str, Any]]] = [[] for _ in range(n)]
     elapsed = [0.0] * n
-    # a run started from scratch writes config.json with its first checkpoint: a run that fails before it
-    # (an invalid setting found by the first iteration) leaves its directory empty, free for a plain rerun
+    # config.json is written with the first checkpoint: a run failing before it leaves its directory empty
     config_due = [False] * n
     for i, (trainer, run, state) in enumerate(zip(trainers, runs, states)):
         if run is None:
@@ -437,8 +408,7 @@ def _train(trainers: list[Any], engine: Callable[[list[bool]], list[dict[str, fl
             t0 = time.perf_counter()
             rows = engine(active)
             dt = time.perf_counter() - t0
-            # the evaluations due at this iteration, of every run of the batch at once: the periodic ones (a
-            # monitor) with batched policy calls, a run's last one exact (it is also its final evaluation)
+            # the evaluations due now, all runs at once: periodic ones batched, a run's last one exact
             due = [i for i in range(n) if active[i] and _evaluation_due(trainers[i])]
             last = [i for i in due if _finished(trainers[i])]
             evaluations: dict[int, dict[str, Any]] = {}

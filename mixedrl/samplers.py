@@ -1,32 +1,24 @@
 """Where Algorithm 2's PEV/PIM states come from when it plans on the model: :class:`ModelStateSampler`
-(the departure hook *sampler*, :mod:`mixedrl.departures.sampler`).
+(a departure, :mod:`mixedrl.departures.sampler`; docs/model_based.rst).
 
-With a model-rollout sampler (``TrainConfig.sampler.name`` ``"model_rollouts"``, or a task's own such as the
-double lane change's ``"dlc_course"``; :data:`SAMPLER_CLASSES`) the batch ``x`` of eqs. (49)-(52) is made of states of
-``batch_size`` rollouts of the *planning* model
+With a model-rollout sampler (``sampler.name`` ``"model_rollouts"``, or a task's own: :data:`SAMPLER_CLASSES`)
+the batch ``x`` of eqs. (49)-(52) is made of states of ``batch_size`` rollouts of the *planning* model
 
 .. math::
 
     x_{t+1} = f(x_t, \\pi^k(x_t)) + E\\, \\hat\\xi_t, \\qquad \\hat\\xi_t \\sim N(\\hat\\mu_k, \\hat K_k),
 
-driven by the current policy, with ``N(mu_hat_k, K_hat_k)`` the method's noise source (the IBE posterior
-for mixed RL, the prior for model-driven RL, the true law for the oracle; for a state-dependent source,
-Case 3 of the IBE or the oracle on a road grade, the mean ``mu_hat_k(x_t, pi^k(x_t))`` of each rollout's
-state). The true environment is used
-only to collect the residuals ``xi^D`` (eq. 10) that the IBE consumes, at the rate the config sets
-(``true_envs`` copies driven ``true_steps`` steps every ``true_every`` iterations); a fixed noise source
-(model-driven, oracle) consumes no data, so those runs use **zero** true transitions.
+driven by the current policy, with ``N(mu_hat_k, K_hat_k)`` the method's noise source (for a
+state-dependent source, the mean at each rollout's state). The true environment only supplies the
+residuals ``xi^D`` (eq. 10) the IBE consumes (``true_envs`` copies driven ``true_steps`` steps every
+``true_every`` iterations); a fixed noise source (model-driven, oracle) uses no true transitions.
 
-With ``"model_rollouts"`` every rollout restarts from the task's training distribution
-(:class:`mixedrl.config.ModelRolloutsSampler`). A task may register its own model-rollout sampler: a subclass
-of :class:`ModelStateSampler` overriding the hooks :meth:`~ModelStateSampler.copy_horizons`,
-:meth:`~ModelStateSampler.expired`, :meth:`~ModelStateSampler.restart` and
-:meth:`~ModelStateSampler.after_step`, registered with its options class (:func:`mixedrl.config.register_sampler`;
-the double lane change's course sampler, :mod:`mixedrl.envs.dlc_sampler`).
-
-A rollout also restarts when it leaves the box ``|observe(x)_i| <= box * obs_scale_i``: outside it
-the critic would be trained on states far from anything the policy has to handle (see
-docs/model_based.rst).
+A rollout restarts after its horizon, at a terminal state, or when it leaves the box
+``|observe(x)_i| <= box * obs_scale_i``. A task may register its own sampler: a subclass of
+:class:`ModelStateSampler` overriding the hooks :meth:`~ModelStateSampler.check_task`,
+:meth:`~ModelStateSampler.copy_horizons`, :meth:`~ModelStateSampler.expired`,
+:meth:`~ModelStateSampler.restart` and :meth:`~ModelStateSampler.after_step`, registered with its options
+class (:func:`mixedrl.config.register_sampler`; e.g. :mod:`mixedrl.envs.dlc_sampler`).
 """
 
 from __future__ import annotations
@@ -49,10 +41,8 @@ __all__ = ["ModelStateSampler", "SAMPLER_CLASSES", "course_starts", "course_leng
 def course_starts(task: Task, n: int, generator: torch.Generator, along: bool = False) -> torch.Tensor:
     """``n`` episode start states of ``task``, float64, shape (n, state_dim).
 
-    The double lane change starts at the beginning of the course (``task.model.initial_states``, a small
-    perturbation of the reference at ``X = 0``), or with ``along=True`` at a point drawn uniformly along
-    the course (``X ~ U(0, course_length)``, the same perturbation); a task without a course starts from
-    its training distribution (``sample_initial``).
+    A task with a course starts near its beginning (``task.model.initial_states``), or with ``along=True``
+    at a point drawn uniformly along it; a task without one draws from ``sample_initial``.
     """
     model = getattr(task, "model", None)
     if model is not None and hasattr(model, "initial_states"):
@@ -83,8 +73,7 @@ class ModelStateSampler:
         ``algorithm.batch_size``, ``algorithm.horizon`` and the sampler's options ``config.sampler``
         (:class:`~mixedrl.config.ModelRolloutsSampler` or a subclass).
     generator : torch.Generator
-        The run's generator (every draw of the sampler comes from it, so a run is reproducible and
-        resumable).
+        The run's generator, the source of every draw of the sampler.
 
     Attributes
     ----------
@@ -98,8 +87,8 @@ class ModelStateSampler:
     """
 
     def __new__(cls, task: Task, config: TrainConfig, generator: torch.Generator) -> "ModelStateSampler":
-        """``ModelStateSampler(task, config, generator)`` builds the class registered for ``config.sampler.name``
-        (:data:`SAMPLER_CLASSES`; a task's own subclass, such as the double lane change's course sampler)."""
+        """``ModelStateSampler(task, config, generator)`` builds the class registered for
+        ``config.sampler.name`` (:data:`SAMPLER_CLASSES`)."""
         registered = SAMPLER_CLASSES.get(getattr(config.sampler, "name", None))
         if cls is ModelStateSampler and isinstance(registered, type) and issubclass(registered, cls):
             cls = registered
@@ -110,7 +99,7 @@ class ModelStateSampler:
         if not isinstance(opts, ModelRolloutsSampler):
             raise ValueError(f"config: sampler.name is {opts.name!r}, not a model-rollout sampler")
         self.task, self.config, self.generator = task, config, generator
-        #: The sampler's options (``config.sampler``); a plain model-rollout sampler has no course copies.
+        #: The sampler's options (``config.sampler``).
         self.options = opts
         B = config.algorithm.batch_size
         #: Steps after which each copy restarts (:meth:`copy_horizons`).
@@ -143,7 +132,7 @@ class ModelStateSampler:
         return self.steps >= self.horizons
 
     def restart(self, done: torch.Tensor) -> None:
-        """Restart the copies flagged in ``done`` from the task's wide training distribution."""
+        """Restart the copies flagged in ``done`` (bool, (B,)) from ``task.sample_initial``."""
         self.states[done] = self.task.sample_initial(int(done.sum()), self.generator)
         self.steps[done] = 0
         self.restarts += int(done.sum())
@@ -203,9 +192,8 @@ class ModelStateSampler:
         Returns
         -------
         torch.Tensor, shape (M, noise_dim)
-            Finite residuals ``xi^D`` of eq. (10) in noise coordinates (:meth:`Task.residuals`; rows the
-            plant may have clipped are dropped), float64. Every step counts
-            ``true_envs`` transitions in :attr:`true_transitions`.
+            Finite residuals ``xi^D`` of eq. (10) (:meth:`Task.residuals`; clipped rows dropped), float64.
+            Every step adds ``true_envs`` to :attr:`true_transitions`.
         """
         task, cfg = self.task, self.options
         out, states, actions = [], [], []
@@ -266,10 +254,8 @@ class ModelStateSampler:
 
     # ------------------------------------------------------------------------------------ checkpoints
     def state_dict(self) -> dict[str, Any]:
-        """Rollout states and clocks, true-copy states and clocks, counters; with a plant that has started
-        episodes also ``plant_episodes`` (:attr:`PlantCopies.episodes <mixedrl.plant.PlantCopies>`, so a
-        resumed run continues the plant's episode seeds; absent while 0, so a fresh sampler's state, the
-        template a checkpoint is checked against, does not require it of older checkpoints)."""
+        """Rollout states and clocks, true-copy states and clocks, counters, and with a plant that has
+        started episodes ``plant_episodes`` (so a resumed run continues the plant's episode seeds)."""
         state = {"states": self.states.clone(), "steps": self.steps.clone(), "true_states": self.true_states.clone(),
                  "true_steps": self.true_steps.clone(), "true_transitions": self.true_transitions,
                  "restarts": self.restarts}
@@ -280,8 +266,7 @@ class ModelStateSampler:
     def load_state_dict(self, state: dict[str, Any]) -> None:
         """Restore :meth:`state_dict`.
 
-        A state without ``plant_episodes`` (a checkpoint of a run without a plant, or from before the key)
-        restarts the plant's episode seeds at 0.
+        A state without ``plant_episodes`` restarts the plant's episode seeds at 0.
 
         Raises
         ------
@@ -325,6 +310,5 @@ class _Implementations(Mapping):
 
 
 #: Sampler name -> the class that makes Algorithm 2's batch (``None``: the true copies of
-#: :class:`mixedrl.algorithms.agpi.AGPI` itself): a read-only view of the one registry :data:`mixedrl.config.SAMPLERS`
-#: (:func:`mixedrl.config.register_sampler`).
+#: :class:`mixedrl.algorithms.agpi.AGPI`), a read-only view of :data:`mixedrl.config.SAMPLERS`.
 SAMPLER_CLASSES: Mapping[str, type | None] = _Implementations()

@@ -1,6 +1,5 @@
-"""The budget and the optimiser steps of Algorithm 2: the budget of a run on its task (:func:`resolve_budget`),
-one gradient step (:func:`descend`, one run or many stacked) and the learning-rate schedule shared by
-Algorithm 2 (:mod:`mixedrl.algorithms.agpi`) and DDPG."""
+"""The budget of a run on its task (:func:`resolve_budget`), one gradient step (:func:`descend`, one run or
+many stacked) and the learning-rate schedule shared by Algorithm 2 and DDPG."""
 
 from __future__ import annotations
 
@@ -16,15 +15,12 @@ __all__ = ["resolve_budget", "lr_factor", "set_learning_rates", "descend", "Desc
 def resolve_budget(config: TrainConfig, task: Any) -> tuple[TrainConfig, int]:
     """The config an Algorithm-2 run on ``task`` trains with, and the factor its budget was scaled by.
 
-    On a task that declares a state region (``task.declares_region()``, a global task) Algorithm 2 trains
-    ``f = algorithm.region_budget`` times ``algorithm.iterations`` iterations; a sampler with a
-    ``true_every`` period drives the true system ``f`` times less often, and the periodic evaluations come
-    every ``f * run.eval_every`` iterations, so the true transitions of training
-    (``true_envs * true_steps * iterations / true_every``) and of evaluation stay those of ``iterations``.
-    Everything that runs over the budget (the learning-rate decay, the rollouts' discount ramp) stretches
-    with it; the checkpoint period and an explicit ``lr_decay_iterations`` do not. The
-    resolved config has ``region_budget`` 1, so resolving it again changes nothing (a saved ``config.json``
-    is the resolved one, and a resume or ``evaluate_run`` built from it trains the same budget).
+    On a task that declares a state region (``task.declares_region()``) Algorithm 2 trains
+    ``f = algorithm.region_budget`` times ``algorithm.iterations`` iterations, with ``sampler.true_every``
+    and ``run.eval_every`` ``f`` times longer, so the true transitions stay those of ``iterations``. What
+    runs over the budget (learning-rate decay, discount ramp) stretches with it; the checkpoint period and
+    an explicit ``lr_decay_iterations`` do not. The resolved config has ``region_budget`` 1, so resolving
+    it again changes nothing.
 
     Parameters
     ----------
@@ -36,9 +32,8 @@ def resolve_budget(config: TrainConfig, task: Any) -> tuple[TrainConfig, int]:
     Returns
     -------
     config : TrainConfig
-        ``config`` itself where the rule does not apply (DDPG, a task without a region, ``region_budget``
-        1), else a copy with ``iterations``, ``sampler.true_every`` and ``run.eval_every`` scaled and
-        ``region_budget`` 1.
+        ``config`` itself where the rule does not apply (DDPG, no region, ``region_budget`` 1), else the
+        scaled copy.
     factor : int
         ``region_budget`` where the rule applied, else 1.
     """
@@ -75,10 +70,8 @@ def lr_factor(config: TrainConfig, k: int) -> float:
 
     Notes
     -----
-    Not in the paper (eqs. 50 and 52 use fixed step sizes); a decay makes the last iterates settle. With
-    ``lr_decay_iterations = L`` a budget ``K >= L`` is the ``L``-iteration run followed by ``K - L``
-    iterations at the final rates (its first ``L`` iterates are those of the ``L``-iteration run); a
-    budget below ``L`` decays over the budget, so every run ends at the final rates.
+    A departure (eqs. 50 and 52 use fixed step sizes): the decay makes the last iterates settle. A budget
+    ``K >= L`` is the ``L``-iteration run followed by ``K - L`` iterations at the final rates.
     """
     algo = config.algorithm
     length = min(algo.lr_decay_iterations, algo.iterations) if algo.lr_decay_iterations else algo.iterations
@@ -93,9 +86,8 @@ def set_learning_rates(config: TrainConfig, k: int, critic_opt: torch.optim.Opti
     Parameters
     ----------
     config : TrainConfig
-        Supplies ``critic_lr`` and ``actor_lr`` (the method's own: ``algorithm.*`` for Algorithm 2,
-        ``ddpg.*`` for DDPG, :func:`mixedrl.config.optimiser_section`) and the shared ``iterations``,
-        ``lr_decay_iterations`` and ``lr_decay_to``.
+        Supplies the method's ``critic_lr`` and ``actor_lr`` (:func:`mixedrl.config.optimiser_section`)
+        and the shared decay settings.
     k : int
         Iteration index.
     critic_opt, actor_opt : torch.optim.Optimizer
@@ -112,7 +104,7 @@ def set_learning_rates(config: TrainConfig, k: int, critic_opt: torch.optim.Opti
 def descend(loss: torch.Tensor, leaves: Sequence[torch.Tensor], run_params: Sequence[Sequence[torch.Tensor]],
             optimizers: Sequence[torch.optim.Optimizer], grad_clips: Sequence[float],
             active: Sequence[int] | None = None) -> None:
-    """One gradient step per run: ``theta_r <- theta_r - step(dJ_r / dtheta_r)`` (clipped, then each run's own optimiser).
+    """One gradient step per run: the gradient of ``J_r`` clipped, then run ``r``'s own optimiser's step.
 
     Parameters
     ----------
@@ -151,23 +143,15 @@ def descend(loss: torch.Tensor, leaves: Sequence[torch.Tensor], run_params: Sequ
 
 
 class Descent:
-    """The gradient steps of one network of ``R`` runs (``R = 1`` included): :func:`descend` bound to the
-    tensors, the runs' optimisers and their gradient clips.
+    """The gradient steps of one network of ``R`` runs: :func:`descend` bound to the tensors, the runs'
+    optimisers and their gradient clips.
 
     Parameters
     ----------
-    leaves : sequence of torch.Tensor
-        The tensors the gradient is taken with respect to (one run: its parameters; ``R`` stacked runs:
-        the stacked parameters, :class:`mixedrl.algorithms.batched.StackedNetwork`).
-    run_params : sequence of sequences of torch.Tensor
-        Per run, its parameters in the order of ``leaves``.
-    optimizers : sequence of torch.optim.Optimizer
-        Per run, its optimiser.
-    grad_clips : sequence of float
-        Per run, the largest gradient norm.
+    leaves, run_params, optimizers, grad_clips
+        As for :func:`descend` (stacked runs: :class:`mixedrl.algorithms.batched.StackedNetwork`).
     mode : {"off", "on", "functional"}, optional
-        ``algorithm.compile`` (:mod:`mixedrl.compiled`): how :meth:`minimise` steps. ``"off"`` (the default):
-        the eager step (:func:`descend`).
+        ``algorithm.compile`` (:mod:`mixedrl.compiled`): how :meth:`minimise` steps (``"off"``: :func:`descend`).
     """
 
     def __init__(self, leaves: Sequence[torch.Tensor], run_params: Sequence[Sequence[torch.Tensor]],
@@ -192,10 +176,9 @@ class Descent:
 
     def minimise(self, loss: Callable[..., torch.Tensor], tensors: Sequence[torch.Tensor],
                  active: Sequence[int] | None = None, key: Hashable = None) -> torch.Tensor:
-        """Each (active) run's clipped step on a pure loss ``loss(params, *tensors)`` (:mod:`mixedrl.compiled`):
-        eagerly (:meth:`__call__` on ``loss(leaves, *tensors)``) when :attr:`mode` is ``"off"``, else by a
-        :class:`mixedrl.compiled.Update` kept per ``key`` (default: ``loss`` itself), compiled for ``"on"``.
-        Returns the loss before the step, detached."""
+        """Each (active) run's clipped step on a pure loss ``loss(params, *tensors)``: eagerly when
+        :attr:`mode` is ``"off"``, else by a :class:`mixedrl.compiled.Update` kept per ``key`` (default:
+        ``loss``). Returns the loss before the step, detached."""
         from mixedrl.compiled import minimise
 
         return minimise(self, loss, tensors, active, key)

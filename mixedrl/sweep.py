@@ -1,41 +1,12 @@
 """Sweeps: a grid of ordinary training runs (config fields x variants x methods x seeds), executed on a local
-process pool or on Ray.
+process pool or on Ray (``mixedrl sweep``; docs/sweeps.rst: the spec, the engines, the outputs, resuming).
 
-::
-
-    mixedrl sweep SPEC.toml --out DIR [--workers N] [--force] [--batch N] [--address ADDR] [--num-cpus N]
-                  [--resume] [--no-progress]
-
-The spec (a small TOML file of methods, seeds, ``[base]``, ``[grid]`` and ``[variants.NAME]`` tables) is
-parsed, checked and expanded by :mod:`mixedrl.sweep_spec`; the batches are run by :mod:`mixedrl.sweep_engines`.
-This module writes the sweep directory and re-exports every public name of both.
-
-Every run is an ordinary run directory (:class:`mixedrl.runs.RunDirectory`) under ``DIR/runs/``, trained by
-:func:`mixedrl.runs.make_trainer` and :func:`mixedrl.runs.train_batch` in batches (:func:`plan_batches`: runs
-with equal :func:`mixedrl.algorithms.batched.batch_key`, at most ``--batch`` per batch, default
-:data:`DEFAULT_BATCH`; DDPG runs alone, or with ``--batch-ddpg`` among themselves): a run of a batch ends with
-exactly the weights and metrics of the same config in any other batch of two or more, and with ``--batch 1``
-with exactly those of ``mixedrl train``.
-
-One driver writes a sweep directory: it holds ``DIR/.lock`` (:func:`mixedrl.runs.hold_lock`) from its checks
-to its last write, and its pool workers end when it dies (:func:`mixedrl.sweep_engines._die_with_parent`).
-
-Engines (the same outputs from each): a local process pool (default; ``--workers N`` ``spawn`` processes of
-:class:`concurrent.futures.ProcessPoolExecutor`, one batch per task, the longest first; ``--workers 1`` trains
-in this process) or Ray when ``--address`` is given (the optional extra ``sweep``: one task per batch,
-``num_cpus=1``; ``--address local`` starts a local cluster of ``--num-cpus`` CPUs). Each batch sets
-``torch.set_num_threads(config.run.num_threads)``; a failed run is recorded with its error and does not stop
-the others.
-
-Outputs in ``DIR`` (docs/sweeps.rst, "Outputs", gives every field): ``spec.toml``, ``runs/<name>/`` (one run
-directory per run, :func:`run_name`), ``sweep.json`` (the spec, the engine, the batches, ``runs``: one row per
-run, the one result schema of every study, and ``summary``: per grid point and method, mean, sample std and
-95% bootstrap interval over seeds, :func:`summarize`; rewritten atomically after every finished run),
-``sweep.csv`` and ``sweep_summary.csv`` (:func:`csv_rows`) and ``figures/cost_vs_<first grid key>.png`` when
-matplotlib is installed. ``--resume`` skips finished runs and resumes interrupted ones from their checkpoints
-in their batches, so a resumed sweep ends with the results of an uninterrupted one.
-
-The statistics and CSV helpers are :mod:`mixedrl.tables`, shared with the studies' scripts."""
+:mod:`mixedrl.sweep_spec` parses and expands the spec and :mod:`mixedrl.sweep_engines` trains the batches
+(:func:`plan_batches`); this module writes the sweep directory and re-exports every public name of both.
+Every run is an ordinary run directory under ``DIR/runs/``; a run ends with the same weights in any batch
+of two or more, and with ``--batch 1`` with those of ``mixedrl train``. One driver writes a sweep directory
+(it holds ``DIR/.lock``), rewriting ``sweep.json`` atomically after every finished run; ``--resume`` ends
+with the results of an uninterrupted sweep."""
 
 
 from __future__ import annotations
@@ -62,8 +33,7 @@ from mixedrl.sweep_spec import (MAX_RUNS, SEED_MAX, SPEC_KEYS, SweepRun, SweepSp
 from mixedrl.sweep_engines import (DEFAULT_BATCH, Job, check_count, plan_batches, run_here, run_point, run_points,
                                    run_pool, run_ray)
 
-#: The names of the spec (:mod:`mixedrl.sweep_spec`), of the engines (:mod:`mixedrl.sweep_engines`) and this
-#: module's own.
+#: The names of :mod:`mixedrl.sweep_spec`, of :mod:`mixedrl.sweep_engines` and this module's own.
 __all__ = [*sweep_spec.__all__, *sweep_engines.__all__, "RESULT_KEYS", "INSTALL_HINT", "csv_rows", "run_sweep",
            "summarize", "make_figure", "add_parser", "add_arguments", "add_engine_arguments", "format_summary"]
 
@@ -83,8 +53,7 @@ INSTALL_HINT = 'pip install -c constraints.txt "mixedrl[sweep]"'
 # ----------------------------------------------------------------------------------------------------
 @functools.lru_cache(maxsize=4096)
 def _interval(values: tuple[float, ...]) -> tuple[float | None, float | None]:
-    """:func:`mixedrl.tables.bootstrap_interval`, cached: ``sweep.json`` is rewritten after every finished run,
-    and only the group of that run has new values (one interval costs tens of milliseconds)."""
+    """:func:`mixedrl.tables.bootstrap_interval`, cached (``sweep.json`` is rewritten after every run)."""
     return bootstrap_interval(values)
 
 
@@ -100,11 +69,9 @@ def summarize(records: list[dict[str, Any]]) -> list[dict[str, Any]]:
     -------
     list of dict
         One row per (grid point, method), in sweep order: ``point``, ``method``, ``runs`` (finished),
-        ``failed``, and ``<figure>_mean`` / ``<figure>_std`` / ``<figure>_ci_low`` / ``<figure>_ci_high``
-        for every figure of :data:`RESULT_KEYS` (:func:`mixedrl.tables.mean_std`: sample std, ``ddof=1``, 0
-        for one seed; :func:`mixedrl.tables.bootstrap_interval`: the seeded 95% percentile-bootstrap
-        interval of the mean, ``None`` for fewer than two seeds; all ``None`` when no run reports the
-        figure).
+        ``failed``, and ``<figure>_mean``, ``_std`` (:func:`mixedrl.tables.mean_std`), ``_ci_low``,
+        ``_ci_high`` (:func:`mixedrl.tables.bootstrap_interval`) for every figure of :data:`RESULT_KEYS`
+        (``None`` when no run reports it).
     """
     groups: dict[str, dict[str, Any]] = {}
     for rec in records:
@@ -143,8 +110,8 @@ SWEEP_FILES = ("spec.toml", "sweep.json", "sweep.csv", "sweep_summary.csv", "run
 
 
 def _check_out(out: Path, spec: SweepSpec, runs: list[SweepRun], resume: bool) -> None:
-    """Refuse an ``out`` that is a file, a symbolic link leading nowhere, holds anything but this sweep's
-    files, or holds a sweep without ``resume`` or of a different spec; reads only."""
+    """Refuse an ``out`` that is a file or a dangling link, holds files not this sweep's, or holds a sweep
+    without ``resume`` or of another spec; reads only."""
     if out.is_symlink() and not out.exists():
         raise ValueError(f"out: {out} is a symbolic link that does not resolve (a loop or a missing target)")
     if out.exists() and not out.is_dir():
@@ -190,10 +157,8 @@ def _write_outputs(out: Path, spec: SweepSpec, records: list[dict[str, Any]], ex
 
 
 def make_figure(out: str | Path, summary: list[dict[str, Any]], grid: dict[str, Sequence[Any]]) -> Path | None:
-    """Plot the course cost against the first grid key, one line per method (mean ± std over seeds).
-
-    Other grid keys are held at their first value. Numeric values go on a numeric axis, others on
-    categories.
+    """Plot the course cost (mean ± std over seeds) against the first grid key, one line per method, the
+    other grid keys at their first value.
 
     Parameters
     ----------
@@ -245,7 +210,7 @@ def make_figure(out: str | Path, summary: list[dict[str, Any]], grid: dict[str, 
 
 def _record(sweep_run: SweepRun, results: dict[str, Any] | None, error: str | None,
             wall_seconds: float | None = None) -> dict[str, Any]:
-    """One row of ``sweep.json``'s ``runs`` (the schema of the module docstring)."""
+    """One row of ``sweep.json``'s ``runs`` (docs/sweeps.rst, "One row per run")."""
     config = sweep_run.config.to_dict()
     figures = None
     metrics: dict[str, Any] = {}
@@ -265,8 +230,8 @@ def _record(sweep_run: SweepRun, results: dict[str, Any] | None, error: str | No
 
 
 def csv_rows(records: list[dict[str, Any]]) -> list[dict[str, Any]]:
-    """The rows of ``sweep.csv``: per run its name, grid values, method, seed, config hash, budget, metrics
-    (one column each), times, run directory and error.
+    """The rows of ``sweep.csv``: per run the fields of its ``sweep.json`` row but ``config``, grid values
+    and metrics one column each.
 
     Parameters
     ----------
@@ -297,26 +262,23 @@ def run_sweep(spec: SweepSpec, out: str | Path, address: str | None = None, num_
     spec : SweepSpec
         From :func:`load_spec` / :func:`parse_spec`.
     out : str or pathlib.Path
-        The sweep directory (on a shared file system when ``address`` names a multi-node cluster).
+        The sweep directory (on a shared file system for a multi-node cluster).
     address : str, optional
-        Run on Ray: the address of an existing cluster (``"auto"``, ``"HOST:6379"``, ``"ray://HOST:10001"``)
-        or ``"local"`` (start a local cluster of ``num_cpus`` CPUs). When Ray is already initialised in this
-        process, that cluster is used. ``None`` (default): the local process pool.
+        Run on Ray: an existing cluster (``"auto"``, ``"HOST:6379"``, ``"ray://HOST:10001"``; an already
+        initialised Ray is used as it is) or ``"local"`` (a local cluster of ``num_cpus`` CPUs). ``None``:
+        the local process pool.
     num_cpus : int, optional
         With ``address="local"``: CPUs of the local Ray cluster (default ``os.cpu_count()``). Without
-        ``address``: the older name of ``workers`` (giving both with different values is an error).
-        Ignored when joining a running cluster.
+        ``address``: another name of ``workers``.
     resume : bool
         Skip finished runs, resume interrupted ones from their checkpoints.
     progress : bool
         tqdm progress bar over runs.
     workers : int, optional
-        Processes of the local pool (default ``os.cpu_count()``; each run is single-threaded unless its
-        config sets ``run.num_threads``). ``1`` runs the batches one after the other in this process. Not
-        used with ``address``.
+        Processes of the local pool (default ``os.cpu_count()``); ``1`` trains in this process.
     batch : int
-        Most runs trained as one computation (:func:`plan_batches`; on Ray a task is a batch). ``1``:
-        every run alone, exactly as ``mixedrl train`` would.
+        Most runs trained as one computation (:func:`plan_batches`); ``1``: every run alone, as
+        ``mixedrl train``.
     batch_ddpg : bool
         Batch the DDPG runs too (``ddpg`` of :func:`plan_batches`); default: each DDPG run alone.
 
@@ -332,11 +294,10 @@ def run_sweep(spec: SweepSpec, out: str | Path, address: str | None = None, num_
     mixedrl.runs.RunLockedError
         Another sweep driver is running in ``out`` (the message names its pid and host); nothing is written.
     ValueError
-        ``out`` already holds a sweep and ``resume`` is false, ``resume`` with a different spec in
-        ``out/spec.toml`` or ``out/sweep.json``, ``out`` holds files that are not this sweep's (anything
-        but :data:`SWEEP_FILES`, or a run directory the spec does not name), ``num_cpus`` or ``workers``
-        not a positive integer, ``workers`` with ``address``, or ``workers`` and ``num_cpus`` that differ
-        without ``address``, ``batch`` not a positive integer. Nothing is started or written.
+        ``out`` holds a sweep and ``resume`` is false, or one of another spec; ``out`` holds files not this
+        sweep's (anything but :data:`SWEEP_FILES` and the spec's run directories); ``num_cpus``,
+        ``workers`` or ``batch`` not a positive integer; ``workers`` with ``address``, or ``workers`` and
+        ``num_cpus`` that differ. Nothing is started or written.
     """
     out = Path(os.path.realpath(out))
     runs = expand(spec)
@@ -363,8 +324,7 @@ def run_sweep(spec: SweepSpec, out: str | Path, address: str | None = None, num_
         out.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise ValueError(f"out: cannot create the directory {out} ({exc.strerror or exc})") from None
-    # one driver per sweep directory (the only writer of sweep.json): another driver, running or resuming
-    # beside this one, is refused while this one lives; the kernel releases the lock however it dies
+    # one driver per sweep directory, the only writer of sweep.json
     with hold_lock(out / LOCK_NAME, "out"):
         _check_out(out, spec, runs, resume)  # again under the lock: another driver may have written meanwhile
         started = False
@@ -380,7 +340,7 @@ def run_sweep(spec: SweepSpec, out: str | Path, address: str | None = None, num_
             t0 = time.perf_counter()
             parallel = (int(ray.cluster_resources().get("CPU", 1)) if ray is not None else n_workers)
             batches = plan_batches(runs, batch, max(1, parallel), ddpg=batch_ddpg)
-            # the longest first (the largest budget, then the largest batch), so that no long job starts last
+            # the longest first (largest budget, then largest batch)
             batches.sort(key=lambda b: (-max(runs[i].config.algorithm.iterations for i in b), -len(b), b[0]))
             jobs: list[Job] = [([runs[i].config.to_dict() for i in b], [str(out / "runs" / runs[i].name) for i in b],
                                  resume, spec.observer) for b in batches]
@@ -438,8 +398,8 @@ def run_sweep(spec: SweepSpec, out: str | Path, address: str | None = None, num_
 # command line
 # ----------------------------------------------------------------------------------------------------
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    """The options of ``mixedrl sweep`` (positional ``spec``, ``--out``, ``--workers``, ``--force``, ``--address``,
-    ``--num-cpus``, ``--resume``, ``--no-progress``)."""
+    """Add the options of ``mixedrl sweep`` to ``p`` (``spec``, ``--out``, ``--workers``, ``--force`` and
+    :func:`add_engine_arguments`)."""
     p.add_argument("spec", type=Path, help="sweep spec (TOML: methods, seeds, [base], [grid], [variants.NAME])")
     p.add_argument("--out", type=Path, required=True, help="sweep directory (shared by every node of a cluster)")
     p.add_argument("--workers", type=int, default=None,
@@ -450,8 +410,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def add_engine_arguments(p: argparse.ArgumentParser) -> None:
-    """The engine's options shared by ``mixedrl sweep`` and the study drivers: ``--address``, ``--num-cpus``,
-    ``--batch``, ``--resume``, ``--no-progress``."""
+    """Add the engine's options shared by ``mixedrl sweep`` and the study drivers to ``p``."""
     p.add_argument("--address", default=None,
                    help="run on Ray: join a cluster (e.g. 'auto' or HOST:6379) or 'local' to start one; "
                         "default: the local process pool")
@@ -475,8 +434,8 @@ def add_parser(subparsers: Any) -> None:
 
 
 def format_summary(doc: dict[str, Any], out: str | Path) -> str:
-    """The summary of a finished sweep as text: one line per grid point x method (runs, failures, course cost
-    mean ± std over seeds), then where ``sweep.json`` and the summary CSV are.
+    """The summary of a finished sweep as text: per grid point and method the runs, failures and course
+    cost (mean ± std), then the paths of ``sweep.json`` and the summary CSV.
 
     Parameters
     ----------

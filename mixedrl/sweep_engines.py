@@ -1,7 +1,5 @@
-"""Sweep execution: one batch of runs trained by :func:`mixedrl.runs.train_batch` (:func:`run_points`), the
-batches of a sweep (:func:`plan_batches`), and the executors that run them here, on a process pool or on Ray.
-
-:mod:`mixedrl.sweep` (the driver) re-exports every public name of this module.
+"""Sweep execution: the batches of a sweep (:func:`plan_batches`), one batch trained (:func:`run_points`),
+and the executors that run them here, on a process pool or on Ray (re-exported by :mod:`mixedrl.sweep`).
 """
 
 from __future__ import annotations
@@ -26,8 +24,7 @@ from mixedrl.tasks import task_from_config
 
 __all__ = ["run_point", "run_points", "plan_batches", "DEFAULT_BATCH"]
 
-#: Most runs trained as one computation (:func:`mixedrl.runs.train_batch`) by default: at 15 runs a batch
-#: already makes 1.7x the run-iterations per second of the runs one by one (``benchmarks/batched_table.py``).
+#: Most runs trained as one computation (:func:`mixedrl.runs.train_batch`) by default (docs/sweeps.rst).
 DEFAULT_BATCH = 16
 
 
@@ -58,11 +55,7 @@ def run_point(config: dict[str, Any], path: str, resume: bool = False) -> dict[s
 
 def run_points(configs: list[dict[str, Any]], paths: list[str], resume: bool = False,
                observer: str | None = None) -> list[dict[str, Any]]:
-    """Train the runs of one batch of a sweep, each into its path; the body of a pool or Ray task.
-
-    :func:`mixedrl.runs.make_trainer` for each run, then :func:`mixedrl.runs.train_batch` (one run:
-    :func:`mixedrl.runs.train`, which is ``mixedrl train``), which sets
-    ``torch.set_num_threads(config.run.num_threads)``.
+    """Train the runs of one batch of a sweep, each into its path (:func:`mixedrl.runs.train_batch`).
 
     Parameters
     ----------
@@ -73,9 +66,8 @@ def run_points(configs: list[dict[str, Any]], paths: list[str], resume: bool = F
         The run directories.
     resume : bool
         A run with ``results.json`` is returned without training; the others continue from their
-        checkpoints, in one batch. When a single run of a batch is left, the batch's last finished run
-        is restored from its checkpoint beside it (in memory, not rewritten) so that it keeps the
-        batched arithmetic of the uninterrupted sweep.
+        checkpoints, in one batch (a single run left keeps a finished one beside it, in memory, so that
+        its arithmetic stays the batch's).
     observer : str, optional
         The spec's ``observer`` (:func:`resolve_observer`).
 
@@ -87,8 +79,8 @@ def run_points(configs: list[dict[str, Any]], paths: list[str], resume: bool = F
     Raises
     ------
     ValueError
-        A run directory is refused (``resume`` and another config, or foreign files; the others of the
-        batch have trained), or ``configs`` and ``paths`` of different lengths.
+        A run directory is refused (the others of the batch have trained), or ``configs`` and ``paths``
+        of different lengths.
     """
     outcomes = _train_points(configs, paths, resume, observer)
     for results, error in outcomes:
@@ -99,8 +91,7 @@ def run_points(configs: list[dict[str, Any]], paths: list[str], resume: bool = F
 
 def _train_points(configs: list[dict[str, Any]], paths: list[str], resume: bool,
                   observer: str | None) -> list[tuple[dict[str, Any] | None, str | None]]:
-    """:func:`run_points`, per run ``(results, None)`` or ``(None, error text)``: a run whose directory is
-    refused (another config, foreign files) fails alone, the others of its batch train."""
+    """:func:`run_points`, per run ``(results, None)`` or ``(None, error text)`` (a refused run fails alone)."""
     if len(configs) != len(paths):
         raise ValueError(f"paths: {len(paths)} paths for {len(configs)} configs")
     cfgs = [TrainConfig.from_dict(c) for c in configs]
@@ -109,8 +100,7 @@ def _train_points(configs: list[dict[str, Any]], paths: list[str], resume: bool,
     todo, finished = [], []
     for i, (cfg, run_dir) in enumerate(zip(cfgs, dirs)):
         try:
-            # what the trainer trains and its run directory holds: the budget resolved on the task (a global
-            # task's is region_budget times longer, mixedrl.schedule.resolve_budget)
+            # the budget resolved on the task, as the trainer and its config.json have it
             if cfg.method != "ddpg":
                 cfg = resolve_budget(cfg, task_from_config(cfg.task))[0]
             if resume and run_dir.results_path.is_file():
@@ -131,7 +121,7 @@ def _train_points(configs: list[dict[str, Any]], paths: list[str], resume: bool,
     run_dirs: list[RunDirectory | None] = [dirs[i] for i in todo]
     observers = [None if factory is None else factory(cfgs[i]) for i in todo]
     if len(todo) == 1 and finished:
-        # the batch's other runs finished: one of them, restored and inactive, keeps this run batched
+        # one finished run, restored and inactive, keeps this run batched
         j = finished[0]
         companion = make_trainer(cfgs[j])
         load_trainer(companion, dirs[j].checkpoint_path)
@@ -146,7 +136,7 @@ def _train_points(configs: list[dict[str, Any]], paths: list[str], resume: bool,
 
 def _timed_run_points(configs: list[dict[str, Any]], paths: list[str], resume: bool,
                       observer: str | None) -> tuple[list[tuple[dict[str, Any] | None, str | None]], float]:
-    """:func:`_train_points` and its wall time in seconds (start-up, training and evaluation of the batch)."""
+    """:func:`_train_points` and its wall time in seconds."""
     t0 = time.perf_counter()
     outcomes = _train_points(configs, paths, resume, observer)
     return outcomes, time.perf_counter() - t0
@@ -156,17 +146,11 @@ def plan_batches(runs: Sequence[SweepRun], batch: int = DEFAULT_BATCH, workers: 
                  ddpg: bool = False) -> list[list[int]]:
     """Group a sweep's runs into batches trained as one computation each.
 
-    Runs with equal :func:`mixedrl.algorithms.batched.batch_key` (the kind of algorithm, Algorithm 2 or
-    DDPG, the task, the network shapes and batch size; method, seed, budget and learning rates may differ)
-    form a group; DDPG runs only with ``ddpg=True``, otherwise each trains alone (measured on 2 cores, five
-    DDPG runs in one batch do 1.01-1.12 times the work per second of five alone, and a batch of the long
-    runs on one worker would leave the other idle: docs/algorithm2.rst). A
-    group of ``n`` runs is split into ``c`` batches of near-equal size, ``c`` the smallest number with at
-    most ``batch`` runs each, raised up to ``workers`` while every batch keeps two runs or more (so
-    that the workers share the work). A batch never holds a single run of a larger group: a run's bits
-    then depend only on whether its group has one run (or ``batch = 1``: every run alone, as
-    ``mixedrl train``), not on ``batch`` or ``workers`` (the batched engine gives a run the same bits in
-    any batch of two or more, :mod:`mixedrl.algorithms.batched`, :mod:`mixedrl.algorithms.batched_ddpg`).
+    Runs with equal :func:`mixedrl.algorithms.batched.batch_key` form a group (DDPG runs only with
+    ``ddpg=True``, else each alone). A group of ``n`` runs is split into the fewest near-equal batches of
+    at most ``batch`` runs, raised up to ``workers`` while every batch keeps two runs or more. A batch
+    never holds a single run of a larger group, so a run's bits do not depend on ``batch`` (above 1) or
+    ``workers``.
 
     Parameters
     ----------
@@ -209,15 +193,14 @@ def plan_batches(runs: Sequence[SweepRun], batch: int = DEFAULT_BATCH, workers: 
 
 
 def _error_text(exc: BaseException) -> str:
-    cause = getattr(exc, "cause", None)  # ray.exceptions.RayTaskError wraps the run's own exception
+    cause = getattr(exc, "cause", None)  # a RayTaskError wraps the run's own exception
     err = cause if isinstance(cause, BaseException) else exc
     return f"{type(err).__name__}: {err}"
 
 
 #: A job: one batch of runs, ``(configs, paths, resume, observer)`` (the arguments of :func:`run_points`).
 Job = tuple[list[dict[str, Any]], list[str], bool, "str | None"]
-#: A finished job as the executors report it: (index, per run (results, error text) or None, error text of
-#: the whole batch or None, wall seconds).
+#: A finished job: (index, per run (results, error text) or None, the batch's error text or None, wall seconds).
 Done = tuple[int, "list[tuple[dict[str, Any] | None, str | None]] | None", "str | None", "float | None"]
 
 
@@ -240,11 +223,7 @@ def _watch_parent(parent: int) -> None:
 
 def _die_with_parent(parent: int) -> None:
     """The initializer of a pool worker: the worker ends when the sweep driver (``parent``) dies, however it
-    dies (``kill -9`` included), instead of training on without anyone to record its runs.
-
-    On Linux the kernel sends the worker ``SIGKILL`` when the driver ends (``prctl(PR_SET_PDEATHSIG)``);
-    everywhere, a daemon thread also polls the parent's pid. A run killed so is resumed by ``--resume``.
-    """
+    dies (on Linux ``prctl(PR_SET_PDEATHSIG)``; everywhere a daemon thread polls the parent's pid)."""
     if sys.platform.startswith("linux"):
         try:
             ctypes.CDLL(None, use_errno=True).prctl(1, int(signal.SIGKILL), 0, 0, 0)  # 1: PR_SET_PDEATHSIG
@@ -256,9 +235,8 @@ def _die_with_parent(parent: int) -> None:
 
 
 def run_pool(jobs: list[Job], workers: int) -> Iterator[Done]:
-    """Run the jobs on a local pool of ``workers`` processes (``spawn``: a fresh interpreter each, no state
-    inherited from this one; each ends if this process dies, :func:`_die_with_parent`), yielding them as they
-    finish."""
+    """Run the jobs on a local pool of ``workers`` ``spawn`` processes (each ends if this process dies),
+    yielding them as they finish."""
     context = multiprocessing.get_context("spawn")
     with concurrent.futures.ProcessPoolExecutor(max_workers=workers, mp_context=context, initializer=_die_with_parent,
                                                 initargs=(os.getpid(),)) as pool:

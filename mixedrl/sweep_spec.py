@@ -1,17 +1,10 @@
 """Sweep specifications: their parsing, checks and expansion into runs (:mod:`mixedrl.sweep` executes them and
 re-exports every public name of this module).
 
-A spec is a small TOML file (docs/sweeps.rst, "Writing a spec", gives an example): ``methods`` and ``seeds`` lists,
-``[base]`` (dotted ``TrainConfig`` keys shared by every run), ``[grid]`` (dotted key -> list of values: the
-cartesian product), optional ``[variants.NAME]`` tables (named designs applied over ``[base]``, each with
-its own ``methods`` / ``seeds`` if it likes) and optional ``observer = "module:function"`` (``function(config)``
-returns the :class:`mixedrl.runs.IterationObserver` of each run). It expands to ``len(variants or [one]) x
-len(grid product) x len(methods) x len(seeds)`` runs, each named by :func:`run_name`.
-
-Before anything starts, the spec is checked (TOML syntax, top-level keys, non-empty lists without
-duplicates, variant tables, no TOML dates, seeds below ``2**64``, at most :data:`MAX_RUNS` runs unless
-``--force``) and the :class:`~mixedrl.config.TrainConfig` of **every** run is built (two runs with equal
-configs are an error); any error names the offending key and nothing is started or written.
+A spec is a TOML file of ``methods`` and ``seeds`` lists, ``[base]`` and ``[grid]`` tables of dotted
+``TrainConfig`` keys, optional ``[variants.NAME]`` tables and an optional ``observer`` (docs/sweeps.rst,
+"Writing a spec"). :func:`parse_spec` checks it and builds the config of **every** run before anything
+starts; an error names the offending key.
 """
 
 from __future__ import annotations
@@ -40,21 +33,19 @@ _RESERVED = {"method": "methods", "seed": "seeds"}
 _VARIANT_LISTS = ("methods", "seeds")
 #: Longest run name before it is shortened with a hash.
 _MAX_NAME = 160
-#: Most runs a spec may expand to without ``force`` (``mixedrl sweep --force``): checking a spec builds every
-#: run's config first (about 2 ms and 2.5 kB each), and a larger sweep is more likely a typo than a plan.
+#: Most runs a spec may expand to without ``force`` (``mixedrl sweep --force``).
 MAX_RUNS = 10_000
 #: The largest seed the generators accept (``torch.Generator.manual_seed``: 64 bits).
 SEED_MAX = 2**64 - 1
 
 
-#: Dotted-key overrides of a config dict: :func:`mixedrl.config.apply_overrides` (one implementation for
-#: ``mixedrl train --set`` and the sweep's ``[base]`` / ``[grid]`` keys).
+#: Dotted-key overrides of a config dict (:func:`mixedrl.config.apply_overrides`).
 apply_dotted = apply_overrides
 
 
 @dataclasses.dataclass(frozen=True)
 class SweepSpec:
-    """A parsed, checked sweep spec (see the module docstring).
+    """A parsed, checked sweep spec.
 
     Attributes
     ----------
@@ -69,13 +60,11 @@ class SweepSpec:
     text : str
         The spec's TOML text (copied to ``DIR/spec.toml``).
     variants : dict
-        Variant name -> its dotted-key overrides (applied over ``base``), and optionally ``methods`` /
-        ``seeds``: the variant's own lists; empty for a spec without ``[variants.NAME]`` tables. The runs
-        cover variants x grid points x methods x seeds.
+        Variant name -> its dotted-key overrides (over ``base``) and optionally its own ``methods`` /
+        ``seeds``; empty without ``[variants.NAME]`` tables.
     observer : str or None
-        ``"module:function"``: ``function(config)`` returns the :class:`mixedrl.runs.IterationObserver` of a
-        run (or ``None``), for example ``"validation.reproduce:theory_observer"`` (the theory checks);
-        resolved when the spec is parsed.
+        ``"module:function"``: ``function(config)`` returns a run's :class:`mixedrl.runs.IterationObserver`
+        (or ``None``).
     """
 
     methods: tuple[str, ...]
@@ -125,7 +114,7 @@ def _check_list(value: Any, key: str) -> list[Any]:
     if not value:
         raise ValueError(f"{key}: empty list (a sweep over nothing)")
     seen: set[str] = set()
-    for v in value:  # the same TOML value twice (1 and 1.0 differ here; equal configs are found by expand)
+    for v in value:  # 1 and 1.0 differ here; equal configs are found by expand
         text = f"{type(v).__name__}:{json.dumps(v, sort_keys=True, default=str)}"
         if text in seen:
             raise ValueError(f"{key}: duplicate value {v!r}")
@@ -152,16 +141,11 @@ def parse_spec(text: str, source: str = "spec", force: bool = False) -> SweepSpe
     Raises
     ------
     ValueError
-        Invalid TOML (``spec: ...``), an unknown top-level key (``spec: unknown key(s) ...``), a missing,
-        empty, non-list or duplicated ``methods`` / ``seeds`` / grid list (message starts with the key,
-        e.g. ``grid.critic_lr: ...``), ``method`` or ``seed`` set in ``[base]`` / ``[grid]``, a field
-        both in ``[base]`` and ``[grid]``, or a run whose config :meth:`TrainConfig.from_dict` rejects
-        (unknown or invalid field; message starts with the run's name), a ``[variants.NAME]`` that is not a
-        table, sets ``method`` / ``seed`` or a grid key, or has a ``methods`` / ``seeds`` that is not a
-        non-empty list without duplicates (``variants.NAME.KEY: ...``), a TOML date or time anywhere, a
-        seed beyond ``2**64 - 1``, more than :data:`MAX_RUNS` runs without ``force`` (``grid: ...``, checked
-        before any config is built), or two runs with equal configs (grid values equal after their
-        type is normalised, e.g. ``1`` and ``1.0`` of a float field: ``grid: ...`` naming both).
+        The message starts with the offending key (``spec``, ``methods``, ``grid.KEY``,
+        ``variants.NAME.KEY``, a run's name, ...): invalid TOML or an unknown top-level key; a missing,
+        empty, non-list or duplicated list; ``method`` / ``seed`` in a table; a field in two places; a
+        TOML date or time; a seed beyond ``2**64 - 1``; more than :data:`MAX_RUNS` runs without
+        ``force``; a run whose config is invalid; two runs with equal configs.
     """
     try:
         data = tomllib.loads(text)
@@ -232,8 +216,8 @@ def resolve_observer(name: Any) -> Any:
 
 
 def _parse_variants(table: Any, grid: dict[str, Any]) -> dict[str, dict[str, Any]]:
-    """Check the ``[variants.NAME]`` tables: each a table of dotted-key overrides (over ``[base]``), not
-    ``method`` / ``seed`` and not a grid key; ``methods`` / ``seeds`` (lists) give the variant its own."""
+    """Check the ``[variants.NAME]`` tables (overrides over ``[base]``, no ``method`` / ``seed`` or grid key;
+    optional own ``methods`` / ``seeds`` lists)."""
     if not isinstance(table, dict):
         raise ValueError(f"variants: expected tables [variants.NAME], got {type(table).__name__}")
     variants: dict[str, dict[str, Any]] = {}
@@ -293,8 +277,8 @@ def run_name(point: dict[str, Any], method: str, seed: int) -> str:
     """The directory name of one run: ``key=value`` of each grid value, then ``<method>_seed<S>``, joined by
     ``__`` (e.g. ``critic_lr=0.001__batch_size=256__mixed_seed0``).
 
-    Characters other than letters, digits, ``.``, ``+`` and ``-`` in a value become ``_``; a name longer than
-    160 characters is cut and ends with a hash of the full name, so it stays unique and deterministic.
+    Other characters than letters, digits, ``.``, ``+`` and ``-`` in a value become ``_``; a name longer
+    than 160 characters is cut and ends with a hash of the full name (unique and deterministic).
     """
     parts = [f"{key}={format_value(value)}" for key, value in point.items()] + [f"{method}_seed{seed}"]
     name = "__".join(parts)
@@ -316,8 +300,8 @@ def expand(spec: SweepSpec) -> list[SweepRun]:
     Raises
     ------
     ValueError
-        A run's config is invalid (message starts with ``base`` or the run's name, then the field), two
-        runs get the same directory name, or two runs the same config.
+        A run's config is invalid (message starts with ``base`` or the run's name), or two runs get the
+        same directory name or the same config.
     """
     defaults: dict = {}  # each run takes its task's experiment configuration for what the spec leaves out
     try:
@@ -372,8 +356,7 @@ def _numbers_as_floats(value: Any) -> Any:
 
 
 def config_hash(config: TrainConfig | dict[str, Any]) -> str:
-    """The sha256 (hex) of a run's configuration: of the canonical JSON of ``TrainConfig.to_dict()`` (keys
-    sorted, no whitespace), so two runs with equal configs have equal hashes wherever they ran.
+    """The sha256 (hex) of the canonical JSON (keys sorted, no whitespace) of ``TrainConfig.to_dict()``.
 
     Parameters
     ----------

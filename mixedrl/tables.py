@@ -1,13 +1,4 @@
-"""Statistics and CSV of result tables: the one implementation the sweep, the studies' scripts and the
-validation share.
-
-* :func:`mean_std`: mean and sample standard deviation of a figure over seeds;
-* :func:`bootstrap_interval`: a seeded percentile-bootstrap confidence interval of the mean
-  (:func:`scipy.stats.bootstrap`);
-* :func:`paired_interval`: the same for a paired comparison of two methods over the same seeds (mean
-  difference or ratio of means, seeds resampled together);
-* :func:`csv_text`: CSV of dict rows (columns: the union of their keys, in order of appearance).
-"""
+"""Statistics and CSV of result tables, shared by the sweep, the studies' scripts and the validation."""
 
 from __future__ import annotations
 
@@ -28,8 +19,7 @@ def mean_std(values: Sequence[float], one: float | None = 0.0) -> tuple[float | 
     values : sequence of float, shape (n,)
         One figure per seed.
     one : float or None
-        The standard deviation reported for a single value (default 0.0; ``None`` where a table must show
-        that one seed has no spread).
+        The standard deviation reported for a single value.
 
     Returns
     -------
@@ -85,9 +75,8 @@ def bootstrap_interval(values: Sequence[float], confidence: float = 0.95, n_resa
 def paired_interval(a: Sequence[float], b: Sequence[float], statistic: str = "difference",
                     confidence: float = 0.95, n_resamples: int = 9999,
                     seed: int = 0) -> tuple[float, float | None, float | None]:
-    """A paired comparison of ``a`` and ``b`` (one value per seed each, the same seeds in the same order)
-    and its percentile-bootstrap interval (:func:`scipy.stats.bootstrap` with ``paired=True``: the seeds
-    are resampled, each with both its values).
+    """A paired comparison of ``a`` and ``b`` (the same seeds in the same order) and its percentile-bootstrap
+    interval (:func:`scipy.stats.bootstrap` with ``paired=True``).
 
     Parameters
     ----------
@@ -143,8 +132,8 @@ def csv_text(rows: Iterable[dict[str, Any]], columns: Sequence[str] = ()) -> str
     rows : iterable of dict
         One dict per row.
     columns : sequence of str
-        Columns that come first (and are present even when no row has them); then the other keys of the rows,
-        in order of appearance.
+        Columns that come first (present even when no row has them); then the rows' other keys, in order
+        of appearance.
 
     Returns
     -------

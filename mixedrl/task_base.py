@@ -1,26 +1,19 @@
-"""The interface between the learning algorithms and a controlled system: :class:`Task` (defined here).
+"""The interface between the learning algorithms and a controlled system: :class:`Task` and :func:`check_task`.
 
-The base class :class:`Task` and the one-shot check :func:`check_task`; the rest point and the LQ problem it
-linearises to (:class:`Equilibrium`, :class:`Linearisation`, :func:`cost_hessian`) live in
-:mod:`mixedrl.equilibrium` and are re-exported here. Every task
-builds on this module: the built-in ones (:mod:`mixedrl.linear_task`, :mod:`mixedrl.envs.dlc_task`) and the
-pendulum. It imports none of them (nor :mod:`mixedrl.tasks`, the public face that imports them all and
-re-exports these names: ``from mixedrl.tasks import Task`` is the usual import), so there is no import
-cycle between the interface and its implementations.
-
-The true system is eq. (1) with the noise entering through a fixed matrix ``E``:
+Every task builds on this module, which imports none of them (the usual import is
+``from mixedrl.tasks import Task``); :class:`Equilibrium`, :class:`Linearisation` and :func:`cost_hessian`
+of :mod:`mixedrl.equilibrium` are re-exported here. The true system is eq. (1) with the noise entering
+through a fixed matrix ``E``:
 
 .. math::
 
     s_{t+1} = f(s_t, u_t) + E\\, \\xi_t, \\qquad \\xi_t \\sim N(\\mu, K),
 
-where ``s`` is the simulator state (``state_dim``), ``xi`` the additive uncertainty of the paper
-(``noise_dim``; for the vehicle the five components of eq. 53) and ``E`` (``state_dim x noise_dim``) any
-matrix of full column rank (a 0/1 selection, the ``[dt^2, dt]^T`` of a torque in a semi-implicit Euler
-step). The residual of eq. (10) in noise coordinates is the least-squares solution of
-``E xi = s' - f(s, u)`` (``E^T (s' - f)`` for a selection). The true system is simulated
-(:meth:`Task.true_step`) unless the task has a plant (:mod:`mixedrl.plant`). The policy and the critic see
-the observation ``observe(s)``; the utility is charged on the next state, ``l(s', u)`` (eq. 2).
+where ``s`` is the simulator state (``state_dim``), ``xi`` the additive uncertainty (``noise_dim``) and
+``E`` (``state_dim x noise_dim``) any matrix of full column rank. The residual of eq. (10) is the
+least-squares ``xi`` of ``E xi = s' - f(s, u)``. The true system is simulated (:meth:`Task.true_step`)
+unless the task has a plant (:mod:`mixedrl.plant`). The policy and the critic see ``observe(s)``; the
+utility is charged on the next state, ``l(s', u)`` (eq. 2).
 """
 
 from __future__ import annotations
@@ -44,8 +37,9 @@ __all__ = ["EQUILIBRIUM_ATOL", "Equilibrium", "Linearisation", "Task", "check_po
 class Task(abc.ABC):
     """A controlled system with a known deterministic part ``f`` and additive Gaussian noise (eq. 1).
 
-    Subclasses set the attributes below in ``__init__`` and implement the abstract methods. Every
-    tensor method is batched over the first dimension and differentiable in torch.
+    Subclasses set the attributes below in ``__init__`` (those up to ``obs_scale`` are required, the others
+    have defaults) and implement the abstract methods; :func:`check_task` checks them. Every tensor method
+    is batched over the first dimension and differentiable in torch.
 
     Attributes
     ----------
@@ -54,8 +48,7 @@ class Task(abc.ABC):
     gamma : float
         Discount factor of eq. (2).
     noise_matrix : torch.Tensor, shape (state_dim, noise_dim)
-        ``E``: how ``xi`` enters the state, any matrix of full column rank (independent columns:
-        :func:`mixedrl.ibe.common.check_noise_matrix`), e.g. a 0/1 selection or ``[dt^2, dt]^T``.
+        ``E``: how ``xi`` enters the state, of full column rank (e.g. a 0/1 selection or ``[dt^2, dt]^T``).
     prior_mean, prior_cov : numpy.ndarray, shapes (noise_dim,), (noise_dim, noise_dim)
         The designer's prior ``mu_M``, ``K_M`` (eq. 8).
     true_mean, true_cov : numpy.ndarray, shapes (noise_dim,), (noise_dim, noise_dim)
@@ -69,15 +62,12 @@ class Task(abc.ABC):
     true_mean_varies : bool
         Whether the true noise mean depends on the state (:meth:`true_mean_at`); ``False`` by default.
     lqr_reference : bool
-        Whether the discounted LQR at the equilibrium (true mean's feed-forward) is the yardstick of this
-        task's runs (:func:`mixedrl.precision.run_references`, ``results.json``: ``references``); ``True`` by
-        default, used only when the task has an equilibrium.
+        Whether the discounted LQR at the equilibrium is the yardstick of the task's runs
+        (:func:`mixedrl.precision.run_references`); ``True`` by default.
     name : str
-        The task's name in a run's results (``results["task"]``); the class name unless the subclass sets it.
-    eval_horizon : int
-        Steps of each rollout of the default :meth:`evaluate` (200 unless the subclass sets it).
-    eval_starts : int
-        Start states per evaluation seed of the default :meth:`evaluate` (64 unless the subclass sets it).
+        The task's name in a run's results; the class name by default.
+    eval_horizon, eval_starts : int
+        Steps per rollout (200) and start states per seed (64) of the default :meth:`evaluate`.
     action_limit : torch.Tensor or None, shape (action_dim,)
         Where the plant clips the action (``None``: it does not); ``f`` must apply the same clip.
     saturation_margin : float or torch.Tensor
@@ -89,20 +79,16 @@ class Task(abc.ABC):
         ``"simulated"`` (:meth:`evaluate` as below), ``"plant"`` or ``"none"``
         (:data:`mixedrl.plant.PLANT_EVALUATIONS`).
     plant_evaluate : callable or None
-        ``(policy, seeds, horizon) -> dict``, what :meth:`evaluate` does instead of its simulated rollouts
-        (set by :func:`mixedrl.plant.attach_plant` for ``plant_evaluation`` ``"plant"`` and ``"none"``).
+        ``(policy, seeds, horizon) -> dict``, what :meth:`evaluate` returns instead of its simulated
+        rollouts (set by :func:`mixedrl.plant.attach_plant`).
     evaluation_transitions : int
         Plant (or simulated plant) transitions the evaluations have used.
     last_evaluation_counts : list of int or None
         Per policy, the evaluation transitions of the last :meth:`evaluate_many`.
-    evaluates_on_plant : bool
-        Whether :meth:`evaluate` honours :attr:`plant_evaluate` (and so can run on a plant): True for the
-        default :meth:`evaluate`; a subclass overriding :meth:`evaluate` is taken not to unless it sets
-        the attribute itself (:func:`mixedrl.plant.attach_plant` refuses it an evaluation on the plant).
-    counts_evaluation_transitions : bool
-        Whether :meth:`evaluate` adds its transitions to :attr:`evaluation_transitions` (likewise: True
-        for the default, False for an override that does not set it; ``results.json`` then reports
-        ``plant_transitions.evaluation`` as ``null``).
+    evaluates_on_plant, counts_evaluation_transitions : bool
+        Whether :meth:`evaluate` honours :attr:`plant_evaluate` and adds its transitions to
+        :attr:`evaluation_transitions`: True for the default :meth:`evaluate`, False for a subclass that
+        overrides :meth:`evaluate` without setting them.
     """
 
     state_dim: int
@@ -137,7 +123,7 @@ class Task(abc.ABC):
         super().__init_subclass__(**kwargs)
         if "name" not in cls.__dict__:
             cls.name = cls.__name__
-        if "evaluate" in cls.__dict__:  # an own evaluate: what it does with a plant and the count is its to say
+        if "evaluate" in cls.__dict__:  # an own evaluate must declare these itself
             for flag in ("evaluates_on_plant", "counts_evaluation_transitions"):
                 if flag not in cls.__dict__:
                     setattr(cls, flag, False)
@@ -159,10 +145,8 @@ class Task(abc.ABC):
         """``n`` initial states of the training environments, float64, (n, state_dim)."""
 
     def sample_region(self, n: int, generator: torch.Generator) -> torch.Tensor:
-        """``n`` states drawn over the task's whole state region, float64, (n, state_dim): where the rollouts of
-        ``algorithm.rollout_region`` start (:mod:`mixedrl.departures.region`). A task declares a region by
-        overriding this method (:meth:`declares_region`); a task without one (here) gets no region starts, its
-        rollouts start from the sampler's batch.
+        """``n`` states drawn over the task's whole state region, float64, (n, state_dim), where the rollouts
+        of ``algorithm.rollout_region`` start. A task declares a region by overriding this method.
 
         Raises
         ------
@@ -181,12 +165,8 @@ class Task(abc.ABC):
         return ~torch.isfinite(s).all(dim=-1)
 
     def equilibrium(self) -> Equilibrium | None:
-        """A rest point ``f(s*, u*) = s*`` of the noise-free model where the precision yardstick
-        (:mod:`mixedrl.precision`) is taken; ``None`` here (a task without one has no ``policy_gap``).
-
-        Subclasses with an equilibrium override it (:class:`~mixedrl.linear_task.LinearTask`, the pendulum: the
-        origin; :class:`~mixedrl.envs.dlc_task.DoubleLaneChangeTask`: on the reference at the desired speed).
-        """
+        """A rest point ``f(s*, u*) = s*`` of the noise-free model, where the precision yardstick
+        (:mod:`mixedrl.precision`) is taken; ``None`` here. Subclasses with one override it."""
         return None
 
     def linearisation(self) -> Linearisation | None:
@@ -200,8 +180,7 @@ class Task(abc.ABC):
             Q = \\tfrac12 \\frac{\\partial^2 l}{\\partial s'^2},\\quad R = \\tfrac12 \\frac{\\partial^2 l}{\\partial u^2}
             \\ \\text{at } (s', u) = (s^*, u^*),\\qquad E = \\text{noise\\_matrix},
 
-        from :func:`torch.func.jacrev` and :func:`torch.func.hessian` of :meth:`f` and :meth:`cost` in
-        float64 (exact for a linear ``f`` and a quadratic ``l``, the second-order model otherwise).
+        from :func:`torch.func.jacrev` and :func:`torch.func.hessian` of :meth:`f` and :meth:`cost` in float64.
 
         Returns
         -------
@@ -210,10 +189,8 @@ class Task(abc.ABC):
         Raises
         ------
         ValueError
-            ``f(s*, u*) != s*`` (not a rest point), the cost's gradient at ``(s*, u*)`` is not zero (the
-            equilibrium is not the cost's minimum: the LQ problem would need linear terms), or its Hessian
-            couples ``s'`` and ``u`` (the LQ form has no cross term); the message names ``equilibrium`` or
-            ``cost``.
+            ``f(s*, u*) != s*``, the cost's gradient at ``(s*, u*)`` is not zero, or its Hessian couples
+            ``s'`` and ``u``; the message names ``equilibrium`` or ``cost``.
         """
         eq = self.equilibrium()
         if eq is None:
@@ -258,8 +235,8 @@ class Task(abc.ABC):
         return self.f(s, u.to(s.dtype)) + xi @ self.noise_matrix.to(s.dtype).T
 
     def true_mean_at(self, s: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
-        """The true noise mean at each state, (B, noise_dim) float64: ``true_mean`` on every row here
-        (subclasses whose mean depends on the state override it and set ``true_mean_varies``)."""
+        """The true noise mean at each state, (B, noise_dim) float64: ``true_mean`` here (a subclass whose mean
+        depends on the state overrides it and sets ``true_mean_varies``)."""
         return torch.as_tensor(self.true_mean, dtype=torch.float64).expand(s.shape[0], -1).clone()
 
     def mean_features(self, s: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
@@ -280,9 +257,8 @@ class Task(abc.ABC):
 
         Notes
         -----
-        A departure from eq. (10): rows whose action the plant may have clipped
-        (:meth:`saturated`, with :attr:`action_limit` set) are NaN, so the callers' finite filter drops
-        them from the IBE (there the additive model does not hold).
+        A departure from eq. (10): rows whose action the plant may have clipped (:meth:`saturated`) are
+        NaN, so the callers drop them from the IBE.
         """
         with torch.no_grad():
             xi = noise_coordinates(s_next - self.f(s, u.to(s.dtype)), self.noise_matrix.to(s.dtype))
@@ -290,14 +266,12 @@ class Task(abc.ABC):
             return xi if clipped is None else xi.masked_fill(clipped[:, None], math.nan)
 
     def saturated(self, s: torch.Tensor, u: torch.Tensor) -> torch.Tensor | None:
-        """Rows of ``(s, u)`` (B, state_dim), (B, action_dim) whose action the plant may have clipped, or
-        ``None`` without an :attr:`action_limit`: those with ``|u_i| > action_limit_i - saturation_margin_i``
-        for some ``i``. A task whose plant also clips states (a speed limit) overrides it to add those.
+        """Bool (B,): rows of ``(s, u)`` with ``|u_i| > action_limit_i - saturation_margin_i`` for some ``i``
+        (the plant may have clipped them), or ``None`` without an :attr:`action_limit`. A task whose plant also
+        clips states overrides it.
 
-        With the disturbance entering after the clip (a torque added to the clipped one) the margin is 0;
-        with one entering before it (an actuator bias ``b``) it must cover ``|b|`` (e.g. the prior's mean
-        plus three standard deviations, in action units): there the plant clips ``u + b`` and removes part
-        of the bias, which the additive model of eq. (1) cannot represent.
+        The margin is 0 for a disturbance entering after the clip; one entering before it (an actuator bias
+        ``b``) needs a margin covering ``|b|`` (e.g. the prior's mean plus three standard deviations).
         """
         if self.action_limit is None:
             return None
@@ -306,25 +280,19 @@ class Task(abc.ABC):
         return (u.double().abs() > limit - margin).any(dim=-1)
 
     def state_error(self, s: torch.Tensor) -> torch.Tensor:
-        """The task's own error measure of states ``s`` (B, state_dim) -> (B, k) float64, which the default
-        :meth:`evaluate` reports (``mean_abs_state*``, ``mean_state_<i>``): the state itself here (the
-        offset from the origin). A task whose state is not an error overrides it (the Gymnasium pendulum,
-        :class:`~mixedrl.envs.gym_models.PendulumV1Task`: the angle wrapped into ``[-pi, pi)``)."""
+        """The task's error measure of states ``s`` (B, state_dim) -> (B, k) float64, reported by the default
+        :meth:`evaluate`: the state itself here. A task whose state is not an error (a wrapped angle)
+        overrides it."""
         return s
 
     def evaluate(self, policy: torch.nn.Module, seeds: list[int], horizon: int | None = None) -> dict[str, Any]:
         """Seeded rollouts of the *true* environment (:meth:`true_step`) under ``policy`` from fixed starts.
 
         For each seed, a generator seeded with it draws :attr:`eval_starts` start states from
-        :meth:`sample_initial` and then the noise of ``horizon`` steps; the action is
-        ``policy(observe(s))`` (float32 observations, as in training). A copy that reaches a terminal state
-        (:meth:`is_terminal`) stops: no cost, no state counted from then on. Subclasses with a
-        task-specific evaluation (a course, a reference trajectory) override this method (and say whether
-        the override evaluates on a plant and counts its transitions: :attr:`evaluates_on_plant`,
-        :attr:`counts_evaluation_transitions`). Every simulated
-        step (``eval_starts * horizon`` per seed) is added to :attr:`evaluation_transitions`. A task with
-        a plant evaluated on it (:func:`mixedrl.plant.attach_plant`) calls :attr:`plant_evaluate`
-        instead (:func:`mixedrl.plant.evaluate_on_plant`, or nothing).
+        :meth:`sample_initial` and then the noise; the action is ``policy(observe(s))`` (float32
+        observations). A copy that reaches a terminal state stops: no cost, no state counted from then on.
+        Every simulated step is added to :attr:`evaluation_transitions`. With :attr:`plant_evaluate` set
+        it returns that instead. A subclass may override it (see :attr:`evaluates_on_plant`).
 
         Parameters
         ----------
@@ -341,11 +309,10 @@ class Task(abc.ABC):
             Means over the seeds and starts:
 
             - ``"cost"``: discounted cost ``sum_t gamma^t l(s_{t+1}, u_t)`` of a rollout;
-            - ``"mean_abs_state"``: ``|e|`` of the task's error measure ``e = state_error(s)`` (the state
-              itself by default, :meth:`state_error`) averaged over the second half of the rollout and its
-              components (the steady offset from the origin, with the noise's spread);
-            - ``"mean_abs_state_<i>"``, ``"mean_state_<i>"``: per component ``i`` of ``e``, ``|e_i|`` and the
-              signed ``e_i`` over the second half (the latter is the steady offset a constant bias leaves);
+            - ``"mean_abs_state"``: ``|e|`` of the error measure ``e = state_error(s)``, averaged over the
+              second half of the rollout and over its components;
+            - ``"mean_abs_state_<i>"``, ``"mean_state_<i>"``: per component ``i``, ``|e_i|`` and the signed
+              ``e_i`` over the second half;
             - ``"terminated_fraction"``: rollouts that reached a terminal state.
 
         Raises
@@ -402,12 +369,9 @@ class Task(abc.ABC):
                       ) -> list[dict[str, Any]]:
         """:meth:`evaluate` of several policies, each on its own seeds: ``[evaluate(p, s) for p, s in ...]``.
 
-        Training evaluates all the runs of a batch that are due at one iteration with one call
-        (:func:`mixedrl.runs.train_batch`). A task may override it to drive all the rollouts at once
-        (:class:`~mixedrl.tasks.DoubleLaneChangeTask` does); this default evaluates them one after the
-        other, so it is exact whatever ``exact`` says. Each policy's evaluation transitions are left in
-        :attr:`last_evaluation_counts` (one per policy, all added to :attr:`evaluation_transitions`), so
-        that the batch can credit them to each run's own task (:func:`mixedrl.plant.credit_evaluations`).
+        A task may override it to drive all the rollouts at once; this default is exact whatever ``exact``
+        says. Each policy's evaluation transitions are left in :attr:`last_evaluation_counts`
+        (:func:`mixedrl.plant.credit_evaluations` reads them).
 
         Parameters
         ----------
@@ -416,8 +380,7 @@ class Task(abc.ABC):
         seeds : list of list of int
             One non-empty list of evaluation seeds per policy.
         exact : bool, optional
-            Whether each result must equal :meth:`evaluate`'s bit for bit (False allows a batched policy
-            call, whose float32 outputs may differ in the last bits).
+            Whether each result must equal :meth:`evaluate`'s bit for bit (False allows a batched policy call).
 
         Returns
         -------
@@ -441,7 +404,7 @@ class Task(abc.ABC):
 
 def check_policies_and_seeds(policies: Any, seeds: Any) -> list[list[int]]:
     """``seeds`` as one list per policy (:func:`mixedrl.checks.check_seed_lists`), after checking that
-    ``policies`` is a non-empty list (:meth:`Task.evaluate_many`).
+    ``policies`` is a non-empty list.
 
     Raises
     ------
@@ -471,10 +434,8 @@ def check_task(task: Task, batch: int = 3) -> None:
     """Check a task's sizes and its functions' outputs once, with errors that name the function.
 
     Calls :meth:`Task.sample_initial` (own generator, seed 0), :meth:`Task.observe`, :meth:`Task.f` and
-    :meth:`Task.cost` on ``batch`` states with zero and bound actions, in float32 and float64 (training uses
-    both), then :func:`mixedrl.checks.check_task_types` (the attributes' types, ``value_scale``, and
-    ``f``/``cost``/``observe`` probed on more states); nothing of the task or of a trainer's random streams
-    is touched.
+    :meth:`Task.cost` on ``batch`` states with zero and bound actions, in float32 and float64, then
+    :func:`mixedrl.checks.check_task_types`; no random stream of the task or a trainer is touched.
 
     Parameters
     ----------
@@ -487,8 +448,8 @@ def check_task(task: Task, batch: int = 3) -> None:
     ------
     ValueError
         A size attribute is not a positive integer, an array attribute has the wrong shape, or a function
-        returns the wrong shape, dtype or non-finite values; the message names the task class, the
-        attribute or function (``cost``, ``f``, ...), the expected and the returned shape.
+        returns the wrong shape, dtype or non-finite values; the message names the task class and the
+        attribute or function.
     """
     name = type(task).__name__
     for attr in ("state_dim", "obs_dim", "action_dim", "noise_dim"):

@@ -1,26 +1,13 @@
 """The public face of the tasks: the task interface, the built-in tasks and the task registry.
 
-Algorithm 2 (:mod:`mixedrl.algorithms.agpi`) and DDPG (:mod:`mixedrl.algorithms.ddpg`) see a system
-only through the small interface :class:`Task`, so they run unchanged on the double lane change
-(:class:`~mixedrl.envs.dlc_task.DoubleLaneChangeTask`, Section VI of the paper) and on any user system
-(:class:`~mixedrl.linear_task.LinearTask`, and the tutorial). :func:`task_from_config` builds either from
-the run's task configuration (:class:`mixedrl.config.DoubleLaneChangeTaskConfig`,
-:class:`mixedrl.config.LinearTaskConfig`), and any task registered by name with :func:`register_task`
-(the pendulum of :mod:`mixedrl.envs.pendulum`, registered when :mod:`mixedrl` is imported).
+Algorithm 2 and DDPG see a system only through :class:`Task`, so they run unchanged on the double lane
+change (:class:`~mixedrl.envs.dlc_task.DoubleLaneChangeTask`, Section VI), the linear test bed
+(:class:`~mixedrl.linear_task.LinearTask`) and any user system. :func:`task_from_config` builds the task of a
+run's task configuration, including tasks registered by name with :func:`register_task` (the pendulum).
 
-The names live where they are defined and this module gathers them (one import path for all):
-
-* :mod:`mixedrl.task_base`: :class:`Task`, :func:`check_task`, with :class:`Equilibrium`, :class:`Linearisation`,
-  :data:`EQUILIBRIUM_ATOL`, :func:`cost_hessian` of :mod:`mixedrl.equilibrium` (it imports no task, nor this module);
-* :mod:`mixedrl.linear_task`: :class:`~mixedrl.linear_task.LinearTask`;
-* :mod:`mixedrl.envs.dlc_task`: :class:`~mixedrl.envs.dlc_task.DoubleLaneChangeTask` with the double lane
-  change's experiment (its course sampler :class:`~mixedrl.envs.dlc_task.CourseSampler`,
-  ``sampler.name = "dlc_course"``, and its preset :data:`~mixedrl.envs.dlc_task.DLC_EXPERIMENT`, which it
-  registers with :mod:`mixedrl.config`);
-* here: the registry, :func:`register_task`, :func:`make_task` and :func:`task_from_config`.
-
-The two task modules import :mod:`mixedrl.task_base`, never this module, and this module imports them
-at its top: the import graph has no cycle (``tests/test_imports.py``).
+This module gathers the names of :mod:`mixedrl.task_base` (:class:`Task`, :func:`check_task`, with those of
+:mod:`mixedrl.equilibrium`), :mod:`mixedrl.linear_task` and :mod:`mixedrl.envs.dlc_task`, and holds the
+registry. The task modules import :mod:`mixedrl.task_base`, never this module, so there is no import cycle.
 """
 
 from __future__ import annotations
@@ -32,7 +19,7 @@ from mixedrl.config import register_task as register_task_config
 from mixedrl.envs.dlc_config import DoubleLaneChangeTaskConfig
 from mixedrl.envs.dlc_task import DLC_EXPERIMENT, CourseSampler, DoubleLaneChangeTask
 
-if TYPE_CHECKING:  # the union of the built-in tasks' configurations, complete once the task modules registered
+if TYPE_CHECKING:  # complete only once the task modules registered their configurations
     from mixedrl.config import TaskConfig
 from mixedrl.linear_task import LinearTask
 from mixedrl.task_base import EQUILIBRIUM_ATOL, Equilibrium, Linearisation, Task, check_task, cost_hessian
@@ -52,10 +39,9 @@ _BUILTIN_TASKS: dict[str, type] = {"dlc": DoubleLaneChangeTask, "linear": Linear
 def register_task(task_cls: type, config_cls: type) -> type:
     """Register a named task: its :class:`Task` class and its configuration dataclass.
 
-    ``config_cls`` is registered with :func:`mixedrl.config.register_task` (its ``name`` default is the
-    task's name, which must equal ``task_cls.name``); :func:`task_from_config` and :func:`make_task` then
-    build ``task_cls.from_config(config)``, so a run, a ``--set task.name=...`` override and a sweep
-    specification can name the task.
+    ``config_cls`` is registered with :func:`mixedrl.config.register_task` (its ``name`` default must equal
+    ``task_cls.name``); :func:`task_from_config` then builds ``task_cls.from_config(config)`` and
+    :func:`make_task` ``task_cls(**kwargs)``, so runs, ``--set task.name=...`` and sweeps can name the task.
 
     Raises
     ------
@@ -74,9 +60,7 @@ def register_task(task_cls: type, config_cls: type) -> type:
 
 
 def make_task(name: str, **kwargs: Any) -> Task:
-    """Build a task by name: ``"dlc"`` (:class:`~mixedrl.envs.dlc_task.DoubleLaneChangeTask`), ``"linear"``
-    (:class:`~mixedrl.linear_task.LinearTask`) or a registered one (:func:`register_task`), with constructor
-    arguments ``kwargs``.
+    """Build a task by name (``"dlc"``, ``"linear"`` or a registered one) with constructor arguments ``kwargs``.
 
     Raises
     ------

@@ -1,9 +1,8 @@
 """TensorBoard scalars beside a run's metrics files (the optional extra ``tensorboard``).
 
-``train(..., tensorboard=True)`` (CLI: ``mixedrl train --tensorboard``) writes every metrics row, with
-the namespaced keys of ``metrics.jsonl`` (``pev/loss``, ``eval/cost``, ...) as scalar tags and the
-iteration as the step, through :class:`torch.utils.tensorboard.SummaryWriter` into ``<run>/tb/``, as
-Stable-Baselines3 does with its ``tensorboard_log``. View with ``tensorboard --logdir <run>/tb``.
+``train(..., tensorboard=True)`` (``mixedrl train --tensorboard``) writes every metrics row into
+``<run>/tb/``, the keys of ``metrics.jsonl`` as tags and the iteration as the step. View with
+``tensorboard --logdir <run>/tb``.
 """
 
 from __future__ import annotations

@@ -3,27 +3,21 @@ sampler, counters, checkpoint format -- and its networks (:func:`build_networks`
 
 The loop itself, one outer iteration ``k`` (data, PEV eqs. 49-50, PIM eqs. 51-52, IBE eq. 20, the MVC loop
 eqs. 37-39, the stopping test), is :func:`mixedrl.algorithms.algorithm2.iteration`, for a run alone
-(:meth:`AGPI.iteration`, ``R = 1``) and for many runs trained as one computation
-(:class:`mixedrl.algorithms.batched.BatchedAGPI`): one loop. Its PEV and PIM steps are
-:func:`mixedrl.pev.critic_step` and :func:`mixedrl.pim.actor_step`, which :meth:`AGPI.pev` and
-:meth:`AGPI.pim` call too. The departures from the paper plug into the loop's named hooks
-(:mod:`mixedrl.departures`); ``TrainConfig.preset("paper")`` switches them all off.
+(:meth:`AGPI.iteration`, ``R = 1``) and for many runs at once (:class:`mixedrl.algorithms.batched.BatchedAGPI`).
+Its PEV and PIM steps are :func:`mixedrl.pev.critic_step` and :func:`mixedrl.pim.actor_step`, which
+:meth:`AGPI.pev` and :meth:`AGPI.pim` call too. The departures from the paper plug into the loop's named
+hooks (:mod:`mixedrl.departures`); ``TrainConfig.preset("paper")`` switches them all off.
 
 The noise source is the only difference between mixed RL (an IBE posterior), model-driven RL (the fixed
-prior, eq. 55) and the oracle (the fixed true noise): one algorithm, three noise sources
-(:func:`mixedrl.noise.make_noise_source`). A state-dependent source (Case 3,
-:class:`mixedrl.ibe.StateDependentIBE`) is planned with per-state nodes.
+prior, eq. 55) and the oracle (the fixed true noise): :func:`mixedrl.noise.make_noise_source`. A
+state-dependent source (Case 3, :class:`mixedrl.ibe.StateDependentIBE`) is planned with per-state nodes.
+Expectations over ``xi_hat ~ N(mu_hat, K_hat)`` use sigma points by default
+(:func:`mixedrl.expectation.expectation_nodes`; docs/expectation.rst); because the noise is additive,
+``f(x, u)`` is computed once per state and only ``l`` and ``V`` are evaluated at the nodes (``h`` of eq. 37,
+:func:`mixedrl.expectation.h_value`).
 
-Expectations over ``xi_hat ~ N(mu_hat, K_hat)`` use **sigma points** by default
-(:func:`mixedrl.expectation.expectation_nodes`, ``rule="sigma"``): the ``2r`` spherical-cubature points
-``mu_hat +- sqrt(r lambda_i) v_i`` in the support of ``K_hat`` (rank ``r``), equal weights; exact for
-polynomials of degree <= 3 in ``xi``, deterministic, and as cheap as it gets for the vehicle's rank-1
-noise (2 points). Reparameterised samples (``rule="samples"``) are available. Because the noise is
-additive, ``f(x, u)`` is computed once per state and only ``l`` and ``V`` are evaluated at the nodes
-(``h`` of eq. 37, :func:`mixedrl.expectation.h_value`).
-
-The names ``critic_loss``, ``actor_objective``, ``h_value``, ``expectation_nodes``, ``mvc_check``,
-``MVCResult`` and ``make_noise_source`` are re-exported here for the old import path.
+``critic_loss``, ``actor_objective``, ``h_value``, ``expectation_nodes``, ``mvc_check``, ``MVCResult`` and
+``make_noise_source`` are re-exported here.
 """
 
 from __future__ import annotations
@@ -123,15 +117,13 @@ class AGPI:
             raise ValueError("config: method 'ddpg' is not Algorithm 2; use mixedrl.algorithms.ddpg.DDPG")
         check_task(task)
         self.task = task
-        # the budget on this task: a global task's is region_budget times longer (schedule.resolve_budget);
-        # self.config is the resolved config (what config.json holds), region_budget the factor applied
+        # self.config is the resolved config (what config.json holds): a global task's budget is region_budget
+        # times longer (schedule.resolve_budget)
         config, self.region_budget = resolve_budget(config, task)
         self.config = config
         self.architecture = architecture
         self.generator = torch.Generator().manual_seed(config.seed)
-        # algorithm.feedforward "lq" / "lq_ss": the equilibrium's LQ problem, checked here (a task without one is
-        # an error). "auto" is "lq_ss" where the task declares an equilibrium whose LQ problem solves, else
-        # "learned" (anchor.resolve)
+        # algorithm.feedforward "lq" / "lq_ss" ("auto" resolved by anchor.resolve) need an equilibrium
         feedforward = self.feedforward = anchor.resolve(config, task)
         self._linearisation = None
         if feedforward != "learned":
@@ -147,7 +139,7 @@ class AGPI:
         self.noise = noise_source if noise_source is not None else make_noise_source(
             config.method, task, config.algorithm.ibe_recursion, covariance="unknown" if config.algorithm.ibe_case == 2 else "known",
             state_dependent=config.algorithm.ibe_case == 3)
-        #: The quadrature of xi_hat, recomputed only when its moments change (algorithm2.nodes, issue 44).
+        #: The quadrature of xi_hat, recomputed only when its moments change (algorithm2.nodes).
         self.node_cache = NodeCache()
         self.k = 0
         self.states = task.sample_initial(config.algorithm.batch_size, self.generator)
@@ -168,9 +160,8 @@ class AGPI:
             sampler_class.check_task(task, config)
         self.sampler = sampler_class(task, config, self.generator) if sampler_class is not None else None
         self._solo: Any = None  # the batched engine of this run alone (iteration)
-        #: The target critic ``V(x; w_bar)`` of PEV (departure ``algorithm.critic_target > 0``: the EMA of the
-        #: critic's weights), else ``None`` (PEV's target takes the critic itself, eq. 50;
-        #: :mod:`mixedrl.departures.critic_target`).
+        #: The target critic ``V(x; w_bar)`` of PEV (:mod:`mixedrl.departures.critic_target`), else ``None``
+        #: (eq. 50: the critic itself).
         self.critic_target: AveragedModel | None = critic_target.make(self.critic, config)
         #: End states of the last rollouts that the next iteration's region starts carry over
         #: (:mod:`mixedrl.departures.region`), else ``None``; part of the checkpoint once set.
@@ -190,11 +181,9 @@ class AGPI:
 
     @property
     def policy(self) -> torch.nn.Module:
-        """The run's policy as a module on observations (what is evaluated and deployed): the
-        :attr:`learned_policy`, or, with ``config.algorithm.feedforward = "lq"``, that policy shifted to the
-        discounted LQ optimum's action at the equilibrium for the current noise mean
-        (:func:`mixedrl.precision.feedforward_policy`), with ``"lq_ss"`` (``"auto"``'s value on a task with an
-        equilibrium, :attr:`feedforward`) near the optimum's steady state."""
+        """The run's policy on observations (what is evaluated and deployed): the :attr:`learned_policy`, or,
+        with :attr:`feedforward` ``"lq"`` / ``"lq_ss"``, that policy shifted to the discounted LQ optimum's
+        action at the equilibrium / its steady state (:func:`mixedrl.departures.anchor.feedforward_policy`)."""
         if self.feedforward in ("lq", "lq_ss"):
             return feedforward_policy(self, self.learned_policy, self._linearisation,
                                       steady=self.feedforward == "lq_ss")
@@ -213,8 +202,8 @@ class AGPI:
     def collect(self) -> tuple[torch.Tensor, torch.Tensor]:
         """Step the true environment copies once under ``pi^k``; return (states, residuals).
 
-        With a model-rollout sampler (``sampler.name`` ``"model_rollouts"`` or ``"dlc_course"``) the
-        batch is a step of the planning-model rollouts instead and the residuals come from the true drives of :class:`~mixedrl.algorithms.model_data.ModelStateSampler`.
+        With a model-rollout sampler (``sampler.name`` not ``"true_copies"``) the batch is a step of the
+        planning-model rollouts instead and the residuals come from the sampler's true drives.
 
         Returns
         -------
@@ -254,8 +243,7 @@ class AGPI:
 
     def pev(self, s: torch.Tensor, offsets: torch.Tensor, weights: torch.Tensor) -> float:
         """Implements eqs. (49)-(50): PEV, one semi-gradient step of this run's critic under ``xi_hat_k``
-        (:func:`mixedrl.pev.critic_step`, the step the loop takes; Adam at the current learning rate, gradient
-        norm clipped at ``grad_clip``, this run's departure hooks). Returns the critic loss before the step.
+        (:func:`mixedrl.pev.critic_step` with this run's departure hooks). Returns the loss before the step.
 
         .. math:: w^{k+1} = w^k - \\alpha\\, \\partial J_{\\rm critic} / \\partial w
         """
@@ -265,7 +253,7 @@ class AGPI:
 
     def pim(self, s: torch.Tensor, offsets: torch.Tensor, weights: torch.Tensor) -> float:
         """Implements eqs. (51)-(52): PIM, one gradient step of this run's actor under ``xi_hat_k``
-        (:func:`mixedrl.pim.actor_step`, the step the loop takes). Returns the actor objective before the step.
+        (:func:`mixedrl.pim.actor_step`). Returns the actor objective before the step.
 
         .. math:: \\theta^{k+1} = \\theta^k - \\beta\\, \\partial J_{\\rm actor} / \\partial \\theta
         """
@@ -352,8 +340,7 @@ class AGPI:
             "stopped": self.stopped,
             "evaluation_transitions": self.task.evaluation_transitions,
             **{key: part.state_dict() for key, part in self.plug_ins().items()},
-            # the region starts' carried end states (departures.region), once there are any: a fresh trainer's
-            # state (the template a checkpoint is checked against) has none
+            # departures.region's carried end states, once there are any (a fresh trainer has none)
             **({"region_carry": self.region_carry.clone()} if self.region_carry is not None else {}),
         }
 

@@ -18,16 +18,15 @@ their networks and batches) is
 
 The noise source is the only difference between mixed RL (an IBE posterior), model-driven RL (the prior,
 eq. 55) and the oracle (the true noise). Where the library departs from the paper the loop calls a named hook
-of :mod:`mixedrl.departures` (schedule, sampler, state weights, target values, Bellman steps,
-averaging, model rollouts in PEV and PIM); with every departure off (``TrainConfig.preset("paper")``) the loop is the paper's.
+of :mod:`mixedrl.departures`; with every departure off (``TrainConfig.preset("paper")``) the loop is the paper's.
 
 Order: the paper's loop is IBE -> PEV -> PIM -> MVC. The MVC of eq. (38) needs ``xi_hat_{k+1}``, so the IBE
 update sits between PIM and the MVC loop (a cyclic shift: PEV and PIM of iteration ``k`` use ``xi_hat_k``, the
 MVC compares ``xi_hat_k`` with ``xi_hat_{k+1}``). The transitions feeding the IBE are collected under ``pi^k``
 at the start of the iteration.
 
-Reproducibility: everything a run draws at random comes from its own generator, in the order of a run alone;
-see :mod:`mixedrl.algorithms.batched` for the bits of ``R = 1`` against ``R >= 2``.
+Everything a run draws at random comes from its own generator, in the order of a run alone
+(:mod:`mixedrl.algorithms.batched` for ``R = 1`` against ``R >= 2``).
 """
 
 from __future__ import annotations
@@ -182,9 +181,8 @@ def mvc_values(task: Any, actor: Any, critic: Any, s: torch.Tensor, obs: torch.T
     """The left side of eq. (38) and the new term of eq. (39): ``u^{k+1} = pi^{k+1}(x)``,
     ``h(x, u^{k+1}, xi_hat_k)`` and ``h(x, u^{k+1}, xi_hat_{k+1})`` (eq. 37, :func:`mixedrl.expectation.h_value`).
 
-    A pure function of tensors (:mod:`mixedrl.compiled`): the engine binds ``task``, its stacked actor and its
-    frozen critic and evaluates it without gradient (``engine.mvc_values``, a
-    :class:`mixedrl.compiled.Evaluation`: eagerly, or compiled with ``algorithm.compile = "on"``).
+    A pure function of tensors: the engine binds ``task``, its stacked actor and its frozen critic and
+    evaluates it without gradient (``engine.mvc_values``, a :class:`mixedrl.compiled.Evaluation`).
     """
     u_new = actor(obs)
     return (u_new, h_value(task, critic, s, u_new, offsets_k, weights_k),
@@ -250,7 +248,7 @@ def nodes(run: Any, mean: np.ndarray, cov: np.ndarray) -> tuple[torch.Tensor, to
     ``algorithm.expectation``, ``noise_samples``, the run's generator for sampled nodes).
 
     The nodes of a deterministic rule are computed only when ``(mean, cov)`` changed since the run's last call
-    (its :class:`~mixedrl.expectation.NodeCache`, ``run.node_cache``; issue 44): the same tensors, bit for bit.
+    (``run.node_cache``, a :class:`~mixedrl.expectation.NodeCache`): the same tensors, bit for bit.
 
     Returns
     -------

@@ -1,37 +1,23 @@
 """Many runs of Algorithm 2 as one computation: :class:`BatchedAGPI`.
 
-``R`` runs (seeds x methods x config variants with the same network shapes and batch size) are
-trained together. Each run stays an :class:`~mixedrl.algorithms.agpi.AGPI` object with its own task,
-config, generator, noise source (its IBE), sampler, optimisers, learning-rate schedule, counters,
-checkpoint format and run directory; what is shared is the arithmetic:
+``R`` runs (seeds x methods x config variants sharing :data:`SHARED_FIELDS`) are trained together. Each run
+stays an :class:`~mixedrl.algorithms.agpi.AGPI` object with its own task, config, generator, noise source,
+sampler, optimisers, schedule, counters, checkpoints and run directory; what is shared is the arithmetic:
 
-* the critics and the actors of the ``R`` runs are stacked (:func:`torch.func.stack_module_state`)
-  and evaluated as one batched function (:func:`torch.func.vmap` over :func:`torch.func.functional_call`,
-  :class:`StackedNetwork`); each run's modules keep working unchanged (evaluation, saving, the
-  sampler), because their parameters are rebound to views of the stacked tensors;
-* the ``R`` batches are concatenated (``R B`` states, run ``r`` in rows ``r B .. (r + 1) B - 1``) and
-  PEV (eq. 49), PIM (eq. 51) and the three ``h`` of the MVC (eqs. 37-39) are evaluated once for all
-  runs, with each run's own quadrature of its own ``xi_hat_k`` (per-state offsets and weights,
-  summed node by node: :func:`mixedrl.expectation.weighted_sum`);
-* the losses are per run (``runs=R`` of :func:`mixedrl.pev.critic_step` and
-  :func:`mixedrl.pim.actor_step`) and each run takes its own clipped Adam step
-  (:class:`mixedrl.schedule.Descent`); the MVC inner loop is masked: a run whose condition holds (or
-  whose ``j`` reached ``j_max``) takes no more steps while the others do.
+* the critics and the actors of the ``R`` runs are stacked (:func:`torch.func.stack_module_state`) and
+  evaluated as one batched function (:func:`torch.func.vmap`, :class:`StackedNetwork`); each run's modules
+  keep working on their own, because their parameters are rebound to views of the stacked tensors;
+* the ``R`` batches are concatenated (``R B`` states, run ``r`` in rows ``r B .. (r + 1) B - 1``) and PEV
+  (eq. 49), PIM (eq. 51) and the three ``h`` of the MVC (eqs. 37-39) are evaluated once for all runs, each
+  with its own quadrature of its own ``xi_hat_k`` (:func:`mixedrl.expectation.weighted_sum`);
+* the losses are per run and each run takes its own clipped Adam step (:class:`mixedrl.schedule.Descent`);
+  the MVC inner loop is masked per run.
 
-The loop itself is :func:`mixedrl.algorithms.algorithm2.iteration` (:meth:`BatchedAGPI.iteration`); this
-module only stacks the runs (:class:`StackedNetwork`, the joined quadrature, the rows of each run).
-
-Everything a run draws at random (its sampler's rollouts and true transitions, sampled quadrature) comes
-from its own generator, in the order of a run alone. ``R = 1`` is the single run: the member's own
-modules are called (no ``vmap``) and :meth:`AGPI.iteration` is ``BatchedAGPI([run]).iteration()[0]``: the
-same loop.
-
-Reproducibility (measured, ``tests/test_batched.py``): for ``R >= 2`` the batched kernels give every run
-the same bits whatever else shares the batch (the same config and seed give the same weights in any
-composition of two or more runs); ``R = 1`` calls the unbatched kernels, whose results differ from the
-batched ones in the last bit of some float32 operations, so a run alone and the same run in a batch
-agree to rounding at the first iteration and then drift apart as any two float32 runs do. Which path a
-run took is recorded (``batch_size_runs`` in its ``results.json``).
+The loop itself is :func:`mixedrl.algorithms.algorithm2.iteration` (:meth:`BatchedAGPI.iteration`). Everything
+a run draws at random comes from its own generator, in the order of a run alone. ``R = 1`` calls the member's
+own modules (no ``vmap``): :meth:`AGPI.iteration` is ``BatchedAGPI([run]).iteration()[0]``. For ``R >= 2`` a
+run gets the same bits in any batch; alone and batched it agrees to float32 rounding only
+(docs/algorithm2.rst, "Many runs as one computation").
 """
 
 from __future__ import annotations
@@ -62,10 +48,7 @@ SHARED_FIELDS = tuple(f"algorithm.{name}" for name in (
     "rollout_lambda", "rollout_region", "actor_output"))
 
 #: The fields (dotted keys) the DDPG runs of one batch (:class:`mixedrl.algorithms.batched_ddpg.BatchedDDPG`)
-#: must share: the network shapes (the shared ``algorithm.hidden_sizes`` and ``value_output``, DDPG's own
-#: activation) and DDPG's minibatch size. Everything else (seed, budget, learning rates and their decay,
-#: gradient clip, and the other ``ddpg.*`` fields: environment copies, buffer, warm-up, ``tau``, exploration
-#: noise) may differ between them.
+#: must share: the network shapes and DDPG's minibatch size; every other field may differ between them.
 DDPG_SHARED_FIELDS = ("ddpg.batch_size", "algorithm.hidden_sizes", "ddpg.activation", "algorithm.value_output")
 
 
@@ -195,8 +178,7 @@ def _check_members(members: Sequence[AGPI]) -> None:
 
 def check_shared(members: Sequence[Any], fields: Sequence[str]) -> None:
     """Refuse runs that cannot share a batch: another task or architecture than run 0, a field of
-    ``fields`` that differs from run 0's, or the same run twice (the checks common to
-    :class:`BatchedAGPI` and :class:`mixedrl.algorithms.batched_ddpg.BatchedDDPG`).
+    ``fields`` that differs from run 0's, or the same run twice.
 
     Parameters
     ----------
@@ -226,9 +208,8 @@ def check_shared(members: Sequence[Any], fields: Sequence[str]) -> None:
 
 class BatchedRuns:
     """What the engines of many runs share (:class:`BatchedAGPI`, :class:`mixedrl.algorithms.batched_ddpg.BatchedDDPG`):
-    the checked members, ``R`` (:attr:`runs`), the minibatch size ``B`` (:attr:`batch`: ``algorithm.batch_size``,
-    or ``ddpg.batch_size`` for DDPG, :func:`mixedrl.config.optimiser_section`), the task, and the
-    runs' critics and actors as :class:`StackedNetwork` with each run's parameters (:meth:`StackedNetwork.run_params`).
+    the checked members, ``R`` (:attr:`runs`), the minibatch size ``B`` (:attr:`batch`), the task, and the
+    runs' critics and actors as :class:`StackedNetwork`.
 
     Parameters
     ----------
@@ -317,13 +298,12 @@ class BatchedAGPI(BatchedRuns):
         super().__init__(members)
         algo = self.members[0].config.algorithm
         self._filler: torch.Tensor | None = None
-        #: The runs' target critics ``V(x; w_bar)`` stacked (departure ``algorithm.critic_target > 0``), else
-        #: ``None``. The EMA updates each run's target in place (:mod:`mixedrl.departures.critic_target`),
-        #: which the stacked views follow.
+        #: The runs' target critics ``V(x; w_bar)`` stacked (:mod:`mixedrl.departures.critic_target`), else
+        #: ``None``; the stacked views follow each run's in-place update.
         self.critic_target = (StackedNetwork([m.critic_target.module for m in self.members], self.batch)
                               if algo.critic_target > 0 else None)
-        #: Each run's clipped Adam step of its critic / its actor (:class:`mixedrl.schedule.Descent`).
-        #: ``algorithm.compile`` (a shared field) chooses the eager, compiled or functional step (:mod:`mixedrl.compiled`).
+        #: Each run's clipped Adam step of its critic / its actor (:class:`mixedrl.schedule.Descent`), eager,
+        #: compiled or functional by ``algorithm.compile`` (:mod:`mixedrl.compiled`).
         self.critic_descent = Descent(self.critic.leaves, self._critic_params, [m.critic_opt for m in self.members],
                                       self.grad_clips(), algo.compile)
         self.actor_descent = Descent(self.actor.leaves, self._actor_params, [m.actor_opt for m in self.members],

@@ -1,36 +1,21 @@
 """Many DDPG runs as one computation: :class:`BatchedDDPG`.
 
-``R`` runs of the data-driven baseline (:class:`~mixedrl.algorithms.ddpg.DDPG`; seeds and config
-variants with the same task, network shapes and minibatch size,
-:data:`~mixedrl.algorithms.batched.DDPG_SHARED_FIELDS`) are trained together. Each run stays a
-:class:`~mixedrl.algorithms.ddpg.DDPG` object with its own environment copies, replay buffer, generator
-(its exploration noise, its environments' noise and resets, its minibatch draws), Adam states,
-learning-rate schedule, budget, counters (``true_transitions``), checkpoint format and run directory;
+``R`` runs of the data-driven baseline (:class:`~mixedrl.algorithms.ddpg.DDPG`) that share
+:data:`~mixedrl.algorithms.batched.DDPG_SHARED_FIELDS` are trained together. Each run keeps its environment
+copies, replay buffer, generator, Adam states, schedule, budget, counters, checkpoints and run directory;
 what is shared is the arithmetic of the updates:
 
 * the critics, the actors and their target networks are stacked
-  (:class:`~mixedrl.algorithms.batched.StackedNetwork`, as in
-  :class:`~mixedrl.algorithms.batched.BatchedAGPI`) and each run's modules are rebound to views of the
+  (:class:`~mixedrl.algorithms.batched.StackedNetwork`) and each run's modules are rebound to views of the
   stacked tensors, so they keep working alone (exploration, evaluation, saving, the soft target updates);
-* each run draws its minibatch from its own buffer; the ``R`` minibatches are concatenated (run ``r`` in
-  rows ``r B .. (r + 1) B - 1``) and the TD targets, the critic loss and the actor loss are evaluated
-  once for all runs, one loss per run;
-* each run takes its own clipped Adam step (:func:`mixedrl.schedule.descend`) and its own soft target
-  update (on its own modules' views).
+* each run draws its minibatch from its own buffer; the ``R`` minibatches are concatenated (run ``r`` in rows
+  ``r B .. (r + 1) B - 1``) and the TD targets and losses are evaluated once, one loss per run;
+* each run takes its own clipped Adam step (:func:`mixedrl.schedule.descend`) and its own soft target update.
 
-The data stay per run: a run's environment steps, exploration noise and warm-up are
-:meth:`~mixedrl.algorithms.ddpg.DDPG.explore` on its own modules and generator, in the order of the run
-alone, so a run draws exactly what it draws alone. An inactive run (budget reached) draws nothing, takes
-no step and keeps its targets and counters.
-
-Reproducibility (measured, ``tests/test_batched_ddpg.py``): for ``R >= 2`` a run gets the same bits in
-any batch of two or more runs (the same config and seed give the same weights, targets, buffer and
-metrics rows whatever else shares the batch); ``R = 1`` calls the run's own modules (the unbatched
-kernels) and is :meth:`~mixedrl.algorithms.ddpg.DDPG.iteration`, bit for bit the DDPG of the shipped
-Table I. The batched and the unbatched kernels differ in the last bit of some float32 results, so the
-same run alone and in a batch agree to rounding at the first iteration and then drift apart as two
-float32 runs do (as for Algorithm 2, :mod:`mixedrl.algorithms.batched`); ``results.json`` records
-``batch_size_runs`` for a run trained in a batch.
+A run's data (:meth:`~mixedrl.algorithms.ddpg.DDPG.explore`) come from its own modules and generator in the
+order of the run alone. An inactive run (budget reached) draws nothing, takes no step and keeps its targets
+and counters. ``R = 1`` is :meth:`~mixedrl.algorithms.ddpg.DDPG.iteration` on the run's own modules;
+reproducibility as for Algorithm 2 (docs/algorithm2.rst, "DDPG batches").
 """
 
 from __future__ import annotations

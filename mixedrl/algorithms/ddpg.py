@@ -2,15 +2,12 @@
 
 DDPG never calls the model ``f`` for planning: it learns ``Q(x, u; w)`` and ``pi(x; theta)`` only from
 transitions ``(x, u, l, x')`` of the true environment (:meth:`mixedrl.tasks.Task.true_step`), stored in
-a replay buffer, with target networks and Gaussian exploration noise. Shared with Algorithm 2
-(:mod:`mixedrl.algorithms.agpi`): the MLP class, the hidden sizes and the critic's output head
-(``algorithm.hidden_sizes``, ``algorithm.value_output``), Adam with the same learning-rate decay
-(``algorithm.lr_decay_*``), the budget and training horizon (``algorithm.iterations``, ``algorithm.horizon``),
-the discount factor, the observation and the cost. DDPG has its own minibatch size, hidden activation,
-learning rates and gradient clip (``ddpg.batch_size``, ``ddpg.activation``, ``ddpg.critic_lr``,
-``ddpg.actor_lr``, ``ddpg.grad_clip``: the values of the shipped DDPG rows, not tuned; independent of
-Algorithm 2's ``algorithm.*`` ones). One iteration = ``ddpg.envs`` environment steps + one critic and one actor update
-(the unit in which "iterations to converge" is counted for every method).
+a replay buffer, with target networks and Gaussian exploration noise. Shared with Algorithm 2: the MLP class,
+``algorithm.hidden_sizes``, ``algorithm.value_output``, the learning-rate decay (``algorithm.lr_decay_*``),
+``algorithm.iterations``, ``algorithm.horizon``, the discount factor, the observation and the cost. DDPG has
+its own ``ddpg.batch_size``, ``ddpg.activation``, ``ddpg.critic_lr``, ``ddpg.actor_lr`` and ``ddpg.grad_clip``
+(not tuned). One iteration = ``ddpg.envs`` environment steps + one critic and one actor update (the unit in
+which "iterations to converge" is counted for every method).
 """
 
 from __future__ import annotations
@@ -105,8 +102,8 @@ class DDPG:
         ``config.method`` is not ``"ddpg"``.
     """
 
-    #: The deployed policy is the actor as trained (``algorithm.feedforward = "auto"`` resolves to this for DDPG:
-    #: it has no noise model to take an LQ feed-forward from; :func:`mixedrl.departures.anchor.resolve`).
+    #: The deployed policy is the actor as trained (no noise model for an LQ feed-forward,
+    #: :func:`mixedrl.departures.anchor.resolve`).
     feedforward = "learned"
 
     def __init__(self, task: Task, config: TrainConfig) -> None:
@@ -209,12 +206,8 @@ class DDPG:
                 "data/true_transitions": float(count if count is not None else "nan")}
 
     def iteration(self) -> dict[str, float]:
-        """One DDPG iteration: environment steps, one critic update, one actor update, target updates.
-
-        The iteration is :class:`mixedrl.algorithms.batched_ddpg.BatchedDDPG`'s with this one run
-        (``R = 1``, which calls this run's own modules: the unbatched kernels): one implementation for a
-        run alone and for many runs at once.
-        """
+        """One DDPG iteration: environment steps, one critic update, one actor update, target updates
+        (:class:`mixedrl.algorithms.batched_ddpg.BatchedDDPG` with this run alone, ``R = 1``)."""
         return self.engine.iteration()[0]
 
     @property

@@ -1,9 +1,9 @@
 """The library's departures from the paper's Algorithm 2, each a plug-in at a named hook of the loop.
 
 :func:`mixedrl.algorithms.algorithm2.iteration` is the paper's loop; where the library departs from it, the
-loop calls a hook, and each hook lives in one module of this folder, documented there once with its measured
-effect. Every hook is applied the same way to mixed RL, model-driven RL and the oracle (the noise source is
-the only difference between them).
+loop calls a hook, and each hook lives in one module of this folder, which says what it does, its config key,
+its default and where its measured effect is documented. Every hook is applied the same way to mixed RL,
+model-driven RL and the oracle (the noise source is the only difference between them).
 
 =====================  ===========================================  ==========================================
 hook                   module                                       where the loop calls it

@@ -1,24 +1,18 @@
 """Departure hook *anchor*: the deployed policy is anchored at the discounted LQ optimum of the equilibrium.
 
 The paper's actor is an MLP ``pi(x; theta)`` (eq. 48) whose action at the task's equilibrium is whatever
-training makes it (``algorithm.feedforward = "learned"``). This departure uses the discounted LQ optimum on
-the task's linearisation (eqs. 6-7, :func:`lq_reference`) for the run's *own* noise moments (mixed RL: the
-IBE posterior; model-driven RL: the prior; the oracle: the truth; :func:`own_noise`):
+training makes it (``"learned"``). This departure uses the discounted LQ optimum on the task's linearisation
+(eqs. 6-7, :func:`lq_reference`) for the run's *own* noise moments (mixed RL: the IBE posterior; model-driven
+RL: the prior; the oracle: the truth; :func:`own_noise`):
 
-* ``"auto"`` (the library default): ``"lq_ss"`` where the task declares an equilibrium, else ``"learned"``
-  (:func:`resolve`);
-* ``"lq_ss"``: training unchanged; the deployed policy is the actor shifted to the optimum's action at the
-  optimum's steady state for the own noise mean (:func:`feedforward_policy` with ``steady=True``);
-* ``"lq"``: training unchanged; the deployed policy is the actor shifted to the optimum's action at the
-  equilibrium (:func:`feedforward_policy`, :class:`FeedForwardPolicy`).
+* ``"auto"``: ``"lq_ss"`` where the task declares an equilibrium, else ``"learned"`` (:func:`resolve`);
+* ``"lq_ss"``: the deployed policy is the actor shifted to the optimum's action at the optimum's steady
+  state for the own noise mean (:func:`feedforward_policy` with ``steady=True``);
+* ``"lq"``: the deployed policy is the actor shifted to the optimum's action at the equilibrium
+  (:func:`feedforward_policy`, :class:`FeedForwardPolicy`).
 
-Training is unchanged by every value. The trained anchored actors (``"lq_train"``, ``"lq_affine"``,
-``"lq_affine_ss"``) were retired: their rows stay on the results page (docs/results.rst), git commit ee954d7
-runs them. ``"lq_ss"`` became the default
-where a task declares an equilibrium on the tuning systems' held-out seeds
-(``experiments/results/learner_tuning/table.md``, variants ``default_lqss`` / ``default_lq`` against the learned
-feed-forward): steady offsets within the target on 6 of 6 runs (``"lq"`` 4 of 6, the learned one 2 of 6), cost
-over the LQR within -0.07% to +0.15% of the learned one's.
+Training is unchanged by every value. Config key ``algorithm.feedforward``: default ``"auto"``, the paper's
+``"learned"``. Measured effect and the retired values: docs/algorithm2.rst, docs/precision.rst.
 """
 
 from __future__ import annotations
@@ -178,9 +172,8 @@ class FeedForwardPolicy(torch.nn.Module):
     .. math:: \\pi_{ff}(o) = \\operatorname{clip}\\big(\\pi(o) - \\pi(o^*) + u_{ff},\\ -\\bar u,\\ \\bar u\\big)
 
     with ``o* = o(s*)`` the equilibrium's observation and ``u_ff`` the action wanted there
-    (``algorithm.feedforward = "lq"``: the discounted LQ optimum's ``u* - l0(E mu)`` for the method's own
-    noise mean, :func:`feedforward_policy`). The shift is recomputed from ``policy`` at every call, so the
-    wrapper follows the wrapped module's weights; it has no parameters of its own.
+    (:func:`feedforward_policy`). The shift is recomputed from ``policy`` at every call, so the wrapper
+    follows the wrapped module's weights; it has no parameters of its own.
 
     Parameters
     ----------
@@ -220,10 +213,8 @@ def feedforward_policy(trainer: Any, policy: torch.nn.Module, lin: Linearisation
                        steady: bool = False) -> FeedForwardPolicy:
     """``policy`` shifted to the LQ optimum's action at the equilibrium for the trainer's own noise mean.
 
-    ``algorithm.feedforward = "lq"`` (a departure from the paper, docs page ``precision.rst``): the
-    equilibrium's action ``u* - l0(E mu)`` of :func:`lq_reference` on the task's linearisation, with ``mu``
-    the method's own noise mean (:func:`own_noise`: mixed RL's IBE posterior, model-driven RL's prior, the
-    oracle's truth).
+    ``algorithm.feedforward = "lq"``: the action ``u* - l0(E mu)`` of :func:`lq_reference`, ``mu`` the
+    method's own noise mean (:func:`own_noise`).
 
     Parameters
     ----------

@@ -3,9 +3,10 @@
 The paper's eq. (50) computes ``V_target = l(x', u) + gamma V^k(x'; w)`` with the critic itself. With
 ``algorithm.critic_target = beta > 0`` the network inside ``V_target`` is ``V(x'; w_bar)``, the exponential
 moving average ``w_bar <- beta w_bar + (1 - beta) w^{k+1}`` of the critic's weights, updated at the end of
-every iteration (:func:`end`). Measured effect (docs/tuning.rst, issue 21): at ``beta = 0.9`` on the
-double lane change the speed error falls on 20 of 20 seeds (paired difference -0.0041 m/s) with the
-lateral error within the paper's 0.151 m on every seed.
+every iteration (:func:`end`).
+
+Config key ``algorithm.critic_target``: default 0.8, the paper's 0 (the critic itself). Measured effect:
+docs/algorithm2.rst and docs/precision.rst.
 """
 
 from __future__ import annotations

@@ -14,61 +14,23 @@ gradient of SHAC (Xu et al., ICLR 2022) and the model-based value expansion of F
   (:func:`actor_loss`);
 * **PEV**: the critic is fitted at every state of the same rollout (detached) to the ``lambda``-returns
   ``G_t = l_t + gamma ((1 - lambda) V_target(x_{t+1}) + lambda G_{t+1})``, ``G_{H-1} = l_{H-1} + gamma
-  V_target(x_H)`` (:func:`lambda_returns`, :func:`critic_loss`), ``V_target`` the Polyak-averaged critic of
+  V_target(x_H)`` (:func:`lambda_returns`, :func:`critic_loss`), ``V_target`` the averaged critic of
   ``algorithm.critic_target`` when that is on, else the critic itself without gradient;
 * one actor-then-critic update per iteration (:func:`update`); the MVC loop's extra PIM steps are rollout
   actor steps (:func:`improve`);
-* optionally the discount of the rollouts ramps linearly from ``algorithm.rollout_discount_start`` to the
-  task's ``gamma`` over the first ``algorithm.rollout_discount_ramp`` of the budget (:func:`discount`).
+* optionally the rollouts' discount ramps linearly from ``algorithm.rollout_discount_start`` to the task's
+  ``gamma`` over the first ``algorithm.rollout_discount_ramp`` of the budget (:func:`discount`).
 
 With ``H = 1`` and ``lambda = 0`` the losses are the paper's one-step objective and target with one noise
 draw in place of the quadrature (``tests/test_rollout.py``). The state weights of
-:mod:`~mixedrl.departures.state_weights` apply as in the paper's losses (relative TD error; the actor's
-states weighted by ``1 / (V_target(x_0) + c)``).
+:mod:`~mixedrl.departures.state_weights` apply as in the paper's losses. The losses are pure functions of
+tensors (no numpy, no data-dependent Python branches), so with ``algorithm.compile`` on each step is one
+compiled graph (:func:`actor_loss_at`, :func:`critic_loss_at`; the noise draws stay eager, in the same
+order). Every function takes ``runs`` for ``R >= 1`` stacked runs and returns one loss per run.
 
-The losses are pure functions of tensors and callables (no numpy, no data-dependent Python branches): with
-``algorithm.compile`` on, each step is one compiled graph (:func:`actor_loss_at`, :func:`critic_loss_at` through
-:meth:`mixedrl.schedule.Descent.minimise`; the noise draws stay eager, in the same order). ``R >= 1`` stacked
-runs (:mod:`mixedrl.algorithms.batched`) are supported: every function takes ``runs`` and returns one loss per
-run, each run's noise drawn from its own generator and its discount per row.
-
-Measured effect (``experiments/results/learner_tuning/table.md``, held-out tuning systems, seeds 100-102, mixed
-RL): with ``H = 8``, ``critic_target = 0.8``, ``actor_lr = 2e-3`` and 700 iterations the evaluated cost over the
-discounted LQR with the true feed-forward is 0.961-0.965 on the cart with friction (the defaults: 0.99-1.02)
-and 1.006-1.007 on the two tanks (the defaults: 1.14-1.21); the cart's steady offset is within issue 42's
-tolerance of the LQR's on 3 of 3 seeds (the defaults: 0 of 3), the tanks' on none (0.012-0.013 against
-0.010). With ``j_max = 1`` (one extra MVC step at most) the same costs 0.967-0.970 and 1.008-1.013, the cart's
-offset on 3 of 3. On the global swing-up (SwingUp, return IQM of 20 episodes; the energy-pumping + LQR
-controller that knows the torque: -125.8; the defaults: -1280) ``H = 32`` with a discount ramp from 0.95 and
-tanh hidden layers (``swing``) reaches -754 (seed 100). Variant ``swing_cri`` adds the clipped actor with the
-straight-through gradient back inside (:mod:`.actor_output`, ``"clip_inward"``), uniform state weights, ``j_max =
-1``, region starts (:mod:`.region`, 0.5) and 800 iterations of batch 256: -135.5, -136.4, -136.8 on seeds
-100-102 (model-driven -133.1, oracle -136.8 on seed 100: the 0.6 N m torque is small against a good feedback
-law, so the IBE's estimate does not matter on this task), and near an equilibrium 0.959-0.961 on the cart
-(offset 3 of 3) and 0.999 on the tanks (offset 0 of 3, 0.012-0.013). Single-seed ablations of ``swing_cri``
-(seed 100): ``tanh`` output -605, two-sided clip -1174, relative state weights -863, ``j_max = 5`` -135,
-no region starts -138 (seeds 101-102: -134, -143), 500 iterations -137 (-141, -150), ``H = 16`` -135.6
-(-135.3, -135.9), batch 128 -136.2 (-131.5, -131.9).
-
-``swing_cri_h16`` (``H = 16``) on cart and tanks: 0.960-0.962 (offset 3 of 3) and 0.999 (0 of 3); on SwingUp
-model-driven -131.3, oracle -135.2 (seed 100). ``swing_cri_h16_500`` (500 iterations): SwingUp -138.8, -137.9,
--138.8, cart 0.961-0.962 (offset 2 of 3), tanks 0.999 (0 of 3). Cost (``timing.md``: the cart, seed 100, runs
-one after the other in one process; CPU seconds, the wall in brackets): the defaults 26.3 (37.5), 25.9 (38.0),
-31.2 (44.8); ``swing_cri`` 81.6 (121.1); ``swing_cri_h16`` 49.1 (77.0), 37.3 (53.6), 39.2 (60.9);
-``swing_cri_h16_500`` 23.4 (34.1). So ``H = 32`` costs 2.6-3.1x the defaults, ``H = 16`` 1.2-1.9x (the means:
-41.9 s against 27.8 s, 1.51x) and ``H = 16`` with 500 iterations 0.75-0.9x (the machine was shared with other
-work: the spread is its load's).
-
-**The library default since issue 42** is ``swing_cri_h16_rv03_b128`` (``H = 16``, the inward-clipped actor,
-region starts where a task declares a region, relative state weights with ``c = 0.3`` value scales, ``j_max =
-1``, 800 iterations of batch 128, tanh, Adam at 2e-3, clip 1): SwingUp -139.3, -140.4, -139.2; cart 0.9605-0.9618
-(offset within tolerance on 2 of 3: 0.0382 against the LQR's 0.0341 on seed 101); tanks 0.9999-1.0006 (0 of 3,
-as every learner and the oracle); the fast slalom's course cost 23.2-23.6 (its reference 22.4, the one-step
-learner 26.4). Batch 128 rather than 256 (``swing_cri_h16_rv03``, the cart's offset on 3 of 3 without region
-draws, the other systems within 1%) for its cost: the cart, seed 100, one process after the other: the one-step
-learner 28.4 s, batch 256 43.3 and 39.2 s, batch 128 36.1 and 33.9 s. On the double lane change (one process
-after the other, seed 100, 2026-12-06) a default run trains in 66.7 and 67.5 s against the one-step learner's
-32.1 and 38.3 s (1.8-2.1x; wall 1.5-1.8x with the evaluations): issue 42's cost target (1.5x) is missed there.
+Config key ``algorithm.rollout_horizon``: default 16 (with ``rollout_lambda`` 0.95, ``rollout_discount_start``
+0.95), the paper's 0 (one-step PEV and PIM). Measured effect: docs/algorithm2.rst and
+``experiments/results/learner_tuning/table.md``; a run takes about 1.5-2 times the one-step learner's time.
 """
 
 from __future__ import annotations

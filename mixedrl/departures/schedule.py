@@ -1,13 +1,12 @@
-"""Departure hook *schedule*: the learning rates decay linearly, and the steps are Adam's, clipped.
+"""Departure hook *schedule*: the learning rates decay linearly.
 
-The paper's eqs. (50) and (52) take plain gradient steps of fixed size. The library takes Adam steps with the
-gradient norm clipped at ``algorithm.grad_clip``, at rates decayed linearly from ``critic_lr`` / ``actor_lr``
-to ``lr_decay_to`` times them over ``lr_decay_iterations`` (:func:`mixedrl.schedule.lr_factor`). Measured
-effect (docs/tuning.rst): without the decay the last iterates keep moving by the step size and the course
-errors of the final policies scatter more from seed to seed; the decay makes them settle.
+The paper's eqs. (50) and (52) take gradient steps of fixed size. Here the rates decay linearly from
+``critic_lr`` / ``actor_lr`` to ``lr_decay_to`` times them over ``lr_decay_iterations``
+(:func:`mixedrl.schedule.lr_factor`), so that the last iterates settle.
 
-Active when ``algorithm.lr_decay_to != 1`` (the rates change over the run). Adam and the clip are the
-optimiser of every run (the paper's plain step is not offered).
+Config key ``algorithm.lr_decay_to``: default 0.01, the paper's 1.0 (fixed rates). Every run takes Adam steps
+with the gradient norm clipped at ``algorithm.grad_clip`` (the paper's plain step is not offered). Measured
+effect: docs/algorithm2.rst (the table of the paper's settings) and docs/tuning.rst.
 """
 
 from __future__ import annotations

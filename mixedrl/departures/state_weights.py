@@ -1,17 +1,14 @@
 """Departure hook *state weights*: PEV and PIM weight the states of the batch by their relative error.
 
-The paper's eqs. (50) and (52) average over the batch: every state counts alike (``algorithm.batch_weighting
-= "uniform"``). With ``"relative"`` (the library default) PEV squares the relative TD error
-``(V - V_target) / (|V_target| + c)`` and PIM weights state ``x`` by ``1 / (V(x) + c)`` (batch mean 1),
-``c = algorithm.batch_weight_offset * task.value_scale`` (:func:`mixedrl.pev.critic_loss`,
-:func:`mixedrl.pim.actor_objective`): the offset is given in the task's value units, so the weights do not change
-when the cost is rescaled.
-Measured effect (docs/tuning.rst): states near the reference, whose values are small, are fitted as
-precisely in relative terms as far ones; on the double lane change the course errors fall. With the rollout
-learner (``experiments/results/learner_tuning/table.md``, variant ``swing_cri_h16_rv03``, seeds 100-102): at
-``c = 0.3 value_scale`` the swing-up's return IQM is -138.4 to -139.8 and the fast slalom's course cost 22.5-23.2
-(its reference 22.4); with uniform weights the slalom costs 51.3, and no offset in absolute units did both
-(``c = 3``: the swing-up fails on 2 of 3 seeds; ``c = 30``: the slalom costs 28-29).
+The paper's eqs. (50) and (52) average over the batch: every state counts alike (``"uniform"``). With
+``"relative"`` PEV squares the relative TD error ``(V - V_target) / (|V_target| + c)`` and PIM weights state
+``x`` by ``1 / (V(x) + c)`` (batch mean 1), ``c = algorithm.batch_weight_offset * task.value_scale``
+(:func:`mixedrl.pev.critic_loss`, :func:`mixedrl.pim.actor_objective`). The offset is in the task's value
+units, so the weights do not change when the cost is rescaled; states near the reference, whose values are
+small, are fitted as precisely in relative terms as far ones.
+
+Config key ``algorithm.batch_weighting``: default ``"relative"`` (``batch_weight_offset`` 0.3), the paper's
+``"uniform"``. Measured effect: docs/tuning.rst ("The generic defaults, measured") and docs/algorithm2.rst.
 """
 
 from __future__ import annotations
