@@ -5,7 +5,6 @@
 
 from __future__ import annotations
 
-import math
 from pathlib import Path
 from typing import Any
 
@@ -59,13 +58,9 @@ def iterations_to_converge(iterations: list[int], costs: list[float], rtol: floa
         raise ValueError(f"iterations: expected equal non-empty lists, got {len(iterations)} and {len(costs)}")
     final = float(np.median(costs[-3:]))
     bound = (1.0 + rtol) * final if final >= 0 else (1.0 - rtol) * final
-    k_star = iterations[-1]
-    for i in range(len(costs) - 1, -1, -1):
-        if math.isfinite(costs[i]) and costs[i] <= bound:
-            k_star = iterations[i]
-        else:
-            break
-    return int(k_star)
+    c = np.asarray(costs, dtype=float)
+    bad = np.flatnonzero(~(np.isfinite(c) & (c <= bound)))  # the settled tail starts after the last bad one
+    return int(iterations[min(bad[-1] + 1, len(c) - 1) if bad.size else 0])
 
 
 def eval_seeds(config: TrainConfig) -> list[int]:
@@ -78,11 +73,7 @@ def make_trainer(config: TrainConfig, task: Task | None = None) -> AGPI | DDPG:
 
     The task is built from ``config.task`` (:func:`mixedrl.tasks.task_from_config`) unless ``task`` is given.
     """
-    if task is None:
-        task = task_from_config(config.task)
-    if config.method == "ddpg":
-        return DDPG(task, config)
-    return AGPI(task, config)
+    return (DDPG if config.method == "ddpg" else AGPI)(task_from_config(config.task) if task is None else task, config)
 
 
 def evaluate_run(path: str | Path, *, seeds: int | None = None, feedforward: str | None = None,
@@ -117,10 +108,9 @@ def evaluate_run(path: str | Path, *, seeds: int | None = None, feedforward: str
         raise ValueError(f"run_dir: {run.path} is not a directory" if run.path.exists()
                          else f"run_dir: {run.path} does not exist")
     config = run.read_config()
-    if seeds is not None:
-        config = config.replace(**{"run.eval_seeds": seeds})
-    if feedforward is not None:
-        config = config.replace(**{"algorithm.feedforward": feedforward})
+    for key, value in (("run.eval_seeds", seeds), ("algorithm.feedforward", feedforward)):
+        if value is not None:
+            config = config.replace(**{key: value})
     trainer = make_trainer(config, task)
     load_trainer(trainer, run.checkpoint_path)
     metrics = trainer.evaluate(eval_seeds(config))
@@ -201,14 +191,11 @@ def summarize(trainer: Any, rows: list[dict[str, Any]], elapsed: float, seeds: l
         "iterations": int(trainer.k),
         "train_seconds": float(elapsed),
         "final": {k: float(v) for k, v in final.items() if isinstance(v, (int, float, np.floating))},
-        "iterations_to_converge": iterations_to_converge([e[0] for e in evals], [e[1] for e in evals])
-        if evals else int(trainer.k),
+        "iterations_to_converge": iterations_to_converge(*map(list, zip(*evals))) if evals else int(trainer.k),
         "convergence_criterion": f"first evaluated iteration after which eval/cost stays <= "
                                  f"(1 + {CONVERGENCE_RTOL}) x median of the last 3 evaluations",
     }
-    for key in ("lateral_mae", "speed_mae", "cost"):
-        if key in final:
-            results[key] = float(final[key])
+    results.update({key: float(final[key]) for key in ("lateral_mae", "speed_mae", "cost") if key in final})
     if hasattr(trainer, "true_transitions"):
         count = trainer.true_transitions
         results["true_transitions"] = None if count is None else int(count)
@@ -219,17 +206,15 @@ def summarize(trainer: Any, rows: list[dict[str, Any]], elapsed: float, seeds: l
         mean, cov = trainer.noise_moments()
         results["final_ibe_mean"] = np.asarray(mean, dtype=float).tolist()
         results["final_ibe_cov_diag"] = np.diag(np.asarray(cov, dtype=float)).tolist()
-        mvc = [r["mvc/held"] for r in rows if "mvc/held" in r]
-        results["mvc_held_fraction"] = float(np.mean(mvc)) if mvc else None
-        inner = [r["mvc/inner_steps"] for r in rows if "mvc/inner_steps" in r]
-        results["mean_inner_steps"] = float(np.mean(inner)) if inner else None
-    results["policy_gap"], reason = run_policy_gap(trainer)
-    if reason is not None:
-        results["policy_gap_reason"] = reason
-    # the LQR with the true mean's feed-forward, evaluated like the run (null with a reason where none)
-    results["references"], reason = run_references(trainer, seeds)
-    if reason is not None:
-        results["references_reason"] = reason
+        for key, name in (("mvc/held", "mvc_held_fraction"), ("mvc/inner_steps", "mean_inner_steps")):
+            values = [r[key] for r in rows if key in r]
+            results[name] = float(np.mean(values)) if values else None
+    # the references: the LQR with the true mean's feed-forward, evaluated like the run (null with a reason)
+    for key, (value, reason) in (("policy_gap", run_policy_gap(trainer)),
+                                 ("references", run_references(trainer, seeds))):
+        results[key] = value
+        if reason is not None:
+            results[f"{key}_reason"] = reason
     if getattr(trainer, "region_budget", 1) != 1:  # a global task's budget (schedule.resolve_budget)
         results["region_budget"] = trainer.region_budget
     feedforward = getattr(trainer, "feedforward", "learned")  # the trainer's, "auto" resolved
