@@ -104,13 +104,9 @@ def paired_interval(a: Sequence[float], b: Sequence[float], statistic: str = "di
         raise ValueError(f"b: expected as many values as a ({x.size}), got {y.size}")
     if not (np.isfinite(x).all() and np.isfinite(y).all()):
         raise ValueError("a, b: non-finite value")
-    if statistic == "difference":
-        def stat(u: np.ndarray, v: np.ndarray, axis: int = -1) -> np.ndarray:
-            return np.mean(u - v, axis=axis)
-    elif statistic == "ratio":
-        def stat(u: np.ndarray, v: np.ndarray, axis: int = -1) -> np.ndarray:
-            return np.mean(u, axis=axis) / np.mean(v, axis=axis)
-    else:
+    stat = {"difference": lambda u, v, axis=-1: np.mean(u - v, axis=axis),
+            "ratio": lambda u, v, axis=-1: np.mean(u, axis=axis) / np.mean(v, axis=axis)}.get(statistic)
+    if stat is None:
         raise ValueError(f"statistic: expected 'difference' or 'ratio', got {statistic!r}")
     value = float(stat(x, y))
     if x.size < 2:
