@@ -43,12 +43,10 @@ class TensorBoardLogger:
     def write(self, rows: list[dict[str, Any]]) -> None:
         """Add every finite real scalar of each row (except ``iteration``, the step) and flush."""
         for row in rows:
-            step = int(row["iteration"])
             for key, value in row.items():
-                if key == "iteration" or isinstance(value, bool) or not isinstance(value, (int, float)):
-                    continue
-                if math.isfinite(value):
-                    self._writer.add_scalar(key, float(value), step)
+                if key != "iteration" and isinstance(value, (int, float)) and not isinstance(value, bool) \
+                        and math.isfinite(value):
+                    self._writer.add_scalar(key, float(value), int(row["iteration"]))
         self._writer.flush()
 
     def close(self) -> None:
