@@ -28,7 +28,8 @@ import numpy as np
 import torch
 
 __all__ = ["save_checkpoint", "load_checkpoint", "regular_file", "OLD_FORMAT_READER", "atomic_write_bytes",
-           "atomic_write_text", "write_with_digest", "verify_digest", "digest_path", "default_file_mode", "is_temporary"]
+           "atomic_write_text", "write_with_digest", "verify_digest", "digest_path", "default_file_mode",
+           "is_temporary"]
 
 #: Format tag of the checkpoints written now (plain data; see :func:`save_checkpoint`).
 _FORMAT = "mixedrl-checkpoint-v2"
@@ -213,9 +214,7 @@ def _decode(value: Any, path: Path) -> Any:
             gen.set_state(value["state"])
             return gen
         raise ValueError(f"checkpoint: {path} holds an encoded value of unknown or malformed kind {kind!r}")
-    out = type(value)()
-    for key, v in value.items():
-        out[key] = _decode(v, path)
+    out = type(value)((key, _decode(v, path)) for key, v in value.items())
     if hasattr(value, "_metadata"):
         out._metadata = _decode(value._metadata, path)  # type: ignore[attr-defined]
     return out
@@ -234,12 +233,6 @@ def _format_tag(path: Path) -> str | None:
     except Exception:  # noqa: BLE001 - unreadable means: no tag to report
         return None
     return None
-
-
-def _refused_global(exc: BaseException) -> str | None:
-    """The name of the global that torch's ``weights_only`` unpickler refused, from its message."""
-    match = re.search(r"GLOBAL ([\w.]+)", str(exc)) if isinstance(exc, pickle.UnpicklingError) else None
-    return match.group(1) if match else None
 
 
 def _verify_zip(path: Path, data: bytes) -> None:
@@ -347,12 +340,14 @@ def load_checkpoint(path: str | Path) -> dict[str, Any]:
     try:
         payload = torch.load(io.BytesIO(data), map_location="cpu", weights_only=True)
     except Exception as exc:  # noqa: BLE001 - any failure: explain it without running the file
-        tag, refused = _format_tag(path), _refused_global(exc)
+        tag = _format_tag(path)
         if tag in _OLD_FORMATS:
             raise _old_format(path, tag) from None
+        # the global that torch's weights_only unpickler refused, from its message
+        refused = re.search(r"GLOBAL ([\w.]+)", str(exc)) if isinstance(exc, pickle.UnpicklingError) else None
         if refused:
             raise ValueError(
-                f"checkpoint: {path} holds pickled objects that are not plain data ({refused}); refused "
+                f"checkpoint: {path} holds pickled objects that are not plain data ({refused.group(1)}); refused "
                 f"without creating them, since loading them could execute code") from None
         first = str(exc).strip().splitlines()[0] if str(exc).strip() else ""
         raise ValueError(f"checkpoint: {path} is corrupted, truncated or not a mixedrl checkpoint "
