@@ -11,10 +11,8 @@ are :mod:`mixedrl.checkpoint`. A run directory holds::
     <file>.sha256        sha256 of config.json, checkpoint.pt, results.json, verified on every load
     .lock                the one-writer lock (hold_lock)
 
-The write order (per checkpoint: ``config.json`` with the first, new ``metrics.jsonl`` rows, then
-``checkpoint.pt``; at the end ``metrics.csv`` and ``results.json``; each file after its digest) makes
-every kill point resumable. Without ``resume`` the directory must be absent or empty; with it the saved
-config must match up to a larger ``iterations`` (docs/algorithm2.rst, "Run directories").
+The write order that makes every kill point resumable, and the rules of ``resume``: docs/algorithm2.rst,
+"Run directories".
 """
 
 from __future__ import annotations
@@ -135,21 +133,6 @@ def hold_lock(path: str | Path, what: str = "out") -> Iterator[None]:
         os.close(fd)  # releases the flock
 
 
-def _metrics_row(line: bytes, number: int, path: Path) -> dict[str, Any]:
-    """One row of ``metrics.jsonl`` (line ``number``): a JSON object with a positive integer ``iteration``."""
-    try:
-        row = json.loads(line.decode("utf-8"))
-    except UnicodeDecodeError as exc:
-        raise ValueError(f"metrics: {path} line {number} is not UTF-8 text ({exc.reason} at byte {exc.start})") \
-            from None
-    if not isinstance(row, dict):
-        raise ValueError(f"metrics: {path} line {number} is a JSON {type(row).__name__}, expected an object")
-    k = row.get("iteration")
-    if type(k) is not int or k < 1:
-        raise ValueError(f"metrics: {path} line {number} has iteration {k!r}, expected a positive integer")
-    return row
-
-
 class RunDirectory:
     """The files of one run (see the module docstring).
 
@@ -209,8 +192,7 @@ class RunDirectory:
 
     def holds_run(self) -> bool:
         """True if a run was started here: any of :data:`RUN_FILES`, a digest of one, or this package's lock."""
-        return (any(name in _STARTED for name in self.entries())
-                or (self.lock_path.exists() and is_lock_file(self.lock_path)))
+        return any(name in _STARTED for name in self.entries()) or is_lock_file(self.lock_path)
 
     def check_new(self) -> None:
         """Refuse to start a new run here unless the directory is absent or empty (but for this package's
@@ -231,8 +213,7 @@ class RunDirectory:
             raise ValueError(f"out: {self.path} is not empty and holds no run ({shown}); choose a new or "
                              f"empty directory")
 
-    @contextlib.contextmanager
-    def lock(self) -> Iterator[None]:
+    def lock(self) -> contextlib.AbstractContextManager[None]:
         """Hold the directory's one-writer lock (``<path>/.lock``, :func:`hold_lock`); creates the directory.
 
         Raises
@@ -243,14 +224,15 @@ class RunDirectory:
             The directory cannot be created or written, or its ``.lock`` is not one this package wrote.
         """
         self._mkdir()
-        with hold_lock(self.lock_path):
-            yield
+        return hold_lock(self.lock_path)
 
     def write_config(self, config: TrainConfig, task: Any = None) -> None:
         """Save :func:`config_record` as ``config.json``, with its sha256 in ``config.json.sha256``."""
+        self._write_json(self.config_path, config_record(config, task))
+
+    def _write_json(self, path: Path, record: dict[str, Any]) -> None:
         self._mkdir()
-        text = json.dumps(config_record(config, task), indent=2, sort_keys=True) + "\n"
-        write_with_digest(self.config_path, text.encode("utf-8"))
+        write_with_digest(path, (json.dumps(record, indent=2, sort_keys=True) + "\n").encode("utf-8"))
 
     def read_config(self) -> TrainConfig:
         """Load ``config.json`` (unknown keys are an error), verified against its sha256 sidecar.
@@ -276,20 +258,24 @@ class RunDirectory:
         ValueError
             ``config.json`` is missing, not a regular file, does not match its digest, or is not a JSON object.
         """
-        if not regular_file(self.config_path, "config"):
-            raise ValueError(f"path: {self.path} has no config.json")
-        try:
-            data = self.config_path.read_bytes()
-        except OSError as exc:
-            raise ValueError(f"config: cannot read {self.config_path} ({exc.strerror})") from None
-        verify_digest(self.config_path, data, "config")
-        try:
-            record = json.loads(data.decode("utf-8"))
-        except (UnicodeDecodeError, json.JSONDecodeError) as exc:
-            raise ValueError(f"config: cannot read {self.config_path} as JSON ({exc})") from None
+        record = self._read_json(self.config_path, "config", f"path: {self.path} has no config.json")
         if not isinstance(record, dict):
             raise ValueError(f"config: {self.config_path} holds a JSON {type(record).__name__}, expected an object")
         return record
+
+    def _read_json(self, path: Path, what: str, missing: str) -> Any:
+        """The JSON of the regular file ``path``, verified against its sidecar (errors ``<what>: ...``)."""
+        if not regular_file(path, what):
+            raise ValueError(missing)
+        try:
+            data = path.read_bytes()
+        except OSError as exc:
+            raise ValueError(f"{what}: cannot read {path} ({exc.strerror})") from None
+        verify_digest(path, data, what)
+        try:
+            return json.loads(data.decode("utf-8"))
+        except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+            raise ValueError(f"{what}: cannot read {path} as JSON ({exc})") from None
 
     def append_metrics(self, rows: list[dict[str, Any]]) -> None:
         """Append rows to ``metrics.jsonl``."""
@@ -311,18 +297,26 @@ class RunDirectory:
         """
         if not regular_file(self.metrics_path, "metrics"):
             return []
-        data = self.metrics_path.read_bytes()
-        lines = data.split(b"\n")
+        lines = self.metrics_path.read_bytes().split(b"\n")
         rows = []
         for number, line in enumerate(lines, 1):
             if not line.strip():
                 continue
+            where = f"metrics: {self.metrics_path} line {number}"
             try:
-                rows.append(_metrics_row(line, number, self.metrics_path))
+                row = json.loads(line.decode("utf-8"))
+            except UnicodeDecodeError as exc:
+                raise ValueError(f"{where} is not UTF-8 text ({exc.reason} at byte {exc.start})") from None
             except json.JSONDecodeError as exc:
                 if number == len(lines):
                     break  # a torn last line (no newline yet) of an interrupted run
-                raise ValueError(f"metrics: {self.metrics_path} line {number} is not JSON ({exc})") from None
+                raise ValueError(f"{where} is not JSON ({exc})") from None
+            if not isinstance(row, dict):
+                raise ValueError(f"{where} is a JSON {type(row).__name__}, expected an object")
+            k = row.get("iteration")
+            if type(k) is not int or k < 1:
+                raise ValueError(f"{where} has iteration {k!r}, expected a positive integer")
+            rows.append(row)
         return rows
 
     def truncate_metrics(self, k: int) -> None:
@@ -349,22 +343,16 @@ class RunDirectory:
     def write_csv(self) -> None:
         """Write ``metrics.csv`` from ``metrics.jsonl`` (union of keys as columns)."""
         rows = self.read_metrics()
-        keys: list[str] = []
-        for row in rows:
-            keys += [k for k in row if k not in keys]
         out = io.StringIO()
-        writer = csv.DictWriter(out, fieldnames=keys)
+        writer = csv.DictWriter(out, fieldnames=list(dict.fromkeys(k for row in rows for k in row)))
         writer.writeheader()
-        for row in rows:
-            writer.writerow(row)
+        writer.writerows(rows)
         self._mkdir()
         atomic_write_text(self.csv_path, out.getvalue())
 
     def write_results(self, results: dict[str, Any]) -> None:
         """Write ``results.json`` atomically, with its sha256 in ``results.json.sha256``."""
-        self._mkdir()
-        text = json.dumps(results, indent=2, sort_keys=True) + "\n"
-        write_with_digest(self.results_path, text.encode("utf-8"))
+        self._write_json(self.results_path, results)
 
     def write_curve(self, png: bytes) -> None:
         """Write ``training_curve.png`` (:func:`mixedrl.run_results.training_curve`) atomically."""
@@ -377,16 +365,9 @@ class RunDirectory:
         Raises
         ------
         ValueError
-            ``results: ...``: missing, not a regular file, not matching its digest, or not JSON.
+            ``results: ...``: missing, not a regular file, unreadable, not matching its digest, or not JSON.
         """
-        if not regular_file(self.results_path, "results"):
-            raise ValueError(f"results: {self.results_path} does not exist")
-        data = self.results_path.read_bytes()
-        verify_digest(self.results_path, data, "results")
-        try:
-            return json.loads(data)
-        except json.JSONDecodeError as exc:
-            raise ValueError(f"results: {self.results_path} is not valid JSON ({exc})") from None
+        return self._read_json(self.results_path, "results", f"results: {self.results_path} does not exist")
 
 
 
