@@ -64,32 +64,13 @@ def _saved_record(run: RunDirectory) -> dict[str, Any]:
     return config_record(run.read_config())
 
 
-def _evaluation_due(trainer: Any) -> bool:
-    """Whether ``trainer`` is evaluated now: every ``run.eval_every`` iterations and when finished."""
-    return trainer.k % trainer.config.run.eval_every == 0 or _finished(trainer)
-
-
 def _finished(trainer: Any) -> bool:
     """Whether ``trainer`` has reached its budget or stopped (its evaluation now is its final one)."""
     return trainer.k >= trainer.config.algorithm.iterations or bool(trainer.stopped)
 
 
-def _scalar_eval(ev: dict[str, Any]) -> dict[str, float]:
-    return {f"eval/{k}": float(v) for k, v in ev.items() if isinstance(v, (int, float, np.floating))}
-
-
 #: The dotted name of the budget, the one field ``resume`` may change (to a larger value).
 _BUDGET = "algorithm.iterations"
-
-
-def _config_conflicts(saved: dict[str, Any], requested: dict[str, Any]) -> list[tuple[str, Any, Any]]:
-    """``(dotted name, saved value, requested value)`` of the fields where two :func:`config_record`
-    forms differ; a larger ``iterations`` is not a conflict (an explicit extension of the budget)."""
-    a, b = flatten_table(saved), flatten_table(requested)
-    out = [(k, a.get(k), b.get(k)) for k in sorted(set(a) | set(b)) if a.get(k) != b.get(k)]
-    if [k for k, _, _ in out] == [_BUDGET] and b[_BUDGET] > a[_BUDGET]:
-        return []
-    return out
 
 
 def check_run_directory(run: RunDirectory, config: TrainConfig, resume: bool = False) -> None:
@@ -124,8 +105,10 @@ def _open_run(run: RunDirectory, cfg: TrainConfig, resume: bool, task: Any = Non
         raise ValueError(f"resume: {run.path} has a checkpoint.pt but no config.json (it is written before the "
                          f"first checkpoint: it was removed); nothing was changed (train into a new directory)")
     if "config.json" in names:
-        conflicts = _config_conflicts(_saved_record(run), config_record(cfg, task))
-        if conflicts:
+        # (dotted name, saved value, requested value) where they differ; a larger budget is an extension
+        a, b = flatten_table(_saved_record(run)), flatten_table(config_record(cfg, task))
+        conflicts = [(k, a.get(k), b.get(k)) for k in sorted(set(a) | set(b)) if a.get(k) != b.get(k)]
+        if conflicts and not ([k for k, _, _ in conflicts] == [_BUDGET] and b[_BUDGET] > a[_BUDGET]):
             shown = "; ".join(f"{k} {v!r} (saved: {w!r})" for k, w, v in conflicts[:4])
             more = f" and {len(conflicts) - 4} more" if len(conflicts) > 4 else ""
             hint = (" (resume can only extend the budget)" if any(k == _BUDGET for k, _, _ in conflicts) else "")
@@ -312,7 +295,8 @@ def train_batch(trainers: list[Any], runs: list[RunDirectory | None] | None = No
         states = [None if run is None else _open_run(run, t.config, resume, getattr(t, "task", None),
                                                      t.state_dict())
                   for t, run in zip(trainers, runs)]
-        boards = [TensorBoardLogger(run.path / TB_DIR) if tensorboard and run is not None else None for run in runs]
+        boards = [stack.enter_context(contextlib.closing(TensorBoardLogger(run.path / TB_DIR)))
+                  if tensorboard and run is not None else None for run in runs]
         return _train(trainers, engine, runs, states, progress, stop_after, callback, boards, observers)
 
 
@@ -356,20 +340,16 @@ def _train(trainers: list[Any], engine: Callable[[list[bool]], list[dict[str, fl
     memory_rows: list[list[dict[str, Any]]] = [[] for _ in range(n)]
     elapsed = [0.0] * n
     # config.json is written with the first checkpoint: a run failing before it leaves its directory empty
-    config_due = [False] * n
+    config_due = [state is None for state in states]
     for i, (trainer, run, state) in enumerate(zip(trainers, runs, states)):
-        if run is None:
-            continue
         if state is not None:
             load_trainer(trainer, run.checkpoint_path, state)
             elapsed[i] = float(state.get("elapsed", 0.0))
             run.truncate_metrics(trainer.k)
-        elif run.metrics_path.is_file():  # rows of a run killed before its first checkpoint: it starts again
+            if config_record(trainer.config, getattr(trainer, "task", None)) != _saved_record(run):
+                run.write_config(trainer.config, getattr(trainer, "task", None))  # an extended budget
+        elif run is not None and run.metrics_path.is_file():  # rows of a run killed before its first checkpoint
             run.truncate_metrics(0)
-        if state is None:
-            config_due[i] = True
-        elif config_record(trainer.config, getattr(trainer, "task", None)) != _saved_record(run):
-            run.write_config(trainer.config, getattr(trainer, "task", None))  # an extended budget
     seeds = [eval_seeds(t.config) for t in trainers]
     pending: list[list[dict[str, Any]]] = [[] for _ in range(n)]
     interrupted = [False] * n
@@ -387,20 +367,14 @@ def _train(trainers: list[Any], engine: Callable[[list[bool]], list[dict[str, fl
         memory_rows[i].extend(pending[i])
         pending[i].clear()
 
-    def running(i: int) -> bool:
-        return not interrupted[i] and not _finished(trainers[i])
+    from tqdm.auto import tqdm
 
-    bar = None
-    if progress or (progress is None and sys.stderr.isatty()):
-        from tqdm.auto import tqdm
-
-        first = trainers[0].config
-        desc = f"{first.method} seed {first.seed}" if n == 1 else f"{n} runs"
-        bar = tqdm(total=sum(t.config.algorithm.iterations for t in trainers), initial=sum(t.k for t in trainers),
-                   desc=desc, leave=False)
-    try:
+    first = trainers[0].config
+    with tqdm(total=sum(t.config.algorithm.iterations for t in trainers), initial=sum(t.k for t in trainers),
+              desc=f"{first.method} seed {first.seed}" if n == 1 else f"{n} runs", leave=False,
+              disable=not (progress or (progress is None and sys.stderr.isatty()))) as bar:
         while True:
-            active = [running(i) for i in range(n)]
+            active = [not interrupted[i] and not _finished(trainers[i]) for i in range(n)]
             if not any(active):
                 break
             tokens = [obs.before(trainers[i]) if obs is not None and active[i] else None
@@ -409,7 +383,8 @@ def _train(trainers: list[Any], engine: Callable[[list[bool]], list[dict[str, fl
             rows = engine(active)
             dt = time.perf_counter() - t0
             # the evaluations due now, all runs at once: periodic ones batched, a run's last one exact
-            due = [i for i in range(n) if active[i] and _evaluation_due(trainers[i])]
+            due = [i for i in range(n) if active[i] and (trainers[i].k % trainers[i].config.run.eval_every == 0
+                                                         or _finished(trainers[i]))]
             last = [i for i in due if _finished(trainers[i])]
             evaluations: dict[int, dict[str, Any]] = {}
             for group, exact in (([i for i in due if i not in last], False), (last, True)):
@@ -422,34 +397,26 @@ def _train(trainers: list[Any], engine: Callable[[list[bool]], list[dict[str, fl
                 elapsed[i] += dt
                 extra = observers[i].after(trainer, tokens[i], rows[i]) if observers[i] is not None else None
                 row = {"iteration": trainer.k, **rows[i], **(extra or {}), "time/elapsed_s": elapsed[i]}
-                if i in evaluations:
-                    row.update(_scalar_eval(evaluations[i]))
+                row.update({f"eval/{k}": float(v) for k, v in evaluations.get(i, {}).items()
+                            if isinstance(v, (int, float, np.floating))})
                 check_finite_metrics(row, f"{cfg.method} seed {cfg.seed}" if runs[i] is None else str(runs[i].path))
                 pending[i].append(row)
                 if callback is not None:
                     callback(row)
-                if bar is not None:
-                    bar.update(1)
-                    if "eval/cost" in row and n == 1:
-                        bar.set_postfix(cost=f"{row['eval/cost']:.4g}")
+                bar.update(1)
+                if "eval/cost" in row and n == 1:
+                    bar.set_postfix(cost=f"{row['eval/cost']:.4g}")
                 if trainer.k % cfg.run.checkpoint_every == 0:
                     checkpoint(i)
                 if stop_after is not None and trainer.k >= stop_after:
                     checkpoint(i)
                     interrupted[i] = True
-    finally:
-        if bar is not None:
-            bar.close()
     out: list[dict[str, Any]] = []
     for i, trainer in enumerate(trainers):
         if interrupted[i]:
-            if boards[i] is not None:
-                boards[i].close()
             out.append({"interrupted_at": trainer.k})
             continue
         checkpoint(i)
-        if boards[i] is not None:
-            boards[i].close()
         rows_i = runs[i].read_metrics() if runs[i] is not None else memory_rows[i]
         results = summarize(trainer, rows_i, elapsed[i], seeds[i], finals.get(i))
         if n > 1:
