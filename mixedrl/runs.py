@@ -24,7 +24,6 @@ run ends with exactly the weights of an uninterrupted one.
 from __future__ import annotations
 
 import contextlib
-import logging
 import os
 import sys
 import time
@@ -51,9 +50,6 @@ __all__ = ["RunDirectory", "save_checkpoint", "load_checkpoint", "atomic_write_b
            "LOCK_NAME", "RUN_FILES", "iterations_to_converge", "eval_seeds", "evaluate_run", "evaluate_together",
            "PeriodicObserver", "config_record", "train", "train_batch", "IterationObserver", "check_run_directory",
            "check_state", "load_trainer", "make_trainer", "CONVERGENCE_RTOL"]
-
-logger = logging.getLogger(__name__)
-
 
 def _saved_record(run: RunDirectory) -> dict[str, Any]:
     """``config.json`` of ``run`` in the form :func:`config_record` writes (old flat files migrated)."""
@@ -279,9 +275,12 @@ def train_batch(trainers: list[Any], runs: list[RunDirectory | None] | None = No
     if tensorboard and any(r is None for r in runs):
         raise ValueError("tensorboard: needs a run directory (run=RunDirectory(path)) to write into")
     engine = _engine(trainers)
-    for trainer, run in zip(trainers, runs):  # refuse before creating anything
-        if run is not None:
-            _open_run(run, trainer.config, resume, getattr(trainer, "task", None), trainer.state_dict())
+
+    def open_runs() -> list[dict[str, Any] | None]:
+        return [None if run is None else _open_run(run, t.config, resume, getattr(t, "task", None), t.state_dict())
+                for t, run in zip(trainers, runs)]
+
+    open_runs()  # refuse before creating anything
     if tensorboard:
         try:  # the extra missing: its error (TensorBoardLogger's, naming the extra) before anything is created
             import torch.utils.tensorboard  # noqa: F401
@@ -291,10 +290,7 @@ def train_batch(trainers: list[Any], runs: list[RunDirectory | None] | None = No
         for run in runs:
             if run is not None:
                 stack.enter_context(run.lock())
-        # again under the locks: the directories may have changed meanwhile
-        states = [None if run is None else _open_run(run, t.config, resume, getattr(t, "task", None),
-                                                     t.state_dict())
-                  for t, run in zip(trainers, runs)]
+        states = open_runs()  # again under the locks: the directories may have changed meanwhile
         boards = [stack.enter_context(contextlib.closing(TensorBoardLogger(run.path / TB_DIR)))
                   if tensorboard and run is not None else None for run in runs]
         return _train(trainers, engine, runs, states, progress, stop_after, callback, boards, observers)
