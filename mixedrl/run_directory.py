@@ -106,9 +106,8 @@ def hold_lock(path: str | Path, what: str = "out") -> Iterator[None]:
     path = Path(path)
     foreign = (f"{what}: {path} is not a lock file mixedrl wrote (a symbolic link, a hard link, a special file or "
                f"other content); the directory is not mixedrl's: choose a new directory")
-    flags = os.O_RDWR | os.O_CREAT | getattr(os, "O_NOFOLLOW", 0) | getattr(os, "O_CLOEXEC", 0)
     try:
-        fd = os.open(path, flags | getattr(os, "O_NONBLOCK", 0), default_file_mode())
+        fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW | os.O_CLOEXEC | os.O_NONBLOCK, default_file_mode())
     except OSError as exc:
         if exc.errno == errno.ELOOP:
             raise ValueError(foreign) from None
@@ -283,8 +282,7 @@ class RunDirectory:
             return
         self._mkdir()
         with open(self.metrics_path, "a") as fh:
-            for row in rows:
-                fh.write(json.dumps(row, allow_nan=True) + "\n")
+            fh.write("".join(json.dumps(row) + "\n" for row in rows))
 
     def read_metrics(self) -> list[dict[str, Any]]:
         """All rows of ``metrics.jsonl`` ([] without one); a torn last line (not JSON) is left out.
