@@ -68,36 +68,31 @@ def summarize(records: list[dict[str, Any]]) -> list[dict[str, Any]]:
         ``_ci_high`` (:func:`mixedrl.tables.bootstrap_interval`) for every figure of :data:`RESULT_KEYS`
         (``None`` when no run reports it).
     """
-    groups: dict[str, dict[str, Any]] = {}
+    rows: dict[str, dict[str, Any]] = {}
+    done: dict[str, list[dict[str, Any]]] = {}
     for rec in records:
         key = json.dumps([rec["point"], rec["config"]["method"]], sort_keys=True)
-        group = groups.setdefault(key, {"point": rec["point"], "method": rec["config"]["method"], "done": [],
-                                        "failed": 0})
+        row = rows.setdefault(key, {"point": rec["point"], "method": rec["config"]["method"], "runs": 0, "failed": 0})
+        done.setdefault(key, [])
         if rec["error"] is not None:
-            group["failed"] += 1
+            row["failed"] += 1
         elif rec["results"] is not None:
-            group["done"].append(rec["results"])
-    rows = []
-    for group in groups.values():
-        row: dict[str, Any] = {"point": group["point"], "method": group["method"], "runs": len(group["done"]),
-                               "failed": group["failed"]}
+            row["runs"] += 1
+            done[key].append(rec["results"])
+    for key, row in rows.items():
         for fig in RESULT_KEYS:
-            values = [r[fig] for r in group["done"] if isinstance(r.get(fig), (int, float))]
+            values = [r[fig] for r in done[key] if isinstance(r.get(fig), (int, float))]
             row[f"{fig}_mean"], row[f"{fig}_std"] = mean_std(values)
             row[f"{fig}_ci_low"], row[f"{fig}_ci_high"] = _interval(tuple(float(v) for v in values))
-        rows.append(row)
-    return rows
+    return list(rows.values())
 
 
 def _spec_doc(spec: SweepSpec) -> dict[str, Any]:
     """The spec's part of ``sweep.json`` (``variants`` only for a spec that has them)."""
-    doc = {"methods": list(spec.methods), "seeds": list(spec.seeds), "base": spec.base,
-           "grid": {k: list(v) for k, v in spec.grid.items()}}
-    if spec.variants:
-        doc["variants"] = spec.variants
-    if spec.observer is not None:
-        doc["observer"] = spec.observer
-    return doc
+    return {"methods": list(spec.methods), "seeds": list(spec.seeds), "base": spec.base,
+            "grid": {k: list(v) for k, v in spec.grid.items()},
+            **({"variants": spec.variants} if spec.variants else {}),
+            **({} if spec.observer is None else {"observer": spec.observer})}
 
 
 #: What a sweep writes into its ``--out``; anything else there is not the sweep's.
@@ -215,17 +210,12 @@ def csv_rows(records: list[dict[str, Any]]) -> list[dict[str, Any]]:
     records : list of dict
         The ``runs`` of ``sweep.json``.
     """
-    rows = []
-    for rec in records:
-        row = {"name": rec["name"], **rec["point"], "method": rec["config"]["method"],
-               "seed": rec["config"]["seed"], "config_hash": rec.get("config_hash"),
-               "iterations": rec.get("iterations"), "true_transitions": rec.get("true_transitions")}
-        row.update({k: None for k in RESULT_KEYS})
-        row.update(rec.get("metrics") or {})
-        row.update({"train_seconds": rec.get("train_seconds"), "wall_seconds": rec.get("wall_seconds"),
-                    "run_dir": rec.get("run_dir"), "error": rec["error"]})
-        rows.append(row)
-    return rows
+    return [{"name": rec["name"], **rec["point"], "method": rec["config"]["method"], "seed": rec["config"]["seed"],
+             "config_hash": rec.get("config_hash"), "iterations": rec.get("iterations"),
+             "true_transitions": rec.get("true_transitions"), **dict.fromkeys(RESULT_KEYS),
+             **(rec.get("metrics") or {}),
+             "train_seconds": rec.get("train_seconds"), "wall_seconds": rec.get("wall_seconds"),
+             "run_dir": rec.get("run_dir"), "error": rec["error"]} for rec in records]
 
 
 def run_sweep(spec: SweepSpec, out: str | Path, address: str | None = None, num_cpus: int | None = None,

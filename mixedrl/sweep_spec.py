@@ -1,11 +1,5 @@
-"""Sweep specifications: their parsing, checks and expansion into runs (:mod:`mixedrl.sweep` executes them and
-re-exports every public name of this module).
-
-A spec is a TOML file of ``methods`` and ``seeds`` lists, ``[base]`` and ``[grid]`` tables of dotted
-``TrainConfig`` keys, optional ``[variants.NAME]`` tables and an optional ``observer`` (docs/sweeps.rst,
-"Writing a spec"). :func:`parse_spec` checks it and builds the config of **every** run before anything
-starts; an error names the offending key.
-"""
+"""Sweep specifications (docs/sweeps.rst, "Writing a spec"): their parsing, checks and expansion into runs
+(:mod:`mixedrl.sweep` executes them and re-exports every public name of this module)."""
 
 from __future__ import annotations
 
