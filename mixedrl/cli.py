@@ -39,8 +39,7 @@ from typing import Any, Sequence
 from mixedrl.config import CONFIG_PRESETS, FEEDFORWARDS, METHODS, TrainConfig, apply_overrides
 from mixedrl.precision import format_policy_gap, gap_summary
 from mixedrl.runs import RunDirectory, evaluate_run, make_trainer, train
-from mixedrl.sweep import add_parser as add_sweep_parser
-from mixedrl.sweep import SEED_MAX, flatten_table, format_summary, load_spec, run_sweep
+from mixedrl.sweep import SEED_MAX, add_parser as add_sweep_parser, flatten_table, format_summary, load_spec, run_sweep
 
 __all__ = ["main", "build_parser", "parse_overrides", "command_plugins", "COMMAND_GROUP", "Handler"]
 
@@ -76,24 +75,6 @@ def parse_overrides(items: Sequence[str]) -> dict[str, Any]:
 def command_plugins() -> list[EntryPoint]:
     """The installed command plug-ins: entry points of the group :data:`COMMAND_GROUP`, sorted by name."""
     return sorted(entry_points(group=COMMAND_GROUP), key=lambda ep: ep.name)
-
-
-def _add_plugins(sub: Any) -> None:
-    for ep in command_plugins():
-        if ep.name in sub.choices:
-            logger.warning("command plug-in %r (%s) ignored: the command exists", ep.name, ep.value)
-            continue
-        try:
-            handler = ep.load()(sub)
-        except Exception as exc:  # noqa: BLE001 - a broken plug-in must not break the other commands
-            logger.warning("command plug-in %r (%s) failed to load: %s: %s", ep.name, ep.value,
-                           type(exc).__name__, exc)
-            continue
-        if ep.name not in sub.choices or not callable(handler):
-            logger.warning("command plug-in %r (%s) ignored: register() must add the sub-parser %r and return "
-                           "its handler", ep.name, ep.value, ep.name)
-            continue
-        sub.choices[ep.name].set_defaults(handler=handler)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -139,7 +120,21 @@ def build_parser() -> argparse.ArgumentParser:
     add_sweep_parser(sub)  # Ray is imported only when a sweep runs on it
     sub.choices["sweep"].set_defaults(handler=_sweep)
 
-    _add_plugins(sub)
+    for ep in command_plugins():  # the plug-ins (module docstring)
+        if ep.name in sub.choices:
+            logger.warning("command plug-in %r (%s) ignored: the command exists", ep.name, ep.value)
+            continue
+        try:
+            handler = ep.load()(sub)
+        except Exception as exc:  # noqa: BLE001 - a broken plug-in must not break the other commands
+            logger.warning("command plug-in %r (%s) failed to load: %s: %s", ep.name, ep.value,
+                           type(exc).__name__, exc)
+            continue
+        if ep.name not in sub.choices or not callable(handler):
+            logger.warning("command plug-in %r (%s) ignored: register() must add the sub-parser %r and return "
+                           "its handler", ep.name, ep.value, ep.name)
+            continue
+        sub.choices[ep.name].set_defaults(handler=handler)
     return parser
 
 

@@ -18,7 +18,6 @@ from pathlib import Path
 from typing import Any, Sequence
 
 import numpy as np
-from tqdm.auto import tqdm
 
 from mixedrl import sweep_engines, sweep_spec
 from mixedrl.checks import check_positive_int
@@ -326,6 +325,8 @@ def run_sweep(spec: SweepSpec, out: str | Path, address: str | None = None, num_
                 atomic_write_text(out / "sweep.csv", csv_text(csv_rows(records)))
                 atomic_write_text(out / "sweep_summary.csv", csv_text(
                     [{**row["point"], **{k: v for k, v in row.items() if k != "point"}} for row in summary]))
+
+            from tqdm.auto import tqdm
 
             failed = 0
             with tqdm(total=len(runs), desc="sweep (runs)", disable=not progress) as bar:

@@ -5,6 +5,7 @@ and the executors that run them here, on a process pool or on Ray (re-exported b
 from __future__ import annotations
 
 import concurrent.futures
+import contextlib
 import ctypes
 import functools
 import multiprocessing
@@ -69,8 +70,7 @@ def run_points(configs: list[dict[str, Any]], paths: list[str], resume: bool = F
         The run directories.
     resume : bool
         A run with ``results.json`` is returned without training; the others continue from their
-        checkpoints, in one batch (a single run left keeps a finished one beside it, in memory, so that
-        its arithmetic stays the batch's).
+        checkpoints, in one batch (docs/sweeps.rst, "Resuming").
     observer : str, optional
         The spec's ``observer`` (:func:`resolve_observer`).
 
@@ -212,10 +212,8 @@ def _die_with_parent(parent: int) -> None:
     """The initializer of a pool worker: the worker ends when the sweep driver (``parent``) dies, however it
     dies (on Linux ``prctl(PR_SET_PDEATHSIG)``; everywhere a daemon thread polls the parent's pid)."""
     if sys.platform.startswith("linux"):
-        try:
+        with contextlib.suppress(OSError, AttributeError):  # no prctl: the thread below does it
             ctypes.CDLL(None, use_errno=True).prctl(1, int(signal.SIGKILL), 0, 0, 0)  # 1: PR_SET_PDEATHSIG
-        except (OSError, AttributeError):
-            pass  # no prctl: the thread below does it
     if os.getppid() != parent:  # the driver died before the signal was armed
         os._exit(1)
     threading.Thread(target=_watch_parent, args=(parent,), name="watch-sweep-driver", daemon=True).start()

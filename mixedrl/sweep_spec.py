@@ -267,8 +267,7 @@ def run_name(point: dict[str, Any], method: str, seed: int) -> str:
     Other characters than letters, digits, ``.``, ``+`` and ``-`` in a value become ``_``; a name longer
     than 160 characters is cut and ends with a hash of the full name (unique and deterministic).
     """
-    parts = [f"{key}={format_value(value)}" for key, value in point.items()] + [f"{method}_seed{seed}"]
-    name = "__".join(parts)
+    name = "__".join([f"{key}={format_value(value)}" for key, value in point.items()] + [f"{method}_seed{seed}"])
     if len(name) > _MAX_NAME:
         digest = hashlib.sha256(name.encode()).hexdigest()[:12]
         name = f"{name[:_MAX_NAME - 14]}__{digest}"
