@@ -39,8 +39,7 @@ from typing import Any, Sequence
 from mixedrl.config import CONFIG_PRESETS, FEEDFORWARDS, METHODS, TrainConfig, apply_overrides
 from mixedrl.precision import format_policy_gap, gap_summary
 from mixedrl.runs import RunDirectory, evaluate_run, make_trainer, train
-from mixedrl.sweep import add_parser as add_sweep_parser
-from mixedrl.sweep import SEED_MAX, flatten_table, format_summary, load_spec, run_sweep
+from mixedrl.sweep import SEED_MAX, add_parser as add_sweep_parser, flatten_table, format_summary, load_spec, run_sweep
 
 __all__ = ["main", "build_parser", "parse_overrides", "command_plugins", "COMMAND_GROUP", "Handler"]
 
@@ -76,24 +75,6 @@ def parse_overrides(items: Sequence[str]) -> dict[str, Any]:
 def command_plugins() -> list[EntryPoint]:
     """The installed command plug-ins: entry points of the group :data:`COMMAND_GROUP`, sorted by name."""
     return sorted(entry_points(group=COMMAND_GROUP), key=lambda ep: ep.name)
-
-
-def _add_plugins(sub: Any) -> None:
-    for ep in command_plugins():
-        if ep.name in sub.choices:
-            logger.warning("command plug-in %r (%s) ignored: the command exists", ep.name, ep.value)
-            continue
-        try:
-            handler = ep.load()(sub)
-        except Exception as exc:  # noqa: BLE001 - a broken plug-in must not break the other commands
-            logger.warning("command plug-in %r (%s) failed to load: %s: %s", ep.name, ep.value,
-                           type(exc).__name__, exc)
-            continue
-        if ep.name not in sub.choices or not callable(handler):
-            logger.warning("command plug-in %r (%s) ignored: register() must add the sub-parser %r and return "
-                           "its handler", ep.name, ep.value, ep.name)
-            continue
-        sub.choices[ep.name].set_defaults(handler=handler)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -139,19 +120,29 @@ def build_parser() -> argparse.ArgumentParser:
     add_sweep_parser(sub)  # Ray is imported only when a sweep runs on it
     sub.choices["sweep"].set_defaults(handler=_sweep)
 
-    _add_plugins(sub)
+    for ep in command_plugins():  # the plug-ins (module docstring)
+        if ep.name in sub.choices:
+            logger.warning("command plug-in %r (%s) ignored: the command exists", ep.name, ep.value)
+            continue
+        try:
+            handler = ep.load()(sub)
+        except Exception as exc:  # noqa: BLE001 - a broken plug-in must not break the other commands
+            logger.warning("command plug-in %r (%s) failed to load: %s: %s", ep.name, ep.value,
+                           type(exc).__name__, exc)
+            continue
+        if ep.name not in sub.choices or not callable(handler):
+            logger.warning("command plug-in %r (%s) ignored: register() must add the sub-parser %r and return "
+                           "its handler", ep.name, ep.value, ep.name)
+            continue
+        sub.choices[ep.name].set_defaults(handler=handler)
     return parser
 
 
 def _sweep(args: argparse.Namespace) -> int:
     """``mixedrl sweep``: 0 if every run finished, 1 if some failed, 2 for invalid input or a missing Ray."""
-    try:
-        doc = run_sweep(load_spec(args.spec, force=args.force), args.out, address=args.address,
-                        num_cpus=args.num_cpus, resume=args.resume, progress=not args.no_progress, workers=args.workers,
-                        batch=args.batch, batch_ddpg=args.batch_ddpg)
-    except (ImportError, ValueError) as exc:
-        print(f"mixedrl sweep: error: {exc}", file=sys.stderr)
-        return 2
+    doc = run_sweep(load_spec(args.spec, force=args.force), args.out, address=args.address, num_cpus=args.num_cpus,
+                    resume=args.resume, progress=not args.no_progress, workers=args.workers, batch=args.batch,
+                    batch_ddpg=args.batch_ddpg)
     print(format_summary(doc, args.out))
     if doc["failed"]:
         print(f"mixedrl sweep: {doc['failed']} run(s) failed; see 'error' in sweep.json", file=sys.stderr)
@@ -163,21 +154,6 @@ def _sweep(args: argparse.Namespace) -> int:
 _OWN_FLAGS = {"method": "--method", "seed": "--seed"}
 
 
-def _read_json(path: Path, flag: str) -> dict[str, Any]:
-    """The JSON object in ``path`` (the file of ``flag``), or a one-line ``ValueError``."""
-    if not path.exists():
-        raise ValueError(f"{flag}: {path} does not exist")
-    if not path.is_file():
-        raise ValueError(f"{flag}: {path} is not a file")
-    try:
-        data = json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise ValueError(f"{flag}: cannot read {path} as JSON ({exc})") from None
-    if not isinstance(data, dict):
-        raise ValueError(f"{flag}: {path} holds a JSON {type(data).__name__}, expected an object of config fields")
-    return data
-
-
 def _requested_config(args: argparse.Namespace, run: RunDirectory) -> TrainConfig:
     """The config ``mixedrl train`` asks for: from the flags, or with ``--resume`` the saved config with the
     explicit flags on top (so a contradicting flag shows up as a difference)."""
@@ -186,14 +162,24 @@ def _requested_config(args: argparse.Namespace, run: RunDirectory) -> TrainConfi
         if key in overrides:
             raise ValueError(f"--set: {key} has its own flag; use {flag} instead of --set {key}=...")
     given = {"method": args.method, "seed": args.seed, "algorithm.iterations": args.iterations}
-    file_data = _read_json(args.config, "--config") if args.config is not None else None
+    file_data, path = None, args.config
+    if path is not None:
+        if not path.is_file():
+            raise ValueError(f"--config: {path} {'is not a file' if path.exists() else 'does not exist'}")
+        try:
+            file_data = json.loads(path.read_text(encoding="utf-8"))
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+            raise ValueError(f"--config: cannot read {path} as JSON ({exc})") from None
+        if not isinstance(file_data, dict):
+            raise ValueError(f"--config: {path} holds a JSON {type(file_data).__name__}, expected an object of "
+                             f"config fields")
     if args.resume and run.config_path.is_file():
         base = run.read_config().to_dict()
         if file_data is not None:
             base = apply_overrides(base, flatten_table(file_data))
     else:
         base = TrainConfig.from_dict(file_data).to_dict() if file_data is not None else {}
-        if getattr(args, "preset", None):
+        if args.preset:
             base = TrainConfig.from_dict({"method": args.method, "seed": 0, **base}).with_preset(args.preset).to_dict()
         given["seed"] = 0 if args.seed is None else args.seed
     base = apply_overrides(base, {**overrides, **{k: v for k, v in given.items() if v is not None}})
@@ -209,14 +195,8 @@ def _train(args: argparse.Namespace) -> int:
         found = f"; it holds {', '.join(names[:3])}, which mixedrl did not write" if names else ""
         raise ValueError(f"--resume: {run.path} holds no run to resume (no config.json, checkpoint.pt or lock "
                          f"of a started run{found})")
-    config = _requested_config(args, run)
-    trainer = make_trainer(config)
-    try:
-        results = train(trainer, run, resume=args.resume, progress=not args.no_progress,
-                        tensorboard=args.tensorboard)
-    except ImportError as exc:
-        print(f"mixedrl train: error: {exc}", file=sys.stderr)
-        return 2
+    trainer = make_trainer(_requested_config(args, run))
+    results = train(trainer, run, resume=args.resume, progress=not args.no_progress, tensorboard=args.tensorboard)
     shown = {k: results[k] for k in ("method", "seed", "iterations", "lateral_mae", "speed_mae", "cost",
                                       "iterations_to_converge", "train_seconds", "true_transitions") if k in results}
     if "policy_gap" in results:
@@ -244,12 +224,12 @@ def _evaluate(args: argparse.Namespace) -> int:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``mixedrl`` command; returns the exit status (2, with one line on stderr, for a
-    ``ValueError`` or ``OSError``)."""
+    ``ValueError``, ``OSError`` or ``ImportError`` of a missing extra)."""
     args = build_parser().parse_args(argv)
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING, format="%(levelname)s %(message)s")
     try:
         return int(args.handler(args))
-    except (ValueError, OSError) as exc:
+    except (ValueError, OSError, ImportError) as exc:
         text = " ".join(str(exc).split()) or type(exc).__name__
         print(f"mixedrl {args.command}: error: {text}", file=sys.stderr)
         return 2

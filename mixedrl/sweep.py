@@ -2,11 +2,7 @@
 process pool or on Ray (``mixedrl sweep``; docs/sweeps.rst: the spec, the engines, the outputs, resuming).
 
 :mod:`mixedrl.sweep_spec` parses and expands the spec and :mod:`mixedrl.sweep_engines` trains the batches
-(:func:`plan_batches`); this module writes the sweep directory and re-exports every public name of both.
-Every run is an ordinary run directory under ``DIR/runs/``; a run ends with the same weights in any batch
-of two or more, and with ``--batch 1`` with those of ``mixedrl train``. One driver writes a sweep directory
-(it holds ``DIR/.lock``), rewriting ``sweep.json`` atomically after every finished run; ``--resume`` ends
-with the results of an uninterrupted sweep."""
+(:func:`plan_batches`); this module writes the sweep directory and re-exports every public name of both."""
 
 
 from __future__ import annotations
@@ -24,13 +20,13 @@ from typing import Any, Sequence
 import numpy as np
 
 from mixedrl import sweep_engines, sweep_spec
-from mixedrl.config import flatten_table
+from mixedrl.checks import check_positive_int
 from mixedrl.runs import LOCK_NAME, atomic_write_bytes, atomic_write_text, hold_lock, is_lock_file
 from mixedrl.run_results import png, pyplot
 from mixedrl.tables import bootstrap_interval, csv_text, mean_std
 from mixedrl.sweep_spec import (MAX_RUNS, SEED_MAX, SPEC_KEYS, SweepRun, SweepSpec, apply_dotted, config_hash, expand,
-                                format_value, load_spec, parse_spec, resolve_observer, run_name)
-from mixedrl.sweep_engines import (DEFAULT_BATCH, Job, check_count, plan_batches, run_here, run_point, run_points,
+                                flatten_table, format_value, load_spec, parse_spec, resolve_observer, run_name)
+from mixedrl.sweep_engines import (DEFAULT_BATCH, Job, plan_batches, run_here, run_point, run_points,
                                    run_pool, run_ray)
 
 #: The names of :mod:`mixedrl.sweep_spec`, of :mod:`mixedrl.sweep_engines` and this module's own.
@@ -51,10 +47,8 @@ INSTALL_HINT = 'pip install -c constraints.txt "mixedrl[sweep]"'
 # ----------------------------------------------------------------------------------------------------
 # the sweep
 # ----------------------------------------------------------------------------------------------------
-@functools.lru_cache(maxsize=4096)
-def _interval(values: tuple[float, ...]) -> tuple[float | None, float | None]:
-    """:func:`mixedrl.tables.bootstrap_interval`, cached (``sweep.json`` is rewritten after every run)."""
-    return bootstrap_interval(values)
+#: :func:`mixedrl.tables.bootstrap_interval` of a tuple, cached (``sweep.json`` is rewritten after every run).
+_interval = functools.lru_cache(maxsize=4096)(bootstrap_interval)
 
 
 def summarize(records: list[dict[str, Any]]) -> list[dict[str, Any]]:
@@ -73,36 +67,31 @@ def summarize(records: list[dict[str, Any]]) -> list[dict[str, Any]]:
         ``_ci_high`` (:func:`mixedrl.tables.bootstrap_interval`) for every figure of :data:`RESULT_KEYS`
         (``None`` when no run reports it).
     """
-    groups: dict[str, dict[str, Any]] = {}
+    rows: dict[str, dict[str, Any]] = {}
+    done: dict[str, list[dict[str, Any]]] = {}
     for rec in records:
         key = json.dumps([rec["point"], rec["config"]["method"]], sort_keys=True)
-        group = groups.setdefault(key, {"point": rec["point"], "method": rec["config"]["method"], "done": [],
-                                        "failed": 0})
+        row = rows.setdefault(key, {"point": rec["point"], "method": rec["config"]["method"], "runs": 0, "failed": 0})
+        done.setdefault(key, [])
         if rec["error"] is not None:
-            group["failed"] += 1
+            row["failed"] += 1
         elif rec["results"] is not None:
-            group["done"].append(rec["results"])
-    rows = []
-    for group in groups.values():
-        row: dict[str, Any] = {"point": group["point"], "method": group["method"], "runs": len(group["done"]),
-                               "failed": group["failed"]}
+            row["runs"] += 1
+            done[key].append(rec["results"])
+    for key, row in rows.items():
         for fig in RESULT_KEYS:
-            values = [r[fig] for r in group["done"] if isinstance(r.get(fig), (int, float))]
+            values = [r[fig] for r in done[key] if isinstance(r.get(fig), (int, float))]
             row[f"{fig}_mean"], row[f"{fig}_std"] = mean_std(values)
             row[f"{fig}_ci_low"], row[f"{fig}_ci_high"] = _interval(tuple(float(v) for v in values))
-        rows.append(row)
-    return rows
+    return list(rows.values())
 
 
 def _spec_doc(spec: SweepSpec) -> dict[str, Any]:
     """The spec's part of ``sweep.json`` (``variants`` only for a spec that has them)."""
-    doc = {"methods": list(spec.methods), "seeds": list(spec.seeds), "base": spec.base,
-           "grid": {k: list(v) for k, v in spec.grid.items()}}
-    if spec.variants:
-        doc["variants"] = spec.variants
-    if spec.observer is not None:
-        doc["observer"] = spec.observer
-    return doc
+    return {"methods": list(spec.methods), "seeds": list(spec.seeds), "base": spec.base,
+            "grid": {k: list(v) for k, v in spec.grid.items()},
+            **({"variants": spec.variants} if spec.variants else {}),
+            **({} if spec.observer is None else {"observer": spec.observer})}
 
 
 #: What a sweep writes into its ``--out``; anything else there is not the sweep's.
@@ -147,15 +136,6 @@ def _check_out(out: Path, spec: SweepSpec, runs: list[SweepRun], resume: bool) -
                              f"use a new --out")
 
 
-def _write_outputs(out: Path, spec: SweepSpec, records: list[dict[str, Any]], extra: dict[str, Any]) -> None:
-    summary = summarize(records)
-    doc = {**_spec_doc(spec), **extra, "runs": records, "summary": summary}
-    atomic_write_text(out / "sweep.json", json.dumps(doc, indent=2, allow_nan=True) + "\n")
-    atomic_write_text(out / "sweep.csv", csv_text(csv_rows(records)))
-    table = [{**row["point"], **{k: v for k, v in row.items() if k != "point"}} for row in summary]
-    atomic_write_text(out / "sweep_summary.csv", csv_text(table))
-
-
 def make_figure(out: str | Path, summary: list[dict[str, Any]], grid: dict[str, Sequence[Any]]) -> Path | None:
     """Plot the course cost (mean ± std over seeds) against the first grid key, one line per method, the
     other grid keys at their first value.
@@ -186,14 +166,9 @@ def make_figure(out: str | Path, summary: list[dict[str, Any]], grid: dict[str, 
     numeric = all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in values)
     xs = values if numeric else list(range(len(values)))
     fig, ax = plt.subplots(figsize=(5.5, 3.8))
-    methods = list(dict.fromkeys(row["method"] for row in summary))
-    for method in methods:
-        pts = []
-        for x, v in zip(xs, values):
-            target = {**others, key: v}
-            for row in summary:
-                if row["method"] == method and row["point"] == target and row["cost_mean"] is not None:
-                    pts.append((x, row["cost_mean"], row["cost_std"] or 0.0))
+    for method in dict.fromkeys(row["method"] for row in summary):
+        pts = [(x, row["cost_mean"], row["cost_std"] or 0.0) for x, v in zip(xs, values) for row in summary
+               if row["method"] == method and row["point"] == {**others, key: v} and row["cost_mean"] is not None]
         if pts:
             arr = np.asarray(pts, dtype=float)
             ax.errorbar(arr[:, 0], arr[:, 1], yerr=arr[:, 2], marker="o", capsize=3, label=method)
@@ -212,21 +187,17 @@ def _record(sweep_run: SweepRun, results: dict[str, Any] | None, error: str | No
             wall_seconds: float | None = None) -> dict[str, Any]:
     """One row of ``sweep.json``'s ``runs`` (docs/sweeps.rst, "One row per run")."""
     config = sweep_run.config.to_dict()
-    figures = None
-    metrics: dict[str, Any] = {}
-    if results is not None:
-        figures = {k: results.get(k) for k in RESULT_KEYS}
-        figures["run_dir"] = str(Path("runs") / sweep_run.name)
-        metrics = {k: v for k, v in results.items()
-                   if isinstance(v, (int, float)) and not isinstance(v, bool) and k not in _OWN_COLUMNS}
+    run_dir = str(Path("runs") / sweep_run.name)
+    got = {} if results is None else results
     return {"name": sweep_run.name, "point": sweep_run.point, "config": config,
             "config_hash": config_hash(config), "method": sweep_run.config.method, "seed": sweep_run.config.seed,
             "iterations": None if results is None else results.get("iterations", config["algorithm"]["iterations"]),
-            "true_transitions": None if results is None else results.get("true_transitions"),
-            "metrics": metrics,
-            "train_seconds": None if results is None else results.get("train_seconds"),
-            "wall_seconds": wall_seconds, "run_dir": str(Path("runs") / sweep_run.name),
-            "results": figures, "error": error}
+            "true_transitions": got.get("true_transitions"),
+            "metrics": {k: v for k, v in got.items()
+                        if isinstance(v, (int, float)) and not isinstance(v, bool) and k not in _OWN_COLUMNS},
+            "train_seconds": got.get("train_seconds"), "wall_seconds": wall_seconds, "run_dir": run_dir,
+            "results": None if results is None else {**{k: got.get(k) for k in RESULT_KEYS}, "run_dir": run_dir},
+            "error": error}
 
 
 def csv_rows(records: list[dict[str, Any]]) -> list[dict[str, Any]]:
@@ -238,17 +209,12 @@ def csv_rows(records: list[dict[str, Any]]) -> list[dict[str, Any]]:
     records : list of dict
         The ``runs`` of ``sweep.json``.
     """
-    rows = []
-    for rec in records:
-        row = {"name": rec["name"], **rec["point"], "method": rec["config"]["method"],
-               "seed": rec["config"]["seed"], "config_hash": rec.get("config_hash"),
-               "iterations": rec.get("iterations"), "true_transitions": rec.get("true_transitions")}
-        row.update({k: None for k in RESULT_KEYS})
-        row.update(rec.get("metrics") or {})
-        row.update({"train_seconds": rec.get("train_seconds"), "wall_seconds": rec.get("wall_seconds"),
-                    "run_dir": rec.get("run_dir"), "error": rec["error"]})
-        rows.append(row)
-    return rows
+    return [{"name": rec["name"], **rec["point"], "method": rec["config"]["method"], "seed": rec["config"]["seed"],
+             "config_hash": rec.get("config_hash"), "iterations": rec.get("iterations"),
+             "true_transitions": rec.get("true_transitions"), **dict.fromkeys(RESULT_KEYS),
+             **(rec.get("metrics") or {}),
+             "train_seconds": rec.get("train_seconds"), "wall_seconds": rec.get("wall_seconds"),
+             "run_dir": rec.get("run_dir"), "error": rec["error"]} for rec in records]
 
 
 def run_sweep(spec: SweepSpec, out: str | Path, address: str | None = None, num_cpus: int | None = None,
@@ -301,16 +267,15 @@ def run_sweep(spec: SweepSpec, out: str | Path, address: str | None = None, num_
     """
     out = Path(os.path.realpath(out))
     runs = expand(spec)
-    check_count(num_cpus, "num_cpus")
-    check_count(workers, "workers")
-    check_count(batch, "batch")
+    for value, name in ((num_cpus, "num_cpus"), (workers, "workers"), (batch, "batch")):
+        if value is not None:
+            check_positive_int(value, name)
     if address is not None and workers is not None:
         raise ValueError("workers: the local process pool's size; with address the runs go to Ray (use num_cpus "
                          "for a local Ray cluster)")
     if address is None and workers is not None and num_cpus is not None and workers != num_cpus:
         raise ValueError(f"num_cpus: without address it is the older name of workers; got workers={workers} and "
                          f"num_cpus={num_cpus}")
-    saved_spec = out / "spec.toml"
     _check_out(out, spec, runs, resume)
     ray = None
     if address is not None:
@@ -327,16 +292,14 @@ def run_sweep(spec: SweepSpec, out: str | Path, address: str | None = None, num_
     # one driver per sweep directory, the only writer of sweep.json
     with hold_lock(out / LOCK_NAME, "out"):
         _check_out(out, spec, runs, resume)  # again under the lock: another driver may have written meanwhile
-        started = False
-        if ray is not None and not ray.is_initialized():
-            if address == "local":
-                ray.init(num_cpus=num_cpus or os.cpu_count() or 1, include_dashboard=False, log_to_driver=False)
-            else:
-                ray.init(address=address, log_to_driver=False)
-            started = True
+        started = ray is not None and not ray.is_initialized()
+        if started and address == "local":
+            ray.init(num_cpus=num_cpus or os.cpu_count() or 1, include_dashboard=False, log_to_driver=False)
+        elif started:
+            ray.init(address=address, log_to_driver=False)
         try:
             (out / "runs").mkdir(parents=True, exist_ok=True)
-            atomic_write_text(saved_spec, spec.text)
+            atomic_write_text(out / "spec.toml", spec.text)
             t0 = time.perf_counter()
             parallel = (int(ray.cluster_resources().get("CPU", 1)) if ray is not None else n_workers)
             batches = plan_batches(runs, batch, max(1, parallel), ddpg=batch_ddpg)
@@ -344,7 +307,7 @@ def run_sweep(spec: SweepSpec, out: str | Path, address: str | None = None, num_
             batches.sort(key=lambda b: (-max(runs[i].config.algorithm.iterations for i in b), -len(b), b[0]))
             jobs: list[Job] = [([runs[i].config.to_dict() for i in b], [str(out / "runs" / runs[i].name) for i in b],
                                  resume, spec.observer) for b in batches]
-            records: list[dict[str, Any] | None] = [None] * len(runs)
+            records = [_record(r, None, None) for r in runs]
             if ray is not None:
                 extra: dict[str, Any] = {"engine": "ray", "ray_version": ray.__version__, "address": address}
                 finished = run_ray(jobs, ray)
@@ -354,16 +317,19 @@ def run_sweep(spec: SweepSpec, out: str | Path, address: str | None = None, num_
                 finished = run_here(jobs) if n_workers == 1 else run_pool(jobs, n_workers)
             extra.update({"batch": batch, "batches": len(batches)})
 
-            def current() -> list[dict[str, Any]]:
-                return [rec if rec is not None else _record(r, None, None) for rec, r in zip(records, runs)]
+            def write(finished: bool) -> None:
+                summary = summarize(records)
+                doc = {**_spec_doc(spec), **extra, "failed": failed, "finished": finished,
+                       "wall_seconds": time.perf_counter() - t0, "runs": records, "summary": summary}
+                atomic_write_text(out / "sweep.json", json.dumps(doc, indent=2, allow_nan=True) + "\n")
+                atomic_write_text(out / "sweep.csv", csv_text(csv_rows(records)))
+                atomic_write_text(out / "sweep_summary.csv", csv_text(
+                    [{**row["point"], **{k: v for k, v in row.items() if k != "point"}} for row in summary]))
 
-            bar = None
-            if progress:
-                from tqdm.auto import tqdm
+            from tqdm.auto import tqdm
 
-                bar = tqdm(total=len(runs), desc="sweep (runs)")
             failed = 0
-            try:
+            with tqdm(total=len(runs), desc="sweep (runs)", disable=not progress) as bar:
                 for j, outcomes, error, wall in finished:
                     if error is not None:
                         logger.error("batch of %s failed: %s", ", ".join(runs[i].name for i in batches[j]), error)
@@ -374,17 +340,11 @@ def run_sweep(spec: SweepSpec, out: str | Path, address: str | None = None, num_
                             if outcomes is not None:
                                 logger.error("run %s failed: %s", runs[i].name, run_error)
                         records[i] = _record(runs[i], results, run_error, None if results is None else wall)
-                    _write_outputs(out, spec, current(), {**extra, "failed": failed, "finished": False,
-                                                           "wall_seconds": time.perf_counter() - t0})
-                    if bar is not None:
-                        bar.update(len(batches[j]))
-                        if failed:
-                            bar.set_postfix(failed=failed)
-            finally:
-                if bar is not None:
-                    bar.close()
-            doc_extra = {**extra, "failed": failed, "finished": True, "wall_seconds": time.perf_counter() - t0}
-            _write_outputs(out, spec, current(), doc_extra)
+                    write(False)
+                    bar.update(len(batches[j]))
+                    if failed:
+                        bar.set_postfix(failed=failed)
+            write(True)
         finally:
             if started:
                 ray.shutdown()
@@ -428,9 +388,9 @@ def add_engine_arguments(p: argparse.ArgumentParser) -> None:
 
 def add_parser(subparsers: Any) -> None:
     """Add the ``sweep`` sub-command to ``mixedrl``'s sub-parsers (``argparse`` ``add_subparsers()``)."""
-    p = subparsers.add_parser("sweep", help="run a grid of training runs (config x methods x seeds) on a process pool or Ray",
-                              description=__doc__.split("\n", 1)[0])
-    add_arguments(p)
+    add_arguments(subparsers.add_parser(
+        "sweep", help="run a grid of training runs (config x methods x seeds) on a process pool or Ray",
+        description=__doc__.split("\n", 1)[0]))
 
 
 def format_summary(doc: dict[str, Any], out: str | Path) -> str:

@@ -5,7 +5,9 @@ and the executors that run them here, on a process pool or on Ray (re-exported b
 from __future__ import annotations
 
 import concurrent.futures
+import contextlib
 import ctypes
+import functools
 import multiprocessing
 import os
 import signal
@@ -13,6 +15,8 @@ import sys
 import threading
 import time
 from typing import Any, Iterator, Sequence
+
+import numpy as np
 
 from mixedrl.config import TrainConfig
 from mixedrl.algorithms.batched import batch_key
@@ -66,8 +70,7 @@ def run_points(configs: list[dict[str, Any]], paths: list[str], resume: bool = F
         The run directories.
     resume : bool
         A run with ``results.json`` is returned without training; the others continue from their
-        checkpoints, in one batch (a single run left keeps a finished one beside it, in memory, so that
-        its arithmetic stays the batch's).
+        checkpoints, in one batch (docs/sweeps.rst, "Resuming").
     observer : str, optional
         The spec's ``observer`` (:func:`resolve_observer`).
 
@@ -82,16 +85,18 @@ def run_points(configs: list[dict[str, Any]], paths: list[str], resume: bool = F
         A run directory is refused (the others of the batch have trained), or ``configs`` and ``paths``
         of different lengths.
     """
-    outcomes = _train_points(configs, paths, resume, observer)
+    outcomes, _ = _train_points(configs, paths, resume, observer)
     for results, error in outcomes:
         if error is not None:
             raise ValueError(error)
     return [results for results, _ in outcomes]
 
 
-def _train_points(configs: list[dict[str, Any]], paths: list[str], resume: bool,
-                  observer: str | None) -> list[tuple[dict[str, Any] | None, str | None]]:
-    """:func:`run_points`, per run ``(results, None)`` or ``(None, error text)`` (a refused run fails alone)."""
+def _train_points(configs: list[dict[str, Any]], paths: list[str], resume: bool, observer: str | None
+                  ) -> tuple[list[tuple[dict[str, Any] | None, str | None]], float]:
+    """:func:`run_points`, per run ``(results, None)`` or ``(None, error text)`` (a refused run fails alone), and
+    the wall time in seconds."""
+    t0 = time.perf_counter()
     if len(configs) != len(paths):
         raise ValueError(f"paths: {len(paths)} paths for {len(configs)} configs")
     cfgs = [TrainConfig.from_dict(c) for c in configs]
@@ -114,43 +119,28 @@ def _train_points(configs: list[dict[str, Any]], paths: list[str], resume: bool,
                 todo.append(i)
         except Exception as exc:  # noqa: BLE001 - this run fails, the batch's others train
             outcomes[i] = (None, _error_text(exc))
-    if not todo:
-        return outcomes
-    factory = None if observer is None else resolve_observer(observer)
-    trainers = [make_trainer(cfgs[i]) for i in todo]
-    run_dirs: list[RunDirectory | None] = [dirs[i] for i in todo]
-    observers = [None if factory is None else factory(cfgs[i]) for i in todo]
-    if len(todo) == 1 and finished:
-        # one finished run, restored and inactive, keeps this run batched
-        j = finished[0]
-        companion = make_trainer(cfgs[j])
-        load_trainer(companion, dirs[j].checkpoint_path)
-        trainers.append(companion)
-        run_dirs.append(None)
-        observers.append(None)
-    trained = train_batch(trainers, run_dirs, resume=resume, progress=False, observers=observers)
-    for i, res in zip(todo, trained):
-        outcomes[i] = (res, None)
-    return outcomes
-
-
-def _timed_run_points(configs: list[dict[str, Any]], paths: list[str], resume: bool,
-                      observer: str | None) -> tuple[list[tuple[dict[str, Any] | None, str | None]], float]:
-    """:func:`_train_points` and its wall time in seconds."""
-    t0 = time.perf_counter()
-    outcomes = _train_points(configs, paths, resume, observer)
+    if todo:
+        factory = None if observer is None else resolve_observer(observer)
+        trainers = [make_trainer(cfgs[i]) for i in todo]
+        run_dirs: list[RunDirectory | None] = [dirs[i] for i in todo]
+        observers = [None if factory is None else factory(cfgs[i]) for i in todo]
+        if len(todo) == 1 and finished:
+            # one finished run, restored and inactive, keeps this run batched
+            companion = make_trainer(cfgs[finished[0]])
+            load_trainer(companion, dirs[finished[0]].checkpoint_path)
+            trainers.append(companion)
+            run_dirs.append(None)
+            observers.append(None)
+        trained = train_batch(trainers, run_dirs, resume=resume, progress=False, observers=observers)
+        for i, res in zip(todo, trained):
+            outcomes[i] = (res, None)
     return outcomes, time.perf_counter() - t0
 
 
 def plan_batches(runs: Sequence[SweepRun], batch: int = DEFAULT_BATCH, workers: int = 1,
                  ddpg: bool = False) -> list[list[int]]:
-    """Group a sweep's runs into batches trained as one computation each.
-
-    Runs with equal :func:`mixedrl.algorithms.batched.batch_key` form a group (DDPG runs only with
-    ``ddpg=True``, else each alone). A group of ``n`` runs is split into the fewest near-equal batches of
-    at most ``batch`` runs, raised up to ``workers`` while every batch keeps two runs or more. A batch
-    never holds a single run of a larger group, so a run's bits do not depend on ``batch`` (above 1) or
-    ``workers``.
+    """Group a sweep's runs into batches trained as one computation each (docs/sweeps.rst, "Running on this
+    machine": groups of equal :func:`mixedrl.algorithms.batched.batch_key`, split into near-equal batches).
 
     Parameters
     ----------
@@ -167,28 +157,19 @@ def plan_batches(runs: Sequence[SweepRun], batch: int = DEFAULT_BATCH, workers: 
     list of list of int
         Indices into ``runs``, each batch in the runs' order, batches in the order of their first run.
     """
-    check_count(batch, "batch")
-    check_count(workers, "workers")
+    check_positive_int(batch, "batch")
+    check_positive_int(workers, "workers")
     groups: dict[Any, list[int]] = {}
-    alone: list[list[int]] = []
     for i, r in enumerate(runs):
         key = batch_key(r.config) if batch > 1 and (ddpg or r.config.method != "ddpg") else None
-        if key is None:
-            alone.append([i])
-        else:
-            groups.setdefault(key, []).append(i)
-    batches = list(alone)
+        groups.setdefault(("alone", i) if key is None else key, []).append(i)
+    batches = []
     for members in groups.values():
         n = len(members)
         count = max(-(-n // batch), min(workers, n // 2)) if n > 1 else 1
         while count > 1 and n // count < 2:
             count -= 1
-        size, extra = divmod(n, count)
-        start = 0
-        for c in range(count):
-            stop = start + size + (1 if c < extra else 0)
-            batches.append(members[start:stop])
-            start = stop
+        batches += [part.tolist() for part in np.array_split(members, count)]  # near-equal, the larger first
     return sorted(batches, key=lambda b: b[0])
 
 
@@ -204,14 +185,20 @@ Job = tuple[list[dict[str, Any]], list[str], bool, "str | None"]
 Done = tuple[int, "list[tuple[dict[str, Any] | None, str | None]] | None", "str | None", "float | None"]
 
 
+def _done(i: int, get: Any) -> Done:
+    """Job ``i`` finished: ``get()``'s outcomes and wall time, or the batch's error (one failed batch must not
+    stop the others)."""
+    try:
+        results, wall = get()
+        return i, results, None, wall
+    except Exception as exc:  # noqa: BLE001
+        return i, None, _error_text(exc), None
+
+
 def run_here(jobs: list[Job]) -> Iterator[Done]:
     """Run the jobs one after the other in this process (``workers=1``)."""
     for i, job in enumerate(jobs):
-        try:
-            results, wall = _timed_run_points(*job)
-            yield i, results, None, wall
-        except Exception as exc:  # noqa: BLE001 - one failed batch must not stop the others
-            yield i, None, _error_text(exc), None
+        yield _done(i, functools.partial(_train_points, *job))
 
 
 def _watch_parent(parent: int) -> None:
@@ -225,10 +212,8 @@ def _die_with_parent(parent: int) -> None:
     """The initializer of a pool worker: the worker ends when the sweep driver (``parent``) dies, however it
     dies (on Linux ``prctl(PR_SET_PDEATHSIG)``; everywhere a daemon thread polls the parent's pid)."""
     if sys.platform.startswith("linux"):
-        try:
+        with contextlib.suppress(OSError, AttributeError):  # no prctl: the thread below does it
             ctypes.CDLL(None, use_errno=True).prctl(1, int(signal.SIGKILL), 0, 0, 0)  # 1: PR_SET_PDEATHSIG
-        except (OSError, AttributeError):
-            pass  # no prctl: the thread below does it
     if os.getppid() != parent:  # the driver died before the signal was armed
         os._exit(1)
     threading.Thread(target=_watch_parent, args=(parent,), name="watch-sweep-driver", daemon=True).start()
@@ -240,14 +225,10 @@ def run_pool(jobs: list[Job], workers: int) -> Iterator[Done]:
     context = multiprocessing.get_context("spawn")
     with concurrent.futures.ProcessPoolExecutor(max_workers=workers, mp_context=context, initializer=_die_with_parent,
                                                 initargs=(os.getpid(),)) as pool:
-        futures = {pool.submit(_timed_run_points, *job): i for i, job in enumerate(jobs)}
+        futures = {pool.submit(_train_points, *job): i for i, job in enumerate(jobs)}
         try:
             for future in concurrent.futures.as_completed(futures):
-                try:
-                    results, wall = future.result()
-                    yield futures[future], results, None, wall
-                except Exception as exc:  # noqa: BLE001 - one failed batch must not stop the others
-                    yield futures[future], None, _error_text(exc), None
+                yield _done(futures[future], future.result)
         finally:
             for future in futures:
                 future.cancel()
@@ -256,19 +237,9 @@ def run_pool(jobs: list[Job], workers: int) -> Iterator[Done]:
 def run_ray(jobs: list[Job], ray: Any) -> Iterator[Done]:
     """Run the jobs as Ray tasks (one task per batch, ``num_cpus=1`` each) on the initialised cluster,
     yielding them as they finish (``ray.wait``)."""
-    task = ray.remote(num_cpus=1)(_timed_run_points)
+    task = ray.remote(num_cpus=1)(_train_points)
     refs = {task.remote(*job): i for i, job in enumerate(jobs)}
     pending = list(refs)
     while pending:
         done, pending = ray.wait(pending, num_returns=1)
-        try:
-            results, wall = ray.get(done[0])
-            yield refs[done[0]], results, None, wall
-        except Exception as exc:  # noqa: BLE001 - one failed batch must not stop the others
-            yield refs[done[0]], None, _error_text(exc), None
-
-
-def check_count(value: Any, name: str) -> None:
-    """:func:`mixedrl.checks.check_positive_int`, ``None`` allowed (the option's default)."""
-    if value is not None:
-        check_positive_int(value, name)
+        yield _done(refs[done[0]], functools.partial(ray.get, done[0]))

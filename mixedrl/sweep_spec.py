@@ -1,11 +1,5 @@
-"""Sweep specifications: their parsing, checks and expansion into runs (:mod:`mixedrl.sweep` executes them and
-re-exports every public name of this module).
-
-A spec is a TOML file of ``methods`` and ``seeds`` lists, ``[base]`` and ``[grid]`` tables of dotted
-``TrainConfig`` keys, optional ``[variants.NAME]`` tables and an optional ``observer`` (docs/sweeps.rst,
-"Writing a spec"). :func:`parse_spec` checks it and builds the config of **every** run before anything
-starts; an error names the offending key.
-"""
+"""Sweep specifications (docs/sweeps.rst, "Writing a spec"): their parsing, checks and expansion into runs
+(:mod:`mixedrl.sweep` executes them and re-exports every public name of this module)."""
 
 from __future__ import annotations
 
@@ -15,6 +9,7 @@ import hashlib
 import importlib
 import itertools
 import json
+import math
 import re
 import tomllib
 from pathlib import Path
@@ -98,16 +93,6 @@ def _check_values(value: Any, key: str) -> None:
             _check_values(v, key)
 
 
-def _run_count(methods: list[Any], seeds: list[Any], grid: dict[str, tuple[Any, ...]],
-               variants: dict[str, dict[str, Any]]) -> int:
-    """How many runs a spec expands to (:func:`expand`), without building them."""
-    points = 1
-    for values in grid.values():
-        points *= len(values)
-    own = list(variants.values()) or [{}]
-    return sum(points * len(v.get("methods", methods)) * len(v.get("seeds", seeds)) for v in own)
-
-
 def _check_list(value: Any, key: str) -> list[Any]:
     if not isinstance(value, list):
         raise ValueError(f"{key}: expected a list of values, got {type(value).__name__} {value!r}")
@@ -180,7 +165,9 @@ def parse_spec(text: str, source: str = "spec", force: bool = False) -> SweepSpe
         big = [v for v in values if isinstance(v, int) and v > SEED_MAX]
         if big:
             raise ValueError(f"{key}: {big[0]} is out of range; a seed is an integer in [0, 2**64 - 1]")
-    count = _run_count(methods, seeds, grid, variants)
+    points = math.prod(map(len, grid.values()))
+    count = sum(points * len(v.get("methods", methods)) * len(v.get("seeds", seeds))
+                for v in list(variants.values()) or [{}])
     if count > MAX_RUNS and not force:
         raise ValueError(f"grid: {source} expands to {count} runs, more than the {MAX_RUNS} a sweep may have without "
                          f"--force (force=True); nothing was checked or started")
@@ -280,8 +267,7 @@ def run_name(point: dict[str, Any], method: str, seed: int) -> str:
     Other characters than letters, digits, ``.``, ``+`` and ``-`` in a value become ``_``; a name longer
     than 160 characters is cut and ends with a hash of the full name (unique and deterministic).
     """
-    parts = [f"{key}={format_value(value)}" for key, value in point.items()] + [f"{method}_seed{seed}"]
-    name = "__".join(parts)
+    name = "__".join([f"{key}={format_value(value)}" for key, value in point.items()] + [f"{method}_seed{seed}"])
     if len(name) > _MAX_NAME:
         digest = hashlib.sha256(name.encode()).hexdigest()[:12]
         name = f"{name[:_MAX_NAME - 14]}__{digest}"
@@ -303,56 +289,40 @@ def expand(spec: SweepSpec) -> list[SweepRun]:
         A run's config is invalid (message starts with ``base`` or the run's name), or two runs get the
         same directory name or the same config.
     """
-    defaults: dict = {}  # each run takes its task's experiment configuration for what the spec leaves out
     try:
-        TrainConfig.from_dict(apply_dotted(defaults, spec.base))
+        TrainConfig.from_dict(apply_dotted({}, spec.base))  # each run takes its task's defaults for the rest
     except (ValueError, TypeError) as exc:
         raise ValueError(f"base: {exc}") from None
     keys = list(spec.grid)
-    variants: list[str | None] = list(spec.variants) or [None]
-    own = {name: spec.variants.get(name, {}) if name is not None else {} for name in variants}
-    combos = [({**({} if variant is None else {"variant": variant}), **dict(zip(keys, values))}, method, seed)
-              for variant in variants
+    combos = [({} if variant is None else {"variant": variant}, own, dict(zip(keys, values)), method, seed)
+              for variant, own in list(spec.variants.items()) or [(None, {})]
               for values in itertools.product(*(spec.grid[k] for k in keys))
-              for method in own[variant].get("methods", spec.methods)
-              for seed in own[variant].get("seeds", spec.seeds)]
+              for method in own.get("methods", spec.methods)
+              for seed in own.get("seeds", spec.seeds)]
     names: dict[str, dict[str, Any]] = {}
-    for point, method, seed in combos:  # every name first: a clash is reported before any config error
+    for label, _, grid_point, method, seed in combos:  # every name first: a clash is reported before a config error
+        point = {**label, **grid_point}
         name = run_name(point, method, seed)
         if name in names:
             raise ValueError(f"grid: the points {names[name]} and {point} give the same run name {name!r}")
         names[name] = point
     runs: list[SweepRun] = []
-    for point, method, seed in combos:
-        name = run_name(point, method, seed)
-        variant = {k: v for k, v in (spec.variants.get(point.get("variant"), {}) if spec.variants else {}).items()
-                   if k not in _VARIANT_LISTS}
-        grid_point = {k: v for k, v in point.items() if not (spec.variants and k == "variant")}
-        overrides = {**spec.base, **variant, **grid_point, "method": method, "seed": seed}
+    for name, (_, own, grid_point, method, seed) in zip(names, combos):
+        overrides = {**spec.base, **{k: v for k, v in own.items() if k not in _VARIANT_LISTS}, **grid_point,
+                     "method": method, "seed": seed}
         try:
-            config = TrainConfig.from_dict(apply_dotted(defaults, overrides))
+            config = TrainConfig.from_dict(apply_dotted({}, overrides))
         except (ValueError, TypeError) as exc:
             raise ValueError(f"{name}: {exc}") from None
-        runs.append(SweepRun(name=name, point=point, config=config))
+        runs.append(SweepRun(name=name, point=names[name], config=config))
     seen: dict[str, SweepRun] = {}
     for run in runs:  # equal configs from values that differ only in type (1 and 1.0 of a float field)
-        other = seen.setdefault(json.dumps(_numbers_as_floats(run.config.to_dict()), sort_keys=True), run)
+        as_floats = json.loads(json.dumps(run.config.to_dict()), parse_int=float)
+        other = seen.setdefault(json.dumps(as_floats, sort_keys=True), run)
         if other is not run:
             raise ValueError(f"grid: the runs {other.name} and {run.name} have the same config (points {other.point} "
                              f"and {run.point}); remove one of the equal values")
     return runs
-
-
-def _numbers_as_floats(value: Any) -> Any:
-    """``value`` with every integer (not bool) turned into a float: two configs that train alike compare equal."""
-    if isinstance(value, dict):
-        return {k: _numbers_as_floats(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_numbers_as_floats(v) for v in value]
-    if isinstance(value, int) and not isinstance(value, bool):
-        return float(value)
-    return value
-
 
 
 def config_hash(config: TrainConfig | dict[str, Any]) -> str:
