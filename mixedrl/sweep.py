@@ -211,7 +211,7 @@ def csv_rows(records: list[dict[str, Any]]) -> list[dict[str, Any]]:
     """
     return [{"name": rec["name"], **rec["point"], "method": rec["config"]["method"], "seed": rec["config"]["seed"],
              "config_hash": rec.get("config_hash"), "iterations": rec.get("iterations"),
-             "true_transitions": rec.get("true_transitions"), **dict.fromkeys(RESULT_KEYS),
+             **dict.fromkeys(RESULT_KEYS), "true_transitions": rec.get("true_transitions"),
              **(rec.get("metrics") or {}),
              "train_seconds": rec.get("train_seconds"), "wall_seconds": rec.get("wall_seconds"),
              "run_dir": rec.get("run_dir"), "error": rec["error"]} for rec in records]

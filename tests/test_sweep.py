@@ -382,6 +382,7 @@ def test_sweep_on_the_local_pool_equals_train_alone_and_resumes(pool_sweep, tmp_
         rows = list(csv.DictReader(fh))
     assert [r["name"] for r in rows] == [r.name for r in runs] and float(rows[1]["cost"]) == \
         doc["runs"][1]["results"]["cost"]
+    assert [r["true_transitions"] for r in rows] == [str(rec["results"]["true_transitions"]) for rec in doc["runs"]]
     with open(full / "sweep_summary.csv") as fh:
         summary = list(csv.DictReader(fh))
     assert [(s["algorithm.critic_lr"], s["method"], s["runs"]) for s in summary] == [("0.001", "mixed", "1"),
