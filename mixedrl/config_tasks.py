@@ -65,7 +65,7 @@ def build_section(cls: type, data: Any, where: str) -> Any:
     if isinstance(data, cls):
         return data
     if not isinstance(data, dict):
-        raise ValueError(f"{where}: expected a dict (a JSON object), got {data!r}")
+        raise ValueError(f"{where}: expected a dict (a JSON object) or a {cls.__name__}, got {data!r}")
     allowed = {f.name for f in dataclasses.fields(cls) if f.init}
     check_unknown_keys({f"{where}.{k}": v for k, v in data.items()}, {f"{where}.{k}" for k in allowed}, "config")
     return cls(**data)
