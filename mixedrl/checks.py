@@ -24,11 +24,7 @@ PSD_RTOL = 1e-10
 
 def check_finite(value: np.ndarray | torch.Tensor, name: str) -> None:
     """Raise ``ValueError`` if ``value`` holds NaN or +-inf."""
-    if isinstance(value, torch.Tensor):
-        ok = bool(torch.isfinite(value).all())
-    else:
-        ok = bool(np.all(np.isfinite(value)))
-    if not ok:
+    if not bool(torch.isfinite(value).all() if isinstance(value, torch.Tensor) else np.all(np.isfinite(value))):
         raise ValueError(f"{name}: contains NaN or inf")
 
 
@@ -36,10 +32,9 @@ def _to_float_array(value: Any, name: str) -> np.ndarray:
     if isinstance(value, torch.Tensor):
         value = value.detach().cpu().numpy()
     try:
-        arr = np.array(value, dtype=np.float64)
+        return np.array(value, dtype=np.float64)
     except (TypeError, ValueError) as exc:
         raise ValueError(f"{name}: cannot be converted to a float array ({exc})") from None
-    return arr
 
 
 def as_vector(value: Any, name: str, n: int | None = None) -> np.ndarray:
@@ -201,12 +196,19 @@ def check_seed_lists(seeds: Any, n: int, name: str = "seeds") -> list[list[int]]
     return [[int(s) for s in entry] for entry in seeds]
 
 
+#: :func:`check_task_types` probes this many batches of states (each its own seed) ...
+PROBE_BATCHES = 4
+#: ... of this many states, each rolled this many steps forward.
+PROBE_BATCH_SIZE = 32
+PROBE_STEPS = 3
+
+
 def check_task_types(task: Any) -> None:
     """Check the types of a task's array attributes and of its ``value_scale`` (what training relies on).
 
     Also probes ``observe``, ``f`` and ``cost`` on :data:`PROBE_BATCHES` batches of
-    :data:`PROBE_BATCH_SIZE` start states, each rolled :data:`PROBE_STEPS` steps under random actions
-    (own generators: no random stream of a trainer is touched).
+    :data:`PROBE_BATCH_SIZE` start states (seeds 1, 2, ..., float64), each rolled :data:`PROBE_STEPS` steps
+    under actions uniform within the bounds (own generators: no random stream of a trainer is touched).
 
     Parameters
     ----------
@@ -239,24 +241,6 @@ def check_task_types(task: Any) -> None:
             raise ValueError(f"{name}.{attr}: expected a numpy array, got a torch.Tensor (use .numpy())")
         if np.asarray(v).dtype.kind not in "fiu":
             raise ValueError(f"{name}.{attr}: expected real numbers, got dtype {np.asarray(v).dtype}")
-    _probe_states(task, name, n, m)
-    scale = getattr(task, "value_scale", 1.0)
-    if isinstance(scale, bool) or not isinstance(scale, (int, float, np.integer, np.floating)) \
-            or not math.isfinite(scale) or scale <= 0:
-        raise ValueError(f"{name}.value_scale: expected a positive finite number (the critic's output is "
-                         f"multiplied by it), got {scale!r}")
-
-
-#: :func:`check_task_types` probes this many batches of states (each its own seed) ...
-PROBE_BATCHES = 4
-#: ... of this many states, each rolled this many steps forward.
-PROBE_BATCH_SIZE = 32
-PROBE_STEPS = 3
-
-
-def _probe_states(task: Any, name: str, n: int, m: int) -> None:
-    """The probes of :func:`check_task_types` (seeds 1, 2, ..., float64, actions uniform within the bounds);
-    raise naming the function and the probe when an output is not finite."""
     bound = task.action_bound.detach().to(torch.float64)
     with torch.no_grad():
         for probe in range(1, PROBE_BATCHES + 1):
@@ -274,6 +258,11 @@ def _probe_states(task: Any, name: str, n: int, m: int) -> None:
                     if isinstance(value, torch.Tensor) and not bool(torch.isfinite(value).all()):
                         raise ValueError(f"{name}.{fn}: returned NaN or inf values {where}")
                 s = s_next
+    scale = getattr(task, "value_scale", 1.0)
+    if isinstance(scale, bool) or not isinstance(scale, (int, float, np.integer, np.floating)) \
+            or not math.isfinite(scale) or scale <= 0:
+        raise ValueError(f"{name}.value_scale: expected a positive finite number (the critic's output is "
+                         f"multiplied by it), got {scale!r}")
 
 
 class NonFiniteTrainingError(ValueError):

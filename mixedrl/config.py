@@ -51,8 +51,9 @@ from mixedrl.config_tasks import (BATCH_WEIGHTINGS, BUILTIN_NAMES, DISTURBANCE_L
 
 # this module's names, those of config_tasks and config_sections, and those served by __getattr__
 __all__ = ["TrainConfig", "PAPER_SETTINGS", "PAPER_HYPERPARAMETERS", "ONE_STEP_LEARNER", "CONFIG_PRESETS",
-           "FLAT_FORM_RELEASE", "memory_lower_bounds", "optimiser_section", "optimiser_prefix", "machine_memory", "apply_overrides", "flatten_table", "TaskConfig", "DoubleLaneChangeTaskConfig",
-           "CostWeights", "CourseSampler", "DLC_EXPERIMENT", *config_tasks.__all__, *config_sections.__all__]
+           "FLAT_FORM_RELEASE", "memory_lower_bounds", "optimiser_section", "optimiser_prefix", "machine_memory",
+           "apply_overrides", "flatten_table", "TaskConfig", "DoubleLaneChangeTaskConfig", "CostWeights",
+           "CourseSampler", "DLC_EXPERIMENT", *config_tasks.__all__, *config_sections.__all__]
 
 
 def __getattr__(name: str) -> Any:

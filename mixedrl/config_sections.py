@@ -195,38 +195,33 @@ class AlgorithmConfig:
 
     def __post_init__(self) -> None:
         w = "algorithm"
-        check_choice(self.compile, f"{w}.compile", COMPILE_MODES)
-        for name in ("iterations", "horizon", "noise_samples", "j_max", "stop_patience"):
+        for name in ("iterations", "region_budget", "horizon", "noise_samples", "j_max", "stop_patience"):
             setattr(self, name, check_positive_int(getattr(self, name), f"{w}.{name}"))
+        for name in ("lr_decay_iterations", "rollout_horizon"):
+            setattr(self, name, check_nonnegative_int(getattr(self, name), f"{w}.{name}"))
         _check_optimiser(self, w)
-        self.lr_decay_iterations = check_nonnegative_int(self.lr_decay_iterations, f"{w}.lr_decay_iterations")
-        self.region_budget = check_positive_int(self.region_budget, f"{w}.region_budget")
         if isinstance(self.hidden_sizes, (str, bytes)) or not isinstance(self.hidden_sizes, (list, tuple)) \
                 or not self.hidden_sizes:
             raise ValueError(f"{w}.hidden_sizes: expected positive widths, got {self.hidden_sizes!r}")
         self.hidden_sizes = tuple(check_positive_int(h, f"{w}.hidden_sizes") for h in self.hidden_sizes)
-        check_choice(self.value_output, f"{w}.value_output", ("softplus", "square", "linear"))
-        check_choice(self.expectation, f"{w}.expectation", ("sigma", "samples"))
-        check_choice(self.mvc_check, f"{w}.mvc_check", ("mean", "all"))
-        check_choice(self.ibe_recursion, f"{w}.ibe_recursion", ("exact", "paper"))
-        check_choice(self.batch_weighting, f"{w}.batch_weighting", BATCH_WEIGHTINGS)
+        for name, options in (("compile", COMPILE_MODES), ("value_output", ("softplus", "square", "linear")),
+                              ("expectation", ("sigma", "samples")), ("mvc_check", ("mean", "all")),
+                              ("ibe_recursion", ("exact", "paper")), ("batch_weighting", BATCH_WEIGHTINGS),
+                              ("actor_output", ("tanh", "clip", "clip_inward"))):
+            check_choice(getattr(self, name), f"{w}.{name}", options)
         check_choice(self.feedforward, f"{w}.feedforward", FEEDFORWARDS, RETIRED_FEEDFORWARDS)
         self.feedforward_width = check_number(self.feedforward_width, f"{w}.feedforward_width", nonneg=True)
+        self.batch_weight_offset = check_number(self.batch_weight_offset, f"{w}.batch_weight_offset", positive=True)
+        check_number(self.stop_epsilon, f"{w}.stop_epsilon", nonneg=True)
         if check_int(self.ibe_case, f"{w}.ibe_case") not in (1, 2, 3):
             raise ValueError(f"{w}.ibe_case: expected 1, 2 or 3 (the IBE's Case), got {self.ibe_case!r}")
         if self.ibe_case != 2 and self.ibe_recursion != "exact":
             raise ValueError(f"{w}.ibe_recursion: 'paper' is eq. (18), a Case 2 recursion; "
                              f"{w}.ibe_case is {self.ibe_case}")
         check_fraction(self.lr_decay_to, f"{w}.lr_decay_to", low_open=True)
-        check_fraction(self.critic_target, f"{w}.critic_target", high_open=True)
-        check_number(self.stop_epsilon, f"{w}.stop_epsilon", nonneg=True)
-        self.batch_weight_offset = check_number(self.batch_weight_offset, f"{w}.batch_weight_offset", positive=True)
-        self.rollout_horizon = check_nonnegative_int(self.rollout_horizon, f"{w}.rollout_horizon")
-        check_fraction(self.rollout_lambda, f"{w}.rollout_lambda")
-        check_fraction(self.rollout_discount_start, f"{w}.rollout_discount_start", high_open=True)
-        check_fraction(self.rollout_discount_ramp, f"{w}.rollout_discount_ramp")
-        check_choice(self.actor_output, f"{w}.actor_output", ("tanh", "clip", "clip_inward"))
-        check_fraction(self.rollout_region, f"{w}.rollout_region")
+        for i, name in enumerate(("critic_target", "rollout_discount_start",  # below 1
+                                  "rollout_lambda", "rollout_discount_ramp", "rollout_region")):
+            check_fraction(getattr(self, name), f"{w}.{name}", high_open=i < 2)
 
 
 @dataclass

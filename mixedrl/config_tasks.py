@@ -41,12 +41,6 @@ RETIRED_AT = "ee954d7"
 RETIRED_FEEDFORWARDS = ("lq_train", "lq_affine", "lq_affine_ss")
 
 
-def _law(value: Any, name: str) -> str:
-    if value not in DISTURBANCE_LAWS:
-        raise ValueError(f"{name}: expected one of {DISTURBANCE_LAWS}, got {value!r}")
-    return str(value)
-
-
 def to_jsonable(value: Any) -> Any:
     """Dataclasses to dicts, tuples to lists, recursively (what ``json.dumps`` writes)."""
     if dataclasses.is_dataclass(value) and not isinstance(value, type):
@@ -75,11 +69,9 @@ def build_section(cls: type, data: Any, where: str) -> Any:
 ForceDisturbanceConfig = Disturbance
 
 
-def _gamma(value: Any) -> float:
-    gamma = check_number(value, "task.gamma")
-    if not 0.0 < gamma < 1.0:
-        raise ValueError(f"task.gamma: expected a number in (0, 1), got {gamma!r}")
-    return gamma
+def _tuples(array: Any) -> tuple:
+    """A vector or a matrix as a tuple (of tuples) of floats, its JSON face."""
+    return tuple(tuple(row) if isinstance(row, list) else row for row in np.asarray(array, dtype=float).tolist())
 
 
 # ---- the linear test bed ----
@@ -103,14 +95,10 @@ class GaussianNoiseConfig:
     """Covariance ``K`` of ``xi`` (symmetric PSD), shape (n, n)."""
 
     def __post_init__(self) -> None:
-        self.law = _law(self.law, f"{self.WHERE}.law")
-        self.mean = tuple(as_vector(self.mean, f"{self.WHERE}.mean").tolist())
+        self.law = str(check_choice(self.law, f"{self.WHERE}.law", DISTURBANCE_LAWS))
+        self.mean = _tuples(as_vector(self.mean, f"{self.WHERE}.mean"))
         cov = as_matrix(self.cov, f"{self.WHERE}.cov", (len(self.mean), len(self.mean)))
-        self.cov = _rows(check_covariance(cov, f"{self.WHERE}.cov", len(self.mean)))
-
-
-def _rows(matrix: np.ndarray) -> tuple[tuple[float, ...], ...]:
-    return tuple(tuple(float(v) for v in row) for row in np.asarray(matrix))
+        self.cov = _tuples(check_covariance(cov, f"{self.WHERE}.cov", len(self.mean)))
 
 
 @dataclass
@@ -161,7 +149,9 @@ class LinearTaskConfig:
     def __post_init__(self) -> None:
         if self.name != "linear":
             raise ValueError(f"task.name: expected 'linear' for LinearTaskConfig, got {self.name!r}")
-        self.gamma = _gamma(self.gamma)
+        self.gamma = check_number(self.gamma, "task.gamma")
+        if not 0.0 < self.gamma < 1.0:
+            raise ValueError(f"task.gamma: expected a number in (0, 1), got {self.gamma!r}")
         dist = self.disturbance
         if not isinstance(dist, (dict, GaussianNoiseConfig)):
             raise ValueError(f"task.disturbance: expected a dict (a JSON object), got {dist!r}")
@@ -170,14 +160,11 @@ class LinearTaskConfig:
         # validated by LQProblem before the noise section, so the system's size decides which is wrong
         problem = _lq_problem(self, mean, cov)
         self.disturbance = build_section(GaussianNoiseConfig, dist, "task.disturbance")
-        for name in _problem_fields():  # the validated values, as JSON (tuples)
+        for name in _PROBLEM_FIELDS:  # the validated values, as JSON (tuples)
             value = getattr(problem, name)
-            if isinstance(value, np.ndarray):
-                value = _rows(value) if value.ndim == 2 else tuple(value.tolist())
-            setattr(self, name, value)
+            setattr(self, name, _tuples(value) if isinstance(value, np.ndarray) else value)
         self.init_box = check_number(self.init_box, "task.init_box", positive=True)
         self.action_bound = check_number(self.action_bound, "task.action_bound", positive=True)
-
 
     def problem(self) -> LQProblem:
         """The LQ problem this configuration describes (:class:`mixedrl.lq.LQProblem`)."""
@@ -186,18 +173,15 @@ class LinearTaskConfig:
 
 #: Names of :class:`mixedrl.lq.LQProblem`'s fields that :class:`LinearTaskConfig` calls otherwise.
 _PROBLEM_KEYS = {"noise_mean": "disturbance.mean", "noise_cov": "disturbance.cov"}
-
-
-def _problem_fields() -> tuple[str, ...]:
-    """:class:`mixedrl.lq.LQProblem`'s fields that :class:`LinearTaskConfig` holds under the same name."""
-    return tuple(f.name for f in dataclasses.fields(LQProblem) if f.name not in _PROBLEM_KEYS)
+#: :class:`mixedrl.lq.LQProblem`'s fields that :class:`LinearTaskConfig` holds under the same name.
+_PROBLEM_FIELDS = tuple(f.name for f in dataclasses.fields(LQProblem) if f.name not in _PROBLEM_KEYS)
 
 
 def _lq_problem(cfg: LinearTaskConfig, mean: Any, cov: Any) -> LQProblem:
     """:class:`mixedrl.lq.LQProblem` of ``cfg`` with the true noise ``N(mean, cov)``; its errors name the
     dotted key (``task.A``, ``task.disturbance.mean``, ...)."""
     try:
-        return LQProblem(**{name: getattr(cfg, name) for name in _problem_fields()}, noise_mean=mean, noise_cov=cov)
+        return LQProblem(**{name: getattr(cfg, name) for name in _PROBLEM_FIELDS}, noise_mean=mean, noise_cov=cov)
     except ValueError as exc:
         name, _, rest = str(exc).partition(":")
         raise ValueError(f"task.{_PROBLEM_KEYS.get(name, name)}:{rest}") from None
