@@ -1,20 +1,15 @@
 """The configuration of a training run: :class:`TrainConfig`, in sections, and its dotted-key overrides.
 
 :class:`TrainConfig` holds a run of Algorithm 2 (``method`` ``"mixed"``, ``"model"``, ``"oracle"``) or of
-DDPG (``"ddpg"``) in seven fields: ``method``, ``seed``, ``task`` (the experiment), ``algorithm``
-(:class:`AlgorithmConfig`), ``sampler`` (one of :data:`SAMPLERS`, chosen by ``name``), ``ddpg``
-(:class:`DDPGConfig`) and ``run`` (:class:`RunConfig`). It is saved as ``config.json`` beside the run's
-results; a key that is not a field, at any level, is an error naming the dotted key.
+DDPG (``"ddpg"``): ``method``, ``seed``, ``task`` (the experiment, chosen by its ``name``: ``"dlc"``,
+``"linear"`` or a task registered with :func:`register_task`), ``algorithm``, ``sampler``, ``ddpg`` and
+``run``. It is saved as ``config.json`` beside the run's results; a key that is not a field, at any level, is
+an error naming the dotted key.
 
-The task configuration is chosen by its ``name``: ``"dlc"`` (the paper's Section VI,
-:class:`~mixedrl.envs.dlc_config.DoubleLaneChangeTaskConfig`, with ``task.disturbance`` and ``task.cost``),
-``"linear"`` (:class:`LinearTaskConfig`) or a task registered with :func:`register_task`.
-
-``TrainConfig()`` (no task named) holds the library defaults (docs/algorithm2.rst), what a user's own task
-object trains with; its ``task`` field holds the double lane change's defaults. When a task is named
-(``task="dlc"``; in a dictionary a missing ``task`` is ``"dlc"``), a section that is not given takes that
-task's experiment configuration (:data:`PRESETS`; the double lane change's is
-:data:`mixedrl.envs.dlc_task.DLC_EXPERIMENT`).
+``TrainConfig()`` (no task named) holds the library defaults (docs/algorithm2.rst), with the double lane
+change's task defaults. When a task is named (``task="dlc"``; in a dictionary a missing ``task`` is
+``"dlc"``), a section that is not given takes that task's experiment configuration (:data:`PRESETS`; the
+double lane change's is :data:`mixedrl.envs.dlc_task.DLC_EXPERIMENT`).
 
 Dotted keys address nested fields, the same way on the command line, in :func:`apply_overrides` and in
 sweep specifications::
@@ -111,11 +106,7 @@ def flatten_table(table: dict[str, Any], prefix: str = "") -> dict[str, Any]:
     """
     out: dict[str, Any] = {}
     for key, value in table.items():
-        name = f"{prefix}{key}"
-        if isinstance(value, dict):
-            out.update(flatten_table(value, prefix=f"{name}."))
-        else:
-            out[name] = value
+        out.update(flatten_table(value, f"{prefix}{key}.") if isinstance(value, dict) else {f"{prefix}{key}": value})
     return out
 
 
@@ -217,12 +208,8 @@ MAX_SEED = 2**64 - 1
 
 @dataclass(init=False)
 class TrainConfig:
-    """Configuration of one training run (Algorithm 2 or DDPG), in sections.
-
-    A section left out (or given as a partial dict) takes the library defaults of the section's class, with
-    the named task's experiment configuration (:data:`PRESETS`) over them when ``task`` is named.
-    ``to_dict`` / ``from_dict`` round-trip exactly through JSON.
-    """
+    """Configuration of one training run (Algorithm 2 or DDPG), in sections; a section left out (or given as a
+    partial dict) takes its class's defaults, under the named task's preset (:data:`PRESETS`)."""
 
     method: str
     """Which algorithm: ``"mixed"`` (Algorithm 2, IBE posterior), ``"model"`` (Algorithm 2 on the prior
