@@ -47,8 +47,7 @@ def as_vector(value: Any, name: str, n: int | None = None) -> np.ndarray:
     """
     arr = _to_float_array(value, name)
     if arr.ndim != 1 or (n is not None and arr.shape[0] != n):
-        want = f"({n},)" if n is not None else "(n,)"
-        raise ValueError(f"{name}: expected shape {want}, got {arr.shape}")
+        raise ValueError(f"{name}: expected shape {(n,) if n is not None else '(n,)'}, got {arr.shape}")
     check_finite(arr, name)
     return arr
 

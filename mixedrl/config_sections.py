@@ -377,13 +377,13 @@ def sampler_config(value: Any, task: str | None = None) -> Any:
 # ---- presets: a task's experiment configuration ----
 #: Task name -> section -> field values over the library defaults (:func:`register_preset`).
 PRESETS: dict[str, dict[str, dict[str, Any]]] = {}
-_SECTIONS = ("algorithm", "sampler", "ddpg", "run")
 
 
 def register_preset(task: str, sections: dict[str, dict[str, Any]]) -> None:
     """Register the experiment configuration of the task ``task``: the values ``TrainConfig`` gives a
     section's missing fields when the run's task is ``task`` (``{"algorithm": {...}, "sampler": {...}}``)."""
-    unknown = set(sections) - set(_SECTIONS)
+    allowed = ["algorithm", "ddpg", "run", "sampler"]
+    unknown = sorted(set(sections) - set(allowed))
     if unknown:
-        raise ValueError(f"sections: unknown section(s) {sorted(unknown)}; allowed: {sorted(_SECTIONS)}")
+        raise ValueError(f"sections: unknown section(s) {unknown}; allowed: {allowed}")
     PRESETS[task] = copy.deepcopy(sections)

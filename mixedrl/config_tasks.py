@@ -155,10 +155,9 @@ class LinearTaskConfig:
         dist = self.disturbance
         if not isinstance(dist, (dict, GaussianNoiseConfig)):
             raise ValueError(f"task.disturbance: expected a dict (a JSON object), got {dist!r}")
-        mean, cov = (dist.get(k, getattr(GaussianNoiseConfig, k)) if isinstance(dist, dict) else getattr(dist, k)
-                     for k in ("mean", "cov"))
+        given = dist if isinstance(dist, dict) else vars(dist)
         # validated by LQProblem before the noise section, so the system's size decides which is wrong
-        problem = _lq_problem(self, mean, cov)
+        problem = _lq_problem(self, *(given.get(k, getattr(GaussianNoiseConfig, k)) for k in ("mean", "cov")))
         self.disturbance = build_section(GaussianNoiseConfig, dist, "task.disturbance")
         for name in _PROBLEM_FIELDS:  # the validated values, as JSON (tuples)
             value = getattr(problem, name)
