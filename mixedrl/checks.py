@@ -7,7 +7,7 @@ their input: they return a validated float64 copy (numpy) or the tensor itself (
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from typing import Any
 
 import numpy as np
@@ -28,13 +28,18 @@ def check_finite(value: np.ndarray | torch.Tensor, name: str) -> None:
         raise ValueError(f"{name}: contains NaN or inf")
 
 
-def _to_float_array(value: Any, name: str) -> np.ndarray:
+def _float_array(value: Any, name: str, want: str, fits: Callable[[np.ndarray], bool]) -> np.ndarray:
+    """``value`` as a finite float64 array (a copy) whose shape ``fits``, else an error wanting shape ``want``."""
     if isinstance(value, torch.Tensor):
         value = value.detach().cpu().numpy()
     try:
-        return np.array(value, dtype=np.float64)
+        arr = np.array(value, dtype=np.float64)
     except (TypeError, ValueError) as exc:
         raise ValueError(f"{name}: cannot be converted to a float array ({exc})") from None
+    if not fits(arr):
+        raise ValueError(f"{name}: expected shape {want}, got {arr.shape}")
+    check_finite(arr, name)
+    return arr
 
 
 def as_vector(value: Any, name: str, n: int | None = None) -> np.ndarray:
@@ -45,32 +50,21 @@ def as_vector(value: Any, name: str, n: int | None = None) -> np.ndarray:
     ValueError
         If the shape is wrong or an entry is not finite.
     """
-    arr = _to_float_array(value, name)
-    if arr.ndim != 1 or (n is not None and arr.shape[0] != n):
-        raise ValueError(f"{name}: expected shape {(n,) if n is not None else '(n,)'}, got {arr.shape}")
-    check_finite(arr, name)
-    return arr
+    want = "(n,)" if n is None else f"({n},)"
+    return _float_array(value, name, want, lambda a: a.ndim == 1 and n in (None, len(a)))
 
 
 def as_matrix(value: Any, name: str, shape: tuple[int | None, int | None] = (None, None)) -> np.ndarray:
     """Return ``value`` as a finite float64 matrix with the given shape (``None`` = any)."""
-    arr = _to_float_array(value, name)
-    if arr.ndim != 2 or any(s is not None and s != a for s, a in zip(shape, arr.shape)):
-        want = "(" + ", ".join("?" if s is None else str(s) for s in shape) + ")"
-        raise ValueError(f"{name}: expected shape {want}, got {arr.shape}")
-    check_finite(arr, name)
-    return arr
+    want = "(" + ", ".join("?" if s is None else str(s) for s in shape) + ")"
+    return _float_array(value, name, want, lambda a: a.ndim == 2
+                        and all(s in (None, k) for s, k in zip(shape, a.shape)))
 
 
 def as_batch(value: Any, name: str, n: int) -> np.ndarray:
     """Return one sample ``(n,)`` or a batch ``(N, n)`` as a finite float64 array of shape ``(N, n)``."""
-    arr = _to_float_array(value, name)
-    if arr.ndim == 1:
-        arr = arr[None, :]
-    if arr.ndim != 2 or arr.shape[1] != n:
-        raise ValueError(f"{name}: expected shape ({n},) or (N, {n}), got {np.shape(value)}")
-    check_finite(arr, name)
-    return arr
+    arr = _float_array(value, name, f"({n},) or (N, {n})", lambda a: a.ndim in (1, 2) and a.shape[-1] == n)
+    return arr[None, :] if arr.ndim == 1 else arr
 
 
 def check_covariance(value: Any, name: str, n: int | None = None) -> np.ndarray:
