@@ -360,9 +360,7 @@ def sampler_config(value: Any, task: str | None = None) -> Any:
     if isinstance(value, str):
         value = {"name": value}
     if isinstance(value, dict):
-        name = value.get("name", ModelRolloutsSampler.NAME)
-        if name not in SAMPLERS:
-            raise ValueError(f"sampler.name: expected one of {tuple(SAMPLERS)}, got {name!r}")
+        name = check_choice(value.get("name", ModelRolloutsSampler.NAME), "sampler.name", tuple(SAMPLERS))
         value = build_section(SAMPLERS[name], {**value, "name": name}, "sampler")
     elif not any(type(value) is cls for cls in SAMPLERS.values()):
         raise ValueError(f"sampler: expected a sampler name {tuple(SAMPLERS)}, a dict or an options object, "

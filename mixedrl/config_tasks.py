@@ -278,9 +278,7 @@ def task_config(value: Any = "dlc") -> Any:
         value = {"name": value}
     if not isinstance(value, dict):
         raise ValueError(f"task: expected a task name {task_names()} or a dict, got {value!r}")
-    name = value.get("name", "dlc")
-    if name not in _TASK_CLASSES:
-        raise ValueError(f"task.name: expected one of {task_names()}, got {name!r}")
+    name = check_choice(value.get("name", "dlc"), "task.name", task_names())
     if name in _TASK_READERS:
         return _TASK_READERS[name]({**value, "name": name}, where="task")
     return build_section(_TASK_CLASSES[name], {**value, "name": name}, "task")
