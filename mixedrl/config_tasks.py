@@ -13,7 +13,7 @@ from typing import Any, ClassVar, Union
 
 import numpy as np
 
-from mixedrl.checks import as_matrix, as_vector, check_covariance, check_number, check_unknown_keys
+from mixedrl.checks import as_vector, check_covariance, check_number, check_unknown_keys
 from mixedrl.envs.disturbance import DISTURBANCE_LAWS, Disturbance
 from mixedrl.lq import LQProblem
 
@@ -97,8 +97,7 @@ class GaussianNoiseConfig:
     def __post_init__(self) -> None:
         self.law = str(check_choice(self.law, f"{self.WHERE}.law", DISTURBANCE_LAWS))
         self.mean = _tuples(as_vector(self.mean, f"{self.WHERE}.mean"))
-        cov = as_matrix(self.cov, f"{self.WHERE}.cov", (len(self.mean), len(self.mean)))
-        self.cov = _tuples(check_covariance(cov, f"{self.WHERE}.cov", len(self.mean)))
+        self.cov = _tuples(check_covariance(self.cov, f"{self.WHERE}.cov", len(self.mean)))
 
 
 @dataclass
@@ -110,8 +109,6 @@ class LinearTaskConfig:
     Validated by, and :meth:`problem` returns, :class:`mixedrl.lq.LQProblem` (``(A, B)`` stabilisable,
     ``R`` positive definite).
     """
-
-    WHERE: ClassVar[str] = "task"
 
     name: str = "linear"
     """Always ``"linear"`` for this class (selects it when loading)."""
