@@ -13,7 +13,7 @@ from typing import Any, ClassVar, Union
 
 import numpy as np
 
-from mixedrl.checks import as_vector, check_covariance, check_number, check_unknown_keys
+from mixedrl.checks import as_vector, check_covariance, check_fraction, check_number, check_unknown_keys
 from mixedrl.envs.disturbance import DISTURBANCE_LAWS, Disturbance
 from mixedrl.lq import LQProblem
 
@@ -146,9 +146,7 @@ class LinearTaskConfig:
     def __post_init__(self) -> None:
         if self.name != "linear":
             raise ValueError(f"task.name: expected 'linear' for LinearTaskConfig, got {self.name!r}")
-        self.gamma = check_number(self.gamma, "task.gamma")
-        if not 0.0 < self.gamma < 1.0:
-            raise ValueError(f"task.gamma: expected a number in (0, 1), got {self.gamma!r}")
+        self.gamma = check_fraction(self.gamma, "task.gamma", low_open=True, high_open=True)
         dist = self.disturbance
         if not isinstance(dist, (dict, GaussianNoiseConfig)):
             raise ValueError(f"task.disturbance: expected a dict (a JSON object), got {dist!r}")
