@@ -7,7 +7,7 @@ their input: they return a validated float64 copy (numpy) or the tensor itself (
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from typing import Any
 
 import numpy as np
@@ -24,21 +24,21 @@ PSD_RTOL = 1e-10
 
 def check_finite(value: np.ndarray | torch.Tensor, name: str) -> None:
     """Raise ``ValueError`` if ``value`` holds NaN or +-inf."""
-    if isinstance(value, torch.Tensor):
-        ok = bool(torch.isfinite(value).all())
-    else:
-        ok = bool(np.all(np.isfinite(value)))
-    if not ok:
+    if not bool(torch.isfinite(value).all() if isinstance(value, torch.Tensor) else np.all(np.isfinite(value))):
         raise ValueError(f"{name}: contains NaN or inf")
 
 
-def _to_float_array(value: Any, name: str) -> np.ndarray:
+def _float_array(value: Any, name: str, want: str, fits: Callable[[np.ndarray], bool]) -> np.ndarray:
+    """``value`` as a finite float64 array (a copy) whose shape ``fits``, else an error wanting shape ``want``."""
     if isinstance(value, torch.Tensor):
         value = value.detach().cpu().numpy()
     try:
         arr = np.array(value, dtype=np.float64)
     except (TypeError, ValueError) as exc:
         raise ValueError(f"{name}: cannot be converted to a float array ({exc})") from None
+    if not fits(arr):
+        raise ValueError(f"{name}: expected shape {want}, got {arr.shape}")
+    check_finite(arr, name)
     return arr
 
 
@@ -50,33 +50,21 @@ def as_vector(value: Any, name: str, n: int | None = None) -> np.ndarray:
     ValueError
         If the shape is wrong or an entry is not finite.
     """
-    arr = _to_float_array(value, name)
-    if arr.ndim != 1 or (n is not None and arr.shape[0] != n):
-        want = f"({n},)" if n is not None else "(n,)"
-        raise ValueError(f"{name}: expected shape {want}, got {arr.shape}")
-    check_finite(arr, name)
-    return arr
+    want = "(n,)" if n is None else f"({n},)"
+    return _float_array(value, name, want, lambda a: a.ndim == 1 and n in (None, len(a)))
 
 
 def as_matrix(value: Any, name: str, shape: tuple[int | None, int | None] = (None, None)) -> np.ndarray:
     """Return ``value`` as a finite float64 matrix with the given shape (``None`` = any)."""
-    arr = _to_float_array(value, name)
-    if arr.ndim != 2 or any(s is not None and s != a for s, a in zip(shape, arr.shape)):
-        want = "(" + ", ".join("?" if s is None else str(s) for s in shape) + ")"
-        raise ValueError(f"{name}: expected shape {want}, got {arr.shape}")
-    check_finite(arr, name)
-    return arr
+    want = "(" + ", ".join("?" if s is None else str(s) for s in shape) + ")"
+    return _float_array(value, name, want, lambda a: a.ndim == 2
+                        and all(s in (None, k) for s, k in zip(shape, a.shape)))
 
 
 def as_batch(value: Any, name: str, n: int) -> np.ndarray:
     """Return one sample ``(n,)`` or a batch ``(N, n)`` as a finite float64 array of shape ``(N, n)``."""
-    arr = _to_float_array(value, name)
-    if arr.ndim == 1:
-        arr = arr[None, :]
-    if arr.ndim != 2 or arr.shape[1] != n:
-        raise ValueError(f"{name}: expected shape ({n},) or (N, {n}), got {np.shape(value)}")
-    check_finite(arr, name)
-    return arr
+    arr = _float_array(value, name, f"({n},) or (N, {n})", lambda a: a.ndim in (1, 2) and a.shape[-1] == n)
+    return arr[None, :] if arr.ndim == 1 else arr
 
 
 def check_covariance(value: Any, name: str, n: int | None = None) -> np.ndarray:
@@ -201,12 +189,19 @@ def check_seed_lists(seeds: Any, n: int, name: str = "seeds") -> list[list[int]]
     return [[int(s) for s in entry] for entry in seeds]
 
 
+#: :func:`check_task_types` probes this many batches of states (each its own seed) ...
+PROBE_BATCHES = 4
+#: ... of this many states, each rolled this many steps forward.
+PROBE_BATCH_SIZE = 32
+PROBE_STEPS = 3
+
+
 def check_task_types(task: Any) -> None:
     """Check the types of a task's array attributes and of its ``value_scale`` (what training relies on).
 
     Also probes ``observe``, ``f`` and ``cost`` on :data:`PROBE_BATCHES` batches of
-    :data:`PROBE_BATCH_SIZE` start states, each rolled :data:`PROBE_STEPS` steps under random actions
-    (own generators: no random stream of a trainer is touched).
+    :data:`PROBE_BATCH_SIZE` start states (seeds 1, 2, ..., float64), each rolled :data:`PROBE_STEPS` steps
+    under actions uniform within the bounds (own generators: no random stream of a trainer is touched).
 
     Parameters
     ----------
@@ -239,24 +234,6 @@ def check_task_types(task: Any) -> None:
             raise ValueError(f"{name}.{attr}: expected a numpy array, got a torch.Tensor (use .numpy())")
         if np.asarray(v).dtype.kind not in "fiu":
             raise ValueError(f"{name}.{attr}: expected real numbers, got dtype {np.asarray(v).dtype}")
-    _probe_states(task, name, n, m)
-    scale = getattr(task, "value_scale", 1.0)
-    if isinstance(scale, bool) or not isinstance(scale, (int, float, np.integer, np.floating)) \
-            or not math.isfinite(scale) or scale <= 0:
-        raise ValueError(f"{name}.value_scale: expected a positive finite number (the critic's output is "
-                         f"multiplied by it), got {scale!r}")
-
-
-#: :func:`check_task_types` probes this many batches of states (each its own seed) ...
-PROBE_BATCHES = 4
-#: ... of this many states, each rolled this many steps forward.
-PROBE_BATCH_SIZE = 32
-PROBE_STEPS = 3
-
-
-def _probe_states(task: Any, name: str, n: int, m: int) -> None:
-    """The probes of :func:`check_task_types` (seeds 1, 2, ..., float64, actions uniform within the bounds);
-    raise naming the function and the probe when an output is not finite."""
     bound = task.action_bound.detach().to(torch.float64)
     with torch.no_grad():
         for probe in range(1, PROBE_BATCHES + 1):
@@ -274,6 +251,11 @@ def _probe_states(task: Any, name: str, n: int, m: int) -> None:
                     if isinstance(value, torch.Tensor) and not bool(torch.isfinite(value).all()):
                         raise ValueError(f"{name}.{fn}: returned NaN or inf values {where}")
                 s = s_next
+    scale = getattr(task, "value_scale", 1.0)
+    if isinstance(scale, bool) or not isinstance(scale, (int, float, np.integer, np.floating)) \
+            or not math.isfinite(scale) or scale <= 0:
+        raise ValueError(f"{name}.value_scale: expected a positive finite number (the critic's output is "
+                         f"multiplied by it), got {scale!r}")
 
 
 class NonFiniteTrainingError(ValueError):

@@ -1,20 +1,15 @@
 """The configuration of a training run: :class:`TrainConfig`, in sections, and its dotted-key overrides.
 
 :class:`TrainConfig` holds a run of Algorithm 2 (``method`` ``"mixed"``, ``"model"``, ``"oracle"``) or of
-DDPG (``"ddpg"``) in seven fields: ``method``, ``seed``, ``task`` (the experiment), ``algorithm``
-(:class:`AlgorithmConfig`), ``sampler`` (one of :data:`SAMPLERS`, chosen by ``name``), ``ddpg``
-(:class:`DDPGConfig`) and ``run`` (:class:`RunConfig`). It is saved as ``config.json`` beside the run's
-results; a key that is not a field, at any level, is an error naming the dotted key.
+DDPG (``"ddpg"``): ``method``, ``seed``, ``task`` (the experiment, chosen by its ``name``: ``"dlc"``,
+``"linear"`` or a task registered with :func:`register_task`), ``algorithm``, ``sampler``, ``ddpg`` and
+``run``. It is saved as ``config.json`` beside the run's results; a key that is not a field, at any level, is
+an error naming the dotted key.
 
-The task configuration is chosen by its ``name``: ``"dlc"`` (the paper's Section VI,
-:class:`~mixedrl.envs.dlc_config.DoubleLaneChangeTaskConfig`, with ``task.disturbance`` and ``task.cost``),
-``"linear"`` (:class:`LinearTaskConfig`) or a task registered with :func:`register_task`.
-
-``TrainConfig()`` (no task named) holds the library defaults (docs/algorithm2.rst), what a user's own task
-object trains with; its ``task`` field holds the double lane change's defaults. When a task is named
-(``task="dlc"``; in a dictionary a missing ``task`` is ``"dlc"``), a section that is not given takes that
-task's experiment configuration (:data:`PRESETS`; the double lane change's is
-:data:`mixedrl.envs.dlc_task.DLC_EXPERIMENT`).
+``TrainConfig()`` (no task named) holds the library defaults (docs/algorithm2.rst), with the double lane
+change's task defaults. When a task is named (``task="dlc"``; in a dictionary a missing ``task`` is
+``"dlc"``), a section that is not given takes that task's experiment configuration (:data:`PRESETS`; the
+double lane change's is :data:`mixedrl.envs.dlc_task.DLC_EXPERIMENT`).
 
 Dotted keys address nested fields, the same way on the command line, in :func:`apply_overrides` and in
 sweep specifications::
@@ -50,10 +45,10 @@ from mixedrl.config_tasks import (BATCH_WEIGHTINGS, BUILTIN_NAMES, DISTURBANCE_L
                                   task_names, to_jsonable)
 
 # this module's names, those of config_tasks and config_sections, and those served by __getattr__
-__all__ = ["TrainConfig", "PAPER_SETTINGS", "PAPER_HYPERPARAMETERS", "ONE_STEP_LEARNER", "CONFIG_PRESETS", "FLAT_FORM_RELEASE",
-           "memory_lower_bounds", "optimiser_section", "optimiser_prefix",
-           "machine_memory", "apply_overrides", "flatten_table", "TaskConfig", "DoubleLaneChangeTaskConfig",
-           "CostWeights", "CourseSampler", "DLC_EXPERIMENT", *config_tasks.__all__, *config_sections.__all__]
+__all__ = ["TrainConfig", "PAPER_SETTINGS", "PAPER_HYPERPARAMETERS", "ONE_STEP_LEARNER", "CONFIG_PRESETS",
+           "FLAT_FORM_RELEASE", "memory_lower_bounds", "optimiser_section", "optimiser_prefix", "machine_memory",
+           "apply_overrides", "flatten_table", "TaskConfig", "DoubleLaneChangeTaskConfig", "CostWeights",
+           "CourseSampler", "DLC_EXPERIMENT", *config_tasks.__all__, *config_sections.__all__]
 
 
 def __getattr__(name: str) -> Any:
@@ -91,28 +86,6 @@ DELETED_AT: dict[tuple[str, str], str] = {("sampler", "course_ramp"): RETIRED_AT
                                           ("algorithm", "feedforward_handover"): "2488be5"}
 
 
-def _drop_deleted_settings(data: dict[str, Any]) -> None:
-    """Drop the :data:`DELETED_SETTINGS` of ``data`` that hold today's behaviour; refuse the others."""
-    for (section, name), value in DELETED_SETTINGS.items():
-        part = data.get(section)
-        if isinstance(part, dict) and name in part:
-            if part[name] != value:
-                commit = DELETED_AT.get((section, name))
-                raise ValueError(f"{section}.{name}: this setting was deleted (docs: results, 'Deleted settings'); "
-                                 f"only {value!r}, today's behaviour, can be read, got {part[name]!r}"
-                                 + (f"; git commit {commit} can still run it" if commit else ""))
-            del part[name]
-
-
-def _ddpg_settings_from_algorithm(data: dict[str, Any]) -> None:
-    """For ``method = "ddpg"``, take each :data:`OPTIMISER_FIELDS` entry that ``ddpg`` lacks from ``algorithm``
-    (where older configs hold DDPG's values)."""
-    algo, ddpg = data.get("algorithm"), data.get("ddpg", {})
-    if data.get("method") != "ddpg" or not isinstance(algo, dict) or not isinstance(ddpg, dict):
-        return
-    data["ddpg"] = {**{name: algo[name] for name in OPTIMISER_FIELDS if name in algo}, **ddpg}
-
-
 def optimiser_prefix(config: Any) -> str:
     """The section that holds the network and optimiser settings (:data:`OPTIMISER_FIELDS`) of ``config``'s
     method: ``"ddpg"`` for DDPG, ``"algorithm"`` for Algorithm 2 (the prefix of their dotted keys)."""
@@ -125,18 +98,6 @@ def optimiser_section(config: Any) -> Any:
     return getattr(config, optimiser_prefix(config))
 
 
-def _refuse_flat_form(keys: Any) -> None:
-    """Raise naming :data:`FLAT_FORM_RELEASE` if a top-level key is one of the flat form's (a field of
-    ``algorithm`` or ``run``, ``ddpg_<field>``, ``model_*``, ``true_*``, ``state_source``, ``train_half_widths``)."""
-    fields = {f.name for cls in (AlgorithmConfig, RunConfig) for f in dataclasses.fields(cls)}
-    fields |= {f"ddpg_{f.name}" for f in dataclasses.fields(DDPGConfig) if f.name not in OPTIMISER_FIELDS}
-    fields |= {"state_source", "train_half_widths"}
-    flat = sorted(k for k in keys if k in fields or str(k).startswith(("model_", "true_")))
-    if flat:
-        raise ValueError(f"config: {flat} at the top level is the flat form, read by {FLAT_FORM_RELEASE}; this "
-                         f"release reads the sections (algorithm.iterations, sampler.course_starts, ...)")
-
-
 def flatten_table(table: dict[str, Any], prefix: str = "") -> dict[str, Any]:
     """Flatten nested TOML tables into dotted keys: ``{"a": {"b": 1}}`` -> ``{"a.b": 1}``.
 
@@ -145,11 +106,7 @@ def flatten_table(table: dict[str, Any], prefix: str = "") -> dict[str, Any]:
     """
     out: dict[str, Any] = {}
     for key, value in table.items():
-        name = f"{prefix}{key}"
-        if isinstance(value, dict):
-            out.update(flatten_table(value, prefix=f"{name}."))
-        else:
-            out[name] = value
+        out.update(flatten_table(value, f"{prefix}{key}.") if isinstance(value, dict) else {f"{prefix}{key}": value})
     return out
 
 
@@ -207,9 +164,6 @@ def apply_overrides(data: dict[str, Any], overrides: dict[str, Any]) -> dict[str
     return out
 
 
-_SECTION_CLASSES: dict[str, type] = {"algorithm": AlgorithmConfig, "ddpg": DDPGConfig, "run": RunConfig}
-
-
 def machine_memory() -> int | None:
     """The machine's physical memory in bytes (``None`` where the system does not report it)."""
     try:
@@ -240,19 +194,9 @@ def memory_lower_bounds(config: TrainConfig) -> dict[str, int]:
     return out
 
 
-def _check_memory(config: TrainConfig) -> None:
-    """Refuse a configuration whose memory lower bounds (:func:`memory_lower_bounds`) exceed the machine's
-    memory, naming the first key whose own bound does, else the key with the largest bound."""
-    total = machine_memory()
-    if total is None:
-        return
-    need = memory_lower_bounds(config)
-    if sum(need.values()) > total:
-        key = next((k for k, v in need.items() if v > total), max(need, key=need.get))
-        value = {k: getattr(getattr(config, k.split(".")[0]), k.split(".")[1]) for k in need}[key]
-        raise ValueError(f"{key}: {value!r} needs at least {need[key] / 2**30:.3g} GiB (all of the run at least "
-                         f"{sum(need.values()) / 2**30:.3g} GiB), more than this machine's {total / 2**30:.3g} GiB "
-                         f"of memory")
+def _over(base: dict[str, Any], value: dict[str, Any]) -> dict[str, Any]:
+    """``value`` over ``base``, or ``value`` alone if it names another ``name`` (a sampler) than ``base``."""
+    return {**base, **value} if value.get("name", base.get("name")) == base.get("name") else value
 
 
 #: The fields that may be ``math.inf``, written ``"inf"`` in ``config.json`` (section, field).
@@ -264,12 +208,8 @@ MAX_SEED = 2**64 - 1
 
 @dataclass(init=False)
 class TrainConfig:
-    """Configuration of one training run (Algorithm 2 or DDPG), in sections.
-
-    A section left out (or given as a partial dict) takes the library defaults of the section's class, with
-    the named task's experiment configuration (:data:`PRESETS`) over them when ``task`` is named.
-    ``to_dict`` / ``from_dict`` round-trip exactly through JSON.
-    """
+    """Configuration of one training run (Algorithm 2 or DDPG), in sections; a section left out (or given as a
+    partial dict) takes its class's defaults, under the named task's preset (:data:`PRESETS`)."""
 
     method: str
     """Which algorithm: ``"mixed"`` (Algorithm 2, IBE posterior), ``"model"`` (Algorithm 2 on the prior
@@ -297,7 +237,13 @@ class TrainConfig:
 
     def __init__(self, method: str = "mixed", seed: int = 0, task: Any = None, algorithm: Any = None,
                  sampler: Any = None, ddpg: Any = None, run: Any = None, **unknown: Any) -> None:
-        _refuse_flat_form(unknown)
+        old = {f.name for cls in (AlgorithmConfig, RunConfig) for f in dataclasses.fields(cls)}
+        old |= {f"ddpg_{f.name}" for f in dataclasses.fields(DDPGConfig) if f.name not in OPTIMISER_FIELDS}
+        flat = sorted(k for k in unknown if k in old | {"state_source", "train_half_widths"}
+                      or str(k).startswith(("model_", "true_")))
+        if flat:
+            raise ValueError(f"config: {flat} at the top level is the flat form, read by {FLAT_FORM_RELEASE}; this "
+                             f"release reads the sections (algorithm.iterations, sampler.course_starts, ...)")
         check_unknown_keys(unknown, {f.name for f in dataclasses.fields(TrainConfig)}, "config")
         self.method = check_choice(method, "method", METHODS)
         self.seed = check_nonnegative_int(seed, "seed")
@@ -306,13 +252,23 @@ class TrainConfig:
         # no task named: the library defaults, with the double lane change's task defaults
         self.task = task_config("dlc" if task is None else task)
         preset = PRESETS.get(self.task.name, {}) if task is not None else {}
-        for name, value in (("algorithm", algorithm), ("ddpg", ddpg), ("run", run)):
-            setattr(self, name, _section(_SECTION_CLASSES[name], value, preset.get(name, {}), name))
-        self.sampler = _sampler(sampler, preset.get("sampler", {}), self.task.name)
+        sampler = {"name": sampler} if isinstance(sampler, str) else sampler
+        for name, cls, value in (("algorithm", AlgorithmConfig, algorithm), ("ddpg", DDPGConfig, ddpg),
+                                 ("run", RunConfig, run), ("sampler", None, sampler)):
+            if value is None or isinstance(value, dict):  # over the preset, "inf" read as math.inf
+                value = {k: math.inf if (name, k) in _INFINITE_FIELDS and str(v) == "inf" else v
+                         for k, v in _over(preset.get(name, {}), value or {}).items()}
+            setattr(self, name, build_section(cls, value, name) if cls else sampler_config(value, self.task.name))
         if self.method == "ddpg" and self.algorithm.feedforward not in ("learned", "auto"):
             raise ValueError(f"algorithm.feedforward: {self.algorithm.feedforward!r} takes the feed-forward from "
                              f"the method's noise model; method 'ddpg' has none (use 'learned')")
-        _check_memory(self)
+        total, need = machine_memory(), memory_lower_bounds(self)
+        if total is not None and sum(need.values()) > total:  # the first key whose own bound does, else the largest
+            key = next((k for k, v in need.items() if v > total), max(need, key=need.get))
+            value = getattr(getattr(self, key.split(".")[0]), key.split(".")[1])
+            raise ValueError(f"{key}: {value!r} needs at least {need[key] / 2**30:.3g} GiB (all of the run at least "
+                             f"{sum(need.values()) / 2**30:.3g} GiB), more than this machine's {total / 2**30:.3g} GiB "
+                             f"of memory")
 
     @classmethod
     def for_task(cls, task: Any = "dlc", **fields: Any) -> "TrainConfig":
@@ -361,13 +317,18 @@ class TrainConfig:
         if not isinstance(data, dict):
             raise ValueError(f"config: expected a dict, got {type(data).__name__}")
         data = copy.deepcopy(data)
-        _refuse_flat_form(data)
-        _drop_deleted_settings(data)
-        check_unknown_keys(data, {f.name for f in dataclasses.fields(cls)}, "config")
-        _ddpg_settings_from_algorithm(data)
-        for section, name in _INFINITE_FIELDS:
-            if isinstance(data.get(section), dict) and data[section].get(name) == "inf":
-                data[section] = {**data[section], name: math.inf}
+        for (section, name), value in DELETED_SETTINGS.items():
+            part = data.get(section)
+            if isinstance(part, dict) and name in part:
+                if part[name] != value:
+                    commit = DELETED_AT.get((section, name))
+                    raise ValueError(f"{section}.{name}: this setting was deleted (docs: results, 'Deleted settings'); "
+                                     f"only {value!r}, today's behaviour, can be read, got {part[name]!r}"
+                                     + (f"; git commit {commit} can still run it" if commit else ""))
+                del part[name]
+        algo, ddpg = data.get("algorithm"), data.get("ddpg", {})
+        if data.get("method") == "ddpg" and isinstance(algo, dict) and isinstance(ddpg, dict):
+            data["ddpg"] = {**{name: algo[name] for name in OPTIMISER_FIELDS if name in algo}, **ddpg}
         return cls(**{"task": "dlc", **data})
 
     def replace(self, **changes: Any) -> "TrainConfig":
@@ -395,17 +356,14 @@ class TrainConfig:
             An unknown preset name (naming ``preset``), or as the constructor.
         """
         head = {k: fields.pop(k) for k in ("method", "seed", "task") if k in fields}
-        data = cls(**{"method": "mixed", "seed": 0, **head}).with_preset(name).to_dict()
+        data = cls(**head).with_preset(name).to_dict()
         for section, value in fields.items():
-            if value is None:  # the preset's
-                continue
             if isinstance(value, str) and section == "sampler":
                 value = {"name": value}
             if isinstance(value, dict) and isinstance(data.get(section), dict):
-                keep = section != "sampler" or value.get("name", data[section].get("name")) == data[section].get("name")
-                data[section] = {**(data[section] if keep else {}), **to_jsonable(value)}
-            else:
-                data[section] = TrainConfig(**{section: value}).to_dict()[section]
+                data[section] = _over(data[section], to_jsonable(value))
+            elif value is not None:  # None: the preset's
+                data[section] = value
         return cls.from_dict(data)
 
     def with_preset(self, name: str) -> "TrainConfig":
@@ -414,7 +372,7 @@ class TrainConfig:
             raise ValueError(f"preset: expected one of {tuple(CONFIG_PRESETS)}, got {name!r}")
         data = self.to_dict()
         for section, values in CONFIG_PRESETS[name].items():
-            data[section] = dict(values) if section == "sampler" else {**data[section], **values}
+            data[section] = _over(data[section], values)
         return TrainConfig.from_dict(data)
 
     @classmethod
@@ -432,30 +390,6 @@ class TrainConfig:
         except json.JSONDecodeError as exc:
             raise ValueError(f"path: {path} is not valid JSON ({exc})") from None
         return cls.from_dict(data)
-
-
-def _section(cls: type, value: Any, preset: dict[str, Any], where: str) -> Any:
-    """A section from an instance (as is), ``None`` (the preset) or a partial dict (over the preset)."""
-    if isinstance(value, cls):
-        return value
-    if value is None:
-        value = {}
-    if not isinstance(value, dict):
-        raise ValueError(f"{where}: expected a dict (a JSON object) or a {cls.__name__}, got {value!r}")
-    return build_section(cls, {**preset, **value}, where)
-
-
-def _sampler(value: Any, preset: dict[str, Any], task: str) -> Any:
-    if isinstance(value, str):
-        value = {"name": value}
-    if value is None:
-        value = {}
-    if isinstance(value, dict):
-        if value.get("name", preset.get("name")) == preset.get("name"):
-            value = {**preset, **value}
-        if isinstance(value.get("box"), str) and value["box"] == "inf":
-            value = {**value, "box": math.inf}
-    return sampler_config(value, task)
 
 
 # ---- presets of Algorithm 2: the paper's literal form and the library defaults ----

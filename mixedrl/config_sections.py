@@ -51,11 +51,8 @@ class AlgorithmConfig:
     same budget rule for every method, DDPG included (Algorithm 2 on a global task: :attr:`region_budget`)."""
 
     region_budget: int = 4
-    """Budget factor, an integer >= 1, on a task that declares a state region
-    (:meth:`mixedrl.task_base.Task.declares_region`): Algorithm 2 trains ``region_budget * iterations``
-    iterations, driving the true system and evaluating ``region_budget`` times less often, so the true
-    transitions stay those of ``iterations`` (:func:`mixedrl.schedule.resolve_budget`; ``config.json`` holds
-    the resolved budget). 1 turns it off (the ``paper`` preset). Documented in docs/tuning.rst."""
+    """Budget factor >= 1 of Algorithm 2 on a task that declares a state region, at the same true transitions
+    (:func:`mixedrl.schedule.resolve_budget`, docs/tuning.rst); 1 turns it off (the ``paper`` preset)."""
 
     batch_size: int = 128
     """Number of states of the PEV/PIM batch per iteration (Algorithm 2; made by the sampler). DDPG's
@@ -88,9 +85,8 @@ class AlgorithmConfig:
     (:func:`mixedrl.schedule.lr_factor`)."""
 
     lr_decay_iterations: int = 0
-    """Length of the learning-rate decay in iterations (after it the rates stay at their final value);
-    0 = the budget, also when the budget is shorter (:func:`mixedrl.schedule.lr_factor`). Shared by every
-    method."""
+    """Length in iterations of the learning-rate decay of every method, after which the rates stay; 0 = the
+    budget, also when the budget is shorter (:func:`mixedrl.schedule.lr_factor`)."""
 
     grad_clip: float = 1.0
     """Clip of the global gradient norm of each update of Algorithm 2 (``math.inf`` disables it)."""
@@ -128,48 +124,35 @@ class AlgorithmConfig:
     ``ibe_recursion`` must be ``"exact"`` unless it is 2."""
 
     batch_weighting: str = "relative"
-    """Departure (state weights): how the states of the batch are weighted in PEV and PIM (eqs. 50, 52):
-    ``"uniform"`` = the plain batch mean (the paper's); ``"relative"`` = PEV squares the relative TD error
-    ``(V - V_target) / (|V_target| + c)`` and PIM weights state ``x`` by ``1 / (V(x) + c)`` (batch mean 1),
-    ``c = batch_weight_offset * task.value_scale`` (:func:`mixedrl.pev.critic_loss`,
-    :func:`mixedrl.pim.actor_objective`)."""
+    """Departure (state weights): how PEV and PIM weight the batch's states (eqs. 50, 52): ``"uniform"`` (the
+    paper's batch mean) or ``"relative"`` (the TD error relative to ``|V_target| + c``, PIM's states by
+    ``1 / (V(x) + c)``; :func:`mixedrl.pev.critic_loss`, :func:`mixedrl.pim.actor_objective`)."""
 
     batch_weight_offset: float = 0.3
     """Departure (state weights): ``c`` of ``batch_weighting = "relative"``, > 0, in units of ``value_scale``."""
 
     critic_target: float = 0.8
-    """Departure (target values): decay ``beta`` in [0, 1) of a target critic for PEV's target. 0 = eq. (50)
-    as written (the critic being trained); ``beta > 0``: ``V_target`` takes ``V(x'; w_bar)``, with
-    ``w_bar <- beta w_bar + (1 - beta) w`` after every iteration (:func:`mixedrl.pev.critic_loss`), a window
-    of about ``1 / (1 - beta)`` iterations. PIM and the MVC keep the critic itself."""
+    """Departure (target values): decay ``beta`` in [0, 1) of the target critic ``w_bar <- beta w_bar +
+    (1 - beta) w`` that PEV's target takes (:func:`mixedrl.pev.critic_loss`); 0 = eq. (50) as written."""
 
     feedforward: str = "auto"
-    """Departure (anchor): where the deployed policy takes its action at the task's equilibrium; training is
-    unchanged. ``"learned"`` (the paper's) = the actor's own. ``"lq_ss"`` = the actor shifted, locally
-    (:attr:`feedforward_width`), so that at the discounted LQ optimum's steady state ``x_ss`` for the method's
-    own noise mean it takes the optimum's action (:func:`mixedrl.departures.anchor.steady_anchor`). ``"lq"`` =
-    shifted by a constant so that at the equilibrium ``pi_ff(o) = pi(o) - pi(o(s*)) + u* - l0(E mu)``
-    (:class:`mixedrl.precision.FeedForwardPolicy`). ``"auto"`` = ``"lq_ss"`` on a task that declares an
-    equilibrium, else and for DDPG ``"learned"`` (:func:`mixedrl.departures.anchor.resolve`). ``"lq"`` and
-    ``"lq_ss"`` need a task with an equilibrium and Algorithm 2; retired values are refused naming the commit
-    that runs them (docs/precision.rst)."""
+    """Departure (anchor): where the deployed policy takes its action at the task's equilibrium, training
+    unchanged: ``"learned"`` (the paper's, the actor's own), ``"lq_ss"`` (shifted near the LQ optimum's steady
+    state, :func:`mixedrl.departures.anchor.steady_anchor`), ``"lq"`` (a constant shift,
+    :class:`mixedrl.precision.FeedForwardPolicy`) or ``"auto"`` (:func:`mixedrl.departures.anchor.resolve`);
+    docs/precision.rst."""
 
     feedforward_width: float = 0.25
-    """Departure (anchor): width ``rho`` >= 0 of the ``"lq_ss"`` shift, in units of ``obs_scale``: the shift
-    is weighted by ``exp(-|(o - o_ss) / (rho obs_scale)|^2 / 2)``
-    (:class:`mixedrl.departures.anchor.FeedForwardPolicy`); 0 = a constant shift (docs/tuning.rst)."""
+    """Departure (anchor): width ``rho`` >= 0 of the ``"lq_ss"`` shift, weighted by
+    ``exp(-|(o - o_ss) / (rho obs_scale)|^2 / 2)``; 0 = a constant shift (docs/tuning.rst)."""
 
     compile: str = "off"
-    """How the PEV and PIM steps run (:mod:`mixedrl.compiled`): ``"off"`` = eagerly (the reference, bit for
-    bit); ``"on"`` = each step compiled by ``torch.compile`` as one graph, cached in ``$MIXEDRL_CACHE_DIR``
-    (default ``~/.cache/mixedrl``); ``"functional"`` = that step uncompiled. The three agree to float32
-    rounding; the runs of one batch share it."""
+    """How the PEV and PIM steps run (:mod:`mixedrl.compiled`, docs/algorithm2.rst): ``"off"`` = eagerly (the
+    reference), ``"on"`` = compiled by ``torch.compile``, ``"functional"`` = that step uncompiled."""
 
     rollout_horizon: int = 16
-    """Departure (rollouts): model steps ``H`` >= 0 of the rollouts PEV and PIM work on. 0 = the paper's
-    one-step PEV and PIM (eqs. 49-52). ``H > 0``: the actor's loss is the discounted cost of an ``H``-step
-    rollout of the planning model plus the target critic at its end, and the critic is fitted to
-    ``lambda``-returns along the same rollouts (:mod:`mixedrl.departures.rollout`)."""
+    """Departure (rollouts): model steps ``H`` >= 0 of the rollouts PEV and PIM work on
+    (:mod:`mixedrl.departures.rollout`); 0 = the paper's one-step PEV and PIM (eqs. 49-52)."""
 
     rollout_lambda: float = 0.95
     """Departure (rollouts): ``lambda`` in [0, 1] of the critic's ``lambda``-returns (``rollout_horizon > 0``)."""
@@ -183,9 +166,8 @@ class AlgorithmConfig:
 
     rollout_region: float = 0.5
     """Departure (region starts, :mod:`mixedrl.departures.region`): fraction in [0, 1] of the rollouts' start
-    states drawn each iteration from the task's state region (``Task.sample_region``), the rest being end
-    states of the previous rollouts; 0 = starts from the sampler's batch. Only with ``rollout_horizon > 0``
-    on a task that declares a region, and not with ``ibe_case = 3`` (refused when the rollouts start)."""
+    states drawn from the task's state region, the rest end states of earlier rollouts; 0 = the batch. Only
+    with ``rollout_horizon > 0`` on a task that declares a region, not with ``ibe_case = 3``."""
 
     actor_output: str = "clip_inward"
     """Departure (actor output, :mod:`mixedrl.departures.actor_output`): how Algorithm 2's actor bounds its
@@ -195,38 +177,33 @@ class AlgorithmConfig:
 
     def __post_init__(self) -> None:
         w = "algorithm"
-        check_choice(self.compile, f"{w}.compile", COMPILE_MODES)
-        for name in ("iterations", "horizon", "noise_samples", "j_max", "stop_patience"):
+        for name in ("iterations", "region_budget", "horizon", "noise_samples", "j_max", "stop_patience"):
             setattr(self, name, check_positive_int(getattr(self, name), f"{w}.{name}"))
+        for name in ("lr_decay_iterations", "rollout_horizon"):
+            setattr(self, name, check_nonnegative_int(getattr(self, name), f"{w}.{name}"))
         _check_optimiser(self, w)
-        self.lr_decay_iterations = check_nonnegative_int(self.lr_decay_iterations, f"{w}.lr_decay_iterations")
-        self.region_budget = check_positive_int(self.region_budget, f"{w}.region_budget")
         if isinstance(self.hidden_sizes, (str, bytes)) or not isinstance(self.hidden_sizes, (list, tuple)) \
                 or not self.hidden_sizes:
             raise ValueError(f"{w}.hidden_sizes: expected positive widths, got {self.hidden_sizes!r}")
         self.hidden_sizes = tuple(check_positive_int(h, f"{w}.hidden_sizes") for h in self.hidden_sizes)
-        check_choice(self.value_output, f"{w}.value_output", ("softplus", "square", "linear"))
-        check_choice(self.expectation, f"{w}.expectation", ("sigma", "samples"))
-        check_choice(self.mvc_check, f"{w}.mvc_check", ("mean", "all"))
-        check_choice(self.ibe_recursion, f"{w}.ibe_recursion", ("exact", "paper"))
-        check_choice(self.batch_weighting, f"{w}.batch_weighting", BATCH_WEIGHTINGS)
+        for name, options in (("compile", COMPILE_MODES), ("value_output", ("softplus", "square", "linear")),
+                              ("expectation", ("sigma", "samples")), ("mvc_check", ("mean", "all")),
+                              ("ibe_recursion", ("exact", "paper")), ("batch_weighting", BATCH_WEIGHTINGS),
+                              ("actor_output", ("tanh", "clip", "clip_inward"))):
+            check_choice(getattr(self, name), f"{w}.{name}", options)
         check_choice(self.feedforward, f"{w}.feedforward", FEEDFORWARDS, RETIRED_FEEDFORWARDS)
         self.feedforward_width = check_number(self.feedforward_width, f"{w}.feedforward_width", nonneg=True)
+        self.batch_weight_offset = check_number(self.batch_weight_offset, f"{w}.batch_weight_offset", positive=True)
+        check_number(self.stop_epsilon, f"{w}.stop_epsilon", nonneg=True)
         if check_int(self.ibe_case, f"{w}.ibe_case") not in (1, 2, 3):
             raise ValueError(f"{w}.ibe_case: expected 1, 2 or 3 (the IBE's Case), got {self.ibe_case!r}")
         if self.ibe_case != 2 and self.ibe_recursion != "exact":
             raise ValueError(f"{w}.ibe_recursion: 'paper' is eq. (18), a Case 2 recursion; "
                              f"{w}.ibe_case is {self.ibe_case}")
         check_fraction(self.lr_decay_to, f"{w}.lr_decay_to", low_open=True)
-        check_fraction(self.critic_target, f"{w}.critic_target", high_open=True)
-        check_number(self.stop_epsilon, f"{w}.stop_epsilon", nonneg=True)
-        self.batch_weight_offset = check_number(self.batch_weight_offset, f"{w}.batch_weight_offset", positive=True)
-        self.rollout_horizon = check_nonnegative_int(self.rollout_horizon, f"{w}.rollout_horizon")
-        check_fraction(self.rollout_lambda, f"{w}.rollout_lambda")
-        check_fraction(self.rollout_discount_start, f"{w}.rollout_discount_start", high_open=True)
-        check_fraction(self.rollout_discount_ramp, f"{w}.rollout_discount_ramp")
-        check_choice(self.actor_output, f"{w}.actor_output", ("tanh", "clip", "clip_inward"))
-        check_fraction(self.rollout_region, f"{w}.rollout_region")
+        for i, name in enumerate(("critic_target", "rollout_discount_start",  # below 1
+                                  "rollout_lambda", "rollout_discount_ramp", "rollout_region")):
+            check_fraction(getattr(self, name), f"{w}.{name}", high_open=i < 2)
 
 
 @dataclass
@@ -383,9 +360,7 @@ def sampler_config(value: Any, task: str | None = None) -> Any:
     if isinstance(value, str):
         value = {"name": value}
     if isinstance(value, dict):
-        name = value.get("name", ModelRolloutsSampler.NAME)
-        if name not in SAMPLERS:
-            raise ValueError(f"sampler.name: expected one of {tuple(SAMPLERS)}, got {name!r}")
+        name = check_choice(value.get("name", ModelRolloutsSampler.NAME), "sampler.name", tuple(SAMPLERS))
         value = build_section(SAMPLERS[name], {**value, "name": name}, "sampler")
     elif not any(type(value) is cls for cls in SAMPLERS.values()):
         raise ValueError(f"sampler: expected a sampler name {tuple(SAMPLERS)}, a dict or an options object, "
@@ -400,13 +375,13 @@ def sampler_config(value: Any, task: str | None = None) -> Any:
 # ---- presets: a task's experiment configuration ----
 #: Task name -> section -> field values over the library defaults (:func:`register_preset`).
 PRESETS: dict[str, dict[str, dict[str, Any]]] = {}
-_SECTIONS = ("algorithm", "sampler", "ddpg", "run")
 
 
 def register_preset(task: str, sections: dict[str, dict[str, Any]]) -> None:
     """Register the experiment configuration of the task ``task``: the values ``TrainConfig`` gives a
     section's missing fields when the run's task is ``task`` (``{"algorithm": {...}, "sampler": {...}}``)."""
-    unknown = set(sections) - set(_SECTIONS)
+    allowed = ["algorithm", "ddpg", "run", "sampler"]
+    unknown = sorted(set(sections) - set(allowed))
     if unknown:
-        raise ValueError(f"sections: unknown section(s) {sorted(unknown)}; allowed: {sorted(_SECTIONS)}")
+        raise ValueError(f"sections: unknown section(s) {unknown}; allowed: {allowed}")
     PRESETS[task] = copy.deepcopy(sections)

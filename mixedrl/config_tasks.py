@@ -13,7 +13,7 @@ from typing import Any, ClassVar, Union
 
 import numpy as np
 
-from mixedrl.checks import as_matrix, as_vector, check_covariance, check_number, check_unknown_keys
+from mixedrl.checks import as_vector, check_covariance, check_fraction, check_number, check_unknown_keys
 from mixedrl.envs.disturbance import DISTURBANCE_LAWS, Disturbance
 from mixedrl.lq import LQProblem
 
@@ -41,12 +41,6 @@ RETIRED_AT = "ee954d7"
 RETIRED_FEEDFORWARDS = ("lq_train", "lq_affine", "lq_affine_ss")
 
 
-def _law(value: Any, name: str) -> str:
-    if value not in DISTURBANCE_LAWS:
-        raise ValueError(f"{name}: expected one of {DISTURBANCE_LAWS}, got {value!r}")
-    return str(value)
-
-
 def to_jsonable(value: Any) -> Any:
     """Dataclasses to dicts, tuples to lists, recursively (what ``json.dumps`` writes)."""
     if dataclasses.is_dataclass(value) and not isinstance(value, type):
@@ -65,7 +59,7 @@ def build_section(cls: type, data: Any, where: str) -> Any:
     if isinstance(data, cls):
         return data
     if not isinstance(data, dict):
-        raise ValueError(f"{where}: expected a dict (a JSON object), got {data!r}")
+        raise ValueError(f"{where}: expected a dict (a JSON object) or a {cls.__name__}, got {data!r}")
     allowed = {f.name for f in dataclasses.fields(cls) if f.init}
     check_unknown_keys({f"{where}.{k}": v for k, v in data.items()}, {f"{where}.{k}" for k in allowed}, "config")
     return cls(**data)
@@ -75,11 +69,9 @@ def build_section(cls: type, data: Any, where: str) -> Any:
 ForceDisturbanceConfig = Disturbance
 
 
-def _gamma(value: Any) -> float:
-    gamma = check_number(value, "task.gamma")
-    if not 0.0 < gamma < 1.0:
-        raise ValueError(f"task.gamma: expected a number in (0, 1), got {gamma!r}")
-    return gamma
+def _tuples(array: Any) -> tuple:
+    """A vector or a matrix as a tuple (of tuples) of floats, its JSON face."""
+    return tuple(tuple(row) if isinstance(row, list) else row for row in np.asarray(array, dtype=float).tolist())
 
 
 # ---- the linear test bed ----
@@ -103,14 +95,9 @@ class GaussianNoiseConfig:
     """Covariance ``K`` of ``xi`` (symmetric PSD), shape (n, n)."""
 
     def __post_init__(self) -> None:
-        self.law = _law(self.law, f"{self.WHERE}.law")
-        self.mean = tuple(as_vector(self.mean, f"{self.WHERE}.mean").tolist())
-        cov = as_matrix(self.cov, f"{self.WHERE}.cov", (len(self.mean), len(self.mean)))
-        self.cov = _rows(check_covariance(cov, f"{self.WHERE}.cov", len(self.mean)))
-
-
-def _rows(matrix: np.ndarray) -> tuple[tuple[float, ...], ...]:
-    return tuple(tuple(float(v) for v in row) for row in np.asarray(matrix))
+        self.law = str(check_choice(self.law, f"{self.WHERE}.law", DISTURBANCE_LAWS))
+        self.mean = _tuples(as_vector(self.mean, f"{self.WHERE}.mean"))
+        self.cov = _tuples(check_covariance(self.cov, f"{self.WHERE}.cov", len(self.mean)))
 
 
 @dataclass
@@ -122,8 +109,6 @@ class LinearTaskConfig:
     Validated by, and :meth:`problem` returns, :class:`mixedrl.lq.LQProblem` (``(A, B)`` stabilisable,
     ``R`` positive definite).
     """
-
-    WHERE: ClassVar[str] = "task"
 
     name: str = "linear"
     """Always ``"linear"`` for this class (selects it when loading)."""
@@ -161,23 +146,19 @@ class LinearTaskConfig:
     def __post_init__(self) -> None:
         if self.name != "linear":
             raise ValueError(f"task.name: expected 'linear' for LinearTaskConfig, got {self.name!r}")
-        self.gamma = _gamma(self.gamma)
+        self.gamma = check_fraction(self.gamma, "task.gamma", low_open=True, high_open=True)
         dist = self.disturbance
         if not isinstance(dist, (dict, GaussianNoiseConfig)):
             raise ValueError(f"task.disturbance: expected a dict (a JSON object), got {dist!r}")
-        mean, cov = (dist.get(k, getattr(GaussianNoiseConfig, k)) if isinstance(dist, dict) else getattr(dist, k)
-                     for k in ("mean", "cov"))
+        given = dist if isinstance(dist, dict) else vars(dist)
         # validated by LQProblem before the noise section, so the system's size decides which is wrong
-        problem = _lq_problem(self, mean, cov)
+        problem = _lq_problem(self, *(given.get(k, getattr(GaussianNoiseConfig, k)) for k in ("mean", "cov")))
         self.disturbance = build_section(GaussianNoiseConfig, dist, "task.disturbance")
-        for name in _problem_fields():  # the validated values, as JSON (tuples)
+        for name in _PROBLEM_FIELDS:  # the validated values, as JSON (tuples)
             value = getattr(problem, name)
-            if isinstance(value, np.ndarray):
-                value = _rows(value) if value.ndim == 2 else tuple(value.tolist())
-            setattr(self, name, value)
+            setattr(self, name, _tuples(value) if isinstance(value, np.ndarray) else value)
         self.init_box = check_number(self.init_box, "task.init_box", positive=True)
         self.action_bound = check_number(self.action_bound, "task.action_bound", positive=True)
-
 
     def problem(self) -> LQProblem:
         """The LQ problem this configuration describes (:class:`mixedrl.lq.LQProblem`)."""
@@ -186,18 +167,15 @@ class LinearTaskConfig:
 
 #: Names of :class:`mixedrl.lq.LQProblem`'s fields that :class:`LinearTaskConfig` calls otherwise.
 _PROBLEM_KEYS = {"noise_mean": "disturbance.mean", "noise_cov": "disturbance.cov"}
-
-
-def _problem_fields() -> tuple[str, ...]:
-    """:class:`mixedrl.lq.LQProblem`'s fields that :class:`LinearTaskConfig` holds under the same name."""
-    return tuple(f.name for f in dataclasses.fields(LQProblem) if f.name not in _PROBLEM_KEYS)
+#: :class:`mixedrl.lq.LQProblem`'s fields that :class:`LinearTaskConfig` holds under the same name.
+_PROBLEM_FIELDS = tuple(f.name for f in dataclasses.fields(LQProblem) if f.name not in _PROBLEM_KEYS)
 
 
 def _lq_problem(cfg: LinearTaskConfig, mean: Any, cov: Any) -> LQProblem:
     """:class:`mixedrl.lq.LQProblem` of ``cfg`` with the true noise ``N(mean, cov)``; its errors name the
     dotted key (``task.A``, ``task.disturbance.mean``, ...)."""
     try:
-        return LQProblem(**{name: getattr(cfg, name) for name in _problem_fields()}, noise_mean=mean, noise_cov=cov)
+        return LQProblem(**{name: getattr(cfg, name) for name in _PROBLEM_FIELDS}, noise_mean=mean, noise_cov=cov)
     except ValueError as exc:
         name, _, rest = str(exc).partition(":")
         raise ValueError(f"task.{_PROBLEM_KEYS.get(name, name)}:{rest}") from None
@@ -295,9 +273,7 @@ def task_config(value: Any = "dlc") -> Any:
         value = {"name": value}
     if not isinstance(value, dict):
         raise ValueError(f"task: expected a task name {task_names()} or a dict, got {value!r}")
-    name = value.get("name", "dlc")
-    if name not in _TASK_CLASSES:
-        raise ValueError(f"task.name: expected one of {task_names()}, got {name!r}")
+    name = check_choice(value.get("name", "dlc"), "task.name", task_names())
     if name in _TASK_READERS:
         return _TASK_READERS[name]({**value, "name": name}, where="task")
     return build_section(_TASK_CLASSES[name], {**value, "name": name}, "task")
