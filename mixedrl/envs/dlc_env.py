@@ -10,7 +10,8 @@ import numpy as np
 from gymnasium import spaces
 
 from mixedrl.checks import as_vector, check_unknown_keys
-from mixedrl.envs.columns import observation_columns, observation_from_errors, stage_cost, tracking_errors
+from mixedrl.envs.columns import observation_from_errors, stage_cost
+from mixedrl.envs.libm import _MathOps
 from mixedrl.envs.dlc_config import DoubleLaneChangeConfig, make_config
 from mixedrl.envs.model import STATE_DIM, DoubleLaneChangeModel
 
@@ -37,10 +38,6 @@ def _pair(value: Any, name: str, space: str) -> tuple[float, float]:
     if not (math.isfinite(a0) and math.isfinite(a1)):
         raise ValueError(f"{name}: contains NaN or inf ({a0!r}, {a1!r})")
     return a0, a1
-
-
-def _clip(v: float, bound: float) -> float:
-    return -bound if v < -bound else (bound if v > bound else v)
 
 
 class DoubleLaneChangeEnv(gym.Env):
@@ -94,9 +91,6 @@ class DoubleLaneChangeEnv(gym.Env):
         self.render_mode = None
         self.config = make_config(config, **overrides)
         self.model = DoubleLaneChangeModel(self.config)
-        cfg = self.config
-        self._delta_max = cfg.delta_max
-        self._ax_max = cfg.ax_max
         self.action_space = spaces.Box(low=-1.0, high=1.0, shape=(2,), dtype=np.float64)
         big = np.finfo(np.float64).max  # "any finite value" (Gymnasium's checker rejects infinite bounds)
         self.observation_space = spaces.Box(-big, big, shape=(self.model.obs_dim,), dtype=np.float64)
@@ -111,12 +105,14 @@ class DoubleLaneChangeEnv(gym.Env):
             raise RuntimeError("state: call reset() first")
         return np.array(self._state)
 
-    def _obs(self, s: tuple[float, ...]) -> np.ndarray:
-        return np.array(observation_columns(self.config, *s), dtype=np.float64)
-
-    def _info(self, s: tuple[float, ...]) -> dict[str, Any]:
-        e_y, _ = tracking_errors(self.config, s[3], s[4], s[5])
-        return {"lateral_error": e_y, "speed_error": s[2] - self.config.v_des, "state": np.array(s)}
+    def _observe(self, s: tuple[float, ...]) -> tuple[np.ndarray, dict[str, Any]]:
+        """The observation of ``s`` and the ``info`` entries of every state."""
+        cfg = self.config
+        vy, r, vx, phi, Y, X = s
+        y_ref, psi_ref = cfg.reference.lateral_and_heading(X)
+        e_y = Y - y_ref
+        obs = np.array(observation_from_errors(cfg, vy, r, vx, phi - psi_ref, e_y, X, y_ref), dtype=np.float64)
+        return obs, {"lateral_error": e_y, "speed_error": vx - cfg.v_des, "state": np.array(s)}
 
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None
               ) -> tuple[np.ndarray, dict[str, Any]]:
@@ -143,7 +139,7 @@ class DoubleLaneChangeEnv(gym.Env):
         self._state = s
         self._elapsed = 0
         self._done = False
-        return self._obs(s), self._info(s)
+        return self._observe(s)
 
     def step(self, action: Any) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
         """One step of ``T`` seconds with the normalised action ``a``: ``u = clip(a, -1, 1) * bound``.
@@ -159,16 +155,17 @@ class DoubleLaneChangeEnv(gym.Env):
             a new :meth:`reset`.
         """
         a0, a1 = _pair(action, "action", str(self.action_space))
-        c0, c1 = _clip(a0, 1.0), _clip(a1, 1.0)
-        return self._step_physical(c0 * self._delta_max, c1 * self._ax_max, c0 != a0 or c1 != a1)
+        c0, c1 = _MathOps.clip(a0, -1.0, 1.0), _MathOps.clip(a1, -1.0, 1.0)
+        return self._step_physical(c0 * self.config.delta_max, c1 * self.config.ax_max, c0 != a0 or c1 != a1)
 
     def step_physical(self, u: Any) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
         """Same as :meth:`step`, with the physical input ``u = [delta, a_x]`` [rad, m/s^2].
 
         ``u`` is clipped to ``[-delta_max, delta_max] x [-ax_max, ax_max]``; errors as :meth:`step`.
         """
-        delta, ax = _pair(u, "u", f"[-{self._delta_max}, {self._delta_max}] x [-{self._ax_max}, {self._ax_max}]")
-        delta_c, ax_c = _clip(delta, self._delta_max), _clip(ax, self._ax_max)
+        d_max, a_max = self.config.delta_max, self.config.ax_max
+        delta, ax = _pair(u, "u", f"[-{d_max}, {d_max}] x [-{a_max}, {a_max}]")
+        delta_c, ax_c = _MathOps.clip(delta, -d_max, d_max), _MathOps.clip(ax, -a_max, a_max)
         return self._step_physical(delta_c, ax_c, delta_c != delta or ax_c != ax)
 
     def _step_physical(self, delta_c: float, ax_c: float, clipped: bool
@@ -178,9 +175,7 @@ class DoubleLaneChangeEnv(gym.Env):
         if self._done:
             raise RuntimeError("step: the episode has ended (terminated or truncated); call reset() before "
                                "stepping again")
-        cfg = self.config
-        model = self.model
-        s = self._state
+        cfg, model, s = self.config, self.model, self._state
         # F_dis = mean(X) + std z at the current state, from np_random; xi = F_dis T / m
         force = model.sample_force(s, self.np_random)
         xi = model.xi_from_force(force)
@@ -188,18 +183,12 @@ class DoubleLaneChangeEnv(gym.Env):
         s_next = model.true_step(s, (delta_c, ax_c), force=force)
         self._state = s_next
         self._elapsed += 1
-        vy, r, vx, phi, Y, X = s_next
-        y_ref, psi_ref = cfg.reference.lateral_and_heading(X)
-        e_y = Y - y_ref
-        obs = np.array(observation_from_errors(cfg, vy, r, vx, phi - psi_ref, e_y, X, y_ref), dtype=np.float64)
+        obs, info = self._observe(s_next)
+        e_y, vx = info["lateral_error"], s_next[2]
         reward = -stage_cost(cfg, vx - cfg.v_des, e_y, delta_c, ax_c)
-        finite = all(math.isfinite(v) for v in s_next)
-        terminated = (not finite) or not (abs(e_y) <= cfg.max_lateral_error) or not (vx >= cfg.min_speed)
+        terminated = (not all(map(math.isfinite, s_next)) or not (abs(e_y) <= cfg.max_lateral_error)
+                      or not (vx >= cfg.min_speed))
         truncated = (not terminated) and self._elapsed >= cfg.max_steps
         self._done = terminated or truncated
-        info = {
-            "lateral_error": e_y, "speed_error": vx - cfg.v_des, "state": np.array(s_next),
-            "disturbance": force, "xi": xi, "action": np.array((delta_c, ax_c)),
-            "action_clipped": clipped,
-        }
+        info.update(disturbance=force, xi=xi, action=np.array((delta_c, ax_c)), action_clipped=clipped)
         return obs, float(reward), bool(terminated), bool(truncated), info
