@@ -240,13 +240,12 @@ class DoubleLaneChangeTaskConfig(DoubleLaneChangeConfig):
         if not 0.0 < gamma < 1.0:
             raise ValueError(f"gamma: expected a number in (0, 1), got {self.gamma!r}")
         object.__setattr__(self, "gamma", gamma)
-        object.__setattr__(self, "prior_force_mean", check_number(self.prior_force_mean, "prior_force_mean"))
-        object.__setattr__(self, "prior_force_std",
-                           check_number(self.prior_force_std, "prior_force_std", positive=True))
         for name in ("prior_force_mean", "prior_force_std"):
-            if abs(getattr(self, name)) > MAX_PRIOR_FORCE:
-                raise ValueError(f"{name}: |{getattr(self, name)!r}| N exceeds {MAX_PRIOR_FORCE:g} N: the IBE forms "
+            value = check_number(getattr(self, name), name, positive=name == "prior_force_std")
+            if abs(value) > MAX_PRIOR_FORCE:
+                raise ValueError(f"{name}: |{value!r}| N exceeds {MAX_PRIOR_FORCE:g} N: the IBE forms "
                                  f"second moments of the force, which would overflow float64")
+            object.__setattr__(self, name, value)
 
 
 #: The flat keys of the cost weights that :func:`make_config` accepts (moved into ``cost``).
@@ -255,11 +254,8 @@ _FLAT_COST = tuple(f.name for f in dataclasses.fields(CostWeights))
 
 def _nested(cls: type) -> dict[str, type]:
     """Field name -> dataclass type, for the fields of ``cls`` that are configurations themselves."""
-    out = {}
-    for f in dataclasses.fields(cls):
-        if f.default_factory is not dataclasses.MISSING and dataclasses.is_dataclass(f.default_factory):
-            out[f.name] = f.default_factory
-    return out
+    return {f.name: f.default_factory for f in dataclasses.fields(cls)
+            if f.default_factory is not dataclasses.MISSING and dataclasses.is_dataclass(f.default_factory)}
 
 
 def _jsonable(value: Any) -> Any:
@@ -319,10 +315,8 @@ def make_config(config: DoubleLaneChangeConfig | dict[str, Any] | None = None, *
         Unknown keys (at any level) or invalid values; the message starts with the (dotted) field name.
     """
     if isinstance(config, dict):
-        overrides = {**config, **overrides}
-        config = None
-    if config is None:
-        config = DoubleLaneChangeConfig()
+        config, overrides = None, {**config, **overrides}
+    config = DoubleLaneChangeConfig() if config is None else config
     if not isinstance(config, DoubleLaneChangeConfig):
         raise ValueError(f"config: expected DoubleLaneChangeConfig or dict, got {type(config).__name__}")
     flat = {k: overrides.pop(k) for k in _FLAT_COST if k in overrides}
