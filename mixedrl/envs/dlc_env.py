@@ -43,39 +43,10 @@ def _pair(value: Any, name: str, space: str) -> tuple[float, float]:
 class DoubleLaneChangeEnv(gym.Env):
     """Double lane change at 12 m/s with a random longitudinal disturbance (the paper's Section VI task).
 
-    **Description.** A front-steered car (eq. 53, Fiala tires) follows the tanh double-lane-change path
-    ``Y_ref(X)`` at 12 m/s against a random longitudinal force ``F_dis ~ N(261 N, 32 N^2)``, forward
-    Euler at ``T = 1/200 s``. One step is :meth:`DoubleLaneChangeModel.true_step` with ``F_dis`` drawn
-    from ``self.np_random``; ``disturbance={"law": ...}`` selects another law
-    (:class:`~mixedrl.envs.disturbance.Disturbance`).
-
-    **Action Space.** ``Box(-1, 1, (2,), float64)``, normalised: ``u = [delta, a_x] = a * [delta_max,
-    ax_max]``, front wheel angle [rad] (default bound 0.4, positive = left) and longitudinal acceleration
-    [m/s^2] (default bound 4). Actions outside ``[-1, 1]`` are clipped (``info["action_clipped"]``). A
-    NaN/inf action or a wrong shape raises ``ValueError`` and leaves the state unchanged; a non-numeric
-    action raises ``TypeError``. :meth:`step_physical` takes the physical ``u``.
-
-    **Observation Space.** ``Box(-f_max, f_max, (5 + n_preview,), float64)`` (any finite value):
-    ``[v_y [m/s], r [rad/s], v_x - 12 [m/s], e_phi [rad], e_y [m]]`` with
-    ``e_y = Y - Y_ref(X)``, ``e_phi = phi - psi_ref(X)``, followed by the optional preview
-    ``Y_ref(X + d_i) - Y_ref(X)`` [m] for each ``d_i`` in ``preview_distances`` (none by default).
-
-    **Rewards.** ``-l(s', u)`` with eq. (54), ``l = T (45 (v_x' - 12)^2 + 60 e_y'^2 + 800 delta^2 + a_x^2)``,
-    charged on the next state.
-
-    **Starting State.** ``X = 0`` on the reference at 12 m/s, with ``[v_y, r, v_x - 12, e_phi, e_y]``
-    uniform in ``+-reset_half_widths``, from ``self.np_random``. ``reset(options={"state": s})`` starts
-    from a given tracking state ``s = [v_y, r, v_x, phi, Y, X]``.
-
-    **Episode End.** Terminated when ``|e_y| > max_lateral_error`` (3 m), ``v_x < min_speed`` (1 m/s) or
-    a state component is not finite; truncated after ``round(course_length / (12 T))`` steps (2000).
-    Stepping an ended episode without :meth:`reset` raises ``RuntimeError``.
-
-    **Arguments.** ``gym.make("mixedrl/DoubleLaneChange-v0", config=None, **overrides)``: any field of
-    :class:`~mixedrl.envs.dlc_config.DoubleLaneChangeConfig` (nested ones also as dicts); unknown keys
-    raise ``ValueError``.
-
-    **Version History.** v0: initial version.
+    Description, action and observation spaces, rewards, starting state, episode end and arguments:
+    docs/vehicle.rst ("Gymnasium environment"). One step is :meth:`DoubleLaneChangeModel.true_step` with
+    ``F_dis`` drawn from ``self.np_random``; :meth:`step` takes the normalised action in ``[-1, 1]^2``,
+    :meth:`step_physical` the physical ``u = [delta, a_x]``.
 
     ``info`` (reset and step): ``lateral_error`` ``e_y`` [m], ``speed_error`` ``v_x - 12`` [m/s],
     ``state`` (the tracking state, shape (6,)); step only: ``disturbance`` (true ``F_dis`` [N]),
@@ -95,8 +66,7 @@ class DoubleLaneChangeEnv(gym.Env):
         big = np.finfo(np.float64).max  # "any finite value" (Gymnasium's checker rejects infinite bounds)
         self.observation_space = spaces.Box(-big, big, shape=(self.model.obs_dim,), dtype=np.float64)
         self._state: tuple[float, ...] | None = None
-        self._elapsed = 0
-        self._done = False
+        self._elapsed, self._done = 0, False
 
     @property
     def state(self) -> np.ndarray:
@@ -128,17 +98,12 @@ class DoubleLaneChangeEnv(gym.Env):
         check_unknown_keys(options, {"state"}, "options")
         cfg = self.config
         if "state" in options:
-            s = tuple(float(v) for v in as_vector(options["state"], "options['state']", STATE_DIM))
+            s = tuple(as_vector(options["state"], "options['state']", STATE_DIM).tolist())
         else:
-            w = cfg.reset_half_widths
-            dev = self.np_random.uniform(-1.0, 1.0, size=5) * np.asarray(w)
-            ref = cfg.reference
-            X = 0.0
-            s = (float(dev[0]), float(dev[1]), cfg.v_des + float(dev[2]), ref.heading(X) + float(dev[3]),
-                 ref.lateral(X) + float(dev[4]), X)
-        self._state = s
-        self._elapsed = 0
-        self._done = False
+            dev = (self.np_random.uniform(-1.0, 1.0, size=5) * np.asarray(cfg.reset_half_widths)).tolist()
+            y_ref, psi_ref = cfg.reference.lateral_and_heading(0.0)
+            s = (dev[0], dev[1], cfg.v_des + dev[2], psi_ref + dev[3], y_ref + dev[4], 0.0)
+        self._state, self._elapsed, self._done = s, 0, False
         return self._observe(s)
 
     def step(self, action: Any) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:

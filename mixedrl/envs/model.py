@@ -85,20 +85,16 @@ class DoubleLaneChangeModel:
     ((4, 5), (4,))
     """
 
-    STATE_DIM = STATE_DIM
-    ACTION_DIM = ACTION_DIM
-    NOISE_INDEX = NOISE_INDEX
+    STATE_DIM = state_dim = STATE_DIM
+    ACTION_DIM = action_dim = ACTION_DIM
+    NOISE_INDEX = noise_index = NOISE_INDEX
 
     def __init__(self, config: DoubleLaneChangeConfig | dict[str, Any] | None = None, *, compile: bool = False
                  ) -> None:
-        self.config = make_config(config)
-        cfg = self.config
+        self.config = cfg = make_config(config)
         self.dynamics = VehicleDynamics(cfg.params, cfg.dt, cfg.scheme, compile=compile)
         self.reference = cfg.reference
-        self.state_dim = STATE_DIM
-        self.action_dim = ACTION_DIM
         self.obs_dim = 5 + len(cfg.preview_distances)
-        self.noise_index = NOISE_INDEX
         self.action_bound = np.array([cfg.delta_max, cfg.ax_max])
 
     def __repr__(self) -> str:
