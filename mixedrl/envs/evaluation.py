@@ -221,15 +221,12 @@ def _stacked_call(policies: Sequence[Any]) -> Callable[[np.ndarray], np.ndarray]
     return call
 
 
-def _checked_actions(actions: Any, rows: int, what: str, finite: bool = True) -> np.ndarray:
-    """A policy's output as float64 ``(rows, 2)``, checked for shape (and, with ``finite``, NaN/inf)."""
+def _checked_actions(actions: Any, rows: int, what: str) -> np.ndarray:
+    """A policy's output as float64 ``(rows, 2)``, checked for shape."""
     a = np.asarray(actions, dtype=np.float64)
     if a.size != rows * 2:
         raise ValueError(f"{what} returned an action of shape {a.shape}, expected {(rows, 2) if rows > 1 else (2,)}")
-    a = a.reshape(rows, 2)
-    if finite and not np.isfinite(a).all():
-        raise ValueError(f"{what} returned NaN or inf")
-    return a
+    return a.reshape(rows, 2)
 
 
 #: From this many courses on, :func:`evaluate_courses` steps the vehicles as numpy rows (``stepper="auto"``).
@@ -426,27 +423,23 @@ def evaluate_courses(policies: Sequence[Callable[[np.ndarray], Any] | torch.nn.M
             raw = [calls[owner[i]](obs[i]) for i in idx]
             try:
                 u = np.asarray(raw, dtype=np.float64).reshape(idx.size, 2)
-                bad = not np.isfinite(u).all()
-            except ValueError:  # ragged or wrong sizes
-                bad = True
-            if bad:  # find the course, and let _checked_actions name it
-                for i, out in zip(idx, raw):
-                    _checked_actions(out, 1, f"policies: entry {owner[i]} (seed {row_seeds[i]})")
+            except ValueError:  # ragged or wrong sizes: find the course, and let _checked_actions name it
+                u = np.concatenate([_checked_actions(out, 1, f"policies: entry {owner[i]} (seed {row_seeds[i]})")
+                                    for i, out in zip(idx, raw)])
         else:
             # a finished course's row is still computed but not checked or used
             full = np.empty((n_rows, 2))
             if stacked is not None:
                 full[:] = _checked_actions(stacked(obs.reshape(len(policies), -1, obs.shape[1])), n_rows,
-                                           "policies (stacked)", finite=False)
+                                           "policies (stacked)")
             else:
                 for p, block in enumerate(blocks):
-                    full[block] = _checked_actions(calls[p](obs[block]), block.size, f"policies: entry {p}",
-                                                   finite=False)
+                    full[block] = _checked_actions(calls[p](obs[block]), block.size, f"policies: entry {p}")
             u = full[idx]
-            bad = np.flatnonzero(~np.isfinite(u).all(axis=1))
-            if bad.size:
-                i = idx[bad[0]]
-                raise ValueError(f"policies: entry {owner[i]} (seed {row_seeds[i]}) returned NaN or inf")
+        bad = np.flatnonzero(~np.isfinite(u).all(axis=1))
+        if bad.size:
+            i = idx[bad[0]]
+            raise ValueError(f"policies: entry {owner[i]} (seed {row_seeds[i]}) returned NaN or inf")
         alive[idx[rows.step(idx, u)]] = False
     results = [[] for _ in policies]
     for i in range(n_rows):

@@ -6,7 +6,7 @@ from typing import Any
 
 import torch
 
-from mixedrl.checks import check_positive_int
+from mixedrl.checks import check_finite, check_positive_int
 from mixedrl.envs.dlc_config import DoubleLaneChangeConfig
 from mixedrl.envs.model import ACTION_DIM, STATE_DIM, DoubleLaneChangeModel
 
@@ -94,8 +94,7 @@ class DoubleLaneChangeVectorEnv:
             raise ValueError(f"u: expected a tensor of shape ({self.num_envs}, {ACTION_DIM}), got {shape}")
         if u.dtype != self.dtype:
             raise ValueError(f"u: expected dtype {self.dtype}, got {u.dtype}")
-        if not bool(torch.isfinite(u).all()):
-            raise ValueError("u: contains NaN or inf")
+        check_finite(u, "u")
         model = self.model
         s = self.state
         u = model.clip_action(u)

@@ -1,12 +1,8 @@
-"""Vehicle body dynamics of the double-lane-change task: eq. (53) with the Fiala tire.
+"""Vehicle body dynamics of the double-lane-change task: eq. (53) with the Fiala tire (docs/vehicle.rst).
 
-* ``x = [v_y, r, v_x, phi, y]``: lateral velocity [m/s], yaw rate [rad/s], longitudinal speed [m/s],
-  yaw angle [rad], lateral position [m];
-* ``u = [delta, a_x]``: front wheel angle [rad], longitudinal acceleration command [m/s^2].
-
-The tracking state ``s = [v_y, r, v_x, phi, Y, X]`` is accepted too: its first five components obey
-eq. (53) and ``dX/dt = v_x cos(phi) - v_y sin(phi)`` (docs/vehicle.rst). One formula is evaluated on
-Python floats, numpy arrays and torch tensors, so the environment and the planning model share ``f``.
+One formula, evaluated on Python floats, numpy arrays and torch tensors, so the environment and the
+planning model share ``f``; it takes the state ``x = [v_y, r, v_x, phi, y]`` or the tracking state
+``s = [v_y, r, v_x, phi, Y, X]`` (with ``dX/dt = v_x cos(phi) - v_y sin(phi)``) and ``u = [delta, a_x]``.
 """
 
 from __future__ import annotations
