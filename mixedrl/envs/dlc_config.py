@@ -9,6 +9,7 @@ the discount of eq. (2) and the prior of eq. (55) and is a run's ``task`` sectio
 from __future__ import annotations
 
 import dataclasses
+import json
 from dataclasses import dataclass, field
 from typing import Any, TypeVar
 
@@ -187,7 +188,7 @@ class DoubleLaneChangeConfig:
 
     def to_dict(self) -> dict[str, Any]:
         """A JSON-serialisable dict that :meth:`from_dict` turns back into this config (tuples as lists)."""
-        return _jsonable(self)
+        return json.loads(json.dumps(dataclasses.asdict(self)))  # nested dicts, tuples as lists
 
 
 @dataclass(frozen=True)
@@ -258,14 +259,6 @@ def _nested(cls: type) -> dict[str, type]:
             if f.default_factory is not dataclasses.MISSING and dataclasses.is_dataclass(f.default_factory)}
 
 
-def _jsonable(value: Any) -> Any:
-    if dataclasses.is_dataclass(value) and not isinstance(value, type):
-        return {f.name: _jsonable(getattr(value, f.name)) for f in dataclasses.fields(value)}
-    if isinstance(value, (tuple, list)):
-        return [_jsonable(v) for v in value]
-    return value
-
-
 def _merge(base: _C, values: dict[str, Any], where: str, dotted: bool) -> _C:
     """``base`` with ``values`` applied, dicts merged into nested fields. ``where`` is the dotted place of
     ``values`` (``""`` at the top); ``dotted`` reports unknown keys by their full dotted name."""
@@ -323,7 +316,7 @@ def make_config(config: DoubleLaneChangeConfig | dict[str, Any] | None = None, *
     if flat:
         cost = overrides.get("cost", {})
         if isinstance(cost, CostWeights):
-            cost = _jsonable(cost)
+            cost = dataclasses.asdict(cost)
         if not isinstance(cost, dict):
             raise ValueError(f"cost: expected a dict (a JSON object) or a CostWeights, got {cost!r}")
         overrides["cost"] = {**cost, **flat}
