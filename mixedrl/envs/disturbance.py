@@ -60,13 +60,8 @@ class Disturbance:
 
     .. math:: F_{dis} = \\bar F(X) + \\sigma z, \\qquad E z = 0, \\quad \\mathrm{Var}\\, z = 1,
 
-    with the law's standardised draw ``z`` (:meth:`standard_noise`; docs/vehicle.rst):
-
-    * ``"gaussian"``: ``z ~ N(0, 1)``;
-    * ``"student_t"``: ``z = t sqrt((nu - 2) / nu)``, ``t`` Student-t with ``nu = dof`` degrees of freedom;
-    * ``"bumps"``: ``z = -1`` or ``+1`` with probability 1/2 each.
-
-    The planners model the noise as a Gaussian whatever the law.
+    with the law's standardised draw ``z`` (:meth:`standard_noise`; the laws' table: docs/vehicle.rst). The
+    planners model the noise as a Gaussian whatever the law.
     """
 
     law: str = "gaussian"

@@ -271,8 +271,7 @@ class DoubleLaneChangeModel:
             F_{dis,t} = \\bar F(X_t) + \\sigma z_t
 
         where ``f`` is :meth:`step`, ``E`` the unit vector of ``v_x`` and the force is drawn at the state
-        before the step (:meth:`sample_force`). Training, the vector env, the Gymnasium env and the
-        evaluation all call this method.
+        before the step (:meth:`sample_force`); every true-environment path calls it (docs/vehicle.rst).
 
         Parameters
         ----------
@@ -298,9 +297,7 @@ class DoubleLaneChangeModel:
 
         Notes
         -----
-        Each caller keeps its own random stream; one that reports the force draws it with
-        :meth:`sample_force` and passes ``force=``. The tuple path is the same formula on Python floats
-        (:meth:`VehicleDynamics.step_scalar`).
+        A caller that reports the force draws it with :meth:`sample_force` and passes ``force=``.
         """
         if force is None:
             force = self.sample_force(s, generator)
