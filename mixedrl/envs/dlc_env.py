@@ -11,7 +11,7 @@ from gymnasium import spaces
 
 from mixedrl.checks import as_vector, check_unknown_keys
 from mixedrl.envs.columns import observation_from_errors, stage_cost
-from mixedrl.envs.libm import _MathOps
+from mixedrl.envs.libm import MathOps
 from mixedrl.envs.dlc_config import DoubleLaneChangeConfig, make_config
 from mixedrl.envs.model import STATE_DIM, DoubleLaneChangeModel
 
@@ -120,7 +120,7 @@ class DoubleLaneChangeEnv(gym.Env):
             a new :meth:`reset`.
         """
         a0, a1 = _pair(action, "action", str(self.action_space))
-        c0, c1 = _MathOps.clip(a0, -1.0, 1.0), _MathOps.clip(a1, -1.0, 1.0)
+        c0, c1 = MathOps.clip(a0, -1.0, 1.0), MathOps.clip(a1, -1.0, 1.0)
         return self._step_physical(c0 * self.config.delta_max, c1 * self.config.ax_max, c0 != a0 or c1 != a1)
 
     def step_physical(self, u: Any) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
@@ -130,7 +130,7 @@ class DoubleLaneChangeEnv(gym.Env):
         """
         d_max, a_max = self.config.delta_max, self.config.ax_max
         delta, ax = _pair(u, "u", f"[-{d_max}, {d_max}] x [-{a_max}, {a_max}]")
-        delta_c, ax_c = _MathOps.clip(delta, -d_max, d_max), _MathOps.clip(ax, -a_max, a_max)
+        delta_c, ax_c = MathOps.clip(delta, -d_max, d_max), MathOps.clip(ax, -a_max, a_max)
         return self._step_physical(delta_c, ax_c, delta_c != delta or ax_c != ax)
 
     def _step_physical(self, delta_c: float, ax_c: float, clipped: bool

@@ -14,7 +14,7 @@ from typing import Any, Callable
 import numpy as np
 import torch
 
-__all__ = ["elementwise", "LibmOps"]
+__all__ = ["elementwise", "LibmOps", "MathOps", "NumpyOps", "TorchOps", "ops_for"]
 
 
 def elementwise(f: Callable[..., float]) -> Callable[..., np.ndarray]:
@@ -41,7 +41,9 @@ def elementwise(f: Callable[..., float]) -> Callable[..., np.ndarray]:
     return g
 
 
-class _MathOps:
+class MathOps:
+    """The operations on Python floats (:mod:`math`)."""
+
     atan2, tan, sin, cos, tanh, atan = (staticmethod(getattr(math, n)) for n in ("atan2", "tan", "sin", "cos",
                                                                                 "tanh", "atan"))
 
@@ -50,14 +52,18 @@ class _MathOps:
         return lo if x < lo else (hi if x > hi else x)
 
 
-class _NumpyOps:
+class NumpyOps:
+    """The operations on numpy arrays, with ``columns`` (the last axis split) and ``stack`` (its inverse)."""
+
     atan2, tan, sin, cos, tanh, atan, clip = (staticmethod(f) for f in (np.arctan2, np.tan, np.sin, np.cos, np.tanh,
                                                                          np.arctan, np.clip))
     columns = staticmethod(lambda x: tuple(np.moveaxis(x, -1, 0)))
     stack = staticmethod(lambda cols: np.stack(np.broadcast_arrays(*cols), axis=-1))
 
 
-class _TorchOps:
+class TorchOps:
+    """The operations on torch tensors, with ``columns`` and ``stack`` as :class:`NumpyOps`."""
+
     atan2, tan, sin, cos, tanh, atan, clip = (staticmethod(f) for f in (torch.atan2, torch.tan, torch.sin, torch.cos,
                                                                          torch.tanh, torch.atan, torch.clamp))
     columns = staticmethod(lambda x: x.unbind(-1))
@@ -67,11 +73,11 @@ class _TorchOps:
 def ops_for(x: Any) -> Any:
     """The backend of ``x``: torch for a tensor, numpy for an array, :mod:`math` otherwise."""
     if isinstance(x, torch.Tensor):
-        return _TorchOps
-    return _NumpyOps if isinstance(x, np.ndarray) else _MathOps
+        return TorchOps
+    return NumpyOps if isinstance(x, np.ndarray) else MathOps
 
 
-class LibmOps(_NumpyOps):
+class LibmOps(NumpyOps):
     """The operations the vehicle and the reference need, on float64 arrays, bit-identical to :mod:`math`
     on each element."""
 

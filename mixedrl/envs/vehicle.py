@@ -16,7 +16,7 @@ import numpy as np
 import torch
 
 from mixedrl.checks import check_finite, check_number
-from mixedrl.envs.libm import LibmOps, _MathOps, _TorchOps, ops_for
+from mixedrl.envs.libm import LibmOps, MathOps, TorchOps, ops_for
 
 __all__ = ["VehicleParams", "VehicleDynamics", "fiala_lateral_force", "STATE_NAMES", "TRACKING_STATE_NAMES",
            "ACTION_NAMES", "VX_INDEX"]
@@ -325,7 +325,7 @@ class VehicleDynamics:
 
     def _kernel_component_major(self, xt: torch.Tensor, ut: torch.Tensor) -> torch.Tensor:
         # xt: (n, ...) and ut: (2, ...) component-major; returns the next state as (n, ...).
-        out = self._step_cols(_TorchOps, xt.unbind(0), ut[0], ut[1])
+        out = self._step_cols(TorchOps, xt.unbind(0), ut[0], ut[1])
         return torch.stack(torch.broadcast_tensors(*out), dim=0)
 
     def step_scalar(self, x: tuple[float, ...] | list[float], u: tuple[float, float] | list[float]
@@ -351,7 +351,7 @@ class VehicleDynamics:
         """
         if len(x) not in (5, 6) or len(u) != 2:
             raise ValueError(f"x: expected 5 or 6 floats and u 2 floats, got {len(x)} and {len(u)}")
-        return self._step_cols(_MathOps, tuple(x), u[0], u[1])
+        return self._step_cols(MathOps, tuple(x), u[0], u[1])
 
     def step_rows(self, x: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, ...]:
         """Deterministic step ``f`` on float64 rows, bit-identical to :meth:`step_scalar` on each row.
@@ -425,7 +425,7 @@ class VehicleDynamics:
         """
         x, u, _ = self._prepare(x, u, 0.0)
         ops = ops_for(x)
-        if ops is _TorchOps and self.compile and not self._compile_failed:
+        if ops is TorchOps and self.compile and not self._compile_failed:
             # component-major copies, made outside the compiled graph, let inductor emit SIMD code
             # (docs/vehicle.rst, "Fused batched step"); the result is a (..., n) view of that buffer
             if self._compiled is None:
