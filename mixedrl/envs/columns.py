@@ -54,10 +54,7 @@ def observation_from_errors(cfg: DoubleLaneChangeConfig, vy: Any, r: Any, vx: An
     list
         ``5 + len(preview_distances)`` columns, each of shape (...).
     """
-    feats = [vy, r, vx - cfg.v_des, e_phi, e_y]
-    for d in cfg.preview_distances:
-        feats.append(cfg.reference.lateral(X + d) - y_ref)
-    return feats
+    return [vy, r, vx - cfg.v_des, e_phi, e_y] + [cfg.reference.lateral(X + d) - y_ref for d in cfg.preview_distances]
 
 
 def observation_columns(cfg: DoubleLaneChangeConfig, vy: Any, r: Any, vx: Any, phi: Any, Y: Any, X: Any

@@ -60,13 +60,8 @@ class Disturbance:
 
     .. math:: F_{dis} = \\bar F(X) + \\sigma z, \\qquad E z = 0, \\quad \\mathrm{Var}\\, z = 1,
 
-    with the law's standardised draw ``z`` (:meth:`standard_noise`; docs/vehicle.rst):
-
-    * ``"gaussian"``: ``z ~ N(0, 1)``;
-    * ``"student_t"``: ``z = t sqrt((nu - 2) / nu)``, ``t`` Student-t with ``nu = dof`` degrees of freedom;
-    * ``"bumps"``: ``z = -1`` or ``+1`` with probability 1/2 each.
-
-    The planners model the noise as a Gaussian whatever the law.
+    with the law's standardised draw ``z`` (:meth:`standard_noise`; the laws' table: docs/vehicle.rst). The
+    planners model the noise as a Gaussian whatever the law.
     """
 
     law: str = "gaussian"
@@ -124,22 +119,28 @@ class Disturbance:
         On torch the Student-t draw uses Bailey's polar method (torch has no Student-t sampler that
         takes a generator); the two-point law draws one uniform per state.
         """
+        scale = math.sqrt((self.dof - 2.0) / self.dof)  # "student_t": z = t sqrt((nu - 2) / nu), variance 1
         if generator is None or isinstance(generator, torch.Generator):
             if shape is None:
                 raise ValueError("shape: a torch draw needs a shape")
-            return _standard_noise_torch(self, tuple(shape), generator, dtype, device)
+            if self.law == "gaussian":
+                return torch.randn(tuple(shape), generator=generator, dtype=dtype, device=device)
+            n = math.prod(shape)
+            if self.law == "student_t":
+                z = _student_t_torch(self.dof, n, generator, device) * scale
+            else:  # "bumps": z = -1 or +1 with probability 1/2 each
+                z = torch.where(torch.rand(n, generator=generator, dtype=torch.float64, device=device) < 0.5,
+                                -1.0, 1.0).to(torch.float64)
+            return z.reshape(tuple(shape)).to(dtype)
         if not isinstance(generator, np.random.Generator):
             raise ValueError(f"generator: expected a torch.Generator or a numpy.random.Generator, got "
                              f"{type(generator).__name__}")
         if self.law == "gaussian":
             return generator.standard_normal(shape)
         if self.law == "student_t":
-            # z = t sqrt((nu - 2) / nu), t ~ Student-t(nu): variance 1
-            return generator.standard_t(self.dof, shape) * math.sqrt((self.dof - 2.0) / self.dof)
+            return generator.standard_t(self.dof, shape) * scale
         u = generator.random(shape)
-        if shape is None:
-            return -1.0 if u < 0.5 else 1.0
-        return np.where(u < 0.5, -1.0, 1.0)
+        return (-1.0 if u < 0.5 else 1.0) if shape is None else np.where(u < 0.5, -1.0, 1.0)
 
     def mean_force(self, X: Any, m: float, g: float) -> Any:
         """Mean disturbance force at longitudinal position ``X`` [N].
@@ -186,18 +187,4 @@ def _student_t_torch(dof: float, n: int, generator: torch.Generator | None, devi
         out[filled:filled + take] = t[:take]
         filled += take
     return out
-
-
-def _standard_noise_torch(dist: Disturbance, shape: tuple[int, ...], generator: torch.Generator | None,
-                          dtype: torch.dtype, device: str | torch.device) -> torch.Tensor:
-    if dist.law == "gaussian":
-        return torch.randn(shape, generator=generator, dtype=dtype, device=device)
-    n = math.prod(shape)
-    if dist.law == "student_t":
-        # z = t sqrt((nu - 2) / nu): variance 1
-        z = _student_t_torch(dist.dof, n, generator, device) * math.sqrt((dist.dof - 2.0) / dist.dof)
-    else:  # "bumps": z = -1 or +1 with probability 1/2 each
-        u = torch.rand(n, generator=generator, dtype=torch.float64, device=device)
-        z = torch.where(u < 0.5, -1.0, 1.0).to(torch.float64)
-    return z.reshape(shape).to(dtype)
 

@@ -9,6 +9,7 @@ the discount of eq. (2) and the prior of eq. (55) and is a run's ``task`` sectio
 from __future__ import annotations
 
 import dataclasses
+import json
 from dataclasses import dataclass, field
 from typing import Any, TypeVar
 
@@ -187,7 +188,7 @@ class DoubleLaneChangeConfig:
 
     def to_dict(self) -> dict[str, Any]:
         """A JSON-serialisable dict that :meth:`from_dict` turns back into this config (tuples as lists)."""
-        return _jsonable(self)
+        return json.loads(json.dumps(dataclasses.asdict(self)))  # nested dicts, tuples as lists
 
 
 @dataclass(frozen=True)
@@ -240,13 +241,12 @@ class DoubleLaneChangeTaskConfig(DoubleLaneChangeConfig):
         if not 0.0 < gamma < 1.0:
             raise ValueError(f"gamma: expected a number in (0, 1), got {self.gamma!r}")
         object.__setattr__(self, "gamma", gamma)
-        object.__setattr__(self, "prior_force_mean", check_number(self.prior_force_mean, "prior_force_mean"))
-        object.__setattr__(self, "prior_force_std",
-                           check_number(self.prior_force_std, "prior_force_std", positive=True))
         for name in ("prior_force_mean", "prior_force_std"):
-            if abs(getattr(self, name)) > MAX_PRIOR_FORCE:
-                raise ValueError(f"{name}: |{getattr(self, name)!r}| N exceeds {MAX_PRIOR_FORCE:g} N: the IBE forms "
+            value = check_number(getattr(self, name), name, positive=name == "prior_force_std")
+            if abs(value) > MAX_PRIOR_FORCE:
+                raise ValueError(f"{name}: |{value!r}| N exceeds {MAX_PRIOR_FORCE:g} N: the IBE forms "
                                  f"second moments of the force, which would overflow float64")
+            object.__setattr__(self, name, value)
 
 
 #: The flat keys of the cost weights that :func:`make_config` accepts (moved into ``cost``).
@@ -255,19 +255,8 @@ _FLAT_COST = tuple(f.name for f in dataclasses.fields(CostWeights))
 
 def _nested(cls: type) -> dict[str, type]:
     """Field name -> dataclass type, for the fields of ``cls`` that are configurations themselves."""
-    out = {}
-    for f in dataclasses.fields(cls):
-        if f.default_factory is not dataclasses.MISSING and dataclasses.is_dataclass(f.default_factory):
-            out[f.name] = f.default_factory
-    return out
-
-
-def _jsonable(value: Any) -> Any:
-    if dataclasses.is_dataclass(value) and not isinstance(value, type):
-        return {f.name: _jsonable(getattr(value, f.name)) for f in dataclasses.fields(value)}
-    if isinstance(value, (tuple, list)):
-        return [_jsonable(v) for v in value]
-    return value
+    return {f.name: f.default_factory for f in dataclasses.fields(cls)
+            if f.default_factory is not dataclasses.MISSING and dataclasses.is_dataclass(f.default_factory)}
 
 
 def _merge(base: _C, values: dict[str, Any], where: str, dotted: bool) -> _C:
@@ -319,17 +308,15 @@ def make_config(config: DoubleLaneChangeConfig | dict[str, Any] | None = None, *
         Unknown keys (at any level) or invalid values; the message starts with the (dotted) field name.
     """
     if isinstance(config, dict):
-        overrides = {**config, **overrides}
-        config = None
-    if config is None:
-        config = DoubleLaneChangeConfig()
+        config, overrides = None, {**config, **overrides}
+    config = DoubleLaneChangeConfig() if config is None else config
     if not isinstance(config, DoubleLaneChangeConfig):
         raise ValueError(f"config: expected DoubleLaneChangeConfig or dict, got {type(config).__name__}")
     flat = {k: overrides.pop(k) for k in _FLAT_COST if k in overrides}
     if flat:
         cost = overrides.get("cost", {})
         if isinstance(cost, CostWeights):
-            cost = _jsonable(cost)
+            cost = dataclasses.asdict(cost)
         if not isinstance(cost, dict):
             raise ValueError(f"cost: expected a dict (a JSON object) or a CostWeights, got {cost!r}")
         overrides["cost"] = {**cost, **flat}

@@ -10,7 +10,8 @@ import numpy as np
 from gymnasium import spaces
 
 from mixedrl.checks import as_vector, check_unknown_keys
-from mixedrl.envs.columns import observation_columns, observation_from_errors, stage_cost, tracking_errors
+from mixedrl.envs.columns import observation_from_errors, stage_cost
+from mixedrl.envs.libm import MathOps
 from mixedrl.envs.dlc_config import DoubleLaneChangeConfig, make_config
 from mixedrl.envs.model import STATE_DIM, DoubleLaneChangeModel
 
@@ -39,46 +40,13 @@ def _pair(value: Any, name: str, space: str) -> tuple[float, float]:
     return a0, a1
 
 
-def _clip(v: float, bound: float) -> float:
-    return -bound if v < -bound else (bound if v > bound else v)
-
-
 class DoubleLaneChangeEnv(gym.Env):
     """Double lane change at 12 m/s with a random longitudinal disturbance (the paper's Section VI task).
 
-    **Description.** A front-steered car (eq. 53, Fiala tires) follows the tanh double-lane-change path
-    ``Y_ref(X)`` at 12 m/s against a random longitudinal force ``F_dis ~ N(261 N, 32 N^2)``, forward
-    Euler at ``T = 1/200 s``. One step is :meth:`DoubleLaneChangeModel.true_step` with ``F_dis`` drawn
-    from ``self.np_random``; ``disturbance={"law": ...}`` selects another law
-    (:class:`~mixedrl.envs.disturbance.Disturbance`).
-
-    **Action Space.** ``Box(-1, 1, (2,), float64)``, normalised: ``u = [delta, a_x] = a * [delta_max,
-    ax_max]``, front wheel angle [rad] (default bound 0.4, positive = left) and longitudinal acceleration
-    [m/s^2] (default bound 4). Actions outside ``[-1, 1]`` are clipped (``info["action_clipped"]``). A
-    NaN/inf action or a wrong shape raises ``ValueError`` and leaves the state unchanged; a non-numeric
-    action raises ``TypeError``. :meth:`step_physical` takes the physical ``u``.
-
-    **Observation Space.** ``Box(-f_max, f_max, (5 + n_preview,), float64)`` (any finite value):
-    ``[v_y [m/s], r [rad/s], v_x - 12 [m/s], e_phi [rad], e_y [m]]`` with
-    ``e_y = Y - Y_ref(X)``, ``e_phi = phi - psi_ref(X)``, followed by the optional preview
-    ``Y_ref(X + d_i) - Y_ref(X)`` [m] for each ``d_i`` in ``preview_distances`` (none by default).
-
-    **Rewards.** ``-l(s', u)`` with eq. (54), ``l = T (45 (v_x' - 12)^2 + 60 e_y'^2 + 800 delta^2 + a_x^2)``,
-    charged on the next state.
-
-    **Starting State.** ``X = 0`` on the reference at 12 m/s, with ``[v_y, r, v_x - 12, e_phi, e_y]``
-    uniform in ``+-reset_half_widths``, from ``self.np_random``. ``reset(options={"state": s})`` starts
-    from a given tracking state ``s = [v_y, r, v_x, phi, Y, X]``.
-
-    **Episode End.** Terminated when ``|e_y| > max_lateral_error`` (3 m), ``v_x < min_speed`` (1 m/s) or
-    a state component is not finite; truncated after ``round(course_length / (12 T))`` steps (2000).
-    Stepping an ended episode without :meth:`reset` raises ``RuntimeError``.
-
-    **Arguments.** ``gym.make("mixedrl/DoubleLaneChange-v0", config=None, **overrides)``: any field of
-    :class:`~mixedrl.envs.dlc_config.DoubleLaneChangeConfig` (nested ones also as dicts); unknown keys
-    raise ``ValueError``.
-
-    **Version History.** v0: initial version.
+    Description, action and observation spaces, rewards, starting state, episode end and arguments:
+    docs/vehicle.rst ("Gymnasium environment"). One step is :meth:`DoubleLaneChangeModel.true_step` with
+    ``F_dis`` drawn from ``self.np_random``; :meth:`step` takes the normalised action in ``[-1, 1]^2``,
+    :meth:`step_physical` the physical ``u = [delta, a_x]``.
 
     ``info`` (reset and step): ``lateral_error`` ``e_y`` [m], ``speed_error`` ``v_x - 12`` [m/s],
     ``state`` (the tracking state, shape (6,)); step only: ``disturbance`` (true ``F_dis`` [N]),
@@ -94,15 +62,11 @@ class DoubleLaneChangeEnv(gym.Env):
         self.render_mode = None
         self.config = make_config(config, **overrides)
         self.model = DoubleLaneChangeModel(self.config)
-        cfg = self.config
-        self._delta_max = cfg.delta_max
-        self._ax_max = cfg.ax_max
         self.action_space = spaces.Box(low=-1.0, high=1.0, shape=(2,), dtype=np.float64)
         big = np.finfo(np.float64).max  # "any finite value" (Gymnasium's checker rejects infinite bounds)
         self.observation_space = spaces.Box(-big, big, shape=(self.model.obs_dim,), dtype=np.float64)
         self._state: tuple[float, ...] | None = None
-        self._elapsed = 0
-        self._done = False
+        self._elapsed, self._done = 0, False
 
     @property
     def state(self) -> np.ndarray:
@@ -111,12 +75,14 @@ class DoubleLaneChangeEnv(gym.Env):
             raise RuntimeError("state: call reset() first")
         return np.array(self._state)
 
-    def _obs(self, s: tuple[float, ...]) -> np.ndarray:
-        return np.array(observation_columns(self.config, *s), dtype=np.float64)
-
-    def _info(self, s: tuple[float, ...]) -> dict[str, Any]:
-        e_y, _ = tracking_errors(self.config, s[3], s[4], s[5])
-        return {"lateral_error": e_y, "speed_error": s[2] - self.config.v_des, "state": np.array(s)}
+    def _observe(self, s: tuple[float, ...]) -> tuple[np.ndarray, dict[str, Any]]:
+        """The observation of ``s`` and the ``info`` entries of every state."""
+        cfg = self.config
+        vy, r, vx, phi, Y, X = s
+        y_ref, psi_ref = cfg.reference.lateral_and_heading(X)
+        e_y = Y - y_ref
+        obs = np.array(observation_from_errors(cfg, vy, r, vx, phi - psi_ref, e_y, X, y_ref), dtype=np.float64)
+        return obs, {"lateral_error": e_y, "speed_error": vx - cfg.v_des, "state": np.array(s)}
 
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None
               ) -> tuple[np.ndarray, dict[str, Any]]:
@@ -132,18 +98,13 @@ class DoubleLaneChangeEnv(gym.Env):
         check_unknown_keys(options, {"state"}, "options")
         cfg = self.config
         if "state" in options:
-            s = tuple(float(v) for v in as_vector(options["state"], "options['state']", STATE_DIM))
+            s = tuple(as_vector(options["state"], "options['state']", STATE_DIM).tolist())
         else:
-            w = cfg.reset_half_widths
-            dev = self.np_random.uniform(-1.0, 1.0, size=5) * np.asarray(w)
-            ref = cfg.reference
-            X = 0.0
-            s = (float(dev[0]), float(dev[1]), cfg.v_des + float(dev[2]), ref.heading(X) + float(dev[3]),
-                 ref.lateral(X) + float(dev[4]), X)
-        self._state = s
-        self._elapsed = 0
-        self._done = False
-        return self._obs(s), self._info(s)
+            dev = (self.np_random.uniform(-1.0, 1.0, size=5) * np.asarray(cfg.reset_half_widths)).tolist()
+            y_ref, psi_ref = cfg.reference.lateral_and_heading(0.0)
+            s = (dev[0], dev[1], cfg.v_des + dev[2], psi_ref + dev[3], y_ref + dev[4], 0.0)
+        self._state, self._elapsed, self._done = s, 0, False
+        return self._observe(s)
 
     def step(self, action: Any) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
         """One step of ``T`` seconds with the normalised action ``a``: ``u = clip(a, -1, 1) * bound``.
@@ -159,16 +120,17 @@ class DoubleLaneChangeEnv(gym.Env):
             a new :meth:`reset`.
         """
         a0, a1 = _pair(action, "action", str(self.action_space))
-        c0, c1 = _clip(a0, 1.0), _clip(a1, 1.0)
-        return self._step_physical(c0 * self._delta_max, c1 * self._ax_max, c0 != a0 or c1 != a1)
+        c0, c1 = MathOps.clip(a0, -1.0, 1.0), MathOps.clip(a1, -1.0, 1.0)
+        return self._step_physical(c0 * self.config.delta_max, c1 * self.config.ax_max, c0 != a0 or c1 != a1)
 
     def step_physical(self, u: Any) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
         """Same as :meth:`step`, with the physical input ``u = [delta, a_x]`` [rad, m/s^2].
 
         ``u`` is clipped to ``[-delta_max, delta_max] x [-ax_max, ax_max]``; errors as :meth:`step`.
         """
-        delta, ax = _pair(u, "u", f"[-{self._delta_max}, {self._delta_max}] x [-{self._ax_max}, {self._ax_max}]")
-        delta_c, ax_c = _clip(delta, self._delta_max), _clip(ax, self._ax_max)
+        d_max, a_max = self.config.delta_max, self.config.ax_max
+        delta, ax = _pair(u, "u", f"[-{d_max}, {d_max}] x [-{a_max}, {a_max}]")
+        delta_c, ax_c = MathOps.clip(delta, -d_max, d_max), MathOps.clip(ax, -a_max, a_max)
         return self._step_physical(delta_c, ax_c, delta_c != delta or ax_c != ax)
 
     def _step_physical(self, delta_c: float, ax_c: float, clipped: bool
@@ -178,9 +140,7 @@ class DoubleLaneChangeEnv(gym.Env):
         if self._done:
             raise RuntimeError("step: the episode has ended (terminated or truncated); call reset() before "
                                "stepping again")
-        cfg = self.config
-        model = self.model
-        s = self._state
+        cfg, model, s = self.config, self.model, self._state
         # F_dis = mean(X) + std z at the current state, from np_random; xi = F_dis T / m
         force = model.sample_force(s, self.np_random)
         xi = model.xi_from_force(force)
@@ -188,18 +148,12 @@ class DoubleLaneChangeEnv(gym.Env):
         s_next = model.true_step(s, (delta_c, ax_c), force=force)
         self._state = s_next
         self._elapsed += 1
-        vy, r, vx, phi, Y, X = s_next
-        y_ref, psi_ref = cfg.reference.lateral_and_heading(X)
-        e_y = Y - y_ref
-        obs = np.array(observation_from_errors(cfg, vy, r, vx, phi - psi_ref, e_y, X, y_ref), dtype=np.float64)
+        obs, info = self._observe(s_next)
+        e_y, vx = info["lateral_error"], s_next[2]
         reward = -stage_cost(cfg, vx - cfg.v_des, e_y, delta_c, ax_c)
-        finite = all(math.isfinite(v) for v in s_next)
-        terminated = (not finite) or not (abs(e_y) <= cfg.max_lateral_error) or not (vx >= cfg.min_speed)
+        terminated = (not all(map(math.isfinite, s_next)) or not (abs(e_y) <= cfg.max_lateral_error)
+                      or not (vx >= cfg.min_speed))
         truncated = (not terminated) and self._elapsed >= cfg.max_steps
         self._done = terminated or truncated
-        info = {
-            "lateral_error": e_y, "speed_error": vx - cfg.v_des, "state": np.array(s_next),
-            "disturbance": force, "xi": xi, "action": np.array((delta_c, ax_c)),
-            "action_clipped": clipped,
-        }
+        info.update(disturbance=force, xi=xi, action=np.array((delta_c, ax_c)), action_clipped=clipped)
         return obs, float(reward), bool(terminated), bool(truncated), info

@@ -92,7 +92,6 @@ class CourseStateSampler(ModelStateSampler):
 
     def __init__(self, task: Any, config: Any, generator: torch.Generator) -> None:
         super().__init__(task, config, generator)
-        self.kick_prob = self.options.kick_prob
         self.along = self.options.course_starts == "along"
         #: course copies restart when they pass the course's end ("along", "loop")
         self.end_restart = self.options.course_starts in ("along", "loop")
@@ -135,12 +134,10 @@ class CourseStateSampler(ModelStateSampler):
     def after_step(self, done: torch.Tensor) -> None:
         """Kick the course copies that did not restart: a uniform offset ``kick_scale * obs_scale * U(-1, 1)``
         (through ``E``), each with probability ``kick_prob``."""
-        if self.kick_prob <= 0:
+        cfg, task, n = self.options, self.task, self.states.shape[0]
+        if cfg.kick_prob <= 0:
             return
-        eligible = ~done & self.course
-        cfg, task = self.options, self.task
-        n = self.states.shape[0]
-        hit = eligible & (torch.rand(n, generator=self.generator, dtype=torch.float64) < cfg.kick_prob)
+        hit = ~done & self.course & (torch.rand(n, generator=self.generator, dtype=torch.float64) < cfg.kick_prob)
         width = cfg.kick_scale * task.obs_scale.to(torch.float64)[: task.noise_dim]
         offset = width * (2.0 * torch.rand(n, task.noise_dim, generator=self.generator, dtype=torch.float64) - 1.0)
         self.states[hit] += (offset @ task.noise_matrix.to(torch.float64).T)[hit]

@@ -96,16 +96,12 @@ class DoubleLaneChangeTask(Task):
         self.obs_dim, self.noise_dim = self.model.obs_dim, 5
         self.gamma = cfg.gamma
         vx = self.noise_index = self.model.noise_index
-        self.noise_matrix = torch.zeros(self.state_dim, self.noise_dim)
-        self.noise_matrix[:5, :5] = torch.eye(5)
-        self.prior_mean = np.zeros(5)
-        self.prior_mean[vx] = cfg.prior_force_mean * scale
-        self.prior_cov = np.diag(np.full(5, 1e-20))
-        self.prior_cov[vx, vx] = (cfg.prior_force_std * scale) ** 2
-        self.true_mean = np.zeros(5)
-        self.true_mean[vx] = cfg.disturbance.mean * scale
-        self.true_cov = np.zeros((5, 5))
-        self.true_cov[vx, vx] = cfg.disturbance.variance * scale**2
+        self.noise_matrix = torch.eye(self.state_dim, self.noise_dim)  # E = [I_5; 0]
+        on_vx = np.arange(5) == vx
+        self.prior_mean = np.where(on_vx, cfg.prior_force_mean * scale, 0.0)
+        self.prior_cov = np.diag(np.where(on_vx, (cfg.prior_force_std * scale) ** 2, 1e-20))
+        self.true_mean = np.where(on_vx, cfg.disturbance.mean * scale, 0.0)
+        self.true_cov = np.diag(np.where(on_vx, cfg.disturbance.variance * scale**2, 0.0))
         self.true_mean_varies = cfg.disturbance.grade_amplitude != 0.0
         self.action_bound = torch.tensor(self.model.action_bound, dtype=torch.float32)
         scales = [0.3, 0.2, 0.5, 0.1, 0.5] + [2.0] * (self.obs_dim - 5) if cfg.obs_scale is None else cfg.obs_scale
@@ -267,14 +263,10 @@ class DoubleLaneChangeTask(Task):
 
 def _course_metrics(runs: list[TrackingResult], keep_trajectory: bool) -> dict[str, Any]:
     """The task's evaluation dict (:meth:`DoubleLaneChangeTask.evaluate`) of one policy's courses."""
-    out: dict[str, Any] = {
-        "lateral_mae": float(np.mean([r.mean_abs_lateral_error for r in runs])),
-        "speed_mae": float(np.mean([r.mean_abs_speed_error for r in runs])),
-        "lateral_max": float(np.mean([r.max_abs_lateral_error for r in runs])),
-        "speed_max": float(np.mean([r.max_abs_speed_error for r in runs])),
-        "cost": float(np.mean([r.total_cost for r in runs])),
-        "terminated": float(np.mean([r.terminated for r in runs])),
-    }
+    out: dict[str, Any] = {key: float(np.mean([getattr(r, attr) for r in runs])) for key, attr in (
+        ("lateral_mae", "mean_abs_lateral_error"), ("speed_mae", "mean_abs_speed_error"),
+        ("lateral_max", "max_abs_lateral_error"), ("speed_max", "max_abs_speed_error"), ("cost", "total_cost"),
+        ("terminated", "terminated"))}
     if keep_trajectory:
         out["trajectories"] = runs
     return out

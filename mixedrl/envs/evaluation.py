@@ -7,6 +7,7 @@ policies in lock step, with the same numbers (bit for bit with ``exact=True``).
 from __future__ import annotations
 
 import copy
+import dataclasses
 from dataclasses import dataclass
 from typing import Any, Callable, Sequence
 
@@ -16,10 +17,9 @@ import torch
 from mixedrl.checks import as_vector, check_positive_int, check_seed_lists
 from mixedrl.envs.columns import observation_from_errors, stage_cost
 from mixedrl.envs.dlc_env import DoubleLaneChangeEnv
-from mixedrl.envs.dlc_config import DoubleLaneChangeConfig
+from mixedrl.envs.dlc_config import DoubleLaneChangeConfig, make_config
 from mixedrl.envs.libm import elementwise
 from mixedrl.envs.model import DoubleLaneChangeModel
-from mixedrl.envs.reference import LibmReference
 from mixedrl.networks import stacked_actors
 
 __all__ = ["TrackingResult", "evaluate_tracking", "evaluate_courses"]
@@ -82,21 +82,17 @@ class TrackingResult:
 
 def _as_numpy_policy(policy: Any) -> Callable[[np.ndarray], np.ndarray]:
     if isinstance(policy, torch.nn.Module):
-        params = list(policy.parameters())
-        dtype = params[0].dtype if params else torch.float32
-        device = params[0].device if params else torch.device("cpu")
+        first = next(policy.parameters(), None)
+        dtype, device = (torch.float32, torch.device("cpu")) if first is None else (first.dtype, first.device)
 
         def call(obs: np.ndarray) -> np.ndarray:
             with torch.no_grad():
-                out = policy(torch.as_tensor(obs, dtype=dtype, device=device))
-            return out.detach().cpu().numpy()
+                return policy(torch.as_tensor(obs, dtype=dtype, device=device)).detach().cpu().numpy()
         return call
 
     def call_plain(obs: np.ndarray) -> np.ndarray:
         out = policy(obs)
-        if isinstance(out, torch.Tensor):
-            out = out.detach().cpu().numpy()
-        return out
+        return out.detach().cpu().numpy() if isinstance(out, torch.Tensor) else out
     return call_plain
 
 
@@ -149,39 +145,20 @@ def evaluate_tracking(policy: Callable[[np.ndarray], Any] | torch.nn.Module,
     termination). Each step is :meth:`~mixedrl.envs.DoubleLaneChangeModel.true_step`, through the
     Gymnasium env, with ``F_dis`` drawn from its ``np_random`` seeded with ``seed``.
     """
-    env = DoubleLaneChangeEnv(config)
-    cfg = env.config
-    start_state = _start_state(cfg, start_state)
-    n_max = cfg.max_steps if max_steps is None else check_positive_int(max_steps, "max_steps")
+    cfg = make_config(config)
+    rows = _EnvRows(cfg, [seed], _start_state(cfg, start_state), normalized_actions,
+                    cfg.max_steps if max_steps is None else check_positive_int(max_steps, "max_steps"))
     call = _as_numpy_policy(policy)
-    obs, info = env.reset(seed=seed, options={"state": start_state})
-    states, observations, actions, forces, costs = [info["state"]], [obs], [], [], []
-    lat, spd = [info["lateral_error"]], [info["speed_error"]]
-    terminated = False
-    for _ in range(n_max):
-        action = np.asarray(call(obs), dtype=np.float64)
-        if normalized_actions:
-            obs, reward, terminated, truncated, info = env.step(action)
-        else:
-            obs, reward, terminated, truncated, info = env.step_physical(action)
-        states.append(info["state"])
-        observations.append(obs)
-        actions.append(info["action"])
-        forces.append(info["disturbance"])
-        costs.append(-reward)
-        lat.append(info["lateral_error"])
-        spd.append(info["speed_error"])
-        if terminated or truncated:
+    for _ in range(rows.n_max):
+        if rows.step(np.zeros(1, dtype=int), [np.asarray(call(rows.obs[0]), dtype=np.float64)])[0]:
             break
-    n = len(actions)
-    return _tracking_result(cfg.dt, np.asarray(states), np.asarray(observations), np.asarray(actions).reshape(n, 2),
-                            np.asarray(forces), np.asarray(costs), np.asarray(lat), np.asarray(spd), terminated)
+    return rows.result(0, cfg.dt)
 
 
-def _tracking_result(dt: float, states: np.ndarray, observations: np.ndarray, actions: np.ndarray,
-                     forces: np.ndarray, costs: np.ndarray, lat: np.ndarray, spd: np.ndarray,
-                     terminated: bool) -> TrackingResult:
-    """The :class:`TrackingResult` of one course from its per-step arrays (sequential and batched)."""
+def _tracking_result(dt: float, states: Any, observations: Any, actions: Any, forces: Any, costs: Any, lat: Any,
+                     spd: Any, terminated: bool) -> TrackingResult:
+    """The :class:`TrackingResult` of one course from its per-step sequences (sequential and batched)."""
+    lat, spd, actions = np.asarray(lat), np.asarray(spd), np.asarray(actions).reshape(-1, 2)
     n = actions.shape[0]
     return TrackingResult(
         mean_abs_lateral_error=float(np.mean(np.abs(lat[1:]))),
@@ -189,8 +166,8 @@ def _tracking_result(dt: float, states: np.ndarray, observations: np.ndarray, ac
         max_abs_lateral_error=float(np.max(np.abs(lat[1:]))),
         max_abs_speed_error=float(np.max(np.abs(spd[1:]))),
         total_cost=float(np.sum(costs)), terminated=bool(terminated), n_steps=n,
-        time=np.arange(n + 1) * dt, states=states, observations=observations, actions=actions,
-        lateral_error=lat, speed_error=spd, disturbance=forces, costs=costs,
+        time=np.arange(n + 1) * dt, states=np.asarray(states), observations=np.asarray(observations),
+        actions=actions, lateral_error=lat, speed_error=spd, disturbance=np.asarray(forces), costs=np.asarray(costs),
     )
 
 
@@ -200,16 +177,6 @@ def _start_state(cfg: DoubleLaneChangeConfig, start_state: np.ndarray | None) ->
         ref = cfg.reference
         start_state = np.array([0.0, 0.0, cfg.v_des, ref.heading(0.0), ref.lateral(0.0), 0.0])
     return as_vector(start_state, "start_state", 6)
-
-
-@dataclass(frozen=True)
-class _RowColumns:
-    """The fields :func:`~mixedrl.envs.columns.observation_from_errors` reads, with a
-    :class:`~mixedrl.envs.reference.LibmReference`."""
-
-    v_des: float
-    preview_distances: tuple[float, ...]
-    reference: LibmReference
 
 
 def _stacked_call(policies: Sequence[Any]) -> Callable[[np.ndarray], np.ndarray] | None:
@@ -228,13 +195,11 @@ def _stacked_call(policies: Sequence[Any]) -> Callable[[np.ndarray], np.ndarray]
     if len(policies) < 2:
         return None
     first = policies[0]
-    if any(type(p) is not type(first) for p in policies):
-        return None
 
     def signature(module: torch.nn.Module) -> list[tuple[str, tuple[int, ...], torch.dtype]]:
         return [(k, tuple(v.shape), v.dtype) for k, v in module.state_dict().items()]
 
-    if any(signature(p) != signature(first) for p in policies):
+    if any(type(p) is not type(first) or signature(p) != signature(first) for p in policies):
         return None
     for p in policies:
         for sub in p.modules():
@@ -256,15 +221,12 @@ def _stacked_call(policies: Sequence[Any]) -> Callable[[np.ndarray], np.ndarray]
     return call
 
 
-def _checked_actions(actions: Any, rows: int, what: str, finite: bool = True) -> np.ndarray:
-    """A policy's output as float64 ``(rows, 2)``, checked for shape (and, with ``finite``, NaN/inf)."""
+def _checked_actions(actions: Any, rows: int, what: str) -> np.ndarray:
+    """A policy's output as float64 ``(rows, 2)``, checked for shape."""
     a = np.asarray(actions, dtype=np.float64)
     if a.size != rows * 2:
         raise ValueError(f"{what} returned an action of shape {a.shape}, expected {(rows, 2) if rows > 1 else (2,)}")
-    a = a.reshape(rows, 2)
-    if finite and not np.isfinite(a).all():
-        raise ValueError(f"{what} returned NaN or inf")
-    return a
+    return a.reshape(rows, 2)
 
 
 #: From this many courses on, :func:`evaluate_courses` steps the vehicles as numpy rows (``stepper="auto"``).
@@ -275,9 +237,9 @@ class _EnvRows:
     """Courses stepped by their own Gymnasium environments (Python floats): the sequential step itself."""
 
     def __init__(self, cfg: DoubleLaneChangeConfig, row_seeds: list[int], start_state: np.ndarray,
-                 normalized_actions: bool) -> None:
+                 normalized_actions: bool, n_max: int) -> None:
         self.envs = [DoubleLaneChangeEnv(cfg) for _ in row_seeds]
-        self.normalized = normalized_actions
+        self.normalized, self.n_max = normalized_actions, n_max
         self.records: list[dict[str, list[Any]]] = []
         obs = []
         for env, seed in zip(self.envs, row_seeds):
@@ -296,24 +258,15 @@ class _EnvRows:
             step = env.step if self.normalized else env.step_physical
             obs, reward, terminated, truncated, info = step(u[j])
             self.obs[i] = obs
-            rec["states"].append(info["state"])
-            rec["observations"].append(obs)
-            rec["actions"].append(info["action"])
-            rec["forces"].append(info["disturbance"])
-            rec["costs"].append(-reward)
-            rec["lat"].append(info["lateral_error"])
-            rec["spd"].append(info["speed_error"])
+            for key, value in zip(rec, (info["state"], obs, info["action"], info["disturbance"], -reward,
+                                        info["lateral_error"], info["speed_error"])):
+                rec[key].append(value)
             self.terminated[i] = terminated
             ended[j] = terminated or truncated
         return ended
 
     def result(self, i: int, dt: float) -> TrackingResult:
-        rec = self.records[i]
-        n = len(rec["actions"])
-        return _tracking_result(dt, np.asarray(rec["states"]), np.asarray(rec["observations"]),
-                                np.asarray(rec["actions"]).reshape(n, 2), np.asarray(rec["forces"]),
-                                np.asarray(rec["costs"]), np.asarray(rec["lat"]), np.asarray(rec["spd"]),
-                                bool(self.terminated[i]))
+        return _tracking_result(dt, *self.records[i].values(), bool(self.terminated[i]))
 
 
 class _NumpyRows:
@@ -331,20 +284,17 @@ class _NumpyRows:
         for i, seed in enumerate(row_seeds):
             env.reset(seed=seed, options={"state": start_state})
             self.z[:, i] = cfg.disturbance.standard_noise(env.np_random, (n_max,))
-        self.states = np.full((n_max + 1, n, 6), np.nan)
-        self.observations = np.full((n_max + 1, n, obs_dim), np.nan)
-        self.actions = np.full((n_max, n, 2), np.nan)
-        self.forces = np.full((n_max, n), np.nan)
-        self.costs = np.full((n_max, n), np.nan)
-        self.lat = np.full((n_max + 1, n), np.nan)
-        self.spd = np.full((n_max + 1, n), np.nan)
+        # the per-step records, in the order of _tracking_result's arguments (n_max + 1 rows: with the start)
+        shapes = ((1, (6,)), (1, (obs_dim,)), (0, (2,)), (0, ()), (0, ()), (1, ()), (1, ()))
+        self.records = tuple(np.full((n_max + extra, n) + tail, np.nan) for extra, tail in shapes)
+        self.states, self.observations, self.actions, self.forces, self.costs, self.lat, self.spd = self.records
         self.states[0], self.observations[0] = info0["state"], obs0
         self.lat[0], self.spd[0] = info0["lateral_error"], info0["speed_error"]
         self.state = np.array(np.broadcast_to(start_state, (n, 6)))
         self.obs = np.array(np.broadcast_to(obs0, (n, obs_dim)))
         self.n_steps = np.zeros(n, dtype=int)
         self.terminated = np.zeros(n, dtype=bool)
-        self.columns = _RowColumns(cfg.v_des, tuple(cfg.preview_distances), cfg.reference.rows())
+        self.columns = dataclasses.replace(cfg, reference=cfg.reference.rows())  # the columns on libm
         dist, m, g = cfg.disturbance, cfg.params.m, cfg.params.g
         self.mean_force = elementwise(lambda X: dist.mean_force(X, m, g))
         self.bound = np.array([cfg.delta_max, cfg.ax_max])
@@ -380,13 +330,8 @@ class _NumpyRows:
 
     def result(self, i: int, dt: float) -> TrackingResult:
         n = int(self.n_steps[i])
-
-        def row(a: np.ndarray, length: int) -> np.ndarray:
-            return np.ascontiguousarray(a[:length, i])
-
-        return _tracking_result(dt, row(self.states, n + 1), row(self.observations, n + 1), row(self.actions, n),
-                                row(self.forces, n), row(self.costs, n), row(self.lat, n + 1),
-                                row(self.spd, n + 1), bool(self.terminated[i]))
+        return _tracking_result(dt, *(np.ascontiguousarray(a[:n + len(a) - len(self.z), i]) for a in self.records),
+                                bool(self.terminated[i]))
 
 
 def evaluate_courses(policies: Sequence[Callable[[np.ndarray], Any] | torch.nn.Module],
@@ -445,7 +390,7 @@ def evaluate_courses(policies: Sequence[Callable[[np.ndarray], Any] | torch.nn.M
     if stepper not in ("auto", "numpy", "env"):
         raise ValueError(f"stepper: expected 'auto', 'numpy' or 'env', got {stepper!r}")
     seed_lists = check_seed_lists(seeds, len(policies))
-    cfg = DoubleLaneChangeEnv(config).config
+    cfg = make_config(config)
     start_state = _start_state(cfg, start_state)
     n_max = cfg.max_steps if max_steps is None else check_positive_int(max_steps, "max_steps")
     owner = np.array([p for p, s in enumerate(seed_lists) for _ in s])
@@ -463,8 +408,7 @@ def evaluate_courses(policies: Sequence[Callable[[np.ndarray], Any] | torch.nn.M
                 except (ValueError, TypeError) as exc:  # the policy's action, refused by the environment
                     raise ValueError(f"policies: entry {p} (seed {seed}) returned a bad action ({exc})") from exc
         return results
-    rows: _EnvRows | _NumpyRows = (_NumpyRows(cfg, row_seeds, start_state, normalized_actions, n_max) if use_numpy
-                                   else _EnvRows(cfg, row_seeds, start_state, normalized_actions))
+    rows = (_NumpyRows if use_numpy else _EnvRows)(cfg, row_seeds, start_state, normalized_actions, n_max)
     calls = [_as_numpy_policy(policy) for policy in policies]
     blocks = [np.flatnonzero(owner == p) for p in range(len(policies))]
     stacked = _stacked_call(policies) if not exact and len({len(s) for s in seed_lists}) == 1 else None
@@ -479,27 +423,23 @@ def evaluate_courses(policies: Sequence[Callable[[np.ndarray], Any] | torch.nn.M
             raw = [calls[owner[i]](obs[i]) for i in idx]
             try:
                 u = np.asarray(raw, dtype=np.float64).reshape(idx.size, 2)
-                bad = not np.isfinite(u).all()
-            except ValueError:  # ragged or wrong sizes
-                bad = True
-            if bad:  # find the course, and let _checked_actions name it
-                for i, out in zip(idx, raw):
-                    _checked_actions(out, 1, f"policies: entry {owner[i]} (seed {row_seeds[i]})")
+            except ValueError:  # ragged or wrong sizes: find the course, and let _checked_actions name it
+                u = np.concatenate([_checked_actions(out, 1, f"policies: entry {owner[i]} (seed {row_seeds[i]})")
+                                    for i, out in zip(idx, raw)])
         else:
             # a finished course's row is still computed but not checked or used
             full = np.empty((n_rows, 2))
             if stacked is not None:
                 full[:] = _checked_actions(stacked(obs.reshape(len(policies), -1, obs.shape[1])), n_rows,
-                                           "policies (stacked)", finite=False)
+                                           "policies (stacked)")
             else:
                 for p, block in enumerate(blocks):
-                    full[block] = _checked_actions(calls[p](obs[block]), block.size, f"policies: entry {p}",
-                                                   finite=False)
+                    full[block] = _checked_actions(calls[p](obs[block]), block.size, f"policies: entry {p}")
             u = full[idx]
-            bad = np.flatnonzero(~np.isfinite(u).all(axis=1))
-            if bad.size:
-                i = idx[bad[0]]
-                raise ValueError(f"policies: entry {owner[i]} (seed {row_seeds[i]}) returned NaN or inf")
+        bad = np.flatnonzero(~np.isfinite(u).all(axis=1))
+        if bad.size:
+            i = idx[bad[0]]
+            raise ValueError(f"policies: entry {owner[i]} (seed {row_seeds[i]}) returned NaN or inf")
         alive[idx[rows.step(idx, u)]] = False
     results = [[] for _ in policies]
     for i in range(n_rows):

@@ -14,6 +14,7 @@ import torch
 from mixedrl.checks import check_positive_int
 from mixedrl.envs.columns import observation_columns, stage_cost, tracking_errors
 from mixedrl.envs.dlc_config import DoubleLaneChangeConfig, make_config
+from mixedrl.envs.libm import ops_for
 from mixedrl.envs.vehicle import VX_INDEX, VehicleDynamics
 
 __all__ = ["ACTION_DIM", "NOISE_INDEX", "STATE_DIM", "DoubleLaneChangeModel"]
@@ -26,42 +27,19 @@ STATE_DIM = 6
 ACTION_DIM = 2
 
 
-def _cost_cols(cfg: DoubleLaneChangeConfig, vx: Any, Y: Any, X: Any, delta: Any, ax: Any) -> Any:
-    return stage_cost(cfg, vx - cfg.v_des, Y - cfg.reference.lateral(X), delta, ax)
-
-
 def _is_torch(x: Any) -> bool:
     return isinstance(x, torch.Tensor)
 
 
-def _stack(cols: list[Any], like: Any) -> Any:
-    if _is_torch(like):
-        return torch.stack(torch.broadcast_tensors(*cols), dim=-1)
-    return np.stack(np.broadcast_arrays(*cols), axis=-1)
-
-
-def _check_state(s: Any, name: str = "s") -> Any:
-    if not _is_torch(s):
-        s = np.asarray(s, dtype=np.float64)
-    if s.ndim < 1 or s.shape[-1] != STATE_DIM:
-        raise ValueError(f"{name}: expected shape (..., {STATE_DIM}), got {tuple(s.shape)}")
-    return s
-
-
-def _check_action(u: Any, like: Any, name: str = "u") -> Any:
-    if _is_torch(like) != _is_torch(u):
+def _check(x: Any, dim: int, name: str, like: Any = None) -> Any:
+    """``x`` (a tensor, or as a float64 array) of shape (..., dim), of the backend of ``like`` if given."""
+    if like is not None and _is_torch(like) != _is_torch(x):
         raise ValueError(f"{name}: must be of the same backend (torch or numpy) as the state")
-    if not _is_torch(u):
-        u = np.asarray(u, dtype=np.float64)
-    if u.ndim < 1 or u.shape[-1] != ACTION_DIM:
-        raise ValueError(f"{name}: expected shape (..., {ACTION_DIM}), got {tuple(u.shape)}")
-    return u
-
-
-def _check_numpy_generator(generator: Any) -> None:
-    if not isinstance(generator, np.random.Generator):
-        raise ValueError(f"generator: expected a numpy.random.Generator for a numpy state, got "
-                         f"{type(generator).__name__}")
+    if not _is_torch(x):
+        x = np.asarray(x, dtype=np.float64)
+    if x.ndim < 1 or x.shape[-1] != dim:
+        raise ValueError(f"{name}: expected shape (..., {dim}), got {tuple(x.shape)}")
+    return x
 
 
 class DoubleLaneChangeModel:
@@ -107,20 +85,16 @@ class DoubleLaneChangeModel:
     ((4, 5), (4,))
     """
 
-    STATE_DIM = STATE_DIM
-    ACTION_DIM = ACTION_DIM
-    NOISE_INDEX = NOISE_INDEX
+    STATE_DIM = state_dim = STATE_DIM
+    ACTION_DIM = action_dim = ACTION_DIM
+    NOISE_INDEX = noise_index = NOISE_INDEX
 
     def __init__(self, config: DoubleLaneChangeConfig | dict[str, Any] | None = None, *, compile: bool = False
                  ) -> None:
-        self.config = make_config(config)
-        cfg = self.config
+        self.config = cfg = make_config(config)
         self.dynamics = VehicleDynamics(cfg.params, cfg.dt, cfg.scheme, compile=compile)
         self.reference = cfg.reference
-        self.state_dim = STATE_DIM
-        self.action_dim = ACTION_DIM
         self.obs_dim = 5 + len(cfg.preview_distances)
-        self.noise_index = NOISE_INDEX
         self.action_bound = np.array([cfg.delta_max, cfg.ax_max])
 
     def __repr__(self) -> str:
@@ -144,14 +118,14 @@ class DoubleLaneChangeModel:
         torch.Tensor or numpy.ndarray, shape (..., 6)
             ``f(s, u)``.
         """
-        s = _check_state(s)
-        u = _check_action(u, s)
+        s = _check(s, STATE_DIM, "s")
+        u = _check(u, ACTION_DIM, "u", s)
         return self.dynamics(s, u)
 
     # --- relative quantities, observation, cost --------------------------------------------------
     def errors(self, s: Any) -> tuple[Any, Any]:
         """Lateral and heading errors ``(e_y, e_phi) = (Y - Y_ref(X), phi - psi_ref(X))``, each shape (...)."""
-        s = _check_state(s)
+        s = _check(s, STATE_DIM, "s")
         return tracking_errors(self.config, s[..., 3], s[..., 4], s[..., 5])
 
     def paper_state(self, s: Any) -> Any:
@@ -159,9 +133,9 @@ class DoubleLaneChangeModel:
 
         Returns ``[v_y, r, v_x, e_phi, e_y]``, shape (..., 5).
         """
-        s = _check_state(s)
+        s = _check(s, STATE_DIM, "s")
         e_y, e_phi = tracking_errors(self.config, s[..., 3], s[..., 4], s[..., 5])
-        return _stack([s[..., 0], s[..., 1], s[..., 2], e_phi, e_y], s)
+        return ops_for(s).stack([s[..., 0], s[..., 1], s[..., 2], e_phi, e_y])
 
     def observe(self, s: Any) -> Any:
         """The policy's observation of a tracking state.
@@ -178,9 +152,8 @@ class DoubleLaneChangeModel:
         torch.Tensor or numpy.ndarray, shape (..., obs_dim)
             ``obs_dim = 5 + len(preview_distances)``.
         """
-        s = _check_state(s)
-        cols = observation_columns(self.config, *(s[..., i] for i in range(STATE_DIM)))
-        return _stack(cols, s)
+        s = _check(s, STATE_DIM, "s")
+        return ops_for(s).stack(observation_columns(self.config, *(s[..., i] for i in range(STATE_DIM))))
 
     def cost(self, s_next: Any, u: Any) -> Any:
         """Stage cost charged on the next state: implements eq. (54) (with eq. 2's convention).
@@ -199,22 +172,20 @@ class DoubleLaneChangeModel:
         torch.Tensor or numpy.ndarray, shape (...)
             Cost (>= 0).
         """
-        s_next = _check_state(s_next, "s_next")
-        u = _check_action(u, s_next)
-        return _cost_cols(self.config, s_next[..., 2], s_next[..., 4], s_next[..., 5], u[..., 0], u[..., 1])
+        s_next = _check(s_next, STATE_DIM, "s_next")
+        u = _check(u, ACTION_DIM, "u", s_next)
+        cfg, (vx, Y, X, delta, ax) = self.config, (s_next[..., 2], s_next[..., 4], s_next[..., 5], u[..., 0], u[..., 1])
+        return stage_cost(cfg, vx - cfg.v_des, Y - cfg.reference.lateral(X), delta, ax)
 
     def is_terminated(self, s: Any) -> Any:
         """True where the car has left the road (``|e_y| > max_lateral_error``), ``v_x < min_speed``, or
         a component is not finite. Shape (...), bool."""
-        s = _check_state(s)
+        s = _check(s, STATE_DIM, "s")
         cfg = self.config
         e_y, _ = tracking_errors(cfg, s[..., 3], s[..., 4], s[..., 5])
-        if _is_torch(s):
-            finite = torch.isfinite(s).all(dim=-1)
-            return ~finite | ~(e_y.abs() <= cfg.max_lateral_error) | ~(s[..., 2] >= cfg.min_speed)
-        finite = np.isfinite(s).all(axis=-1)
+        finite = torch.isfinite(s).all(dim=-1) if _is_torch(s) else np.isfinite(s).all(axis=-1)
         with np.errstate(invalid="ignore"):
-            return ~finite | ~(np.abs(e_y) <= cfg.max_lateral_error) | ~(s[..., 2] >= cfg.min_speed)
+            return ~finite | ~(abs(e_y) <= cfg.max_lateral_error) | ~(s[..., 2] >= cfg.min_speed)
 
     # --- actions ----------------------------------------------------------------------------------
     def clip_action(self, u: Any) -> Any:
@@ -232,7 +203,7 @@ class DoubleLaneChangeModel:
     # --- noise --------------------------------------------------------------------------------------
     def xi_mean(self, s: Any) -> Any:
         """Mean of the true noise ``xi = F_dis T / m`` on ``v_x`` at state ``s`` [m/s], shape (...)."""
-        s = _check_state(s)
+        s = _check(s, STATE_DIM, "s")
         cfg = self.config
         return cfg.disturbance.mean_force(s[..., 5], cfg.params.m, cfg.params.g) * (cfg.dt / cfg.params.m)
 
@@ -269,24 +240,26 @@ class DoubleLaneChangeModel:
         ValueError
             A generator of the other backend.
         """
-        cfg = self.config
+        cfg, dist = self.config, self.config.disturbance
         if isinstance(s, tuple):
-            _check_numpy_generator(generator)
             if len(s) != STATE_DIM:
                 raise ValueError(f"s: expected {STATE_DIM} floats, got {len(s)}")
-            z = float(cfg.disturbance.standard_noise(generator))
-            return cfg.disturbance.mean_force(s[5], cfg.params.m, cfg.params.g) + cfg.disturbance.std * z
-        s = _check_state(s)
-        mean = cfg.disturbance.mean_force(s[..., 5], cfg.params.m, cfg.params.g)
+            X, shape = s[5], None
+        else:
+            s = _check(s, STATE_DIM, "s")
+            X, shape = s[..., 5], tuple(s.shape[:-1])
+        mean = dist.mean_force(X, cfg.params.m, cfg.params.g)
         if _is_torch(s):
             if generator is not None and not isinstance(generator, torch.Generator):
                 raise ValueError(f"generator: expected a torch.Generator for a torch state, got "
                                  f"{type(generator).__name__}")
-            noise = cfg.disturbance.standard_noise(generator, tuple(s.shape[:-1]), dtype=s.dtype, device=s.device)
+            noise = dist.standard_noise(generator, shape, dtype=s.dtype, device=s.device)
+        elif not isinstance(generator, np.random.Generator):
+            raise ValueError(f"generator: expected a numpy.random.Generator for a numpy state, got "
+                             f"{type(generator).__name__}")
         else:
-            _check_numpy_generator(generator)
-            noise = cfg.disturbance.standard_noise(generator, tuple(s.shape[:-1]))
-        return mean + cfg.disturbance.std * noise
+            noise = dist.standard_noise(generator, shape)
+        return mean + dist.std * noise
 
     def true_step(self, s: Any, u: Any, generator: torch.Generator | np.random.Generator | None = None, *,
                   force: Any = None) -> Any:
@@ -298,8 +271,7 @@ class DoubleLaneChangeModel:
             F_{dis,t} = \\bar F(X_t) + \\sigma z_t
 
         where ``f`` is :meth:`step`, ``E`` the unit vector of ``v_x`` and the force is drawn at the state
-        before the step (:meth:`sample_force`). Training, the vector env, the Gymnasium env and the
-        evaluation all call this method.
+        before the step (:meth:`sample_force`); every true-environment path calls it (docs/vehicle.rst).
 
         Parameters
         ----------
@@ -325,9 +297,7 @@ class DoubleLaneChangeModel:
 
         Notes
         -----
-        Each caller keeps its own random stream; one that reports the force draws it with
-        :meth:`sample_force` and passes ``force=``. The tuple path is the same formula on Python floats
-        (:meth:`VehicleDynamics.step_scalar`).
+        A caller that reports the force draws it with :meth:`sample_force` and passes ``force=``.
         """
         if force is None:
             force = self.sample_force(s, generator)
@@ -357,10 +327,20 @@ class DoubleLaneChangeModel:
         return out
 
     # --- state distributions ------------------------------------------------------------------------
-    def _states_from_errors(self, X: torch.Tensor, dev: torch.Tensor) -> torch.Tensor:
+    def _starts(self, n: int, generator: torch.Generator | None, widths: tuple[float, ...], along: bool,
+                dtype: torch.dtype, device: str | torch.device) -> torch.Tensor:
+        """``n`` states ``X`` (0, or ``U(0, course_length)`` when ``along``) on the reference, perturbed uniformly
+        in ``+-widths``: ``[v_y, r, v_des + dv_x, psi_ref(X) + e_phi, Y_ref(X) + e_y, X]``."""
+        n = check_positive_int(n, "n")
         cfg = self.config
+        if along:
+            X = cfg.course_length * torch.rand(n, generator=generator, dtype=dtype, device=device)
+        else:
+            X = torch.zeros(n, dtype=dtype, device=device)
+        w = torch.tensor(widths, dtype=dtype, device=device)
+        vy, r, dvx, e_phi, e_y = (w * (2.0 * torch.rand(n, 5, generator=generator, dtype=dtype, device=device)
+                                       - 1.0)).unbind(-1)
         ref = cfg.reference
-        vy, r, dvx, e_phi, e_y = dev.unbind(-1)
         return torch.stack([vy, r, cfg.v_des + dvx, ref.heading(X) + e_phi, ref.lateral(X) + e_y, X], dim=-1)
 
     def reset_states(self, n: int, generator: torch.Generator | None = None, *, dtype: torch.dtype = torch.float32,
@@ -386,12 +366,7 @@ class DoubleLaneChangeModel:
         ValueError
             If ``n`` is not a positive int.
         """
-        n = check_positive_int(n, "n")
-        cfg = self.config
-        X = cfg.course_length * torch.rand(n, generator=generator, dtype=dtype, device=device)
-        w = torch.tensor(cfg.train_half_widths, dtype=dtype, device=device)
-        dev = w * (2.0 * torch.rand(n, 5, generator=generator, dtype=dtype, device=device) - 1.0)
-        return self._states_from_errors(X, dev)
+        return self._starts(n, generator, self.config.train_half_widths, True, dtype, device)
 
     def initial_states(self, n: int, generator: torch.Generator | None = None, *,
                        dtype: torch.dtype = torch.float32, device: str | torch.device = "cpu",
@@ -401,13 +376,4 @@ class DoubleLaneChangeModel:
         With ``along=True`` each start is at ``X ~ U(0, course_length)`` instead (on the reference there,
         the same small perturbation): starts spread along the whole course.
         """
-        n = check_positive_int(n, "n")
-        cfg = self.config
-        if along:
-            X = cfg.course_length * torch.rand(n, generator=generator, dtype=dtype, device=device)
-        else:
-            X = torch.zeros(n, dtype=dtype, device=device)
-        w = torch.tensor(cfg.reset_half_widths, dtype=dtype, device=device)
-        dev = w * (2.0 * torch.rand(n, 5, generator=generator, dtype=dtype, device=device) - 1.0)
-        return self._states_from_errors(X, dev)
-
+        return self._starts(n, generator, self.config.reset_half_widths, along, dtype, device)

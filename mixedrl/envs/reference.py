@@ -13,40 +13,13 @@ with the fields of :class:`DoubleLaneChangeReference` (docs/vehicle.rst).
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, fields
 from typing import Any
 
-import numpy as np
-import torch
-
 from mixedrl.checks import check_number
-from mixedrl.envs.libm import LibmOps
+from mixedrl.envs.libm import LibmOps, ops_for
 
 __all__ = ["DoubleLaneChangeReference", "LibmReference"]
-
-
-class _MathOps:
-    tanh = staticmethod(math.tanh)
-    atan = staticmethod(math.atan)
-
-
-class _NumpyOps:
-    tanh = staticmethod(np.tanh)
-    atan = staticmethod(np.arctan)
-
-
-class _TorchOps:
-    tanh = staticmethod(torch.tanh)
-    atan = staticmethod(torch.atan)
-
-
-def _ops_for(X: Any) -> Any:
-    if isinstance(X, torch.Tensor):
-        return _TorchOps
-    if isinstance(X, np.ndarray):
-        return _NumpyOps
-    return _MathOps
 
 
 @dataclass(frozen=True)
@@ -90,23 +63,23 @@ class DoubleLaneChangeReference:
             value = getattr(self, f.name)
             object.__setattr__(self, f.name, check_number(value, f.name, positive=f.name in ("len1", "len2", "shape")))
 
-    def _tanh_terms(self, X: Any, ops: Any = None) -> tuple[Any, Any, Any]:
-        ops = _ops_for(X) if ops is None else ops
+    def _ops(self, X: Any) -> Any:
+        return ops_for(X)
+
+    def _terms(self, X: Any) -> tuple[Any, Any, Any]:
+        """``(ops, Y_ref(X), dY_ref/dX)`` from one evaluation of the tanh terms."""
+        ops = self._ops(X)
         k1 = self.shape / self.len1
         k2 = self.shape / self.len2
         # z1 = 2.4/25 (X - 27.19) - 1.2 ;  z2 = 2.4/21.95 (X - 56.46) - 1.2
         th1 = ops.tanh(k1 * (X - self.x1) - 0.5 * self.shape)
         th2 = ops.tanh(k2 * (X - self.x2) - 0.5 * self.shape)
-        return ops, th1, th2
-
-    def _lateral_from(self, th1: Any, th2: Any) -> Any:
         # Y_ref = dy1/2 (1 + tanh z1) - dy2/2 (1 + tanh z2)
-        return 0.5 * self.dy1 * (1.0 + th1) - 0.5 * self.dy2 * (1.0 + th2)
-
-    def _slope_from(self, th1: Any, th2: Any) -> Any:
+        lateral = 0.5 * self.dy1 * (1.0 + th1) - 0.5 * self.dy2 * (1.0 + th2)
         # dY_ref/dX = dy1/2 (s/l1)(1 - tanh^2 z1) - dy2/2 (s/l2)(1 - tanh^2 z2)
-        return (0.5 * self.dy1 * self.shape / self.len1 * (1.0 - th1 * th1)
-                - 0.5 * self.dy2 * self.shape / self.len2 * (1.0 - th2 * th2))
+        slope = (0.5 * self.dy1 * self.shape / self.len1 * (1.0 - th1 * th1)
+                 - 0.5 * self.dy2 * self.shape / self.len2 * (1.0 - th2 * th2))
+        return ops, lateral, slope
 
     def lateral(self, X: Any) -> Any:
         """Reference lateral position ``Y_ref(X)`` [m].
@@ -121,8 +94,7 @@ class DoubleLaneChangeReference:
         float, numpy.ndarray or torch.Tensor, shape (...)
             ``Y_ref(X) = dy1/2 (1 + tanh z1) - dy2/2 (1 + tanh z2)``.
         """
-        _, th1, th2 = self._tanh_terms(X)
-        return self._lateral_from(th1, th2)
+        return self._terms(X)[1]
 
     def slope(self, X: Any) -> Any:
         """Path slope ``dY_ref/dX`` [-] (analytic derivative of :meth:`lateral`).
@@ -137,17 +109,16 @@ class DoubleLaneChangeReference:
         float, numpy.ndarray or torch.Tensor, shape (...)
             ``dy1/2 (s/l1)(1 - tanh^2 z1) - dy2/2 (s/l2)(1 - tanh^2 z2)``.
         """
-        _, th1, th2 = self._tanh_terms(X)
-        return self._slope_from(th1, th2)
+        return self._terms(X)[2]
 
     def lateral_and_heading(self, X: Any) -> tuple[Any, Any]:
         """``(Y_ref(X), psi_ref(X))`` from one evaluation of the tanh terms, each of the shape of ``X``."""
-        ops, th1, th2 = self._tanh_terms(X)
-        return self._lateral_from(th1, th2), ops.atan(self._slope_from(th1, th2))
+        ops, lateral, slope = self._terms(X)
+        return lateral, ops.atan(slope)
 
     def rows(self) -> "LibmReference":
         """This reference on float64 arrays, bit-identical to its Python-float values (:class:`LibmReference`)."""
-        return LibmReference(self)
+        return LibmReference(*(getattr(self, f.name) for f in fields(self)))
 
     def heading(self, X: Any) -> Any:
         """Reference heading ``psi_ref(X) = atan(dY_ref/dX)`` [rad].
@@ -162,28 +133,14 @@ class DoubleLaneChangeReference:
         float, numpy.ndarray or torch.Tensor, shape (...)
             Reference heading, same type and shape as ``X``.
         """
-        return _ops_for(X).atan(self.slope(X))
+        return self.lateral_and_heading(X)[1]
 
 
-class LibmReference:
+@dataclass(frozen=True)
+class LibmReference(DoubleLaneChangeReference):
     """A :class:`DoubleLaneChangeReference` on float64 arrays with :mod:`math`'s ``tanh`` and ``atan``
     element by element (:class:`mixedrl.envs.libm.LibmOps`), so each element equals the Python-float
-    value; it can stand in for the reference in :mod:`mixedrl.envs.columns`.
+    value; it stands in for the reference in :mod:`mixedrl.envs.columns`."""
 
-    Parameters
-    ----------
-    reference : DoubleLaneChangeReference
-    """
-
-    def __init__(self, reference: DoubleLaneChangeReference) -> None:
-        self.reference = reference
-
-    def lateral(self, X: np.ndarray) -> np.ndarray:
-        """``Y_ref(X)`` [m], shape of ``X``."""
-        _, th1, th2 = self.reference._tanh_terms(X, LibmOps)
-        return self.reference._lateral_from(th1, th2)
-
-    def lateral_and_heading(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """``(Y_ref(X), psi_ref(X))``, each of the shape of ``X``."""
-        _, th1, th2 = self.reference._tanh_terms(X, LibmOps)
-        return self.reference._lateral_from(th1, th2), LibmOps.atan(self.reference._slope_from(th1, th2))
+    def _ops(self, X: Any) -> Any:
+        return LibmOps

@@ -1,15 +1,6 @@
-"""Double-lane-change tracking: the shared model ``f`` (eqs. 53-54), cost, noise and a torch vector env.
-
-This module gathers the public names of :mod:`mixedrl.envs.disturbance`, :mod:`mixedrl.envs.dlc_config`,
-:mod:`mixedrl.envs.columns`, :mod:`mixedrl.envs.model` and :mod:`mixedrl.envs.vector_env`.
-
-The tracking state is ``s = [v_y, r, v_x, phi, Y, X]``: eq. (53) in the road-fixed frame plus the
-longitudinal position. The reference never enters the dynamics, only the errors that the paper calls
-``y`` and ``phi`` (docs/vehicle.rst, "The tracking state"):
-
-.. math:: e_y = Y - Y_{ref}(X), \\qquad e_\\phi = \\phi - \\psi_{ref}(X).
-
-The true step ``s' = f(s, u) + E xi`` (eq. 1) is written once, :meth:`DoubleLaneChangeModel.true_step`.
+"""Double-lane-change tracking: the public names of :mod:`mixedrl.envs.disturbance`,
+:mod:`mixedrl.envs.dlc_config`, :mod:`mixedrl.envs.columns`, :mod:`mixedrl.envs.model` and
+:mod:`mixedrl.envs.vector_env` in one place (the tracking state and its errors: docs/vehicle.rst).
 """
 
 from mixedrl.envs.columns import observation_columns, observation_from_errors, stage_cost, tracking_errors

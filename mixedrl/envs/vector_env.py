@@ -6,7 +6,7 @@ from typing import Any
 
 import torch
 
-from mixedrl.checks import check_positive_int
+from mixedrl.checks import check_finite, check_positive_int
 from mixedrl.envs.dlc_config import DoubleLaneChangeConfig
 from mixedrl.envs.model import ACTION_DIM, STATE_DIM, DoubleLaneChangeModel
 
@@ -61,7 +61,6 @@ class DoubleLaneChangeVectorEnv:
             self.generator.manual_seed(int(seed))
         self.state = torch.zeros(self.num_envs, STATE_DIM, dtype=dtype, device=self.device)
         self.elapsed = torch.zeros(self.num_envs, dtype=torch.long, device=self.device)
-        self._bound = torch.as_tensor(self.model.action_bound, dtype=dtype, device=self.device)
 
     def reset(self, seed: int | None = None) -> torch.Tensor:
         """Reset every car; returns observations, shape (num_envs, obs_dim)."""
@@ -95,11 +94,10 @@ class DoubleLaneChangeVectorEnv:
             raise ValueError(f"u: expected a tensor of shape ({self.num_envs}, {ACTION_DIM}), got {shape}")
         if u.dtype != self.dtype:
             raise ValueError(f"u: expected dtype {self.dtype}, got {u.dtype}")
-        if not bool(torch.isfinite(u).all()):
-            raise ValueError("u: contains NaN or inf")
+        check_finite(u, "u")
         model = self.model
         s = self.state
-        u = torch.maximum(torch.minimum(u, self._bound), -self._bound)
+        u = model.clip_action(u)
         force = model.sample_force(s, self.generator)
         xi = model.xi_from_force(force)
         # s' = f(s, u) + xi e_vx   (eq. 54): the one true step
@@ -116,11 +114,10 @@ class DoubleLaneChangeVectorEnv:
             "speed_error": s_next[:, 2] - self.config.v_des,
         }
         done = terminated | truncated
-        new_state = s_next
+        self.state, obs = s_next, final_obs
         if bool(done.any()):
             fresh = model.initial_states(self.num_envs, self.generator, dtype=self.dtype, device=self.device)
-            new_state = torch.where(done[:, None], fresh, s_next)
+            self.state = torch.where(done[:, None], fresh, s_next)
             self.elapsed = torch.where(done, torch.zeros_like(self.elapsed), self.elapsed)
-        self.state = new_state
-        obs = final_obs if new_state is s_next else model.observe(new_state)
+            obs = model.observe(self.state)
         return obs, reward, terminated, truncated, info

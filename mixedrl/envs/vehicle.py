@@ -1,12 +1,8 @@
-"""Vehicle body dynamics of the double-lane-change task: eq. (53) with the Fiala tire.
+"""Vehicle body dynamics of the double-lane-change task: eq. (53) with the Fiala tire (docs/vehicle.rst).
 
-* ``x = [v_y, r, v_x, phi, y]``: lateral velocity [m/s], yaw rate [rad/s], longitudinal speed [m/s],
-  yaw angle [rad], lateral position [m];
-* ``u = [delta, a_x]``: front wheel angle [rad], longitudinal acceleration command [m/s^2].
-
-The tracking state ``s = [v_y, r, v_x, phi, Y, X]`` is accepted too: its first five components obey
-eq. (53) and ``dX/dt = v_x cos(phi) - v_y sin(phi)`` (docs/vehicle.rst). One formula is evaluated on
-Python floats, numpy arrays and torch tensors, so the environment and the planning model share ``f``.
+One formula, evaluated on Python floats, numpy arrays and torch tensors, so the environment and the
+planning model share ``f``; it takes the state ``x = [v_y, r, v_x, phi, y]`` or the tracking state
+``s = [v_y, r, v_x, phi, Y, X]`` (with ``dX/dt = v_x cos(phi) - v_y sin(phi)``) and ``u = [delta, a_x]``.
 """
 
 from __future__ import annotations
@@ -20,7 +16,7 @@ import numpy as np
 import torch
 
 from mixedrl.checks import check_finite, check_number
-from mixedrl.envs.libm import LibmOps
+from mixedrl.envs.libm import LibmOps, MathOps, TorchOps, ops_for
 
 __all__ = ["VehicleParams", "VehicleDynamics", "fiala_lateral_force", "STATE_NAMES", "TRACKING_STATE_NAMES",
            "ACTION_NAMES", "VX_INDEX"]
@@ -96,103 +92,18 @@ class VehicleParams:
         return self.m * self.g * self.a / self.L
 
 
-# Backends: the same formula on Python floats, numpy arrays and torch tensors.
-class _MathOps:
-    atan2 = staticmethod(math.atan2)
-    tan = staticmethod(math.tan)
-    sin = staticmethod(math.sin)
-    cos = staticmethod(math.cos)
-
-    @staticmethod
-    def clip(x: float, lo: float, hi: float) -> float:
-        return lo if x < lo else (hi if x > hi else x)
+def _tire(C: float, mu: float, F_z: float) -> tuple[float, float, float, float]:
+    """Fiala coefficients of one axle, ``(C, c2, c3, alpha_sl)``: ``F = -C t + c2 |t| t - c3 t^3``,
+    ``t = tan(clip(alpha, +-alpha_sl))``."""
+    return C, C * C / (3.0 * mu * F_z), C**3 / (27.0 * mu * mu * F_z * F_z), math.atan(3.0 * mu * F_z / C)
 
 
-class _NumpyOps:
-    atan2 = staticmethod(np.arctan2)
-    tan = staticmethod(np.tan)
-    sin = staticmethod(np.sin)
-    cos = staticmethod(np.cos)
-    clip = staticmethod(np.clip)
-
-
-class _TorchOps:
-    atan2 = staticmethod(torch.atan2)
-    tan = staticmethod(torch.tan)
-    sin = staticmethod(torch.sin)
-    cos = staticmethod(torch.cos)
-    clip = staticmethod(torch.clamp)
-
-
-@dataclass(frozen=True)
-class _Tire:
-    """Fiala coefficients of one axle: ``F = -c1 t + c2 |t| t - c3 t^3``, ``t = tan(clip(alpha))``."""
-
-    C: float
-    c2: float
-    c3: float
-    alpha_sl: float
-
-    @classmethod
-    def from_axle(cls, C: float, mu: float, F_z: float) -> "_Tire":
-        return cls(
-            C=C,
-            c2=C * C / (3.0 * mu * F_z),
-            c3=C**3 / (27.0 * mu * mu * F_z * F_z),
-            alpha_sl=math.atan(3.0 * mu * F_z / C),
-        )
-
-
-def _fiala(ops: Any, alpha: Any, tire: _Tire) -> Any:
+def _fiala(ops: Any, alpha: Any, tire: tuple[float, float, float, float]) -> Any:
+    C, c2, c3, alpha_sl = tire
     # Clipping to +-alpha_sl gives the piecewise law exactly (zero slope there), with no branch.
-    t = ops.tan(ops.clip(alpha, -tire.alpha_sl, tire.alpha_sl))
+    t = ops.tan(ops.clip(alpha, -alpha_sl, alpha_sl))
     # F_y = -C tan(a) + C^2 / (3 mu F_z) |tan(a)| tan(a) - C^3 / (27 mu^2 F_z^2) tan(a)^3
-    return t * (-tire.C + tire.c2 * abs(t) - tire.c3 * t * t)
-
-
-def _body_rhs(ops: Any, k: "_Coefficients", vy: Any, r: Any, vx: Any, phi: Any, delta: Any, ax: Any,
-              f_dis: Any) -> tuple[Any, Any, Any, Any, Any, Any]:
-    """Right-hand side of eq. (53) (plus ``dX/dt``) on one backend; see :meth:`VehicleDynamics.derivatives`."""
-    # alpha_f = atan((v_y + a r) / v_x) - delta ;  alpha_r = atan((v_y - b r) / v_x)   (atan2 == atan for v_x > 0)
-    alpha_f = ops.atan2(vy + k.a * r, vx) - delta
-    alpha_r = ops.atan2(vy - k.b * r, vx)
-    fyf = _fiala(ops, alpha_f, k.front)
-    fyr = _fiala(ops, alpha_r, k.rear)
-    cos_d = ops.cos(delta)
-    sin_d = ops.sin(delta)
-    cos_p = ops.cos(phi)
-    sin_p = ops.sin(phi)
-    fyf_cos = fyf * cos_d
-    # dv_y/dt = (F_yf cos(delta) + F_yr) / m - v_x r
-    dvy = (fyf_cos + fyr) * k.inv_m - vx * r
-    # dr/dt = (a F_yf cos(delta) - b F_yr) / I_z
-    dr = (k.a * fyf_cos - k.b * fyr) * k.inv_iz
-    # dv_x/dt = a_x + v_y r - F_yf sin(delta) / m + F_dis / m
-    dvx = ax + vy * r - fyf * sin_d * k.inv_m + f_dis * k.inv_m
-    dphi = r
-    # dy/dt = v_x sin(phi) + v_y cos(phi)
-    dy = vx * sin_p + vy * cos_p
-    # dX/dt = v_x cos(phi) - v_y sin(phi)   (road-fixed longitudinal position; not part of eq. 53)
-    dx = vx * cos_p - vy * sin_p
-    return dvy, dr, dvx, dphi, dy, dx
-
-
-@dataclass(frozen=True)
-class _Coefficients:
-    a: float
-    b: float
-    inv_m: float
-    inv_iz: float
-    front: _Tire
-    rear: _Tire
-
-    @classmethod
-    def from_params(cls, p: VehicleParams) -> "_Coefficients":
-        return cls(
-            a=p.a, b=p.b, inv_m=1.0 / p.m, inv_iz=1.0 / p.I_z,
-            front=_Tire.from_axle(p.C_f, p.mu, p.F_zf),
-            rear=_Tire.from_axle(p.C_r, p.mu, p.F_zr),
-        )
+    return t * (-C + c2 * abs(t) - c3 * t * t)
 
 
 def fiala_lateral_force(alpha: np.ndarray | torch.Tensor | float, C: float, mu: float, F_z: float
@@ -237,12 +148,11 @@ def fiala_lateral_force(alpha: np.ndarray | torch.Tensor | float, C: float, mu: 
     """
     for name, value in (("C", C), ("mu", mu), ("F_z", F_z)):
         check_number(value, name, positive=True)
-    tire = _Tire.from_axle(float(C), float(mu), float(F_z))
-    if isinstance(alpha, torch.Tensor):
-        return _fiala(_TorchOps, alpha, tire)
     if isinstance(alpha, np.ndarray):
-        return _fiala(_NumpyOps, alpha.astype(np.float64, copy=False), tire)
-    return _fiala(_MathOps, float(alpha), tire)
+        alpha = alpha.astype(np.float64, copy=False)
+    elif not isinstance(alpha, torch.Tensor):
+        alpha = float(alpha)
+    return _fiala(ops_for(alpha), alpha, _tire(float(C), float(mu), float(F_z)))
 
 
 ArrayLike = Any
@@ -283,45 +193,62 @@ class VehicleDynamics:
         self.dt = float(dt)
         self.scheme = scheme
         self.compile = bool(compile)
-        self._k = _Coefficients.from_params(params)
+        self._k = (params.a, params.b, 1.0 / params.m, 1.0 / params.I_z, _tire(params.C_f, params.mu, params.F_zf),
+                   _tire(params.C_r, params.mu, params.F_zr))
         self._compiled: Callable[[torch.Tensor, torch.Tensor], torch.Tensor] | None = None
         self._compile_failed = False
 
     def __repr__(self) -> str:
-        return f"VehicleDynamics(params={self.params!r}, dt={self.dt!r}, scheme={self.scheme!r}, compile={self.compile})"
+        return (f"VehicleDynamics(params={self.params!r}, dt={self.dt!r}, scheme={self.scheme!r}, "
+                f"compile={self.compile})")
 
     # --- validation ---
-    @staticmethod
-    def _check_shapes(x: Any, u: Any) -> None:
-        if x.ndim < 1 or x.shape[-1] not in (5, 6):
-            raise ValueError(f"x: expected shape (..., 5) or (..., 6), got {tuple(x.shape)}")
-        if u.ndim < 1 or u.shape[-1] != 2:
-            raise ValueError(f"u: expected shape (..., 2), got {tuple(u.shape)}")
-
-    def _prepare(self, x: Any, u: Any, f_dis: Any) -> tuple[str, Any, Any, Any]:
-        if isinstance(x, torch.Tensor) or isinstance(u, torch.Tensor):
-            if not (isinstance(x, torch.Tensor) and isinstance(u, torch.Tensor)):
+    def _prepare(self, x: Any, u: Any, f_dis: Any) -> tuple[Any, Any, Any]:
+        is_torch = isinstance(x, torch.Tensor)
+        if is_torch or isinstance(u, torch.Tensor):
+            if not (is_torch and isinstance(u, torch.Tensor)):
                 raise ValueError("x: x and u must both be torch tensors or both be numpy arrays")
             if not x.is_floating_point():
                 raise ValueError(f"x: expected a floating-point tensor, got {x.dtype}")
             if u.dtype != x.dtype:
                 raise ValueError(f"u: dtype {u.dtype} differs from x's dtype {x.dtype}")
-            self._check_shapes(x, u)
+        else:
+            x = np.asarray(x, dtype=np.float64)
+            u = np.asarray(u, dtype=np.float64)
+        if x.ndim < 1 or x.shape[-1] not in (5, 6):
+            raise ValueError(f"x: expected shape (..., 5) or (..., 6), got {tuple(x.shape)}")
+        if u.ndim < 1 or u.shape[-1] != 2:
+            raise ValueError(f"u: expected shape (..., 2), got {tuple(u.shape)}")
+        if is_torch:
             if isinstance(f_dis, torch.Tensor) and f_dis.dtype != x.dtype:
                 raise ValueError(f"f_dis: dtype {f_dis.dtype} differs from x's dtype {x.dtype}")
-            return "torch", x, u, f_dis
-        x = np.asarray(x, dtype=np.float64)
-        u = np.asarray(u, dtype=np.float64)
-        self._check_shapes(x, u)
+            return x, u, f_dis
         check_finite(x, "x")
         check_finite(u, "u")
         f_dis = np.asarray(f_dis, dtype=np.float64)
         check_finite(f_dis, "f_dis")
-        return "numpy", x, u, f_dis
+        return x, u, f_dis
 
     # --- continuous time ---
-    def _rhs_columns(self, ops: Any, cols: tuple[Any, ...], delta: Any, ax: Any, f_dis: Any) -> tuple[Any, ...]:
-        d = _body_rhs(ops, self._k, cols[0], cols[1], cols[2], cols[3], delta, ax, f_dis)
+    def _rhs(self, ops: Any, cols: tuple[Any, ...], delta: Any, ax: Any, f_dis: Any) -> tuple[Any, ...]:
+        """Right-hand side of eq. (53) (plus ``dX/dt`` for 6 columns) on one backend (:meth:`derivatives`)."""
+        a, b, inv_m, inv_iz, front, rear = self._k
+        vy, r, vx, phi = cols[:4]
+        # alpha_f = atan((v_y + a r) / v_x) - delta ;  alpha_r = atan((v_y - b r) / v_x)   (atan2 == atan for v_x > 0)
+        alpha_f = ops.atan2(vy + a * r, vx) - delta
+        alpha_r = ops.atan2(vy - b * r, vx)
+        fyf = _fiala(ops, alpha_f, front)
+        fyr = _fiala(ops, alpha_r, rear)
+        cos_d, sin_d, cos_p, sin_p = ops.cos(delta), ops.sin(delta), ops.cos(phi), ops.sin(phi)
+        fyf_cos = fyf * cos_d
+        d = ((fyf_cos + fyr) * inv_m - vx * r,  # dv_y/dt = (F_yf cos(delta) + F_yr) / m - v_x r
+             (a * fyf_cos - b * fyr) * inv_iz,  # dr/dt = (a F_yf cos(delta) - b F_yr) / I_z
+             # dv_x/dt = a_x + v_y r - F_yf sin(delta) / m + F_dis / m
+             ax + vy * r - fyf * sin_d * inv_m + f_dis * inv_m,
+             r,  # dphi/dt = r
+             vx * sin_p + vy * cos_p,  # dy/dt = v_x sin(phi) + v_y cos(phi)
+             # dX/dt = v_x cos(phi) - v_y sin(phi)   (road-fixed longitudinal position; not part of eq. 53)
+             vx * cos_p - vy * sin_p)
         return d if len(cols) == 6 else d[:5]
 
     @overload
@@ -377,53 +304,29 @@ class VehicleDynamics:
         ``atan`` is computed as ``atan2``, equal for ``v_x > 0``; the model is meaningless for
         ``v_x <= 0``. Normal loads are static (no load transfer), as in the paper.
         """
-        backend, x, u, f_dis = self._prepare(x, u, f_dis)
-        if backend == "torch":
-            cols = x.unbind(-1)
-            d = self._rhs_columns(_TorchOps, cols, u[..., 0], u[..., 1], f_dis)
-            return torch.stack(torch.broadcast_tensors(*d), dim=-1)
-        cols = tuple(x[..., i] for i in range(x.shape[-1]))
-        d = self._rhs_columns(_NumpyOps, cols, u[..., 0], u[..., 1], f_dis)
-        return np.stack(np.broadcast_arrays(*d), axis=-1)
+        x, u, f_dis = self._prepare(x, u, f_dis)
+        ops = ops_for(x)
+        return ops.stack(self._rhs(ops, ops.columns(x), u[..., 0], u[..., 1], f_dis))
 
     # --- discrete time ---
     def _step_cols(self, ops: Any, cols: tuple[Any, ...], delta: Any, ax: Any) -> tuple[Any, ...]:
         dt = self.dt
         if self.scheme == "euler":
             # x_{t+1} = x_t + T * xdot(x_t, u_t)   (forward Euler; F_dis enters as T F_dis / m = xi, eq. 54)
-            d = self._rhs_columns(ops, cols, delta, ax, 0.0)
+            d = self._rhs(ops, cols, delta, ax, 0.0)
             return tuple(c + dt * dc for c, dc in zip(cols, d))
         # classical Runge-Kutta 4 with u held constant over the step (zero-order hold)
-        k1 = self._rhs_columns(ops, cols, delta, ax, 0.0)
-        k2 = self._rhs_columns(ops, tuple(c + 0.5 * dt * k for c, k in zip(cols, k1)), delta, ax, 0.0)
-        k3 = self._rhs_columns(ops, tuple(c + 0.5 * dt * k for c, k in zip(cols, k2)), delta, ax, 0.0)
-        k4 = self._rhs_columns(ops, tuple(c + dt * k for c, k in zip(cols, k3)), delta, ax, 0.0)
+        k1 = self._rhs(ops, cols, delta, ax, 0.0)
+        k2 = self._rhs(ops, tuple(c + 0.5 * dt * k for c, k in zip(cols, k1)), delta, ax, 0.0)
+        k3 = self._rhs(ops, tuple(c + 0.5 * dt * k for c, k in zip(cols, k2)), delta, ax, 0.0)
+        k4 = self._rhs(ops, tuple(c + dt * k for c, k in zip(cols, k3)), delta, ax, 0.0)
         return tuple(c + dt / 6.0 * (a + 2.0 * b + 2.0 * e + d)
                      for c, a, b, e, d in zip(cols, k1, k2, k3, k4))
 
-    def _step_torch_eager(self, x: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
-        out = self._step_cols(_TorchOps, x.unbind(-1), u[..., 0], u[..., 1])
-        return torch.stack(torch.broadcast_tensors(*out), dim=-1)
-
     def _kernel_component_major(self, xt: torch.Tensor, ut: torch.Tensor) -> torch.Tensor:
         # xt: (n, ...) and ut: (2, ...) component-major; returns the next state as (n, ...).
-        out = self._step_cols(_TorchOps, xt.unbind(0), ut[0], ut[1])
+        out = self._step_cols(TorchOps, xt.unbind(0), ut[0], ut[1])
         return torch.stack(torch.broadcast_tensors(*out), dim=0)
-
-    def _step_torch(self, x: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
-        if self.compile and not self._compile_failed:
-            # component-major copies, made outside the compiled graph, let inductor emit SIMD code
-            # (docs/vehicle.rst, "Fused batched step"); the result is a (..., n) view of that buffer
-            if self._compiled is None:
-                self._compiled = torch.compile(self._kernel_component_major, dynamic=None)
-            xt = x.movedim(-1, 0).contiguous()
-            ut = u.movedim(-1, 0).contiguous()
-            try:
-                return self._compiled(xt, ut).movedim(0, -1)
-            except Exception as exc:  # noqa: BLE001 - any backend failure falls back to the eager path
-                self._compile_failed = True
-                logger.warning("torch.compile of VehicleDynamics failed (%s); using eager torch", exc)
-        return self._step_torch_eager(x, u)
 
     def step_scalar(self, x: tuple[float, ...] | list[float], u: tuple[float, float] | list[float]
                     ) -> tuple[float, ...]:
@@ -448,7 +351,7 @@ class VehicleDynamics:
         """
         if len(x) not in (5, 6) or len(u) != 2:
             raise ValueError(f"x: expected 5 or 6 floats and u 2 floats, got {len(x)} and {len(u)}")
-        return self._step_cols(_MathOps, tuple(x), u[0], u[1])
+        return self._step_cols(MathOps, tuple(x), u[0], u[1])
 
     def step_rows(self, x: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, ...]:
         """Deterministic step ``f`` on float64 rows, bit-identical to :meth:`step_scalar` on each row.
@@ -520,9 +423,16 @@ class VehicleDynamics:
         (docs/vehicle.rst gives the reasons for the scheme). With ``scheme="rk4"`` the environments add
         the same ``xi`` after ``f``.
         """
-        backend, x, u, _ = self._prepare(x, u, 0.0)
-        if backend == "torch":
-            return self._step_torch(x, u)
-        cols = tuple(x[..., i] for i in range(x.shape[-1]))
-        out = self._step_cols(_NumpyOps, cols, u[..., 0], u[..., 1])
-        return np.stack(np.broadcast_arrays(*out), axis=-1)
+        x, u, _ = self._prepare(x, u, 0.0)
+        ops = ops_for(x)
+        if ops is TorchOps and self.compile and not self._compile_failed:
+            # component-major copies, made outside the compiled graph, let inductor emit SIMD code
+            # (docs/vehicle.rst, "Fused batched step"); the result is a (..., n) view of that buffer
+            if self._compiled is None:
+                self._compiled = torch.compile(self._kernel_component_major, dynamic=None)
+            try:
+                return self._compiled(x.movedim(-1, 0).contiguous(), u.movedim(-1, 0).contiguous()).movedim(0, -1)
+            except Exception as exc:  # noqa: BLE001 - any backend failure falls back to the eager path
+                self._compile_failed = True
+                logger.warning("torch.compile of VehicleDynamics failed (%s); using eager torch", exc)
+        return ops.stack(self._step_cols(ops, ops.columns(x), u[..., 0], u[..., 1]))
