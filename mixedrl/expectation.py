@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import itertools
 from dataclasses import dataclass
-from typing import Any, Callable, Protocol
+from typing import Any, Callable
 
 import numpy as np
 import torch
@@ -148,13 +148,12 @@ def quadrature_nodes(mean: np.ndarray, cov: np.ndarray, rule: Rule | None = None
         return centre.copy(), np.ones(1)
     if isinstance(rule, SigmaPoints):
         # xi_{+-i} = mu_hat +- sqrt(r lambda_i) v_i
-        spread = (vec * np.sqrt(r * lam)).T
-        if mean.ndim == 2:
-            spread = spread[:, None, :]
-        return np.concatenate([centre + spread, centre - spread], axis=0), np.full(2 * r, 1.0 / (2 * r))
-    z, w = rule.nodes(r)
-    # xi_j = mu_hat + V Lambda^{1/2} z_j
-    spread = z @ (vec * np.sqrt(lam)).T
+        half = (vec * np.sqrt(r * lam)).T
+        spread, w = np.concatenate([half, -half]), np.full(2 * r, 1.0 / (2 * r))
+    else:
+        z, w = rule.nodes(r)
+        # xi_j = mu_hat + V Lambda^{1/2} z_j
+        spread = z @ (vec * np.sqrt(lam)).T
     if mean.ndim == 2:
         spread = spread[:, None, :]
     return centre + spread, w
@@ -232,20 +231,13 @@ def expectation_nodes(mean: np.ndarray, cov: np.ndarray, noise_matrix: torch.Ten
         if mean.ndim != 1:
             raise ValueError("mean: rule='samples' takes one mean of shape (noise_dim,)")
         lam, vec = np.linalg.eigh(cov)
-        lam = np.clip(lam, 0.0, None)
-        w = None
         eps = torch.randn(n_samples, n, generator=generator, dtype=torch.float64)
-        root = torch.as_tensor(vec * np.sqrt(lam), dtype=torch.float64)
+        root = torch.as_tensor(vec * np.sqrt(np.clip(lam, 0.0, None)), dtype=torch.float64)
         # xi = mu_hat + K_hat^{1/2} eps   (reparameterisation)
-        xi_t = torch.as_tensor(mean) + eps @ root.T
+        xi_t, w = torch.as_tensor(mean) + eps @ root.T, np.full(n_samples, 1.0 / n_samples)
     else:
         raise ValueError(f"rule: expected 'sigma', 'samples' or a quadrature rule, got {rule!r}")
-    offsets = (xi_t @ noise_matrix.to(torch.float64).T).to(dtype)
-    if isinstance(rule, GaussHermite):
-        weights = torch.as_tensor(w, dtype=dtype)
-    else:
-        weights = torch.full((offsets.shape[0],), 1.0 / offsets.shape[0], dtype=dtype)
-    return offsets, weights
+    return (xi_t @ noise_matrix.to(torch.float64).T).to(dtype), torch.as_tensor(w, dtype=dtype)
 
 
 class NodeCache:
@@ -392,11 +384,7 @@ def gaussian_expectation(
     K = check_covariance(cov, "cov", n)
     xi, w = quadrature_nodes(mu, K, rule)
     e = None if extra is None else np.asarray(extra, dtype=np.float64).reshape(c.shape[0], -1)
-
-    def values(x: np.ndarray, *rest: np.ndarray) -> np.ndarray:
-        return np.asarray(g(x, *rest), dtype=np.float64)
-
-    return expect(values, c, xi, w, e)
+    return expect(lambda *args: np.asarray(g(*args), dtype=np.float64), c, xi, w, e)
 
 
 def h(f: Callable[[Any, Any], Any], cost: Callable[[Any, Any], Any], value: Callable[[Any], Any], gamma: float,
@@ -449,17 +437,7 @@ def h(f: Callable[[Any, Any], Any], cost: Callable[[Any, Any], Any], value: Call
     return expect(target, centers, offsets, weights, u)
 
 
-class _ModelTask(Protocol):
-    gamma: float
-
-    def f(self, s: torch.Tensor, u: torch.Tensor) -> torch.Tensor: ...
-
-    def cost(self, s_next: torch.Tensor, u: torch.Tensor) -> torch.Tensor: ...
-
-    def observe(self, s: torch.Tensor) -> torch.Tensor: ...
-
-
-def h_value(task: _ModelTask, critic: torch.nn.Module, s: torch.Tensor, u: torch.Tensor, offsets: torch.Tensor,
+def h_value(task: Any, critic: torch.nn.Module, s: torch.Tensor, u: torch.Tensor, offsets: torch.Tensor,
             weights: torch.Tensor) -> torch.Tensor:
     """Implements eq. (37) for a task and a critic on observations: :func:`h` with ``V = critic o observe``.
 

@@ -38,15 +38,6 @@ __all__ = ["SUPPORT_RTOL", "CHOLESKY_PIVOT_FLOOR", "solve_psd", "psd_solver", "p
 CHOLESKY_PIVOT_FLOOR = 1e-13
 
 
-def _pinv_solve_scaled(s_scaled: np.ndarray, b_scaled: np.ndarray, rtol: float) -> np.ndarray:
-    """``S^+ b`` for a symmetric PSD ``S`` on its support (:func:`mixedrl.expectation.support`)."""
-    lam, vec = support(s_scaled, rtol)
-    inv = 1.0 / lam
-    if b_scaled.ndim == 1:
-        return vec @ (inv * (vec.T @ b_scaled))
-    return vec @ (inv[:, None] * (vec.T @ b_scaled))
-
-
 def psd_solver(s: np.ndarray, rtol: float = SUPPORT_RTOL) -> Callable[[np.ndarray], np.ndarray]:
     """Factor a symmetric PSD ``S`` once and return ``b -> S^+ b`` (see :func:`solve_psd`).
 
@@ -61,36 +52,36 @@ def psd_solver(s: np.ndarray, rtol: float = SUPPORT_RTOL) -> Callable[[np.ndarra
         Maps ``b`` of shape (n,) or (n, m) to ``S^{-1} b`` (``S^+ b`` when singular).
     """
     diag = s.diagonal()
-    if diag.min() > 0.0:
-        inv_d = 1.0 / np.sqrt(diag)
-        col = inv_d[:, None]
-        scaled = s * inv_d * col
-        chol, info = _dpotrf(scaled, 1, 0)
-        if info == 0 and chol.diagonal().min() ** 2 >= CHOLESKY_PIVOT_FLOOR:
+    if diag.min() <= 0.0:
+        idx = np.flatnonzero(diag > 0.0)
+        sub = psd_solver(s[np.ix_(idx, idx)], rtol) if idx.size else None
 
-            def chol_solve(b: np.ndarray) -> np.ndarray:
-                if b.ndim == 1:
-                    return _dpotrs(chol, b * inv_d, 1)[0] * inv_d
-                return _dpotrs(chol, b * col, 1)[0] * col
+        def block_solve(b: np.ndarray) -> np.ndarray:
+            out = np.zeros(b.shape, dtype=np.float64)
+            if sub is not None:
+                out[idx] = sub(b[idx])
+            return out
 
-            return chol_solve
+        return block_solve
+    inv_d = 1.0 / np.sqrt(diag)
+    scaled = s * inv_d * inv_d[:, None]
+    chol, info = _dpotrf(scaled, 1, 0)
+    if info == 0 and chol.diagonal().min() ** 2 >= CHOLESKY_PIVOT_FLOOR:
 
-        def pinv_solve(b: np.ndarray) -> np.ndarray:
-            if b.ndim == 1:
-                return _pinv_solve_scaled(scaled, b * inv_d, rtol) * inv_d
-            return _pinv_solve_scaled(scaled, b * col, rtol) * col
+        def scaled_solve(b: np.ndarray) -> np.ndarray:
+            return _dpotrs(chol, b, 1)[0]
+    else:
+        lam, vec = support(scaled, rtol)
+        inv = 1.0 / lam
 
-        return pinv_solve
-    idx = np.flatnonzero(diag > 0.0)
-    sub = psd_solver(s[np.ix_(idx, idx)], rtol) if idx.size else None
+        def scaled_solve(b: np.ndarray) -> np.ndarray:
+            return vec @ (inv.reshape(-1, *(1,) * (b.ndim - 1)) * (vec.T @ b))
 
-    def block_solve(b: np.ndarray) -> np.ndarray:
-        out = np.zeros(b.shape, dtype=np.float64)
-        if sub is not None:
-            out[idx] = sub(b[idx])
-        return out
+    def solve(b: np.ndarray) -> np.ndarray:
+        d = inv_d if b.ndim == 1 else inv_d[:, None]
+        return scaled_solve(b * d) * d
 
-    return block_solve
+    return solve
 
 
 def solve_psd(s: np.ndarray, b: np.ndarray, rtol: float = SUPPORT_RTOL) -> np.ndarray:
