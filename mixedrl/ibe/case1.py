@@ -47,7 +47,8 @@ def _posterior_known_cov(
     return prior_mean + prod[:, 0], symmetrize(prod[:, 1:])
 
 
-def _simultaneous_diag(prior_cov: np.ndarray, noise_cov: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+def _simultaneous_diag(prior_cov: np.ndarray,
+                       noise_cov: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
     """``G, G^{-1}, lam`` with ``K_M = G G^T`` and ``K = G diag(lam) G^T``, or ``None``.
 
     ``D = diag(K_M)^{-1/2}``, ``D K_M D = L L^T`` (Cholesky), ``L^{-1} D K D L^{-T} = V diag(lam) V^T``
@@ -199,16 +200,6 @@ class KnownCovarianceIBE(GaussianNoiseEstimate):
         mean_cov = (g * (lam / (count + lam))) @ g.T
         return mean, mean_cov
 
-    @property
-    def dim(self) -> int:
-        """Dimension ``n`` of the noise."""
-        return self.prior_mean.shape[0]
-
-    @property
-    def cov(self) -> np.ndarray:
-        """Noise covariance used by the mixed model (eq. (20)): here the known ``K``, shape (n, n)."""
-        return self.noise_cov
-
     def update(self, xi: Any) -> KnownCovarianceIBE:
         """Implements eq. (16) for one residual ``(n,)`` or a batch ``(N, n)``; returns ``self``.
 
@@ -218,7 +209,7 @@ class KnownCovarianceIBE(GaussianNoiseEstimate):
             ``xi`` of wrong shape, not real numbers, with NaN/inf, or so large that ``m_k`` or the mean
             would overflow; the estimator is then left unchanged.
         """
-        batch = real_batch(xi, "xi", self.prior_mean.shape[0])
+        batch = real_batch(xi, "xi", self.dim)
         nb = batch.shape[0]
         if nb == 0:
             return self
@@ -254,7 +245,8 @@ class KnownCovarianceIBE(GaussianNoiseEstimate):
             is then left unchanged.
         """
         n = self.dim
-        spec = {"kind": "str", "prior_mean": (n,), "prior_cov": (n, n), "noise_cov": (n, n), "count": "int", "total": (n,)}
+        spec = {"kind": "str", "prior_mean": (n,), "prior_cov": (n, n), "noise_cov": (n, n), "count": "int",
+                "total": (n,)}
         st = check_state(state, spec, self._KIND)
         prior_cov = real_covariance(st["prior_cov"], "state_dict: prior_cov", n)
         noise_cov = real_covariance(st["noise_cov"], "state_dict: noise_cov", n)

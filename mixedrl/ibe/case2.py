@@ -45,7 +45,6 @@ def _solve_eq17(
     scatter: np.ndarray,
     max_iter: int,
     rtol: float,
-    prior_scale: float | None = None,
 ) -> tuple[np.ndarray, np.ndarray, int, bool]:
     """Implements eq. (17): the Case 2 fixed point from the sufficient statistics of ``N`` residuals.
 
@@ -72,8 +71,6 @@ def _solve_eq17(
         Centred scatter ``sum_j (xi_j - xbar)(xi_j - xbar)^T``.
     max_iter, rtol
         Iteration cap and relative stopping tolerance (see :func:`map_mean_cov`).
-    prior_scale : float or None
-        The prior's part of the tolerance scale, if the caller caches it.
 
     Returns
     -------
@@ -94,7 +91,9 @@ def _solve_eq17(
     """
     c = scatter / count
     r = xbar - prior_mean
-    scale = _fp_scale(prior_mean, prior_cov, xbar, c, prior_scale)
+    prior_scale = float(np.abs(prior_mean).max()) + math.sqrt(float(prior_cov.diagonal().max()))
+    scale = float(np.abs(xbar).max()) + math.sqrt(max(float(c.diagonal().max()), 0.0)) + prior_scale
+    scale = scale if scale > 0.0 else 1.0
     solve = psd_solver(count * prior_cov + c)  # S_0 = N K_M + C, factored once per update
     a = solve(r)
     nkm = count * prior_cov
@@ -123,28 +122,6 @@ def _solve_eq17(
             break
     k_hat = c + np.outer(d, d)
     return mu, k_hat, it, converged
-
-
-def _mean_cov_case2(prior_cov: np.ndarray, count: int, k_hat: np.ndarray) -> np.ndarray:
-    """``Psi^{-1} = (K_M^-1 + N K_hat^-1)^-1 = K_M (N K_M + K_hat)^-1 K_hat`` (covariance form)."""
-    if count == 0:
-        return prior_cov.copy()
-    return symmetrize(prior_cov @ solve_psd(count * prior_cov + k_hat, k_hat))
-
-
-def _prior_scale(prior_mean: np.ndarray, prior_cov: np.ndarray) -> float:
-    """The prior's part of the fixed-point tolerance scale (constant for an estimator)."""
-    return float(np.abs(prior_mean).max()) + math.sqrt(float(prior_cov.diagonal().max()))
-
-
-def _fp_scale(
-    prior_mean: np.ndarray, prior_cov: np.ndarray, xbar: np.ndarray, c: np.ndarray, prior_scale: float | None = None
-) -> float:
-    if prior_scale is None:
-        prior_scale = _prior_scale(prior_mean, prior_cov)
-    scale = float(np.abs(xbar).max()) + math.sqrt(max(float(c.diagonal().max()), 0.0)) + prior_scale
-    return scale if scale > 0.0 else 1.0
-
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -281,8 +258,9 @@ class UnknownCovarianceIBE(GaussianNoiseEstimate):
       ``K_hat_0 = K_M``, ``Psi_0 = K_M^{-1}``; EQUATIONS.md point 4: this uses the prior covariance of
       the mean as a noise covariance). After one sample ``K_hat_1`` has rank 1, so ``K_hat_{k-1}^{-1}``
       and ``K_M^{-1}`` are **pseudo-inverses** (eigenvalues below ``SUPPORT_RTOL`` times the largest are
-      dropped, :data:`mixedrl.expectation.SUPPORT_RTOL`; i.e. directions without observed spread carry no data precision), and ``Psi_k`` is
-      solved with :func:`mixedrl.gaussian.solve_psd`. Batches are processed one residual at a time.
+      dropped, :data:`mixedrl.expectation.SUPPORT_RTOL`; i.e. directions without observed spread carry no data
+      precision), and ``Psi_k`` is solved with :func:`mixedrl.gaussian.solve_psd`. Batches are processed one
+      residual at a time.
     * Either way an update is computed as a candidate and committed only if it is finite and ``K_hat``
       (and, for ``"paper"``, ``Psi_k``) is symmetric PSD; otherwise it is refused with the state kept.
       In ``"exact"`` mode the eigenvalue check is made on a batch's merged scatter: a single residual
@@ -296,7 +274,8 @@ class UnknownCovarianceIBE(GaussianNoiseEstimate):
     _FIELDS = ("cov", "_mean_cov", "recursion", "max_iter", "iterations", "converged", "data_mean", "scatter", "psi",
                "total")
 
-    def __init__(self, prior_mean: Any, prior_cov: Any, recursion: str = "exact", max_iter: int = FIXED_POINT_MAX_ITER) -> None:
+    def __init__(self, prior_mean: Any, prior_cov: Any, recursion: str = "exact",
+                 max_iter: int = FIXED_POINT_MAX_ITER) -> None:
         prior_mean = real_vector(prior_mean, "prior_mean")
         prior_cov = real_covariance(prior_cov, "prior_cov", prior_mean.shape[0])
         if recursion not in self._RECURSIONS:
@@ -306,18 +285,12 @@ class UnknownCovarianceIBE(GaussianNoiseEstimate):
         self._reset()
 
     def _reset(self) -> None:
-        n = self.dim
-        self._prior_scale: float | None = None  # cached part of the fixed-point tolerance
+        n = self.prior_mean.shape[0]
         self._prior_prec = pinv_psd(self.prior_cov)
         # K_hat_0 = K_M (Algorithm 1); exact: sufficient statistics; paper: eq. (18) state
         self._commit(count=0, mean=self.prior_mean.copy(), cov=self.prior_cov.copy(), _mean_cov=self.prior_cov.copy(),
                      iterations=0, converged=True, data_mean=np.zeros(n), scatter=np.zeros((n, n)),
                      psi=self._prior_prec.copy(), total=np.zeros(n))
-
-    @property
-    def dim(self) -> int:
-        """Dimension ``n`` of the noise."""
-        return self.prior_mean.shape[0]
 
     @property
     def mean_cov(self) -> np.ndarray:
@@ -327,7 +300,9 @@ class UnknownCovarianceIBE(GaussianNoiseEstimate):
         ``K_M (N K_M + K_hat)^{-1} K_hat``), so updates do not pay for it.
         """
         if self._mean_cov is None:
-            self._commit(_mean_cov=_mean_cov_case2(self.prior_cov, self.count, self.cov))
+            # Psi^{-1} = (K_M^-1 + N K_hat^-1)^-1 = K_M (N K_M + K_hat)^-1 K_hat
+            solved = solve_psd(self.count * self.prior_cov + self.cov, self.cov)
+            self._commit(_mean_cov=symmetrize(self.prior_cov @ solved))
         return self._mean_cov
 
     def update(self, xi: Any) -> UnknownCovarianceIBE:
@@ -350,8 +325,6 @@ class UnknownCovarianceIBE(GaussianNoiseEstimate):
 
     def _update_exact(self, batch: np.ndarray) -> None:
         nb = batch.shape[0]
-        if self._prior_scale is None:
-            self._prior_scale = _prior_scale(self.prior_mean, self.prior_cov)
         with PosteriorGuard("xi"):
             if nb == 1:
                 bmean = batch[0]
@@ -378,9 +351,8 @@ class UnknownCovarianceIBE(GaussianNoiseEstimate):
                 check_posterior("xi", (data_mean, scatter))
             else:
                 check_posterior("xi", (data_mean,), (scatter,))
-            mean, cov, it, ok = _solve_eq17(
-                self.prior_mean, self.prior_cov, count, data_mean, scatter, self.max_iter, FIXED_POINT_RTOL, self._prior_scale
-            )
+            mean, cov, it, ok = _solve_eq17(self.prior_mean, self.prior_cov, count, data_mean, scatter, self.max_iter,
+                                            FIXED_POINT_RTOL)
         check_posterior("xi", (mean, cov))
         if not ok:
             logger.warning("UnknownCovarianceIBE: eq. (17) fixed point not converged after %d iterations", it)
@@ -440,9 +412,8 @@ class UnknownCovarianceIBE(GaussianNoiseEstimate):
             raise ValueError(f"state_dict: expected a dict, got {type(state).__name__}")
         if state.get("recursion") not in self._RECURSIONS:
             raise ValueError(f"state_dict: recursion must be one of {self._RECURSIONS}, got {state.get('recursion')!r}")
-        spec: dict[str, Any] = {
-            "kind": "str", "recursion": "str", "max_iter": "int", "prior_mean": (n,), "prior_cov": (n, n), "count": "int",
-        }
+        spec: dict[str, Any] = {"kind": "str", "recursion": "str", "max_iter": "int", "prior_mean": (n,),
+                                "prior_cov": (n, n), "count": "int"}
         if state["recursion"] == "exact":
             spec.update(data_mean=(n,), scatter=(n, n))
         else:
@@ -451,7 +422,8 @@ class UnknownCovarianceIBE(GaussianNoiseEstimate):
         check_positive_int(st["max_iter"], "state_dict: max_iter")
         prior_cov = real_covariance(st["prior_cov"], "state_dict: prior_cov", n)
         new = UnknownCovarianceIBE.__new__(UnknownCovarianceIBE)
-        new._commit(prior_mean=st["prior_mean"], prior_cov=prior_cov, recursion=st["recursion"], max_iter=st["max_iter"])
+        new._commit(prior_mean=st["prior_mean"], prior_cov=prior_cov, recursion=st["recursion"],
+                    max_iter=st["max_iter"])
         new._reset()
         new._commit(count=st["count"])
         if new.recursion == "exact":

@@ -5,7 +5,7 @@
 * :func:`real_batch`, :func:`real_vector`, :func:`real_covariance`: the checks every estimator applies to
   its arguments (real numbers only: complex, bool, string and object arrays are refused; finite; of the
   right shape; at least one noise dimension).
-* :class:`PosteriorGuard` and :func:`check_posterior`: an update computes its candidate posterior
+* :func:`PosteriorGuard` and :func:`check_posterior`: an update computes its candidate posterior
   inside the guard (no floating-point warning escapes, a failed factorisation is a ``ValueError``) and
   commits it only after :func:`check_posterior` has found it finite and symmetric PSD, so a rejected
   update leaves the estimator as it was.
@@ -17,15 +17,16 @@
 
 from __future__ import annotations
 
+import contextlib
 import math
-from collections.abc import Callable, Sequence
-from types import TracebackType
+from collections.abc import Callable, Iterator, Sequence
 from typing import Any
 
 import numpy as np
 import torch
 
-from mixedrl.checks import as_batch, as_vector, check_covariance, check_finite, check_nonnegative_int, check_unknown_keys
+from mixedrl.checks import (as_batch, as_vector, check_covariance, check_finite, check_nonnegative_int,
+                            check_unknown_keys)
 from mixedrl.gaussian import sample_gaussian
 
 __all__ = ["residuals", "check_noise_matrix", "noise_coordinates", "real_array", "real_batch", "real_vector",
@@ -252,7 +253,8 @@ def check_posterior(name: str, finite: Sequence[np.ndarray], psd: Sequence[np.nd
         check_covariance(c, f"{name}: update rejected: the posterior")
 
 
-class PosteriorGuard:
+@contextlib.contextmanager
+def PosteriorGuard(name: str) -> Iterator[None]:  # noqa: N802 (used as ``with PosteriorGuard(name):``)
     """Context for computing a candidate posterior: floating-point warnings are silenced (overflow and
     NaN are found by :func:`check_posterior` on the result) and a failed factorisation
     (``numpy.linalg.LinAlgError``) becomes ``ValueError("<name>: update rejected: ...")``.
@@ -262,22 +264,11 @@ class PosteriorGuard:
     name : str
         The argument the error message names.
     """
-
-    __slots__ = ("name", "_errstate")
-
-    def __init__(self, name: str) -> None:
-        self.name = name
-        self._errstate = np.errstate(all="ignore")
-
-    def __enter__(self) -> PosteriorGuard:
-        self._errstate.__enter__()
-        return self
-
-    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
-                 tb: TracebackType | None) -> None:
-        self._errstate.__exit__(exc_type, exc, tb)
-        if exc_type is not None and issubclass(exc_type, np.linalg.LinAlgError):
-            raise ValueError(f"{self.name}: update rejected: the posterior could not be computed ({exc})") from None
+    try:
+        with np.errstate(all="ignore"):
+            yield
+    except np.linalg.LinAlgError as exc:
+        raise ValueError(f"{name}: update rejected: the posterior could not be computed ({exc})") from None
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -364,6 +355,8 @@ class ReadOnlyFields:
     """
 
     _FIELDS: tuple[str, ...] = ()
+    #: A learning source (:class:`mixedrl.noise.NoiseSource`): the algorithms call ``update``.
+    learns = True
 
     mean = ReadOnlyField()
     prior_mean = ReadOnlyField()
@@ -389,16 +382,23 @@ class ReadOnlyFields:
                 value.flags.writeable = False
             self.__dict__["_ro_" + name] = value
 
+    @property
+    def dim(self) -> int:
+        """Dimension ``n`` of the noise."""
+        return self.cov.shape[0]
+
+    @property
+    def cov(self) -> np.ndarray:
+        """Noise covariance of the mixed model (eq. (20)), shape (n, n): the known ``K`` (Cases 1 and 3)."""
+        return self.noise_cov
+
 
 class GaussianNoiseEstimate(ReadOnlyFields):
     """Shared part of Cases 1 and 2: the mixed-model noise ``N(mean, cov)`` (eq. (20))."""
 
-    #: A learning source (:class:`mixedrl.noise.NoiseSource`): the algorithms call ``update``.
-    learns = True
     #: One mean for every state (Cases 1 and 2).
     state_dependent = False
 
-    cov: np.ndarray
     mean_cov: np.ndarray
 
     def sample(self, n: int, generator: np.random.Generator | torch.Generator) -> np.ndarray | torch.Tensor:
