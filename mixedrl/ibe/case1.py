@@ -3,9 +3,7 @@
 * :func:`~mixedrl.ibe.map_mean_known_cov`: the batch MAP mean, eq. (15).
 * :class:`~mixedrl.ibe.KnownCovarianceIBE`: the recursion, eq. (16), from the sufficient statistics ``(k, m_k)``.
 
-Both evaluate eq. (15) in the covariance (Kalman) form of the package docstring (:mod:`mixedrl.ibe`) with
-one function, ``_posterior_known_cov`` (the recursion uses a simultaneous diagonalisation of ``K_M`` and
-``K`` instead when ``K_M`` is numerically regular).
+Both evaluate eq. (15) in the covariance (Kalman) form of :mod:`mixedrl.ibe` (``_posterior_known_cov``).
 """
 
 from __future__ import annotations
@@ -160,18 +158,12 @@ class KnownCovarianceIBE(GaussianNoiseEstimate):
 
     Notes
     -----
-    ``Psi_k = K_M^{-1} + k K^{-1}`` depends on ``k`` only, so the state is ``(k, m_k)`` as in eq. (16),
-    and ``mu_hat_k`` and ``Psi_k^{-1}`` are evaluated in covariance form (module docstring), which needs
-    neither ``K^{-1}`` nor ``K_M^{-1}``. Any split of the data into batches gives eq. (15) up to the
-    rounding of ``m_k``. Because ``K_M`` and ``K`` are fixed, they are diagonalised simultaneously once
-    (``K_M = G G^T``, ``K = G diag(lambda) G^T``, from a Cholesky factor of the Jacobi-scaled ``K_M`` and
-    one ``eigh``), so that ``K_M (k K_M + K)^{-1} = G (k I + diag(lambda))^{-1} G^{-1}`` and an update costs
-    three ``n x n`` products and no factorisation. If ``K_M`` is numerically singular (squared Cholesky
-    pivot of the scaled ``K_M`` below ``1e-13``) each update instead solves ``k K_M + K`` with
-    :func:`mixedrl.gaussian.solve_psd` (pseudo-inverse on its null space: there the prior is kept).
-    An update is computed as a candidate and committed only if ``m_k`` and ``mu_hat_k`` are finite
-    (``Psi_k^{-1}`` depends on ``k`` alone and is finite and PSD by construction); otherwise it is
-    refused and the estimator keeps its state.
+    ``Psi_k = K_M^{-1} + k K^{-1}`` depends on ``k`` only, so the state is ``(k, m_k)`` as in eq. (16);
+    ``mu_hat_k`` and ``Psi_k^{-1}`` are evaluated in covariance form, with ``K_M`` and ``K`` diagonalised
+    simultaneously once (``_simultaneous_diag``) or, for a numerically singular ``K_M``, by
+    :func:`mixedrl.gaussian.solve_psd` at every update (``docs/ibe.rst``, "How inverses are computed").
+    Any split of the data into batches gives eq. (15) up to the rounding of ``m_k``. An update is
+    committed only if ``m_k`` and ``mu_hat_k`` are finite (``Psi_k^{-1}`` depends on ``k`` alone).
     """
 
     _KIND = "KnownCovarianceIBE"

@@ -81,13 +81,10 @@ def _solve_eq17(
 
     Notes
     -----
-    Starts from the data, ``mu_0 = xbar`` (``K_0 = C``, the maximum-likelihood covariance), and alternates
-    the two lines. With ``C = scatter / N`` and ``d = xbar - mu`` the covariance line is
-    ``K(mu) = C + d d^T``, and the mean line is evaluated in covariance form
-    ``mu_M + N K_M (N K_M + K_hat)^{-1} (xbar - mu_M)`` (no inverse of the possibly singular ``K_hat``),
-    by a rank-1 (Sherman-Morrison) update of the Cholesky-solved ``S_0 = N K_M + C``. Stops early, not
-    converged, when an iterate is not finite (the caller's :func:`~mixedrl.ibe.common.check_posterior` then
-    refuses the result).
+    Starts from ``mu_0 = xbar`` and alternates the two lines; with ``C = scatter / N`` and ``d = xbar - mu``
+    the covariance line is ``K(mu) = C + d d^T`` and the mean line ``mu_M + N K_M (N K_M + K_hat)^{-1}
+    (xbar - mu_M)`` is a rank-1 (Sherman-Morrison) update of the solve of ``S_0 = N K_M + C``. Stops,
+    not converged, at a non-finite iterate (the caller's ``check_posterior`` refuses it).
     """
     c = scatter / count
     r = xbar - prior_mean
@@ -168,19 +165,11 @@ def map_mean_cov(
 
     Notes
     -----
-    * Eq. (17) couples ``mu_hat`` and ``K_hat`` (EQUATIONS.md point 2). It is solved by alternating its
-      two lines (block-coordinate descent on the negative log posterior, so the objective never
-      increases), **starting from the data**: ``mu_0 = xbar``, ``K_0 = C`` (the maximum-likelihood
-      estimate). When a confident prior disagrees with few data, eq. (17) can have several fixed points
-      (the cubic ``(e - d)(c + d^2) = N k d`` in the scalar case); the start from the data selects the
-      one closest to the data, and the recursive :class:`UnknownCovarianceIBE` uses the same start, so
-      both agree after every update.
-    * The fixed point itself is ``_solve_eq17``, shared with the recursion; this batch form computes
-      the statistics ``xbar`` and the centred scatter directly from all residuals (the recursion merges
-      them update by update), and the mean line is evaluated in covariance form (no inverse of the
-      possibly singular ``K_hat``).
-    * With ``N = 1`` the maximum-likelihood covariance is 0 and eq. (17) gives ``mu_hat = xi_1``,
-      ``K_hat = 0`` (the degenerate but literal answer).
+    Eq. (17) couples ``mu_hat`` and ``K_hat`` (EQUATIONS.md point 2); ``_solve_eq17`` alternates its two
+    lines **starting from the data** (``mu_0 = xbar``, ``K_0 = C``), which selects the fixed point closest
+    to the data where eq. (17) has several (``docs/ibe.rst``, "Solving the fixed point"). The recursive
+    :class:`UnknownCovarianceIBE` uses the same start, so both agree after every update. With ``N = 1``
+    eq. (17) gives ``mu_hat = xi_1``, ``K_hat = 0`` (the degenerate but literal answer).
     """
     mu_m = real_vector(prior_mean, "prior_mean")
     n = mu_m.shape[0]
@@ -245,27 +234,17 @@ class UnknownCovarianceIBE(GaussianNoiseEstimate):
 
     Notes
     -----
-    * ``"exact"`` keeps the sufficient statistics ``N``, ``xbar`` and the centred scatter
-      ``sum (xi - xbar)(xi - xbar)^T`` (merged with Chan's parallel formula instead of raw
-      ``sum xi xi^T``, which loses ``(|mean|/std)^2`` digits to cancellation), and re-solves the eq. (17)
-      fixed point after every update with the same start as :func:`map_mean_cov` (the data:
-      ``mu_0 = xbar``), so that it equals the batch eq. (17) on all data so far even where eq. (17) has
-      several fixed points. It is *not* warm-started from the previous estimate: a warm start would
-      follow whichever branch it was on (hysteresis) and could differ from the batch answer. Each
-      iteration costs one triangular solve (rank-1 Sherman-Morrison update of the Cholesky-factored
-      ``N K_M + C``). Departure from the paper: eq. (18) is not used (EQUATIONS.md point 3).
-    * ``"paper"`` is eq. (18) literally, initialised as Algorithm 1 (``mu_hat_0 = mu_M``,
-      ``K_hat_0 = K_M``, ``Psi_0 = K_M^{-1}``; EQUATIONS.md point 4: this uses the prior covariance of
-      the mean as a noise covariance). After one sample ``K_hat_1`` has rank 1, so ``K_hat_{k-1}^{-1}``
-      and ``K_M^{-1}`` are **pseudo-inverses** (eigenvalues below ``SUPPORT_RTOL`` times the largest are
-      dropped, :data:`mixedrl.expectation.SUPPORT_RTOL`; i.e. directions without observed spread carry no data
-      precision), and ``Psi_k`` is solved with :func:`mixedrl.gaussian.solve_psd`. Batches are processed one
-      residual at a time.
-    * Either way an update is computed as a candidate and committed only if it is finite and ``K_hat``
-      (and, for ``"paper"``, ``Psi_k``) is symmetric PSD; otherwise it is refused with the state kept.
-      In ``"exact"`` mode the eigenvalue check is made on a batch's merged scatter: a single residual
-      adds a rank-1 PSD term, so the scatter and ``K_hat = scatter / N + d d^T`` stay PSD by
-      construction and only their finiteness is checked.
+    * ``"exact"`` keeps the sufficient statistics ``N``, ``xbar`` and the centred scatter (merged with Chan's
+      parallel formula) and re-solves eq. (17) after every update from the same start as
+      :func:`map_mean_cov` (not warm-started), so it equals the batch eq. (17) on all data so far.
+      Departure from the paper: eq. (18) is not used (EQUATIONS.md point 3).
+    * ``"paper"`` is eq. (18) literally, initialised as Algorithm 1 (``mu_hat_0 = mu_M``, ``K_hat_0 = K_M``,
+      ``Psi_0 = K_M^{-1}``; EQUATIONS.md point 4), with pseudo-inverses of ``K_hat_{k-1}`` and ``K_M``
+      (:func:`mixedrl.gaussian.pinv_psd`, floor :data:`mixedrl.expectation.SUPPORT_RTOL`); batches are
+      processed one residual at a time.
+    * ``docs/ibe.rst`` (Case 2) gives the details. Either way an update is committed only if it is finite
+      and ``K_hat`` (and ``Psi_k``) symmetric PSD; a single residual adds a rank-1 PSD term to the scatter,
+      so only a batch's merged scatter gets the eigenvalue check.
     """
 
     _KIND = "UnknownCovarianceIBE"
