@@ -1,21 +1,11 @@
 """Expectations over the mixed model's noise, ``E g(c + xi)``, ``xi ~ N(mu, K)``: one module for all.
 
-Algorithm 2 (eqs. 49 and 51), the exact checks of :mod:`theory` and the PSD linear algebra of
-:mod:`mixedrl.gaussian` all need the same three things, defined here once:
-
-* the **numerical support** of a covariance (:data:`SUPPORT_RTOL`, :func:`support`): the eigenpairs
-  ``(lambda_i, v_i)`` with ``lambda_i > SUPPORT_RTOL * lambda_max``; the rest is treated as 0;
-* the **nodes** of a quadrature rule on that support (:func:`quadrature_nodes` in numpy,
-  :func:`expectation_nodes` in torch): the ``2r`` spherical-cubature sigma points
-  (:class:`SigmaPoints`, exact for polynomials of degree <= 3) or the tensor Gauss-Hermite rule
-  (:class:`GaussHermite`, exact to degree ``2q - 1`` per coordinate);
-* ``h(x, u, xi)`` of **eq. (37)** (:func:`h`, the one implementation), for numpy arrays and torch
-  tensors alike, called by its task-level form :func:`h_value` (PEV, PIM and the MVC of Algorithm 2)
-  and by its noise-object form :func:`expected_cost_to_go` (the checks of :mod:`theory`).
-
-Because the noise is additive, ``f(x, u)`` is computed once per state and only the integrand is
-evaluated at the nodes: ``E g(f(x, u) + xi) ~= sum_i w_i g(f(x, u) + d_i)``. See ``docs/expectation.rst``
-for the choice of the cut-off and the error bound for dropped directions.
+Defined once here for Algorithm 2 (eqs. 49 and 51), the checks of :mod:`theory` and :mod:`mixedrl.gaussian`:
+the numerical support of a covariance (:data:`SUPPORT_RTOL`, :func:`support`), the nodes of a quadrature
+rule on it (:func:`quadrature_nodes` in numpy, :func:`expectation_nodes` in torch; :class:`SigmaPoints`,
+:class:`GaussHermite`), and ``h(x, u, xi)`` of eq. (37) (:func:`h`; :func:`h_value` for a task and a critic,
+:func:`expected_cost_to_go` for a noise object). ``docs/expectation.rst`` explains the cut-off, the rules
+and the error bound for dropped directions.
 """
 
 from __future__ import annotations
@@ -33,9 +23,7 @@ __all__ = ["SUPPORT_RTOL", "support", "SigmaPoints", "GaussHermite", "quadrature
            "NodeCache", "expect", "weighted_sum", "gaussian_expectation", "h", "h_value", "expected_cost_to_go"]
 
 #: Relative eigenvalue floor that defines the numerical support (range, rank) of a PSD matrix:
-#: eigenvalues ``<= SUPPORT_RTOL * lambda_max`` count as 0. The one cut-off of the project (quadrature,
-#: pseudo-inverses, KL supports); ``1e-6`` puts the vehicle prior's ``1e-20`` entries (next to
-#: ``(4T/m)^2 = 1.8e-10``, ratio ``5.6e-11``) outside the support: the vehicle noise has rank 1.
+#: eigenvalues ``<= SUPPORT_RTOL * lambda_max`` count as 0 (the project's one cut-off; docs/expectation.rst).
 SUPPORT_RTOL = 1e-6
 
 
@@ -207,11 +195,8 @@ def expectation_nodes(mean: np.ndarray, cov: np.ndarray, noise_matrix: torch.Ten
 
     Notes
     -----
-    The sigma rule integrates every polynomial of degree <= 3 in ``xi`` exactly; here ``l`` is quadratic
-    in ``x'`` so the cost term is exact and only the critic's higher-order terms are approximated.
-    Directions with ``lambda_i <= SUPPORT_RTOL lambda_max`` are dropped (the vehicle prior's ``1e-20``
-    entries): the error this makes is at most ``sum(dropped lambda) * max|Hessian| / 2``. If
-    ``K_hat = 0`` the rule reduces to the single point ``mu_hat``.
+    The sigma rule is exact for polynomials of degree <= 3 in ``xi``. Directions off the support are
+    dropped (error bound in ``docs/expectation.rst``); if ``K_hat = 0`` the rule is the single point ``mu_hat``.
     """
     mean = np.asarray(mean, dtype=np.float64)
     cov = np.asarray(cov, dtype=np.float64)

@@ -1,19 +1,9 @@
 """Gaussian utilities shared by the IBE and the theory checks: sampling, KL divergence, PSD solves.
 
-Every function here accepts *singular* covariances, because they are the normal case in this project
-(the vehicle disturbance acts on one of five state components, so the true noise covariance has rank 1
-and the designer's prior has diagonal entries of ``1e-20``; EQUATIONS.md point 5).
-
-Conventions
------------
-* A covariance ``C`` of shape ``(n, n)`` is symmetric positive semi-definite (PSD).
-* Its *numerical support* is the span of the eigenvectors whose eigenvalues are ``> rtol * lambda_max``
-  with ``rtol = SUPPORT_RTOL`` (:data:`mixedrl.expectation.SUPPORT_RTOL`, the project's one cut-off,
-  :func:`mixedrl.expectation.support`). The paper's ``1e-20`` prior entries next to a
-  ``(4T/m)^2 = 1.8e-10`` entry (ratio ``5.6e-11``) lie outside it: the vehicle prior has rank 1.
-* :func:`solve_psd` first rescales the matrix to unit diagonal (Jacobi equilibration), so its accuracy
-  depends on the condition number of the *scaled* matrix only; badly scaled but diagonal-dominant
-  matrices such as ``diag(1.8e-10, 1e-20, ...)`` are solved exactly.
+Every function here accepts *singular* covariances, the normal case in this project (EQUATIONS.md point 5):
+the numerical support is :func:`mixedrl.expectation.support` (cut-off :data:`SUPPORT_RTOL`), and
+:func:`solve_psd` is the Jacobi-equilibrated Cholesky solve with a pseudo-inverse fall-back described in
+``docs/ibe.rst`` ("How inverses are computed, and why").
 """
 
 from __future__ import annotations
@@ -109,16 +99,11 @@ def solve_psd(s: np.ndarray, b: np.ndarray, rtol: float = SUPPORT_RTOL) -> np.nd
 
     Notes
     -----
-    Method: (1) rows/columns with an exactly zero diagonal are zero in a PSD matrix; they are removed
-    and the solution is 0 there (pseudo-inverse). (2) Jacobi equilibration ``D S D`` with
-    ``D = diag(S)^{-1/2}`` (unit diagonal), so accuracy depends on the condition number of the scaled
-    matrix only. (3) Cholesky (LAPACK ``dpotrf``/``dpotrs``), accepted when every squared pivot is
-    ``>= CHOLESKY_PIVOT_FLOOR`` (for a unit-diagonal matrix the squared pivots lie in ``(0, 1]`` and
-    bound the smallest eigenvalue from above). (4) Otherwise the eigenvalue pseudo-inverse of
-    ``D S D`` with floor ``rtol``. ``S^g = D (D S D)^+ D`` is a reflexive generalised inverse
-    (``S S^g S = S``); it differs from the Moore-Penrose ``S^+`` only by components in ``null(S)``. The
-    IBE always multiplies the result by ``K_M`` or ``K``, which vanish on ``null(S) = null(K_M) & null(K)``
-    for ``S = N K_M + K``, so the choice of generalised inverse does not matter there.
+    Rows/columns with a zero diagonal get 0 in the solution; the rest is Jacobi-scaled (``D S D``,
+    ``D = diag(S)^{-1/2}``) and Cholesky-solved (LAPACK ``dpotrf``/``dpotrs``) if every squared pivot is
+    ``>= CHOLESKY_PIVOT_FLOOR``, else solved with the eigenvalue pseudo-inverse of ``D S D`` (floor ``rtol``).
+    ``S^g`` is a reflexive generalised inverse (``S S^g S = S``); the IBE multiplies it by ``K_M`` or ``K``,
+    which vanish on ``null(S)``, so there it acts as ``S^+``.
     """
     return psd_solver(s, rtol)(b)
 

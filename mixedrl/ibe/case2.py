@@ -259,17 +259,13 @@ class UnknownCovarianceIBE(GaussianNoiseEstimate):
         prior_cov = real_covariance(prior_cov, "prior_cov", prior_mean.shape[0])
         if recursion not in self._RECURSIONS:
             raise ValueError(f"recursion: expected one of {self._RECURSIONS}, got {recursion!r}")
-        self._commit(prior_mean=prior_mean, prior_cov=prior_cov, recursion=recursion,
-                     max_iter=check_positive_int(max_iter, "max_iter"))
-        self._reset()
-
-    def _reset(self) -> None:
-        n = self.prior_mean.shape[0]
-        self._prior_prec = pinv_psd(self.prior_cov)
+        n = prior_mean.shape[0]
+        self._prior_prec = pinv_psd(prior_cov)
         # K_hat_0 = K_M (Algorithm 1); exact: sufficient statistics; paper: eq. (18) state
-        self._commit(count=0, mean=self.prior_mean.copy(), cov=self.prior_cov.copy(), _mean_cov=self.prior_cov.copy(),
-                     iterations=0, converged=True, data_mean=np.zeros(n), scatter=np.zeros((n, n)),
-                     psi=self._prior_prec.copy(), total=np.zeros(n))
+        self._commit(prior_mean=prior_mean, prior_cov=prior_cov, recursion=recursion,
+                     max_iter=check_positive_int(max_iter, "max_iter"), count=0, mean=prior_mean.copy(),
+                     cov=prior_cov.copy(), _mean_cov=prior_cov.copy(), iterations=0, converged=True,
+                     data_mean=np.zeros(n), scatter=np.zeros((n, n)), psi=self._prior_prec.copy(), total=np.zeros(n))
 
     @property
     def mean_cov(self) -> np.ndarray:
@@ -400,10 +396,7 @@ class UnknownCovarianceIBE(GaussianNoiseEstimate):
         st = check_state(state, spec, self._KIND)
         check_positive_int(st["max_iter"], "state_dict: max_iter")
         prior_cov = real_covariance(st["prior_cov"], "state_dict: prior_cov", n)
-        new = UnknownCovarianceIBE.__new__(UnknownCovarianceIBE)
-        new._commit(prior_mean=st["prior_mean"], prior_cov=prior_cov, recursion=st["recursion"],
-                    max_iter=st["max_iter"])
-        new._reset()
+        new = UnknownCovarianceIBE(st["prior_mean"], prior_cov, st["recursion"], st["max_iter"])
         new._commit(count=st["count"])
         if new.recursion == "exact":
             data_mean = st["data_mean"]

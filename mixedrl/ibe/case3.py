@@ -203,12 +203,20 @@ class StateDependentIBE(_StateDependentMean):
         old = (self._x, self._u, self._xi, self.count)
         self._x, self._u, self._xi = torch.cat([self._x, xb]), torch.cat([self._u, ub]), torch.cat([self._xi, xib])
         self._commit(count=self.count + xb.shape[0])
+        opt = torch.optim.LBFGS(self.phi.parameters(), lr=1.0, max_iter=self.max_iter, tolerance_grad=1e-12,
+                                tolerance_change=1e-15, history_size=50, line_search_fn="strong_wolfe")
+
+        def closure() -> torch.Tensor:
+            opt.zero_grad()
+            loss = self.negative_log_posterior()
+            loss.backward()
+            return loss
+
         try:
-            self._fit()
-            ok = all(bool(torch.isfinite(p).all()) for p in self.phi.parameters())
-            if ok:
-                with torch.no_grad():
-                    ok = bool(torch.isfinite(self.negative_log_posterior()))
+            opt.step(closure)
+            with torch.no_grad():
+                ok = (all(bool(torch.isfinite(p).all()) for p in self.phi.parameters())
+                      and bool(torch.isfinite(self.negative_log_posterior())))
         except RuntimeError:
             ok = False
         if not ok:
@@ -220,21 +228,6 @@ class StateDependentIBE(_StateDependentMean):
             raise ValueError("xi: update rejected: fitting eq. (19) gave non-finite parameters or a non-finite "
                              "negative log posterior (residuals too large for float64?)")
         return self
-
-    def _fit(self) -> None:
-        params = list(self.phi.parameters())
-        opt = torch.optim.LBFGS(
-            params, lr=1.0, max_iter=self.max_iter, tolerance_grad=1e-12, tolerance_change=1e-15,
-            history_size=50, line_search_fn="strong_wolfe",
-        )
-
-        def closure() -> torch.Tensor:
-            opt.zero_grad()
-            loss = self.negative_log_posterior()
-            loss.backward()
-            return loss
-
-        opt.step(closure)
 
     def _mean(self, x: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
         return self.phi(x, u)

@@ -83,15 +83,15 @@ def residuals(
     is_torch = [isinstance(a, torch.Tensor) for a in (x, u, x_next)]
     if any(is_torch) and not all(is_torch):
         raise ValueError("x: x, u and x_next must all be numpy arrays or all torch tensors")
-    x, u, x_next = real_array(x, "x"), real_array(u, "u"), real_array(x_next, "x_next")
-    if not all(is_torch):
-        x = np.asarray(x, dtype=np.float64)
-        u = np.asarray(u, dtype=np.float64)
-        x_next = np.asarray(x_next, dtype=np.float64)
+    arrays = []
     for name, val in (("x", x), ("u", u), ("x_next", x_next)):
+        val = real_array(val, name)
+        val = val if is_torch[0] else np.asarray(val, dtype=np.float64)
         if val.ndim < 1:
             raise ValueError(f"{name}: expected at least one dimension, got a scalar")
         check_finite(val, name)
+        arrays.append(val)
+    x, u, x_next = arrays
     if tuple(x.shape) != tuple(x_next.shape):
         raise ValueError(f"x_next: expected the shape of x {tuple(x.shape)}, got {tuple(x_next.shape)}")
     if tuple(u.shape[:-1]) != tuple(x.shape[:-1]):
