@@ -305,11 +305,8 @@ def expect(g: Callable[..., Any], centers: Any, offsets: Any, weights: Any, extr
     else:
         if extra.shape[0] != B:
             raise ValueError(f"extra: {extra.shape[0]} rows, but centers has {B}")
-        if isinstance(extra, torch.Tensor):
-            rep = extra.unsqueeze(0).expand(P, *extra.shape).reshape(P * B, -1)
-        else:
-            rep = np.broadcast_to(extra[None], (P, *extra.shape)).reshape(P * B, -1)
-        values = g(points, rep)
+        broadcast = torch.broadcast_to if isinstance(extra, torch.Tensor) else np.broadcast_to
+        values = g(points, broadcast(extra[None], (P, *extra.shape)).reshape(P * B, -1))
     if tuple(values.shape) != (P * B,):
         raise ValueError(f"g: expected output shape ({P * B},), got {tuple(values.shape)}")
     if weights.ndim == 2:

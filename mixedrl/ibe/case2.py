@@ -302,8 +302,7 @@ class UnknownCovarianceIBE(GaussianNoiseEstimate):
         nb = batch.shape[0]
         with PosteriorGuard("xi"):
             if nb == 1:
-                bmean = batch[0]
-                bscatter = None
+                bmean, bscatter = batch[0], None
             else:
                 shift = batch[0]
                 centred = batch - shift
@@ -317,14 +316,13 @@ class UnknownCovarianceIBE(GaussianNoiseEstimate):
             delta = bmean - self.data_mean
             data_mean = self.data_mean + delta * (nb / count)
             scatter = self.scatter + np.outer(delta, delta) * (na * nb / count)
-            if bscatter is not None:
-                # (outer(delta, delta) is exactly symmetric, so single updates keep symmetry bitwise)
-                scatter = symmetrize(scatter + bscatter)
             # The scatter stays PSD by construction under rank-1 merges (w >= 0 times delta delta^T), and so
             # does K_hat = scatter / N + d d^T; only a batch's own scatter needs the eigenvalue check.
+            # (outer(delta, delta) is exactly symmetric, so single updates keep symmetry bitwise)
             if bscatter is None:
                 check_posterior("xi", (data_mean, scatter))
             else:
+                scatter = symmetrize(scatter + bscatter)
                 check_posterior("xi", (data_mean,), (scatter,))
             mean, cov, it, ok = _solve_eq17(self.prior_mean, self.prior_cov, count, data_mean, scatter, self.max_iter,
                                             FIXED_POINT_RTOL)
