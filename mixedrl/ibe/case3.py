@@ -135,12 +135,10 @@ class StateDependentIBE(_StateDependentMean):
 
     Notes
     -----
-    * ``K^{+}`` is the pseudo-inverse on the support of ``K`` (:func:`mixedrl.expectation.support`): directions without
-      noise do not enter the likelihood, so ``phi`` there is set by the prior on ``w`` alone. The paper
-      gives no treatment; a full-rank ``K`` is the intended use.
-    * Every update refits on all data seen so far (warm-started from the current ``w``). The fit is
-      deterministic (no randomness); the user's module initialisation should be seeded.
-    * The paper's Case 3 leaves ``K`` unspecified; here it is known (as in Case 1).
+    ``K^{+}`` is the pseudo-inverse on the support of ``K`` (:func:`mixedrl.expectation.support`): noise-free
+    directions are set by the prior on ``w`` alone. ``K`` is known (the paper leaves Case 3's unspecified).
+    Every update refits on all data so far, warm-started from the current ``w`` (deterministic; seed the
+    module's initialisation); see ``docs/ibe.rst``, Case 3.
     """
 
     _KIND = "StateDependentIBE"
@@ -331,9 +329,8 @@ class LinearFeatureIBE(_StateDependentMean):
         \\quad \\text{(each support direction } v_i\\text{)}, \\qquad W v = W_0 v \\ \\text{(} v \\perp
         \\text{support)}.
 
-    The state is the sufficient statistics ``(N, G, S)`` (``O(p^2)`` memory), so an update costs the same
-    at the first and at the millionth residual; :class:`StateDependentIBE` (any ``phi``, refit by L-BFGS
-    on every residual kept so far) is the general form.
+    The state is the sufficient statistics ``(N, G, S)``, so an update costs the same at every residual;
+    :class:`StateDependentIBE` is the general form (``docs/ibe.rst``, Case 3).
 
     Parameters
     ----------
@@ -362,10 +359,8 @@ class LinearFeatureIBE(_StateDependentMean):
 
     Notes
     -----
-    As for :class:`StateDependentIBE`, ``K`` is known (the paper leaves Case 3's covariance unspecified)
-    and directions outside its support carry no likelihood: there ``W`` stays at the prior. Any split of
-    the data into batches gives the same ``W`` up to the rounding of ``G`` and ``S``. The solve is a
-    Cholesky factorisation of the SPD ``p x p`` matrix ``G + (lambda_i / sigma_w^2) I``.
+    As for :class:`StateDependentIBE`, ``K`` is known and ``W`` stays at the prior off its support. Any split
+    of the data into batches gives the same ``W`` up to the rounding of ``G`` and ``S``.
     """
 
     _KIND = "LinearFeatureIBE"

@@ -1,18 +1,10 @@
 """What the three Cases of the IBE share: the residuals of eq. (10) and the input and state checks.
 
-* :func:`~mixedrl.ibe.residuals`: eq. (10), ``xi_j = x_{j+1} - f(x_j, u_j)``, in noise coordinates
-  (the least-squares :func:`noise_coordinates`) for a full-column-rank ``E`` (:func:`check_noise_matrix`).
-* :func:`real_batch`, :func:`real_vector`, :func:`real_covariance`: the checks every estimator applies to
-  its arguments (real numbers only: complex, bool, string and object arrays are refused; finite; of the
-  right shape; at least one noise dimension).
-* :func:`PosteriorGuard` and :func:`check_posterior`: an update computes its candidate posterior
-  inside the guard (no floating-point warning escapes, a failed factorisation is a ``ValueError``) and
-  commits it only after :func:`check_posterior` has found it finite and symmetric PSD, so a rejected
-  update leaves the estimator as it was.
-* :func:`check_state`: validation of a ``state_dict`` against a key/shape specification.
-* :class:`ReadOnlyField`, :class:`ReadOnlyFields`: the estimators' public state, read-only (arrays as
-  read-only views; assignment refused);
-  :class:`GaussianNoiseEstimate`: the mixed-model noise ``N(mean, cov)`` of Cases 1 and 2 (eq. (20)).
+The residuals in noise coordinates (:func:`~mixedrl.ibe.residuals`, :func:`noise_coordinates`); the
+argument checks (:func:`real_batch`, :func:`real_vector`, :func:`real_covariance`); the guarded update
+(:func:`PosteriorGuard`, :func:`check_posterior`: a candidate posterior is committed only once found finite
+and symmetric PSD); :func:`check_state` for ``load_state_dict``; and the read-only public state
+(:class:`ReadOnlyField`, :class:`ReadOnlyFields`, :class:`GaussianNoiseEstimate`).
 """
 
 from __future__ import annotations
