@@ -217,14 +217,7 @@ class KnownCovarianceIBE(GaussianNoiseEstimate):
 
     def state_dict(self) -> dict[str, Any]:
         """Return a copy of the full state (plain floats, ints and ndarrays)."""
-        return {
-            "kind": self._KIND,
-            "prior_mean": self.prior_mean.copy(),
-            "prior_cov": self.prior_cov.copy(),
-            "noise_cov": self.noise_cov.copy(),
-            "count": self.count,
-            "total": self.total.copy(),
-        }
+        return self._state("prior_mean", "prior_cov", "noise_cov", "count", "total")
 
     def load_state_dict(self, state: dict[str, Any]) -> KnownCovarianceIBE:
         """Restore a state from :meth:`state_dict`; validate everything first.

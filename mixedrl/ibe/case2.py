@@ -355,20 +355,8 @@ class UnknownCovarianceIBE(GaussianNoiseEstimate):
 
     def state_dict(self) -> dict[str, Any]:
         """Return a copy of the full state (plain floats, ints, strs and ndarrays)."""
-        st: dict[str, Any] = {
-            "kind": self._KIND,
-            "recursion": self.recursion,
-            "max_iter": self.max_iter,
-            "prior_mean": self.prior_mean.copy(),
-            "prior_cov": self.prior_cov.copy(),
-            "count": self.count,
-        }
-        if self.recursion == "exact":
-            st["data_mean"] = self.data_mean.copy()
-            st["scatter"] = self.scatter.copy()
-        else:
-            st.update(psi=self.psi.copy(), total=self.total.copy(), mean=self.mean.copy(), cov=self.cov.copy())
-        return st
+        state = ("data_mean", "scatter") if self.recursion == "exact" else ("psi", "total", "mean", "cov")
+        return self._state("recursion", "max_iter", "prior_mean", "prior_cov", "count", *state)
 
     def load_state_dict(self, state: dict[str, Any]) -> UnknownCovarianceIBE:
         """Restore a state from :meth:`state_dict`; validate everything first.

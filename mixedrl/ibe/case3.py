@@ -257,11 +257,7 @@ class StateDependentIBE(_StateDependentMean):
     def state_dict(self) -> dict[str, Any]:
         """Return a copy of the full state: parameters, prior, data, covariance."""
         return {
-            "kind": self._KIND,
-            "noise_cov": self.noise_cov.copy(),
-            "prior_std": self.prior_std,
-            "max_iter": self.max_iter,
-            "count": self.count,
+            **self._state("noise_cov", "prior_std", "max_iter", "count"),
             "params": [p.detach().numpy().copy() for p in self.phi.parameters()],
             "prior_params": [p.numpy().copy() for p in self._prior_w],
             "x": self._x.numpy().copy(),
@@ -456,15 +452,7 @@ class LinearFeatureIBE(_StateDependentMean):
 
     def state_dict(self) -> dict[str, Any]:
         """Return a copy of the full state: prior, covariance, sufficient statistics (not the features)."""
-        return {
-            "kind": self._KIND,
-            "noise_cov": self.noise_cov.copy(),
-            "prior_std": self.prior_std,
-            "prior_weights": self.prior_weights.copy(),
-            "count": self.count,
-            "gram": self.gram.copy(),
-            "cross": self.cross.copy(),
-        }
+        return self._state("noise_cov", "prior_std", "prior_weights", "count", "gram", "cross")
 
     def load_state_dict(self, state: dict[str, Any]) -> LinearFeatureIBE:
         """Restore a state from :meth:`state_dict` (same features); validate everything first.

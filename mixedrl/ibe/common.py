@@ -347,6 +347,7 @@ class ReadOnlyFields:
     """
 
     _FIELDS: tuple[str, ...] = ()
+    _KIND: str
     #: A learning source (:class:`mixedrl.noise.NoiseSource`): the algorithms call ``update``.
     learns = True
 
@@ -373,6 +374,11 @@ class ReadOnlyFields:
                 value = value.view()
                 value.flags.writeable = False
             self.__dict__["_ro_" + name] = value
+
+    def _state(self, *names: str) -> dict[str, Any]:
+        """``{"kind": ..., name: value}`` of the fields ``names`` for ``state_dict`` (arrays copied)."""
+        values = {name: getattr(self, name) for name in names}
+        return {"kind": self._KIND, **{k: v.copy() if isinstance(v, np.ndarray) else v for k, v in values.items()}}
 
     @property
     def dim(self) -> int:
