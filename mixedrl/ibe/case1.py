@@ -232,10 +232,8 @@ class KnownCovarianceIBE(GaussianNoiseEstimate):
         n = self.dim
         spec = {"kind": "str", "prior_mean": (n,), "prior_cov": (n, n), "noise_cov": (n, n), "count": "int",
                 "total": (n,)}
-        st = check_state(state, spec, self._KIND)
-        prior_cov = real_covariance(st["prior_cov"], "state_dict: prior_cov", n)
-        noise_cov = real_covariance(st["noise_cov"], "state_dict: noise_cov", n)
-        new = KnownCovarianceIBE(st["prior_mean"], prior_cov, noise_cov)
+        st = check_state(state, spec, self._KIND, psd=("prior_cov", "noise_cov"))
+        new = KnownCovarianceIBE(st["prior_mean"], st["prior_cov"], st["noise_cov"])
         with PosteriorGuard("state_dict"):
             mean, mean_cov = new._posterior(st["count"], st["total"])
         check_posterior("state_dict", (mean, mean_cov))

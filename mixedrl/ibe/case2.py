@@ -379,14 +379,12 @@ class UnknownCovarianceIBE(GaussianNoiseEstimate):
             spec.update(data_mean=(n,), scatter=(n, n))
         else:
             spec.update(psi=(n, n), total=(n,), mean=(n,), cov=(n, n))
-        st = check_state(state, spec, self._KIND)
+        st = check_state(state, spec, self._KIND, psd=("prior_cov", "scatter", "psi", "cov"))
         check_positive_int(st["max_iter"], "state_dict: max_iter")
-        prior_cov = real_covariance(st["prior_cov"], "state_dict: prior_cov", n)
-        new = UnknownCovarianceIBE(st["prior_mean"], prior_cov, st["recursion"], st["max_iter"])
+        new = UnknownCovarianceIBE(st["prior_mean"], st["prior_cov"], st["recursion"], st["max_iter"])
         new._commit(count=st["count"])
         if new.recursion == "exact":
-            data_mean = st["data_mean"]
-            scatter = real_covariance(st["scatter"], "state_dict: scatter", n)
+            data_mean, scatter = st["data_mean"], st["scatter"]
             if new.count == 0 and (np.any(data_mean != 0) or np.any(scatter != 0)):
                 raise ValueError("state_dict: count is 0 but the statistics are not empty")
             new._commit(data_mean=data_mean, scatter=scatter)
@@ -398,12 +396,10 @@ class UnknownCovarianceIBE(GaussianNoiseEstimate):
                 check_posterior("state_dict", (mean,), (cov,))
                 new._commit(mean=mean, cov=cov, iterations=iterations, converged=converged, _mean_cov=None)
         else:
-            psi = real_covariance(st["psi"], "state_dict: psi", n)
-            cov = real_covariance(st["cov"], "state_dict: cov", n)
             with PosteriorGuard("state_dict"):
-                mean_cov = symmetrize(solve_psd(psi, np.eye(n)))
+                mean_cov = symmetrize(solve_psd(st["psi"], np.eye(n)))
             check_posterior("state_dict", (mean_cov,))
-            new._commit(psi=psi, cov=cov, total=st["total"], mean=st["mean"], _mean_cov=mean_cov)
+            new._commit(psi=st["psi"], cov=st["cov"], total=st["total"], mean=st["mean"], _mean_cov=mean_cov)
         self.__dict__.update(new.__dict__)
         return self
 

@@ -292,16 +292,15 @@ class StateDependentIBE(_StateDependentMean):
                 raise ValueError(f"state_dict: {key} must be a list of {len(shapes)} arrays")
             for i, (arr, shp) in enumerate(zip(val, shapes)):
                 spec[f"{key}.{i}"], flat[f"{key}.{i}"] = shp, arr
-        st = check_state(flat, spec, self._KIND)
-        noise_cov = real_covariance(st["noise_cov"], "state_dict: noise_cov", n)
+        st = check_state(flat, spec, self._KIND, psd=("noise_cov",))
         check_number(st["prior_std"], "state_dict: prior_std", positive=True)
         check_positive_int(st["max_iter"], "state_dict: max_iter")
-        whiten = _whitening(noise_cov)
+        whiten = _whitening(st["noise_cov"])
         with torch.no_grad():
             for i, p in enumerate(self.phi.parameters()):
                 p.copy_(torch.as_tensor(st[f"params.{i}"]))
         self._prior_w = [torch.as_tensor(st[f"prior_params.{i}"]).clone() for i in range(len(shapes))]
-        self._commit(noise_cov=noise_cov, prior_std=st["prior_std"], max_iter=st["max_iter"], count=st["count"])
+        self._commit(noise_cov=st["noise_cov"], prior_std=st["prior_std"], max_iter=st["max_iter"], count=st["count"])
         self._whiten = whiten
         self._x, self._u, self._xi = (torch.as_tensor(st[k]).clone() for k in ("x", "u", "xi"))
         return self
@@ -466,11 +465,10 @@ class LinearFeatureIBE(_StateDependentMean):
         p, n = self.prior_weights.shape
         spec = {"kind": "str", "noise_cov": (n, n), "prior_std": "float", "prior_weights": (p, n), "count": "int",
                 "gram": (p, p), "cross": (p, n)}
-        st = check_state(state, spec, self._KIND)
-        noise_cov = real_covariance(st["noise_cov"], "state_dict: noise_cov", n)
+        st = check_state(state, spec, self._KIND, psd=("noise_cov",))
         check_number(st["prior_std"], "state_dict: prior_std", positive=True)
-        real_covariance(st["gram"], "state_dict: gram", p)
-        new = LinearFeatureIBE(self.features, st["prior_weights"], noise_cov, self.state_dim, self.action_dim,
+        real_covariance(st["gram"], "state_dict: gram", p)  # checked, kept as saved
+        new = LinearFeatureIBE(self.features, st["prior_weights"], st["noise_cov"], self.state_dim, self.action_dim,
                                st["prior_std"])
         with PosteriorGuard("state_dict"):
             weights = new._solve(st["gram"], st["cross"])

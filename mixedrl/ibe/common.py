@@ -266,8 +266,9 @@ def PosteriorGuard(name: str) -> Iterator[None]:  # noqa: N802 (used as ``with P
 # ----------------------------------------------------------------------------------------------------
 # state dicts
 # ----------------------------------------------------------------------------------------------------
-def check_state(state: Any, spec: dict[str, Any], kind: str) -> dict[str, Any]:
-    """Validate a state dict against ``spec`` (key -> shape tuple | 'int' | 'float' | 'str')."""
+def check_state(state: Any, spec: dict[str, Any], kind: str, psd: Sequence[str] = ()) -> dict[str, Any]:
+    """Validate a state dict against ``spec`` (key -> shape tuple | 'int' | 'float' | 'str'); the keys ``psd``
+    (those in ``spec``) must be symmetric PSD matrices and are returned symmetrised (:func:`real_covariance`)."""
     if not isinstance(state, dict):
         raise ValueError(f"state_dict: expected a dict, got {type(state).__name__}")
     check_unknown_keys(state, set(spec), "state_dict")
@@ -300,6 +301,8 @@ def check_state(state: Any, spec: dict[str, Any], kind: str) -> dict[str, Any]:
             if not np.all(np.isfinite(arr)):
                 raise ValueError(f"state_dict: {key} contains NaN or inf")
             out[key] = arr
+    for key in (k for k in psd if k in out):
+        out[key] = real_covariance(out[key], f"state_dict: {key}", spec[key][0])
     return out
 
 
