@@ -138,8 +138,7 @@ def psd_factor(cov: np.ndarray) -> np.ndarray:
 
     Notes
     -----
-    ``A = V diag(sqrt(max(lambda, 0)))`` from ``eigh``; negative rounding eigenvalues are clipped to 0.
-    A Cholesky factor would fail on the rank-1 covariances of the vehicle task.
+    ``A = V diag(sqrt(max(lambda, 0)))`` from ``eigh`` (a Cholesky factor would fail on a rank-1 ``cov``).
     """
     lam, vec = np.linalg.eigh(cov)
     return vec * np.sqrt(np.clip(lam, 0.0, None))
@@ -247,19 +246,17 @@ def kl_divergence(
     lam0, _ = support(cov0, rtol)
     r = lam1.shape[0]
     delta = mean1 - mean0
-    mean_scale = float(np.max(np.abs(mean0)) + np.max(np.abs(mean1))) if d else 0.0
-    if lam0.shape[0] != r:
+    if lam0.shape[0] != r or (r == 0 and np.any(delta != 0.0)):
         return math.inf
     if r == 0:
-        return 0.0 if np.all(delta == 0.0) else math.inf
+        return 0.0
     # Components of Sigma0 and of the mean difference outside range(Sigma1).
     proj = u1 @ u1.T
-    off = cov0 - proj @ cov0 @ proj
+    off, off_mean = cov0 - proj @ cov0 @ proj, delta - proj @ delta
     top = max(float(lam1[-1]), float(np.max(np.abs(np.linalg.eigvalsh(cov0)))))
-    if np.max(np.abs(off)) > math.sqrt(rtol) * top:
-        return math.inf
-    off_mean = delta - proj @ delta
-    if np.max(np.abs(off_mean)) > math.sqrt(rtol) * (mean_scale + math.sqrt(top)):
+    mean_scale = float(np.max(np.abs(mean0)) + np.max(np.abs(mean1)))
+    if (np.max(np.abs(off)) > math.sqrt(rtol) * top
+            or np.max(np.abs(off_mean)) > math.sqrt(rtol) * (mean_scale + math.sqrt(top))):
         return math.inf
     s0 = u1.T @ cov0 @ u1  # (r, r)
     s0 = 0.5 * (s0 + s0.T)
