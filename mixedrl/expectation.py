@@ -1,28 +1,18 @@
 """Expectations over the mixed model's noise, ``E g(c + xi)``, ``xi ~ N(mu, K)``: one module for all.
 
-Algorithm 2 (eqs. 49 and 51), the exact checks of :mod:`theory` and the PSD linear algebra of
-:mod:`mixedrl.gaussian` all need the same three things, defined here once:
-
-* the **numerical support** of a covariance (:data:`SUPPORT_RTOL`, :func:`support`): the eigenpairs
-  ``(lambda_i, v_i)`` with ``lambda_i > SUPPORT_RTOL * lambda_max``; the rest is treated as 0;
-* the **nodes** of a quadrature rule on that support (:func:`quadrature_nodes` in numpy,
-  :func:`expectation_nodes` in torch): the ``2r`` spherical-cubature sigma points
-  (:class:`SigmaPoints`, exact for polynomials of degree <= 3) or the tensor Gauss-Hermite rule
-  (:class:`GaussHermite`, exact to degree ``2q - 1`` per coordinate);
-* ``h(x, u, xi)`` of **eq. (37)** (:func:`h`, the one implementation), for numpy arrays and torch
-  tensors alike, called by its task-level form :func:`h_value` (PEV, PIM and the MVC of Algorithm 2)
-  and by its noise-object form :func:`expected_cost_to_go` (the checks of :mod:`theory`).
-
-Because the noise is additive, ``f(x, u)`` is computed once per state and only the integrand is
-evaluated at the nodes: ``E g(f(x, u) + xi) ~= sum_i w_i g(f(x, u) + d_i)``. See ``docs/expectation.rst``
-for the choice of the cut-off and the error bound for dropped directions.
+Defined once here for Algorithm 2 (eqs. 49 and 51), the checks of :mod:`theory` and :mod:`mixedrl.gaussian`:
+the numerical support of a covariance (:data:`SUPPORT_RTOL`, :func:`support`), the nodes of a quadrature
+rule on it (:func:`quadrature_nodes` in numpy, :func:`expectation_nodes` in torch; :class:`SigmaPoints`,
+:class:`GaussHermite`), and ``h(x, u, xi)`` of eq. (37) (:func:`h`; :func:`h_value` for a task and a critic,
+:func:`expected_cost_to_go` for a noise object). ``docs/expectation.rst`` explains the cut-off, the rules
+and the error bound for dropped directions.
 """
 
 from __future__ import annotations
 
 import itertools
 from dataclasses import dataclass
-from typing import Any, Callable, Protocol
+from typing import Any, Callable
 
 import numpy as np
 import torch
@@ -33,9 +23,7 @@ __all__ = ["SUPPORT_RTOL", "support", "SigmaPoints", "GaussHermite", "quadrature
            "NodeCache", "expect", "weighted_sum", "gaussian_expectation", "h", "h_value", "expected_cost_to_go"]
 
 #: Relative eigenvalue floor that defines the numerical support (range, rank) of a PSD matrix:
-#: eigenvalues ``<= SUPPORT_RTOL * lambda_max`` count as 0. The one cut-off of the project (quadrature,
-#: pseudo-inverses, KL supports); ``1e-6`` puts the vehicle prior's ``1e-20`` entries (next to
-#: ``(4T/m)^2 = 1.8e-10``, ratio ``5.6e-11``) outside the support: the vehicle noise has rank 1.
+#: eigenvalues ``<= SUPPORT_RTOL * lambda_max`` count as 0 (the project's one cut-off; docs/expectation.rst).
 SUPPORT_RTOL = 1e-6
 
 
@@ -148,13 +136,12 @@ def quadrature_nodes(mean: np.ndarray, cov: np.ndarray, rule: Rule | None = None
         return centre.copy(), np.ones(1)
     if isinstance(rule, SigmaPoints):
         # xi_{+-i} = mu_hat +- sqrt(r lambda_i) v_i
-        spread = (vec * np.sqrt(r * lam)).T
-        if mean.ndim == 2:
-            spread = spread[:, None, :]
-        return np.concatenate([centre + spread, centre - spread], axis=0), np.full(2 * r, 1.0 / (2 * r))
-    z, w = rule.nodes(r)
-    # xi_j = mu_hat + V Lambda^{1/2} z_j
-    spread = z @ (vec * np.sqrt(lam)).T
+        half = (vec * np.sqrt(r * lam)).T
+        spread, w = np.concatenate([half, -half]), np.full(2 * r, 1.0 / (2 * r))
+    else:
+        z, w = rule.nodes(r)
+        # xi_j = mu_hat + V Lambda^{1/2} z_j
+        spread = z @ (vec * np.sqrt(lam)).T
     if mean.ndim == 2:
         spread = spread[:, None, :]
     return centre + spread, w
@@ -208,11 +195,8 @@ def expectation_nodes(mean: np.ndarray, cov: np.ndarray, noise_matrix: torch.Ten
 
     Notes
     -----
-    The sigma rule integrates every polynomial of degree <= 3 in ``xi`` exactly; here ``l`` is quadratic
-    in ``x'`` so the cost term is exact and only the critic's higher-order terms are approximated.
-    Directions with ``lambda_i <= SUPPORT_RTOL lambda_max`` are dropped (the vehicle prior's ``1e-20``
-    entries): the error this makes is at most ``sum(dropped lambda) * max|Hessian| / 2``. If
-    ``K_hat = 0`` the rule reduces to the single point ``mu_hat``.
+    The sigma rule is exact for polynomials of degree <= 3 in ``xi``. Directions off the support are
+    dropped (error bound in ``docs/expectation.rst``); if ``K_hat = 0`` the rule is the single point ``mu_hat``.
     """
     mean = np.asarray(mean, dtype=np.float64)
     cov = np.asarray(cov, dtype=np.float64)
@@ -232,20 +216,13 @@ def expectation_nodes(mean: np.ndarray, cov: np.ndarray, noise_matrix: torch.Ten
         if mean.ndim != 1:
             raise ValueError("mean: rule='samples' takes one mean of shape (noise_dim,)")
         lam, vec = np.linalg.eigh(cov)
-        lam = np.clip(lam, 0.0, None)
-        w = None
         eps = torch.randn(n_samples, n, generator=generator, dtype=torch.float64)
-        root = torch.as_tensor(vec * np.sqrt(lam), dtype=torch.float64)
+        root = torch.as_tensor(vec * np.sqrt(np.clip(lam, 0.0, None)), dtype=torch.float64)
         # xi = mu_hat + K_hat^{1/2} eps   (reparameterisation)
-        xi_t = torch.as_tensor(mean) + eps @ root.T
+        xi_t, w = torch.as_tensor(mean) + eps @ root.T, np.full(n_samples, 1.0 / n_samples)
     else:
         raise ValueError(f"rule: expected 'sigma', 'samples' or a quadrature rule, got {rule!r}")
-    offsets = (xi_t @ noise_matrix.to(torch.float64).T).to(dtype)
-    if isinstance(rule, GaussHermite):
-        weights = torch.as_tensor(w, dtype=dtype)
-    else:
-        weights = torch.full((offsets.shape[0],), 1.0 / offsets.shape[0], dtype=dtype)
-    return offsets, weights
+    return (xi_t @ noise_matrix.to(torch.float64).T).to(dtype), torch.as_tensor(w, dtype=dtype)
 
 
 class NodeCache:
@@ -328,11 +305,8 @@ def expect(g: Callable[..., Any], centers: Any, offsets: Any, weights: Any, extr
     else:
         if extra.shape[0] != B:
             raise ValueError(f"extra: {extra.shape[0]} rows, but centers has {B}")
-        if isinstance(extra, torch.Tensor):
-            rep = extra.unsqueeze(0).expand(P, *extra.shape).reshape(P * B, -1)
-        else:
-            rep = np.broadcast_to(extra[None], (P, *extra.shape)).reshape(P * B, -1)
-        values = g(points, rep)
+        broadcast = torch.broadcast_to if isinstance(extra, torch.Tensor) else np.broadcast_to
+        values = g(points, broadcast(extra[None], (P, *extra.shape)).reshape(P * B, -1))
     if tuple(values.shape) != (P * B,):
         raise ValueError(f"g: expected output shape ({P * B},), got {tuple(values.shape)}")
     if weights.ndim == 2:
@@ -392,11 +366,7 @@ def gaussian_expectation(
     K = check_covariance(cov, "cov", n)
     xi, w = quadrature_nodes(mu, K, rule)
     e = None if extra is None else np.asarray(extra, dtype=np.float64).reshape(c.shape[0], -1)
-
-    def values(x: np.ndarray, *rest: np.ndarray) -> np.ndarray:
-        return np.asarray(g(x, *rest), dtype=np.float64)
-
-    return expect(values, c, xi, w, e)
+    return expect(lambda *args: np.asarray(g(*args), dtype=np.float64), c, xi, w, e)
 
 
 def h(f: Callable[[Any, Any], Any], cost: Callable[[Any, Any], Any], value: Callable[[Any], Any], gamma: float,
@@ -449,17 +419,7 @@ def h(f: Callable[[Any, Any], Any], cost: Callable[[Any, Any], Any], value: Call
     return expect(target, centers, offsets, weights, u)
 
 
-class _ModelTask(Protocol):
-    gamma: float
-
-    def f(self, s: torch.Tensor, u: torch.Tensor) -> torch.Tensor: ...
-
-    def cost(self, s_next: torch.Tensor, u: torch.Tensor) -> torch.Tensor: ...
-
-    def observe(self, s: torch.Tensor) -> torch.Tensor: ...
-
-
-def h_value(task: _ModelTask, critic: torch.nn.Module, s: torch.Tensor, u: torch.Tensor, offsets: torch.Tensor,
+def h_value(task: Any, critic: torch.nn.Module, s: torch.Tensor, u: torch.Tensor, offsets: torch.Tensor,
             weights: torch.Tensor) -> torch.Tensor:
     """Implements eq. (37) for a task and a critic on observations: :func:`h` with ``V = critic o observe``.
 

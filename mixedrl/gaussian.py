@@ -1,19 +1,9 @@
 """Gaussian utilities shared by the IBE and the theory checks: sampling, KL divergence, PSD solves.
 
-Every function here accepts *singular* covariances, because they are the normal case in this project
-(the vehicle disturbance acts on one of five state components, so the true noise covariance has rank 1
-and the designer's prior has diagonal entries of ``1e-20``; EQUATIONS.md point 5).
-
-Conventions
------------
-* A covariance ``C`` of shape ``(n, n)`` is symmetric positive semi-definite (PSD).
-* Its *numerical support* is the span of the eigenvectors whose eigenvalues are ``> rtol * lambda_max``
-  with ``rtol = SUPPORT_RTOL`` (:data:`mixedrl.expectation.SUPPORT_RTOL`, the project's one cut-off,
-  :func:`mixedrl.expectation.support`). The paper's ``1e-20`` prior entries next to a
-  ``(4T/m)^2 = 1.8e-10`` entry (ratio ``5.6e-11``) lie outside it: the vehicle prior has rank 1.
-* :func:`solve_psd` first rescales the matrix to unit diagonal (Jacobi equilibration), so its accuracy
-  depends on the condition number of the *scaled* matrix only; badly scaled but diagonal-dominant
-  matrices such as ``diag(1.8e-10, 1e-20, ...)`` are solved exactly.
+Every function here accepts *singular* covariances, the normal case in this project (EQUATIONS.md point 5):
+the numerical support is :func:`mixedrl.expectation.support` (cut-off :data:`SUPPORT_RTOL`), and
+:func:`solve_psd` is the Jacobi-equilibrated Cholesky solve with a pseudo-inverse fall-back described in
+``docs/ibe.rst`` ("How inverses are computed, and why").
 """
 
 from __future__ import annotations
@@ -38,15 +28,6 @@ __all__ = ["SUPPORT_RTOL", "CHOLESKY_PIVOT_FLOOR", "solve_psd", "psd_solver", "p
 CHOLESKY_PIVOT_FLOOR = 1e-13
 
 
-def _pinv_solve_scaled(s_scaled: np.ndarray, b_scaled: np.ndarray, rtol: float) -> np.ndarray:
-    """``S^+ b`` for a symmetric PSD ``S`` on its support (:func:`mixedrl.expectation.support`)."""
-    lam, vec = support(s_scaled, rtol)
-    inv = 1.0 / lam
-    if b_scaled.ndim == 1:
-        return vec @ (inv * (vec.T @ b_scaled))
-    return vec @ (inv[:, None] * (vec.T @ b_scaled))
-
-
 def psd_solver(s: np.ndarray, rtol: float = SUPPORT_RTOL) -> Callable[[np.ndarray], np.ndarray]:
     """Factor a symmetric PSD ``S`` once and return ``b -> S^+ b`` (see :func:`solve_psd`).
 
@@ -61,36 +42,36 @@ def psd_solver(s: np.ndarray, rtol: float = SUPPORT_RTOL) -> Callable[[np.ndarra
         Maps ``b`` of shape (n,) or (n, m) to ``S^{-1} b`` (``S^+ b`` when singular).
     """
     diag = s.diagonal()
-    if diag.min() > 0.0:
-        inv_d = 1.0 / np.sqrt(diag)
-        col = inv_d[:, None]
-        scaled = s * inv_d * col
-        chol, info = _dpotrf(scaled, 1, 0)
-        if info == 0 and chol.diagonal().min() ** 2 >= CHOLESKY_PIVOT_FLOOR:
+    if diag.min() <= 0.0:
+        idx = np.flatnonzero(diag > 0.0)
+        sub = psd_solver(s[np.ix_(idx, idx)], rtol) if idx.size else None
 
-            def chol_solve(b: np.ndarray) -> np.ndarray:
-                if b.ndim == 1:
-                    return _dpotrs(chol, b * inv_d, 1)[0] * inv_d
-                return _dpotrs(chol, b * col, 1)[0] * col
+        def block_solve(b: np.ndarray) -> np.ndarray:
+            out = np.zeros(b.shape, dtype=np.float64)
+            if sub is not None:
+                out[idx] = sub(b[idx])
+            return out
 
-            return chol_solve
+        return block_solve
+    inv_d = 1.0 / np.sqrt(diag)
+    scaled = s * inv_d * inv_d[:, None]
+    chol, info = _dpotrf(scaled, 1, 0)
+    if info == 0 and chol.diagonal().min() ** 2 >= CHOLESKY_PIVOT_FLOOR:
 
-        def pinv_solve(b: np.ndarray) -> np.ndarray:
-            if b.ndim == 1:
-                return _pinv_solve_scaled(scaled, b * inv_d, rtol) * inv_d
-            return _pinv_solve_scaled(scaled, b * col, rtol) * col
+        def scaled_solve(b: np.ndarray) -> np.ndarray:
+            return _dpotrs(chol, b, 1)[0]
+    else:
+        lam, vec = support(scaled, rtol)
+        inv = 1.0 / lam
 
-        return pinv_solve
-    idx = np.flatnonzero(diag > 0.0)
-    sub = psd_solver(s[np.ix_(idx, idx)], rtol) if idx.size else None
+        def scaled_solve(b: np.ndarray) -> np.ndarray:
+            return vec @ (inv.reshape(-1, *(1,) * (b.ndim - 1)) * (vec.T @ b))
 
-    def block_solve(b: np.ndarray) -> np.ndarray:
-        out = np.zeros(b.shape, dtype=np.float64)
-        if sub is not None:
-            out[idx] = sub(b[idx])
-        return out
+    def solve(b: np.ndarray) -> np.ndarray:
+        d = inv_d if b.ndim == 1 else inv_d[:, None]
+        return scaled_solve(b * d) * d
 
-    return block_solve
+    return solve
 
 
 def solve_psd(s: np.ndarray, b: np.ndarray, rtol: float = SUPPORT_RTOL) -> np.ndarray:
@@ -118,16 +99,11 @@ def solve_psd(s: np.ndarray, b: np.ndarray, rtol: float = SUPPORT_RTOL) -> np.nd
 
     Notes
     -----
-    Method: (1) rows/columns with an exactly zero diagonal are zero in a PSD matrix; they are removed
-    and the solution is 0 there (pseudo-inverse). (2) Jacobi equilibration ``D S D`` with
-    ``D = diag(S)^{-1/2}`` (unit diagonal), so accuracy depends on the condition number of the scaled
-    matrix only. (3) Cholesky (LAPACK ``dpotrf``/``dpotrs``), accepted when every squared pivot is
-    ``>= CHOLESKY_PIVOT_FLOOR`` (for a unit-diagonal matrix the squared pivots lie in ``(0, 1]`` and
-    bound the smallest eigenvalue from above). (4) Otherwise the eigenvalue pseudo-inverse of
-    ``D S D`` with floor ``rtol``. ``S^g = D (D S D)^+ D`` is a reflexive generalised inverse
-    (``S S^g S = S``); it differs from the Moore-Penrose ``S^+`` only by components in ``null(S)``. The
-    IBE always multiplies the result by ``K_M`` or ``K``, which vanish on ``null(S) = null(K_M) & null(K)``
-    for ``S = N K_M + K``, so the choice of generalised inverse does not matter there.
+    Rows/columns with a zero diagonal get 0 in the solution; the rest is Jacobi-scaled (``D S D``,
+    ``D = diag(S)^{-1/2}``) and Cholesky-solved (LAPACK ``dpotrf``/``dpotrs``) if every squared pivot is
+    ``>= CHOLESKY_PIVOT_FLOOR``, else solved with the eigenvalue pseudo-inverse of ``D S D`` (floor ``rtol``).
+    ``S^g`` is a reflexive generalised inverse (``S S^g S = S``); the IBE multiplies it by ``K_M`` or ``K``,
+    which vanish on ``null(S)``, so there it acts as ``S^+``.
     """
     return psd_solver(s, rtol)(b)
 
@@ -162,8 +138,7 @@ def psd_factor(cov: np.ndarray) -> np.ndarray:
 
     Notes
     -----
-    ``A = V diag(sqrt(max(lambda, 0)))`` from ``eigh``; negative rounding eigenvalues are clipped to 0.
-    A Cholesky factor would fail on the rank-1 covariances of the vehicle task.
+    ``A = V diag(sqrt(max(lambda, 0)))`` from ``eigh`` (a Cholesky factor would fail on a rank-1 ``cov``).
     """
     lam, vec = np.linalg.eigh(cov)
     return vec * np.sqrt(np.clip(lam, 0.0, None))
@@ -271,19 +246,17 @@ def kl_divergence(
     lam0, _ = support(cov0, rtol)
     r = lam1.shape[0]
     delta = mean1 - mean0
-    mean_scale = float(np.max(np.abs(mean0)) + np.max(np.abs(mean1))) if d else 0.0
-    if lam0.shape[0] != r:
+    if lam0.shape[0] != r or (r == 0 and np.any(delta != 0.0)):
         return math.inf
     if r == 0:
-        return 0.0 if np.all(delta == 0.0) else math.inf
+        return 0.0
     # Components of Sigma0 and of the mean difference outside range(Sigma1).
     proj = u1 @ u1.T
-    off = cov0 - proj @ cov0 @ proj
+    off, off_mean = cov0 - proj @ cov0 @ proj, delta - proj @ delta
     top = max(float(lam1[-1]), float(np.max(np.abs(np.linalg.eigvalsh(cov0)))))
-    if np.max(np.abs(off)) > math.sqrt(rtol) * top:
-        return math.inf
-    off_mean = delta - proj @ delta
-    if np.max(np.abs(off_mean)) > math.sqrt(rtol) * (mean_scale + math.sqrt(top)):
+    mean_scale = float(np.max(np.abs(mean0)) + np.max(np.abs(mean1)))
+    if (np.max(np.abs(off)) > math.sqrt(rtol) * top
+            or np.max(np.abs(off_mean)) > math.sqrt(rtol) * (mean_scale + math.sqrt(top))):
         return math.inf
     s0 = u1.T @ cov0 @ u1  # (r, r)
     s0 = 0.5 * (s0 + s0.T)

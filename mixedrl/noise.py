@@ -165,7 +165,7 @@ class GaussianNoise:
         return self._cov.copy()
 
     def sample(self, n: int, generator: np.random.Generator | torch.Generator) -> np.ndarray | torch.Tensor:
-        """Draw ``n`` samples, shape (n, dim), from the given generator (see :func:`mixedrl.gaussian.sample_gaussian`)."""
+        """Draw ``n`` samples, shape (n, dim), from ``generator`` (:func:`mixedrl.gaussian.sample_gaussian`)."""
         return sample_gaussian(self._mean, self._cov, n, generator)
 
     def state_dict(self) -> dict[str, Any]:
@@ -235,7 +235,8 @@ class StateDependentGaussianNoise:
         with torch.no_grad():
             out = self.mean_fn(xt, ut).to(torch.float64)
         if tuple(out.shape) != (xt.shape[0], self._cov.shape[0]):
-            raise ValueError(f"mean_fn: returned shape {tuple(out.shape)}, expected ({xt.shape[0]}, {self._cov.shape[0]})")
+            raise ValueError(f"mean_fn: returned shape {tuple(out.shape)}, expected ({xt.shape[0]}, "
+                             f"{self._cov.shape[0]})")
         return out if as_tensor else out.numpy()
 
     def state_dict(self) -> dict[str, Any]:

@@ -3,9 +3,7 @@
 * :func:`~mixedrl.ibe.map_mean_known_cov`: the batch MAP mean, eq. (15).
 * :class:`~mixedrl.ibe.KnownCovarianceIBE`: the recursion, eq. (16), from the sufficient statistics ``(k, m_k)``.
 
-Both evaluate eq. (15) in the covariance (Kalman) form of the package docstring (:mod:`mixedrl.ibe`) with
-one function, ``_posterior_known_cov`` (the recursion uses a simultaneous diagonalisation of ``K_M`` and
-``K`` instead when ``K_M`` is numerically regular).
+Both evaluate eq. (15) in the covariance (Kalman) form of :mod:`mixedrl.ibe` (``_posterior_known_cov``).
 """
 
 from __future__ import annotations
@@ -47,7 +45,8 @@ def _posterior_known_cov(
     return prior_mean + prod[:, 0], symmetrize(prod[:, 1:])
 
 
-def _simultaneous_diag(prior_cov: np.ndarray, noise_cov: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+def _simultaneous_diag(prior_cov: np.ndarray,
+                       noise_cov: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
     """``G, G^{-1}, lam`` with ``K_M = G G^T`` and ``K = G diag(lam) G^T``, or ``None``.
 
     ``D = diag(K_M)^{-1/2}``, ``D K_M D = L L^T`` (Cholesky), ``L^{-1} D K D L^{-T} = V diag(lam) V^T``
@@ -159,18 +158,12 @@ class KnownCovarianceIBE(GaussianNoiseEstimate):
 
     Notes
     -----
-    ``Psi_k = K_M^{-1} + k K^{-1}`` depends on ``k`` only, so the state is ``(k, m_k)`` as in eq. (16),
-    and ``mu_hat_k`` and ``Psi_k^{-1}`` are evaluated in covariance form (module docstring), which needs
-    neither ``K^{-1}`` nor ``K_M^{-1}``. Any split of the data into batches gives eq. (15) up to the
-    rounding of ``m_k``. Because ``K_M`` and ``K`` are fixed, they are diagonalised simultaneously once
-    (``K_M = G G^T``, ``K = G diag(lambda) G^T``, from a Cholesky factor of the Jacobi-scaled ``K_M`` and
-    one ``eigh``), so that ``K_M (k K_M + K)^{-1} = G (k I + diag(lambda))^{-1} G^{-1}`` and an update costs
-    three ``n x n`` products and no factorisation. If ``K_M`` is numerically singular (squared Cholesky
-    pivot of the scaled ``K_M`` below ``1e-13``) each update instead solves ``k K_M + K`` with
-    :func:`mixedrl.gaussian.solve_psd` (pseudo-inverse on its null space: there the prior is kept).
-    An update is computed as a candidate and committed only if ``m_k`` and ``mu_hat_k`` are finite
-    (``Psi_k^{-1}`` depends on ``k`` alone and is finite and PSD by construction); otherwise it is
-    refused and the estimator keeps its state.
+    ``Psi_k = K_M^{-1} + k K^{-1}`` depends on ``k`` only, so the state is ``(k, m_k)`` as in eq. (16);
+    ``mu_hat_k`` and ``Psi_k^{-1}`` are evaluated in covariance form, with ``K_M`` and ``K`` diagonalised
+    simultaneously once (``_simultaneous_diag``) or, for a numerically singular ``K_M``, by
+    :func:`mixedrl.gaussian.solve_psd` at every update (``docs/ibe.rst``, "How inverses are computed").
+    Any split of the data into batches gives eq. (15) up to the rounding of ``m_k``. An update is
+    committed only if ``m_k`` and ``mu_hat_k`` are finite (``Psi_k^{-1}`` depends on ``k`` alone).
     """
 
     _KIND = "KnownCovarianceIBE"
@@ -199,16 +192,6 @@ class KnownCovarianceIBE(GaussianNoiseEstimate):
         mean_cov = (g * (lam / (count + lam))) @ g.T
         return mean, mean_cov
 
-    @property
-    def dim(self) -> int:
-        """Dimension ``n`` of the noise."""
-        return self.prior_mean.shape[0]
-
-    @property
-    def cov(self) -> np.ndarray:
-        """Noise covariance used by the mixed model (eq. (20)): here the known ``K``, shape (n, n)."""
-        return self.noise_cov
-
     def update(self, xi: Any) -> KnownCovarianceIBE:
         """Implements eq. (16) for one residual ``(n,)`` or a batch ``(N, n)``; returns ``self``.
 
@@ -218,7 +201,7 @@ class KnownCovarianceIBE(GaussianNoiseEstimate):
             ``xi`` of wrong shape, not real numbers, with NaN/inf, or so large that ``m_k`` or the mean
             would overflow; the estimator is then left unchanged.
         """
-        batch = real_batch(xi, "xi", self.prior_mean.shape[0])
+        batch = real_batch(xi, "xi", self.dim)
         nb = batch.shape[0]
         if nb == 0:
             return self
@@ -234,14 +217,7 @@ class KnownCovarianceIBE(GaussianNoiseEstimate):
 
     def state_dict(self) -> dict[str, Any]:
         """Return a copy of the full state (plain floats, ints and ndarrays)."""
-        return {
-            "kind": self._KIND,
-            "prior_mean": self.prior_mean.copy(),
-            "prior_cov": self.prior_cov.copy(),
-            "noise_cov": self.noise_cov.copy(),
-            "count": self.count,
-            "total": self.total.copy(),
-        }
+        return self._state("prior_mean", "prior_cov", "noise_cov", "count", "total")
 
     def load_state_dict(self, state: dict[str, Any]) -> KnownCovarianceIBE:
         """Restore a state from :meth:`state_dict`; validate everything first.
@@ -254,11 +230,10 @@ class KnownCovarianceIBE(GaussianNoiseEstimate):
             is then left unchanged.
         """
         n = self.dim
-        spec = {"kind": "str", "prior_mean": (n,), "prior_cov": (n, n), "noise_cov": (n, n), "count": "int", "total": (n,)}
-        st = check_state(state, spec, self._KIND)
-        prior_cov = real_covariance(st["prior_cov"], "state_dict: prior_cov", n)
-        noise_cov = real_covariance(st["noise_cov"], "state_dict: noise_cov", n)
-        new = KnownCovarianceIBE(st["prior_mean"], prior_cov, noise_cov)
+        spec = {"kind": "str", "prior_mean": (n,), "prior_cov": (n, n), "noise_cov": (n, n), "count": "int",
+                "total": (n,)}
+        st = check_state(state, spec, self._KIND, psd=("prior_cov", "noise_cov"))
+        new = KnownCovarianceIBE(st["prior_mean"], st["prior_cov"], st["noise_cov"])
         with PosteriorGuard("state_dict"):
             mean, mean_cov = new._posterior(st["count"], st["total"])
         check_posterior("state_dict", (mean, mean_cov))

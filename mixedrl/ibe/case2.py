@@ -45,7 +45,6 @@ def _solve_eq17(
     scatter: np.ndarray,
     max_iter: int,
     rtol: float,
-    prior_scale: float | None = None,
 ) -> tuple[np.ndarray, np.ndarray, int, bool]:
     """Implements eq. (17): the Case 2 fixed point from the sufficient statistics of ``N`` residuals.
 
@@ -72,8 +71,6 @@ def _solve_eq17(
         Centred scatter ``sum_j (xi_j - xbar)(xi_j - xbar)^T``.
     max_iter, rtol
         Iteration cap and relative stopping tolerance (see :func:`map_mean_cov`).
-    prior_scale : float or None
-        The prior's part of the tolerance scale, if the caller caches it.
 
     Returns
     -------
@@ -84,17 +81,16 @@ def _solve_eq17(
 
     Notes
     -----
-    Starts from the data, ``mu_0 = xbar`` (``K_0 = C``, the maximum-likelihood covariance), and alternates
-    the two lines. With ``C = scatter / N`` and ``d = xbar - mu`` the covariance line is
-    ``K(mu) = C + d d^T``, and the mean line is evaluated in covariance form
-    ``mu_M + N K_M (N K_M + K_hat)^{-1} (xbar - mu_M)`` (no inverse of the possibly singular ``K_hat``),
-    by a rank-1 (Sherman-Morrison) update of the Cholesky-solved ``S_0 = N K_M + C``. Stops early, not
-    converged, when an iterate is not finite (the caller's :func:`~mixedrl.ibe.common.check_posterior` then
-    refuses the result).
+    Starts from ``mu_0 = xbar`` and alternates the two lines; with ``C = scatter / N`` and ``d = xbar - mu``
+    the covariance line is ``K(mu) = C + d d^T`` and the mean line ``mu_M + N K_M (N K_M + K_hat)^{-1}
+    (xbar - mu_M)`` is a rank-1 (Sherman-Morrison) update of the solve of ``S_0 = N K_M + C``. Stops,
+    not converged, at a non-finite iterate (the caller's ``check_posterior`` refuses it).
     """
     c = scatter / count
     r = xbar - prior_mean
-    scale = _fp_scale(prior_mean, prior_cov, xbar, c, prior_scale)
+    prior_scale = float(np.abs(prior_mean).max()) + math.sqrt(float(prior_cov.diagonal().max()))
+    scale = float(np.abs(xbar).max()) + math.sqrt(max(float(c.diagonal().max()), 0.0)) + prior_scale
+    scale = scale if scale > 0.0 else 1.0
     solve = psd_solver(count * prior_cov + c)  # S_0 = N K_M + C, factored once per update
     a = solve(r)
     nkm = count * prior_cov
@@ -123,28 +119,6 @@ def _solve_eq17(
             break
     k_hat = c + np.outer(d, d)
     return mu, k_hat, it, converged
-
-
-def _mean_cov_case2(prior_cov: np.ndarray, count: int, k_hat: np.ndarray) -> np.ndarray:
-    """``Psi^{-1} = (K_M^-1 + N K_hat^-1)^-1 = K_M (N K_M + K_hat)^-1 K_hat`` (covariance form)."""
-    if count == 0:
-        return prior_cov.copy()
-    return symmetrize(prior_cov @ solve_psd(count * prior_cov + k_hat, k_hat))
-
-
-def _prior_scale(prior_mean: np.ndarray, prior_cov: np.ndarray) -> float:
-    """The prior's part of the fixed-point tolerance scale (constant for an estimator)."""
-    return float(np.abs(prior_mean).max()) + math.sqrt(float(prior_cov.diagonal().max()))
-
-
-def _fp_scale(
-    prior_mean: np.ndarray, prior_cov: np.ndarray, xbar: np.ndarray, c: np.ndarray, prior_scale: float | None = None
-) -> float:
-    if prior_scale is None:
-        prior_scale = _prior_scale(prior_mean, prior_cov)
-    scale = float(np.abs(xbar).max()) + math.sqrt(max(float(c.diagonal().max()), 0.0)) + prior_scale
-    return scale if scale > 0.0 else 1.0
-
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -191,19 +165,11 @@ def map_mean_cov(
 
     Notes
     -----
-    * Eq. (17) couples ``mu_hat`` and ``K_hat`` (EQUATIONS.md point 2). It is solved by alternating its
-      two lines (block-coordinate descent on the negative log posterior, so the objective never
-      increases), **starting from the data**: ``mu_0 = xbar``, ``K_0 = C`` (the maximum-likelihood
-      estimate). When a confident prior disagrees with few data, eq. (17) can have several fixed points
-      (the cubic ``(e - d)(c + d^2) = N k d`` in the scalar case); the start from the data selects the
-      one closest to the data, and the recursive :class:`UnknownCovarianceIBE` uses the same start, so
-      both agree after every update.
-    * The fixed point itself is ``_solve_eq17``, shared with the recursion; this batch form computes
-      the statistics ``xbar`` and the centred scatter directly from all residuals (the recursion merges
-      them update by update), and the mean line is evaluated in covariance form (no inverse of the
-      possibly singular ``K_hat``).
-    * With ``N = 1`` the maximum-likelihood covariance is 0 and eq. (17) gives ``mu_hat = xi_1``,
-      ``K_hat = 0`` (the degenerate but literal answer).
+    Eq. (17) couples ``mu_hat`` and ``K_hat`` (EQUATIONS.md point 2); ``_solve_eq17`` alternates its two
+    lines **starting from the data** (``mu_0 = xbar``, ``K_0 = C``), which selects the fixed point closest
+    to the data where eq. (17) has several (``docs/ibe.rst``, "Solving the fixed point"). The recursive
+    :class:`UnknownCovarianceIBE` uses the same start, so both agree after every update. With ``N = 1``
+    eq. (17) gives ``mu_hat = xi_1``, ``K_hat = 0`` (the degenerate but literal answer).
     """
     mu_m = real_vector(prior_mean, "prior_mean")
     n = mu_m.shape[0]
@@ -268,26 +234,17 @@ class UnknownCovarianceIBE(GaussianNoiseEstimate):
 
     Notes
     -----
-    * ``"exact"`` keeps the sufficient statistics ``N``, ``xbar`` and the centred scatter
-      ``sum (xi - xbar)(xi - xbar)^T`` (merged with Chan's parallel formula instead of raw
-      ``sum xi xi^T``, which loses ``(|mean|/std)^2`` digits to cancellation), and re-solves the eq. (17)
-      fixed point after every update with the same start as :func:`map_mean_cov` (the data:
-      ``mu_0 = xbar``), so that it equals the batch eq. (17) on all data so far even where eq. (17) has
-      several fixed points. It is *not* warm-started from the previous estimate: a warm start would
-      follow whichever branch it was on (hysteresis) and could differ from the batch answer. Each
-      iteration costs one triangular solve (rank-1 Sherman-Morrison update of the Cholesky-factored
-      ``N K_M + C``). Departure from the paper: eq. (18) is not used (EQUATIONS.md point 3).
-    * ``"paper"`` is eq. (18) literally, initialised as Algorithm 1 (``mu_hat_0 = mu_M``,
-      ``K_hat_0 = K_M``, ``Psi_0 = K_M^{-1}``; EQUATIONS.md point 4: this uses the prior covariance of
-      the mean as a noise covariance). After one sample ``K_hat_1`` has rank 1, so ``K_hat_{k-1}^{-1}``
-      and ``K_M^{-1}`` are **pseudo-inverses** (eigenvalues below ``SUPPORT_RTOL`` times the largest are
-      dropped, :data:`mixedrl.expectation.SUPPORT_RTOL`; i.e. directions without observed spread carry no data precision), and ``Psi_k`` is
-      solved with :func:`mixedrl.gaussian.solve_psd`. Batches are processed one residual at a time.
-    * Either way an update is computed as a candidate and committed only if it is finite and ``K_hat``
-      (and, for ``"paper"``, ``Psi_k``) is symmetric PSD; otherwise it is refused with the state kept.
-      In ``"exact"`` mode the eigenvalue check is made on a batch's merged scatter: a single residual
-      adds a rank-1 PSD term, so the scatter and ``K_hat = scatter / N + d d^T`` stay PSD by
-      construction and only their finiteness is checked.
+    * ``"exact"`` keeps the sufficient statistics ``N``, ``xbar`` and the centred scatter (merged with Chan's
+      parallel formula) and re-solves eq. (17) after every update from the same start as
+      :func:`map_mean_cov` (not warm-started), so it equals the batch eq. (17) on all data so far.
+      Departure from the paper: eq. (18) is not used (EQUATIONS.md point 3).
+    * ``"paper"`` is eq. (18) literally, initialised as Algorithm 1 (``mu_hat_0 = mu_M``, ``K_hat_0 = K_M``,
+      ``Psi_0 = K_M^{-1}``; EQUATIONS.md point 4), with pseudo-inverses of ``K_hat_{k-1}`` and ``K_M``
+      (:func:`mixedrl.gaussian.pinv_psd`, floor :data:`mixedrl.expectation.SUPPORT_RTOL`); batches are
+      processed one residual at a time.
+    * ``docs/ibe.rst`` (Case 2) gives the details. Either way an update is committed only if it is finite
+      and ``K_hat`` (and ``Psi_k``) symmetric PSD; a single residual adds a rank-1 PSD term to the scatter,
+      so only a batch's merged scatter gets the eigenvalue check.
     """
 
     _KIND = "UnknownCovarianceIBE"
@@ -296,28 +253,19 @@ class UnknownCovarianceIBE(GaussianNoiseEstimate):
     _FIELDS = ("cov", "_mean_cov", "recursion", "max_iter", "iterations", "converged", "data_mean", "scatter", "psi",
                "total")
 
-    def __init__(self, prior_mean: Any, prior_cov: Any, recursion: str = "exact", max_iter: int = FIXED_POINT_MAX_ITER) -> None:
+    def __init__(self, prior_mean: Any, prior_cov: Any, recursion: str = "exact",
+                 max_iter: int = FIXED_POINT_MAX_ITER) -> None:
         prior_mean = real_vector(prior_mean, "prior_mean")
         prior_cov = real_covariance(prior_cov, "prior_cov", prior_mean.shape[0])
         if recursion not in self._RECURSIONS:
             raise ValueError(f"recursion: expected one of {self._RECURSIONS}, got {recursion!r}")
-        self._commit(prior_mean=prior_mean, prior_cov=prior_cov, recursion=recursion,
-                     max_iter=check_positive_int(max_iter, "max_iter"))
-        self._reset()
-
-    def _reset(self) -> None:
-        n = self.dim
-        self._prior_scale: float | None = None  # cached part of the fixed-point tolerance
-        self._prior_prec = pinv_psd(self.prior_cov)
+        n = prior_mean.shape[0]
+        self._prior_prec = pinv_psd(prior_cov)
         # K_hat_0 = K_M (Algorithm 1); exact: sufficient statistics; paper: eq. (18) state
-        self._commit(count=0, mean=self.prior_mean.copy(), cov=self.prior_cov.copy(), _mean_cov=self.prior_cov.copy(),
-                     iterations=0, converged=True, data_mean=np.zeros(n), scatter=np.zeros((n, n)),
-                     psi=self._prior_prec.copy(), total=np.zeros(n))
-
-    @property
-    def dim(self) -> int:
-        """Dimension ``n`` of the noise."""
-        return self.prior_mean.shape[0]
+        self._commit(prior_mean=prior_mean, prior_cov=prior_cov, recursion=recursion,
+                     max_iter=check_positive_int(max_iter, "max_iter"), count=0, mean=prior_mean.copy(),
+                     cov=prior_cov.copy(), _mean_cov=prior_cov.copy(), iterations=0, converged=True,
+                     data_mean=np.zeros(n), scatter=np.zeros((n, n)), psi=self._prior_prec.copy(), total=np.zeros(n))
 
     @property
     def mean_cov(self) -> np.ndarray:
@@ -327,7 +275,9 @@ class UnknownCovarianceIBE(GaussianNoiseEstimate):
         ``K_M (N K_M + K_hat)^{-1} K_hat``), so updates do not pay for it.
         """
         if self._mean_cov is None:
-            self._commit(_mean_cov=_mean_cov_case2(self.prior_cov, self.count, self.cov))
+            # Psi^{-1} = (K_M^-1 + N K_hat^-1)^-1 = K_M (N K_M + K_hat)^-1 K_hat
+            solved = solve_psd(self.count * self.prior_cov + self.cov, self.cov)
+            self._commit(_mean_cov=symmetrize(self.prior_cov @ solved))
         return self._mean_cov
 
     def update(self, xi: Any) -> UnknownCovarianceIBE:
@@ -350,12 +300,9 @@ class UnknownCovarianceIBE(GaussianNoiseEstimate):
 
     def _update_exact(self, batch: np.ndarray) -> None:
         nb = batch.shape[0]
-        if self._prior_scale is None:
-            self._prior_scale = _prior_scale(self.prior_mean, self.prior_cov)
         with PosteriorGuard("xi"):
             if nb == 1:
-                bmean = batch[0]
-                bscatter = None
+                bmean, bscatter = batch[0], None
             else:
                 shift = batch[0]
                 centred = batch - shift
@@ -369,18 +316,16 @@ class UnknownCovarianceIBE(GaussianNoiseEstimate):
             delta = bmean - self.data_mean
             data_mean = self.data_mean + delta * (nb / count)
             scatter = self.scatter + np.outer(delta, delta) * (na * nb / count)
-            if bscatter is not None:
-                # (outer(delta, delta) is exactly symmetric, so single updates keep symmetry bitwise)
-                scatter = symmetrize(scatter + bscatter)
             # The scatter stays PSD by construction under rank-1 merges (w >= 0 times delta delta^T), and so
             # does K_hat = scatter / N + d d^T; only a batch's own scatter needs the eigenvalue check.
+            # (outer(delta, delta) is exactly symmetric, so single updates keep symmetry bitwise)
             if bscatter is None:
                 check_posterior("xi", (data_mean, scatter))
             else:
+                scatter = symmetrize(scatter + bscatter)
                 check_posterior("xi", (data_mean,), (scatter,))
-            mean, cov, it, ok = _solve_eq17(
-                self.prior_mean, self.prior_cov, count, data_mean, scatter, self.max_iter, FIXED_POINT_RTOL, self._prior_scale
-            )
+            mean, cov, it, ok = _solve_eq17(self.prior_mean, self.prior_cov, count, data_mean, scatter, self.max_iter,
+                                            FIXED_POINT_RTOL)
         check_posterior("xi", (mean, cov))
         if not ok:
             logger.warning("UnknownCovarianceIBE: eq. (17) fixed point not converged after %d iterations", it)
@@ -410,20 +355,8 @@ class UnknownCovarianceIBE(GaussianNoiseEstimate):
 
     def state_dict(self) -> dict[str, Any]:
         """Return a copy of the full state (plain floats, ints, strs and ndarrays)."""
-        st: dict[str, Any] = {
-            "kind": self._KIND,
-            "recursion": self.recursion,
-            "max_iter": self.max_iter,
-            "prior_mean": self.prior_mean.copy(),
-            "prior_cov": self.prior_cov.copy(),
-            "count": self.count,
-        }
-        if self.recursion == "exact":
-            st["data_mean"] = self.data_mean.copy()
-            st["scatter"] = self.scatter.copy()
-        else:
-            st.update(psi=self.psi.copy(), total=self.total.copy(), mean=self.mean.copy(), cov=self.cov.copy())
-        return st
+        state = ("data_mean", "scatter") if self.recursion == "exact" else ("psi", "total", "mean", "cov")
+        return self._state("recursion", "max_iter", "prior_mean", "prior_cov", "count", *state)
 
     def load_state_dict(self, state: dict[str, Any]) -> UnknownCovarianceIBE:
         """Restore a state from :meth:`state_dict`; validate everything first.
@@ -440,23 +373,18 @@ class UnknownCovarianceIBE(GaussianNoiseEstimate):
             raise ValueError(f"state_dict: expected a dict, got {type(state).__name__}")
         if state.get("recursion") not in self._RECURSIONS:
             raise ValueError(f"state_dict: recursion must be one of {self._RECURSIONS}, got {state.get('recursion')!r}")
-        spec: dict[str, Any] = {
-            "kind": "str", "recursion": "str", "max_iter": "int", "prior_mean": (n,), "prior_cov": (n, n), "count": "int",
-        }
+        spec: dict[str, Any] = {"kind": "str", "recursion": "str", "max_iter": "int", "prior_mean": (n,),
+                                "prior_cov": (n, n), "count": "int"}
         if state["recursion"] == "exact":
             spec.update(data_mean=(n,), scatter=(n, n))
         else:
             spec.update(psi=(n, n), total=(n,), mean=(n,), cov=(n, n))
-        st = check_state(state, spec, self._KIND)
+        st = check_state(state, spec, self._KIND, psd=("prior_cov", "scatter", "psi", "cov"))
         check_positive_int(st["max_iter"], "state_dict: max_iter")
-        prior_cov = real_covariance(st["prior_cov"], "state_dict: prior_cov", n)
-        new = UnknownCovarianceIBE.__new__(UnknownCovarianceIBE)
-        new._commit(prior_mean=st["prior_mean"], prior_cov=prior_cov, recursion=st["recursion"], max_iter=st["max_iter"])
-        new._reset()
+        new = UnknownCovarianceIBE(st["prior_mean"], st["prior_cov"], st["recursion"], st["max_iter"])
         new._commit(count=st["count"])
         if new.recursion == "exact":
-            data_mean = st["data_mean"]
-            scatter = real_covariance(st["scatter"], "state_dict: scatter", n)
+            data_mean, scatter = st["data_mean"], st["scatter"]
             if new.count == 0 and (np.any(data_mean != 0) or np.any(scatter != 0)):
                 raise ValueError("state_dict: count is 0 but the statistics are not empty")
             new._commit(data_mean=data_mean, scatter=scatter)
@@ -468,12 +396,10 @@ class UnknownCovarianceIBE(GaussianNoiseEstimate):
                 check_posterior("state_dict", (mean,), (cov,))
                 new._commit(mean=mean, cov=cov, iterations=iterations, converged=converged, _mean_cov=None)
         else:
-            psi = real_covariance(st["psi"], "state_dict: psi", n)
-            cov = real_covariance(st["cov"], "state_dict: cov", n)
             with PosteriorGuard("state_dict"):
-                mean_cov = symmetrize(solve_psd(psi, np.eye(n)))
+                mean_cov = symmetrize(solve_psd(st["psi"], np.eye(n)))
             check_posterior("state_dict", (mean_cov,))
-            new._commit(psi=psi, cov=cov, total=st["total"], mean=st["mean"], _mean_cov=mean_cov)
+            new._commit(psi=st["psi"], cov=st["cov"], total=st["total"], mean=st["mean"], _mean_cov=mean_cov)
         self.__dict__.update(new.__dict__)
         return self
 

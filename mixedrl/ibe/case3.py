@@ -16,7 +16,8 @@ from typing import Any
 import numpy as np
 import torch
 
-from mixedrl.checks import as_vector, check_finite, check_nonnegative_int, check_number, check_positive_int, check_unknown_keys
+from mixedrl.checks import (as_vector, check_finite, check_nonnegative_int, check_number, check_positive_int,
+                            check_unknown_keys)
 from mixedrl.expectation import support
 from mixedrl.gaussian import sample_gaussian
 from mixedrl.ibe.common import (
@@ -33,7 +34,70 @@ from mixedrl.ibe.common import (
 __all__ = ["StateDependentIBE", "LinearFeatureIBE"]
 
 
-class StateDependentIBE(ReadOnlyFields):
+def _whitening(noise_cov: np.ndarray) -> torch.Tensor:
+    """``W`` with ``W W^T = K^+`` on the support of ``K``, so that ``r^T K^+ r = |r W|^2``."""
+    lam, vec = support(noise_cov)
+    return torch.as_tensor(vec / np.sqrt(lam))
+
+
+class _StateDependentMean(ReadOnlyFields):
+    """What the two Case 3 estimators share: a known ``K`` and a mean ``mean_at(x, u)`` of batches ``(x, u)``."""
+
+    #: The mean is ``mean_at(x, u)``: Algorithm 2 plans with per-state nodes.
+    state_dependent = True
+
+    def _probe(self, fn: Callable[[torch.Tensor, torch.Tensor], torch.Tensor]) -> torch.Tensor:
+        """``fn`` at one zero state and action (to check the shape of its output)."""
+        with torch.no_grad():
+            return fn(torch.zeros((1, self.state_dim), dtype=torch.float64),
+                      torch.zeros((1, self.action_dim), dtype=torch.float64))
+
+    @staticmethod
+    def _batch(value: Any, name: str, dim: int) -> torch.Tensor:
+        """One sample or a batch of real numbers as a float64 ``(N, dim)`` tensor (a copy)."""
+        return torch.as_tensor(real_batch(value.detach() if isinstance(value, torch.Tensor) else value, name, dim,
+                                          copy=True))
+
+    def _inputs(self, x: Any, u: Any, xi: Any | None = None) -> tuple[torch.Tensor, ...]:
+        """``x``, ``u`` (and ``xi``) as float64 ``(N, .)`` tensors; ``ValueError`` naming one whose rows differ
+        from ``x``'s."""
+        out = [self._batch(x, "x", self.state_dim), self._batch(u, "u", self.action_dim)]
+        if xi is not None:
+            out.append(self._batch(xi, "xi", self.dim))
+        for name, t in zip(("u", "xi"), out[1:]):
+            if t.shape[0] != out[0].shape[0]:
+                raise ValueError(f"{name}: {t.shape[0]} rows, but x has {out[0].shape[0]}")
+        return tuple(out)
+
+    def _mean(self, x: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+        raise NotImplementedError
+
+    def mean_at(self, x: Any, u: Any) -> np.ndarray | torch.Tensor:
+        """The posterior mean ``phi(x, u; w_hat)`` (``phi(x, u; w_0)``, the prior, before any data).
+
+        Parameters
+        ----------
+        x : array_like or Tensor, shape (B, n_x) or (n_x,)
+        u : array_like or Tensor, shape (B, n_u) or (n_u,)
+
+        Returns
+        -------
+        ndarray or Tensor, shape (B, n) or (n,)
+            A float64 tensor if ``x`` is a tensor, else an ndarray.
+
+        Raises
+        ------
+        ValueError
+            Wrong shapes or NaN/inf.
+        """
+        xb, ub = self._inputs(x, u)
+        with torch.no_grad():
+            out = self._mean(xb, ub)
+        out = out[0] if np.ndim(x) == 1 else out
+        return out.clone() if isinstance(x, torch.Tensor) else out.numpy().copy()
+
+
+class StateDependentIBE(_StateDependentMean):
     """Implements eq. (19): Case 3 IBE with a state-dependent mean ``mu = phi(x, u; w)``.
 
     .. math::
@@ -71,20 +135,13 @@ class StateDependentIBE(ReadOnlyFields):
 
     Notes
     -----
-    * ``K^{+}`` is the pseudo-inverse on the support of ``K`` (:func:`mixedrl.expectation.support`): directions without
-      noise do not enter the likelihood, so ``phi`` there is set by the prior on ``w`` alone. The paper
-      gives no treatment; a full-rank ``K`` is the intended use.
-    * Every update refits on all data seen so far (warm-started from the current ``w``). The fit is
-      deterministic (no randomness); the user's module initialisation should be seeded.
-    * The paper's Case 3 leaves ``K`` unspecified; here it is known (as in Case 1).
+    ``K^{+}`` is the pseudo-inverse on the support of ``K`` (:func:`mixedrl.expectation.support`): noise-free
+    directions are set by the prior on ``w`` alone. ``K`` is known (the paper leaves Case 3's unspecified).
+    Every update refits on all data so far, warm-started from the current ``w`` (deterministic; seed the
+    module's initialisation); see ``docs/ibe.rst``, Case 3.
     """
 
     _KIND = "StateDependentIBE"
-    #: A learning source (:class:`mixedrl.noise.StateDependentNoiseSource`).
-    learns = True
-    #: The mean is ``mean_at(x, u)``: Algorithm 2 plans with per-state nodes.
-    state_dependent = True
-
     _FIELDS = ("phi", "state_dim", "action_dim", "prior_std", "max_iter")
 
     def __init__(
@@ -104,26 +161,12 @@ class StateDependentIBE(ReadOnlyFields):
                      prior_std=check_number(prior_std, "prior_std", positive=True),
                      max_iter=check_positive_int(max_iter, "max_iter"), phi=phi.double(), count=0)
         self._prior_w = [p.detach().clone() for p in self.phi.parameters()]
-        lam, vec = support(self.noise_cov)
-        # whitening W with W W^T = K^+ : r^T K^+ r = |r W|^2
-        self._whiten = torch.as_tensor(vec / np.sqrt(lam))
-        self._x = torch.zeros((0, self.state_dim), dtype=torch.float64)
-        self._u = torch.zeros((0, self.action_dim), dtype=torch.float64)
-        self._xi = torch.zeros((0, self.dim), dtype=torch.float64)
-        with torch.no_grad():
-            out = self.phi(torch.zeros((1, self.state_dim), dtype=torch.float64), torch.zeros((1, self.action_dim), dtype=torch.float64))
+        self._whiten = _whitening(self.noise_cov)
+        self._x, self._u, self._xi = (torch.zeros((0, d), dtype=torch.float64)
+                                      for d in (self.state_dim, self.action_dim, self.dim))
+        out = self._probe(self.phi)
         if tuple(out.shape) != (1, self.dim):
             raise ValueError(f"phi: returned shape {tuple(out.shape)} for one input, expected (1, {self.dim})")
-
-    @property
-    def dim(self) -> int:
-        """Dimension ``n`` of the noise."""
-        return self.noise_cov.shape[0]
-
-    @property
-    def cov(self) -> np.ndarray:
-        """Noise covariance ``K`` of the mixed model, shape (n, n)."""
-        return self.noise_cov
 
     def negative_log_posterior(self) -> torch.Tensor:
         """Implements eq. (19) as a negative log posterior on the data seen so far (constant dropped)."""
@@ -134,18 +177,6 @@ class StateDependentIBE(ReadOnlyFields):
         # -log p(w) = |w - w_0|^2 / (2 sigma_w^2)
         prior = sum(torch.sum((p - p0) ** 2) for p, p0 in zip(self.phi.parameters(), self._prior_w))
         return nll + 0.5 * prior / self.prior_std**2
-
-    def _as_inputs(self, x: Any, u: Any, xi: Any | None) -> tuple[torch.Tensor, ...]:
-        xb = torch.as_tensor(real_batch(x, "x", self.state_dim, copy=True))
-        ub = torch.as_tensor(real_batch(u, "u", self.action_dim, copy=True))
-        if ub.shape[0] != xb.shape[0]:
-            raise ValueError(f"u: {ub.shape[0]} rows, but x has {xb.shape[0]}")
-        if xi is None:
-            return xb, ub
-        xib = torch.as_tensor(real_batch(xi, "xi", self.dim, copy=True))
-        if xib.shape[0] != xb.shape[0]:
-            raise ValueError(f"xi: {xib.shape[0]} rows, but x has {xb.shape[0]}")
-        return xb, ub, xib
 
     def update(self, x: Any, u: Any, xi: Any) -> StateDependentIBE:
         """Add transitions ``(x, u, xi)`` and refit ``w`` by minimising eq. (19); returns ``self``.
@@ -163,19 +194,27 @@ class StateDependentIBE(ReadOnlyFields):
             Wrong shapes, not real numbers, NaN/inf, or a fit that ends with non-finite parameters or a
             non-finite eq. (19); the estimator is then unchanged.
         """
-        xb, ub, xib = self._as_inputs(x, u, xi)
+        xb, ub, xib = self._inputs(x, u, xi)
         if xb.shape[0] == 0:
             return self
         saved = [p.detach().clone() for p in self.phi.parameters()]
         old = (self._x, self._u, self._xi, self.count)
         self._x, self._u, self._xi = torch.cat([self._x, xb]), torch.cat([self._u, ub]), torch.cat([self._xi, xib])
         self._commit(count=self.count + xb.shape[0])
+        opt = torch.optim.LBFGS(self.phi.parameters(), lr=1.0, max_iter=self.max_iter, tolerance_grad=1e-12,
+                                tolerance_change=1e-15, history_size=50, line_search_fn="strong_wolfe")
+
+        def closure() -> torch.Tensor:
+            opt.zero_grad()
+            loss = self.negative_log_posterior()
+            loss.backward()
+            return loss
+
         try:
-            self._fit()
-            ok = all(bool(torch.isfinite(p).all()) for p in self.phi.parameters())
-            if ok:
-                with torch.no_grad():
-                    ok = bool(torch.isfinite(self.negative_log_posterior()))
+            opt.step(closure)
+            with torch.no_grad():
+                ok = (all(bool(torch.isfinite(p).all()) for p in self.phi.parameters())
+                      and bool(torch.isfinite(self.negative_log_posterior())))
         except RuntimeError:
             ok = False
         if not ok:
@@ -188,48 +227,11 @@ class StateDependentIBE(ReadOnlyFields):
                              "negative log posterior (residuals too large for float64?)")
         return self
 
-    def _fit(self) -> None:
-        params = list(self.phi.parameters())
-        opt = torch.optim.LBFGS(
-            params, lr=1.0, max_iter=self.max_iter, tolerance_grad=1e-12, tolerance_change=1e-15,
-            history_size=50, line_search_fn="strong_wolfe",
-        )
+    def _mean(self, x: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+        return self.phi(x, u)
 
-        def closure() -> torch.Tensor:
-            opt.zero_grad()
-            loss = self.negative_log_posterior()
-            loss.backward()
-            return loss
-
-        opt.step(closure)
-
-    def mean_at(self, x: Any, u: Any) -> np.ndarray | torch.Tensor:
-        """Posterior-mode mean ``phi(x, u; w_hat)``; with no data ``phi(x, u; w_0)`` (the prior).
-
-        Parameters
-        ----------
-        x : array_like or Tensor, shape (B, n_x) or (n_x,)
-        u : array_like or Tensor, shape (B, n_u) or (n_u,)
-
-        Returns
-        -------
-        ndarray or Tensor, shape (B, n) or (n,)
-            A tensor if ``x`` is a tensor, else an ndarray.
-
-        Raises
-        ------
-        ValueError
-            Wrong shapes or NaN/inf.
-        """
-        single = np.ndim(x) == 1
-        xb, ub = self._as_inputs(x, u, None)
-        with torch.no_grad():
-            out = self.phi(xb, ub)
-        if single:
-            out = out[0]
-        return out.clone() if isinstance(x, torch.Tensor) else out.numpy().copy()
-
-    def sample(self, n: int, generator: np.random.Generator | torch.Generator, x: Any, u: Any) -> np.ndarray | torch.Tensor:
+    def sample(self, n: int, generator: np.random.Generator | torch.Generator, x: Any,
+               u: Any) -> np.ndarray | torch.Tensor:
         """Draw ``xi_hat ~ N(phi(x, u; w_hat), K)`` at one state-action pair.
 
         Parameters
@@ -255,11 +257,7 @@ class StateDependentIBE(ReadOnlyFields):
     def state_dict(self) -> dict[str, Any]:
         """Return a copy of the full state: parameters, prior, data, covariance."""
         return {
-            "kind": self._KIND,
-            "noise_cov": self.noise_cov.copy(),
-            "prior_std": self.prior_std,
-            "max_iter": self.max_iter,
-            "count": self.count,
+            **self._state("noise_cov", "prior_std", "max_iter", "count"),
             "params": [p.detach().numpy().copy() for p in self.phi.parameters()],
             "prior_params": [p.numpy().copy() for p in self._prior_w],
             "x": self._x.numpy().copy(),
@@ -279,39 +277,36 @@ class StateDependentIBE(ReadOnlyFields):
         n = self.dim
         if not isinstance(state, dict):
             raise ValueError(f"state_dict: expected a dict, got {type(state).__name__}")
-        check_unknown_keys(state, {"kind", "noise_cov", "prior_std", "max_iter", "count", "params", "prior_params", "x", "u", "xi"}, "state_dict")
+        check_unknown_keys(state, {"kind", "noise_cov", "prior_std", "max_iter", "count", "params", "prior_params",
+                                   "x", "u", "xi"}, "state_dict")
         count = check_nonnegative_int(state.get("count"), "state_dict: count")
         shapes = [tuple(p.shape) for p in self.phi.parameters()]
         spec: dict[str, Any] = {
             "kind": "str", "noise_cov": (n, n), "prior_std": "float", "max_iter": "int", "count": "int",
             "x": (int(count), self.state_dim), "u": (int(count), self.action_dim), "xi": (int(count), n),
         }
+        flat = {k: v for k, v in state.items() if k not in ("params", "prior_params")}
         for key in ("params", "prior_params"):
             val = state.get(key)
             if not isinstance(val, (list, tuple)) or len(val) != len(shapes):
                 raise ValueError(f"state_dict: {key} must be a list of {len(shapes)} arrays")
             for i, (arr, shp) in enumerate(zip(val, shapes)):
-                spec[f"{key}.{i}"] = shp
-        flat = {k: v for k, v in state.items() if k not in ("params", "prior_params")}
-        for key in ("params", "prior_params"):
-            for i, arr in enumerate(state[key]):
-                flat[f"{key}.{i}"] = arr
-        st = check_state(flat, spec, self._KIND)
-        noise_cov = real_covariance(st["noise_cov"], "state_dict: noise_cov", n)
+                spec[f"{key}.{i}"], flat[f"{key}.{i}"] = shp, arr
+        st = check_state(flat, spec, self._KIND, psd=("noise_cov",))
         check_number(st["prior_std"], "state_dict: prior_std", positive=True)
         check_positive_int(st["max_iter"], "state_dict: max_iter")
-        lam, vec = support(noise_cov)
+        whiten = _whitening(st["noise_cov"])
         with torch.no_grad():
             for i, p in enumerate(self.phi.parameters()):
                 p.copy_(torch.as_tensor(st[f"params.{i}"]))
         self._prior_w = [torch.as_tensor(st[f"prior_params.{i}"]).clone() for i in range(len(shapes))]
-        self._commit(noise_cov=noise_cov, prior_std=st["prior_std"], max_iter=st["max_iter"], count=st["count"])
-        self._whiten = torch.as_tensor(vec / np.sqrt(lam))
+        self._commit(noise_cov=st["noise_cov"], prior_std=st["prior_std"], max_iter=st["max_iter"], count=st["count"])
+        self._whiten = whiten
         self._x, self._u, self._xi = (torch.as_tensor(st[k]).clone() for k in ("x", "u", "xi"))
         return self
 
 
-class LinearFeatureIBE(ReadOnlyFields):
+class LinearFeatureIBE(_StateDependentMean):
     """Implements eq. (19) in closed form: Case 3 IBE with a mean linear in its parameters.
 
     .. math::
@@ -329,9 +324,8 @@ class LinearFeatureIBE(ReadOnlyFields):
         \\quad \\text{(each support direction } v_i\\text{)}, \\qquad W v = W_0 v \\ \\text{(} v \\perp
         \\text{support)}.
 
-    The state is the sufficient statistics ``(N, G, S)`` (``O(p^2)`` memory), so an update costs the same
-    at the first and at the millionth residual; :class:`StateDependentIBE` (any ``phi``, refit by L-BFGS
-    on every residual kept so far) is the general form.
+    The state is the sufficient statistics ``(N, G, S)``, so an update costs the same at every residual;
+    :class:`StateDependentIBE` is the general form (``docs/ibe.rst``, Case 3).
 
     Parameters
     ----------
@@ -360,18 +354,11 @@ class LinearFeatureIBE(ReadOnlyFields):
 
     Notes
     -----
-    As for :class:`StateDependentIBE`, ``K`` is known (the paper leaves Case 3's covariance unspecified)
-    and directions outside its support carry no likelihood: there ``W`` stays at the prior. Any split of
-    the data into batches gives the same ``W`` up to the rounding of ``G`` and ``S``. The solve is a
-    Cholesky factorisation of the SPD ``p x p`` matrix ``G + (lambda_i / sigma_w^2) I``.
+    As for :class:`StateDependentIBE`, ``K`` is known and ``W`` stays at the prior off its support. Any split
+    of the data into batches gives the same ``W`` up to the rounding of ``G`` and ``S``.
     """
 
     _KIND = "LinearFeatureIBE"
-    #: A learning source (:class:`mixedrl.noise.StateDependentNoiseSource`).
-    learns = True
-    #: The mean is ``mean_at(x, u)``: Algorithm 2 plans with per-state nodes.
-    state_dependent = True
-
     _FIELDS = ("features", "state_dim", "action_dim", "prior_std", "prior_weights", "weights", "gram", "cross")
 
     def __init__(self, features: Callable[[torch.Tensor, torch.Tensor], torch.Tensor], prior_weights: Any,
@@ -388,9 +375,7 @@ class LinearFeatureIBE(ReadOnlyFields):
         check_finite(w0, "prior_weights")
         self._commit(noise_cov=real_covariance(noise_cov, "noise_cov", w0.shape[1]),
                      prior_std=check_number(prior_std, "prior_std", positive=True))
-        with torch.no_grad():
-            g = features(torch.zeros((1, self.state_dim), dtype=torch.float64),
-                         torch.zeros((1, self.action_dim), dtype=torch.float64))
+        g = self._probe(features)
         if tuple(g.shape) != (1, w0.shape[0]):
             raise ValueError(f"features: returned shape {tuple(g.shape)} for one input, expected (1, {w0.shape[0]}) "
                              f"(one feature per row of prior_weights)")
@@ -399,19 +384,9 @@ class LinearFeatureIBE(ReadOnlyFields):
         self._support = support(self.noise_cov)
 
     @property
-    def dim(self) -> int:
-        """Dimension ``n`` of the noise."""
-        return self.noise_cov.shape[0]
-
-    @property
     def num_features(self) -> int:
         """Number ``p`` of features."""
         return self.prior_weights.shape[0]
-
-    @property
-    def cov(self) -> np.ndarray:
-        """Noise covariance ``K`` of the mixed model, shape (n, n)."""
-        return self.noise_cov
 
     def _solve(self, gram: np.ndarray, cross: np.ndarray) -> np.ndarray:
         lam, vec = self._support
@@ -451,10 +426,9 @@ class LinearFeatureIBE(ReadOnlyFields):
             Wrong shapes, not real numbers, NaN/inf in the data or in the features, or statistics or
             weights that would not be finite (``G`` not symmetric PSD); the estimator is then unchanged.
         """
-        xb = torch.as_tensor(real_batch(x, "x", self.state_dim, copy=True))
-        ub = torch.as_tensor(real_batch(u, "u", self.action_dim, copy=True))
+        xb, ub = self._batch(x, "x", self.state_dim), self._batch(u, "u", self.action_dim)
         xib = real_batch(xi, "xi", self.dim)
-        if ub.shape[0] != xb.shape[0] or xib.shape[0] != xb.shape[0]:
+        if not xb.shape[0] == ub.shape[0] == xib.shape[0]:
             raise ValueError(f"xi: x, u and xi need the same number of rows, got {xb.shape[0]}, {ub.shape[0]}, "
                              f"{xib.shape[0]}")
         if xb.shape[0] == 0:
@@ -471,45 +445,13 @@ class LinearFeatureIBE(ReadOnlyFields):
         self._commit(gram=gram, cross=cross, weights=weights, count=self.count + xb.shape[0])
         return self
 
-    def mean_at(self, x: Any, u: Any) -> np.ndarray | torch.Tensor:
-        """The posterior mean ``phi(x, u; W_hat) = W_hat^T g(x, u)`` (the prior's ``W_0`` before any data).
-
-        Parameters
-        ----------
-        x : array_like or Tensor, shape (B, n_x) or (n_x,)
-        u : array_like or Tensor, shape (B, n_u) or (n_u,)
-
-        Returns
-        -------
-        ndarray or Tensor, shape (B, n) or (n,)
-            A float64 tensor if ``x`` is a tensor, else an ndarray.
-
-        Raises
-        ------
-        ValueError
-            Wrong shapes or NaN/inf.
-        """
-        single = np.ndim(x) == 1
-        xb = torch.as_tensor(real_batch(x.detach() if isinstance(x, torch.Tensor) else x, "x", self.state_dim, copy=True))
-        ub = torch.as_tensor(real_batch(u.detach() if isinstance(u, torch.Tensor) else u, "u", self.action_dim, copy=True))
-        if ub.shape[0] != xb.shape[0]:
-            raise ValueError(f"u: {ub.shape[0]} rows, but x has {xb.shape[0]}")
-        out = self._features(xb, ub) @ torch.tensor(self.weights)
-        if single:
-            out = out[0]
-        return out if isinstance(x, torch.Tensor) else out.numpy()
+    def _mean(self, x: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+        # phi(x, u; W_hat) = W_hat^T g(x, u)
+        return self._features(x, u) @ torch.tensor(self.weights)
 
     def state_dict(self) -> dict[str, Any]:
         """Return a copy of the full state: prior, covariance, sufficient statistics (not the features)."""
-        return {
-            "kind": self._KIND,
-            "noise_cov": self.noise_cov.copy(),
-            "prior_std": self.prior_std,
-            "prior_weights": self.prior_weights.copy(),
-            "count": self.count,
-            "gram": self.gram.copy(),
-            "cross": self.cross.copy(),
-        }
+        return self._state("noise_cov", "prior_std", "prior_weights", "count", "gram", "cross")
 
     def load_state_dict(self, state: dict[str, Any]) -> LinearFeatureIBE:
         """Restore a state from :meth:`state_dict` (same features); validate everything first.
@@ -523,11 +465,10 @@ class LinearFeatureIBE(ReadOnlyFields):
         p, n = self.prior_weights.shape
         spec = {"kind": "str", "noise_cov": (n, n), "prior_std": "float", "prior_weights": (p, n), "count": "int",
                 "gram": (p, p), "cross": (p, n)}
-        st = check_state(state, spec, self._KIND)
-        noise_cov = real_covariance(st["noise_cov"], "state_dict: noise_cov", n)
+        st = check_state(state, spec, self._KIND, psd=("noise_cov",))
         check_number(st["prior_std"], "state_dict: prior_std", positive=True)
-        real_covariance(st["gram"], "state_dict: gram", p)
-        new = LinearFeatureIBE(self.features, st["prior_weights"], noise_cov, self.state_dim, self.action_dim,
+        real_covariance(st["gram"], "state_dict: gram", p)  # checked, kept as saved
+        new = LinearFeatureIBE(self.features, st["prior_weights"], st["noise_cov"], self.state_dim, self.action_dim,
                                st["prior_std"])
         with PosteriorGuard("state_dict"):
             weights = new._solve(st["gram"], st["cross"])

@@ -1,31 +1,24 @@
 """What the three Cases of the IBE share: the residuals of eq. (10) and the input and state checks.
 
-* :func:`~mixedrl.ibe.residuals`: eq. (10), ``xi_j = x_{j+1} - f(x_j, u_j)``, in noise coordinates
-  (the least-squares :func:`noise_coordinates`) for a full-column-rank ``E`` (:func:`check_noise_matrix`).
-* :func:`real_batch`, :func:`real_vector`, :func:`real_covariance`: the checks every estimator applies to
-  its arguments (real numbers only: complex, bool, string and object arrays are refused; finite; of the
-  right shape; at least one noise dimension).
-* :class:`PosteriorGuard` and :func:`check_posterior`: an update computes its candidate posterior
-  inside the guard (no floating-point warning escapes, a failed factorisation is a ``ValueError``) and
-  commits it only after :func:`check_posterior` has found it finite and symmetric PSD, so a rejected
-  update leaves the estimator as it was.
-* :func:`check_state`: validation of a ``state_dict`` against a key/shape specification.
-* :class:`ReadOnlyField`, :class:`ReadOnlyFields`: the estimators' public state, read-only (arrays as
-  read-only views; assignment refused);
-  :class:`GaussianNoiseEstimate`: the mixed-model noise ``N(mean, cov)`` of Cases 1 and 2 (eq. (20)).
+The residuals in noise coordinates (:func:`~mixedrl.ibe.residuals`, :func:`noise_coordinates`); the
+argument checks (:func:`real_batch`, :func:`real_vector`, :func:`real_covariance`); the guarded update
+(:func:`PosteriorGuard`, :func:`check_posterior`: a candidate posterior is committed only once found finite
+and symmetric PSD); :func:`check_state` for ``load_state_dict``; and the read-only public state
+(:class:`ReadOnlyField`, :class:`ReadOnlyFields`, :class:`GaussianNoiseEstimate`).
 """
 
 from __future__ import annotations
 
+import contextlib
 import math
-from collections.abc import Callable, Sequence
-from types import TracebackType
+from collections.abc import Callable, Iterator, Sequence
 from typing import Any
 
 import numpy as np
 import torch
 
-from mixedrl.checks import as_batch, as_vector, check_covariance, check_finite, check_nonnegative_int, check_unknown_keys
+from mixedrl.checks import (as_batch, as_vector, check_covariance, check_finite, check_nonnegative_int,
+                            check_unknown_keys)
 from mixedrl.gaussian import sample_gaussian
 
 __all__ = ["residuals", "check_noise_matrix", "noise_coordinates", "real_array", "real_batch", "real_vector",
@@ -82,15 +75,15 @@ def residuals(
     is_torch = [isinstance(a, torch.Tensor) for a in (x, u, x_next)]
     if any(is_torch) and not all(is_torch):
         raise ValueError("x: x, u and x_next must all be numpy arrays or all torch tensors")
-    x, u, x_next = real_array(x, "x"), real_array(u, "u"), real_array(x_next, "x_next")
-    if not all(is_torch):
-        x = np.asarray(x, dtype=np.float64)
-        u = np.asarray(u, dtype=np.float64)
-        x_next = np.asarray(x_next, dtype=np.float64)
+    arrays = []
     for name, val in (("x", x), ("u", u), ("x_next", x_next)):
+        val = real_array(val, name)
+        val = val if is_torch[0] else np.asarray(val, dtype=np.float64)
         if val.ndim < 1:
             raise ValueError(f"{name}: expected at least one dimension, got a scalar")
         check_finite(val, name)
+        arrays.append(val)
+    x, u, x_next = arrays
     if tuple(x.shape) != tuple(x_next.shape):
         raise ValueError(f"x_next: expected the shape of x {tuple(x.shape)}, got {tuple(x_next.shape)}")
     if tuple(u.shape[:-1]) != tuple(x.shape[:-1]):
@@ -252,7 +245,8 @@ def check_posterior(name: str, finite: Sequence[np.ndarray], psd: Sequence[np.nd
         check_covariance(c, f"{name}: update rejected: the posterior")
 
 
-class PosteriorGuard:
+@contextlib.contextmanager
+def PosteriorGuard(name: str) -> Iterator[None]:  # noqa: N802 (used as ``with PosteriorGuard(name):``)
     """Context for computing a candidate posterior: floating-point warnings are silenced (overflow and
     NaN are found by :func:`check_posterior` on the result) and a failed factorisation
     (``numpy.linalg.LinAlgError``) becomes ``ValueError("<name>: update rejected: ...")``.
@@ -262,29 +256,19 @@ class PosteriorGuard:
     name : str
         The argument the error message names.
     """
-
-    __slots__ = ("name", "_errstate")
-
-    def __init__(self, name: str) -> None:
-        self.name = name
-        self._errstate = np.errstate(all="ignore")
-
-    def __enter__(self) -> PosteriorGuard:
-        self._errstate.__enter__()
-        return self
-
-    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
-                 tb: TracebackType | None) -> None:
-        self._errstate.__exit__(exc_type, exc, tb)
-        if exc_type is not None and issubclass(exc_type, np.linalg.LinAlgError):
-            raise ValueError(f"{self.name}: update rejected: the posterior could not be computed ({exc})") from None
+    try:
+        with np.errstate(all="ignore"):
+            yield
+    except np.linalg.LinAlgError as exc:
+        raise ValueError(f"{name}: update rejected: the posterior could not be computed ({exc})") from None
 
 
 # ----------------------------------------------------------------------------------------------------
 # state dicts
 # ----------------------------------------------------------------------------------------------------
-def check_state(state: Any, spec: dict[str, Any], kind: str) -> dict[str, Any]:
-    """Validate a state dict against ``spec`` (key -> shape tuple | 'int' | 'float' | 'str')."""
+def check_state(state: Any, spec: dict[str, Any], kind: str, psd: Sequence[str] = ()) -> dict[str, Any]:
+    """Validate a state dict against ``spec`` (key -> shape tuple | 'int' | 'float' | 'str'); the keys ``psd``
+    (those in ``spec``) must be symmetric PSD matrices and are returned symmetrised (:func:`real_covariance`)."""
     if not isinstance(state, dict):
         raise ValueError(f"state_dict: expected a dict, got {type(state).__name__}")
     check_unknown_keys(state, set(spec), "state_dict")
@@ -317,6 +301,8 @@ def check_state(state: Any, spec: dict[str, Any], kind: str) -> dict[str, Any]:
             if not np.all(np.isfinite(arr)):
                 raise ValueError(f"state_dict: {key} contains NaN or inf")
             out[key] = arr
+    for key in (k for k in psd if k in out):
+        out[key] = real_covariance(out[key], f"state_dict: {key}", spec[key][0])
     return out
 
 
@@ -364,6 +350,9 @@ class ReadOnlyFields:
     """
 
     _FIELDS: tuple[str, ...] = ()
+    _KIND: str
+    #: A learning source (:class:`mixedrl.noise.NoiseSource`): the algorithms call ``update``.
+    learns = True
 
     mean = ReadOnlyField()
     prior_mean = ReadOnlyField()
@@ -389,16 +378,28 @@ class ReadOnlyFields:
                 value.flags.writeable = False
             self.__dict__["_ro_" + name] = value
 
+    def _state(self, *names: str) -> dict[str, Any]:
+        """``{"kind": ..., name: value}`` of the fields ``names`` for ``state_dict`` (arrays copied)."""
+        values = {name: getattr(self, name) for name in names}
+        return {"kind": self._KIND, **{k: v.copy() if isinstance(v, np.ndarray) else v for k, v in values.items()}}
+
+    @property
+    def dim(self) -> int:
+        """Dimension ``n`` of the noise."""
+        return self.cov.shape[0]
+
+    @property
+    def cov(self) -> np.ndarray:
+        """Noise covariance of the mixed model (eq. (20)), shape (n, n): the known ``K`` (Cases 1 and 3)."""
+        return self.noise_cov
+
 
 class GaussianNoiseEstimate(ReadOnlyFields):
     """Shared part of Cases 1 and 2: the mixed-model noise ``N(mean, cov)`` (eq. (20))."""
 
-    #: A learning source (:class:`mixedrl.noise.NoiseSource`): the algorithms call ``update``.
-    learns = True
     #: One mean for every state (Cases 1 and 2).
     state_dependent = False
 
-    cov: np.ndarray
     mean_cov: np.ndarray
 
     def sample(self, n: int, generator: np.random.Generator | torch.Generator) -> np.ndarray | torch.Tensor:
