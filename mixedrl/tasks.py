@@ -14,9 +14,8 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING, Any
 
-from mixedrl.config import LinearTaskConfig, task_config
 from mixedrl.config import register_task as register_task_config
-from mixedrl.envs.dlc_config import DoubleLaneChangeTaskConfig
+from mixedrl.config import task_config
 from mixedrl.envs.dlc_task import DLC_EXPERIMENT, CourseSampler, DoubleLaneChangeTask
 
 if TYPE_CHECKING:  # complete only once the task modules registered their configurations
@@ -29,11 +28,8 @@ __all__ = ["Task", "LinearTask", "DoubleLaneChangeTask", "CourseSampler", "DLC_E
            "task_from_config"]
 
 
-#: Registered task name -> its :class:`Task` class (built by ``from_config``); :func:`register_task`.
-_TASK_FACTORIES: dict[str, type] = {}
-
-#: Built-in task name -> its :class:`Task` class; :func:`make_task`.
-_BUILTIN_TASKS: dict[str, type] = {"dlc": DoubleLaneChangeTask, "linear": LinearTask}
+#: Task name (built-in or :func:`register_task`) -> its :class:`Task` class (with ``from_config``).
+_TASK_FACTORIES: dict[str, type] = {"dlc": DoubleLaneChangeTask, "linear": LinearTask}
 
 
 def register_task(task_cls: type, config_cls: type) -> type:
@@ -67,11 +63,9 @@ def make_task(name: str, **kwargs: Any) -> Task:
     ValueError
         ``name`` unknown (the message lists the known names).
     """
-    if name in _BUILTIN_TASKS:
-        return _BUILTIN_TASKS[name](**kwargs)
-    if name in _TASK_FACTORIES:
-        return _TASK_FACTORIES[name](**kwargs)
-    raise ValueError(f"name: expected one of {(*_BUILTIN_TASKS, *_TASK_FACTORIES)}, got {name!r}")
+    if name not in _TASK_FACTORIES:
+        raise ValueError(f"name: expected one of {tuple(_TASK_FACTORIES)}, got {name!r}")
+    return _TASK_FACTORIES[name](**kwargs)
 
 
 def task_from_config(config: TaskConfig | dict[str, Any] | str) -> Task:
@@ -95,8 +89,4 @@ def task_from_config(config: TaskConfig | dict[str, Any] | str) -> Task:
         name (``task.name``, listing the known ones).
     """
     config = task_config(config)
-    if isinstance(config, DoubleLaneChangeTaskConfig):
-        return DoubleLaneChangeTask.from_config(config)
-    if isinstance(config, LinearTaskConfig):
-        return LinearTask.from_config(config)
     return _TASK_FACTORIES[config.name].from_config(config)
