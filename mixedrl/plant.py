@@ -100,7 +100,12 @@ class CheckedPlant:
     def __repr__(self) -> str:
         return f"CheckedPlant({self.plant!r})"
 
-    def _state(self, value: Any, call: str) -> np.ndarray:
+    def _call(self, call: str, *args: Any) -> np.ndarray:
+        """``plant.<call>(*args)``: its state, checked (any failure of the user's plant is a PlantError)."""
+        try:
+            value = getattr(self.plant, call)(*args)
+        except Exception as exc:  # noqa: BLE001
+            raise PlantError(self.plant, self.transitions, call, f"raised {type(exc).__name__}: {exc}") from exc
         try:
             x = np.asarray(value, dtype=np.float64)
         except (TypeError, ValueError) as exc:
@@ -115,20 +120,13 @@ class CheckedPlant:
 
     def reset(self, seed: int, owner: Any = None) -> np.ndarray:
         """``plant.reset(seed)``, checked; ``owner`` starts the episode."""
-        try:
-            value = self.plant.reset(int(seed))
-        except Exception as exc:  # noqa: BLE001 - any failure of the user's plant is reported as a PlantError
-            raise PlantError(self.plant, self.transitions, "reset", f"raised {type(exc).__name__}: {exc}") from exc
+        x = self._call("reset", int(seed))
         self.owner = owner
-        return self._state(value, "reset")
+        return x
 
     def step(self, u: np.ndarray) -> np.ndarray:
         """``plant.step(u)``, checked and counted."""
-        try:
-            value = self.plant.step(np.asarray(u, dtype=np.float64))
-        except Exception as exc:  # noqa: BLE001
-            raise PlantError(self.plant, self.transitions, "step", f"raised {type(exc).__name__}: {exc}") from exc
-        x = self._state(value, "step")
+        x = self._call("step", np.asarray(u, dtype=np.float64))
         self.transitions += 1
         return x
 
@@ -253,10 +251,12 @@ def plant_copies(task: Task, config: Any) -> PlantCopies | None:
 def check_plant_sampler(task: Task, config: Any) -> None:
     """Raise ``ValueError`` if ``task`` has a plant and ``config.method`` is ``"ddpg"`` or
     ``config.sampler.name`` is ``"true_copies"`` (both need batches of true copies)."""
-    if getattr(task, "plant", None) is not None and config.method == "ddpg":
+    if getattr(task, "plant", None) is None:
+        return
+    if config.method == "ddpg":
         raise ValueError("config: method 'ddpg' steps batches of simulated true copies; a task with a plant "
                          "trains with Algorithm 2 (methods 'mixed', 'model', 'oracle')")
-    if getattr(task, "plant", None) is not None and config.sampler.name == "true_copies":
+    if config.sampler.name == "true_copies":
         raise ValueError("sampler.name: a task with a plant needs a model-rollout sampler ('model_rollouts', or "
                          "'dlc_course'); 'true_copies' uses batch_size true copies as PEV's batch")
 
@@ -426,19 +426,6 @@ class GymnasiumPlant:
         return self.state_fn(self.env)
 
 
-def _disturbance_matrix(env: Any) -> np.ndarray:
-    """``E`` (state_dim, 1) of a generalised force added after the action clip of a supported env."""
-    from mixedrl.envs.gym_models import mountain_car_noise_matrix, pendulum_noise_matrix
-
-    name = type(env.unwrapped).__name__
-    if name == "PendulumEnv":
-        u = env.unwrapped
-        return pendulum_noise_matrix(u.dt, u.m, u.l).numpy()
-    if name == "Continuous_MountainCarEnv":
-        return mountain_car_noise_matrix(env.unwrapped.power).numpy()
-    raise ValueError(f"env: DisturbedEnv supports Pendulum-v1 and MountainCarContinuous-v0, got {name}")
-
-
 class DisturbedEnv(gym.Wrapper):
     """Pendulum-v1 or MountainCarContinuous-v0 with an unmodelled force ``xi ~ N(mean, std^2)`` (action
     units: a torque for the pendulum, a force for the car) added after the env's action clip.
@@ -472,7 +459,14 @@ class DisturbedEnv(gym.Wrapper):
         super().__init__(env)
         if not (math.isfinite(mean) and math.isfinite(std) and std >= 0):
             raise ValueError(f"std: expected finite mean and std >= 0, got mean={mean!r}, std={std!r}")
-        self.E = _disturbance_matrix(env)
+        from mixedrl.envs.gym_models import mountain_car_noise_matrix, pendulum_noise_matrix
+
+        inner, name = env.unwrapped, type(env.unwrapped).__name__
+        if name not in ("PendulumEnv", "Continuous_MountainCarEnv"):
+            raise ValueError(f"env: DisturbedEnv supports Pendulum-v1 and MountainCarContinuous-v0, got {name}")
+        #: ``E`` (state_dim, 1) of the force added after the action clip.
+        self.E = (pendulum_noise_matrix(inner.dt, inner.m, inner.l) if name == "PendulumEnv"
+                  else mountain_car_noise_matrix(inner.power)).numpy()
         self.mean, self.std, self.before_clip = float(mean), float(std), bool(before_clip)
         self.rng = np.random.default_rng(0)
 
