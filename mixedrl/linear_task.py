@@ -90,7 +90,6 @@ class LinearTask(Task):
     name = "linear"
     #: :meth:`evaluate`: 64 starts, 100 steps (the horizon also of an evaluation on a plant).
     eval_horizon = 100
-    eval_starts = 64
     evaluates_on_plant = True
     counts_evaluation_transitions = True
 
@@ -115,12 +114,9 @@ class LinearTask(Task):
         self.init_box = check_number(init_box, "init_box", positive=True)
         self.action_bound = torch.full((m,), check_number(action_bound, "action_bound", positive=True))
         self.obs_scale = torch.ones(n)
-        self.value_scale = 1.0
-        A, B = self.A, self.B
-        self._At = {torch.float32: torch.tensor(A.T, dtype=torch.float32), torch.float64: torch.tensor(A.T)}
-        self._Bt = {torch.float32: torch.tensor(B.T, dtype=torch.float32), torch.float64: torch.tensor(B.T)}
-        self._Q = {torch.float32: torch.tensor(self.Q, dtype=torch.float32), torch.float64: torch.tensor(self.Q)}
-        self._R = {torch.float32: torch.tensor(self.R, dtype=torch.float32), torch.float64: torch.tensor(self.R)}
+        #: ``(A^T, B^T, Q, R)`` as tensors of each dtype :meth:`f` and :meth:`cost` see.
+        self._mats = {dtype: tuple(torch.tensor(M, dtype=dtype) for M in (self.A.T, self.B.T, self.Q, self.R))
+                      for dtype in (torch.float32, torch.float64)}
 
     @classmethod
     def from_problem(cls, problem: LQProblem, init_box: float = 1.0, action_bound: float = 10.0) -> "LinearTask":
@@ -142,19 +138,19 @@ class LinearTask(Task):
         return cls.from_problem(config.problem(), init_box=config.init_box, action_bound=config.action_bound)
 
     def equilibrium(self) -> Equilibrium:
-        """The origin ``s* = 0``, ``u* = 0`` (the linearisation is the task itself: ``A``, ``B``, ``Q``, ``R``, ``E = I``)."""
+        """The origin ``s* = 0``, ``u* = 0`` (the linearisation is the task itself, ``E = I``)."""
         return Equilibrium(state=np.zeros(self.state_dim), action=np.zeros(self.action_dim))
 
     def f(self, s: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
         # x' = A x + B u (deterministic part)
-        return s @ self._At[s.dtype] + u @ self._Bt[s.dtype]
+        return s @ self._mats[s.dtype][0] + u @ self._mats[s.dtype][1]
 
     def observe(self, s: torch.Tensor) -> torch.Tensor:
         return s
 
     def cost(self, s_next: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
         # l(x', u) = x'^T Q x' + u^T R u  (next-state convention, eq. 2)
-        Q, R = self._Q[s_next.dtype], self._R[s_next.dtype]
+        Q, R = self._mats[s_next.dtype][2:]
         return torch.einsum("bi,ij,bj->b", s_next, Q, s_next) + torch.einsum("bi,ij,bj->b", u, R, u)
 
     def sample_initial(self, n: int, generator: torch.Generator) -> torch.Tensor:
