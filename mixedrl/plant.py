@@ -213,10 +213,9 @@ class PlantCopies:
     def reset(self, rows: torch.Tensor | None = None) -> torch.Tensor:
         """Start new plant episodes for ``rows`` (bool mask; all by default); their states, (k, state_dim)."""
         idx = range(len(self.plants)) if rows is None else torch.nonzero(rows).flatten().tolist()
-        out = []
-        for i in idx:
-            out.append(self.plants[i].reset(episode_seed(self.seed, 0, self.episodes), owner=self))
-            self.episodes += 1
+        out = [self.plants[i].reset(episode_seed(self.seed, 0, self.episodes + k), owner=self)
+               for k, i in enumerate(idx)]
+        self.episodes += len(out)
         return torch.as_tensor(np.stack(out)) if out else torch.zeros(0, self.plants[0].state_dim, dtype=torch.float64)
 
     def current(self, states: torch.Tensor) -> torch.Tensor:
