@@ -211,8 +211,7 @@ class Task(abc.ABC):
         A, B = torch.func.jacrev(step, argnums=(0, 1))(s0, u0)
         Q, R = cost_hessian(lambda x, u: self.cost(x, u), s0, u0, name, scale)
         return Linearisation(A=A.numpy(), B=B.numpy(), Q=Q, R=R, E=self.noise_matrix.double().numpy(),
-                             gamma=float(self.gamma),
-                             state=s0.numpy(), action=u0.numpy())
+                             gamma=float(self.gamma), state=s0.numpy(), action=u0.numpy())
 
     def true_step(self, s: torch.Tensor, u: torch.Tensor, generator: torch.Generator) -> torch.Tensor:
         """One step of the *true* environment, eq. (1): ``f(s, u) + E xi``, ``xi ~ N(true_mean, true_cov)``.
@@ -322,12 +321,11 @@ class Task(abc.ABC):
         """
         if self.plant_evaluate is not None:  # on the task's plant, or none (mixedrl.plant.attach_plant)
             return self.plant_evaluate(policy, seeds, horizon)
-        horizon = self.eval_horizon if horizon is None else horizon
-        horizon = check_positive_int(horizon, "horizon")
+        horizon = check_positive_int(self.eval_horizon if horizon is None else horizon, "horizon")
         if len(seeds) == 0:
             raise ValueError("seeds: expected at least one evaluation seed, got none")
-        n, half = int(self.eval_starts), int(horizon) // 2
-        self.evaluation_transitions += n * int(horizon) * len(seeds)
+        n, half = int(self.eval_starts), horizon // 2
+        self.evaluation_transitions += n * horizon * len(seeds)
         costs, terminated, abs_sums, sums, counts = [], [], [], [], []
         with torch.no_grad():
             for seed in seeds:
@@ -339,7 +337,7 @@ class Task(abc.ABC):
                 abs_sum = torch.zeros(width, dtype=torch.float64)
                 signed_sum = torch.zeros(width, dtype=torch.float64)
                 count = 0.0
-                for t in range(int(horizon)):
+                for t in range(horizon):
                     u = policy(self.observe(s.float())).double()
                     s_next = self.true_step(s, u, gen)
                     step_cost = self.cost(s_next, u).double()
