@@ -89,12 +89,8 @@ class PendulumTask(Task):
     ``obs_scale = (init_angle, init_rate)``; ``eval_horizon = 200`` steps (10 s at ``dt = 0.05``).
     """
 
-    state_dim = 2
-    obs_dim = 2
-    action_dim = 1
-    noise_dim = 1
+    state_dim, obs_dim, action_dim, noise_dim = 2, 2, 1, 1
     name = "pendulum"
-    eval_horizon = 200
 
     def __init__(self, dt: float = 0.05, gravity: float = 9.81, length: float = 1.0, mass: float = 1.0,
                  damping: float = 0.1, torque_bound: float = 4.0, torque_bias: float = 0.5,
@@ -106,10 +102,8 @@ class PendulumTask(Task):
         self.torque_bound, self.q_omega, self.r = float(torque_bound), float(q_omega), float(r)
         self.gamma = float(gamma)
         self.init_angle, self.init_rate = float(init_angle), float(init_rate)
-        inertia = mass * length**2
         #: xi per N m of disturbance torque: ``dt / (m l^2)``.
-        self.xi_per_torque = dt / inertia
-        k = self.xi_per_torque
+        self.xi_per_torque = k = dt / (mass * length**2)
         self.noise_matrix = torch.tensor([[0.0], [1.0]])
         self.true_mean, self.true_cov = np.array([k * torque_bias]), np.array([[(k * torque_std) ** 2]])
         self.prior_mean, self.prior_cov = np.array([k * prior_torque_bias]), np.array([[(k * prior_torque_std) ** 2]])
