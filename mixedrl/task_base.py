@@ -450,9 +450,8 @@ def check_task(task: Task, batch: int = 3) -> None:
         attribute or function.
     """
     name = type(task).__name__
-    for attr in ("state_dim", "obs_dim", "action_dim", "noise_dim"):
-        check_positive_int(getattr(task, attr, None), f"{name}.{attr}")
-    n, m, o, d = task.state_dim, task.action_dim, task.obs_dim, task.noise_dim
+    n, o, m, d = (check_positive_int(getattr(task, a, None), f"{name}.{a}")
+                  for a in ("state_dim", "obs_dim", "action_dim", "noise_dim"))
     gamma = getattr(task, "gamma", None)
     if not isinstance(gamma, (float, int, np.floating)) or not 0.0 < float(gamma) < 1.0:
         raise ValueError(f"{name}.gamma: expected a discount factor in (0, 1), got {gamma!r}")
