@@ -326,22 +326,19 @@ class Task(abc.ABC):
             raise ValueError("seeds: expected at least one evaluation seed, got none")
         n, half = int(self.eval_starts), horizon // 2
         self.evaluation_transitions += n * horizon * len(seeds)
-        costs, terminated, abs_sums, sums, counts = [], [], [], [], []
+        per_seed = []  # (cost, terminated fraction, sum |e|, sum e, count) of each seed
         with torch.no_grad():
             for seed in seeds:
                 gen = torch.Generator().manual_seed(int(seed))
                 s = self.sample_initial(n, gen).to(torch.float64)
                 alive = torch.ones(n, dtype=torch.bool)
                 total = torch.zeros(n, dtype=torch.float64)
-                width = self.state_error(s).shape[-1]
-                abs_sum = torch.zeros(width, dtype=torch.float64)
-                signed_sum = torch.zeros(width, dtype=torch.float64)
+                abs_sum, signed_sum = torch.zeros(2, self.state_error(s).shape[-1], dtype=torch.float64)
                 count = 0.0
                 for t in range(horizon):
                     u = policy(self.observe(s.float())).double()
                     s_next = self.true_step(s, u, gen)
-                    step_cost = self.cost(s_next, u).double()
-                    total += torch.where(alive, self.gamma**t * step_cost, torch.zeros_like(total))
+                    total += torch.where(alive, self.gamma**t * self.cost(s_next, u).double(), torch.zeros_like(total))
                     alive = alive & ~self.is_terminal(s_next)
                     s = torch.where(alive[:, None], s_next, s)
                     if t >= half:
@@ -349,11 +346,8 @@ class Task(abc.ABC):
                         abs_sum += kept.abs().sum(dim=0)
                         signed_sum += kept.sum(dim=0)
                         count += kept.shape[0]
-                costs.append(float(total.mean()))
-                terminated.append(float((~alive).double().mean()))
-                abs_sums.append(abs_sum)
-                sums.append(signed_sum)
-                counts.append(count)
+                per_seed.append((float(total.mean()), float((~alive).double().mean()), abs_sum, signed_sum, count))
+        costs, terminated, abs_sums, sums, counts = zip(*per_seed)
         count = max(sum(counts), 1.0)
         mean_abs = (torch.stack(abs_sums).sum(dim=0) / count).tolist()
         mean = (torch.stack(sums).sum(dim=0) / count).tolist()
