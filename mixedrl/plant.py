@@ -291,27 +291,24 @@ def evaluate_on_plant(task: Task, policy: torch.nn.Module, seeds: list[int], hor
     plant = plants[0]
     rewarded = hasattr(plant.plant, "last_reward")
     horizon = int(task.eval_horizon if horizon is None else horizon)
-    costs, returns, plant_ends, ends, lengths = [], [], [], [], []
+    episodes = []  # (cost, return, plant terminated, terminated, length) of each episode
     with torch.no_grad():
         for seed in seeds:
             x = torch.as_tensor(plant.reset(episode_seed(seed, 1, 0), owner="evaluation"))[None]
             cost, ret, t, task_end = 0.0, 0.0, 0, False
             for t in range(horizon):
                 u = policy(task.observe(x.float())).double()
-                x_next = torch.as_tensor(plant.step(u[0].numpy()))[None]
+                x = torch.as_tensor(plant.step(u[0].numpy()))[None]
                 task.evaluation_transitions = getattr(task, "evaluation_transitions", 0) + 1
-                cost += task.gamma**t * float(task.cost(x_next, u)[0])
+                cost += task.gamma**t * float(task.cost(x, u)[0])
                 if rewarded:
                     ret += float(plant.plant.last_reward)
-                x = x_next
                 task_end = bool(task.is_terminal(x)[0])
                 if plant.episode_over or task_end:
                     break
-            costs.append(cost)
-            returns.append(ret)
-            plant_ends.append(bool(getattr(plant.plant, "last_terminated", False)))
-            ends.append(plant_ends[-1] or task_end)
-            lengths.append(t + 1)
+            plant_end = bool(getattr(plant.plant, "last_terminated", False))
+            episodes.append((cost, ret, plant_end, plant_end or task_end, t + 1))
+    costs, returns, plant_ends, ends, lengths = zip(*episodes)
     return {"cost": float(np.mean(costs)), "plant_return": float(np.mean(returns)) if rewarded else None,
             "plant_terminated_fraction": float(np.mean(plant_ends)), "terminated_fraction": float(np.mean(ends)),
             "episode_length": float(np.mean(lengths))}
