@@ -1,14 +1,8 @@
-"""The nominal physics of two Gymnasium environments in torch, as a designer's model ``f``.
-
-* :func:`pendulum_v1_step`: ``Pendulum-v1``, state ``[theta, theta_dot]`` (the angle not wrapped);
-* :func:`mountain_car_step`: ``MountainCarContinuous-v0``, state ``[position, velocity]``;
-* :func:`pendulum_noise_matrix`, :func:`mountain_car_noise_matrix`: ``E`` of a force added after the
-  action clip (what :class:`mixedrl.plant.DisturbedEnv` adds);
-* :class:`PendulumV1Task`, :class:`MountainCarTask`: the two as :class:`~mixedrl.tasks.Task` objects
-  (docs/gym_benchmark.rst).
-
-Both step functions equal the envs' ``step`` up to float32 rounding.
-"""
+"""The nominal physics of Pendulum-v1 (state ``[theta, theta_dot]``, the angle not wrapped) and
+MountainCarContinuous-v0 (``[position, velocity]``) in torch, as a designer's model ``f`` (equal to the envs'
+``step`` up to float32 rounding); the ``E`` of a force added after their action clip (what
+:class:`mixedrl.plant.DisturbedEnv` adds); and the two as :class:`~mixedrl.tasks.Task` objects
+(docs/gym_benchmark.rst)."""
 
 from __future__ import annotations
 
