@@ -20,10 +20,6 @@ from mixedrl.task_base import Equilibrium, Task
 __all__ = ["LinearTask"]
 
 
-#: :class:`LinearTask`'s names of the :class:`mixedrl.lq.LQProblem` fields it calls otherwise.
-_TASK_KEYS = {"noise_mean": "true_mean", "noise_cov": "true_cov"}
-
-
 def _default_problem(A: Any, B: Any, Q: Any, R: Any, gamma: float, true_mean: Any, true_cov: Any,
                      prior_mean: Any, prior_cov: Any) -> LQProblem:
     """The :class:`LinearTask` defaults (a sampled double integrator, the noise on the velocity) for what is
@@ -45,7 +41,8 @@ def _default_problem(A: Any, B: Any, Q: Any, R: Any, gamma: float, true_mean: An
             prior_cov=0.01 * np.eye(n) if prior_cov is None else prior_cov)
     except ValueError as exc:
         name, _, rest = str(exc).partition(":")
-        raise ValueError(f"{_TASK_KEYS.get(name, name)}:{rest}") from None
+        name = {"noise_mean": "true_mean", "noise_cov": "true_cov"}.get(name, name)  # LinearTask's names
+        raise ValueError(f"{name}:{rest}") from None
 
 
 class LinearTask(Task):
