@@ -177,7 +177,8 @@ class Task(abc.ABC):
         .. math::
 
             A = \\frac{\\partial f}{\\partial s}(s^*, u^*),\\quad B = \\frac{\\partial f}{\\partial u}(s^*, u^*),\\quad
-            Q = \\tfrac12 \\frac{\\partial^2 l}{\\partial s'^2},\\quad R = \\tfrac12 \\frac{\\partial^2 l}{\\partial u^2}
+            Q = \\tfrac12 \\frac{\\partial^2 l}{\\partial s'^2},\\quad
+            R = \\tfrac12 \\frac{\\partial^2 l}{\\partial u^2}
             \\ \\text{at } (s', u) = (s^*, u^*),\\qquad E = \\text{noise\\_matrix},
 
         from :func:`torch.func.jacrev` and :func:`torch.func.hessian` of :meth:`f` and :meth:`cost` in float64.
