@@ -162,8 +162,7 @@ def own_noise(trainer: Any, lin: Linearisation, policy: torch.nn.Module | None =
         with torch.no_grad():
             m, cov = trainer.planning_moments(s, policy(trainer.task.observe(s)))
         return np.asarray(m[0], dtype=np.float64), np.asarray(cov, dtype=np.float64)
-    mean, cov = trainer.noise_moments()
-    return np.asarray(mean, dtype=np.float64), np.asarray(cov, dtype=np.float64)
+    return trainer.noise_moments()
 
 
 class FeedForwardPolicy(torch.nn.Module):
