@@ -126,13 +126,7 @@ class AGPI:
         self.generator = torch.Generator().manual_seed(config.seed)
         # algorithm.feedforward "lq" / "lq_ss" ("auto" resolved by anchor.resolve) need an equilibrium
         feedforward = self.feedforward = anchor.resolve(config, task)
-        self._linearisation = None
-        if feedforward != "learned":
-            self._linearisation = task.linearisation()
-            if self._linearisation is None:
-                raise ValueError(f"algorithm.feedforward: {feedforward!r} needs a task with an equilibrium "
-                                 f"(Task.equilibrium); task {getattr(task, 'name', type(task).__name__)!r} "
-                                 f"defines none")
+        self._linearisation = None if feedforward == "learned" else anchor.linearisation(task, feedforward)
         self.critic, self.actor = build_networks(task, config, self.generator, architecture)
         self.critic_opt = torch.optim.Adam(self.critic.parameters(), lr=config.algorithm.critic_lr)
         self.actor_opt = torch.optim.Adam(self.actor.parameters(), lr=config.algorithm.actor_lr)

@@ -233,11 +233,7 @@ def feedforward_policy(trainer: Any, policy: torch.nn.Module, lin: Linearisation
         If the task has no equilibrium (naming ``algorithm.feedforward``), or as :func:`lq_reference`.
     """
     task: Task = trainer.task
-    lin = task.linearisation() if lin is None else lin
-    if lin is None:
-        raise ValueError(f"algorithm.feedforward: {'lq_ss' if steady else 'lq'!r} needs a task with an equilibrium "
-                         f"(Task.equilibrium); "
-                         f"task {getattr(task, 'name', type(task).__name__)!r} defines none")
+    lin = linearisation(task, "lq_ss" if steady else "lq") if lin is None else lin
     width = None
     if steady:
         obs, action = steady_anchor(trainer, lin, policy)
@@ -247,6 +243,16 @@ def feedforward_policy(trainer: Any, policy: torch.nn.Module, lin: Linearisation
         obs, action = equilibrium_observation(task, lin), feedforward_action(trainer, lin, policy)
     bound = getattr(policy, "action_bound", None)
     return FeedForwardPolicy(policy, obs, action, bound, width)
+
+
+def linearisation(task: Task, feedforward: str) -> Linearisation:
+    """``task.linearisation()``, or a ``ValueError`` naming ``algorithm.feedforward`` (of value ``feedforward``)
+    for a task without an equilibrium."""
+    lin = task.linearisation()
+    if lin is None:
+        raise ValueError(f"algorithm.feedforward: {feedforward!r} needs a task with an equilibrium (Task.equilibrium); "
+                         f"task {getattr(task, 'name', type(task).__name__)!r} defines none")
+    return lin
 
 
 def equilibrium_observation(task: Task, lin: Linearisation) -> torch.Tensor:
