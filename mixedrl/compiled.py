@@ -234,12 +234,9 @@ class _AdamState:
         for r, (opt, params) in enumerate(zip(self.descent.optimizers, self.descent.run_params)):
             for i, p in enumerate(params):
                 st = opt.state.get(p)
-                if not st or any(st.get(k) is not self._view(k, i, r) for k in ("step", "exp_avg", "exp_avg_sq")):
+                if not st or any(st.get(k) is not self._views[k][i][r] for k in ("step", "exp_avg", "exp_avg_sq")):
                     return False
         return True
-
-    def _view(self, key: str, i: int, r: int) -> torch.Tensor:
-        return self._views[key][i][r]
 
     def bind(self) -> dict[str, list[torch.Tensor]]:
         """The state tensors (``step``, ``exp_avg``, ``exp_avg_sq``; one per leaf), created as Adam creates
@@ -263,11 +260,8 @@ class _AdamState:
                     joined = torch.stack([st[key].detach() for st in per_run])
                     for r, st in enumerate(per_run):
                         st[key] = joined[r]
-                    out[key].append(joined)
-                    views[key].append([st[key] for st in per_run])
-                else:
-                    out[key].append(per_run[0][key])
-                    views[key].append([per_run[0][key]])
+                out[key].append(joined if self.stacked else per_run[0][key])
+                views[key].append([st[key] for st in per_run])
         self.tensors, self._views = out, views
         return out
 

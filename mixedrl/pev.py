@@ -269,11 +269,9 @@ def critic_loss(task: Any, critic: torch.nn.Module, s: torch.Tensor, u: torch.Te
     not depend on ``w`` through the semi-gradient, so both give the same gradient. The loss is divided by
     ``value_scale^2`` so that its size does not depend on the units of the cost.
     """
-    if relative_offset is not None:
-        relative_offset = check_number(relative_offset, "relative_offset", positive=True)
     if s.shape[0] != u.shape[0]:
         raise ValueError(f"u: batch size {u.shape[0]} differs from s's {s.shape[0]}")
-    runs = check_runs(runs, s.shape[0])
+    relative_offset, runs = check_hooks(relative_offset, runs, s.shape[0])
     return _critic_loss(task, critic, s, u, offsets, weights, relative_offset, runs, target_critic)
 
 
@@ -314,6 +312,13 @@ def check_runs(runs: int, batch: int) -> int:
     if batch % runs:
         raise ValueError(f"runs: {runs} does not divide the batch of {batch} states")
     return runs
+
+
+def check_hooks(relative_offset: float | None, runs: int, batch: int) -> tuple[float | None, int]:
+    """The hooks of a loss, checked: ``relative_offset`` (``None`` or ``> 0``), ``runs`` (:func:`check_runs`)."""
+    if relative_offset is not None:
+        relative_offset = check_number(relative_offset, "relative_offset", positive=True)
+    return relative_offset, check_runs(runs, batch)
 
 
 def run_mean(values: torch.Tensor, runs: int = 1) -> torch.Tensor:
@@ -370,17 +375,15 @@ def critic_step(task: Any, critic: Callable[..., torch.Tensor], actor: Callable[
     the paper writes plain gradient descent.
     """
     step = optimizer if isinstance(optimizer, Descent) else Descent.single(critic, optimizer, grad_clip)
+    relative_offset, runs = check_hooks(relative_offset, runs, s.shape[0])
     if step.mode != "off":  # algorithm.compile: the same loss as a pure function, one compiled step
-        if relative_offset is not None:
-            relative_offset = check_number(relative_offset, "relative_offset", positive=True)
-        runs = check_runs(runs, s.shape[0])
         loss = partial(critic_loss_at, task=task, critic=critic, actor=actor, relative_offset=relative_offset,
                        runs=runs, target_critic=target_critic)
         key = ("pev", id(task), id(critic), id(actor), id(target_critic), relative_offset, runs)
         return step.minimise(loss, (s, offsets, weights), active, key)
     with torch.no_grad():
         u = actor(task.observe(s))
-    loss = critic_loss(task, critic, s, u, offsets, weights, relative_offset, runs, target_critic)
+    loss = _critic_loss(task, critic, s, u, offsets, weights, relative_offset, runs, target_critic)
     # w^{k+1} = w^k - alpha dJ_critic/dw   (Adam, per run)
     step(loss, active)
     return loss.detach()

@@ -21,9 +21,9 @@ import numpy as np
 import scipy.linalg
 import torch
 
-from mixedrl.checks import as_vector, check_number
+from mixedrl.checks import as_vector
 from mixedrl.expectation import h_value
-from mixedrl.pev import check_runs, run_mean
+from mixedrl.pev import check_hooks, run_mean
 from mixedrl.schedule import Descent
 from mixedrl.quadratic import AffinePolicy, LinearDynamics, QuadraticCost, QuadraticValue, check_problem
 
@@ -183,9 +183,7 @@ def actor_objective(task: Any, critic: torch.nn.Module, actor: torch.nn.Module, 
     single pathwise gradient that autograd computes here, ``E{(dl/dx' + gamma dV/dx') df/du + dl/du}
     du/dtheta``.
     """
-    if relative_offset is not None:
-        relative_offset = check_number(relative_offset, "relative_offset", positive=True)
-    runs = check_runs(runs, s.shape[0])
+    relative_offset, runs = check_hooks(relative_offset, runs, s.shape[0])
     return _actor_objective(task, critic, actor, s, offsets, weights, relative_offset, runs)
 
 
@@ -260,10 +258,8 @@ def actor_step(task: Any, critic: Callable[..., torch.Tensor], actor: Callable[.
     Adam with gradient clipping (:mod:`mixedrl.departures.schedule`); the paper writes plain gradient descent.
     """
     step = optimizer if isinstance(optimizer, Descent) else Descent.single(actor, optimizer, grad_clip)
+    relative_offset, runs = check_hooks(relative_offset, runs, s.shape[0])
     if step.mode != "off":  # algorithm.compile: the same objective as a pure function, one compiled step
-        if relative_offset is not None:
-            relative_offset = check_number(relative_offset, "relative_offset", positive=True)
-        runs = check_runs(runs, s.shape[0])
         loss = partial(actor_objective_at, task=task, critic=critic, actor=actor, relative_offset=relative_offset,
                        runs=runs)
         key = ("pim", id(task), id(critic), id(actor), relative_offset, runs)
@@ -272,7 +268,7 @@ def actor_step(task: Any, critic: Callable[..., torch.Tensor], actor: Callable[.
     for p in frozen:
         p.requires_grad_(False)
     try:
-        obj = actor_objective(task, critic, actor, s, offsets, weights, relative_offset, runs)
+        obj = _actor_objective(task, critic, actor, s, offsets, weights, relative_offset, runs)
         # theta^{k+1} = theta^k - beta dJ_actor/dtheta   (Adam, per run)
         step(obj, active)
     finally:

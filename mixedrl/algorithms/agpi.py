@@ -23,6 +23,7 @@ Expectations over ``xi_hat ~ N(mu_hat, K_hat)`` use sigma points by default
 from __future__ import annotations
 
 import logging
+from functools import cached_property
 from typing import Any
 
 import numpy as np
@@ -125,13 +126,7 @@ class AGPI:
         self.generator = torch.Generator().manual_seed(config.seed)
         # algorithm.feedforward "lq" / "lq_ss" ("auto" resolved by anchor.resolve) need an equilibrium
         feedforward = self.feedforward = anchor.resolve(config, task)
-        self._linearisation = None
-        if feedforward != "learned":
-            self._linearisation = task.linearisation()
-            if self._linearisation is None:
-                raise ValueError(f"algorithm.feedforward: {feedforward!r} needs a task with an equilibrium "
-                                 f"(Task.equilibrium); task {getattr(task, 'name', type(task).__name__)!r} "
-                                 f"defines none")
+        self._linearisation = None if feedforward == "learned" else anchor.linearisation(task, feedforward)
         self.critic, self.actor = build_networks(task, config, self.generator, architecture)
         self.critic_opt = torch.optim.Adam(self.critic.parameters(), lr=config.algorithm.critic_lr)
         self.actor_opt = torch.optim.Adam(self.actor.parameters(), lr=config.algorithm.actor_lr)
@@ -159,7 +154,6 @@ class AGPI:
         if sampler_class is not None:
             sampler_class.check_task(task, config)
         self.sampler = sampler_class(task, config, self.generator) if sampler_class is not None else None
-        self._solo: Any = None  # the batched engine of this run alone (iteration)
         #: The target critic ``V(x; w_bar)`` of PEV (:mod:`mixedrl.departures.critic_target`), else ``None``
         #: (eq. 50: the critic itself).
         self.critic_target: AveragedModel | None = critic_target.make(self.critic, config)
@@ -275,15 +269,13 @@ class AGPI:
         """
         return self.engine.iteration()[0]
 
-    @property
+    @cached_property
     def engine(self) -> Any:
         """This run alone as a batch: the :class:`mixedrl.algorithms.batched.BatchedAGPI` of ``[self]``
         that :meth:`iteration` runs (built on first use)."""
-        if self._solo is None:
-            from mixedrl.algorithms.batched import BatchedAGPI
+        from mixedrl.algorithms.batched import BatchedAGPI
 
-            self._solo = BatchedAGPI([self])
-        return self._solo
+        return BatchedAGPI([self])
 
     def noise_moments(self) -> tuple[np.ndarray, np.ndarray]:
         """Copies of the current ``(mu_hat, K_hat)``, shapes (noise_dim,), (noise_dim, noise_dim).

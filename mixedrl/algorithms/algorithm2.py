@@ -279,8 +279,8 @@ def metrics_row(run: Any, residuals: torch.Tensor, v_before: torch.Tensor, criti
         "mvc/e_mean": mvc.e_mean,
         "mvc/e_nonnegative": mvc.e_nonnegative,
         "mvc/inner_steps": float(j),
+        "data/true_transitions": float(run.true_transitions),
     }
-    metrics["data/true_transitions"] = float(run.true_transitions)
     metrics.update(run.noise_metrics())
     if residuals.shape[0] > 0:
         batch_mean = residuals.mean(dim=0).numpy()

@@ -166,16 +166,6 @@ class StackedNetwork:
         return self.modules[0] if self.runs == 1 else self._frozen
 
 
-def _check_members(members: Sequence[AGPI]) -> None:
-    if len(members) == 0:
-        raise ValueError("members: expected at least one AGPI run, got none")
-    for i, m in enumerate(members):
-        if not all(hasattr(m, a) for a in ("critic_opt", "actor_opt", "collect", "noise", "critic_target")):
-            raise ValueError(f"members: entry {i} is a {type(m).__name__}, not an AGPI run (DDPG runs train in a "
-                             f"BatchedDDPG)")
-    check_shared(members, SHARED_FIELDS)
-
-
 def check_shared(members: Sequence[Any], fields: Sequence[str]) -> None:
     """Refuse runs that cannot share a batch: another task or architecture than run 0, a field of
     ``fields`` that differs from run 0's, or the same run twice.
@@ -217,10 +207,22 @@ class BatchedRuns:
         The runs; :meth:`check_members` (of the subclass) refuses those that cannot share a batch.
     """
 
-    @staticmethod
-    def check_members(members: Sequence[Any]) -> None:
-        """Refuse members that cannot share a batch (the subclass's rules)."""
-        raise NotImplementedError
+    #: The subclass's kind of run, the attributes that tell a member of that kind, the fields its runs share.
+    kind, interface, shared = "", (), ()
+
+    @classmethod
+    def check_members(cls, members: Sequence[Any]) -> None:
+        """Refuse members that cannot share a batch (the constructor's ``ValueError``): none, a run of another
+        kind, or runs that differ in the task or a shared field (:func:`check_shared`)."""
+        if len(members) == 0:
+            raise ValueError(f"members: expected at least one {cls.kind} run, got none")
+        for i, m in enumerate(members):
+            if not all(hasattr(m, a) for a in cls.interface):
+                method = getattr(getattr(m, "config", None), "method", "?")
+                raise ValueError(f"members: entry {i} is a {type(m).__name__} ({method}), not "
+                                 f"{'an' if cls.kind == 'AGPI' else 'a'} {cls.kind} run; Algorithm-2 and DDPG runs "
+                                 f"train in batches of their own kind")
+        check_shared(members, cls.shared)
 
     def __init__(self, members: Sequence[Any]) -> None:
         self.check_members(members)
@@ -291,8 +293,7 @@ class BatchedAGPI(BatchedRuns):
         No runs, a run that is not an :class:`AGPI`, or runs that differ in a shared field.
     """
 
-    #: Refuse members that cannot share a batch (raises the ``ValueError`` of the constructor).
-    check_members = staticmethod(_check_members)
+    kind, interface, shared = "AGPI", ("critic_opt", "actor_opt", "collect", "noise", "critic_target"), SHARED_FIELDS
 
     def __init__(self, members: Sequence[AGPI]) -> None:
         super().__init__(members)

@@ -24,29 +24,13 @@ from typing import Any, Sequence
 
 import torch
 
-from mixedrl.algorithms.batched import DDPG_SHARED_FIELDS, BatchedRuns, StackedNetwork, check_shared
+from mixedrl.algorithms.batched import DDPG_SHARED_FIELDS, BatchedRuns, StackedNetwork
 from mixedrl.pev import run_mean
 
 __all__ = ["BatchedDDPG"]
 
 #: A member of a batch: a :class:`mixedrl.algorithms.ddpg.DDPG` run (not imported: ddpg imports this module).
 DDPG = Any
-
-#: What a DDPG run has and an Algorithm-2 run has not (checked instead of the class, see :data:`DDPG`).
-_DDPG_INTERFACE = ("explore", "finish_iteration", "buffer", "critic_target", "actor_target", "critic_opt",
-                   "actor_opt")
-
-
-def _check_members(members: Sequence[DDPG]) -> None:
-    """Refuse an empty batch, a run that is not DDPG, runs that differ in a shared field, or a repeated run."""
-    if len(members) == 0:
-        raise ValueError("members: expected at least one DDPG run, got none")
-    for i, m in enumerate(members):
-        if not all(hasattr(m, a) for a in _DDPG_INTERFACE):
-            method = getattr(getattr(m, "config", None), "method", "?")
-            raise ValueError(f"members: entry {i} is a {type(m).__name__} ({method}), not a DDPG run; Algorithm-2 "
-                             f"and DDPG runs train in batches of their own kind")
-    check_shared(members, DDPG_SHARED_FIELDS)
 
 
 class BatchedDDPG(BatchedRuns):
@@ -66,8 +50,10 @@ class BatchedDDPG(BatchedRuns):
         a shared field, or the same run twice.
     """
 
-    #: Refuse members that cannot share a batch (raises the ``ValueError`` of the constructor).
-    check_members = staticmethod(_check_members)
+    #: What a DDPG run has and an Algorithm-2 run has not (checked instead of the class, see :data:`DDPG`).
+    kind, interface = "DDPG", ("explore", "finish_iteration", "buffer", "critic_target", "actor_target", "critic_opt",
+                               "actor_opt")
+    shared = DDPG_SHARED_FIELDS
 
     def __init__(self, members: Sequence[DDPG]) -> None:
         super().__init__(members)

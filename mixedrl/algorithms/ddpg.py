@@ -13,6 +13,7 @@ which "iterations to converge" is counted for every method).
 from __future__ import annotations
 
 import copy
+from functools import cached_property
 from typing import Any
 
 import torch
@@ -37,6 +38,8 @@ class ReplayBuffer:
         Sizes.
     """
 
+    _FIELDS = ("obs", "action", "cost", "next_obs", "terminal")
+
     def __init__(self, capacity: int, obs_dim: int, action_dim: int) -> None:
         self.capacity = int(capacity)
         self.obs = torch.zeros(capacity, obs_dim)
@@ -52,11 +55,8 @@ class ReplayBuffer:
         """Append a batch of ``n`` transitions (shapes (n, obs_dim), (n, action_dim), (n,), (n, obs_dim), (n,))."""
         n = obs.shape[0]
         idx = (self.pointer + torch.arange(n)) % self.capacity
-        self.obs[idx] = obs
-        self.action[idx] = action
-        self.cost[idx] = cost
-        self.next_obs[idx] = next_obs
-        self.terminal[idx] = terminal
+        for key, value in zip(self._FIELDS, (obs, action, cost, next_obs, terminal)):
+            getattr(self, key)[idx] = value
         self.pointer = int((self.pointer + n) % self.capacity)
         self.size = int(min(self.size + n, self.capacity))
 
@@ -65,21 +65,19 @@ class ReplayBuffer:
         if self.size == 0:
             raise ValueError("n: cannot sample from an empty replay buffer")
         idx = torch.randint(0, self.size, (n,), generator=generator)
-        return self.obs[idx], self.action[idx], self.cost[idx], self.next_obs[idx], self.terminal[idx]
+        return tuple(getattr(self, key)[idx] for key in self._FIELDS)
 
     def state_dict(self) -> dict[str, Any]:
         """The stored transitions and the ring pointer (only the filled part)."""
-        n = self.size
-        return {"obs": self.obs[:n].clone(), "action": self.action[:n].clone(), "cost": self.cost[:n].clone(),
-                "next_obs": self.next_obs[:n].clone(), "terminal": self.terminal[:n].clone(),
-                "pointer": self.pointer, "size": self.size}
+        return {**{key: getattr(self, key)[:self.size].clone() for key in self._FIELDS}, "pointer": self.pointer,
+                "size": self.size}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         """Restore :meth:`state_dict`."""
         n = int(state["size"])
         if n > self.capacity or state["obs"].shape[1:] != self.obs.shape[1:]:
             raise ValueError("state: replay buffer shapes do not match")
-        for key in ("obs", "action", "cost", "next_obs", "terminal"):
+        for key in self._FIELDS:
             getattr(self, key)[:n] = state[key]
         self.pointer, self.size = int(state["pointer"]), n
 
@@ -133,7 +131,6 @@ class DDPG:
         #: True-environment transitions taken so far (warm-up and exploration included), counted in :meth:`collect`
         #: (``None`` after loading a checkpoint that predates the counter).
         self.true_transitions: int | None = 0
-        self._solo: Any = None
 
     @property
     def policy(self) -> torch.nn.Module:
@@ -210,15 +207,13 @@ class DDPG:
         (:class:`mixedrl.algorithms.batched_ddpg.BatchedDDPG` with this run alone, ``R = 1``)."""
         return self.engine.iteration()[0]
 
-    @property
+    @cached_property
     def engine(self) -> Any:
         """This run alone as a batch: the :class:`mixedrl.algorithms.batched_ddpg.BatchedDDPG` of ``[self]``
         that :meth:`iteration` runs (built on first use)."""
-        if self._solo is None:
-            from mixedrl.algorithms.batched_ddpg import BatchedDDPG
+        from mixedrl.algorithms.batched_ddpg import BatchedDDPG
 
-            self._solo = BatchedDDPG([self])
-        return self._solo
+        return BatchedDDPG([self])
 
     def evaluate(self, seeds: list[int]) -> dict[str, Any]:
         """Evaluate the deterministic actor (no exploration noise) on the task."""

@@ -173,7 +173,6 @@ def policy_iteration(
     policy = initial_policy
     history: list[Iteration] = []
     value = None
-    converged = False
     for k in range(iterations):
         # IBE: [mu_k, K_k] = IBE(mu_{k-1}, K_{k-1}, xi^D_k)   (eq. 13, mixed model eq. 20)
         residuals = None if collect is None else collect(policy, k)
@@ -182,27 +181,16 @@ def policy_iteration(
         new_value = pev_step(evaluate, policy, noise)
         # PIM: pi^{k+1}(x) = argmin_pi E_{xi_k}{ l(x', pi(x)) + gamma V^k(x') }   (eq. 22)
         next_policy = pim_step(improve, new_value, noise)
-        record = Iteration(
-            k=k,
-            noise_mean=np.array(noise.mean, dtype=np.float64),
-            noise_cov=np.array(noise.cov, dtype=np.float64),
-            samples=int(getattr(noise, "count", 0)),
-            policy=policy,
-            value=new_value,
-            next_policy=next_policy,
-        )
+        record = Iteration(k=k, noise_mean=np.array(noise.mean, dtype=np.float64),
+                           noise_cov=np.array(noise.cov, dtype=np.float64), samples=int(getattr(noise, "count", 0)),
+                           policy=policy, value=new_value, next_policy=next_policy)
         history.append(record)
         if callback is not None:
             callback(record)
         logger.debug("iteration %d done (samples=%d)", k, record.samples)
-        stop = (
-            tol is not None
-            and value is not None
-            and new_value.distance(value) <= tol
-            and next_policy.distance(policy) <= tol
-        )
+        stop = tol is not None and value is not None and new_value.distance(value) <= tol and \
+            next_policy.distance(policy) <= tol
         value, policy = new_value, next_policy
         if stop:
-            converged = True
-            break
-    return PolicyIterationResult(policy=policy, value=value, history=history, converged=converged)
+            return PolicyIterationResult(policy=policy, value=value, history=history, converged=True)
+    return PolicyIterationResult(policy=policy, value=value, history=history)

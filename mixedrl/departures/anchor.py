@@ -162,8 +162,7 @@ def own_noise(trainer: Any, lin: Linearisation, policy: torch.nn.Module | None =
         with torch.no_grad():
             m, cov = trainer.planning_moments(s, policy(trainer.task.observe(s)))
         return np.asarray(m[0], dtype=np.float64), np.asarray(cov, dtype=np.float64)
-    mean, cov = trainer.noise_moments()
-    return np.asarray(mean, dtype=np.float64), np.asarray(cov, dtype=np.float64)
+    return trainer.noise_moments()
 
 
 class FeedForwardPolicy(torch.nn.Module):
@@ -234,11 +233,7 @@ def feedforward_policy(trainer: Any, policy: torch.nn.Module, lin: Linearisation
         If the task has no equilibrium (naming ``algorithm.feedforward``), or as :func:`lq_reference`.
     """
     task: Task = trainer.task
-    lin = task.linearisation() if lin is None else lin
-    if lin is None:
-        raise ValueError(f"algorithm.feedforward: {'lq_ss' if steady else 'lq'!r} needs a task with an equilibrium "
-                         f"(Task.equilibrium); "
-                         f"task {getattr(task, 'name', type(task).__name__)!r} defines none")
+    lin = linearisation(task, "lq_ss" if steady else "lq") if lin is None else lin
     width = None
     if steady:
         obs, action = steady_anchor(trainer, lin, policy)
@@ -248,6 +243,16 @@ def feedforward_policy(trainer: Any, policy: torch.nn.Module, lin: Linearisation
         obs, action = equilibrium_observation(task, lin), feedforward_action(trainer, lin, policy)
     bound = getattr(policy, "action_bound", None)
     return FeedForwardPolicy(policy, obs, action, bound, width)
+
+
+def linearisation(task: Task, feedforward: str) -> Linearisation:
+    """``task.linearisation()``, or a ``ValueError`` naming ``algorithm.feedforward`` (of value ``feedforward``)
+    for a task without an equilibrium."""
+    lin = task.linearisation()
+    if lin is None:
+        raise ValueError(f"algorithm.feedforward: {feedforward!r} needs a task with an equilibrium (Task.equilibrium); "
+                         f"task {getattr(task, 'name', type(task).__name__)!r} defines none")
+    return lin
 
 
 def equilibrium_observation(task: Task, lin: Linearisation) -> torch.Tensor:

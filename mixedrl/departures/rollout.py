@@ -346,14 +346,10 @@ def update(engine: Any, s: torch.Tensor, moments: Sequence[tuple[np.ndarray, np.
         horizon, batch = costs.shape
         next_values = target(engine.task.observe(states[1:].reshape(horizon * batch, -1))).reshape(horizon, batch)
         targets = lambda_returns(costs, next_values, gamma, algo.rollout_lambda)
-    fit = (states[:-1], targets)
-    if engine.critic_descent.mode == "off":
-        loss = critic_loss(engine.task, engine.critic, *fit, engine.runs, relative_offset)
-        engine.critic_descent(loss, active_runs)
-    else:
-        pure = partial(critic_loss_at, task=engine.task, critic=engine.critic, runs=engine.runs,
-                       relative_offset=relative_offset)
-        loss = engine.critic_descent.minimise(pure, fit, active_runs,
-                                              key=("rollout_pev", engine.runs, relative_offset))
+    # the critic at its parameters: eagerly, or one compiled step with algorithm.compile
+    pure = partial(critic_loss_at, task=engine.task, critic=engine.critic, runs=engine.runs,
+                   relative_offset=relative_offset)
+    loss = engine.critic_descent.minimise(pure, (states[:-1], targets), active_runs,
+                                          key=("rollout_pev", engine.runs, relative_offset))
     region.remember(engine, states[-1], active_runs)  # departure hook: the end states the next starts carry over
-    return loss.detach(), obj
+    return loss, obj
