@@ -27,12 +27,12 @@ The optimal value is ``V*(x) = x^T P x + 2 p^T x + c`` and the optimal policy ``
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from typing import Any
 
 import numpy as np
 
-from mixedrl.checks import as_matrix, as_vector, check_covariance
+from mixedrl.checks import as_vector, check_covariance
 from mixedrl.quadratic import AffinePolicy, LinearDynamics, QuadraticCost, QuadraticValue
 
 __all__ = ["LQProblem", "LQSolution", "PBH_RTOL", "discounted_lq_optimum", "optimal_solution"]
@@ -99,6 +99,8 @@ class LQProblem:
     noise_cov: np.ndarray
     prior_mean: np.ndarray
     prior_cov: np.ndarray
+    n = LinearDynamics.n
+    m = LinearDynamics.m
 
     @property
     def true_mean(self) -> np.ndarray:
@@ -111,12 +113,8 @@ class LQProblem:
         return self.noise_cov
 
     def __post_init__(self) -> None:
-        A = as_matrix(self.A, "A")
-        n = A.shape[0]
-        if A.shape != (n, n):
-            raise ValueError(f"A: must be square, got {A.shape}")
-        B = as_matrix(self.B, "B", (n, None))
-        m = B.shape[1]
+        dynamics = LinearDynamics(self.A, self.B)
+        A, B, n, m = dynamics.A, dynamics.B, dynamics.n, dynamics.m
         if m < 1:
             raise ValueError("B: needs at least one column")
         Q = check_covariance(self.Q, "Q", n)
@@ -148,16 +146,6 @@ class LQProblem:
             object.__setattr__(self, key, val)
 
     @property
-    def n(self) -> int:
-        """State dimension."""
-        return self.A.shape[0]
-
-    @property
-    def m(self) -> int:
-        """Input dimension."""
-        return self.B.shape[1]
-
-    @property
     def dynamics(self) -> LinearDynamics:
         """``f(x, u) = A x + B u``."""
         return LinearDynamics(self.A, self.B)
@@ -169,10 +157,7 @@ class LQProblem:
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-serialisable form (lists)."""
-        return {
-            k: (getattr(self, k).tolist() if isinstance(getattr(self, k), np.ndarray) else getattr(self, k))
-            for k in ("A", "B", "Q", "R", "gamma", "noise_mean", "noise_cov", "prior_mean", "prior_cov")
-        }
+        return {f.name: np.asarray(getattr(self, f.name)).tolist() for f in fields(self)}
 
 
 @dataclass(frozen=True)
