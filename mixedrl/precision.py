@@ -44,14 +44,10 @@ VALUE_NOTE = ("value: the critic at the equilibrium (V(x*), for DDPG Q(x*, pi(x*
               "linearisation holds and the critic's V(x*) is not an average over contexts it cannot see.")
 
 
-def _policy_on_coordinates(task: Task, lin: Linearisation, policy: torch.nn.Module
-                           ) -> Callable[[torch.Tensor], torch.Tensor]:
-    """``x (n,) float64 -> pi(observe(s(x)))`` (m,) float64, with float32 observations as in training."""
-    def act(x: torch.Tensor) -> torch.Tensor:
-        s = lin.to_state(x[None].to(torch.float64))
-        return policy(task.observe(s.float()))[0].double()
-
-    return act
+def _true_mean(task: Task, lin: Linearisation) -> np.ndarray:
+    """``task.true_mean_at`` the equilibrium ``(lin.state, lin.action)``, shape (noise_dim,)."""
+    s_star = torch.as_tensor(np.asarray(lin.state, dtype=np.float64))[None]
+    return task.true_mean_at(s_star, torch.as_tensor(np.asarray(lin.action, dtype=np.float64))[None])[0].numpy()
 
 
 def policy_gap(task: Task, policy: torch.nn.Module, noise_mean: Any, noise_cov: Any = None, *,
@@ -107,13 +103,14 @@ def policy_gap(task: Task, policy: torch.nn.Module, noise_mean: Any, noise_cov: 
     d = lin.E.shape[1]
     mu = noise_vector(noise_mean, d, "noise_mean")
     K = np.zeros((d, d)) if noise_cov is None else np.asarray(noise_cov, dtype=np.float64)
-    s_star = torch.as_tensor(np.asarray(lin.state, dtype=np.float64))[None]
     u_star = np.asarray(lin.action, dtype=np.float64)
-    if true_mean is None:
-        true_mean = task.true_mean_at(s_star, torch.as_tensor(u_star)[None])[0].numpy()
-    mu_true = noise_vector(true_mean, d, "true_mean")
+    mu_true = noise_vector(_true_mean(task, lin) if true_mean is None else true_mean, d, "true_mean")
     own, truth = lq_reference(lin, mu, K), lq_reference(lin, mu_true)
-    act = _policy_on_coordinates(task, lin, policy)
+
+    def act(x: torch.Tensor) -> torch.Tensor:
+        """``x (n,) float64 -> pi(observe(s(x)))`` (m,) float64, with float32 observations as in training."""
+        return policy(task.observe(lin.to_state(x[None].to(torch.float64)).float()))[0].double()
+
     x0 = torch.zeros(lin.A.shape[0], dtype=torch.float64)
     obs = task.observe(lin.to_state(x0[None]).float())
     with torch.no_grad():
@@ -194,13 +191,9 @@ def run_policy_gap(trainer: Any, policy: torch.nn.Module | None = None) -> tuple
         return None, reason
     critic = getattr(trainer, "critic", None)
     mean, cov = own_noise(trainer, lin, policy)
-    if getattr(trainer, "noise", None) is None:
-        value = None if critic is None else (lambda o: critic(o, policy(o)))
-    else:
-        value = critic
-    if mean is None:
-        s_star = torch.as_tensor(np.asarray(lin.state, dtype=np.float64))[None]
-        mean = task.true_mean_at(s_star, torch.as_tensor(np.asarray(lin.action))[None])[0].numpy()
+    ddpg = critic is not None and getattr(trainer, "noise", None) is None
+    value = (lambda o: critic(o, policy(o))) if ddpg else critic  # DDPG's V(x*) = Q(x*, pi(x*))
+    mean = _true_mean(task, lin) if mean is None else mean
     try:
         return policy_gap(task, policy, mean, cov, value=value, lin=lin), None
     except (ValueError, RuntimeError) as exc:
@@ -244,7 +237,7 @@ class LQRPolicy(torch.nn.Module):
 
     def forward(self, obs: torch.Tensor) -> torch.Tensor:
         u = self.u_ff + (obs - self.o_star) @ self.gain.T
-        return torch.maximum(torch.minimum(u, self.bound), -self.bound)
+        return torch.clamp(u, -self.bound, self.bound)
 
 
 def run_references(trainer: Any, seeds: list[int]) -> tuple[dict[str, Any] | None, str | None]:
