@@ -46,19 +46,6 @@ def _sym(a: np.ndarray) -> np.ndarray:
     return 0.5 * (a + a.T)
 
 
-def _is_stabilisable(A: np.ndarray, B: np.ndarray) -> bool:
-    """PBH test: ``rank [A - lambda I, B] = n`` for every eigenvalue ``|lambda| >= 1``."""
-    n = A.shape[0]
-    for lam in np.linalg.eigvals(A):
-        if abs(lam) < 1.0:
-            continue
-        M = np.hstack([A - lam * np.eye(n), B.astype(complex)])
-        sv = np.linalg.svd(M, compute_uv=False)
-        if sv[-1] <= PBH_RTOL * max(1.0, sv[0]):
-            return False
-    return True
-
-
 @dataclass(frozen=True)
 class LQProblem:
     """A discounted LQ problem with mean-shifted Gaussian noise and a designer's prior on the mean.
@@ -117,10 +104,7 @@ class LQProblem:
         A, B, n, m = dynamics.A, dynamics.B, dynamics.n, dynamics.m
         if m < 1:
             raise ValueError("B: needs at least one column")
-        Q = check_covariance(self.Q, "Q", n)
-        R = check_covariance(self.R, "R", m)
-        if np.linalg.eigvalsh(R)[0] <= 0.0:
-            raise ValueError("R: must be positive definite")
+        cost = QuadraticCost(check_covariance(self.Q, "Q", n), check_covariance(self.R, "R", m))  # R: definite
         if isinstance(self.gamma, bool):
             raise ValueError(f"gamma: expected a float in (0, 1), got {self.gamma!r}")
         try:
@@ -129,19 +113,15 @@ class LQProblem:
             raise ValueError(f"gamma: expected a float in (0, 1), got {self.gamma!r}") from None
         if not (0.0 < gamma < 1.0):
             raise ValueError(f"gamma: must lie in (0, 1), got {self.gamma!r}")
-        vals = {
-            "A": A,
-            "B": B,
-            "Q": Q,
-            "R": R,
-            "gamma": gamma,
-            "noise_mean": as_vector(self.noise_mean, "noise_mean", n),
-            "noise_cov": check_covariance(self.noise_cov, "noise_cov", n),
-            "prior_mean": as_vector(self.prior_mean, "prior_mean", n),
-            "prior_cov": check_covariance(self.prior_cov, "prior_cov", n),
-        }
-        if not _is_stabilisable(A, B):
-            raise ValueError("A: (A, B) is not stabilisable (PBH test)")
+        vals = {"A": A, "B": B, "Q": cost.Q, "R": cost.R, "gamma": gamma}
+        for key, check in (("noise_mean", as_vector), ("noise_cov", check_covariance), ("prior_mean", as_vector),
+                           ("prior_cov", check_covariance)):
+            vals[key] = check(getattr(self, key), key, n)
+        eigs = np.linalg.eigvals(A)
+        for lam in eigs[np.abs(eigs) >= 1.0]:  # PBH test: rank [A - lambda I, B] = n for every |lambda| >= 1
+            sv = np.linalg.svd(np.hstack([A - lam * np.eye(n), B.astype(complex)]), compute_uv=False)
+            if sv[-1] <= PBH_RTOL * max(1.0, sv[0]):
+                raise ValueError("A: (A, B) is not stabilisable (PBH test)")
         for key, val in vals.items():
             object.__setattr__(self, key, val)
 
