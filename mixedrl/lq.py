@@ -2,26 +2,10 @@
 
 The problem (EQUATIONS.md, last section): ``x' = A x + B u + xi``, ``xi ~ N(mu, K)``, utility charged on
 the next state ``l(x', u) = x'^T Q x' + u^T R u`` (eq. 2), discount ``gamma``, and the designer's prior
-``N(mu_M, K_M)`` on the noise (eq. 8). One :class:`LQProblem` holds it; the other faces of the same
-problem are views of it:
-
-* :class:`mixedrl.linear_task.LinearTask` (the problem as a :class:`~mixedrl.tasks.Task` for Algorithm 2) holds
-  one (``task.problem``) and builds from one (:meth:`~mixedrl.linear_task.LinearTask.from_problem`);
-* :class:`mixedrl.config.LinearTaskConfig` (a run's ``task`` section, JSON) validates through one and
-  returns it (:meth:`~mixedrl.config.LinearTaskConfig.problem`);
-* :attr:`LQProblem.dynamics` and :attr:`LQProblem.cost` are the :mod:`mixedrl.quadratic` pieces the exact
-  PEV and PIM take;
-* :mod:`validation.lq` (Algorithm 1 against the optimum) and the LQR reference of the vehicle
-  (:func:`validation.nmpc.discounted_lqr`) use :func:`discounted_lq_optimum`, the one implementation of
-  the optimum, and re-export these names.
-
-The optimal value is ``V*(x) = x^T P x + 2 p^T x + c`` and the optimal policy ``u = -L x - l0``:
-
-* ``S = Q + gamma P`` solves the standard DARE with ``(sqrt(gamma) A, sqrt(gamma) B, Q, gamma R)``
-  (:func:`control.dare`, ``method="scipy"``), and ``L = (R + B^T S B)^{-1} B^T S A``;
-* ``p`` and ``l0`` solve one linear system that depends on ``mu``, and ``c`` follows; a wrong ``mu``
-  leaves ``L`` exact and biases ``l0`` (:func:`discounted_lq_optimum`; :func:`optimal_solution` for an
-  :class:`LQProblem`).
+``N(mu_M, K_M)`` on the noise (eq. 8). Its other faces (:class:`mixedrl.linear_task.LinearTask`,
+:class:`mixedrl.config.LinearTaskConfig`, :mod:`validation.lq`) are views of one :class:`LQProblem`, and
+:func:`discounted_lq_optimum` is the one implementation of its optimum ``u = -L x - l0``,
+``V*(x) = x^T P x + 2 p^T x + c`` (derived in docs/lq.rst).
 """
 
 from __future__ import annotations

@@ -1,19 +1,12 @@
-"""The precision yardstick: a learned policy at the equilibrium against the discounted LQ optimum.
+"""The precision yardstick (docs/precision.rst): a learned policy at the equilibrium against the discounted LQ optimum.
 
-Mixed RL's benefit is a better estimate of the noise mean, and at an equilibrium that estimate is a
-feed-forward: the action that cancels the disturbance. This module measures how precisely a learned
-policy resolves it (docs page ``precision.rst``). For a task with an equilibrium and its linearisation
-(:meth:`mixedrl.tasks.Task.linearisation`: ``x' = A x + B v + E xi``, ``l = x'^T Q x' + v^T R v``,
-``v = u - u*``, discount ``gamma``), the discounted LQ optimum for a noise mean ``mu`` (eqs. 6-7 on the
-linearisation; EQUATIONS.md, last section; :func:`mixedrl.lq.discounted_lq_optimum`) is
+For a task's linearisation at its equilibrium (:meth:`mixedrl.tasks.Task.linearisation`: ``x' = A x + B v + E xi``,
+``v = u - u*``) and a noise mean ``mu``, the optimum (eqs. 6-7; :func:`mixedrl.lq.discounted_lq_optimum`) is
 
 .. math:: v = -L x - l_0(E\\mu), \\qquad V^*(x) = x^T P x + 2 p^T x + c(E\\mu, E K E^T),
 
-so at the equilibrium (``x = 0``) the optimal action is ``u* - l0`` and the optimal value is ``c``.
-:func:`lq_reference` computes these; :func:`policy_gap` compares a policy (and its critic) with them;
-:func:`run_policy_gap` does it for a trainer with the method's own noise mean and is what
-:func:`mixedrl.runs.summarize` writes to ``results.json`` as ``policy_gap``. Evaluation only: nothing here
-touches a trainer's weights, generators or buffers.
+so at the equilibrium (``x = 0``) the optimal action is ``u* - l0`` and the optimal value is ``c``. Evaluation
+only: nothing here touches a trainer's weights, generators or buffers.
 """
 
 from __future__ import annotations
