@@ -210,14 +210,13 @@ def discounted_lq_optimum(A: np.ndarray, B: np.ndarray, Q: np.ndarray, R: np.nda
     A, B, Q, R, mu = (np.asarray(a, dtype=np.float64) for a in (A, B, Q, R, mu))
     n, g = A.shape[0], float(gamma)
     K = np.zeros((n, n)) if K is None else np.asarray(K, dtype=np.float64)
-    sg = math.sqrt(g)
     # imported here, not at module level (issue 44): ``control`` pulls in scipy.signal and matplotlib.pyplot
     # (~1 s), and only the optimum needs it
     import control
 
     try:
         # S solves the DARE with (sqrt(gamma) A, sqrt(gamma) B, Q, gamma R)
-        S, _, L = control.dare(sg * A, sg * B, Q, g * R, method="scipy")
+        S, _, L = control.dare(math.sqrt(g) * A, math.sqrt(g) * B, Q, g * R, method="scipy")
     except (np.linalg.LinAlgError, ValueError, control.ControlArgument) as exc:
         raise ValueError(f"Q: the DARE has no stabilising solution ({exc})") from None
     S = _sym(np.asarray(S, dtype=np.float64))

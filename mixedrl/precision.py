@@ -222,7 +222,6 @@ class LQRPolicy(torch.nn.Module):
         if lin is None:
             raise ValueError(f"task: {getattr(task, 'name', type(task).__name__)!r} defines no equilibrium "
                              "(Task.equilibrium), so it has no LQR")
-        mean = np.asarray(mean, dtype=np.float64)
         self.register_buffer("u_ff", torch.as_tensor(lq_reference(lin, mean).action, dtype=torch.float32))
         self.register_buffer("gain", equilibrium_gain(task, lin).float())
         self.register_buffer("o_star", equilibrium_observation(task, lin))
