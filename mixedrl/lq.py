@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 
-from mixedrl.checks import as_vector, check_covariance
+from mixedrl.checks import as_vector, check_covariance, check_fraction
 from mixedrl.quadratic import AffinePolicy, LinearDynamics, QuadraticCost, QuadraticValue
 
 __all__ = ["LQProblem", "LQSolution", "PBH_RTOL", "discounted_lq_optimum", "optimal_solution"]
@@ -89,14 +89,7 @@ class LQProblem:
         if m < 1:
             raise ValueError("B: needs at least one column")
         cost = QuadraticCost(check_covariance(self.Q, "Q", n), check_covariance(self.R, "R", m))  # R: definite
-        if isinstance(self.gamma, bool):
-            raise ValueError(f"gamma: expected a float in (0, 1), got {self.gamma!r}")
-        try:
-            gamma = float(self.gamma)
-        except (TypeError, ValueError):
-            raise ValueError(f"gamma: expected a float in (0, 1), got {self.gamma!r}") from None
-        if not (0.0 < gamma < 1.0):
-            raise ValueError(f"gamma: must lie in (0, 1), got {self.gamma!r}")
+        gamma = check_fraction(self.gamma, "gamma", low_open=True, high_open=True)
         vals = {"A": A, "B": B, "Q": cost.Q, "R": cost.R, "gamma": gamma}
         for key, check in (("noise_mean", as_vector), ("noise_cov", check_covariance), ("prior_mean", as_vector),
                            ("prior_cov", check_covariance)):
