@@ -282,8 +282,6 @@ def format_policy_gap(gap: dict[str, Any] | None, reason: str | None = None) -> 
     """One line for the command line: the action error per component (own mean, true mean) and the regret."""
     if gap is None:
         return f"policy_gap: n/a ({reason or 'no equilibrium'})"
-    own = ", ".join(f"{e:+.4g}" for e in gap["action_error"])
-    true = ", ".join(f"{e:+.4g}" for e in gap["action_error_true_mean"])
-    regret = gap["value_regret"]
-    tail = "" if regret is None else f"; LQ value regret {regret:.3g}"
-    return (f"policy_gap: action - LQ optimum at the equilibrium [{own}] (own mean), [{true}] (true mean){tail}")
+    own, true = (", ".join(f"{e:+.4g}" for e in gap[key]) for key in ("action_error", "action_error_true_mean"))
+    tail = "" if gap["value_regret"] is None else f"; LQ value regret {gap['value_regret']:.3g}"
+    return f"policy_gap: action - LQ optimum at the equilibrium [{own}] (own mean), [{true}] (true mean){tail}"
