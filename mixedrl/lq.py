@@ -2,37 +2,21 @@
 
 The problem (EQUATIONS.md, last section): ``x' = A x + B u + xi``, ``xi ~ N(mu, K)``, utility charged on
 the next state ``l(x', u) = x'^T Q x' + u^T R u`` (eq. 2), discount ``gamma``, and the designer's prior
-``N(mu_M, K_M)`` on the noise (eq. 8). One :class:`LQProblem` holds it; the other faces of the same
-problem are views of it:
-
-* :class:`mixedrl.linear_task.LinearTask` (the problem as a :class:`~mixedrl.tasks.Task` for Algorithm 2) holds
-  one (``task.problem``) and builds from one (:meth:`~mixedrl.linear_task.LinearTask.from_problem`);
-* :class:`mixedrl.config.LinearTaskConfig` (a run's ``task`` section, JSON) validates through one and
-  returns it (:meth:`~mixedrl.config.LinearTaskConfig.problem`);
-* :attr:`LQProblem.dynamics` and :attr:`LQProblem.cost` are the :mod:`mixedrl.quadratic` pieces the exact
-  PEV and PIM take;
-* :mod:`validation.lq` (Algorithm 1 against the optimum) and the LQR reference of the vehicle
-  (:func:`validation.nmpc.discounted_lqr`) use :func:`discounted_lq_optimum`, the one implementation of
-  the optimum, and re-export these names.
-
-The optimal value is ``V*(x) = x^T P x + 2 p^T x + c`` and the optimal policy ``u = -L x - l0``:
-
-* ``S = Q + gamma P`` solves the standard DARE with ``(sqrt(gamma) A, sqrt(gamma) B, Q, gamma R)``
-  (:func:`control.dare`, ``method="scipy"``), and ``L = (R + B^T S B)^{-1} B^T S A``;
-* ``p`` and ``l0`` solve one linear system that depends on ``mu``, and ``c`` follows; a wrong ``mu``
-  leaves ``L`` exact and biases ``l0`` (:func:`discounted_lq_optimum`; :func:`optimal_solution` for an
-  :class:`LQProblem`).
+``N(mu_M, K_M)`` on the noise (eq. 8). Its other faces (:class:`mixedrl.linear_task.LinearTask`,
+:class:`mixedrl.config.LinearTaskConfig`, :mod:`validation.lq`) are views of one :class:`LQProblem`, and
+:func:`discounted_lq_optimum` is the one implementation of its optimum ``u = -L x - l0``,
+``V*(x) = x^T P x + 2 p^T x + c`` (derived in docs/lq.rst).
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from typing import Any
 
 import numpy as np
 
-from mixedrl.checks import as_matrix, as_vector, check_covariance
+from mixedrl.checks import as_vector, check_covariance, check_fraction
 from mixedrl.quadratic import AffinePolicy, LinearDynamics, QuadraticCost, QuadraticValue
 
 __all__ = ["LQProblem", "LQSolution", "PBH_RTOL", "discounted_lq_optimum", "optimal_solution"]
@@ -44,19 +28,6 @@ PBH_RTOL = 1e-10
 
 def _sym(a: np.ndarray) -> np.ndarray:
     return 0.5 * (a + a.T)
-
-
-def _is_stabilisable(A: np.ndarray, B: np.ndarray) -> bool:
-    """PBH test: ``rank [A - lambda I, B] = n`` for every eigenvalue ``|lambda| >= 1``."""
-    n = A.shape[0]
-    for lam in np.linalg.eigvals(A):
-        if abs(lam) < 1.0:
-            continue
-        M = np.hstack([A - lam * np.eye(n), B.astype(complex)])
-        sv = np.linalg.svd(M, compute_uv=False)
-        if sv[-1] <= PBH_RTOL * max(1.0, sv[0]):
-            return False
-    return True
 
 
 @dataclass(frozen=True)
@@ -99,6 +70,8 @@ class LQProblem:
     noise_cov: np.ndarray
     prior_mean: np.ndarray
     prior_cov: np.ndarray
+    n = LinearDynamics.n
+    m = LinearDynamics.m
 
     @property
     def true_mean(self) -> np.ndarray:
@@ -111,51 +84,23 @@ class LQProblem:
         return self.noise_cov
 
     def __post_init__(self) -> None:
-        A = as_matrix(self.A, "A")
-        n = A.shape[0]
-        if A.shape != (n, n):
-            raise ValueError(f"A: must be square, got {A.shape}")
-        B = as_matrix(self.B, "B", (n, None))
-        m = B.shape[1]
+        dynamics = LinearDynamics(self.A, self.B)
+        A, B, n, m = dynamics.A, dynamics.B, dynamics.n, dynamics.m
         if m < 1:
             raise ValueError("B: needs at least one column")
-        Q = check_covariance(self.Q, "Q", n)
-        R = check_covariance(self.R, "R", m)
-        if np.linalg.eigvalsh(R)[0] <= 0.0:
-            raise ValueError("R: must be positive definite")
-        if isinstance(self.gamma, bool):
-            raise ValueError(f"gamma: expected a float in (0, 1), got {self.gamma!r}")
-        try:
-            gamma = float(self.gamma)
-        except (TypeError, ValueError):
-            raise ValueError(f"gamma: expected a float in (0, 1), got {self.gamma!r}") from None
-        if not (0.0 < gamma < 1.0):
-            raise ValueError(f"gamma: must lie in (0, 1), got {self.gamma!r}")
-        vals = {
-            "A": A,
-            "B": B,
-            "Q": Q,
-            "R": R,
-            "gamma": gamma,
-            "noise_mean": as_vector(self.noise_mean, "noise_mean", n),
-            "noise_cov": check_covariance(self.noise_cov, "noise_cov", n),
-            "prior_mean": as_vector(self.prior_mean, "prior_mean", n),
-            "prior_cov": check_covariance(self.prior_cov, "prior_cov", n),
-        }
-        if not _is_stabilisable(A, B):
-            raise ValueError("A: (A, B) is not stabilisable (PBH test)")
+        cost = QuadraticCost(check_covariance(self.Q, "Q", n), check_covariance(self.R, "R", m))  # R: definite
+        gamma = check_fraction(self.gamma, "gamma", low_open=True, high_open=True)
+        vals = {"A": A, "B": B, "Q": cost.Q, "R": cost.R, "gamma": gamma}
+        for key, check in (("noise_mean", as_vector), ("noise_cov", check_covariance), ("prior_mean", as_vector),
+                           ("prior_cov", check_covariance)):
+            vals[key] = check(getattr(self, key), key, n)
+        eigs = np.linalg.eigvals(A)
+        for lam in eigs[np.abs(eigs) >= 1.0]:  # PBH test: rank [A - lambda I, B] = n for every |lambda| >= 1
+            sv = np.linalg.svd(np.hstack([A - lam * np.eye(n), B.astype(complex)]), compute_uv=False)
+            if sv[-1] <= PBH_RTOL * max(1.0, sv[0]):
+                raise ValueError("A: (A, B) is not stabilisable (PBH test)")
         for key, val in vals.items():
             object.__setattr__(self, key, val)
-
-    @property
-    def n(self) -> int:
-        """State dimension."""
-        return self.A.shape[0]
-
-    @property
-    def m(self) -> int:
-        """Input dimension."""
-        return self.B.shape[1]
 
     @property
     def dynamics(self) -> LinearDynamics:
@@ -169,10 +114,7 @@ class LQProblem:
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-serialisable form (lists)."""
-        return {
-            k: (getattr(self, k).tolist() if isinstance(getattr(self, k), np.ndarray) else getattr(self, k))
-            for k in ("A", "B", "Q", "R", "gamma", "noise_mean", "noise_cov", "prior_mean", "prior_cov")
-        }
+        return {f.name: np.asarray(getattr(self, f.name)).tolist() for f in fields(self)}
 
 
 @dataclass(frozen=True)
@@ -261,14 +203,13 @@ def discounted_lq_optimum(A: np.ndarray, B: np.ndarray, Q: np.ndarray, R: np.nda
     A, B, Q, R, mu = (np.asarray(a, dtype=np.float64) for a in (A, B, Q, R, mu))
     n, g = A.shape[0], float(gamma)
     K = np.zeros((n, n)) if K is None else np.asarray(K, dtype=np.float64)
-    sg = math.sqrt(g)
     # imported here, not at module level (issue 44): ``control`` pulls in scipy.signal and matplotlib.pyplot
     # (~1 s), and only the optimum needs it
     import control
 
     try:
         # S solves the DARE with (sqrt(gamma) A, sqrt(gamma) B, Q, gamma R)
-        S, _, L = control.dare(sg * A, sg * B, Q, g * R, method="scipy")
+        S, _, L = control.dare(math.sqrt(g) * A, math.sqrt(g) * B, Q, g * R, method="scipy")
     except (np.linalg.LinAlgError, ValueError, control.ControlArgument) as exc:
         raise ValueError(f"Q: the DARE has no stabilising solution ({exc})") from None
     S = _sym(np.asarray(S, dtype=np.float64))

@@ -13,7 +13,8 @@ from typing import Any, Callable, Sequence
 import torch
 from torch import nn
 
-__all__ = ["MLP", "Critic", "Actor", "ClippedActor", "QCritic", "QuadraticCritic", "AffineActor", "init_uniform_", "stacked_actors"]
+__all__ = ["MLP", "Critic", "Actor", "ClippedActor", "QCritic", "QuadraticCritic", "AffineActor", "init_uniform_",
+           "stacked_actors"]
 
 _ACTIVATIONS = {"elu": nn.ELU, "tanh": nn.Tanh, "relu": nn.ReLU}
 
@@ -48,9 +49,7 @@ def init_uniform_(module: nn.Module, generator: torch.Generator, last_scale: flo
     linears = [m for m in module.modules() if isinstance(m, nn.Linear)]
     with torch.no_grad():
         for i, lin in enumerate(linears):
-            bound = 1.0 / math.sqrt(lin.in_features)
-            if i == len(linears) - 1:
-                bound *= last_scale
+            bound = 1.0 / math.sqrt(lin.in_features) * (last_scale if i == len(linears) - 1 else 1.0)
             nn.init.uniform_(lin.weight, -bound, bound, generator=generator)
             if lin.bias is not None:
                 nn.init.uniform_(lin.bias, -bound, bound, generator=generator)
@@ -82,13 +81,9 @@ class MLP(nn.Module):
         super().__init__()
         if activation not in _ACTIVATIONS:
             raise ValueError(f"activation: expected one of {sorted(_ACTIVATIONS)}, got {activation!r}")
-        layers: list[nn.Module] = []
-        width = in_dim
-        for h in hidden_sizes:
-            layers += [nn.Linear(width, int(h)), _ACTIVATIONS[activation]()]
-            width = int(h)
-        layers.append(nn.Linear(width, out_dim))
-        self.body = nn.Sequential(*layers)
+        widths = [in_dim, *map(int, hidden_sizes)]
+        hidden = [(nn.Linear(a, b), _ACTIVATIONS[activation]()) for a, b in zip(widths, widths[1:])]
+        self.body = nn.Sequential(*[m for pair in hidden for m in pair], nn.Linear(widths[-1], out_dim))
         scale = torch.ones(in_dim) if input_scale is None else torch.as_tensor(input_scale, dtype=torch.float32)
         if scale.shape != (in_dim,) or not bool((scale > 0).all()):
             raise ValueError(f"input_scale: expected {in_dim} positive numbers, got {tuple(scale.shape)}")
@@ -100,22 +95,8 @@ class MLP(nn.Module):
         return self.body(x / self.input_scale)
 
 
-#: Output heads of the value networks: the MLP's output width and how it becomes a value.
+#: Output heads of the value networks: the MLP's output width (see :class:`Critic`).
 _OUT_WIDTH = {"linear": 1, "softplus": 1, "square": 8}
-
-
-def _check_output(output: str) -> None:
-    if output not in _OUT_WIDTH:
-        raise ValueError(f"output: expected one of {sorted(_OUT_WIDTH)}, got {output!r}")
-
-
-def _value_head(z: torch.Tensor, output: str) -> torch.Tensor:
-    """``linear``: ``z``; ``softplus``: ``softplus(z)``; ``square``: ``|z|^2 / 2`` (a sum of squares)."""
-    if output == "linear":
-        return z.squeeze(-1)
-    if output == "softplus":
-        return nn.functional.softplus(z.squeeze(-1))
-    return 0.5 * z.pow(2).sum(-1)
 
 
 class Critic(nn.Module):
@@ -132,13 +113,18 @@ class Critic(nn.Module):
     def __init__(self, obs_dim: int, hidden_sizes: Sequence[int], activation: str, generator: torch.Generator,
                  obs_scale: torch.Tensor | None = None, value_scale: float = 1.0, output: str = "softplus") -> None:
         super().__init__()
-        _check_output(output)
+        if output not in _OUT_WIDTH:
+            raise ValueError(f"output: expected one of {sorted(_OUT_WIDTH)}, got {output!r}")
         self.net = MLP(obs_dim, _OUT_WIDTH[output], hidden_sizes, activation, generator, obs_scale)
         self.value_scale = float(value_scale)
         self.output = output
 
     def forward(self, obs: torch.Tensor) -> torch.Tensor:
-        return _value_head(self.net(obs), self.output) * self.value_scale
+        z = self.net(obs)
+        if self.output == "square":
+            return 0.5 * z.pow(2).sum(-1) * self.value_scale
+        z = z.squeeze(-1)
+        return (z if self.output == "linear" else nn.functional.softplus(z)) * self.value_scale
 
 
 class Actor(nn.Module):
@@ -253,23 +239,19 @@ def stacked_actors(actors: Sequence[nn.Module]) -> Callable[[torch.Tensor], torc
     return call
 
 
-class QCritic(nn.Module):
+class QCritic(Critic):
     """Action-value critic ``Q(x, u; w)`` for DDPG: the same MLP on ``[obs / obs_scale, u / bound]``, with the
     same non-negative output as :class:`Critic`."""
 
     def __init__(self, obs_dim: int, action_dim: int, hidden_sizes: Sequence[int], activation: str,
                  generator: torch.Generator, action_bound: torch.Tensor, obs_scale: torch.Tensor | None = None,
                  value_scale: float = 1.0, output: str = "softplus") -> None:
-        super().__init__()
-        _check_output(output)
         obs_scale = torch.ones(obs_dim) if obs_scale is None else torch.as_tensor(obs_scale, dtype=torch.float32)
         scale = torch.cat([obs_scale, torch.as_tensor(action_bound, dtype=torch.float32)])
-        self.net = MLP(obs_dim + action_dim, _OUT_WIDTH[output], hidden_sizes, activation, generator, scale)
-        self.value_scale = float(value_scale)
-        self.output = output
+        super().__init__(obs_dim + action_dim, hidden_sizes, activation, generator, scale, value_scale, output)
 
     def forward(self, obs: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
-        return _value_head(self.net(torch.cat([obs, action], dim=-1)), self.output) * self.value_scale
+        return super().forward(torch.cat([obs, action], dim=-1))
 
 
 class QuadraticCritic(nn.Module):

@@ -1,19 +1,12 @@
-"""The precision yardstick: a learned policy at the equilibrium against the discounted LQ optimum.
+"""The precision yardstick (docs/precision.rst): a learned policy at the equilibrium against the discounted LQ optimum.
 
-Mixed RL's benefit is a better estimate of the noise mean, and at an equilibrium that estimate is a
-feed-forward: the action that cancels the disturbance. This module measures how precisely a learned
-policy resolves it (docs page ``precision.rst``). For a task with an equilibrium and its linearisation
-(:meth:`mixedrl.tasks.Task.linearisation`: ``x' = A x + B v + E xi``, ``l = x'^T Q x' + v^T R v``,
-``v = u - u*``, discount ``gamma``), the discounted LQ optimum for a noise mean ``mu`` (eqs. 6-7 on the
-linearisation; EQUATIONS.md, last section; :func:`mixedrl.lq.discounted_lq_optimum`) is
+For a task's linearisation at its equilibrium (:meth:`mixedrl.tasks.Task.linearisation`: ``x' = A x + B v + E xi``,
+``v = u - u*``) and a noise mean ``mu``, the optimum (eqs. 6-7; :func:`mixedrl.lq.discounted_lq_optimum`) is
 
 .. math:: v = -L x - l_0(E\\mu), \\qquad V^*(x) = x^T P x + 2 p^T x + c(E\\mu, E K E^T),
 
-so at the equilibrium (``x = 0``) the optimal action is ``u* - l0`` and the optimal value is ``c``.
-:func:`lq_reference` computes these; :func:`policy_gap` compares a policy (and its critic) with them;
-:func:`run_policy_gap` does it for a trainer with the method's own noise mean and is what
-:func:`mixedrl.runs.summarize` writes to ``results.json`` as ``policy_gap``. Evaluation only: nothing here
-touches a trainer's weights, generators or buffers.
+so at the equilibrium (``x = 0``) the optimal action is ``u* - l0`` and the optimal value is ``c``. Evaluation
+only: nothing here touches a trainer's weights, generators or buffers.
 """
 
 from __future__ import annotations
@@ -44,14 +37,10 @@ VALUE_NOTE = ("value: the critic at the equilibrium (V(x*), for DDPG Q(x*, pi(x*
               "linearisation holds and the critic's V(x*) is not an average over contexts it cannot see.")
 
 
-def _policy_on_coordinates(task: Task, lin: Linearisation, policy: torch.nn.Module
-                           ) -> Callable[[torch.Tensor], torch.Tensor]:
-    """``x (n,) float64 -> pi(observe(s(x)))`` (m,) float64, with float32 observations as in training."""
-    def act(x: torch.Tensor) -> torch.Tensor:
-        s = lin.to_state(x[None].to(torch.float64))
-        return policy(task.observe(s.float()))[0].double()
-
-    return act
+def _true_mean(task: Task, lin: Linearisation) -> np.ndarray:
+    """``task.true_mean_at`` the equilibrium ``(lin.state, lin.action)``, shape (noise_dim,)."""
+    s_star = torch.as_tensor(np.asarray(lin.state, dtype=np.float64))[None]
+    return task.true_mean_at(s_star, torch.as_tensor(np.asarray(lin.action, dtype=np.float64))[None])[0].numpy()
 
 
 def policy_gap(task: Task, policy: torch.nn.Module, noise_mean: Any, noise_cov: Any = None, *,
@@ -107,13 +96,14 @@ def policy_gap(task: Task, policy: torch.nn.Module, noise_mean: Any, noise_cov: 
     d = lin.E.shape[1]
     mu = noise_vector(noise_mean, d, "noise_mean")
     K = np.zeros((d, d)) if noise_cov is None else np.asarray(noise_cov, dtype=np.float64)
-    s_star = torch.as_tensor(np.asarray(lin.state, dtype=np.float64))[None]
     u_star = np.asarray(lin.action, dtype=np.float64)
-    if true_mean is None:
-        true_mean = task.true_mean_at(s_star, torch.as_tensor(u_star)[None])[0].numpy()
-    mu_true = noise_vector(true_mean, d, "true_mean")
+    mu_true = noise_vector(_true_mean(task, lin) if true_mean is None else true_mean, d, "true_mean")
     own, truth = lq_reference(lin, mu, K), lq_reference(lin, mu_true)
-    act = _policy_on_coordinates(task, lin, policy)
+
+    def act(x: torch.Tensor) -> torch.Tensor:
+        """``x (n,) float64 -> pi(observe(s(x)))`` (m,) float64, with float32 observations as in training."""
+        return policy(task.observe(lin.to_state(x[None].to(torch.float64)).float()))[0].double()
+
     x0 = torch.zeros(lin.A.shape[0], dtype=torch.float64)
     obs = task.observe(lin.to_state(x0[None]).float())
     with torch.no_grad():
@@ -194,13 +184,9 @@ def run_policy_gap(trainer: Any, policy: torch.nn.Module | None = None) -> tuple
         return None, reason
     critic = getattr(trainer, "critic", None)
     mean, cov = own_noise(trainer, lin, policy)
-    if getattr(trainer, "noise", None) is None:
-        value = None if critic is None else (lambda o: critic(o, policy(o)))
-    else:
-        value = critic
-    if mean is None:
-        s_star = torch.as_tensor(np.asarray(lin.state, dtype=np.float64))[None]
-        mean = task.true_mean_at(s_star, torch.as_tensor(np.asarray(lin.action))[None])[0].numpy()
+    ddpg = critic is not None and getattr(trainer, "noise", None) is None
+    value = (lambda o: critic(o, policy(o))) if ddpg else critic  # DDPG's V(x*) = Q(x*, pi(x*))
+    mean = _true_mean(task, lin) if mean is None else mean
     try:
         return policy_gap(task, policy, mean, cov, value=value, lin=lin), None
     except (ValueError, RuntimeError) as exc:
@@ -236,7 +222,6 @@ class LQRPolicy(torch.nn.Module):
         if lin is None:
             raise ValueError(f"task: {getattr(task, 'name', type(task).__name__)!r} defines no equilibrium "
                              "(Task.equilibrium), so it has no LQR")
-        mean = np.asarray(mean, dtype=np.float64)
         self.register_buffer("u_ff", torch.as_tensor(lq_reference(lin, mean).action, dtype=torch.float32))
         self.register_buffer("gain", equilibrium_gain(task, lin).float())
         self.register_buffer("o_star", equilibrium_observation(task, lin))
@@ -244,7 +229,7 @@ class LQRPolicy(torch.nn.Module):
 
     def forward(self, obs: torch.Tensor) -> torch.Tensor:
         u = self.u_ff + (obs - self.o_star) @ self.gain.T
-        return torch.maximum(torch.minimum(u, self.bound), -self.bound)
+        return torch.clamp(u, -self.bound, self.bound)
 
 
 def run_references(trainer: Any, seeds: list[int]) -> tuple[dict[str, Any] | None, str | None]:
@@ -297,8 +282,6 @@ def format_policy_gap(gap: dict[str, Any] | None, reason: str | None = None) -> 
     """One line for the command line: the action error per component (own mean, true mean) and the regret."""
     if gap is None:
         return f"policy_gap: n/a ({reason or 'no equilibrium'})"
-    own = ", ".join(f"{e:+.4g}" for e in gap["action_error"])
-    true = ", ".join(f"{e:+.4g}" for e in gap["action_error_true_mean"])
-    regret = gap["value_regret"]
-    tail = "" if regret is None else f"; LQ value regret {regret:.3g}"
-    return (f"policy_gap: action - LQ optimum at the equilibrium [{own}] (own mean), [{true}] (true mean){tail}")
+    own, true = (", ".join(f"{e:+.4g}" for e in gap[key]) for key in ("action_error", "action_error_true_mean"))
+    tail = "" if gap["value_regret"] is None else f"; LQ value regret {gap['value_regret']:.3g}"
+    return f"policy_gap: action - LQ optimum at the equilibrium [{own}] (own mean), [{true}] (true mean){tail}"

@@ -221,8 +221,7 @@ def is_nonnegative(value: QuadraticValue, rtol: float = 1e-9) -> bool:
     That holds iff the ``(n+1) x (n+1)`` matrix ``[[P, p], [p^T, c]]`` is positive semi-definite;
     its smallest eigenvalue is compared with ``-rtol * max(1, largest |eigenvalue|)`` (rounding).
     """
-    M = np.block([[value.P, value.p[:, None]], [value.p[None, :], np.array([[value.c]])]])
-    eig = np.linalg.eigvalsh(0.5 * (M + M.T))
+    eig = np.linalg.eigvalsh(np.block([[value.P, value.p[:, None]], [value.p[None, :], np.array([[value.c]])]]))
     return bool(eig[0] >= -rtol * max(1.0, float(np.max(np.abs(eig)))))
 
 

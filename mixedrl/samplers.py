@@ -37,6 +37,9 @@ from mixedrl.task_base import Task
 
 __all__ = ["ModelStateSampler", "SAMPLER_CLASSES", "course_starts", "course_length", "has_course"]
 
+#: The sampler's tensors in its :meth:`ModelStateSampler.state_dict`.
+_TENSORS = ("states", "steps", "true_states", "true_steps")
+
 
 def course_starts(task: Task, n: int, generator: torch.Generator, along: bool = False) -> torch.Tensor:
     """``n`` episode start states of ``task``, float64, shape (n, state_dim).
@@ -52,8 +55,7 @@ def course_starts(task: Task, n: int, generator: torch.Generator, along: bool = 
 
 def has_course(task: Task) -> bool:
     """Whether ``task`` has a course (a model with ``initial_states`` and a finite ``course_length``)."""
-    model = getattr(task, "model", None)
-    return hasattr(model, "initial_states") and math.isfinite(course_length(task))
+    return hasattr(getattr(task, "model", None), "initial_states") and math.isfinite(course_length(task))
 
 
 def course_length(task: Task) -> float:
@@ -241,13 +243,9 @@ class ModelStateSampler:
         residuals : torch.Tensor, shape (M, noise_dim)
             Residuals for the IBE (``M = 0`` for a fixed noise source or between collections).
         """
-        if getattr(noise, "state_dependent", False):
-            mean = noise.mean_at
-        else:
-            mean = np.array(noise.mean, dtype=np.float64)
-        cov = np.array(noise.cov, dtype=np.float64)
+        mean = noise.mean_at if getattr(noise, "state_dependent", False) else np.array(noise.mean, dtype=np.float64)
         self.k = k
-        s = self.model_step(actor, mean, cov)
+        s = self.model_step(actor, mean, np.array(noise.cov, dtype=np.float64))
         if hasattr(noise, "update") and k % self.options.true_every == 0:
             return s, self.true_drive(actor)
         return s, torch.zeros(0, self.task.noise_dim, dtype=torch.float64)
@@ -256,9 +254,8 @@ class ModelStateSampler:
     def state_dict(self) -> dict[str, Any]:
         """Rollout states and clocks, true-copy states and clocks, counters, and with a plant that has
         started episodes ``plant_episodes`` (so a resumed run continues the plant's episode seeds)."""
-        state = {"states": self.states.clone(), "steps": self.steps.clone(), "true_states": self.true_states.clone(),
-                 "true_steps": self.true_steps.clone(), "true_transitions": self.true_transitions,
-                 "restarts": self.restarts}
+        state = {key: getattr(self, key).clone() for key in _TENSORS}
+        state.update(true_transitions=self.true_transitions, restarts=self.restarts)
         if self.plant is not None and self.plant.episodes:
             state["plant_episodes"] = self.plant.episodes
         return state
@@ -274,17 +271,17 @@ class ModelStateSampler:
             A key is missing, a tensor has the wrong shape or ``plant_episodes`` is not an integer >= 0
             (message starts with ``state``).
         """
-        missing = {"states", "steps", "true_states", "true_steps", "true_transitions", "restarts"} - set(state)
+        missing = {*_TENSORS, "true_transitions", "restarts"} - set(state)
         if missing:
             raise ValueError(f"state: sampler is missing keys {sorted(missing)}")
         episodes = state.get("plant_episodes", 0)
         if isinstance(episodes, bool) or not isinstance(episodes, (int, np.integer)) or episodes < 0:
             raise ValueError(f"state: sampler plant_episodes is {episodes!r}, expected an integer >= 0")
-        for key in ("states", "steps", "true_states", "true_steps"):
+        for key in _TENSORS:
             if tuple(state[key].shape) != tuple(getattr(self, key).shape):
                 raise ValueError(f"state: sampler {key} has shape {tuple(state[key].shape)}, expected "
                                  f"{tuple(getattr(self, key).shape)}")
-        for key in ("states", "steps", "true_states", "true_steps"):
+        for key in _TENSORS:
             setattr(self, key, state[key].clone())
         self.true_transitions = int(state["true_transitions"])
         self.restarts = int(state["restarts"])

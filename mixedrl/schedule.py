@@ -76,7 +76,7 @@ def lr_factor(config: TrainConfig, k: int) -> float:
     algo = config.algorithm
     length = min(algo.lr_decay_iterations, algo.iterations) if algo.lr_decay_iterations else algo.iterations
     frac = min(1.0, k / max(1, length - 1))
-    return 1.0 - (1.0 - config.algorithm.lr_decay_to) * frac
+    return 1.0 - (1.0 - algo.lr_decay_to) * frac
 
 
 def set_learning_rates(config: TrainConfig, k: int, critic_opt: torch.optim.Optimizer,
@@ -93,12 +93,10 @@ def set_learning_rates(config: TrainConfig, k: int, critic_opt: torch.optim.Opti
     critic_opt, actor_opt : torch.optim.Optimizer
         Their parameter groups get the decayed rates.
     """
-    factor = lr_factor(config, k)
-    rates = optimiser_section(config)
-    for group in critic_opt.param_groups:
-        group["lr"] = rates.critic_lr * factor
-    for group in actor_opt.param_groups:
-        group["lr"] = rates.actor_lr * factor
+    factor, rates = lr_factor(config, k), optimiser_section(config)
+    for opt, lr in ((critic_opt, rates.critic_lr), (actor_opt, rates.actor_lr)):
+        for group in opt.param_groups:
+            group["lr"] = lr * factor
 
 
 def descend(loss: torch.Tensor, leaves: Sequence[torch.Tensor], run_params: Sequence[Sequence[torch.Tensor]],
