@@ -70,7 +70,7 @@ class AlgorithmConfig:
     ``ddpg.activation``)."""
 
     value_output: str = "square"
-    """Output head of the critic (shared: also DDPG's Q-critic): ``"softplus"``, ``"square"`` (sum of
+    """Output head of the critic, and of DDPG's Q-critic: ``"softplus"``, ``"square"`` (sum of
     squares) or ``"linear"``; see :class:`mixedrl.networks.Critic`."""
 
     critic_lr: float = 2e-3
