@@ -8,8 +8,7 @@ constant torque the designer's prior misses (docs/pendulum.rst). It is registere
 from __future__ import annotations
 
 import math
-from dataclasses import fields, make_dataclass
-from inspect import signature
+from dataclasses import dataclass, fields
 from typing import Any
 
 import numpy as np
@@ -164,15 +163,9 @@ class PendulumTask(Task):
         return ~torch.isfinite(s).all(dim=-1) | (s[:, 0].abs() > 0.5 * math.pi)
 
 
-def _config_post_init(self: Any) -> None:
-    if self.name != "pendulum":
-        raise ValueError(f"task.name: expected 'pendulum' for PendulumTaskConfig, got {self.name!r}")
-    for f in fields(self)[1:]:
-        setattr(self, f.name, check_number(getattr(self, f.name), f"task.{f.name}"))
-    _check_parameters({f.name: getattr(self, f.name) for f in fields(self)}, "task.")
-
-
-_CONFIG_DOC = """Configuration of :class:`PendulumTask` (``task.name = "pendulum"``): its constructor's arguments,
+@dataclass
+class PendulumTaskConfig:
+    """Configuration of :class:`PendulumTask` (``task.name = "pendulum"``): its constructor's arguments,
     with the same defaults and meaning (see :class:`PendulumTask`). Dotted keys: ``task.<field>``.
 
     Raises
@@ -181,11 +174,31 @@ _CONFIG_DOC = """Configuration of :class:`PendulumTask` (``task.name = "pendulum
         As :class:`PendulumTask`, the message naming the dotted key (``task.dt``, ``task.gamma``, ...).
     """
 
-#: The dataclass of :class:`PendulumTask`'s constructor arguments (and ``name``), their defaults its own.
-PendulumTaskConfig = make_dataclass(
-    "PendulumTaskConfig",
-    [("name", "str", "pendulum")] + [(p.name, "float", p.default) for p in signature(PendulumTask).parameters.values()],
-    namespace={"__post_init__": _config_post_init, "__doc__": _CONFIG_DOC, "__module__": __name__})
+    name: str = "pendulum"
+    dt: float = 0.05
+    gravity: float = 9.81
+    length: float = 1.0
+    mass: float = 1.0
+    damping: float = 0.1
+    torque_bound: float = 4.0
+    torque_bias: float = 0.5
+    torque_std: float = 0.2
+    prior_torque_bias: float = 0.0
+    prior_torque_std: float = 0.2
+    q_omega: float = 0.1
+    r: float = 0.01
+    gamma: float = 0.97
+    init_angle: float = 0.3
+    init_rate: float = 0.3
+    value_scale: float = 1.0
+
+    def __post_init__(self) -> None:
+        if self.name != "pendulum":
+            raise ValueError(f"task.name: expected 'pendulum' for PendulumTaskConfig, got {self.name!r}")
+        for f in fields(self):
+            if f.name != "name":
+                setattr(self, f.name, check_number(getattr(self, f.name), f"task.{f.name}"))
+        _check_parameters({f.name: getattr(self, f.name) for f in fields(self)}, "task.")
 
 
 register_task(PendulumTask, PendulumTaskConfig)
