@@ -72,13 +72,13 @@ def summarize(records: list[dict[str, Any]]) -> list[dict[str, Any]]:
     for rec in records:
         key = json.dumps([rec["point"], rec["config"]["method"]], sort_keys=True)
         row = rows.setdefault(key, {"point": rec["point"], "method": rec["config"]["method"], "runs": 0, "failed": 0})
-        done.setdefault(key, [])
+        finished = done.setdefault(key, [])
         if rec["error"] is not None:
             row["failed"] += 1
         elif rec["results"] is not None:
-            row["runs"] += 1
-            done[key].append(rec["results"])
+            finished.append(rec["results"])
     for key, row in rows.items():
+        row["runs"] = len(done[key])
         for fig in RESULT_KEYS:
             values = [r[fig] for r in done[key] if isinstance(r.get(fig), (int, float))]
             row[f"{fig}_mean"], row[f"{fig}_std"] = mean_std(values)
@@ -317,9 +317,9 @@ def run_sweep(spec: SweepSpec, out: str | Path, address: str | None = None, num_
                 finished = run_here(jobs) if n_workers == 1 else run_pool(jobs, n_workers)
             extra.update({"batch": batch, "batches": len(batches)})
 
-            def write(finished: bool) -> None:
+            def write(complete: bool) -> None:
                 summary = summarize(records)
-                doc = {**_spec_doc(spec), **extra, "failed": failed, "finished": finished,
+                doc = {**_spec_doc(spec), **extra, "failed": failed, "finished": complete,
                        "wall_seconds": time.perf_counter() - t0, "runs": records, "summary": summary}
                 atomic_write_text(out / "sweep.json", json.dumps(doc, indent=2, allow_nan=True) + "\n")
                 atomic_write_text(out / "sweep.csv", csv_text(csv_rows(records)))

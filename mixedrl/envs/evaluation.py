@@ -284,9 +284,10 @@ class _NumpyRows:
         for i, seed in enumerate(row_seeds):
             env.reset(seed=seed, options={"state": start_state})
             self.z[:, i] = cfg.disturbance.standard_noise(env.np_random, (n_max,))
-        # the per-step records, in the order of _tracking_result's arguments (n_max + 1 rows: with the start)
-        shapes = ((1, (6,)), (1, (obs_dim,)), (0, (2,)), (0, ()), (0, ()), (1, ()), (1, ()))
-        self.records = tuple(np.full((n_max + extra, n) + tail, np.nan) for extra, tail in shapes)
+        # the per-step records, in the order of _tracking_result's arguments: n_max rows, plus the start row
+        self.starts = (1, 1, 0, 0, 0, 1, 1)  # 1: the record holds the start row too
+        tails = ((6,), (obs_dim,), (2,), (), (), (), ())
+        self.records = tuple(np.full((n_max + extra, n) + tail, np.nan) for extra, tail in zip(self.starts, tails))
         self.states, self.observations, self.actions, self.forces, self.costs, self.lat, self.spd = self.records
         self.states[0], self.observations[0] = info0["state"], obs0
         self.lat[0], self.spd[0] = info0["lateral_error"], info0["speed_error"]
@@ -330,8 +331,8 @@ class _NumpyRows:
 
     def result(self, i: int, dt: float) -> TrackingResult:
         n = int(self.n_steps[i])
-        return _tracking_result(dt, *(np.ascontiguousarray(a[:n + len(a) - len(self.z), i]) for a in self.records),
-                                bool(self.terminated[i]))
+        rows = (np.ascontiguousarray(a[:n + extra, i]) for a, extra in zip(self.records, self.starts))
+        return _tracking_result(dt, *rows, bool(self.terminated[i]))
 
 
 def evaluate_courses(policies: Sequence[Callable[[np.ndarray], Any] | torch.nn.Module],
