@@ -147,7 +147,7 @@ def split_child(iterations: int | None) -> dict[str, float]:
 
     t_imports = time.perf_counter() - t0
     torch.set_num_threads(1)
-    config = TrainConfig(method="mixed", seed=0, task="dlc")
+    config = TrainConfig(method="mixed", seed=0, task="dlc", algorithm=dict(SETTINGS))
     if iterations is not None:
         config = config.replace(**{"algorithm.iterations": iterations})
     t1 = time.perf_counter()
@@ -184,7 +184,8 @@ def split(iterations: int | None) -> dict[str, float]:
     """:func:`split_child` in a fresh interpreter; the interpreter's start (to the script's first line) and its
     exit (after the last phase, the teardown of torch included) from the wall clock."""
     t0, spawned = time.perf_counter(), time.time()
-    args = [sys.executable, __file__, "--split-child"] + ([] if iterations is None else ["--run-iterations", str(iterations)])
+    args = [sys.executable, __file__, "--split-child", "--algorithm", json.dumps(SETTINGS)] + \
+        ([] if iterations is None else ["--run-iterations", str(iterations)])
     out = subprocess.run(args, capture_output=True, text=True, check=True, env=dict(os.environ, OMP_NUM_THREADS="1"))
     wall = time.perf_counter() - t0
     res = json.loads(out.stdout.strip().splitlines()[-1])
@@ -213,12 +214,14 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--algorithm", type=json.loads, default={}, metavar="JSON",
                    help='algorithm.* settings over the defaults for the table\'s engines, e.g. \'{"rollout_horizon": 16}\'')
     args = p.parse_args(argv)
+    SETTINGS.update(args.algorithm)
     if args.split_child:
         print(json.dumps(split_child(args.run_iterations)))
         return 0
     import mixedrl  # noqa: F401  (for the header)
 
-    SETTINGS.update(args.algorithm)
+    if args.cache_dir is not None:
+        os.environ["MIXEDRL_CACHE_DIR"] = str(args.cache_dir)  # the split's run (algorithm.compile) and the table's
     doc: dict[str, Any] = {"machine": machine(), "algorithm": dict(SETTINGS)}
     print("  ".join(f"{k}={v}" for k, v in doc["machine"].items()))
     if not args.split_only:

@@ -1,20 +1,24 @@
-"""One optimiser step on a loss written as a pure function, compiled as one graph: :class:`Update`.
+"""One optimiser step on a loss written as a pure function, compiled: :class:`Update`.
 
 The eager step (:func:`mixedrl.schedule.descend`) builds an autograd graph, clips with
-:func:`torch.nn.utils.clip_grad_norm_` and calls ``torch.optim.Adam.step`` once per run. Here the same step is
-one function of tensors -- the loss, its gradient (``torch.func.grad``), each run's gradient-norm clip, each
-run's Adam step written out on the optimiser's own state tensors -- compiled by :func:`torch.compile`
-(``fullgraph=True``) into one graph per loss and shape.
+:func:`torch.nn.utils.clip_grad_norm_` and calls ``torch.optim.Adam.step`` once per run. Here the loss is one
+function of tensors compiled by :func:`torch.compile` (``fullgraph=True``) into one graph per loss and shape;
+its backward is a second graph (AOTAutograd), run by ``torch.autograd.grad``; each run's gradient-norm clip
+and Adam step, written out on the optimiser's own state tensors (:func:`adam_step`), are a third.
 
 **The loss** is any function ``loss(params, *tensors) -> Tensor`` that is *pure*: its result depends only on
 ``params`` (a tuple of tensors in the order of the network's leaves, :attr:`mixedrl.schedule.Descent.leaves`:
 one run's parameters, or ``R`` runs' stacked ``(R, ...)`` parameters) and on the ``tensors`` passed at each
 call; networks, the task and constants it closes over are read, never changed, and nothing in it draws random
 numbers or converts a tensor to a Python number (no ``float(t)``, ``t.item()``, numpy). It returns shape
-``()`` for one run or ``(R,)`` (run ``r``'s loss depending on slice ``r`` of the parameters only).
-:func:`network_at` gives the network at ``params`` inside the loss. Algorithm 2's losses are
-:func:`mixedrl.pev.critic_loss_at` (eqs. 49-50) and :func:`mixedrl.pim.actor_objective_at` (eqs. 51-52); the
-rollout departure's are :func:`mixedrl.departures.rollout.actor_loss_at` and
+``()`` for one run or ``(R,)`` (run ``r``'s loss depending on slice ``r`` of the parameters only), or a pair
+``(value, aux)`` whose ``aux`` (tensors, detached by the step) the step returns beside the value: what the
+caller needs from the loss's forward pass, e.g. the rollout the critic is fitted on. A network the loss only
+reads is frozen around the step (:func:`constants`): the compiled backward differentiates every input that
+requires a gradient. :func:`network_at` gives the network at ``params`` inside the loss. Algorithm 2's losses
+are :func:`mixedrl.pev.critic_loss_at` (eqs. 49-50) and :func:`mixedrl.pim.actor_objective_at` (eqs. 51-52);
+the rollout departure's are :func:`mixedrl.departures.rollout.actor_loss_at` (whose ``H``-step rollout is
+compiled as one ``scan``: the graph holds one step, not ``H``) and
 :func:`~mixedrl.departures.rollout.critic_loss_at`. Any such loss is stepped the same way, by
 :meth:`mixedrl.schedule.Descent.minimise` (``key`` names the loss: one compiled :class:`Update` per key;
 checks of the arguments belong before the call, outside the loss)::
@@ -43,24 +47,27 @@ never cause a recompilation. Adam with ``amsgrad``, ``maximize``, ``weight_decay
 is refused (``ValueError``).
 
 **Cache**: :func:`configure_cache` points inductor's on-disk cache (``TORCHINDUCTOR_CACHE_DIR``) at the
-``inductor`` folder of :func:`cache_dir` (``$MIXEDRL_CACHE_DIR``, default ``~/.cache/mixedrl``). Delete it
+``inductor`` folder of :func:`cache_dir` (``$MIXEDRL_CACHE_DIR``, default ``~/.cache/mixedrl``), and
+:func:`allow_in_cache` lets it keep the graphs that hold a ``scan`` or a custom autograd function. Delete it
 (:func:`clear_cache`) to start cold; compile times: docs/algorithm2.rst.
 """
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 import shutil
 import warnings
 from pathlib import Path
-from typing import Any, Callable, Hashable, Sequence
+from typing import Any, Callable, Hashable, Iterator, Sequence
 
 import torch
+import torch.utils._pytree as pytree
 
 from mixedrl.config_tasks import COMPILE_MODES
 
-__all__ = ["MODES", "Update", "Evaluation", "network_at", "functional_step", "cache_dir", "configure_cache", "clear_cache",
+__all__ = ["MODES", "Update", "Evaluation", "network_at", "adam_step", "split_aux", "constants", "allow_in_cache", "cache_dir", "configure_cache", "clear_cache",
            "check_mode"]
 
 #: The values of ``algorithm.compile``: the eager step (default), the compiled step, this module's step eagerly.
@@ -140,32 +147,23 @@ def _per_run(x: torch.Tensor, like: torch.Tensor, stacked: bool) -> torch.Tensor
     return x.reshape((x.shape[0],) + (1,) * (like.ndim - 1)) if stacked else x.reshape(())
 
 
-def functional_step(loss: Loss, stacked: bool, params: Sequence[torch.Tensor], exp_avgs: Sequence[torch.Tensor],
-                    exp_avg_sqs: Sequence[torch.Tensor], steps: Sequence[torch.Tensor], hyper: torch.Tensor,
-                    mask: torch.Tensor | None, *tensors: torch.Tensor) -> torch.Tensor:
-    """One clipped Adam step per run on ``loss(params, *tensors)``, in place on ``params`` and the state.
+def adam_step(stacked: bool, params: Sequence[torch.Tensor], grads: Sequence[torch.Tensor],
+              exp_avgs: Sequence[torch.Tensor], exp_avg_sqs: Sequence[torch.Tensor], steps: Sequence[torch.Tensor],
+              hyper: torch.Tensor, mask: torch.Tensor | None) -> None:
+    """One clipped Adam step per run on the gradients ``grads``, in place on ``params`` and the state.
 
     Parameters
     ----------
-    loss : callable
-        ``loss(params, *tensors)``, pure (module docstring), shape () or (R,).
     stacked : bool
-        ``params`` are ``R`` runs' stacked ``(R, ...)`` tensors (the loss has shape (R,)).
-    params, exp_avgs, exp_avg_sqs : sequence of torch.Tensor
-        The parameters and Adam's moments (stacked like them).
+        ``params`` are ``R`` runs' stacked ``(R, ...)`` tensors.
+    params, grads, exp_avgs, exp_avg_sqs : sequence of torch.Tensor
+        The parameters, their gradients and Adam's moments (stacked like them).
     steps : sequence of torch.Tensor
         Adam's step counts, one per parameter: shape (R,) stacked, () for one run (float32).
     hyper : torch.Tensor, shape (R, 5), float64
         Per run ``lr, beta1, beta2, eps, grad_clip``.
     mask : torch.Tensor of bool, shape (R,), or None
         The runs that step (``None``: all).
-    *tensors : torch.Tensor
-        The loss's data.
-
-    Returns
-    -------
-    torch.Tensor
-        The loss before the step, detached.
 
     Notes
     -----
@@ -174,12 +172,6 @@ def functional_step(loss: Loss, stacked: bool, params: Sequence[torch.Tensor], e
     (``m <- lerp(m, g, 1 - beta1)``, ``v <- beta2 v + (1 - beta2) g^2``,
     ``theta <- theta - lr / (1 - beta1^t) m / (sqrt(v) / sqrt(1 - beta2^t) + eps)``).
     """
-
-    def total(p: tuple[torch.Tensor, ...]) -> tuple[torch.Tensor, torch.Tensor]:
-        value = loss(p, *tensors)
-        return (value if value.ndim == 0 else value.sum()), value
-
-    grads, value = torch.func.grad(total, has_aux=True)(tuple(params))
     lr, beta1, beta2, eps, clip = hyper.unbind(1)
     if stacked:
         norms = torch.stack([torch.linalg.vector_norm(g.reshape(g.shape[0], -1), dim=1) for g in grads])
@@ -188,26 +180,36 @@ def functional_step(loss: Loss, stacked: bool, params: Sequence[torch.Tensor], e
         norm = torch.linalg.vector_norm(torch.stack([torch.linalg.vector_norm(g) for g in grads]))
     # grad <- grad min(clip / (|grad| + 1e-6), 1)   (clip_grad_norm_, per run)
     coef = torch.clamp(clip.float() / (norm + 1e-6), max=1.0)
-    with torch.no_grad():
-        for p, g, m, v, t in zip(params, grads, exp_avgs, exp_avg_sqs, steps):
-            g = g * _per_run(coef, g, stacked)
-            t_new = t + 1 if mask is None else t + mask.to(t.dtype)
-            n = t_new.double()
-            # the scalars as Adam computes them in Python (float64), rounded to float32 by its kernels
-            step_size = (lr / (1 - beta1 ** n)).float()
-            bc2_sqrt = (1 - beta2 ** n).sqrt().float()
-            m_new = torch.lerp(m, g, _per_run((1 - beta1).float(), g, stacked))
-            v_new = v * _per_run(beta2.float(), g, stacked) + _per_run((1 - beta2).float(), g, stacked) * g * g
-            denom = v_new.sqrt() / _per_run(bc2_sqrt, g, stacked) + _per_run(eps.float(), g, stacked)
-            p_new = p - _per_run(step_size, g, stacked) * m_new / denom
-            if mask is not None:
-                keep = _per_run(mask, p, stacked)
-                m_new, v_new, p_new = torch.where(keep, m_new, m), torch.where(keep, v_new, v), torch.where(keep, p_new, p)
-            m.copy_(m_new)
-            v.copy_(v_new)
-            p.copy_(p_new)
-            t.copy_(t_new)
-    return value.detach()
+    for p, g, m, v, t in zip(params, grads, exp_avgs, exp_avg_sqs, steps):
+        g = g * _per_run(coef, g, stacked)
+        t_new = t + 1 if mask is None else t + mask.to(t.dtype)
+        n = t_new.double()
+        # the scalars as Adam computes them in Python (float64), rounded to float32 by its kernels
+        step_size = (lr / (1 - beta1 ** n)).float()
+        bc2_sqrt = (1 - beta2 ** n).sqrt().float()
+        m_new = torch.lerp(m, g, _per_run((1 - beta1).float(), g, stacked))
+        v_new = v * _per_run(beta2.float(), g, stacked) + _per_run((1 - beta2).float(), g, stacked) * g * g
+        denom = v_new.sqrt() / _per_run(bc2_sqrt, g, stacked) + _per_run(eps.float(), g, stacked)
+        p_new = p - _per_run(step_size, g, stacked) * m_new / denom
+        if mask is not None:
+            keep = _per_run(mask, p, stacked)
+            m_new, v_new, p_new = torch.where(keep, m_new, m), torch.where(keep, v_new, v), torch.where(keep, p_new, p)
+        m.copy_(m_new)
+        v.copy_(v_new)
+        p.copy_(p_new)
+        t.copy_(t_new)
+
+
+def split_aux(out: Any) -> tuple[torch.Tensor, Any]:
+    """A loss's result as ``(value, aux)``: ``aux`` is ``None`` unless the loss returned ``(value, aux)``."""
+    return (out[0], out[1]) if isinstance(out, tuple) else (out, None)
+
+
+def detached(value: torch.Tensor, aux: Any) -> Any:
+    """``value`` detached, or ``(value, aux)`` with every tensor of ``aux`` detached when ``aux`` is not ``None``."""
+    if aux is None:
+        return value.detach()
+    return value.detach(), pytree.tree_map(lambda t: t.detach() if isinstance(t, torch.Tensor) else t, aux)
 
 
 class _AdamState:
@@ -268,12 +270,16 @@ class _AdamState:
 
 class _Compiled:
     """A function run as :func:`torch.compile` made it (``mode="on"``, one graph, ``fullgraph=True``) or
-    eagerly (``"functional"``; ``"on"`` falls back to it, with a warning, when compiling fails)."""
+    eagerly (``"functional"``; ``"on"`` falls back to it, with a warning, when compiling fails).
 
-    def __init__(self, fn: Callable[..., Any], mode: str) -> None:
+    ``grad``: whether the function runs with gradients enabled (a loss whose backward autograd computes; the
+    compiled loss's backward is then a graph of its own, compiled by AOTAutograd).
+    """
+
+    def __init__(self, fn: Callable[..., Any], mode: str, grad: bool = False) -> None:
         if check_mode(mode, "mode") == "off":
             raise ValueError(f"mode: 'off' is the eager step, not a {type(self).__name__}")
-        self.fn, self.mode = fn, mode
+        self.fn, self.mode, self.grad = fn, mode, grad
         self._fn: Callable[..., Any] | None = None
 
     def _function(self) -> Callable[..., Any]:
@@ -285,36 +291,82 @@ class _Compiled:
                 config = torch._dynamo.config
                 config.recompile_limit = max(config.recompile_limit, 64)  # one graph per loss, shape and engine
                 config.accumulated_recompile_limit = max(config.accumulated_recompile_limit, 1024)
+                allow_in_cache()
                 logging.getLogger("mixedrl").info(
                     "algorithm.compile = 'on': %s is compiled at its first calls (cold: tens of seconds per graph; "
-                    "cached in %s)", getattr(self.fn, "__name__", "a step"), os.environ.get("TORCHINDUCTOR_CACHE_DIR"))
+                    "cached in %s)", _name(self.fn), os.environ.get("TORCHINDUCTOR_CACHE_DIR"))
                 self._fn = torch.compile(self.fn, fullgraph=True, dynamic=False)
             else:
                 self._fn = self.fn
         return self._fn
 
+    def _apply(self, fn: Callable[..., Any], *args: Any) -> Any:
+        """Call ``fn`` (the compiled or the plain function) on ``args``."""
+        return fn(*args)
+
     def _run(self, *args: Any) -> Any:
-        with torch.no_grad():
+        with torch.set_grad_enabled(self.grad):
             try:
-                return self._function()(*args)
+                return self._apply(self._function(), *args)
             except Exception as exc:  # noqa: BLE001  (a compiler failure: the same function, eagerly)
                 if self.mode != "on" or not _is_compile_error(exc):
                     raise
-                warnings.warn(f"algorithm.compile = 'on': compiling {getattr(self.fn, '__name__', 'a step')} failed "
+                warnings.warn(f"algorithm.compile = 'on': compiling {_name(self.fn)} failed "
                               f"({type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''}); it runs "
                               f"eagerly instead (the same numbers to float32 rounding)", RuntimeWarning, stacklevel=3)
                 self.mode, self._fn = "functional", self.fn
-                return self.fn(*args)
+                return self._apply(self.fn, *args)
+
+
+@contextlib.contextmanager
+def constants(*networks: Any) -> Iterator[None]:
+    """Inside the block the parameters of ``networks`` (modules; anything else is skipped) do not require
+    gradients: a loss reads them as constants. The compiled backward (AOTAutograd) computes the gradient of
+    every graph input that requires one, so a network a loss only reads is frozen around its step."""
+    params = [p for n in networks if isinstance(n, torch.nn.Module) for p in n.parameters() if p.requires_grad]
+    for p in params:
+        p.requires_grad_(False)
+    try:
+        yield
+    finally:
+        for p in params:
+            p.requires_grad_(True)
+
+
+#: The scan of :func:`mixedrl.departures.rollout.rollout` (``torch._higher_order_ops.scan``) as the inductor
+#: and AOTAutograd caches name it.
+SCAN = "torch.ops.higher_order.scan"
+
+
+def allow_in_cache() -> None:
+    """Let the on-disk caches keep graphs that hold a ``scan`` (the rollout) or a custom
+    ``torch.autograd.Function`` (the inward-clipped actor, :class:`mixedrl.networks.ClippedActor`).
+
+    Torch leaves both out of its caches unless told otherwise, and every process would lower such a graph
+    again (about 15 s for the double lane change's default). The cache key holds the graph with the scan's
+    body and the function's backward (another constant in either misses: ``tests/test_compiled.py``); the
+    torch version, part of every key, guards the operators' own code.
+    """
+    import torch._functorch.config as functorch
+    import torch._inductor.config as inductor
+
+    inductor.unsafe_marked_cacheable_functions.setdefault(SCAN, torch.__version__)
+    functorch.autograd_cache_allow_custom_autograd_functions = True
+
+
+def _name(fn: Any) -> str:
+    """A function's name for messages (a ``functools.partial``'s function's)."""
+    return getattr(getattr(fn, "func", fn), "__name__", "a step")
 
 
 class Update(_Compiled):
-    """The clipped Adam step of each run of one network on a pure ``loss`` (:func:`functional_step`),
-    compiled (``mode="on"``) or run eagerly (``mode="functional"``).
+    """The clipped Adam step of each run of one network on a pure ``loss``: the loss compiled (``mode="on"``)
+    or run eagerly (``"functional"``), its gradient by autograd, then :func:`adam_step` (compiled likewise).
 
     Parameters
     ----------
     loss : callable
-        ``loss(params, *tensors)`` (module docstring).
+        ``loss(params, *tensors)`` (module docstring): the value, or ``(value, aux)``.
     descent : mixedrl.schedule.Descent
         The network's leaves, each run's parameters, optimiser and gradient clip.
     mode : {"on", "functional"}
@@ -322,14 +374,22 @@ class Update(_Compiled):
     Notes
     -----
     Call it as ``update(*tensors, active=None)``; it returns the loss before the step (shape () or (R,),
-    detached). Random draws belong outside (before the call, in their order): the step draws nothing.
+    detached), or ``(value, aux)`` with ``aux`` detached when the loss returns an ``aux``. Random draws belong
+    outside (before the call, in their order): the step draws nothing.
     """
 
     def __init__(self, loss: Loss, descent: Any, mode: str = "on") -> None:
-        super().__init__(functional_step, mode)
+        super().__init__(loss, mode, grad=True)
         self.loss, self.descent = loss, descent
         self.state = _AdamState(descent)
         self.stacked = self.state.stacked
+        self.adam = _Compiled(adam_step, mode)
+
+    def _apply(self, fn: Callable[..., Any], leaves: list[torch.Tensor], *tensors: torch.Tensor) -> Any:
+        """The loss at the leaves and its gradient (a backward the compiler failed on is retried eagerly)."""
+        value, aux = split_aux(fn(tuple(leaves), *tensors))
+        grads = torch.autograd.grad(value if value.ndim == 0 else value.sum(), leaves)
+        return value, aux, grads
 
     def hyper(self) -> torch.Tensor:
         """Per run ``lr, beta1, beta2, eps, grad_clip`` (float64, (R, 5)), read now (the schedule sets the rates)."""
@@ -339,7 +399,7 @@ class Update(_Compiled):
             rows.append([float(g["lr"]), float(g["betas"][0]), float(g["betas"][1]), float(g["eps"]), float(clip)])
         return torch.tensor(rows, dtype=torch.float64)
 
-    def __call__(self, *tensors: torch.Tensor, active: Sequence[int] | None = None) -> torch.Tensor:
+    def __call__(self, *tensors: torch.Tensor, active: Sequence[int] | None = None) -> Any:
         runs = len(self.descent.optimizers)
         mask = None
         if active is not None and list(active) != list(range(runs)):
@@ -348,8 +408,11 @@ class Update(_Compiled):
             mask = torch.zeros(runs, dtype=torch.bool)
             mask[list(active)] = True
         st = self.state.bind()
-        return self._run(self.loss, self.stacked, list(self.descent.leaves), st["exp_avg"], st["exp_avg_sq"],
-                         st["step"], self.hyper(), mask, *tensors)
+        leaves = list(self.descent.leaves)
+        value, aux, grads = self._run(leaves, *tensors)
+        self.adam._run(self.stacked, leaves, list(grads), st["exp_avg"], st["exp_avg_sq"], st["step"], self.hyper(),
+                       mask)
+        return detached(value, aux)
 
 
 class Evaluation(_Compiled):
@@ -383,13 +446,13 @@ def _is_compile_error(exc: BaseException) -> bool:
 
 
 def minimise(descent: Any, loss: Loss, tensors: Sequence[torch.Tensor], active: Sequence[int] | None = None,
-             key: Hashable = None) -> torch.Tensor:
+             key: Hashable = None) -> Any:
     """One step of each (active) run of ``descent`` on ``loss(params, *tensors)`` in the descent's mode
-    (:meth:`mixedrl.schedule.Descent.minimise`)."""
+    (:meth:`mixedrl.schedule.Descent.minimise`): the loss before the step, detached, or ``(value, aux)``."""
     if descent.mode == "off":
-        value = loss(tuple(descent.leaves), *tensors)
+        value, aux = split_aux(loss(tuple(descent.leaves), *tensors))
         descent(value, active)
-        return value.detach()
+        return detached(value, aux)
     key = loss if key is None else key
     update = descent.updates.get(key)
     if update is None:

@@ -2,11 +2,10 @@
 eager step to float32 rounding, the same seed the same result, the optimisers' state in their checkpoints.
 
 The ``functional`` mode is the compiled step's code run eagerly (fast); the tests that compile
-(``algorithm.compile = "on"``) are marked ``compiled`` and run in the tox env ``bench``: cold, they took 8
-and 5 minutes on the 2-core machine under a load average of 7, the stacked one 2 min 15 s at a load of 4
-(2026-12-06; the tiny task's PEV, PIM and MVC graphs, one per shape of the quadrature); the cache they fill
-is pytest's cache folder (``pytest --cache-clear`` empties it), so later sessions load the graphs from it
-(warm: 18 s and 14 s).
+(``algorithm.compile = "on"``) are marked ``compiled`` and run in the tox env ``bench``: cold, 28-32 s each
+on the quiet 2-core machine (2026-12-07; the tiny task's loss, backward, Adam and MVC graphs, one per shape);
+the cache they fill is pytest's cache folder (``pytest --cache-clear`` empties it), so later sessions load
+the graphs from it.
 """
 
 from __future__ import annotations
@@ -198,3 +197,63 @@ def test_the_compiled_step_of_stacked_runs(compile_cache: Path) -> None:
 def test_the_compiled_rollout_learner_gives_the_eager_numbers(compile_cache: Path) -> None:
     """The rollout learner's actor and critic steps (mixedrl.departures.rollout) compiled: the eager numbers."""
     compiled_like_eager(2, **ROLLOUT)
+
+
+#: A loss with a scan and a custom autograd.Function, each holding the constant C (argv): run in a fresh process
+#: on a shared cache directory, it prints whether the compiled gradient equals the eager one and the cache counters.
+_CACHED_LOSS = """
+import json, sys
+import torch
+from torch._higher_order_ops.scan import scan
+from mixedrl.compiled import allow_in_cache
+allow_in_cache()
+C = float(sys.argv[1])
+
+class Scale(torch.autograd.Function):
+    @staticmethod
+    def forward(x):
+        return x.clone()
+
+    @staticmethod
+    def setup_context(ctx, inputs, output):
+        pass
+
+    @staticmethod
+    def backward(ctx, g):
+        return g * C
+
+def loss(w, s, xs):
+    def body(x, d):
+        x_next = torch.tanh(Scale.apply(x * w)) * C + d
+        return x_next.clone(), (x_next * x_next).sum(-1).clone()
+    return scan(body, s, xs)[1].sum()
+
+w = torch.linspace(0.5, 1.5, 4, requires_grad=True)
+s, xs = torch.ones(3, 4), torch.full((5, 3, 4), 0.1)
+compiled = torch.autograd.grad(torch.compile(loss, fullgraph=True, dynamic=False)(w, s, xs), w)[0]
+eager = torch.autograd.grad(loss(w, s, xs), w)[0]
+counters = torch._dynamo.utils.counters
+print(json.dumps({"equal": torch.allclose(compiled, eager, rtol=1e-5), "aot": dict(counters["aot_autograd"]),
+                  "inductor": dict(counters["inductor"])}))
+"""
+
+
+@pytest.mark.compiled
+def test_the_cache_keeps_scan_and_custom_function_graphs_and_keys_them_by_their_bodies(tmp_path: Path) -> None:
+    """allow_in_cache: a second process loads the graph (AOTAutograd and inductor hits, nothing bypassed); a
+    body with another constant in the scan and in the function's backward misses, and gives its own numbers."""
+    import json
+    import os
+    import subprocess
+    import sys
+
+    script = tmp_path / "cached_loss.py"
+    script.write_text(_CACHED_LOSS)
+    env = {**os.environ, "TORCHINDUCTOR_CACHE_DIR": str(tmp_path / "cache")}
+    runs = [json.loads(subprocess.run([sys.executable, str(script), c], env=env, check=True, capture_output=True,
+                                      text=True).stdout.splitlines()[-1]) for c in ("0.5", "0.5", "0.7")]
+    assert all(r["equal"] for r in runs)
+    first, again, other = runs
+    assert first["aot"].get("autograd_cache_saved") == 1 and "autograd_cache_bypass" not in first["aot"]
+    assert again["aot"].get("autograd_cache_hit") == 1 and again["inductor"].get("fxgraph_cache_miss", 0) == 0
+    assert other["aot"].get("autograd_cache_miss") == 1
