@@ -147,8 +147,9 @@ class AlgorithmConfig:
     ``exp(-|(o - o_ss) / (rho obs_scale)|^2 / 2)``; 0 = a constant shift (docs/tuning.rst)."""
 
     compile: str = "off"
-    """How the PEV and PIM steps run (:mod:`mixedrl.compiled`, docs/algorithm2.rst): ``"off"`` = eagerly (the
-    reference), ``"on"`` = compiled by ``torch.compile``, ``"functional"`` = that step uncompiled."""
+    """How the updates run, Algorithm 2's PEV and PIM steps and DDPG's critic and actor steps alike
+    (:mod:`mixedrl.compiled`, docs/algorithm2.rst): ``"off"`` = eagerly (the reference), ``"on"`` = compiled by
+    ``torch.compile``, ``"functional"`` = that step uncompiled."""
 
     rollout_horizon: int = 16
     """Departure (rollouts): model steps ``H`` >= 0 of the rollouts PEV and PIM work on

@@ -257,3 +257,41 @@ def test_the_cache_keeps_scan_and_custom_function_graphs_and_keys_them_by_their_
     assert first["aot"].get("autograd_cache_saved") == 1 and "autograd_cache_bypass" not in first["aot"]
     assert again["aot"].get("autograd_cache_hit") == 1 and again["inductor"].get("fxgraph_cache_miss", 0) == 0
     assert other["aot"].get("autograd_cache_miss") == 1
+
+
+# ------------------------------------------------------------------------------------------------------------- DDPG
+def ddpg_train(compile: str, runs: int, iterations: int = 5) -> tuple[list, list]:
+    """A tiny DDPG run (or ``runs`` of them batched) with ``algorithm.compile``: its members and metrics rows."""
+    from mixedrl.algorithms.batched_ddpg import BatchedDDPG
+
+    members = [make_trainer(TrainConfig(method="ddpg", seed=r, task="linear",
+                                        algorithm={"hidden_sizes": [8, 8], "compile": compile},
+                                        ddpg={"warmup": 64, "batch_size": 32, "envs": 2},
+                                        run={"eval_every": 1000, "checkpoint_every": 1000, "eval_seeds": 1}))
+               for r in range(runs)]
+    e = members[0] if runs == 1 else BatchedDDPG(members)
+    return members, [e.iteration() for _ in range(iterations)]
+
+
+def ddpg_like_eager(compile: str, runs: int) -> None:
+    eager_members, eager_rows = ddpg_train("off", runs)
+    members, rows = ddpg_train(compile, runs)
+    torch.testing.assert_close(flat(members), flat(eager_members), rtol=RTOL, atol=1e-7)
+    keys = ("train/critic_loss", "train/actor_objective")
+    got = [[r[k] for k in keys if k in r] for it in rows for r in (it if isinstance(it, list) else [it])]
+    want = [[r[k] for k in keys if k in r] for it in eager_rows for r in (it if isinstance(it, list) else [it])]
+    assert all(len(g) for g in got)
+    torch.testing.assert_close(torch.tensor(got, dtype=torch.float64), torch.tensor(want, dtype=torch.float64),
+                               rtol=RTOL, atol=1e-9)
+
+
+@pytest.mark.parametrize("runs", [1, 2])
+def test_the_functional_ddpg_update_gives_the_eager_numbers(runs: int) -> None:
+    """DDPG's critic and actor steps through mixedrl.compiled (the target networks and the critic read, not
+    trained): the eager step's weights and losses."""
+    ddpg_like_eager("functional", runs)
+
+
+@pytest.mark.compiled
+def test_the_compiled_ddpg_update_gives_the_eager_numbers(compile_cache: Path) -> None:
+    ddpg_like_eager("on", 2)

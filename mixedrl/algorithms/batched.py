@@ -32,7 +32,7 @@ from torch.func import functional_call, stack_module_state, vmap
 from mixedrl.algorithms import algorithm2
 from mixedrl.compiled import Evaluation
 from mixedrl.config import optimiser_section
-from mixedrl.schedule import Descent, descend
+from mixedrl.schedule import Descent
 
 __all__ = ["BatchedAGPI", "BatchedRuns", "StackedNetwork", "SHARED_FIELDS", "DDPG_SHARED_FIELDS", "batch_key"]
 
@@ -49,7 +49,8 @@ SHARED_FIELDS = tuple(f"algorithm.{name}" for name in (
 
 #: The fields (dotted keys) the DDPG runs of one batch (:class:`mixedrl.algorithms.batched_ddpg.BatchedDDPG`)
 #: must share: the network shapes and DDPG's minibatch size; every other field may differ between them.
-DDPG_SHARED_FIELDS = ("ddpg.batch_size", "algorithm.hidden_sizes", "ddpg.activation", "algorithm.value_output")
+DDPG_SHARED_FIELDS = ("ddpg.batch_size", "algorithm.hidden_sizes", "ddpg.activation", "algorithm.value_output",
+                      "algorithm.compile")
 
 
 def _setting(config: Any, key: str) -> Any:
@@ -234,6 +235,13 @@ class BatchedRuns:
         self.actor = StackedNetwork([m.actor for m in self.members], self.batch)
         self._critic_params = self.critic.run_params()
         self._actor_params = self.actor.run_params()
+        mode = self.members[0].config.algorithm.compile
+        #: Each run's clipped Adam step of its critic / its actor (:class:`mixedrl.schedule.Descent`), eager,
+        #: compiled or functional by ``algorithm.compile`` (:mod:`mixedrl.compiled`).
+        self.critic_descent = Descent(self.critic.leaves, self._critic_params, [m.critic_opt for m in self.members],
+                                      self.grad_clips(), mode)
+        self.actor_descent = Descent(self.actor.leaves, self._actor_params, [m.actor_opt for m in self.members],
+                                     self.grad_clips(), mode)
 
     def active_runs(self, active: Sequence[bool] | None) -> tuple[list[bool], list[int]]:
         """The ``active`` flags of an iteration (default: all runs) and the indices of the active runs.
@@ -248,33 +256,9 @@ class BatchedRuns:
             raise ValueError(f"active: expected {self.runs} flags, got {len(flags)}")
         return flags, [r for r in range(self.runs) if flags[r]]
 
-    def descend_critics(self, loss: torch.Tensor, active: list[int]) -> None:
-        """Each active run's clipped Adam step of its critic on its loss (shape () for one run, (R,) for
-        ``R``; :func:`mixedrl.schedule.descend`), clipped at the run's own gradient clip
-        (:func:`mixedrl.config.optimiser_section`)."""
-        descend(loss, self.critic.leaves, self._critic_params, [m.critic_opt for m in self.members],
-                self.grad_clips(), active)
-
     def grad_clips(self) -> list[float]:
         """Per run, its gradient clip (``algorithm.grad_clip``, or ``ddpg.grad_clip`` for DDPG)."""
         return [optimiser_section(m.config).grad_clip for m in self.members]
-
-    def descend_actors(self, objective: Callable[[Any], torch.Tensor], active: list[int]) -> torch.Tensor:
-        """Each active run's clipped Adam step of its actor on ``objective(critic)``, the critics frozen
-        (``critic`` is :meth:`StackedNetwork.frozen`; for one run its parameters are also set not to
-        require a gradient while the step is taken). Returns the objective before the step, detached."""
-        if self.runs == 1:
-            for p in self.critic.leaves:
-                p.requires_grad_(False)
-        try:
-            loss = objective(self.critic.frozen())
-            descend(loss, self.actor.leaves, self._actor_params, [m.actor_opt for m in self.members],
-                    self.grad_clips(), active)
-        finally:
-            if self.runs == 1:
-                for p in self.critic.leaves:
-                    p.requires_grad_(True)
-        return loss.detach()
 
 
 class BatchedAGPI(BatchedRuns):
@@ -303,12 +287,6 @@ class BatchedAGPI(BatchedRuns):
         #: ``None``; the stacked views follow each run's in-place update.
         self.critic_target = (StackedNetwork([m.critic_target.module for m in self.members], self.batch)
                               if algo.critic_target > 0 else None)
-        #: Each run's clipped Adam step of its critic / its actor (:class:`mixedrl.schedule.Descent`), eager,
-        #: compiled or functional by ``algorithm.compile`` (:mod:`mixedrl.compiled`).
-        self.critic_descent = Descent(self.critic.leaves, self._critic_params, [m.critic_opt for m in self.members],
-                                      self.grad_clips(), algo.compile)
-        self.actor_descent = Descent(self.actor.leaves, self._actor_params, [m.actor_opt for m in self.members],
-                                     self.grad_clips(), algo.compile)
         #: The MVC loop's values of ``h`` (:func:`mixedrl.algorithms.algorithm2.mvc_values`), without gradient.
         self.mvc_values = Evaluation(partial(algorithm2.mvc_values, self.task, self.actor, self.critic.frozen()),
                                      algo.compile)

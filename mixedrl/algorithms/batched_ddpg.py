@@ -20,14 +20,36 @@ reproducibility as for Algorithm 2 (docs/algorithm2.rst, "DDPG batches").
 
 from __future__ import annotations
 
-from typing import Any, Sequence
+from functools import partial
+from typing import Any, Callable, Sequence
 
 import torch
 
 from mixedrl.algorithms.batched import DDPG_SHARED_FIELDS, BatchedRuns, StackedNetwork
+from mixedrl.compiled import constants, network_at
 from mixedrl.pev import run_mean
 
-__all__ = ["BatchedDDPG"]
+__all__ = ["BatchedDDPG", "critic_loss_at", "actor_loss_at"]
+
+
+def critic_loss_at(params: Sequence[torch.Tensor], obs: torch.Tensor, act: torch.Tensor, cost: torch.Tensor,
+                   next_obs: torch.Tensor, terminal: torch.Tensor, *, task: Any, critic: Any,
+                   critic_target: Callable[..., torch.Tensor], actor_target: Callable[..., torch.Tensor],
+                   runs: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """:meth:`BatchedDDPG.critic_step`'s loss with the critic at ``params``, as a pure function
+    (:mod:`mixedrl.compiled`): ``(J_Q, Q(x, u))``, the second detached (the step's aux)."""
+    with torch.no_grad():
+        # y = l + gamma (1 - terminal) Q'(x', pi'(x'))
+        target = cost + task.gamma * (1.0 - terminal) * critic_target(next_obs, actor_target(next_obs))
+    q = network_at(critic, params)(obs, act)
+    return 0.5 * run_mean(((q - target) / float(task.value_scale)).pow(2), runs), q.detach()
+
+
+def actor_loss_at(params: Sequence[torch.Tensor], obs: torch.Tensor, *, task: Any, critic: Callable[..., torch.Tensor],
+                  actor: Any, runs: int) -> torch.Tensor:
+    """:meth:`BatchedDDPG.actor_step`'s objective ``J_pi = mean_B Q(x, pi(x; theta)) / s`` with the actor at
+    ``params`` (the critic read, not trained), as a pure function (:mod:`mixedrl.compiled`)."""
+    return run_mean(critic(obs, network_at(actor, params)(obs)), runs) / float(task.value_scale)
 
 #: A member of a batch: a :class:`mixedrl.algorithms.ddpg.DDPG` run (not imported: ddpg imports this module).
 DDPG = Any
@@ -102,6 +124,10 @@ class BatchedDDPG(BatchedRuns):
         q : torch.Tensor, shape (R B,)
             ``Q(x, u)`` before the step (no gradient).
         """
+        if self.critic_descent.mode != "off":  # algorithm.compile: the same loss as a pure function, compiled
+            loss = partial(critic_loss_at, task=self.task, critic=self.critic, critic_target=self.critic_target,
+                           actor_target=self.actor_target, runs=self.runs)
+            return self.critic_descent.minimise(loss, (obs, act, cost, next_obs, terminal), active, key="ddpg_critic")
         task = self.task
         scale = float(task.value_scale)
         with torch.no_grad():
@@ -110,7 +136,7 @@ class BatchedDDPG(BatchedRuns):
         q = self.critic(obs, act)
         loss = 0.5 * run_mean(((q - target) / scale).pow(2), self.runs)
         # w <- w - alpha dJ_Q/dw   (Adam, per run)
-        self.descend_critics(loss, active)
+        self.critic_descent(loss, active)
         return loss.detach(), q.detach()
 
     def actor_step(self, obs: torch.Tensor, active: list[int]) -> torch.Tensor:
@@ -121,10 +147,12 @@ class BatchedDDPG(BatchedRuns):
         (minimised: ``Q`` is a cost-to-go). ``obs`` as in :meth:`critic_step`; returns ``J_pi`` before the
         step, shape () or (R,).
         """
-        scale = float(self.task.value_scale)
-        # minimise Q(x, pi(x)), the cost-to-go of the deterministic policy:
-        # theta <- theta - beta dJ_pi/dtheta   (Adam, per run)
-        return self.descend_actors(lambda critic: run_mean(critic(obs, self.actor(obs)), self.runs) / scale, active)
+        critic = self.critic.frozen()
+        loss = partial(actor_loss_at, task=self.task, critic=critic, actor=self.actor, runs=self.runs)
+        with constants(critic):  # Q is read, not trained
+            # minimise Q(x, pi(x)), the cost-to-go of the deterministic policy:
+            # theta <- theta - beta dJ_pi/dtheta   (Adam, per run)
+            return self.actor_descent.minimise(loss, (obs,), active, key="ddpg_actor")
 
     def iteration(self, active: Sequence[bool] | None = None) -> list[dict[str, float] | None]:
         """One DDPG iteration of every active run (see :meth:`~mixedrl.algorithms.ddpg.DDPG.iteration`): its
