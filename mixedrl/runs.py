@@ -369,6 +369,12 @@ def _train(trainers: list[Any], engine: Callable[[list[bool]], list[dict[str, fl
     with tqdm(total=sum(t.config.algorithm.iterations for t in trainers), initial=sum(t.k for t in trainers),
               desc=f"{first.method} seed {first.seed}" if n == 1 else f"{n} runs", leave=False,
               disable=not (progress or (progress is None and sys.stderr.isatty()))) as bar:
+        # algorithm.compile: the first iterations compile the steps (cold about a minute, then loaded from the cache)
+        compiling = first.algorithm.compile == "on"
+        if compiling:
+            from mixedrl.compiled import cache_dir
+
+            bar.set_postfix_str(f"compiling the steps (cold: about a minute; cached in {cache_dir()})", refresh=True)
         while True:
             active = [not interrupted[i] and not _finished(trainers[i]) for i in range(n)]
             if not any(active):
@@ -378,6 +384,9 @@ def _train(trainers: list[Any], engine: Callable[[list[bool]], list[dict[str, fl
             t0 = time.perf_counter()
             rows = engine(active)
             dt = time.perf_counter() - t0
+            if compiling:
+                bar.set_postfix_str("", refresh=False)
+                compiling = False
             # the evaluations due now, all runs at once: periodic ones batched, a run's last one exact
             due = [i for i in range(n) if active[i] and (trainers[i].k % trainers[i].config.run.eval_every == 0
                                                          or _finished(trainers[i]))]

@@ -295,3 +295,13 @@ def test_the_functional_ddpg_update_gives_the_eager_numbers(runs: int) -> None:
 @pytest.mark.compiled
 def test_the_compiled_ddpg_update_gives_the_eager_numbers(compile_cache: Path) -> None:
     ddpg_like_eager("on", 2)
+
+
+@pytest.mark.compiled
+def test_the_progress_bar_says_when_the_steps_compile(compile_cache: Path, capsys: pytest.CaptureFixture) -> None:
+    from mixedrl.runs import train as run_training
+
+    run_training(make_trainer(config("on")), None, progress=True)
+    assert "compiling the steps" in capsys.readouterr().err
+    run_training(make_trainer(config("off")), None, progress=True)
+    assert "compiling" not in capsys.readouterr().err
