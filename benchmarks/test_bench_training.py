@@ -4,7 +4,9 @@ Run: ``pytest benchmarks/test_bench_training.py --benchmark-only``. One Algorith
 (:meth:`mixedrl.algorithms.agpi.AGPI.iteration`: data from the 512 true-environment copies, PEV, PIM, IBE
 update, MVC check and any inner PIM steps) for each noise source, and one DDPG iteration (16 environment
 steps + one minibatch update of critic and actor), all with the reproduction's default
-:class:`~mixedrl.config.TrainConfig` and one torch thread (what ``mixedrl reproduce`` uses per worker).
+:class:`~mixedrl.config.TrainConfig` and one torch thread (what ``mixedrl reproduce`` uses per worker);
+``test_iteration_compiled`` the same with ``algorithm.compile = "on"`` (side by side in one session: the
+table script ``benchmarks/iteration_table.py --compile-ab`` alternates them).
 ``extra_info["iterations_per_s"] = 1 / median``; ``extra_info["seconds_per_1500"]`` is the time of the
 default budget without evaluations.
 
@@ -36,8 +38,8 @@ def one_thread() -> Iterator[None]:
     torch.set_num_threads(before)
 
 
-def _trainer(method: str) -> object:
-    trainer = make_trainer(TrainConfig(method=method, seed=0, task="dlc"))
+def _trainer(method: str, compile: str = "off") -> object:
+    trainer = make_trainer(TrainConfig(method=method, seed=0, task="dlc", algorithm={"compile": compile}))
     for _ in range(3):  # past the first IBE update and any lazy initialisation
         trainer.iteration()
     return trainer
@@ -53,6 +55,21 @@ def test_iteration(benchmark, method: str) -> None:
     benchmark.extra_info["iterations_per_s"] = 1.0 / median
     benchmark.extra_info["seconds_per_1500"] = 1500 * median
     benchmark.extra_info["batch_size"] = trainer.config.algorithm.batch_size
+
+
+@pytest.mark.parametrize("method", ["mixed", "ddpg"])
+def test_iteration_compiled(benchmark, method: str, request: pytest.FixtureRequest,
+                            monkeypatch: pytest.MonkeyPatch) -> None:
+    """The same iteration with ``algorithm.compile = "on"`` (:mod:`mixedrl.compiled`; compiled before the
+    timing, in pytest's cache folder: cold the first time, about 40 s for mixed RL and 20 s for DDPG)."""
+    cache = getattr(request.config, "cache", None)
+    if cache is not None:
+        monkeypatch.setenv("MIXEDRL_CACHE_DIR", str(cache.mkdir("mixedrl-compile")))
+        monkeypatch.delenv("TORCHINDUCTOR_CACHE_DIR", raising=False)
+    trainer = _trainer(method, "on")
+    benchmark.group = "training-iteration"
+    benchmark.pedantic(trainer.iteration, rounds=60, iterations=1, warmup_rounds=2)
+    benchmark.extra_info["iterations_per_s"] = 1.0 / benchmark.stats.stats.median
 
 
 @pytest.mark.parametrize("part", ["collect", "pev", "pim", "ibe", "mvc"])
