@@ -173,10 +173,11 @@ class Descent:
         descend(loss, self.leaves, self.run_params, self.optimizers, self.grad_clips, active)
 
     def minimise(self, loss: Callable[..., torch.Tensor], tensors: Sequence[torch.Tensor],
-                 active: Sequence[int] | None = None, key: Hashable = None) -> torch.Tensor:
+                 active: Sequence[int] | None = None, key: Hashable = None) -> Any:
         """Each (active) run's clipped step on a pure loss ``loss(params, *tensors)``: eagerly when
         :attr:`mode` is ``"off"``, else by a :class:`mixedrl.compiled.Update` kept per ``key`` (default:
-        ``loss``). Returns the loss before the step, detached."""
+        ``loss``). Returns the loss before the step, detached, or ``(value, aux)`` when the loss returns
+        ``(value, aux)`` (:mod:`mixedrl.compiled`)."""
         from mixedrl.compiled import minimise
 
         return minimise(self, loss, tensors, active, key)
