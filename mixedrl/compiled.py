@@ -67,8 +67,8 @@ import torch.utils._pytree as pytree
 
 from mixedrl.config_tasks import COMPILE_MODES
 
-__all__ = ["MODES", "Update", "Evaluation", "network_at", "adam_step", "split_aux", "constants", "allow_in_cache", "cache_dir", "configure_cache", "clear_cache",
-           "check_mode"]
+__all__ = ["MODES", "Update", "Evaluation", "network_at", "adam_step", "split_aux", "constants", "allow_in_cache",
+           "cache_dir", "configure_cache", "clear_cache", "check_mode"]
 
 #: The values of ``algorithm.compile``: the eager step (default), the compiled step, this module's step eagerly.
 MODES = COMPILE_MODES
@@ -380,7 +380,7 @@ class Update(_Compiled):
 
     def __init__(self, loss: Loss, descent: Any, mode: str = "on") -> None:
         super().__init__(loss, mode, grad=True)
-        self.loss, self.descent = loss, descent
+        self.descent = descent
         self.state = _AdamState(descent)
         self.stacked = self.state.stacked
         self.adam = _Compiled(adam_step, mode)

@@ -376,14 +376,8 @@ def critic_step(task: Any, critic: Callable[..., torch.Tensor], actor: Callable[
     """
     step = optimizer if isinstance(optimizer, Descent) else Descent.single(critic, optimizer, grad_clip)
     relative_offset, runs = check_hooks(relative_offset, runs, s.shape[0])
-    if step.mode != "off":  # algorithm.compile: the same loss as a pure function, one compiled step
-        loss = partial(critic_loss_at, task=task, critic=critic, actor=actor, relative_offset=relative_offset,
-                       runs=runs, target_critic=target_critic)
-        key = ("pev", id(task), id(critic), id(actor), id(target_critic), relative_offset, runs)
-        return step.minimise(loss, (s, offsets, weights), active, key)
-    with torch.no_grad():
-        u = actor(task.observe(s))
-    loss = _critic_loss(task, critic, s, u, offsets, weights, relative_offset, runs, target_critic)
-    # w^{k+1} = w^k - alpha dJ_critic/dw   (Adam, per run)
-    step(loss, active)
-    return loss.detach()
+    # w^{k+1} = w^k - alpha dJ_critic/dw   (Adam, per run; eager, or one compiled step with algorithm.compile)
+    loss = partial(critic_loss_at, task=task, critic=critic, actor=actor, relative_offset=relative_offset,
+                   runs=runs, target_critic=target_critic)
+    key = ("pev", id(task), id(critic), id(actor), id(target_critic), relative_offset, runs)
+    return step.minimise(loss, (s, offsets, weights), active, key)

@@ -260,16 +260,13 @@ def actor_step(task: Any, critic: Callable[..., torch.Tensor], actor: Callable[.
     """
     step = optimizer if isinstance(optimizer, Descent) else Descent.single(actor, optimizer, grad_clip)
     relative_offset, runs = check_hooks(relative_offset, runs, s.shape[0])
+    # theta^{k+1} = theta^k - beta dJ_actor/dtheta   (Adam, per run; eager, or one compiled step with
+    # algorithm.compile)
+    loss = partial(actor_objective_at, task=task, critic=critic, actor=actor, relative_offset=relative_offset,
+                   runs=runs)
+    key = ("pim", id(task), id(critic), id(actor), relative_offset, runs)
     with constants(critic):  # V^k is read, not trained
-        if step.mode != "off":  # algorithm.compile: the same objective as a pure function, one compiled step
-            loss = partial(actor_objective_at, task=task, critic=critic, actor=actor, relative_offset=relative_offset,
-                           runs=runs)
-            key = ("pim", id(task), id(critic), id(actor), relative_offset, runs)
-            return step.minimise(loss, (s, offsets, weights), active, key)
-        obj = _actor_objective(task, critic, actor, s, offsets, weights, relative_offset, runs)
-        # theta^{k+1} = theta^k - beta dJ_actor/dtheta   (Adam, per run)
-        step(obj, active)
-    return obj.detach()
+        return step.minimise(loss, (s, offsets, weights), active, key)
 
 
 # ----------------------------------------------------------------------------------------------------

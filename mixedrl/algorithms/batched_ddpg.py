@@ -124,20 +124,10 @@ class BatchedDDPG(BatchedRuns):
         q : torch.Tensor, shape (R B,)
             ``Q(x, u)`` before the step (no gradient).
         """
-        if self.critic_descent.mode != "off":  # algorithm.compile: the same loss as a pure function, compiled
-            loss = partial(critic_loss_at, task=self.task, critic=self.critic, critic_target=self.critic_target,
-                           actor_target=self.actor_target, runs=self.runs)
-            return self.critic_descent.minimise(loss, (obs, act, cost, next_obs, terminal), active, key="ddpg_critic")
-        task = self.task
-        scale = float(task.value_scale)
-        with torch.no_grad():
-            # y = l + gamma (1 - terminal) Q'(x', pi'(x'))
-            target = cost + task.gamma * (1.0 - terminal) * self.critic_target(next_obs, self.actor_target(next_obs))
-        q = self.critic(obs, act)
-        loss = 0.5 * run_mean(((q - target) / scale).pow(2), self.runs)
-        # w <- w - alpha dJ_Q/dw   (Adam, per run)
-        self.critic_descent(loss, active)
-        return loss.detach(), q.detach()
+        # w <- w - alpha dJ_Q/dw   (Adam, per run; eager, or one compiled step with algorithm.compile)
+        loss = partial(critic_loss_at, task=self.task, critic=self.critic, critic_target=self.critic_target,
+                       actor_target=self.actor_target, runs=self.runs)
+        return self.critic_descent.minimise(loss, (obs, act, cost, next_obs, terminal), active, key="ddpg_critic")
 
     def actor_step(self, obs: torch.Tensor, active: list[int]) -> torch.Tensor:
         """One deterministic-policy-gradient step of every active run's actor, critics frozen.

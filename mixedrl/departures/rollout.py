@@ -319,13 +319,8 @@ def improve(engine: Any, s: torch.Tensor, moments: Sequence[tuple[np.ndarray, np
     # only the runs that step draw (a run's stream does not depend on its neighbours' MVC outcomes)
     own = [mo if r in active_runs else None for r, mo in enumerate(moments)]
     draws = _draws(engine, own, s)
-    if engine.actor_descent.mode == "off":
-        states, costs = rollout(engine.task, engine.actor, s, draws)
-        obj = actor_loss(engine.task, _target(engine), states, costs, gamma, engine.runs, relative_offset)
-        engine.actor_descent(obj, active_runs)
-        return obj.detach(), states.detach(), costs.detach(), gamma
-    # algorithm.compile: the same loss as a pure function, one compiled step; the rollout the critic is fitted
-    # on is the step's own (its aux: the actor before the step, the same draws)
+    # eager, or one compiled step with algorithm.compile; the rollout the critic is fitted on is the step's own
+    # (its aux: the actor before the step, the same draws)
     target = _target(engine)
     loss = partial(actor_loss_at, task=engine.task, actor=engine.actor, value_target=target,
                    runs=engine.runs, relative_offset=relative_offset)
