@@ -138,12 +138,13 @@ class AlgorithmConfig:
     feedforward: str = "auto"
     """Departure (anchor): where the deployed policy takes its action at the task's equilibrium, training
     unchanged: ``"learned"`` (the paper's, the actor's own), ``"lq_ss"`` (shifted near the LQ optimum's steady
-    state, :func:`mixedrl.departures.anchor.steady_anchor`), ``"lq"`` (a constant shift,
-    :class:`mixedrl.precision.FeedForwardPolicy`) or ``"auto"`` (:func:`mixedrl.departures.anchor.resolve`);
-    docs/precision.rst."""
+    state, :func:`mixedrl.departures.anchor.steady_anchor`), ``"lq_handover"`` (``"lq_ss"``, handed over to the
+    LQ optimum outside the observations the actor was trained on, :class:`mixedrl.departures.anchor.HandoverPolicy`),
+    ``"lq"`` (a constant shift, :class:`mixedrl.precision.FeedForwardPolicy`) or ``"auto"``
+    (:func:`mixedrl.departures.anchor.resolve`); docs/precision.rst."""
 
     feedforward_width: float = 0.25
-    """Departure (anchor): width ``rho`` >= 0 of the ``"lq_ss"`` shift, weighted by
+    """Departure (anchor): width ``rho`` >= 0 of the ``"lq_ss"`` shift (and of the hand-over), weighted by
     ``exp(-|(o - o_ss) / (rho obs_scale)|^2 / 2)``; 0 = a constant shift (docs/tuning.rst)."""
 
     compile: str = "off"

@@ -34,7 +34,7 @@ COMPILE_MODES = ("off", "on", "functional")
 BATCH_WEIGHTINGS = ("uniform", "relative")
 
 #: Where the policy takes its action at the equilibrium (``algorithm.feedforward``).
-FEEDFORWARDS = ("auto", "learned", "lq", "lq_ss")
+FEEDFORWARDS = ("auto", "learned", "lq", "lq_ss", "lq_handover")
 #: The commit that still runs the retired options (docs/results.rst).
 RETIRED_AT = "ee954d7"
 #: The retired values of ``algorithm.feedforward``: actors anchored at the LQ optimum during training.

@@ -220,7 +220,7 @@ def summarize(trainer: Any, rows: list[dict[str, Any]], elapsed: float, seeds: l
     feedforward = getattr(trainer, "feedforward", "learned")  # the trainer's, "auto" resolved
     if feedforward != "learned":
         results["feedforward"] = feedforward
-    if feedforward in ("lq", "lq_ss"):  # the trained actor's own gap, before the shift
+    if feedforward != "learned":  # the trained actor's own gap, before the shift
         results["policy_gap_learned"], _ = run_policy_gap(trainer, trainer.learned_policy)
     return results
 

@@ -239,7 +239,7 @@ def test_a_batch_of_runs_evaluated_at_once_gives_each_run_its_own_numbers(tmp_pa
     for t, seed in zip(shifted, (5, 6, 7)):
         shake(t.learned_policy, seed)
     alone = [t.evaluate(eval_seeds(c)) for t, c in zip(shifted, configs)]
-    assert all(t.feedforward == "lq_ss" for t in shifted)
+    assert all(t.feedforward == "lq_handover" for t in shifted)
     assert evaluate_together(shifted, [eval_seeds(c) for c in configs], exact=True) == alone
     trainers = [make_trainer(c) for c in configs]
     for t, seed in zip(trainers, (5, 6, 7)):  # distinct policies that do something

@@ -384,7 +384,7 @@ RETIRED = ("lq_train", "lq_affine", "lq_affine_ss")
 
 def _retired_message(value: str) -> str:
     return (rf"^algorithm\.feedforward: '{value}' was retired \(.*results page.*\); expected one of "
-            rf"\('auto', 'learned', 'lq', 'lq_ss'\); git commit ee954d7 can still run it$")
+            rf"\('auto', 'learned', 'lq', 'lq_ss', 'lq_handover'\); git commit ee954d7 can still run it$")
 
 
 @pytest.mark.parametrize("value", RETIRED)
@@ -450,15 +450,19 @@ def test_an_observation_that_misses_a_coordinate_has_no_gain() -> None:
 
 
 # ------------------------------------------- algorithm.feedforward = "lq_ss" and "auto" (the library default)
-def test_auto_is_lq_ss_where_the_task_declares_an_equilibrium_else_learned(caplog: pytest.LogCaptureFixture) -> None:
+def test_auto_is_lq_handover_where_the_task_declares_an_equilibrium_else_learned(
+        caplog: pytest.LogCaptureFixture) -> None:
     from mixedrl.departures.anchor import resolve
 
     assert TrainConfig().algorithm.feedforward == "auto"
     assert TrainConfig.preset("paper").algorithm.feedforward == "learned"
-    assert AGPI(LinearTask(), _config("mixed")).feedforward == "lq_ss"
+    assert AGPI(LinearTask(), _config("mixed")).feedforward == "lq_handover"
     assert AGPI(_NoEquilibrium(), _config("mixed")).feedforward == "learned"
     assert resolve(TrainConfig(method="ddpg", task="linear"), LinearTask()) == "learned"
-    for value in ("learned", "lq", "lq_ss"):
+    with caplog.at_level("WARNING", logger="mixedrl.departures.anchor"):  # no gain in observations: no hand-over
+        assert resolve(_config("model"), _Blind()) == "lq_ss"
+    assert "no hand-over to the LQ optimum" in caplog.text
+    for value in ("learned", "lq", "lq_ss", "lq_handover"):
         assert resolve(TrainConfig(task="linear", algorithm={"feedforward": value}), _NoEquilibrium()) == value
     with caplog.at_level("WARNING", logger="mixedrl.algorithms.agpi"):
         assert AGPI(_NotARestPoint(), _config("model")).feedforward == "learned"  # an equilibrium that fails
@@ -479,7 +483,7 @@ def test_results_record_the_resolved_feed_forward(tmp_path: Path) -> None:
                      "task.name=linear", "algorithm.batch_size=16", "algorithm.hidden_sizes=[8]", "ddpg.batch_size=16",
                      "run.eval_seeds=1"]) == 0
         saved = json.loads((out / "results.json").read_text())
-        assert saved.get("feedforward") == {"mixed": "lq_ss", "ddpg": None}[method]
+        assert saved.get("feedforward") == {"mixed": "lq_handover", "ddpg": None}[method]
 
 
 @pytest.mark.parametrize("width", [0.0, 0.5])
@@ -506,6 +510,90 @@ def test_lq_ss_takes_the_optimums_steady_action_at_its_steady_state(width: float
         assert far_shift == pytest.approx(-L @ x_ss - l0 - learned_ss, abs=1e-5)
     else:
         assert np.abs(far_shift).max() < 1e-6
+
+
+# ------------------------------------------- algorithm.feedforward = "lq_handover": the box of trained observations
+def test_the_handover_is_the_policy_inside_the_box_and_the_affine_law_outside() -> None:
+    """Inside ``[low, high]`` the deployed action is the wrapped policy's bit for bit; far outside it is the
+    affine law ``u_a + G (o - o_a)`` (clipped); at the box's edge the blend is continuous."""
+    from mixedrl.departures.anchor import HandoverPolicy
+
+    torch.manual_seed(2)
+    net = torch.nn.Sequential(torch.nn.Linear(2, 6), torch.nn.Tanh(), torch.nn.Linear(6, 1))
+    low, high = torch.tensor([-1.0, -0.5]), torch.tensor([1.0, 0.5])
+    gain, o_a, u_a = torch.tensor([[-2.0, -0.7]]), torch.tensor([0.3, 0.0]), torch.tensor([-0.4])
+    pol = HandoverPolicy(net, low, high, gain, o_a, u_a, width=torch.tensor([0.25, 0.25]), bound=torch.tensor([5.0]))
+    inside = (torch.rand(64, 2) * 2 - 1) * high
+    far = torch.tensor([[3.0, 0.2], [-2.5, -0.1], [0.1, 2.0]])
+    with torch.no_grad():
+        assert torch.equal(pol(inside), net(inside))
+        assert torch.equal(pol(torch.cat([inside, far]))[:64], net(inside))  # mixed rows: the inside ones untouched
+        affine = torch.clamp(u_a + (far - o_a) @ gain.T, -5.0, 5.0)
+        assert torch.allclose(pol(far), affine, atol=1e-5)
+        edge = torch.tensor([[1.0, 0.1], [1.0 + 1e-4, 0.1]])
+        assert torch.allclose(pol(edge)[0], pol(edge)[1], atol=1e-3)
+        hard = HandoverPolicy(net, low, high, gain, o_a, u_a)  # no width: the affine law right outside
+        assert torch.allclose(hard(edge[1:]), u_a + (edge[1:] - o_a) @ gain.T, atol=1e-6)
+
+
+class _Engine:
+    """What :func:`mixedrl.departures.anchor.remember` reads of a batched engine: members, task, rows."""
+
+    def __init__(self, runs: list[AGPI]) -> None:
+        self.members, self.task, self.batch = runs, runs[0].task, 3
+
+    def rows(self, r: int) -> slice:
+        return slice(r * self.batch, (r + 1) * self.batch)
+
+
+def test_the_trained_box_covers_the_second_half_of_the_budget() -> None:
+    """The box is the range of the observations of the trained states, per run; it starts afresh at iteration
+    ``iterations // 2``; non-finite states and runs that do not hand over are left out."""
+    from mixedrl.departures.anchor import remember
+
+    cfg = TrainConfig(method="model", task="linear", seed=0,
+                      algorithm={"batch_size": 16, "hidden_sizes": (8,), "iterations": 10})
+    a, b = AGPI(LinearTask(), cfg), AGPI(LinearTask(), cfg.replace(**{"algorithm.feedforward": "lq_ss"}))
+    engine = _Engine([a, b])
+    first = torch.tensor([[[-3.0, 0.0], [0.0, 4.0], [1.0, 1.0], [9.0, 9.0], [9.0, 9.0], [9.0, 9.0]]], dtype=torch.float64)
+    remember(engine, first, [0, 1])
+    assert torch.equal(a.trained_box, torch.tensor([[-3.0, 0.0], [1.0, 4.0]]))
+    assert b.trained_box is None  # "lq_ss": no box
+    a.k = 4
+    later = torch.tensor([[[0.5, -2.0], [float("nan"), 50.0], [0.0, 0.0]] + [[0.0, 0.0]] * 3], dtype=torch.float64)
+    remember(engine, later, [0])
+    assert torch.equal(a.trained_box, torch.tensor([[-3.0, -2.0], [1.0, 4.0]]))  # widened; the NaN row left out
+    a.k = 5  # iterations // 2: afresh
+    remember(engine, later, [0])
+    assert torch.equal(a.trained_box, torch.tensor([[0.0, -2.0], [0.5, 0.0]]))
+
+
+def test_model_driven_rl_hands_over_to_the_prior_optimum_where_the_true_system_rests() -> None:
+    """After training, far outside the trained box the deployed policy is the prior optimum's affine law; the
+    box is part of the checkpoint, and a run stopped and resumed ends with the same box and policy."""
+    from mixedrl.departures.anchor import equilibrium_gain, lq_reference as reference
+
+    task = LinearTask()
+    cfg = TrainConfig(method="model", task="linear", seed=3,
+                      algorithm={"batch_size": 16, "hidden_sizes": (8,), "iterations": 6, "rollout_horizon": 4})
+    trainer = AGPI(task, cfg)
+    train(trainer, progress=False)
+    assert trainer.feedforward == "lq_handover" and trainer.trained_box is not None
+    lin = task.linearisation()
+    ref = reference(lin, task.prior_mean, task.prior_cov)
+    gain = equilibrium_gain(task, lin).float()
+    o_ss, u_ss = torch.as_tensor(ref.steady_state, dtype=torch.float32), torch.as_tensor(ref.steady_action).float()
+    # far from the box along the gain's null direction, where the affine law stays inside the action bound
+    far = o_ss + 30.0 * torch.stack([gain[0, 1], -gain[0, 0]]) / gain.norm()
+    with torch.no_grad():
+        assert torch.allclose(trainer.policy(far[None])[0], u_ss + (far - o_ss) @ gain.T, atol=1e-4)
+        assert not torch.allclose(trainer.learned_policy(far[None])[0], u_ss, atol=1e-2)
+    resumed = AGPI(task, cfg)
+    resumed.load_state_dict(trainer.state_dict())
+    assert torch.equal(resumed.trained_box, trainer.trained_box)
+    with torch.no_grad():
+        probe = torch.tensor([[0.1, 0.2], [5.0, -3.0]])
+        assert torch.equal(resumed.policy(probe), trainer.policy(probe))
 
 
 def test_a_local_shift_keeps_the_gain_at_its_centre() -> None:

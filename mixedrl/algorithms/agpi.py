@@ -124,7 +124,7 @@ class AGPI:
         self.config = config
         self.architecture = architecture
         self.generator = torch.Generator().manual_seed(config.seed)
-        # algorithm.feedforward "lq" / "lq_ss" ("auto" resolved by anchor.resolve) need an equilibrium
+        # algorithm.feedforward "lq" / "lq_ss" / "lq_handover" ("auto" resolved by anchor.resolve) need an equilibrium
         feedforward = self.feedforward = anchor.resolve(config, task)
         self._linearisation = None if feedforward == "learned" else anchor.linearisation(task, feedforward)
         self.critic, self.actor = build_networks(task, config, self.generator, architecture)
@@ -160,6 +160,10 @@ class AGPI:
         #: End states of the last rollouts that the next iteration's region starts carry over
         #: (:mod:`mixedrl.departures.region`), else ``None``; part of the checkpoint once set.
         self.region_carry: torch.Tensor | None = None
+        #: ``"lq_handover"``'s box of the observations the actor was trained on in the second half of the budget,
+        #: shape (2, obs_dim): low and high (:func:`mixedrl.departures.anchor.remember`); ``None`` before any;
+        #: part of the checkpoint once set.
+        self.trained_box: torch.Tensor | None = None
 
     # -------------------------------------------------------------------------------------- helpers
     @property
@@ -177,11 +181,15 @@ class AGPI:
     def policy(self) -> torch.nn.Module:
         """The run's policy on observations (what is evaluated and deployed): the :attr:`learned_policy`, or,
         with :attr:`feedforward` ``"lq"`` / ``"lq_ss"``, that policy shifted to the discounted LQ optimum's
-        action at the equilibrium / its steady state (:func:`mixedrl.departures.anchor.feedforward_policy`)."""
-        if self.feedforward in ("lq", "lq_ss"):
-            return feedforward_policy(self, self.learned_policy, self._linearisation,
-                                      steady=self.feedforward == "lq_ss")
-        return self.learned_policy
+        action at the equilibrium / its steady state (:func:`mixedrl.departures.anchor.feedforward_policy`); with
+        ``"lq_handover"`` the latter, handed over to the optimum outside :attr:`trained_box`
+        (:func:`mixedrl.departures.anchor.handover_policy`)."""
+        if self.feedforward == "learned":
+            return self.learned_policy
+        shifted = feedforward_policy(self, self.learned_policy, self._linearisation, steady=self.feedforward != "lq")
+        if self.feedforward == "lq_handover":
+            return anchor.handover_policy(self, shifted, self._linearisation)
+        return shifted
 
     def nodes(self, mean: np.ndarray, cov: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
         """Quadrature of ``N(mean, cov)`` with this run's rule: :func:`mixedrl.algorithms.algorithm2.nodes`."""
@@ -334,6 +342,8 @@ class AGPI:
             **{key: part.state_dict() for key, part in self.plug_ins().items()},
             # departures.region's carried end states, once there are any (a fresh trainer has none)
             **({"region_carry": self.region_carry.clone()} if self.region_carry is not None else {}),
+            # departures.anchor's box of the trained observations ("lq_handover"), once there is one
+            **({"trained_box": self.trained_box.clone()} if self.trained_box is not None else {}),
         }
 
     def plug_ins(self) -> dict[str, Any]:
@@ -380,4 +390,6 @@ class AGPI:
         self.task.evaluation_transitions = int(state.get("evaluation_transitions", 0))
         carry = state.get("region_carry")
         self.region_carry = None if carry is None else carry.clone()
+        box = state.get("trained_box")
+        self.trained_box = None if box is None else box.clone()
 

@@ -36,7 +36,7 @@ from typing import Any, Sequence
 import numpy as np
 import torch
 
-from mixedrl.departures import critic_target, region, rollout, sampler, schedule, state_weights
+from mixedrl.departures import anchor, critic_target, region, rollout, sampler, schedule, state_weights
 from mixedrl.expectation import expectation_nodes, h_value
 from mixedrl.pev import critic_step
 from mixedrl.pim import MVCResult, actor_step, mvc_check
@@ -120,6 +120,7 @@ def iteration(engine: Any, active: Sequence[bool] | None = None) -> list[dict[st
                               relative_offset=rel, runs=R, active=which)
 
         actor_objs = pim(on)
+        anchor.remember(engine, s, on)  # departure hook: the observations the actors were trained on
 
     # ---- 4. IBE (eq. 20): xi_hat_k -> xi_hat_{k+1}
     for r in on:

@@ -5,9 +5,14 @@ training makes it (``"learned"``). This departure uses the discounted LQ optimum
 (eqs. 6-7, :func:`lq_reference`) for the run's *own* noise moments (mixed RL: the IBE posterior; model-driven
 RL: the prior; the oracle: the truth; :func:`own_noise`):
 
-* ``"auto"``: ``"lq_ss"`` where the task declares an equilibrium, else ``"learned"`` (:func:`resolve`);
+* ``"auto"``: ``"lq_handover"`` where the task declares an equilibrium, else ``"learned"`` (:func:`resolve`);
 * ``"lq_ss"``: the deployed policy is the actor shifted to the optimum's action at the optimum's steady
   state for the own noise mean (:func:`feedforward_policy` with ``steady=True``);
+* ``"lq_handover"``: ``"lq_ss"`` inside the box of observations the actor was trained on in the second half of
+  its budget (:func:`remember`, :attr:`AGPI.trained_box <mixedrl.algorithms.agpi.AGPI.trained_box>`), handed
+  over outside it to the optimum's affine policy (:class:`HandoverPolicy`): where the true system holds a
+  state the planning model never visits (model-driven RL against an unmodelled mean), the actor's
+  extrapolation is not trusted;
 * ``"lq"``: the deployed policy is the actor shifted to the optimum's action at the equilibrium
   (:func:`feedforward_policy`, :class:`FeedForwardPolicy`).
 
@@ -19,7 +24,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Sequence
 
 import numpy as np
 import torch
@@ -29,8 +34,8 @@ from mixedrl.lq import LQSolution, discounted_lq_optimum
 from mixedrl.task_base import Linearisation, Task
 
 __all__ = ["NAME", "KEY", "PAPER", "active", "resolve", "LQReference", "lq_reference", "own_noise",
-           "FeedForwardPolicy", "feedforward_policy", "equilibrium_observation", "equilibrium_gain",
-           "feedforward_action", "steady_anchor"]
+           "FeedForwardPolicy", "HandoverPolicy", "feedforward_policy", "handover_policy", "equilibrium_observation",
+           "equilibrium_gain", "feedforward_action", "steady_anchor", "remember"]
 
 logger = logging.getLogger(__name__)
 
@@ -45,22 +50,29 @@ def active(config: Any) -> bool:
 
 
 def resolve(config: Any, task: Task) -> str:
-    """The run's ``algorithm.feedforward`` with ``"auto"`` resolved: ``"lq_ss"`` for Algorithm 2 on a task that
-    declares an equilibrium (:meth:`mixedrl.task_base.Task.equilibrium`) whose LQ problem solves, ``"learned"``
-    on one that does not (a declared equilibrium that fails is logged as a warning naming the reason) and for
-    DDPG (no noise model to take the mean from); any other value as set."""
+    """The run's ``algorithm.feedforward`` with ``"auto"`` resolved: ``"lq_handover"`` for Algorithm 2 on a task
+    that declares an equilibrium (:meth:`mixedrl.task_base.Task.equilibrium`) whose LQ problem solves and whose
+    observations determine the linearisation's coordinates (:func:`equilibrium_gain`), ``"lq_ss"`` where only
+    the latter fails, ``"learned"`` where the LQ problem fails (a failure is logged as a warning naming the
+    reason) and for DDPG (no noise model to take the mean from); any other value as set."""
     value = config.algorithm.feedforward
     if value != "auto":
         return value
     if config.method == "ddpg" or task.equilibrium() is None:
         return "learned"
     try:
-        lq_reference(task.linearisation(), task.prior_mean, task.prior_cov)
+        lin = task.linearisation()
+        lq_reference(lin, task.prior_mean, task.prior_cov)
     except (ValueError, np.linalg.LinAlgError) as err:
         logger.warning("algorithm.feedforward 'auto': no LQ problem at the task's equilibrium (%s: %s); the "
                        "learned feed-forward is deployed", type(err).__name__, err)
         return "learned"
-    return "lq_ss"
+    try:
+        equilibrium_gain(task, lin)
+    except ValueError as err:
+        logger.warning("algorithm.feedforward 'auto': no hand-over to the LQ optimum (%s); 'lq_ss' is deployed", err)
+        return "lq_ss"
+    return "lq_handover"
 
 
 @dataclass(frozen=True)
@@ -208,6 +220,60 @@ class FeedForwardPolicy(torch.nn.Module):
         return u if self.bound is None else torch.maximum(torch.minimum(u, self.bound), -self.bound)
 
 
+class HandoverPolicy(torch.nn.Module):
+    """A policy inside a box of observations, handed over to an affine policy outside it (``"lq_handover"``).
+
+    .. math::
+
+        \\pi_h(o) = \\operatorname{clip}\\big(w(o)\\, \\pi(o) + (1 - w(o))\\, (u_a + G (o - o_a)),\\ -\\bar u,\\ \\bar u\\big),
+        \\qquad w(o) = \\exp\\Big(-\\tfrac12 \\big|d(o) / \\rho\\big|^2\\Big)
+
+    with ``d_i(o) = max(0, o_i - high_i) + max(0, low_i - o_i)`` the distance outside the box ``[low, high]``
+    and the affine policy the discounted LQ optimum's ``u* - l0 - L x`` written in observations: ``G`` its gain
+    (:func:`equilibrium_gain`), ``u_a`` its action at ``o_a`` (:func:`steady_anchor`). Inside the box the
+    policy is ``pi``'s, exactly. ``width`` (``rho``) ``None``: ``w`` drops from 1 to 0 at the box's edge.
+
+    Parameters
+    ----------
+    policy : torch.nn.Module
+        Observations (B, obs_dim) or (obs_dim,) -> actions.
+    low, high : torch.Tensor, shape (obs_dim,)
+        The box.
+    gain : torch.Tensor, shape (action_dim, obs_dim)
+    observation : torch.Tensor, shape (obs_dim,)
+    action : torch.Tensor, shape (action_dim,)
+    width : torch.Tensor, shape (obs_dim,), optional
+    bound : torch.Tensor, shape (action_dim,), optional
+    """
+
+    def __init__(self, policy: torch.nn.Module, low: torch.Tensor, high: torch.Tensor, gain: torch.Tensor,
+                 observation: torch.Tensor, action: torch.Tensor, width: torch.Tensor | None = None,
+                 bound: torch.Tensor | None = None) -> None:
+        super().__init__()
+        self.policy = policy
+        f32 = dict(dtype=torch.float32)
+        self.low, self.high = torch.as_tensor(low, **f32).reshape(-1), torch.as_tensor(high, **f32).reshape(-1)
+        self.gain = torch.as_tensor(gain, **f32)
+        self.observation = torch.as_tensor(observation, **f32).reshape(-1)
+        self.action = torch.as_tensor(action, **f32).reshape(-1)
+        self.width = None if width is None else torch.as_tensor(width, **f32).reshape(-1)
+        self.bound = None if bound is None else torch.as_tensor(bound, **f32)
+
+    def forward(self, obs: torch.Tensor) -> torch.Tensor:
+        u = self.policy(obs)
+        distance = torch.relu(obs - self.high) + torch.relu(self.low - obs)
+        outside = (distance > 0).any(-1, keepdim=True)
+        if not bool(outside.any()):
+            return u
+        w = (torch.zeros_like(distance[..., :1]) if self.width is None
+             else torch.exp(-0.5 * ((distance / self.width) ** 2).sum(-1, keepdim=True)))
+        affine = self.action + (obs - self.observation) @ self.gain.T
+        blend = w * u + (1.0 - w) * affine
+        if self.bound is not None:
+            blend = torch.maximum(torch.minimum(blend, self.bound), -self.bound)
+        return torch.where(outside, blend, u)  # inside the box: pi's action, bit for bit
+
+
 def feedforward_policy(trainer: Any, policy: torch.nn.Module, lin: Linearisation | None = None,
                        steady: bool = False) -> FeedForwardPolicy:
     """``policy`` shifted to the LQ optimum's action at the equilibrium for the trainer's own noise mean.
@@ -243,6 +309,49 @@ def feedforward_policy(trainer: Any, policy: torch.nn.Module, lin: Linearisation
         obs, action = equilibrium_observation(task, lin), feedforward_action(trainer, lin, policy)
     bound = getattr(policy, "action_bound", None)
     return FeedForwardPolicy(policy, obs, action, bound, width)
+
+
+def handover_policy(trainer: Any, shifted: FeedForwardPolicy, lin: Linearisation) -> torch.nn.Module:
+    """``"lq_handover"``'s deployed policy: ``shifted`` (the ``"lq_ss"`` policy of :func:`feedforward_policy`)
+    inside the run's :attr:`~mixedrl.algorithms.agpi.AGPI.trained_box`, handed over outside it to the discounted
+    LQ optimum's affine policy through ``shifted``'s anchor, with ``shifted``'s width (:class:`HandoverPolicy`);
+    ``shifted`` itself while the run has no box (before its first iteration)."""
+    box = trainer.trained_box
+    if box is None:
+        return shifted
+    return HandoverPolicy(shifted, box[0], box[1], equilibrium_gain(trainer.task, lin), shifted.observation[0],
+                          shifted.action, shifted.width, shifted.bound)
+
+
+def remember(engine: Any, states: torch.Tensor, active_runs: Sequence[int]) -> None:
+    """Hook of the loop: widen each active ``"lq_handover"`` run's :attr:`trained_box` to the observations of the
+    states its actor was trained on this iteration (the rollouts' states, or the batch of the one-step learner).
+
+    The box covers the second half of the run's budget: at iteration ``k = iterations // 2`` it starts afresh
+    (the early iterates' states, under a policy since trained away, do not count). Non-finite observations are
+    left out.
+
+    Parameters
+    ----------
+    engine : BatchedAGPI
+        The runs (``members``, ``task``, :meth:`rows`).
+    states : torch.Tensor, shape (..., R B, state_dim)
+        The states, run ``r`` in ``engine.rows(r)`` of the second-to-last dimension.
+    active_runs : sequence of int
+    """
+    for r in active_runs:
+        m = engine.members[r]
+        if m.feedforward != "lq_handover":
+            continue
+        with torch.no_grad():
+            obs = engine.task.observe(states[..., engine.rows(r), :].reshape(-1, states.shape[-1])).float()
+        obs = obs[torch.isfinite(obs).all(-1)]
+        if obs.shape[0] == 0:
+            continue
+        low, high = obs.min(0).values, obs.max(0).values
+        if m.trained_box is not None and m.k != m.config.algorithm.iterations // 2:
+            low, high = torch.minimum(m.trained_box[0], low), torch.maximum(m.trained_box[1], high)
+        m.trained_box = torch.stack([low, high])
 
 
 def linearisation(task: Task, feedforward: str) -> Linearisation:

@@ -43,7 +43,7 @@ import torch
 
 from mixedrl.compiled import constants, network_at
 from mixedrl.config import PAPER_SETTINGS
-from mixedrl.departures import region
+from mixedrl.departures import anchor, region
 from mixedrl.gaussian import psd_factor
 from mixedrl.pev import run_mean
 
@@ -366,4 +366,5 @@ def update(engine: Any, s: torch.Tensor, moments: Sequence[tuple[np.ndarray, np.
     loss = engine.critic_descent.minimise(pure, (states[:-1], targets), active_runs,
                                           key=("rollout_pev", engine.runs, relative_offset))
     region.remember(engine, states[-1], active_runs)  # departure hook: the end states the next starts carry over
+    anchor.remember(engine, states, active_runs)  # departure hook: the observations the actors were trained on
     return loss, obj
