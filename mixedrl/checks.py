@@ -6,16 +6,17 @@ their input: they return a validated float64 copy (numpy) or the tensor itself (
 
 from __future__ import annotations
 
+import dataclasses
 import math
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Container, Iterable, Mapping
 from typing import Any
 
 import numpy as np
 import torch
 
 __all__ = ["as_vector", "as_matrix", "as_batch", "check_covariance", "check_finite", "check_fraction", "check_int",
-           "check_nonnegative_int", "check_positive_int", "check_unknown_keys", "check_number", "check_seed_lists",
-           "check_task_types", "NonFiniteTrainingError", "MONITORED_PREFIXES", "UNMONITORED_METRICS",
+           "check_nonnegative_int", "check_positive_int", "check_unknown_keys", "check_number", "check_fields",
+           "check_seed_lists", "check_task_types", "NonFiniteTrainingError", "MONITORED_PREFIXES", "UNMONITORED_METRICS",
            "check_finite_metrics"]
 
 SYMMETRY_RTOL = 1e-10
@@ -145,6 +146,23 @@ def check_number(value: Any, name: str, *, positive: bool = False, nonneg: bool 
         kind = "positive" if positive else ("non-negative" if nonneg else "finite")
         raise ValueError(f"{name}: expected a {kind} number, got {value!r}")
     return value
+
+
+def check_fields(obj: Any, names: Iterable[str] | None = None, prefix: str = "", *,
+                 positive: bool | Container[str] = False, nonneg: bool | Container[str] = False) -> None:
+    """Set the fields ``names`` (default: those annotated ``float``) of the dataclass ``obj``, frozen or not, to their
+    :func:`check_number` floats; ``positive`` / ``nonneg`` (True: all) are the fields that must be ``> 0`` / ``>= 0``.
+
+    Raises
+    ------
+    ValueError
+        At the first bad field, the message starting with ``prefix`` and its name.
+    """
+    names = [f.name for f in dataclasses.fields(obj) if f.type in ("float", float)] if names is None else list(names)
+    positive, nonneg = (names if kind is True else kind or () for kind in (positive, nonneg))
+    for name in names:
+        object.__setattr__(obj, name, check_number(getattr(obj, name), prefix + name, positive=name in positive,
+                                                   nonneg=name in nonneg))
 
 
 def check_fraction(value: Any, name: str, *, low_open: bool = False, high_open: bool = False) -> float:
