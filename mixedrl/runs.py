@@ -401,11 +401,9 @@ def _train(trainers: list[Any], engine: Callable[[list[bool]], list[dict[str, fl
                 bar.update(1)
                 if "eval/cost" in row and n == 1:
                     bar.set_postfix(cost=f"{row['eval/cost']:.4g}")
-                if trainer.k % cfg.run.checkpoint_every == 0:
+                interrupted[i] = stop_after is not None and trainer.k >= stop_after
+                if interrupted[i] or trainer.k % cfg.run.checkpoint_every == 0:
                     checkpoint(i)
-                if stop_after is not None and trainer.k >= stop_after:
-                    checkpoint(i)
-                    interrupted[i] = True
     out: list[dict[str, Any]] = []
     for i, trainer in enumerate(trainers):
         if interrupted[i]:
