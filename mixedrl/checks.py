@@ -6,17 +6,18 @@ their input: they return a validated float64 copy (numpy) or the tensor itself (
 
 from __future__ import annotations
 
+import dataclasses
 import math
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Container, Iterable, Mapping
 from typing import Any
 
 import numpy as np
 import torch
 
 __all__ = ["as_vector", "as_matrix", "as_batch", "check_covariance", "check_finite", "check_fraction", "check_int",
-           "check_nonnegative_int", "check_positive_int", "check_unknown_keys", "check_number", "check_seed_lists",
-           "check_task_types", "NonFiniteTrainingError", "MONITORED_PREFIXES", "UNMONITORED_METRICS",
-           "check_finite_metrics"]
+           "check_nonnegative_int", "check_positive_int", "check_unknown_keys", "check_number", "check_fields",
+           "check_seed_lists", "check_task_types", "probe_task", "NonFiniteTrainingError", "MONITORED_PREFIXES",
+           "UNMONITORED_METRICS", "check_finite_metrics"]
 
 SYMMETRY_RTOL = 1e-10
 PSD_RTOL = 1e-10
@@ -147,6 +148,23 @@ def check_number(value: Any, name: str, *, positive: bool = False, nonneg: bool 
     return value
 
 
+def check_fields(obj: Any, names: Iterable[str] | None = None, prefix: str = "", *,
+                 positive: bool | Container[str] = False, nonneg: bool | Container[str] = False) -> None:
+    """Set the fields ``names`` (default: those annotated ``float``) of the dataclass ``obj``, frozen or not, to their
+    :func:`check_number` floats; ``positive`` / ``nonneg`` (True: all) are the fields that must be ``> 0`` / ``>= 0``.
+
+    Raises
+    ------
+    ValueError
+        At the first bad field, the message starting with ``prefix`` and its name.
+    """
+    names = [f.name for f in dataclasses.fields(obj) if f.type in ("float", float)] if names is None else list(names)
+    positive, nonneg = (names if kind is True else kind or () for kind in (positive, nonneg))
+    for name in names:
+        object.__setattr__(obj, name, check_number(getattr(obj, name), prefix + name, positive=name in positive,
+                                                   nonneg=name in nonneg))
+
+
 def check_fraction(value: Any, name: str, *, low_open: bool = False, high_open: bool = False) -> float:
     """Return ``value`` as a float in ``[0, 1]``; ``low_open`` excludes 0, ``high_open`` excludes 1.
 
@@ -189,51 +207,76 @@ def check_seed_lists(seeds: Any, n: int, name: str = "seeds") -> list[list[int]]
     return [[int(s) for s in entry] for entry in seeds]
 
 
-#: :func:`check_task_types` probes this many batches of states (each its own seed) ...
+#: :func:`probe_task` probes this many batches of states (each its own seed) ...
 PROBE_BATCHES = 4
 #: ... of this many states, each rolled this many steps forward.
 PROBE_BATCH_SIZE = 32
 PROBE_STEPS = 3
 
 
-def check_task_types(task: Any) -> None:
-    """Check the types of a task's array attributes and of its ``value_scale`` (what training relies on).
-
-    Also probes ``observe``, ``f`` and ``cost`` on :data:`PROBE_BATCHES` batches of
-    :data:`PROBE_BATCH_SIZE` start states (seeds 1, 2, ..., float64), each rolled :data:`PROBE_STEPS` steps
-    under actions uniform within the bounds (own generators: no random stream of a trainer is touched).
+def check_task_types(task: Any, probe: bool = True) -> None:
+    """Check a task's sizes, array attributes and ``value_scale`` (what training relies on), then :func:`probe_task`.
 
     Parameters
     ----------
     task : Task
-        A task (:class:`mixedrl.tasks.Task`) whose sizes ``state_dim``, ``action_dim``, ``obs_dim`` and
-        ``noise_dim`` are positive integers.
+        A task (:class:`mixedrl.tasks.Task`).
+    probe : bool
+        Whether to :func:`probe_task` too (:func:`mixedrl.tasks.check_task` probes after its own output checks).
 
     Raises
     ------
     ValueError
-        ``<TaskClass>.<attribute or function>: ...``: ``noise_matrix``, ``action_bound`` or ``obs_scale``
-        not a floating-point ``torch.Tensor`` of its shape; ``prior_mean``, ``prior_cov``, ``true_mean`` or
-        ``true_cov`` not a real array (not a tensor); ``value_scale`` not a positive finite number; or
-        ``observe``, ``f`` or ``cost`` returning NaN or inf on a probed state.
+        ``<TaskClass>.<attribute>: ...``: ``state_dim``, ``action_dim``, ``obs_dim`` or ``noise_dim`` not a
+        positive integer; ``noise_matrix``, ``action_bound`` or ``obs_scale`` not a floating-point
+        ``torch.Tensor`` of its shape; ``prior_mean``, ``prior_cov``, ``true_mean`` or ``true_cov`` not a real
+        array (not a tensor) of its shape; an array not set, with NaN or inf, or (``action_bound``,
+        ``obs_scale``) not positive; ``value_scale`` not a positive finite number; or :func:`probe_task`'s.
     """
     name = type(task).__name__
     n, m, o, d = (check_positive_int(getattr(task, a, None), f"{name}.{a}")
                   for a in ("state_dim", "action_dim", "obs_dim", "noise_dim"))
-    for attr, shape in (("noise_matrix", (n, d)), ("action_bound", (m,)), ("obs_scale", (o,))):
-        v = getattr(task, attr, None)
-        if not isinstance(v, torch.Tensor):
-            raise ValueError(f"{name}.{attr}: expected a torch.Tensor of shape {shape}, got {type(v).__name__}")
-        if tuple(v.shape) != shape:
-            raise ValueError(f"{name}.{attr}: expected shape {shape}, got shape {tuple(v.shape)}")
-        if not v.is_floating_point():
-            raise ValueError(f"{name}.{attr}: expected a floating-point dtype (float32 or float64), got {v.dtype}")
-    for attr in ("prior_mean", "prior_cov", "true_mean", "true_cov"):
-        v = getattr(task, attr, None)
-        if isinstance(v, torch.Tensor):
-            raise ValueError(f"{name}.{attr}: expected a numpy array, got a torch.Tensor (use .numpy())")
-        if np.asarray(v).dtype.kind not in "fiu":
-            raise ValueError(f"{name}.{attr}: expected real numbers, got dtype {np.asarray(v).dtype}")
+    for attr, shape in (("noise_matrix", (n, d)), ("action_bound", (m,)), ("obs_scale", (o,)), ("prior_mean", (d,)),
+                        ("prior_cov", (d, d)), ("true_mean", (d,)), ("true_cov", (d, d))):
+        v, where = getattr(task, attr, None), f"{name}.{attr}"
+        tensor = attr in ("noise_matrix", "action_bound", "obs_scale")
+        if v is None:
+            raise ValueError(f"{where}: not set (expected shape {shape})")
+        if tensor and not isinstance(v, torch.Tensor):
+            raise ValueError(f"{where}: expected a torch.Tensor of shape {shape}, got {type(v).__name__}")
+        if not tensor and isinstance(v, torch.Tensor):
+            raise ValueError(f"{where}: expected a numpy array, got a torch.Tensor (use .numpy())")
+        if not tensor and np.asarray(v).dtype.kind not in "fiu":
+            raise ValueError(f"{where}: expected real numbers, got dtype {np.asarray(v).dtype}")
+        arr = v.detach().cpu().to(torch.float64).numpy() if tensor else np.asarray(v, dtype=np.float64)
+        if arr.shape != shape:
+            raise ValueError(f"{where}: expected shape {shape}, got shape {arr.shape}")
+        if tensor and not v.is_floating_point():
+            raise ValueError(f"{where}: expected a floating-point dtype (float32 or float64), got {v.dtype}")
+        check_finite(arr, where)
+        if attr in ("action_bound", "obs_scale") and not (arr > 0).all():
+            raise ValueError(f"{where}: expected positive values, got {arr.tolist()}")
+    scale = getattr(task, "value_scale", 1.0)
+    if isinstance(scale, bool) or not isinstance(scale, (int, float, np.integer, np.floating)) \
+            or not math.isfinite(scale) or scale <= 0:
+        raise ValueError(f"{name}.value_scale: expected a positive finite number (the critic's output is "
+                         f"multiplied by it), got {scale!r}")
+    if probe:
+        probe_task(task)
+
+
+def probe_task(task: Any) -> None:
+    """Probe ``observe``, ``f`` and ``cost`` of a task that passed :func:`check_task_types` on :data:`PROBE_BATCHES`
+    batches of :data:`PROBE_BATCH_SIZE` start states (seeds 1, 2, ..., float64), each rolled :data:`PROBE_STEPS`
+    steps under actions uniform within the bounds (own generators: no random stream of a trainer is touched).
+
+    Raises
+    ------
+    ValueError
+        ``<TaskClass>.sample_initial`` of the wrong shape, or ``observe``, ``f`` or ``cost`` NaN or inf on a state.
+    """
+    name = type(task).__name__
+    n, m = int(task.state_dim), int(task.action_dim)
     bound = task.action_bound.detach().to(torch.float64)
     with torch.no_grad():
         for probe in range(1, PROBE_BATCHES + 1):
@@ -251,11 +294,6 @@ def check_task_types(task: Any) -> None:
                     if isinstance(value, torch.Tensor) and not bool(torch.isfinite(value).all()):
                         raise ValueError(f"{name}.{fn}: returned NaN or inf values {where}")
                 s = s_next
-    scale = getattr(task, "value_scale", 1.0)
-    if isinstance(scale, bool) or not isinstance(scale, (int, float, np.integer, np.floating)) \
-            or not math.isfinite(scale) or scale <= 0:
-        raise ValueError(f"{name}.value_scale: expected a positive finite number (the critic's output is "
-                         f"multiplied by it), got {scale!r}")
 
 
 class NonFiniteTrainingError(ValueError):

@@ -58,6 +58,25 @@ def support(cov: np.ndarray, rtol: float = SUPPORT_RTOL) -> tuple[np.ndarray, np
     return lam[keep], vec[:, keep]
 
 
+def psd_factor(cov: np.ndarray) -> np.ndarray:
+    """Return ``A`` with ``A A^T = cov`` for a PSD ``cov`` (eigen-factor, works when singular).
+
+    Parameters
+    ----------
+    cov : ndarray, shape (n, n)
+
+    Returns
+    -------
+    ndarray, shape (n, n)
+
+    Notes
+    -----
+    ``A = V diag(sqrt(max(lambda, 0)))`` from ``eigh`` (a Cholesky factor would fail on a rank-1 ``cov``).
+    """
+    lam, vec = np.linalg.eigh(cov)
+    return vec * np.sqrt(np.clip(lam, 0.0, None))
+
+
 @dataclass(frozen=True)
 class SigmaPoints:
     """Spherical-cubature rule: ``2r`` nodes ``+- sqrt(r) e_i``, weights ``1/(2r)``; exact to degree 3."""
@@ -215,9 +234,8 @@ def expectation_nodes(mean: np.ndarray, cov: np.ndarray, noise_matrix: torch.Ten
             raise ValueError("generator: required for rule='samples'")
         if mean.ndim != 1:
             raise ValueError("mean: rule='samples' takes one mean of shape (noise_dim,)")
-        lam, vec = np.linalg.eigh(cov)
         eps = torch.randn(n_samples, n, generator=generator, dtype=torch.float64)
-        root = torch.as_tensor(vec * np.sqrt(np.clip(lam, 0.0, None)), dtype=torch.float64)
+        root = torch.as_tensor(psd_factor(cov), dtype=torch.float64)
         # xi = mu_hat + K_hat^{1/2} eps   (reparameterisation)
         xi_t, w = torch.as_tensor(mean) + eps @ root.T, np.full(n_samples, 1.0 / n_samples)
     else:

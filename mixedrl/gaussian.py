@@ -18,7 +18,7 @@ from scipy.linalg.lapack import dpotrf as _dpotrf
 from scipy.linalg.lapack import dpotrs as _dpotrs
 
 from mixedrl.checks import as_vector, check_covariance, check_positive_int
-from mixedrl.expectation import SUPPORT_RTOL, support
+from mixedrl.expectation import SUPPORT_RTOL, psd_factor, support
 
 __all__ = ["SUPPORT_RTOL", "CHOLESKY_PIVOT_FLOOR", "solve_psd", "psd_solver", "pinv_psd", "psd_factor",
            "sample_gaussian", "kl_divergence"]
@@ -123,25 +123,6 @@ def pinv_psd(c: np.ndarray, rtol: float = SUPPORT_RTOL) -> np.ndarray:
     lam, vec = support(c, rtol)
     out = (vec * (1.0 / lam)) @ vec.T
     return 0.5 * (out + out.T)
-
-
-def psd_factor(cov: np.ndarray) -> np.ndarray:
-    """Return ``A`` with ``A A^T = cov`` for a PSD ``cov`` (eigen-factor, works when singular).
-
-    Parameters
-    ----------
-    cov : ndarray, shape (n, n)
-
-    Returns
-    -------
-    ndarray, shape (n, n)
-
-    Notes
-    -----
-    ``A = V diag(sqrt(max(lambda, 0)))`` from ``eigh`` (a Cholesky factor would fail on a rank-1 ``cov``).
-    """
-    lam, vec = np.linalg.eigh(cov)
-    return vec * np.sqrt(np.clip(lam, 0.0, None))
 
 
 def sample_gaussian(

@@ -34,7 +34,6 @@ import numpy as np
 import torch
 
 from mixedrl.algorithms.agpi import AGPI
-from mixedrl.algorithms.ddpg import DDPG
 from mixedrl.checkpoint import (atomic_write_bytes, atomic_write_text, digest_path, load_checkpoint, save_checkpoint,
                                 verify_digest, write_with_digest)
 from mixedrl.checks import check_finite_metrics, check_positive_int
@@ -301,20 +300,11 @@ def _engine(trainers: list[Any]) -> Callable[[list[bool]], list[dict[str, float]
     if len(trainers) == 1:
         trainer = trainers[0]
         return lambda active: [trainer.iteration() if active[0] else None]
-    kind = AGPI if isinstance(trainers[0], AGPI) else DDPG
-    for i, t in enumerate(trainers):
-        if not isinstance(t, (AGPI, DDPG)):
-            raise ValueError(f"trainers: entry {i} is a {type(t).__name__}; only Algorithm-2 (AGPI) or DDPG runs "
-                             f"train in a batch")
-        if not isinstance(t, kind):
-            raise ValueError(f"trainers: entry {i} is {type(t).__name__} ({t.config.method}), entry 0 "
-                             f"{kind.__name__} ({trainers[0].config.method}); Algorithm-2 and DDPG runs train in "
-                             f"batches of their own kind")
     from mixedrl.algorithms.batched import BatchedAGPI
     from mixedrl.algorithms.batched_ddpg import BatchedDDPG
 
-    engine_class = BatchedAGPI if kind is AGPI else BatchedDDPG
-    engine_class.check_members(trainers)  # a mismatched batch is refused before any directory is touched
+    engine_class = BatchedAGPI if isinstance(trainers[0], AGPI) else BatchedDDPG
+    engine_class.check_members(trainers, "trainers")  # a mismatched batch is refused before any directory is touched
     batch: list[Any] = []
 
     def iteration(active: list[bool]) -> list[dict[str, float] | None]:
@@ -411,11 +401,9 @@ def _train(trainers: list[Any], engine: Callable[[list[bool]], list[dict[str, fl
                 bar.update(1)
                 if "eval/cost" in row and n == 1:
                     bar.set_postfix(cost=f"{row['eval/cost']:.4g}")
-                if trainer.k % cfg.run.checkpoint_every == 0:
+                interrupted[i] = stop_after is not None and trainer.k >= stop_after
+                if interrupted[i] or trainer.k % cfg.run.checkpoint_every == 0:
                     checkpoint(i)
-                if stop_after is not None and trainer.k >= stop_after:
-                    checkpoint(i)
-                    interrupted[i] = True
     out: list[dict[str, Any]] = []
     for i, trainer in enumerate(trainers):
         if interrupted[i]:

@@ -25,7 +25,7 @@ from typing import Any, Callable
 import numpy as np
 import torch
 
-from mixedrl.checks import check_positive_int, check_seed_lists, check_task_types
+from mixedrl.checks import check_positive_int, check_seed_lists, check_task_types, probe_task
 from mixedrl.equilibrium import EQUILIBRIUM_ATOL, Equilibrium, Linearisation, cost_hessian
 from mixedrl.gaussian import sample_gaussian
 from mixedrl.ibe.common import check_noise_matrix, noise_coordinates
@@ -426,9 +426,10 @@ def _check_output(value: Any, task: Task, fn: str, shape: tuple[int, ...], dtype
 def check_task(task: Task, batch: int = 3) -> None:
     """Check a task's sizes and its functions' outputs once, with errors that name the function.
 
-    Calls :meth:`Task.sample_initial` (own generator, seed 0), :meth:`Task.observe`, :meth:`Task.f` and
-    :meth:`Task.cost` on ``batch`` states with zero and bound actions, in float32 and float64, then
-    :func:`mixedrl.checks.check_task_types`; no random stream of the task or a trainer is touched.
+    After :func:`mixedrl.checks.check_task_types` (sizes, array attributes), calls :meth:`Task.sample_initial`
+    (own generator, seed 0), :meth:`Task.observe`, :meth:`Task.f` and :meth:`Task.cost` on ``batch`` states with
+    zero and bound actions, in float32 and float64, then :func:`mixedrl.checks.probe_task`; no random stream of
+    the task or a trainer is touched.
 
     Parameters
     ----------
@@ -444,24 +445,11 @@ def check_task(task: Task, batch: int = 3) -> None:
         returns the wrong shape, dtype or non-finite values; the message names the task class and the
         attribute or function.
     """
-    name = type(task).__name__
-    n, o, m, d = (check_positive_int(getattr(task, a, None), f"{name}.{a}")
-                  for a in ("state_dim", "obs_dim", "action_dim", "noise_dim"))
+    check_task_types(task, probe=False)
+    name, n, o, m = type(task).__name__, int(task.state_dim), int(task.obs_dim), int(task.action_dim)
     gamma = getattr(task, "gamma", None)
     if not isinstance(gamma, (float, int, np.floating)) or not 0.0 < float(gamma) < 1.0:
         raise ValueError(f"{name}.gamma: expected a discount factor in (0, 1), got {gamma!r}")
-    for attr, shape in (("noise_matrix", (n, d)), ("prior_mean", (d,)), ("prior_cov", (d, d)),
-                        ("true_mean", (d,)), ("true_cov", (d, d)), ("action_bound", (m,)), ("obs_scale", (o,))):
-        v = getattr(task, attr, None)
-        if v is None:
-            raise ValueError(f"{name}.{attr}: not set (expected shape {shape})")
-        arr = np.asarray(v.detach() if isinstance(v, torch.Tensor) else v, dtype=np.float64)
-        if arr.shape != shape:
-            raise ValueError(f"{name}.{attr}: expected shape {shape}, got shape {arr.shape}")
-        if not np.isfinite(arr).all():
-            raise ValueError(f"{name}.{attr}: contains NaN or inf")
-        if attr in ("action_bound", "obs_scale") and not (arr > 0).all():
-            raise ValueError(f"{name}.{attr}: expected positive values, got {arr.tolist()}")
     check_noise_matrix(task.noise_matrix, f"{name}.noise_matrix", n)
     s = task.sample_initial(batch, torch.Generator().manual_seed(0))
     _check_output(s, task, "sample_initial", (batch, n), torch.float64)
@@ -477,4 +465,4 @@ def check_task(task: Task, batch: int = 3) -> None:
                 raise ValueError(f"{name}.f: the output does not depend differentiably on u (a detached or "
                                  f"numpy computation?); the policy improvement differentiates through f")
             _check_output(task.cost(s_next, u), task, "cost", (batch,), None)
-    check_task_types(task)
+    probe_task(task)

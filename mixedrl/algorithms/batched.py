@@ -212,15 +212,16 @@ class BatchedRuns:
     kind, interface, shared = "", (), ()
 
     @classmethod
-    def check_members(cls, members: Sequence[Any]) -> None:
-        """Refuse members that cannot share a batch (the constructor's ``ValueError``): none, a run of another
-        kind, or runs that differ in the task or a shared field (:func:`check_shared`)."""
+    def check_members(cls, members: Sequence[Any], name: str = "members") -> None:
+        """Refuse members that cannot share a batch (the constructor's ``ValueError``, its message starting with
+        ``name``): none, a run of another kind, or runs that differ in the task or a shared field
+        (:func:`check_shared`)."""
         if len(members) == 0:
-            raise ValueError(f"members: expected at least one {cls.kind} run, got none")
+            raise ValueError(f"{name}: expected at least one {cls.kind} run, got none")
         for i, m in enumerate(members):
             if not all(hasattr(m, a) for a in cls.interface):
                 method = getattr(getattr(m, "config", None), "method", "?")
-                raise ValueError(f"members: entry {i} is a {type(m).__name__} ({method}), not "
+                raise ValueError(f"{name}: entry {i} is {type(m).__name__} ({method}), not "
                                  f"{'an' if cls.kind == 'AGPI' else 'a'} {cls.kind} run; Algorithm-2 and DDPG runs "
                                  f"train in batches of their own kind")
         check_shared(members, cls.shared)

@@ -6,7 +6,6 @@
 
 from __future__ import annotations
 
-import dataclasses
 import math
 from dataclasses import dataclass
 from typing import Any
@@ -14,7 +13,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from mixedrl.checks import check_number
+from mixedrl.checks import check_fields
 
 __all__ = ["DISTURBANCE_LAWS", "Disturbance"]
 
@@ -75,11 +74,7 @@ class Disturbance:
     def __post_init__(self) -> None:
         if self.law not in DISTURBANCE_LAWS:
             raise ValueError(f"law: expected one of {DISTURBANCE_LAWS}, got {self.law!r}")
-        for f in dataclasses.fields(self):
-            if f.name != "law":
-                object.__setattr__(self, f.name, check_number(
-                    getattr(self, f.name), f.name, positive=f.name == "grade_wavelength",
-                    nonneg=f.name == "variance"))
+        check_fields(self, positive=("grade_wavelength",), nonneg=("variance",))
         if not self.dof > 2.0:
             raise ValueError(f"dof: expected a number > 2 (the Student-t variance is finite only then), "
                              f"got {self.dof!r}")

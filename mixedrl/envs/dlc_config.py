@@ -13,7 +13,7 @@ import json
 from dataclasses import dataclass, field
 from typing import Any, TypeVar
 
-from mixedrl.checks import check_number, check_unknown_keys
+from mixedrl.checks import check_fields, check_number, check_unknown_keys
 from mixedrl.envs.disturbance import Disturbance
 from mixedrl.envs.reference import DoubleLaneChangeReference
 from mixedrl.envs.vehicle import VehicleParams
@@ -58,8 +58,7 @@ class CostWeights:
     r_accel: float = 1.0
 
     def __post_init__(self) -> None:
-        for f in dataclasses.fields(self):
-            object.__setattr__(self, f.name, check_number(getattr(self, f.name), f.name, nonneg=True))
+        check_fields(self, nonneg=True)
 
 
 def _numbers(value: Any, name: str, **kind: bool) -> tuple[float, ...]:
@@ -140,9 +139,8 @@ class DoubleLaneChangeConfig:
                 raise ValueError(f"{name}: expected {cls.__name__}, got {type(getattr(self, name)).__name__}")
         if self.scheme not in ("euler", "rk4"):
             raise ValueError(f"scheme: expected 'euler' or 'rk4', got {self.scheme!r}")
-        for name in ("dt", "v_des", "course_length", "delta_max", "ax_max", "max_lateral_error"):
-            object.__setattr__(self, name, check_number(getattr(self, name), name, positive=True))
-        object.__setattr__(self, "min_speed", check_number(self.min_speed, "min_speed", nonneg=True))
+        check_fields(self, ("dt", "v_des", "course_length", "delta_max", "ax_max", "max_lateral_error"), positive=True)
+        check_fields(self, ("min_speed",), nonneg=True)
         object.__setattr__(self, "preview_distances",
                            _numbers(self.preview_distances, "preview_distances", positive=True))
         for name in ("reset_half_widths", "train_half_widths"):
@@ -237,16 +235,13 @@ class DoubleLaneChangeTaskConfig(DoubleLaneChangeConfig):
             object.__setattr__(self, "obs_scale", scale)
         if self.name != "dlc":
             raise ValueError(f"name: expected 'dlc' for DoubleLaneChangeTaskConfig, got {self.name!r}")
-        gamma = check_number(self.gamma, "gamma")
-        if not 0.0 < gamma < 1.0:
+        check_fields(self, ("gamma", "prior_force_mean", "prior_force_std"), positive=("prior_force_std",))
+        if not 0.0 < self.gamma < 1.0:
             raise ValueError(f"gamma: expected a number in (0, 1), got {self.gamma!r}")
-        object.__setattr__(self, "gamma", gamma)
         for name in ("prior_force_mean", "prior_force_std"):
-            value = check_number(getattr(self, name), name, positive=name == "prior_force_std")
-            if abs(value) > MAX_PRIOR_FORCE:
-                raise ValueError(f"{name}: |{value!r}| N exceeds {MAX_PRIOR_FORCE:g} N: the IBE forms "
+            if abs(getattr(self, name)) > MAX_PRIOR_FORCE:
+                raise ValueError(f"{name}: |{getattr(self, name)!r}| N exceeds {MAX_PRIOR_FORCE:g} N: the IBE forms "
                                  f"second moments of the force, which would overflow float64")
-            object.__setattr__(self, name, value)
 
 
 #: The flat keys of the cost weights that :func:`make_config` accepts (moved into ``cost``).

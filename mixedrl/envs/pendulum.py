@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from mixedrl.checks import check_number
+from mixedrl.checks import check_fields, check_number
 from mixedrl.tasks import Equilibrium, Linearisation, Task, register_task
 
 __all__ = ["PendulumTask", "PendulumTaskConfig"]
@@ -195,10 +195,8 @@ class PendulumTaskConfig:
     def __post_init__(self) -> None:
         if self.name != "pendulum":
             raise ValueError(f"task.name: expected 'pendulum' for PendulumTaskConfig, got {self.name!r}")
-        for f in fields(self):
-            if f.name != "name":
-                setattr(self, f.name, check_number(getattr(self, f.name), f"task.{f.name}"))
-        _check_parameters({f.name: getattr(self, f.name) for f in fields(self)}, "task.")
+        check_fields(self, prefix="task.")
+        _check_parameters(vars(self), "task.")
 
 
 register_task(PendulumTask, PendulumTaskConfig)

@@ -16,7 +16,7 @@ from __future__ import annotations
 from dataclasses import dataclass, fields
 from typing import Any
 
-from mixedrl.checks import check_number
+from mixedrl.checks import check_fields
 from mixedrl.envs.libm import LibmOps, ops_for
 
 __all__ = ["DoubleLaneChangeReference", "LibmReference"]
@@ -59,9 +59,7 @@ class DoubleLaneChangeReference:
     shape: float = 2.4
 
     def __post_init__(self) -> None:
-        for f in fields(self):
-            value = getattr(self, f.name)
-            object.__setattr__(self, f.name, check_number(value, f.name, positive=f.name in ("len1", "len2", "shape")))
+        check_fields(self, positive=("len1", "len2", "shape"))
 
     def _ops(self, X: Any) -> Any:
         return ops_for(X)

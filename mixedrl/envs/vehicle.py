@@ -9,13 +9,13 @@ from __future__ import annotations
 
 import logging
 import math
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 from typing import Any, Callable, overload
 
 import numpy as np
 import torch
 
-from mixedrl.checks import check_finite, check_number
+from mixedrl.checks import check_fields, check_finite, check_number
 from mixedrl.envs.libm import LibmOps, MathOps, TorchOps, ops_for
 
 __all__ = ["VehicleParams", "VehicleDynamics", "fiala_lateral_force", "STATE_NAMES", "TRACKING_STATE_NAMES",
@@ -72,9 +72,7 @@ class VehicleParams:
     g: float = 9.81
 
     def __post_init__(self) -> None:
-        for f in fields(self):
-            value = getattr(self, f.name)
-            object.__setattr__(self, f.name, check_number(value, f.name, positive=True))
+        check_fields(self, positive=True)
 
     @property
     def L(self) -> float:
