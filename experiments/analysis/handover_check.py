@@ -153,10 +153,10 @@ def table(rows: list[dict[str, Any]]) -> str:
             "| criterion | system | method | seed | cost lq_ss | cost lq_handover | offset lq_ss | offset lq_handover "
             "| LQR offset (true / prior) | outside the box |", "|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
-        off = lambda d: d.get("mean_state_0", float("nan"))  # noqa: E731
-        lqr = f"{off(r['lqr']['true_mean']):+.4f} / {off(r['lqr']['prior_mean']):+.4f}" if "lqr" in r else "-"
+        off = lambda d: f"{d['mean_state_0']:+.4f}" if "mean_state_0" in d else "-"  # noqa: E731
+        lqr = f"{off(r['lqr']['true_mean'])} / {off(r['lqr']['prior_mean'])}" if "lqr" in r else "-"
         head.append(f"| {r['criterion']} | {r['system']} | {r['method']} | {r['seed']} | {r['lq_ss']['cost']:.5g} | "
-                    f"{r['lq_handover']['cost']:.5g} | {off(r['lq_ss']):+.4f} | {off(r['lq_handover']):+.4f} | {lqr} | "
+                    f"{r['lq_handover']['cost']:.5g} | {off(r['lq_ss'])} | {off(r['lq_handover'])} | {lqr} | "
                     f"{r['outside_fraction']:.2%} |")
     return "\n".join(head + ["", "Criteria:", ""] + verdicts(rows)[0]) + "\n"
 

@@ -333,7 +333,8 @@ DELETED: tuple[tuple[str, str], ...] = (
      f"equilibrium or the optimum's steady state); retired at commit {RETIRED_AT}, which still runs them. Their "
      f"twenty-seed rows are above (``feedforward_lq_*``, the held-out rows, ``budgets_lq_train``): on the double "
      f"lane change no variant met every target; on the pendulum (:doc:`pendulum`) ``lq_affine_ss`` met the offset "
-     f"target on every seed. The deployed shifts ``lq_ss`` (the default) and ``lq`` stay."),
+     f"target on every seed. The deployed shifts ``lq_ss`` and ``lq`` stay, and ``lq_handover`` (``lq_ss`` with a "
+     f"hand-over, the default)."),
     ("algorithm.feedforward_spread",
      "the ``lq_ss`` feed-forward's width widened to at least ``k`` standard deviations of the discounted LQ optimum's "
      "stationary closed loop under the run's own noise, so that the noise's cloud sees the whole shift (measured, "
@@ -351,7 +352,9 @@ DELETED: tuple[tuple[str, str], ...] = (
      "held-out seeds 100-101 (mixed, model-driven and the oracle, the same trained actors; "
      "``experiments/analysis/handover_dlc.py`` at that commit) 26-27% of the course's policy calls lay outside the "
      "box (the heading component) and the course cost rose by 22% to 51% (lateral MAE by 16% to 39%): not a "
-     "default."),
+     "default. Its successor, the default ``algorithm.feedforward = \"lq_handover\"``, hands over outside the box "
+     "of the observations the actor was trained on in the second half of its budget instead: none of those "
+     "held-out courses' policy calls lie outside that box (``experiments/results/handover_check``)."),
     ("deploy the iterate of lowest model-predicted cost",
      "each run keeps its actor at every periodic evaluation and deploys the snapshot whose cost in the planner's "
      "own model (the task's evaluation loop with ``f(x, u) + E xi``, ``xi`` from the run's final noise estimate) is "
