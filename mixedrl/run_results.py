@@ -5,6 +5,7 @@
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 from typing import Any
 
@@ -21,6 +22,8 @@ from mixedrl.run_directory import RunDirectory, load_trainer
 
 __all__ = ["iterations_to_converge", "eval_seeds", "make_trainer", "evaluate_run", "evaluate_together", "summarize",
            "training_curve", "CONVERGENCE_RTOL"]
+
+logger = logging.getLogger(__name__)
 
 #: Relative tolerance of the convergence criterion (:func:`iterations_to_converge`).
 CONVERGENCE_RTOL = 0.10
@@ -113,6 +116,9 @@ def evaluate_run(path: str | Path, *, seeds: int | None = None, feedforward: str
             config = config.replace(**{key: value})
     trainer = make_trainer(config, task)
     load_trainer(trainer, run.checkpoint_path)
+    if getattr(trainer, "feedforward", None) == "lq_handover" and trainer.trained_box is None:
+        logger.warning("algorithm.feedforward 'lq_handover': the checkpoint of %s holds no box of the trained "
+                       "observations (trained with another feed-forward); 'lq_ss' is evaluated", run.path)
     metrics = trainer.evaluate(eval_seeds(config))
     gap, reason = run_policy_gap(trainer)
     return {"config": config, "iteration": int(trainer.k), "metrics": metrics, "policy_gap": gap,

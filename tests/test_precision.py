@@ -694,3 +694,19 @@ def test_training_curve_needs_evaluations() -> None:
                          {"method": "mixed", "seed": 0, "task": "linear", "final": {"cost": 2.0},
                           "references": {"lqr_true_mean": {"cost": 1.5}}})
     assert png is not None and png[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_evaluating_a_run_without_a_trained_box_as_lq_handover_says_so(tmp_path: Path,
+                                                                         caplog: pytest.LogCaptureFixture) -> None:
+    """A run trained with ``"lq_ss"`` has no box in its checkpoint: evaluated as ``"lq_handover"`` it is
+    deployed as ``"lq_ss"`` (the same numbers), with a warning naming the option."""
+    from mixedrl.run_results import evaluate_run
+
+    out = tmp_path / "run"
+    cfg = _config("model").replace(**{"algorithm.iterations": 2, "algorithm.feedforward": "lq_ss", "run.eval_seeds": 1})
+    train(AGPI(LinearTask(), cfg), RunDirectory(out), progress=False)
+    plain = evaluate_run(out)
+    with caplog.at_level("WARNING", logger="mixedrl.run_results"):
+        handed = evaluate_run(out, feedforward="lq_handover")
+    assert "holds no box of the trained observations" in caplog.text
+    assert handed["metrics"] == plain["metrics"]
