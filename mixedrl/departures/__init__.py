@@ -9,7 +9,7 @@ model-driven RL and the oracle (the noise source is the only difference between 
 hook                   module                                       where the loop calls it
 =====================  ===========================================  ==========================================
 schedule               :mod:`~mixedrl.departures.schedule`          start of the iteration (learning rates)
-anchor                 :mod:`~mixedrl.departures.anchor`            the deployed policy (``AGPI.policy``)
+anchor                 :mod:`~mixedrl.departures.anchor`            ``AGPI.policy``; after PIM (trained box)
 sampler                :mod:`~mixedrl.departures.sampler`           data (the batch and the true transitions)
 state weights          :mod:`~mixedrl.departures.state_weights`     PEV and PIM (per-state weights)
 target values          :mod:`~mixedrl.departures.critic_target`     PEV (the network inside ``V_target``)
