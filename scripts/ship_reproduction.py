@@ -11,7 +11,7 @@ Usage::
 
     PYTHONPATH=. python scripts/ship_reproduction.py [--seeds 5] [--out runs/reproduce] [--resume]
 
-About 16 minutes on this 2-core machine for 5 seeds (968 s measured quiet, 2026-12-06; see
+About 10 minutes on this 2-core machine for 5 seeds (624 s measured quiet, 2026-12-07; see
 ``docs/reproduction.rst``): the Algorithm-2 runs train in batches; those batches and the five long DDPG runs
 (not batched) are most of it.
 """
