@@ -547,18 +547,22 @@ class _Engine:
 
 
 def test_the_trained_box_covers_the_second_half_of_the_budget() -> None:
-    """The box is the range of the observations of the trained states, per run; it starts afresh at iteration
-    ``iterations // 2``; non-finite states and runs that do not hand over are left out."""
+    """The box is the range of the observations of the trained states, per run, whatever the run deploys; it starts
+    afresh at iteration ``iterations // 2``; non-finite states are left out, and a task without an equilibrium
+    records none."""
     from mixedrl.departures.anchor import remember
 
     cfg = TrainConfig(method="model", task="linear", seed=0,
                       algorithm={"batch_size": 16, "hidden_sizes": (8,), "iterations": 10})
-    a, b = AGPI(LinearTask(), cfg), AGPI(LinearTask(), cfg.replace(**{"algorithm.feedforward": "lq_ss"}))
+    a, b = AGPI(LinearTask(), cfg), AGPI(LinearTask(), cfg.replace(**{"algorithm.feedforward": "learned"}))
     engine = _Engine([a, b])
     first = torch.tensor([[[-3.0, 0.0], [0.0, 4.0], [1.0, 1.0], [9.0, 9.0], [9.0, 9.0], [9.0, 9.0]]], dtype=torch.float64)
     remember(engine, first, [0, 1])
     assert torch.equal(a.trained_box, torch.tensor([[-3.0, 0.0], [1.0, 4.0]]))
-    assert b.trained_box is None  # "lq_ss": no box
+    assert torch.equal(b.trained_box, torch.tensor([[9.0, 9.0], [9.0, 9.0]]))  # deployed as trained: a box too
+    c = AGPI(_NoEquilibrium(), cfg)
+    remember(_Engine([c]), first, [0])
+    assert c.trained_box is None
     a.k = 4
     later = torch.tensor([[[0.5, -2.0], [float("nan"), 50.0], [0.0, 0.0]] + [[0.0, 0.0]] * 3], dtype=torch.float64)
     remember(engine, later, [0])
@@ -698,14 +702,23 @@ def test_training_curve_needs_evaluations() -> None:
 
 def test_evaluating_a_run_without_a_trained_box_as_lq_handover_says_so(tmp_path: Path,
                                                                          caplog: pytest.LogCaptureFixture) -> None:
-    """A run trained with ``"lq_ss"`` has no box in its checkpoint: evaluated as ``"lq_handover"`` it is
-    deployed as ``"lq_ss"`` (the same numbers), with a warning naming the option."""
+    """A run records its box whatever it deploys, so a run trained with ``"lq_ss"`` evaluates as ``"lq_handover"``
+    silently; a checkpoint without a box (written before the box existed) is deployed as ``"lq_ss"`` (the same
+    numbers), with a warning naming the option."""
+    from mixedrl.checkpoint import load_checkpoint, save_checkpoint
     from mixedrl.run_results import evaluate_run
 
     out = tmp_path / "run"
     cfg = _config("model").replace(**{"algorithm.iterations": 2, "algorithm.feedforward": "lq_ss", "run.eval_seeds": 1})
     train(AGPI(LinearTask(), cfg), RunDirectory(out), progress=False)
     plain = evaluate_run(out)
+    with caplog.at_level("WARNING", logger="mixedrl.run_results"):
+        evaluate_run(out, feedforward="lq_handover")
+    assert "holds no box" not in caplog.text
+    checkpoint = RunDirectory(out).checkpoint_path
+    state = load_checkpoint(checkpoint)
+    del state["trainer"]["trained_box"]
+    save_checkpoint(checkpoint, state)
     with caplog.at_level("WARNING", logger="mixedrl.run_results"):
         handed = evaluate_run(out, feedforward="lq_handover")
     assert "holds no box of the trained observations" in caplog.text

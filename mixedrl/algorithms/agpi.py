@@ -160,10 +160,12 @@ class AGPI:
         #: End states of the last rollouts that the next iteration's region starts carry over
         #: (:mod:`mixedrl.departures.region`), else ``None``; part of the checkpoint once set.
         self.region_carry: torch.Tensor | None = None
-        #: ``"lq_handover"``'s box of the observations the actor was trained on in the second half of the budget,
-        #: shape (2, obs_dim): low and high (:func:`mixedrl.departures.anchor.remember`); ``None`` before any;
-        #: part of the checkpoint once set.
+        #: The box of the observations the actor was trained on in the second half of the budget, shape
+        #: (2, obs_dim): low and high (:func:`mixedrl.departures.anchor.remember`), recorded on a task that
+        #: declares an equilibrium whatever ``algorithm.feedforward`` deploys (``"lq_handover"`` hands over
+        #: outside it, so a finished run can be evaluated either way); ``None`` before any; in the checkpoint.
         self.trained_box: torch.Tensor | None = None
+        self.records_box = task.equilibrium() is not None
 
     # -------------------------------------------------------------------------------------- helpers
     @property

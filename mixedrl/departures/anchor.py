@@ -324,8 +324,9 @@ def handover_policy(trainer: Any, shifted: FeedForwardPolicy, lin: Linearisation
 
 
 def remember(engine: Any, states: torch.Tensor, active_runs: Sequence[int]) -> None:
-    """Hook of the loop: widen each active ``"lq_handover"`` run's :attr:`trained_box` to the observations of the
-    states its actor was trained on this iteration (the rollouts' states, or the batch of the one-step learner).
+    """Hook of the loop: widen each active run's :attr:`trained_box` to the observations of the states its actor was
+    trained on this iteration (the rollouts' states, or the batch of the one-step learner), on a task that declares
+    an equilibrium (``run.records_box``), whatever the run deploys.
 
     The box covers the second half of the run's budget: at iteration ``k = iterations // 2`` it starts afresh
     (the early iterates' states, under a policy since trained away, do not count). Non-finite observations are
@@ -341,7 +342,7 @@ def remember(engine: Any, states: torch.Tensor, active_runs: Sequence[int]) -> N
     """
     for r in active_runs:
         m = engine.members[r]
-        if m.feedforward != "lq_handover":
+        if not m.records_box:
             continue
         with torch.no_grad():
             obs = engine.task.observe(states[..., engine.rows(r), :].reshape(-1, states.shape[-1])).float()
