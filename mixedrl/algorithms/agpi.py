@@ -344,7 +344,7 @@ class AGPI:
             **{key: part.state_dict() for key, part in self.plug_ins().items()},
             # departures.region's carried end states, once there are any (a fresh trainer has none)
             **({"region_carry": self.region_carry.clone()} if self.region_carry is not None else {}),
-            # departures.anchor's box of the trained observations ("lq_handover"), once there is one
+            # departures.anchor's box of the trained observations, once there is one
             **({"trained_box": self.trained_box.clone()} if self.trained_box is not None else {}),
         }
 

@@ -340,12 +340,14 @@ def remember(engine: Any, states: torch.Tensor, active_runs: Sequence[int]) -> N
         The states, run ``r`` in ``engine.rows(r)`` of the second-to-last dimension.
     active_runs : sequence of int
     """
+    if not engine.members[0].records_box:  # the runs share the task
+        return
+    with torch.no_grad():  # every run's rows observed in one call
+        observed = engine.task.observe(states.reshape(-1, states.shape[-1])).float()
+    observed = observed.reshape(*states.shape[:-1], observed.shape[-1])
     for r in active_runs:
         m = engine.members[r]
-        if not m.records_box:
-            continue
-        with torch.no_grad():
-            obs = engine.task.observe(states[..., engine.rows(r), :].reshape(-1, states.shape[-1])).float()
+        obs = observed[..., engine.rows(r), :].reshape(-1, observed.shape[-1])
         obs = obs[torch.isfinite(obs).all(-1)]
         if obs.shape[0] == 0:
             continue
