@@ -15,6 +15,7 @@ from dataclasses import dataclass, fields
 from typing import Any
 
 import numpy as np
+import scipy.linalg
 
 from mixedrl.checks import as_vector, check_covariance, check_fraction
 from mixedrl.quadratic import AffinePolicy, LinearDynamics, QuadraticCost, QuadraticValue
@@ -166,7 +167,7 @@ def discounted_lq_optimum(A: np.ndarray, B: np.ndarray, Q: np.ndarray, R: np.nda
         (1-\\gamma)\\, c &= d^T S d + \\operatorname{tr}(S K) + l_0^T R l_0 + 2\\gamma p^T d,\\quad d = \\mu - B l_0
 
     for ``x' = A x + B u + xi``, ``xi ~ N(mu, K)``, ``l = x'^T Q x' + u^T R u``, policy ``u = -L x - l0``,
-    value ``V*(x) = x^T P x + 2 p^T x + c``. Solved with ``control.dare(method="scipy")``.
+    value ``V*(x) = x^T P x + 2 p^T x + c``. Solved with :func:`scipy.linalg.solve_discrete_are`.
 
     Parameters
     ----------
@@ -203,14 +204,14 @@ def discounted_lq_optimum(A: np.ndarray, B: np.ndarray, Q: np.ndarray, R: np.nda
     A, B, Q, R, mu = (np.asarray(a, dtype=np.float64) for a in (A, B, Q, R, mu))
     n, g = A.shape[0], float(gamma)
     K = np.zeros((n, n)) if K is None else np.asarray(K, dtype=np.float64)
-    # imported here, not at module level (issue 44): ``control`` pulls in scipy.signal and matplotlib.pyplot
-    # (~1 s), and only the optimum needs it
-    import control
-
+    # S solves the DARE with (sqrt(gamma) A, sqrt(gamma) B, Q, gamma R); L as python-control's dare(method="scipy")
+    # computes it from S (the same calls, so the same bits), without importing python-control (~1 s: it pulls in
+    # scipy.signal and matplotlib.pyplot); tests/test_lq.py checks both against python-control's dare, bit for bit.
+    As, Bs, Rs = math.sqrt(g) * A, math.sqrt(g) * B, g * R
     try:
-        # S solves the DARE with (sqrt(gamma) A, sqrt(gamma) B, Q, gamma R)
-        S, _, L = control.dare(math.sqrt(g) * A, math.sqrt(g) * B, Q, g * R, method="scipy")
-    except (np.linalg.LinAlgError, ValueError, control.ControlArgument) as exc:
+        S = scipy.linalg.solve_discrete_are(As, Bs, Q, Rs)
+        L = scipy.linalg.solve(Bs.T @ S @ Bs + Rs, Bs.T @ S @ As)
+    except (np.linalg.LinAlgError, ValueError) as exc:
         raise ValueError(f"Q: the DARE has no stabilising solution ({exc})") from None
     S = _sym(np.asarray(S, dtype=np.float64))
     L = np.asarray(L, dtype=np.float64)

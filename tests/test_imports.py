@@ -154,17 +154,26 @@ def test_no_import_cycle_at_run_time() -> None:
 
 
 def test_import_mixedrl_leaves_control_unimported() -> None:
-    """Issue 44: ``control`` (which pulls in scipy.signal and matplotlib.pyplot, about 1 s) is imported only by
-    :func:`mixedrl.lq.discounted_lq_optimum` when it is called, not by ``import mixedrl``; ``torch._dynamo`` (the
+    """Issue 44: ``control`` (which pulls in scipy.signal and matplotlib.pyplot, about 1 s) is not imported by
+    ``import mixedrl``, nor by building a trainer whose deployed policy needs the LQ optimum
+    (:func:`mixedrl.lq.discounted_lq_optimum` calls scipy's DARE directly); ``torch._dynamo`` (the
     compiler, about 1.3 s) not by importing the package, its training modules or :mod:`mixedrl.compiled` (only a
     compiled step, ``algorithm.compile = "on"``, or torch's own optimisers import it)."""
     import os
     import subprocess
 
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}
-    code = ("import sys, mixedrl, mixedrl.runs, mixedrl.lq, mixedrl.compiled; "
-            "heavy = ('control', 'matplotlib.pyplot', 'scipy.signal', 'torch._dynamo'); "
-            "print([m for m in heavy if m in sys.modules])")
-    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, env=env, check=False)
-    assert done.returncode == 0, done.stderr
-    assert done.stdout.strip().splitlines()[-1] == "[]"
+
+    def last_line(code: str) -> str:
+        done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, env=env,
+                              check=False)
+        assert done.returncode == 0, done.stderr
+        return done.stdout.strip().splitlines()[-1]
+
+    assert last_line("import sys, mixedrl, mixedrl.runs, mixedrl.lq, mixedrl.compiled; "
+                     "heavy = ('control', 'matplotlib.pyplot', 'scipy.signal', 'torch._dynamo'); "
+                     "print([m for m in heavy if m in sys.modules])") == "[]"
+    assert last_line("import sys; from mixedrl.config import TrainConfig; from mixedrl.runs import make_trainer; "
+                     "t = make_trainer(TrainConfig(task='linear')); heavy = ('control', 'matplotlib.pyplot', "
+                     "'scipy.signal'); print(t.feedforward, [m for m in heavy if m in sys.modules])"
+                     ) == "lq_handover []"

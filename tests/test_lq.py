@@ -8,10 +8,11 @@ from __future__ import annotations
 
 import math
 
+import control
 import numpy as np
 import pytest
-import scipy.linalg
 
+from mixedrl.lq import discounted_lq_optimum
 from mixedrl.pev import bellman_backup, evaluate_policy
 from mixedrl.pim import improve_policy
 from mixedrl.quadratic import AffinePolicy, QuadraticValue, is_nonnegative
@@ -59,14 +60,27 @@ def test_dare_residual_and_independent_reference(prob, opt):
     H = R + B.T @ S @ B
     res = P - (A.T @ S @ A - A.T @ S @ B @ np.linalg.solve(H, B.T @ S @ A))
     assert np.abs(res).max() <= 1e-10 * np.abs(P).max()
-    # independent reference: scipy's DARE on the scaled matrices
-    S_ref = scipy.linalg.solve_discrete_are(np.sqrt(g) * A, np.sqrt(g) * B, Q, g * R)
-    assert rel(S, S_ref) < 1e-10
+    # independent reference: python-control's DARE on the scaled matrices (its scipy backend, which
+    # discounted_lq_optimum calls without importing python-control): the same S and L, bit for bit
+    S_ref, _, L_ref = control.dare(np.sqrt(g) * A, np.sqrt(g) * B, Q, g * R, method="scipy")
+    assert np.array_equal(S, S_ref) and np.array_equal(opt.gain, L_ref)
     # L = (R + B^T S B)^-1 B^T S A
     assert rel(opt.gain, np.linalg.solve(H, B.T @ S @ A)) < 1e-12
     Ac = A - B @ opt.gain
     assert np.max(np.abs(np.linalg.eigvals(np.sqrt(g) * Ac))) < 1.0
     assert np.max(np.abs(np.linalg.eigvals(Ac))) < 1.0  # undiscounted closed loop stable on the example
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_dare_equals_python_control_on_random_systems(seed):
+    rng = np.random.default_rng(seed)
+    n, m, g = 3, 2, 0.95
+    A, B = rng.normal(size=(n, n)), rng.normal(size=(n, m))
+    Q = np.diag(rng.uniform(0.5, 2.0, n))
+    R = np.diag(rng.uniform(0.1, 1.0, m))
+    sol = discounted_lq_optimum(A, B, Q, R, g, np.zeros(n))
+    S_ref, _, L_ref = control.dare(np.sqrt(g) * A, np.sqrt(g) * B, Q, g * R, method="scipy")
+    assert np.array_equal(sol.S, S_ref) and np.array_equal(sol.gain, L_ref)
 
 
 def test_offset_system_equals_simplified_form(prob, opt):

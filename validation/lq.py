@@ -5,7 +5,8 @@ the next state ``l(x', u) = x'^T Q x' + u^T R u`` (eq. 2), discount ``gamma``. T
 ``V*(x) = x^T P x + 2 p^T x + c`` and the optimal policy ``u = -L x - l0``:
 
 * ``S = Q + gamma P`` solves the standard DARE with ``(sqrt(gamma) A, sqrt(gamma) B, Q, gamma R)``
-  (:func:`control.dare`, ``method="scipy"``), and ``L = (R + B^T S B)^{-1} B^T S A``;
+  (:func:`scipy.linalg.solve_discrete_are`; bit for bit what :func:`control.dare` with ``method="scipy"`` returns,
+  tests/test_lq.py), and ``L = (R + B^T S B)^{-1} B^T S A``;
 * ``p`` and ``l0`` solve one linear system that depends on ``mu``, and ``c`` follows; a wrong ``mu``
   leaves ``L`` exact and biases ``l0`` (:func:`discounted_lq_optimum`, the one implementation, also
   behind :func:`validation.nmpc.discounted_lqr`; :func:`optimal_solution` for an :class:`LQProblem`).
