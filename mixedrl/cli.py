@@ -112,9 +112,11 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("evaluate", help="evaluate a run's final policy on its task")
     p.add_argument("run_dir", type=Path)
     p.add_argument("--seeds", type=int, default=None, help="number of noise seeds (default: the run's)")
-    p.add_argument("--feedforward", choices=FEEDFORWARDS, default=None,
-                   help="evaluate with this algorithm.feedforward instead of the run's ('lq': the actor shifted "
-                        "to the LQ optimum's action at the equilibrium for the method's own noise mean)")
+    # not argparse's choices: a retired value is refused by the config, naming the commit that still runs it
+    p.add_argument("--feedforward", default=None, metavar="{" + ",".join(FEEDFORWARDS) + "}",
+                   help="evaluate with this algorithm.feedforward instead of the run's ('lq_ss': the actor shifted "
+                        "near the LQ optimum's steady state to the optimum's action there, for the method's own "
+                        "noise mean)")
     p.set_defaults(handler=_evaluate)
 
     add_sweep_parser(sub)  # Ray is imported only when a sweep runs on it

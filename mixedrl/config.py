@@ -39,7 +39,7 @@ from mixedrl.config_sections import (OPTIMISER_FIELDS, PRESETS, SAMPLERS, Algori
                                      ModelRolloutsSampler, RunConfig, SamplerConfig, TrueCopiesSampler, register_preset,
                                      register_sampler, sampler_config)
 from mixedrl.config_tasks import (BATCH_WEIGHTINGS, BUILTIN_NAMES, DISTURBANCE_LAWS, FEEDFORWARDS, METHODS,
-                                  MODEL_COURSE_STARTS, RETIRED_AT, RETIRED_FEEDFORWARDS, TASKS,
+                                  MODEL_COURSE_STARTS, RETIRED_ACTOR_OUTPUTS, RETIRED_AT, RETIRED_FEEDFORWARDS, TASKS,
                                   ForceDisturbanceConfig, GaussianNoiseConfig, LinearTaskConfig, build_section,
                                   check_choice, register_builtin_task, register_task, task_config, task_config_union,
                                   task_names, to_jsonable)

@@ -14,8 +14,8 @@ from dataclasses import dataclass
 from typing import Any, ClassVar, Union
 
 from mixedrl.checks import check_fraction, check_int, check_nonnegative_int, check_number, check_positive_int
-from mixedrl.config_tasks import (BATCH_WEIGHTINGS, COMPILE_MODES, FEEDFORWARDS, RETIRED_FEEDFORWARDS,
-                                   build_section, check_choice)
+from mixedrl.config_tasks import (BATCH_WEIGHTINGS, COMPILE_MODES, FEEDFORWARDS, RETIRED_ACTOR_OUTPUTS,
+                                   RETIRED_FEEDFORWARDS, build_section, check_choice)
 
 __all__ = ["AlgorithmConfig", "DDPGConfig", "OPTIMISER_FIELDS", "RunConfig", "SamplerConfig", "TrueCopiesSampler",
            "ModelRolloutsSampler", "SAMPLERS", "PRESETS", "register_sampler", "register_preset", "sampler_config"]
@@ -139,9 +139,11 @@ class AlgorithmConfig:
     """Departure (anchor): where the deployed policy takes its action at the task's equilibrium, training
     unchanged: ``"learned"`` (the paper's, the actor's own), ``"lq_ss"`` (shifted near the LQ optimum's steady
     state, :func:`mixedrl.departures.anchor.steady_anchor`), ``"lq_handover"`` (``"lq_ss"``, handed over to the
-    LQ optimum outside the observations the actor was trained on, :class:`mixedrl.departures.anchor.HandoverPolicy`),
-    ``"lq"`` (a constant shift, :class:`mixedrl.precision.FeedForwardPolicy`) or ``"auto"``
-    (:func:`mixedrl.departures.anchor.resolve`); docs/precision.rst."""
+    LQ optimum outside the observations the actor was trained on, :class:`mixedrl.departures.anchor.HandoverPolicy`)
+    or ``"auto"`` (:func:`mixedrl.departures.anchor.resolve`); docs/precision.rst. Retired (refused naming the
+    commit that still runs each, :data:`mixedrl.config.RETIRED_FEEDFORWARDS`): ``"lq"`` (a constant shift to the
+    optimum's action at the equilibrium; commit c44231f), ``"lq_train"``, ``"lq_affine"``, ``"lq_affine_ss"``
+    (commit ee954d7)."""
 
     feedforward_width: float = 0.25
     """Departure (anchor): width ``rho`` >= 0 of the ``"lq_ss"`` shift (and of the hand-over), weighted by
@@ -173,9 +175,10 @@ class AlgorithmConfig:
 
     actor_output: str = "clip_inward"
     """Departure (actor output, :mod:`mixedrl.departures.actor_output`): how Algorithm 2's actor bounds its
-    output: ``"tanh"`` (``u_bar tanh(MLP)``, the paper's), ``"clip"`` (``u_bar clip(MLP, -1, 1)``, the
-    gradient passed straight through for the parameters) or ``"clip_inward"`` (straight through only where
-    the step moves a clipped output back inside)."""
+    output: ``"tanh"`` (``u_bar tanh(MLP)``, the paper's) or ``"clip_inward"`` (``u_bar clip(MLP, -1, 1)``, the
+    gradient passed straight through for the parameters only where the step moves a clipped output back inside).
+    Retired: ``"clip"`` (straight through in both directions; commit c44231f still runs it,
+    :data:`mixedrl.config.RETIRED_ACTOR_OUTPUTS`)."""
 
     def __post_init__(self) -> None:
         w = "algorithm"
@@ -190,9 +193,9 @@ class AlgorithmConfig:
         self.hidden_sizes = tuple(check_positive_int(h, f"{w}.hidden_sizes") for h in self.hidden_sizes)
         for name, options in (("compile", COMPILE_MODES), ("value_output", ("softplus", "square", "linear")),
                               ("expectation", ("sigma", "samples")), ("mvc_check", ("mean", "all")),
-                              ("ibe_recursion", ("exact", "paper")), ("batch_weighting", BATCH_WEIGHTINGS),
-                              ("actor_output", ("tanh", "clip", "clip_inward"))):
+                              ("ibe_recursion", ("exact", "paper")), ("batch_weighting", BATCH_WEIGHTINGS)):
             check_choice(getattr(self, name), f"{w}.{name}", options)
+        check_choice(self.actor_output, f"{w}.actor_output", ("tanh", "clip_inward"), RETIRED_ACTOR_OUTPUTS)
         check_choice(self.feedforward, f"{w}.feedforward", FEEDFORWARDS, RETIRED_FEEDFORWARDS)
         self.feedforward_width = check_number(self.feedforward_width, f"{w}.feedforward_width", nonneg=True)
         self.batch_weight_offset = check_number(self.batch_weight_offset, f"{w}.batch_weight_offset", positive=True)

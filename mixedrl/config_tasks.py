@@ -18,7 +18,7 @@ from mixedrl.envs.disturbance import DISTURBANCE_LAWS, Disturbance
 from mixedrl.lq import LQProblem
 
 __all__ = ["METHODS", "TASKS", "MODEL_COURSE_STARTS", "BATCH_WEIGHTINGS", "FEEDFORWARDS", "RETIRED_FEEDFORWARDS",
-           "RETIRED_AT", "DISTURBANCE_LAWS", "ForceDisturbanceConfig", "GaussianNoiseConfig",
+           "RETIRED_AT", "RETIRED_ACTOR_OUTPUTS", "DISTURBANCE_LAWS", "ForceDisturbanceConfig", "GaussianNoiseConfig",
            "LinearTaskConfig", "register_task", "register_builtin_task", "task_names", "task_config",
            "task_config_union", "build_section", "to_jsonable", "check_choice", "BUILTIN_NAMES"]
 
@@ -34,11 +34,15 @@ COMPILE_MODES = ("off", "on", "functional")
 BATCH_WEIGHTINGS = ("uniform", "relative")
 
 #: Where the policy takes its action at the equilibrium (``algorithm.feedforward``).
-FEEDFORWARDS = ("auto", "learned", "lq", "lq_ss", "lq_handover")
-#: The commit that still runs the retired options (docs/results.rst).
+FEEDFORWARDS = ("auto", "learned", "lq_ss", "lq_handover")
+#: The commit that still runs the options retired first (docs/results.rst).
 RETIRED_AT = "ee954d7"
-#: The retired values of ``algorithm.feedforward``: actors anchored at the LQ optimum during training.
-RETIRED_FEEDFORWARDS = ("lq_train", "lq_affine", "lq_affine_ss")
+#: The retired values of ``algorithm.feedforward``, each with the commit that still runs it: actors anchored at the
+#: LQ optimum during training, and ``"lq"``, the actor shifted to the optimum's action at the equilibrium.
+RETIRED_FEEDFORWARDS = {"lq_train": RETIRED_AT, "lq_affine": RETIRED_AT, "lq_affine_ss": RETIRED_AT, "lq": "c44231f"}
+#: The retired values of ``algorithm.actor_output`` with the commit that still runs each: ``"clip"``, the
+#: straight-through gradient in both directions.
+RETIRED_ACTOR_OUTPUTS = {"clip": "c44231f"}
 
 
 def to_jsonable(value: Any) -> Any:
@@ -279,12 +283,12 @@ def task_config(value: Any = "dlc") -> Any:
     return build_section(_TASK_CLASSES[name], {**value, "name": name}, "task")
 
 
-def check_choice(value: Any, name: str, options: tuple, retired: tuple = ()) -> Any:
+def check_choice(value: Any, name: str, options: tuple, retired: dict[str, str] | None = None) -> Any:
     """``value`` if it is one of ``options``, else a ``ValueError`` naming ``name`` (and, for a value of
-    ``retired``, :data:`RETIRED_AT`)."""
-    if value in retired:
+    ``retired``, a dict value -> commit, the commit that still runs it)."""
+    if isinstance(value, str) and value in (retired or {}):
         raise ValueError(f"{name}: {value!r} was retired (its measured rows stay on the results page, "
-                         f"docs/results.rst); expected one of {options}; git commit {RETIRED_AT} can still run it")
+                         f"docs/results.rst); expected one of {options}; git commit {retired[value]} can still run it")
     if value not in options:
         raise ValueError(f"{name}: expected one of {options}, got {value!r}")
     return value

@@ -148,24 +148,19 @@ class Actor(nn.Module):
 
 
 class ClippedActor(Actor):
-    """An :class:`Actor` whose output is clipped instead of ``tanh``-squashed (``algorithm.actor_output = "clip"``,
-    :mod:`mixedrl.departures.actor_output`), the clip's gradient passed straight through for the parameters only.
+    """An :class:`Actor` whose output is clipped instead of ``tanh``-squashed
+    (``algorithm.actor_output = "clip_inward"``, :mod:`mixedrl.departures.actor_output`), the clip's gradient
+    passed straight through for the parameters only, and only inward.
 
     .. math:: u(o) = \\bar u \\operatorname{clip}\\big(z(o; \\theta), -1, 1\\big), \\qquad z = \\mathrm{MLP}(o; \\theta)
 
-    with the gradients ``du/dtheta = u_bar dz/dtheta`` everywhere (straight through, also where ``|z| > 1``)
-    and ``du/do = u_bar clip'(z) dz/do`` (the true one: zero where clipped). The value is exactly
-    ``u_bar clip(z, -1, 1)``: the straight-through term ``z_p - detach(z_p)``, ``z_p = MLP(detach(o))``, adds 0.
-    With gradients enabled the MLP is evaluated twice (``o`` and ``detach(o)``). Same parameters,
-    initialisation and draws as the :class:`Actor`. With ``inward=True`` (``"clip_inward"``) the
-    straight-through gradient is kept only where a descent step moves ``z`` back inside (``dJ/dz * z > 0``),
-    so a saturated output cannot wind up.
+    with the gradients ``du/dtheta = u_bar dz/dtheta`` where ``|z| <= 1`` and, where ``z`` is clipped, where a
+    descent step moves ``z`` back inside (``dJ/dz * z > 0``: straight through, so a saturated actor still
+    receives the gradient that pulls it back, and cannot wind up), and ``du/do = u_bar clip'(z) dz/do`` (the
+    true one: zero where clipped). The value is exactly ``u_bar clip(z, -1, 1)``: the straight-through term
+    ``z_p - detach(z_p)``, ``z_p = MLP(detach(o))``, adds 0. With gradients enabled the MLP is evaluated twice
+    (``o`` and ``detach(o)``). Same parameters, initialisation and draws as the :class:`Actor`.
     """
-
-    def __init__(self, *args: Any, inward: bool = False, **kwargs: Any) -> None:
-        super().__init__(*args, **kwargs)
-        #: Straight through only where the step moves the output back inside (``actor_output = "clip_inward"``).
-        self.inward = bool(inward)
 
     def forward(self, obs: torch.Tensor) -> torch.Tensor:
         z = self.net(obs)
@@ -173,9 +168,7 @@ class ClippedActor(Actor):
         if torch.is_grad_enabled():
             z_params = self.net(obs.detach())  # the parameters' path only
             outside = (z < -1.0) | (z > 1.0)
-            through = z_params - z_params.detach()
-            if self.inward:
-                through = _Inward.apply(through, z.detach())
+            through = _Inward.apply(z_params - z_params.detach(), z.detach())
             out = out + torch.where(outside, through, torch.zeros_like(z_params))
         return self.action_bound * out
 

@@ -166,8 +166,7 @@ def run_policy_gap(trainer: Any, policy: torch.nn.Module | None = None) -> tuple
         Anything with ``task``, ``policy`` and ``critic``.
     policy : torch.nn.Module, optional
         The policy to measure; default ``trainer.policy`` (what is evaluated: with ``algorithm.feedforward
-        = "lq"`` the shifted actor, whose action error is 0 by construction; pass
-        ``trainer.learned_policy`` for the actor's own).
+        = "lq_ss"`` the shifted actor; pass ``trainer.learned_policy`` for the actor's own).
 
     Returns
     -------

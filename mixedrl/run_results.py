@@ -90,8 +90,8 @@ def evaluate_run(path: str | Path, *, seeds: int | None = None, feedforward: str
     seeds : int, optional
         Number of noise seeds (default the run's ``run.eval_seeds``; the seeds are :func:`eval_seeds`).
     feedforward : str, optional
-        Evaluate with this ``algorithm.feedforward`` instead of the run's (``"lq"``: the actor shifted to
-        the LQ optimum's action at the equilibrium for the method's own noise mean).
+        Evaluate with this ``algorithm.feedforward`` instead of the run's (``"lq_ss"``: the actor shifted to
+        the LQ optimum's action near its steady state for the method's own noise mean).
     task : Task, optional
         The task object of a user's own task (not rebuilt from the config).
 

@@ -306,10 +306,18 @@ def test_train_and_evaluate_print_the_policy_gap(tmp_path: Path, capsys: pytest.
     assert json.loads(capsys.readouterr().out)["policy_gap"]["action_error"] == pytest.approx(saved["action_error"])
 
 
-# ------------------------------------------------------------------ algorithm.feedforward = "lq" (a departure)
+# ------------------------------------------------ algorithm.feedforward = "lq_ss" (a departure), a constant shift
 def _ff(method: str) -> TrainConfig:
-    return TrainConfig(method=method, task="linear", seed=0,
-                       algorithm={"batch_size": 16, "hidden_sizes": (8,), "feedforward": "lq"})
+    return TrainConfig(method=method, task="linear", seed=0, algorithm={
+        "batch_size": 16, "hidden_sizes": (8,), "feedforward": "lq_ss", "feedforward_width": 0.0})
+
+
+def _steady(lin: object, mu: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """scipy's DARE: the discounted LQ optimum's steady state ``x_ss = (I - A + B L)^-1 (E mu - B l0)`` for the
+    noise mean ``mu`` and its action there ``-L x_ss - l0``."""
+    L, l0 = scipy_optimum(lin.A, lin.B, lin.Q, lin.R, lin.gamma, lin.E @ mu)
+    x_ss = np.linalg.solve(np.eye(lin.A.shape[0]) - lin.A + lin.B @ L, lin.E @ mu - lin.B @ l0)
+    return x_ss, -L @ x_ss - l0
 
 
 def test_feedforward_policy_takes_the_action_at_the_equilibrium_and_shifts_by_a_constant() -> None:
@@ -330,28 +338,26 @@ def test_feedforward_policy_takes_the_action_at_the_equilibrium_and_shifts_by_a_
 
 
 @pytest.mark.parametrize("method, mean", [("model", "prior_mean"), ("oracle", "true_mean")])
-def test_feedforward_lq_anchors_at_the_optimum_for_the_methods_own_mean(method: str, mean: str) -> None:
-    """The action at the equilibrium is the LQ optimum's for the method's own mean (not the other mean),
-    derived here from scipy's DARE; away from it the policy is the actor shifted by that constant."""
+def test_feedforward_lq_ss_anchors_at_the_optimum_for_the_methods_own_mean(method: str, mean: str) -> None:
+    """The action at the LQ optimum's steady state is the optimum's there for the method's own mean (not the other
+    mean's), derived here from scipy's DARE; away from it the policy is the actor shifted by that constant."""
     task = LinearTask()
     trainer = AGPI(task, _ff(method))
     lin = task.linearisation()
-    _, l0 = scipy_optimum(lin.A, lin.B, lin.Q, lin.R, lin.gamma, lin.E @ getattr(task, mean))
+    x_ss, u_ss = _steady(lin, getattr(task, mean))
+    _, u_other = _steady(lin, getattr(task, "true_mean" if mean == "prior_mean" else "prior_mean"))
+    o_ss = torch.as_tensor(x_ss, dtype=torch.float32)[None]
     with torch.no_grad():
-        u0 = trainer.policy(torch.zeros(1, 2))[0].numpy()
-        learned0 = trainer.learned_policy(torch.zeros(1, 2))[0].numpy()
+        u = trainer.policy(o_ss)[0].numpy()
+        learned_ss = trainer.learned_policy(o_ss)[0].numpy()
         x = torch.tensor([[0.5, -1.0]])
         shifted = (trainer.policy(x) - trainer.learned_policy(x))[0].numpy()
-    assert u0 == pytest.approx(-l0, abs=ACTION_ATOL)
-    _, l0_other = scipy_optimum(lin.A, lin.B, lin.Q, lin.R, lin.gamma,
-                                lin.E @ getattr(task, "true_mean" if mean == "prior_mean" else "prior_mean"))
-    assert abs(float(l0[0] - l0_other[0])) > 0.1  # the two means give different feed-forwards here
-    assert shifted == pytest.approx(-l0 - learned0, abs=ACTION_ATOL)
-    gap, _ = run_policy_gap(trainer)
-    assert max(abs(e) for e in gap["action_error"]) < ACTION_ATOL
+    assert u == pytest.approx(u_ss, abs=1e-5)
+    assert abs(float(u_ss[0] - u_other[0])) > 0.1  # the two means give different feed-forwards here
+    assert shifted == pytest.approx(u_ss - learned_ss, abs=1e-5)
 
 
-def test_feedforward_lq_follows_the_ibe_and_leaves_training_unchanged() -> None:
+def test_feedforward_lq_ss_follows_the_ibe_and_leaves_training_unchanged() -> None:
     """Mixed RL's feed-forward is the IBE posterior's; the option changes no weight of training."""
     a = AGPI(LinearTask(), TrainConfig(method="mixed", task="linear", seed=0,
                                        algorithm={"batch_size": 16, "hidden_sizes": (8,)}))
@@ -365,59 +371,70 @@ def test_feedforward_lq_follows_the_ibe_and_leaves_training_unchanged() -> None:
     task, lin = b.task, b.task.linearisation()
     mean, cov = b.noise_moments()
     assert abs(float(mean[1] - task.prior_mean[1])) > 0.1  # the IBE has moved away from the prior
+    ref = lq_reference(lin, mean, cov)
     with torch.no_grad():
-        u0 = b.policy(torch.zeros(1, 2))[0].numpy()
-    assert u0 == pytest.approx(lq_reference(lin, mean, cov).action, abs=ACTION_ATOL)
+        u_ss = b.policy(torch.as_tensor(ref.steady_state, dtype=torch.float32)[None])[0].numpy()
+    assert u_ss == pytest.approx(ref.steady_action, abs=1e-5)
 
 
-def test_feedforward_lq_errors_name_the_option(tmp_path: Path) -> None:
-    with pytest.raises(ValueError, match=r"algorithm.feedforward: 'lq' .* method 'ddpg' has none"):
-        TrainConfig(method="ddpg", task="linear", algorithm={"feedforward": "lq"})
+def test_feedforward_lq_ss_errors_name_the_option(tmp_path: Path) -> None:
+    with pytest.raises(ValueError, match=r"algorithm.feedforward: 'lq_ss' .* method 'ddpg' has none"):
+        TrainConfig(method="ddpg", task="linear", algorithm={"feedforward": "lq_ss"})
     with pytest.raises(ValueError, match=r"algorithm.feedforward: expected one of"):
         TrainConfig(task="linear", algorithm={"feedforward": "affine"})
-    with pytest.raises(ValueError, match=r"algorithm.feedforward: 'lq' needs a task with an equilibrium"):
+    with pytest.raises(ValueError, match=r"algorithm.feedforward: 'lq_ss' needs a task with an equilibrium"):
         AGPI(_NoEquilibrium(), _ff("model"))
 
 
-RETIRED = ("lq_train", "lq_affine", "lq_affine_ss")
+#: The retired values (key, value, commit that still runs it) and the values allowed in their place.
+RETIRED = [("feedforward", v, "ee954d7") for v in ("lq_train", "lq_affine", "lq_affine_ss")] + [
+    ("feedforward", "lq", "c44231f"), ("actor_output", "clip", "c44231f")]
+ALLOWED = {"feedforward": r"\('auto', 'learned', 'lq_ss', 'lq_handover'\)",
+           "actor_output": r"\('tanh', 'clip_inward'\)"}
 
 
-def _retired_message(value: str) -> str:
-    return (rf"^algorithm\.feedforward: '{value}' was retired \(.*results page.*\); expected one of "
-            rf"\('auto', 'learned', 'lq', 'lq_ss', 'lq_handover'\); git commit ee954d7 can still run it$")
+def _retired_message(key: str, value: str, commit: str) -> str:
+    return (rf"^algorithm\.{key}: '{value}' was retired \(.*results page.*\); expected one of {ALLOWED[key]}; "
+            rf"git commit {commit} can still run it$")
 
 
-@pytest.mark.parametrize("value", RETIRED)
-def test_a_retired_feedforward_is_refused_naming_the_commit_that_runs_it(value: str, tmp_path: Path) -> None:
-    """The trained anchored actors were retired: a config, a spec or a saved run naming one is refused with the
-    key, the value, the allowed values and the commit that still runs it, before anything is built."""
+@pytest.mark.parametrize("key, value, commit", RETIRED)
+def test_a_retired_value_is_refused_naming_the_commit_that_runs_it(key: str, value: str, commit: str,
+                                                                  tmp_path: Path) -> None:
+    """The trained anchored actors, the equilibrium shift and the two-sided clip were retired: a config, a spec or a
+    saved run naming one is refused with the key, the value, the allowed values and the commit that still runs
+    it, before anything is built."""
     from mixedrl.run_results import evaluate_run
     from mixedrl.runs import make_trainer
     from mixedrl.sweep import expand, parse_spec
 
-    with pytest.raises(ValueError, match=_retired_message(value)):
-        TrainConfig(task="linear", algorithm={"feedforward": value})
-    with pytest.raises(ValueError, match=_retired_message(value)):
-        TrainConfig.from_dict({"method": "mixed", "task": "linear", "algorithm": {"feedforward": value}})
-    with pytest.raises(ValueError, match=_retired_message(value)):
-        TrainConfig(task="linear").replace(**{"algorithm.feedforward": value})
-    with pytest.raises(ValueError, match=rf"algorithm\.feedforward: '{value}' was retired"):
+    message = _retired_message(key, value, commit)
+    with pytest.raises(ValueError, match=message):
+        TrainConfig(task="linear", algorithm={key: value})
+    with pytest.raises(ValueError, match=message):
+        TrainConfig.from_dict({"method": "mixed", "task": "linear", "algorithm": {key: value}})
+    with pytest.raises(ValueError, match=message):
+        TrainConfig(task="linear").replace(**{f"algorithm.{key}": value})
+    with pytest.raises(ValueError, match=rf"algorithm\.{key}: '{value}' was retired"):
         expand(parse_spec(f'methods = ["mixed"]\nseeds = [0]\n[base]\n"task.name" = "linear"\n'
-                          f'"algorithm.feedforward" = "{value}"\n', "retired"))
+                          f'"algorithm.{key}" = "{value}"\n', "retired"))
     # a run saved by a commit that trained it: its config.json (digest and all) is refused as it is read
     cfg = TrainConfig(method="mixed", task="linear", seed=0,
                       algorithm={"batch_size": 16, "hidden_sizes": (8,), "iterations": 2})
     run = RunDirectory(tmp_path / "run")
     train(make_trainer(cfg), run, progress=False)
     record = run.read_record()
-    record["algorithm"]["feedforward"] = value
+    if key == "feedforward":  # evaluated again with it (mixedrl evaluate RUN --feedforward VALUE)
+        with pytest.raises(ValueError, match=message):
+            evaluate_run(run.path, feedforward=value)
+    record["algorithm"][key] = value
     from mixedrl.checkpoint import write_with_digest
     write_with_digest(run.config_path, (json.dumps(record, indent=2, sort_keys=True) + "\n").encode())
-    with pytest.raises(ValueError, match=_retired_message(value)):
+    with pytest.raises(ValueError, match=message):
         run.read_config()
-    with pytest.raises(ValueError, match=_retired_message(value)):
+    with pytest.raises(ValueError, match=message):
         evaluate_run(run.path)
-    with pytest.raises(ValueError, match=_retired_message(value)):
+    with pytest.raises(ValueError, match=message):
         train(make_trainer(cfg.replace(**{"algorithm.iterations": 4})), run, progress=False, resume=True)
 
 
@@ -462,7 +479,7 @@ def test_auto_is_lq_handover_where_the_task_declares_an_equilibrium_else_learned
     with caplog.at_level("WARNING", logger="mixedrl.departures.anchor"):  # no gain in observations: no hand-over
         assert resolve(_config("model"), _Blind()) == "lq_ss"
     assert "no hand-over to the LQ optimum" in caplog.text
-    for value in ("learned", "lq", "lq_ss", "lq_handover"):
+    for value in ("learned", "lq_ss", "lq_handover"):
         assert resolve(TrainConfig(task="linear", algorithm={"feedforward": value}), _NoEquilibrium()) == value
     with caplog.at_level("WARNING", logger="mixedrl.algorithms.agpi"):
         assert AGPI(_NotARestPoint(), _config("model")).feedforward == "learned"  # an equilibrium that fails
@@ -504,7 +521,7 @@ def test_lq_ss_takes_the_optimums_steady_action_at_its_steady_state(width: float
         far_shift = (trainer.policy(far) - trainer.learned_policy(far))[0].numpy()
         u_eq = trainer.policy(torch.zeros(1, 2))[0].numpy()
     assert u_ss == pytest.approx(-L @ x_ss - l0, abs=1e-5)
-    assert abs(float(u_eq[0] + l0[0])) > 1e-3  # the shift is not the one at the equilibrium ("lq")
+    assert abs(float(u_eq[0] + l0[0])) > 1e-3  # the shift is not the one at the equilibrium (the retired "lq")
     learned_ss = trainer.learned_policy(torch.as_tensor(x_ss, dtype=torch.float32)[None])[0].detach().numpy()
     if width == 0.0:
         assert far_shift == pytest.approx(-L @ x_ss - l0 - learned_ss, abs=1e-5)
@@ -617,18 +634,24 @@ def test_a_local_shift_keeps_the_gain_at_its_centre() -> None:
         assert torch.allclose(pol(obs), torch.stack([pol(o) for o in obs]), atol=1e-7)
 
 
-def test_evaluate_with_feedforward_lq_reports_both_gaps(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+def test_evaluate_with_feedforward_lq_ss_reports_both_gaps(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """A run deployed shifted (``lq_ss``) reports the shifted policy's gap and the learned actor's; ``mixedrl
+    evaluate --feedforward`` evaluates it again with another value, and refuses a retired one naming its commit."""
     from mixedrl.cli import main
 
     out = tmp_path / "run"
     assert main(["train", "--method", "model", "--out", str(out), "--iterations", "2", "--no-progress", "--set",
                  "task.name=linear", "algorithm.batch_size=16", "algorithm.hidden_sizes=[8]", "run.eval_seeds=1",
-                 "algorithm.feedforward=lq"]) == 0
+                 "algorithm.feedforward=lq_ss"]) == 0
     results = json.loads((out / "results.json").read_text())
-    assert results["feedforward"] == "lq"
-    assert abs(results["policy_gap"]["action_error"][0]) < ACTION_ATOL
-    assert abs(results["policy_gap_learned"]["action_error"][0]) > 1e-3
+    assert results["feedforward"] == "lq_ss"
+    assert abs(results["policy_gap"]["action_error"][0] - results["policy_gap_learned"]["action_error"][0]) > 1e-3
     capsys.readouterr()
+    assert main(["evaluate", str(out), "--feedforward", "lq"]) == 2
+    assert capsys.readouterr().err.strip() == (
+        "mixedrl evaluate: error: algorithm.feedforward: 'lq' was retired (its measured rows stay on the results "
+        "page, docs/results.rst); expected one of ('auto', 'learned', 'lq_ss', 'lq_handover'); git commit c44231f "
+        "can still run it")
     assert main(["evaluate", str(out), "--feedforward", "learned"]) == 0
     printed = json.loads(capsys.readouterr().out)
     assert printed["feedforward"] == "learned"

@@ -17,7 +17,7 @@ from mixedrl.departures import region, used
 from mixedrl.networks import Actor, ClippedActor
 
 ALGORITHM = dict(batch_size=16, iterations=4, hidden_sizes=(8,), rollout_horizon=3, critic_target=0.8,
-                 actor_output="clip", rollout_region=0.5)
+                 actor_output="clip_inward", rollout_region=0.5)
 
 
 def _config(seed: int = 100, **algorithm: object) -> TrainConfig:
@@ -37,9 +37,9 @@ def _saturating_actor() -> ClippedActor:
 
 
 def test_clipped_value_and_straight_through_gradients() -> None:
-    """Value: u_bar clip(z). Parameters: the gradient of the unclipped u_bar z on every row. Observations: the
-    unclipped gradient where |z| < 1, zero where clipped (a tanh, a plain clamp or a straight-through state
-    gradient fails one of the three)."""
+    """Value: u_bar clip(z). Parameters: the gradient of the unclipped u_bar z on the unclipped rows (the clipped
+    ones: the next test). Observations: the unclipped gradient where |z| < 1, zero where clipped (a tanh or a
+    straight-through state gradient fails one of the three)."""
     actor = _saturating_actor()
     obs = torch.randn(64, 3, generator=torch.Generator().manual_seed(4), requires_grad=True)
     z = actor.net(obs)
@@ -49,9 +49,12 @@ def test_clipped_value_and_straight_through_gradients() -> None:
     assert torch.equal(u, actor.action_bound * z.clamp(-1, 1))
     params = list(actor.parameters())
     weights = torch.randn(64, 1, generator=torch.Generator().manual_seed(5))
-    g_clip = torch.autograd.grad((weights * u).sum(), params + [obs])
+    g_clip = torch.autograd.grad((weights * u).sum(), params + [obs], retain_graph=True)
     g_free = torch.autograd.grad((weights * actor.action_bound * actor.net(obs)).sum(), params + [obs])
-    for a, b in zip(g_clip[:-1], g_free[:-1]):
+    inside = weights * (~clipped).to(z.dtype)[:, None]  # the parameters' gradient of the unclipped rows
+    g_in = torch.autograd.grad((inside * u).sum(), params)
+    g_in_free = torch.autograd.grad((inside * actor.action_bound * actor.net(obs)).sum(), params)
+    for a, b in zip(g_in, g_in_free):
         assert torch.allclose(a, b, rtol=1e-5, atol=1e-6)
     assert torch.equal(g_clip[-1][clipped], torch.zeros_like(g_clip[-1][clipped]))
     assert torch.allclose(g_clip[-1][~clipped], g_free[-1][~clipped], rtol=1e-5, atol=1e-6)
@@ -61,7 +64,6 @@ def test_inward_straight_through_only_moves_a_clipped_output_back() -> None:
     """``clip_inward``: a clipped row passes its parameter gradient only where descent moves z back inside
     (dJ/dz * z > 0); the unclipped rows as before (the two-sided gradient, or none, fails)."""
     actor = _saturating_actor()
-    actor.inward = True
     obs = torch.randn(64, 3, generator=torch.Generator().manual_seed(4))
     weights = torch.randn(64, 1, generator=torch.Generator().manual_seed(5))
     z = actor.net(obs)
@@ -137,7 +139,8 @@ def test_reproducible_and_listed() -> None:
     assert {"actor_output", "region_starts"} <= set(used(_config()))
     assert not {"actor_output", "region_starts"} & set(used(_config(actor_output="tanh", rollout_region=0.0)))
     assert type(AGPI(SwingUp(), _config(actor_output="tanh")).actor) is Actor
-    assert AGPI(SwingUp(), _config(actor_output="clip_inward")).actor.inward and not a.actor.inward
+    with pytest.raises(ValueError, match=r"^algorithm\.actor_output: 'clip' was retired .* git commit c44231f"):
+        _config(actor_output="clip")  # the two-sided straight-through gradient: retired
 
 
 @pytest.mark.parametrize("key, bad, extra", [("actor_output", "sigmoid", {}), ("actor_output", "inward", {}),
@@ -151,5 +154,5 @@ def test_the_clipped_output_is_algorithm_2s_only() -> None:
     """DDPG trains its tanh actor: the setting is no departure of its (the library default is ``"clip_inward"``)."""
     from mixedrl.departures import actor_output
 
-    assert actor_output.active(_config(actor_output="clip"))
-    assert not actor_output.active(_config(actor_output="clip").replace(method="ddpg"))
+    assert actor_output.active(_config(actor_output="clip_inward"))
+    assert not actor_output.active(_config(actor_output="clip_inward").replace(method="ddpg"))

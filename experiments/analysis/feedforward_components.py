@@ -2,7 +2,8 @@
 
 For every run of ``--method`` (default mixed RL) of a sweep of the double lane change (for example
 ``experiments/studies/table1_seeds20.toml``), its final actor is evaluated on the run's evaluation seeds with the
-shift of ``algorithm.feedforward = "lq"`` (:class:`mixedrl.precision.FeedForwardPolicy`) applied to one
+shift of the retired ``algorithm.feedforward = "lq"`` (to the LQ optimum's action at the equilibrium,
+:func:`mixedrl.precision.feedforward_action`, by :class:`mixedrl.precision.FeedForwardPolicy`) applied to one
 action component only: ``steer_only`` (the steering angle at the origin set to the LQ optimum's, the
 acceleration left as learned) and ``ax_only`` (the other way round). Prints one line per seed and the
 means (docs page ``precision.rst``)::
@@ -19,7 +20,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from mixedrl.precision import FeedForwardPolicy, feedforward_policy
+from mixedrl.precision import FeedForwardPolicy, equilibrium_observation, feedforward_action
 from mixedrl.runs import RunDirectory, eval_seeds, load_checkpoint, make_trainer
 
 COMPONENTS = {"steer_only": 0, "ax_only": 1}
@@ -31,15 +32,17 @@ def component_errors(run_dir: Path) -> dict[str, tuple[float, float]]:
     cfg = run.read_config()
     trainer = make_trainer(cfg)
     trainer.load_state_dict(load_checkpoint(run.checkpoint_path)["trainer"])
-    full = feedforward_policy(trainer, trainer.learned_policy)
+    lin = trainer.task.linearisation()
+    o_star = equilibrium_observation(trainer.task, lin)
+    u_ff = feedforward_action(trainer, lin, trainer.learned_policy).float()
+    bound = trainer.learned_policy.action_bound
     with torch.no_grad():
-        learned = trainer.learned_policy(full.observation)[0]
+        learned = trainer.learned_policy(o_star[None])[0]
     out = {}
     for name, index in COMPONENTS.items():
         target = learned.clone()
-        target[index] = full.action[index]
-        ev = trainer.task.evaluate(FeedForwardPolicy(trainer.learned_policy, full.observation[0], target, full.bound),
-                                   eval_seeds(cfg))
+        target[index] = u_ff[index]
+        ev = trainer.task.evaluate(FeedForwardPolicy(trainer.learned_policy, o_star, target, bound), eval_seeds(cfg))
         out[name] = (float(ev["lateral_mae"]), float(ev["speed_mae"]))
     return out
 

@@ -72,17 +72,15 @@ VARIANTS: dict[str, dict[str, Any]] = {
                "actor_lr": 2e-3, "critic_lr": 2e-3, "rollout_discount_start": 0.95, "grad_clip": 1.0,
                "activation": "tanh", "horizon": 20, "batch_weighting": "uniform"},
 }
-#: The global departures (issue 42): the clipped actor (``actor_output``) and the region starts (``rollout_region``).
-VARIANTS["swing_clip"] = dict(VARIANTS["swing"], actor_output="clip")
+#: The global departures (issue 42): the clipped actor (``actor_output``, the two-sided clip of swing_clip and
+#: swing_cr: :data:`RETIRED`) and the region starts (``rollout_region``).
 VARIANTS["swing_region"] = dict(VARIANTS["swing"], rollout_region=0.5)
-VARIANTS["swing_cr"] = dict(VARIANTS["swing"], actor_output="clip", rollout_region=0.5)
 #: ``clip_inward``: straight through only back inside (the two-sided clip winds up: |z| to 16); the batch's states
 #: weighted uniformly (the relative weights favour the states near the top) and one extra MVC step at most.
 VARIANTS["swing_cri"] = dict(VARIANTS["swing"], actor_output="clip_inward", rollout_region=0.5,
                              batch_weighting="uniform", j_max=1, iterations=800)
 VARIANTS["swing_cri_noregion"] = dict(VARIANTS["swing_cri"], rollout_region=0.0)
 VARIANTS["swing_cri_tanh"] = dict(VARIANTS["swing_cri"], actor_output="tanh")
-VARIANTS["swing_cri_clip2"] = dict(VARIANTS["swing_cri"], actor_output="clip")
 VARIANTS["swing_cri_relative"] = dict(VARIANTS["swing_cri"], batch_weighting="relative")
 VARIANTS["swing_cri_j5"] = dict(VARIANTS["swing_cri"], j_max=5)
 VARIANTS["swing_cri_500"] = dict(VARIANTS["swing_cri"], iterations=500)
@@ -118,10 +116,8 @@ VARIANTS["swing_cri_h16_rv03_nr"] = dict(VARIANTS["swing_cri_h16_rv03"], rollout
 #: of swing_cri_h16_rv03 measured now on them is one of swing_cri_h16_rv03_nr.
 #: Half the batch (the cost of an iteration halves; swing_cri_b128 at H = 32: -136.2 / -131.5 / -131.9).
 VARIANTS["swing_cri_h16_rv03_b128"] = dict(VARIANTS["swing_cri_h16_rv03"], batch_size=128)
-#: The library default (swing_cri_h16_rv03_b128's settings) deployed with the LQ feed-forward of the run's own noise
-#: mean at the task's equilibrium (algorithm.feedforward = "lq": training unchanged, the actor shifted).
-VARIANTS["default_lq"] = dict(VARIANTS["swing_cri_h16_rv03_b128"], feedforward="lq")
-#: ... shifted at the LQ optimum's steady state for the own noise mean instead (feedforward = "lq_ss").
+#: The library default (swing_cri_h16_rv03_b128's settings) shifted at the LQ optimum's steady state for the run's own
+#: noise mean (feedforward = "lq_ss"; default_lq, shifted at the equilibrium instead: :data:`RETIRED`).
 VARIANTS["default_lqss"] = dict(VARIANTS["swing_cri_h16_rv03_b128"], feedforward="lq_ss", feedforward_width=0.0)
 #: ... with the shift local (feedforward_width: exp(-|(o - o_ss) / (rho obs_scale)|^2 / 2)), rho 0.25 and 1.
 #: default_lqss_w025 is the library default since (feedforward "auto" on a task with an equilibrium).
@@ -139,6 +135,15 @@ VARIANTS["default_decay01"] = dict(VARIANTS["default"], lr_decay_to=0.1)
 #: Variants whose setting or code was deleted or reverted after their rows were measured (not runnable now): name ->
 #: what they were.
 RETIRED: dict[str, str] = {
+    "swing_clip": "swing with algorithm.actor_output = \"clip\" (the actor's output clipped, the gradient passed "
+                  "straight through for its parameters in both directions; retired: it winds up, |z| to 16; git "
+                  "commit c44231f runs it)",
+    "swing_cr": "swing_clip with rollout_region = 0.5 (retired with actor_output = \"clip\"; git commit c44231f "
+                "runs it)",
+    "swing_cri_clip2": "swing_cri with actor_output = \"clip\" (retired; git commit c44231f runs it)",
+    "default_lq": "swing_cri_h16_rv03_b128's settings deployed with the LQ feed-forward of the run's own noise mean "
+                  "at the task's equilibrium (algorithm.feedforward = \"lq\": training unchanged, the actor shifted; "
+                  "retired, not the default; git commit c44231f runs it)",
     "swing_cri_cs4": "swing_cri with rollout_critic_steps = 4 (4 critic steps per rollout, the i-th on its time steps "
                      "i, i + 4, ..; deleted: no measured effect)",
     "swing_cri_h16_rv03_bs": "swing_cri_h16_rv03's settings with the fresh region starts of a task without a declared "

@@ -102,7 +102,7 @@ def analyse(run_dir: Path, variant: str = "", feedforward: str | None = None) ->
     final checkpoint at the upright and at its own steady state, against the LQR on the linearisation.
 
     With ``feedforward`` the policy is the run's final actor with ``algorithm.feedforward = feedforward``
-    (``"lq"``: shifted to the LQR's action at the upright for the method's own noise mean), evaluated again
+    (``"lq_ss"``: shifted near the LQR's steady state for the method's own noise mean), evaluated again
     on the run's evaluation seeds (:func:`mixedrl.runs.eval_seeds`, as :func:`mixedrl.runs.evaluate_run` does)."""
     run = RunDirectory(run_dir)
     config = run.read_config()

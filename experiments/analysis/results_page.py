@@ -5,7 +5,8 @@ Every number on the page is read from the shipped result files under ``experimen
 (``summary.json`` and ``per_seed.csv`` of :mod:`seed_statistics`, ``course_switch.json`` of
 :mod:`course_switch`, ``budgets.json`` of :mod:`budget_plateau`); the questions and outcomes below are the only
 words written here, and they hold no numbers. A row whose option was retired from the library keeps its measured
-row; its spec column names the spec at :data:`RETIRED_AT`, the commit whose code still trains it. The page is
+row; its spec column names the spec at :data:`RETIRED_AT`, the commit whose code still trains it (a row evaluated
+with a since retired ``--feedforward`` names the commit that re-derives it, :data:`RETIRED_FEEDFORWARDS`). The page is
 generated, never edited by hand (a test checks that the shipped page is this script's output)::
 
     PYTHONPATH=. python experiments/analysis/results_page.py            # writes docs/results.rst
@@ -22,6 +23,8 @@ import statistics
 import sys
 from pathlib import Path
 from typing import Any
+
+from mixedrl.config import RETIRED_FEEDFORWARDS
 
 ROOT = Path(__file__).resolve().parents[2]
 RESULTS = ROOT / "experiments" / "results" / "table1_seeds20"
@@ -62,7 +65,7 @@ TWENTY_SEEDS = (
         "Is the action at the equilibrium what separates the methods? (the same checkpoints, each policy shifted "
         "to the LQ optimum's action for its own noise mean)",
         "Every method improves, mostly laterally (the learned actors' steering bias); the per-seed targets are "
-        "still missed. Off by default.", feedforward="lq"),
+        "still missed. Retired.", feedforward="lq"),
     Row("feedforward_lq_train", ("table1_seeds20_lq_train",),
         "Does anchoring the actor at that action during training resolve the feed-forward and the targets?",
         "Training becomes reliable for model-driven RL and the oracle; speed is ordered as the physics orders "
@@ -109,8 +112,8 @@ TWENTY_SEEDS = (
         "policy shifted to the LQ optimum's action for its own noise mean; a diagnostic on the target system, "
         "not a choice)",
         "Yes for speed: mixed RL 0.0123 m/s against model-driven RL's 0.0195, better on 16 of 20 seeds, ratio "
-        "1.59 [1.29, 1.97]; lateral and cost are not separated. Off by default: whether it becomes the default "
-        "is for the tuning systems to decide.", feedforward="lq"),
+        "1.59 [1.29, 1.97]; lateral and cost are not separated. Not the default: it lost on the tuning systems "
+        "(default_lqss); retired.", feedforward="lq"),
     Row("default_lqss", ("table1_seeds20_default",),
         "The library default (algorithm.feedforward = 'auto', on this task 'lq_ss' with feedforward_width 0.25, "
         "chosen on the tuning systems: the same checkpoints, each policy shifted near the LQ optimum's steady state "
@@ -237,8 +240,11 @@ def measured_budgets(row: Row) -> str:
 def _spec_links(row: Row) -> str:
     if row.retired:
         return "retired: " + ", ".join(f"``git show {RETIRED_AT}:experiments/studies/{s}.toml``" for s in row.specs)
-    return ", ".join(f"``{s}.toml``" for s in row.specs) + (
-        f" evaluated with ``--feedforward {row.feedforward}``" if row.feedforward else "")
+    links = ", ".join(f"``{s}.toml``" for s in row.specs)
+    if row.feedforward in RETIRED_FEEDFORWARDS:  # the evaluation's value retired since: re-derived at its commit
+        return (f"{links} evaluated with ``--feedforward {row.feedforward}`` (retired: re-derived at commit "
+                f"{RETIRED_FEEDFORWARDS[row.feedforward]})")
+    return links + (f" evaluated with ``--feedforward {row.feedforward}``" if row.feedforward else "")
 
 
 def _table(rows: tuple[Row, ...], measure: Any) -> list[str]:
@@ -333,8 +339,14 @@ DELETED: tuple[tuple[str, str], ...] = (
      f"equilibrium or the optimum's steady state); retired at commit {RETIRED_AT}, which still runs them. Their "
      f"twenty-seed rows are above (``feedforward_lq_*``, the held-out rows, ``budgets_lq_train``): on the double "
      f"lane change no variant met every target; on the pendulum (:doc:`pendulum`) ``lq_affine_ss`` met the offset "
-     f"target on every seed. The deployed shifts ``lq_ss`` and ``lq`` stay, and ``lq_handover`` (``lq_ss`` with a "
-     f"hand-over, the default)."),
+     f"target on every seed. The deployed shift ``lq_ss`` stays, and ``lq_handover`` (``lq_ss`` with a hand-over, "
+     f"the default)."),
+    ("algorithm.feedforward = \"lq\"",
+     f"the trained actor deployed shifted by a constant to the LQ optimum's action at the equilibrium for the "
+     f"method's own noise mean (training unchanged); retired at commit {RETIRED_FEEDFORWARDS['lq']}, which still "
+     f"runs it. Its twenty-seed rows are above (``feedforward``, ``default_feedforward``: the same checkpoints "
+     f"evaluated again); it separated speed more on the double lane change but lost to ``lq_ss`` on the tuning "
+     f"systems (``experiments/results/learner_tuning``, variant ``default_lq``)."),
     ("algorithm.feedforward_spread",
      "the ``lq_ss`` feed-forward's width widened to at least ``k`` standard deviations of the discounted LQ optimum's "
      "stationary closed loop under the run's own noise, so that the noise's cloud sees the whole shift (measured, "
@@ -366,6 +378,11 @@ DELETED: tuple[tuple[str, str], ...] = (
      "-0.9% to +1.07%); on the double lane change's held-out seeds 100-101 it raised mixed RL's course cost from "
      "23.40 to 28.74 (+22.8%) on one of six runs (the model cost is taken from the training starts, not along the "
      "course): not a default."),
+    ("algorithm.actor_output = \"clip\"",
+     "the actor's output clipped with the gradient passed straight through for its parameters in both directions; "
+     "on the swing-up tuning system (``experiments/results/learner_tuning``, variants ``swing_cr`` and "
+     "``swing_cri_clip2``) the saturated output wound up (``|z|`` to 16); ``\"clip_inward\"``, straight through "
+     "only back inside, became the default. Retired at commit c44231f, which still runs it."),
     ("sampler.course_ramp",
      f"the course copies of the double lane change's sampler moved onto the course over ``r`` iterations; only "
      f"the retired rows above trained with ``r > 0`` (``course_ramp_heldout``, ``feedforward_lq_affine_ss_ramp``, "

@@ -21,14 +21,16 @@ give the same row.
 Usage::
 
     python experiments/analysis/seed_statistics.py runs/table1_seeds20 --dest experiments/results/table1_seeds20/seeds20
-    python experiments/analysis/seed_statistics.py runs/table1_seeds20 --feedforward lq --dest experiments/results/table1_seeds20/feedforward
+    python experiments/analysis/seed_statistics.py runs/table1_seeds20_default --feedforward lq_ss \
+        --dest experiments/results/table1_seeds20/default_lqss
     python experiments/analysis/seed_statistics.py experiments/results/table1_seeds20/seeds20/per_seed.csv runs/table1_seeds20_ddpg \
         --dest experiments/results/table1_seeds20/seeds20_ddpg
 
-With ``--feedforward lq`` every run's final checkpoint is evaluated again with ``algorithm.feedforward =
-"lq"`` (the same trained actor shifted to the discounted LQ optimum's action at the equilibrium for the
-method's own noise mean; docs page ``precision.rst``) on the run's own evaluation seeds: a paired
-comparison of the two policies each run would deploy (sweep directories only).
+With ``--feedforward lq_ss`` every run's final checkpoint is evaluated again with ``algorithm.feedforward =
+"lq_ss"`` (the same trained actor shifted, near the discounted LQ optimum's steady state for the method's own
+noise mean, to the optimum's action there; docs page ``precision.rst``) on the run's own evaluation seeds: a
+paired comparison of the two policies each run would deploy (sweep directories only). The rows evaluated with
+the retired ``--feedforward lq`` (``feedforward``, ``default_feedforward``) are re-derived at commit c44231f.
 """
 
 from __future__ import annotations
@@ -88,8 +90,7 @@ def pairs(keys: Any) -> list[tuple[str, str]]:
 
 
 #: What each evaluation-time ``algorithm.feedforward`` does to the trained actor (the table's heading).
-SHIFTS = {"lq": "shifted to the LQ optimum's action at the equilibrium for each method's own noise mean",
-          "lq_ss": "shifted, near the LQ optimum's steady state for each method's own noise mean (within "
+SHIFTS = {"lq_ss": "shifted, near the LQ optimum's steady state for each method's own noise mean (within "
                    "algorithm.feedforward_width), to the optimum's action there: the library default 'auto' "
                    "on this task"}
 
@@ -110,10 +111,10 @@ def load_rows(sweep: Path, feedforward: str | None = None, partial: bool = False
     A sweep with unfinished runs (no results yet) is refused unless ``partial``; with it, only the finished
     runs are read.
 
-    With ``feedforward`` (``"lq"``) each run's final checkpoint is evaluated again with
+    With ``feedforward`` (``"lq_ss"``) each run's final checkpoint is evaluated again with
     ``algorithm.feedforward = feedforward`` (:func:`mixedrl.runs.evaluate_run`: the same trained actor,
-    shifted to the LQ optimum's action at the equilibrium for the method's own noise mean; the same
-    evaluation seeds), and ``action_error_learned`` keeps the actor's own error from ``results.json``.
+    shifted near the LQ optimum's steady state for the method's own noise mean; the same evaluation seeds), and
+    ``action_error_learned`` keeps the actor's own error from ``results.json``.
     """
     doc = json.loads((sweep / "sweep.json").read_text())
     rows: dict[str, list[dict[str, Any]]] = {}
@@ -380,8 +381,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--dest", type=Path, required=True, help="where to write the tables and the figure")
     parser.add_argument("--feedforward", choices=FEEDFORWARDS, default=None,
                         help="evaluate each run's final checkpoint again with this algorithm.feedforward "
-                             "('lq': the actor shifted to the LQ optimum's action at the equilibrium; 'lq_ss': "
-                             "at the optimum's steady state, locally)")
+                             "('lq_ss': the actor shifted near the LQ optimum's steady state to the optimum's "
+                             "action there, locally)")
     parser.add_argument("--partial", action="store_true",
                         help="read only the finished runs of an unfinished sweep (default: refuse it)")
     args = parser.parse_args(argv)

@@ -79,8 +79,7 @@ def build_networks(task: Task, config: TrainConfig, generator: torch.Generator, 
     args = (task.obs_dim, task.action_dim, config.algorithm.hidden_sizes, config.algorithm.activation, generator,
             task.action_bound, task.obs_scale)
     # departure hook (actor_output): the clipped actor with a straight-through gradient for its parameters
-    actor: torch.nn.Module = (ClippedActor(*args, inward=config.algorithm.actor_output == "clip_inward")
-                              if actor_output.active(config) else Actor(*args))
+    actor: torch.nn.Module = ClippedActor(*args) if actor_output.active(config) else Actor(*args)
     return critic, actor
 
 
@@ -124,7 +123,7 @@ class AGPI:
         self.config = config
         self.architecture = architecture
         self.generator = torch.Generator().manual_seed(config.seed)
-        # algorithm.feedforward "lq" / "lq_ss" / "lq_handover" ("auto" resolved by anchor.resolve) need an equilibrium
+        # algorithm.feedforward "lq_ss" / "lq_handover" ("auto" resolved by anchor.resolve) need an equilibrium
         feedforward = self.feedforward = anchor.resolve(config, task)
         self._linearisation = None if feedforward == "learned" else anchor.linearisation(task, feedforward)
         self.critic, self.actor = build_networks(task, config, self.generator, architecture)
@@ -182,13 +181,13 @@ class AGPI:
     @property
     def policy(self) -> torch.nn.Module:
         """The run's policy on observations (what is evaluated and deployed): the :attr:`learned_policy`, or,
-        with :attr:`feedforward` ``"lq"`` / ``"lq_ss"``, that policy shifted to the discounted LQ optimum's
-        action at the equilibrium / its steady state (:func:`mixedrl.departures.anchor.feedforward_policy`); with
-        ``"lq_handover"`` the latter, handed over to the optimum outside :attr:`trained_box`
+        with :attr:`feedforward` ``"lq_ss"``, that policy shifted to the discounted LQ optimum's action at its
+        steady state (:func:`mixedrl.departures.anchor.feedforward_policy`); with ``"lq_handover"`` the latter,
+        handed over to the optimum outside :attr:`trained_box`
         (:func:`mixedrl.departures.anchor.handover_policy`)."""
         if self.feedforward == "learned":
             return self.learned_policy
-        shifted = feedforward_policy(self, self.learned_policy, self._linearisation, steady=self.feedforward != "lq")
+        shifted = feedforward_policy(self, self.learned_policy, self._linearisation)
         if self.feedforward == "lq_handover":
             return anchor.handover_policy(self, shifted, self._linearisation)
         return shifted

@@ -7,17 +7,18 @@ RL: the prior; the oracle: the truth; :func:`own_noise`):
 
 * ``"auto"``: ``"lq_handover"`` where the task declares an equilibrium, else ``"learned"`` (:func:`resolve`);
 * ``"lq_ss"``: the deployed policy is the actor shifted to the optimum's action at the optimum's steady
-  state for the own noise mean (:func:`feedforward_policy` with ``steady=True``);
+  state for the own noise mean (:func:`feedforward_policy`);
 * ``"lq_handover"``: ``"lq_ss"`` inside the box of observations the actor was trained on in the second half of
   its budget (:func:`remember`, :attr:`AGPI.trained_box <mixedrl.algorithms.agpi.AGPI.trained_box>`), handed
   over outside it to the optimum's affine policy (:class:`HandoverPolicy`): where the true system holds a
   state the planning model never visits (model-driven RL against an unmodelled mean), the actor's
-  extrapolation is not trusted;
-* ``"lq"``: the deployed policy is the actor shifted to the optimum's action at the equilibrium
-  (:func:`feedforward_policy`, :class:`FeedForwardPolicy`).
+  extrapolation is not trusted.
 
 Training is unchanged by every value. Config key ``algorithm.feedforward``: default ``"auto"``, the paper's
-``"learned"``. Measured effect and the retired values: docs/algorithm2.rst, docs/precision.rst.
+``"learned"``. Measured effect and the retired values: docs/algorithm2.rst, docs/precision.rst. Retired
+(refused naming the commit that still runs each, :data:`mixedrl.config.RETIRED_FEEDFORWARDS`): ``"lq"``, the
+actor shifted to the optimum's action at the equilibrium (commit c44231f); ``"lq_train"``, ``"lq_affine"``,
+``"lq_affine_ss"``, actors anchored during training (commit ee954d7).
 """
 
 from __future__ import annotations
@@ -178,20 +179,20 @@ def own_noise(trainer: Any, lin: Linearisation, policy: torch.nn.Module | None =
 
 
 class FeedForwardPolicy(torch.nn.Module):
-    """A policy shifted by a constant so that it takes a given action at the equilibrium.
+    """A policy shifted by a constant so that it takes a given action at a given observation.
 
     .. math:: \\pi_{ff}(o) = \\operatorname{clip}\\big(\\pi(o) - \\pi(o^*) + u_{ff},\\ -\\bar u,\\ \\bar u\\big)
 
-    with ``o* = o(s*)`` the equilibrium's observation and ``u_ff`` the action wanted there
-    (:func:`feedforward_policy`). The shift is recomputed from ``policy`` at every call, so the wrapper
-    follows the wrapped module's weights; it has no parameters of its own.
+    with ``o*`` the anchor's observation (``"lq_ss"``: the LQ optimum's steady state's, :func:`steady_anchor`) and
+    ``u_ff`` the action wanted there (:func:`feedforward_policy`). The shift is recomputed from ``policy`` at every
+    call, so the wrapper follows the wrapped module's weights; it has no parameters of its own.
 
     Parameters
     ----------
     policy : torch.nn.Module
         Observations (B, obs_dim) float32 -> actions (B, action_dim).
     observation : torch.Tensor, shape (obs_dim,)
-        ``o(s*)``.
+        ``o*``.
     action : torch.Tensor, shape (action_dim,)
         ``u_ff``.
     bound : torch.Tensor, shape (action_dim,), optional
@@ -274,12 +275,11 @@ class HandoverPolicy(torch.nn.Module):
         return torch.where(outside, blend, u)  # inside the box: pi's action, bit for bit
 
 
-def feedforward_policy(trainer: Any, policy: torch.nn.Module, lin: Linearisation | None = None,
-                       steady: bool = False) -> FeedForwardPolicy:
-    """``policy`` shifted to the LQ optimum's action at the equilibrium for the trainer's own noise mean.
-
-    ``algorithm.feedforward = "lq"``: the action ``u* - l0(E mu)`` of :func:`lq_reference`, ``mu`` the
-    method's own noise mean (:func:`own_noise`).
+def feedforward_policy(trainer: Any, policy: torch.nn.Module, lin: Linearisation | None = None
+                       ) -> FeedForwardPolicy:
+    """``policy`` shifted, near the LQ optimum's steady state for the trainer's own noise mean, to the optimum's
+    action there (``algorithm.feedforward = "lq_ss"``, :func:`steady_anchor`), within the run's
+    ``algorithm.feedforward_width``.
 
     Parameters
     ----------
@@ -289,9 +289,6 @@ def feedforward_policy(trainer: Any, policy: torch.nn.Module, lin: Linearisation
         The learned policy.
     lin : Linearisation, optional
         Instead of ``trainer.task.linearisation()``.
-    steady : bool
-        Shift at the optimum's steady state for the own noise mean (``"lq_ss"``, :func:`steady_anchor`)
-        instead of at the equilibrium (``"lq"``).
 
     Raises
     ------
@@ -299,14 +296,10 @@ def feedforward_policy(trainer: Any, policy: torch.nn.Module, lin: Linearisation
         If the task has no equilibrium (naming ``algorithm.feedforward``), or as :func:`lq_reference`.
     """
     task: Task = trainer.task
-    lin = linearisation(task, "lq_ss" if steady else "lq") if lin is None else lin
-    width = None
-    if steady:
-        obs, action = steady_anchor(trainer, lin, policy)
-        rho = float(trainer.config.algorithm.feedforward_width)
-        width = rho * task.obs_scale if rho > 0 else None
-    else:
-        obs, action = equilibrium_observation(task, lin), feedforward_action(trainer, lin, policy)
+    lin = linearisation(task, "lq_ss") if lin is None else lin
+    obs, action = steady_anchor(trainer, lin, policy)
+    rho = float(trainer.config.algorithm.feedforward_width)
+    width = rho * task.obs_scale if rho > 0 else None
     bound = getattr(policy, "action_bound", None)
     return FeedForwardPolicy(policy, obs, action, bound, width)
 
@@ -433,7 +426,7 @@ def steady_anchor(trainer: Any, lin: Linearisation, policy: torch.nn.Module | No
     .. math:: o^* = o\\big(s(x_{ss})\\big), \\qquad u(o^*) = u^* - L x_{ss} - l_0
 
     The optimum's affine policy ``u* - l0 - L x`` takes this action at ``x_ss``: a policy shifted to it there
-    (:func:`feedforward_policy` with ``steady=True``) rests where the optimum's closed loop does, to first order.
+    (:func:`feedforward_policy`) rests where the optimum's closed loop does, to first order.
 
     Returns
     -------
