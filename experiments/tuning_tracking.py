@@ -199,4 +199,9 @@ class SlalomReference(torch.nn.Module):
 
 #: The tracking tuning systems by name (no equilibrium: measured by their course cost and tracking error);
 #: ``slalom_fast``: the same at ``dt = 0.005`` s (2,000 steps a course, a 0.5 s discount horizon).
-TRACKING_TUNING_SYSTEMS: dict[str, Callable[[], Task]] = {"slalom": Slalom, "slalom_fast": partial(Slalom, dt=0.005)}
+#: ``slalom_weak``: ``slalom_fast`` with a current of 0.025 m/s (a twenty-fourth), chosen before any run so that the
+#: current's effect on the lateral error is about a quarter of the error itself (scaled from ``slalom_fast``'s 0.28 m
+#: for 0.6 m/s against a 0.04 m error), as the unmodelled force's on the double lane change's speed error
+#: (model-driven / oracle 1.30): the regime where seed-to-seed spread, not the estimate, decides a per-seed win.
+TRACKING_TUNING_SYSTEMS: dict[str, Callable[[], Task]] = {"slalom": Slalom, "slalom_fast": partial(Slalom, dt=0.005),
+                                                          "slalom_weak": partial(Slalom, dt=0.005, current=0.025)}
