@@ -213,8 +213,7 @@ def discounted_lq_optimum(A: np.ndarray, B: np.ndarray, Q: np.ndarray, R: np.nda
         L = scipy.linalg.solve(Bs.T @ S @ Bs + Rs, Bs.T @ S @ As)
     except (np.linalg.LinAlgError, ValueError) as exc:
         raise ValueError(f"Q: the DARE has no stabilising solution ({exc})") from None
-    S = _sym(np.asarray(S, dtype=np.float64))
-    L = np.asarray(L, dtype=np.float64)
+    S = _sym(S)
     P = _sym((S - Q) / g)
     Ac = A - B @ L
     # [[I - g Ac^T, Ac^T S B - L^T R], [-g B^T, R + B^T S B]] [p; l0] = [Ac^T S mu; B^T S mu]
