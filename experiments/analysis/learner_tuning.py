@@ -130,6 +130,12 @@ VARIANTS["default_n3200"] = dict(VARIANTS["default"], iterations=3200)
 #: The default's budget with larger steps instead (the same wall time): learning rates 4e-3, or a shallower decay.
 VARIANTS["default_lr4"] = dict(VARIANTS["default"], actor_lr=4e-3, critic_lr=4e-3)
 VARIANTS["default_decay01"] = dict(VARIANTS["default"], lr_decay_to=0.1)
+#: Candidates for a smaller seed-to-seed spread (slalom_weak, pre-registered criterion in the session-60 note): a
+#: lower learning-rate floor, a slower target critic, longer rollouts, a larger batch.
+VARIANTS["default_decay001"] = dict(VARIANTS["default"], lr_decay_to=0.001)
+VARIANTS["default_ct09"] = dict(VARIANTS["default"], critic_target=0.9)
+VARIANTS["default_h32"] = dict(VARIANTS["default"], rollout_horizon=32)
+VARIANTS["default_b256"] = dict(VARIANTS["default"], batch_size=256)
 
 
 #: Variants whose setting or code was deleted or reverted after their rows were measured (not runnable now): name ->
