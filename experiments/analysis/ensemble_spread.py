@@ -11,9 +11,15 @@ If the runs' errors were independent, the paired spread of ``K``-ensembles would
 single runs'. An ensemble trains ``K`` runs, so it also costs ``K`` times the true transitions and the wall time:
 this measures the spread, it is not a learner.
 
+``--iterations N`` trains every run with a budget of ``N`` iterations instead (results in
+``ensemble_spread_n<N>``): ``K`` runs of ``800 / K`` iterations take the compute and, each with its own data, the true
+transitions of one default run.
+
 Usage (two processes; a run already in ``--cache`` is not trained again; about 35 minutes for ``--runs 40``)::
 
-    PYTHONPATH=. python experiments/analysis/ensemble_spread.py --runs 40 --sizes 1 2 4 --cache /tmp/ensemble_actors
+    PYTHONPATH=. python experiments/analysis/ensemble_spread.py --runs 40 --sizes 1 2 4 8 --cache /tmp/ensemble_actors
+    PYTHONPATH=. python experiments/analysis/ensemble_spread.py --runs 40 --sizes 1 4 --iterations 200 \
+        --cache /tmp/ensemble_actors
 
 Writes ``experiments/results/ensemble_spread/{rows.json,summary.md}``.
 """
@@ -53,13 +59,20 @@ class MeanPolicy(torch.nn.Module):
         return torch.stack([a(obs) for a in self.actors]).mean(dim=0)
 
 
-def train_one(args: tuple[str, int, str]) -> dict[str, Any]:
-    """Train one default run (or load it from the cache) and return its row; the actor goes to the cache."""
-    method, seed, cache = args
+def actor_file(method: str, seed: int, iterations: int | None) -> str:
+    """The cache's file of a run (the budget in its name unless it is the default's)."""
+    return f"{method}_{seed}.pt" if iterations is None else f"{method}_{seed}_n{iterations}.pt"
+
+
+def train_one(args: tuple[str, int, str, int | None]) -> dict[str, Any]:
+    """Train one default run (or load it from the cache) and return its row; the actor goes to the cache.
+    ``iterations``: the run's budget, ``None`` for the default's."""
+    method, seed, cache, iterations = args
     torch.set_num_threads(1)
-    path = Path(cache) / f"{method}_{seed}.pt"
+    path = Path(cache) / actor_file(method, seed, iterations)
     if not path.exists():
-        task, run, row = _trained(SYSTEM, method, seed, {**ONESTEP, **VARIANTS["default"]}, TRACKING_TUNING_SYSTEMS)
+        algorithm = {**ONESTEP, **VARIANTS["default"], **({} if iterations is None else {"iterations": iterations})}
+        task, run, row = _trained(SYSTEM, method, seed, algorithm, TRACKING_TUNING_SYSTEMS)
         if run.feedforward != "learned":
             raise RuntimeError(f"{SYSTEM}: expected the learned policy to be deployed, got {run.feedforward!r}")
         row["course"] = task.evaluate(run.policy, TRACKING_EVAL_SEEDS)
@@ -87,11 +100,16 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--sizes", type=int, nargs="+", default=[1, 2, 4], help="ensemble sizes K")
     ap.add_argument("--cache", required=True, help="directory of the trained actors")
     ap.add_argument("--jobs", type=int, default=2)
+    ap.add_argument("--iterations", type=int, default=None,
+                    help="each run's budget (default: the library's); results go to ensemble_spread_n<ITERATIONS>")
     args = ap.parse_args(argv)
     if args.runs < 2 or any(k < 1 or args.runs // k < 2 for k in args.sizes):
         raise SystemExit(f"--sizes: every K needs at least 2 ensembles of --runs {args.runs}")
+    if args.iterations is not None and args.iterations < 1:
+        raise SystemExit(f"--iterations: expected a positive budget, got {args.iterations}")
+    out = OUT if args.iterations is None else OUT.with_name(f"{OUT.name}_n{args.iterations}")
     Path(args.cache).mkdir(parents=True, exist_ok=True)
-    jobs = [(m, FIRST_SEED + i, args.cache) for i in range(args.runs) for m in METHODS]
+    jobs = [(m, FIRST_SEED + i, args.cache, args.iterations) for i in range(args.runs) for m in METHODS]
     with multiprocessing.get_context("fork").Pool(args.jobs) as pool:
         runs = []
         for i, row in enumerate(pool.imap_unordered(train_one, jobs), 1):
@@ -108,16 +126,18 @@ def main(argv: list[str] | None = None) -> None:
                 if k == 1:  # the run's own row: the same evaluation of the same policy
                     course = next(r["course"] for r in runs if r["method"] == method and r["seed"] == seeds[0])
                 else:
-                    actors = [torch.load(Path(args.cache) / f"{method}_{s}.pt", weights_only=False)["actor"]
+                    actors = [torch.load(Path(args.cache) / actor_file(method, s, args.iterations),
+                                         weights_only=False)["actor"]
                               for s in seeds]
                     course = task.evaluate(MeanPolicy(actors), TRACKING_EVAL_SEEDS)
                 rows.append({"K": k, "method": method, "unit": e, "seeds": seeds, "course": course})
         summary[k] = {key: paired([r for r in rows if r["K"] == k], key)
                       for key in ("lateral_mae", "cost", "lateral_mean")}
-    OUT.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(OUT / "rows.json", json.dumps({"runs": sorted(runs, key=lambda r: (r["method"], r["seed"])),
+    out.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(out / "rows.json", json.dumps({"runs": sorted(runs, key=lambda r: (r["method"], r["seed"])),
                                                      "ensembles": rows, "summary": summary}, indent=1) + "\n")
-    lines = [f"Ensembles of K default runs on {SYSTEM} (experiments/analysis/ensemble_spread.py, {args.runs} runs per "
+    budget = "" if args.iterations is None else f" of {args.iterations} iterations"
+    lines = [f"Ensembles of K default runs{budget} on {SYSTEM} (experiments/analysis/ensemble_spread.py, {args.runs} runs per "
              "method, seeds 100 and up): model-driven minus mixed RL per pair of ensembles of the same seeds.", "",
              "| K | pairs | lateral MAE: mixed better | mean difference | paired sd | mixed mean (sd) | "
              "mixed signed lateral mean: sd | course cost: mixed better | mean difference | paired sd |",
@@ -127,7 +147,7 @@ def main(argv: list[str] | None = None) -> None:
         lines.append(f"| {k} | {a['units']} | {a['mixed_better']} | {a['difference_mean']:+.4f} | "
                      f"{a['difference_sd']:.4f} | {a['mixed_mean']:.4f} ({a['mixed_sd']:.4f}) | {m['mixed_sd']:.4f} | "
                      f"{c['mixed_better']} | {c['difference_mean']:+.3f} | {c['difference_sd']:.3f} |")
-    atomic_write_text(OUT / "summary.md", "\n".join(lines) + "\n")
+    atomic_write_text(out / "summary.md", "\n".join(lines) + "\n")
     print("\n".join(lines))
 
 
