@@ -400,7 +400,7 @@ PAPER_SETTINGS: dict[str, dict[str, Any]] = {
     "sampler": {"name": "true_copies"},
     "algorithm": {"batch_weighting": "uniform", "lr_decay_to": 1.0, "critic_target": 0.0,
                   "feedforward": "learned", "rollout_horizon": 0,
-                  "rollout_region": 0.0, "actor_output": "tanh"},
+                  "rollout_region": 0.0, "actor_output": "tanh", "actor_average_window": 0.0},
 }
 #: The budget, networks and step sizes of the ``paper`` preset, those of the one-step learner; not
 #: departures: the paper gives none of them.
@@ -410,7 +410,8 @@ PAPER_HYPERPARAMETERS: dict[str, Any] = {
 #: The ``algorithm`` settings of the one-step learner (docs/tuning.rst): :data:`PAPER_HYPERPARAMETERS` with the
 #: rollout learner's departures off, the library's sampler, state weights and decay kept.
 ONE_STEP_LEARNER: dict[str, Any] = {**PAPER_HYPERPARAMETERS, "critic_target": 0.0, "rollout_horizon": 0,
-                                    "rollout_region": 0.0, "actor_output": "tanh", "feedforward": "learned"}
+                                    "rollout_region": 0.0, "actor_output": "tanh", "feedforward": "learned",
+                                    "actor_average_window": 0.0}
 #: Preset name -> section -> settings applied over ``TrainConfig(**fields)`` (:meth:`TrainConfig.preset`).
 CONFIG_PRESETS: dict[str, dict[str, dict[str, Any]]] = {
     "library": {},
