@@ -10,10 +10,9 @@ table script ``benchmarks/iteration_table.py --compile-ab`` alternates them).
 ``extra_info["iterations_per_s"] = 1 / median``; ``extra_info["seconds_per_1500"]`` is the time of the
 default budget without evaluations.
 
-The parts are timed too (``collect``, ``pev``, ``pim``, the IBE update on one batch of residuals,
-``mvc``: the three ``h`` evaluations and the check of eq. 38 that every iteration makes, and ``actor_average``:
-the averaged actor's update that the iterations of its window end with, :mod:`mixedrl.departures.actor_average`),
-so a slow iteration can be traced to its step.
+The parts are timed too (``collect``, ``pev``, ``pim``, the IBE update on one batch of residuals, and
+``mvc``: the three ``h`` evaluations and the check of eq. 38 that every iteration makes), so a slow
+iteration can be traced to its step.
 """
 
 from __future__ import annotations
@@ -26,7 +25,6 @@ import torch
 
 from mixedrl.algorithms.agpi import h_value, mvc_check
 from mixedrl.config import TrainConfig
-from mixedrl.departures import actor_average
 from mixedrl.runs import make_trainer
 
 
@@ -74,7 +72,7 @@ def test_iteration_compiled(benchmark, method: str, request: pytest.FixtureReque
     benchmark.extra_info["iterations_per_s"] = 1.0 / benchmark.stats.stats.median
 
 
-@pytest.mark.parametrize("part", ["collect", "pev", "pim", "ibe", "mvc", "actor_average"])
+@pytest.mark.parametrize("part", ["collect", "pev", "pim", "ibe", "mvc"])
 def test_iteration_parts(benchmark, part: str) -> None:
     """The steps of one mixed-RL iteration, separately (same batch, same noise quadrature)."""
     trainer = _trainer("mixed")
@@ -88,14 +86,12 @@ def test_iteration_parts(benchmark, part: str) -> None:
             h = [h_value(trainer.task, trainer.critic, s, u, offsets, weights) for _ in range(3)]
         mvc_check(h[0], h[1], h[2])
 
-    average = actor_average.make(trainer.actor, trainer.config.replace(**{"algorithm.actor_average_window": 1.0}))
     calls = {
         "collect": trainer.collect,
         "pev": lambda: trainer.pev(s, offsets, weights),
         "pim": lambda: trainer.pim(s, offsets, weights),
         "ibe": lambda: trainer.noise.update(np.asarray(residuals)),
         "mvc": mvc,
-        "actor_average": lambda: average.update_parameters(trainer.actor),
     }
     benchmark.group = "training-iteration-parts"
     benchmark.pedantic(calls[part], rounds=60, iterations=1, warmup_rounds=2)

@@ -76,6 +76,7 @@ DELETED_SETTINGS: dict[tuple[str, str], Any] = {
     ("algorithm", "rollout_critic_steps"): 1,
     ("algorithm", "rollout_updates"): 1,
     ("algorithm", "actor_average"): 0.0,
+    ("algorithm", "actor_average_window"): 0.0,
     ("algorithm", "bellman_steps"): 1,
     ("sampler", "course_ramp"): 0,
     ("algorithm", "feedforward_spread"): 0.0,
@@ -83,7 +84,8 @@ DELETED_SETTINGS: dict[tuple[str, str], Any] = {
 }
 #: The commit that can still run a deleted setting at another value (where the refusal names it).
 DELETED_AT: dict[tuple[str, str], str] = {("sampler", "course_ramp"): RETIRED_AT,
-                                          ("algorithm", "feedforward_handover"): "2488be5"}
+                                          ("algorithm", "feedforward_handover"): "2488be5",
+                                          ("algorithm", "actor_average_window"): "f18569e"}
 
 
 def optimiser_prefix(config: Any) -> str:
@@ -400,7 +402,7 @@ PAPER_SETTINGS: dict[str, dict[str, Any]] = {
     "sampler": {"name": "true_copies"},
     "algorithm": {"batch_weighting": "uniform", "lr_decay_to": 1.0, "critic_target": 0.0,
                   "feedforward": "learned", "rollout_horizon": 0,
-                  "rollout_region": 0.0, "actor_output": "tanh", "actor_average_window": 0.0},
+                  "rollout_region": 0.0, "actor_output": "tanh"},
 }
 #: The budget, networks and step sizes of the ``paper`` preset, those of the one-step learner; not
 #: departures: the paper gives none of them.
@@ -410,8 +412,7 @@ PAPER_HYPERPARAMETERS: dict[str, Any] = {
 #: The ``algorithm`` settings of the one-step learner (docs/tuning.rst): :data:`PAPER_HYPERPARAMETERS` with the
 #: rollout learner's departures off, the library's sampler, state weights and decay kept.
 ONE_STEP_LEARNER: dict[str, Any] = {**PAPER_HYPERPARAMETERS, "critic_target": 0.0, "rollout_horizon": 0,
-                                    "rollout_region": 0.0, "actor_output": "tanh", "feedforward": "learned",
-                                    "actor_average_window": 0.0}
+                                    "rollout_region": 0.0, "actor_output": "tanh", "feedforward": "learned"}
 #: Preset name -> section -> settings applied over ``TrainConfig(**fields)`` (:meth:`TrainConfig.preset`).
 CONFIG_PRESETS: dict[str, dict[str, dict[str, Any]]] = {
     "library": {},

@@ -180,11 +180,6 @@ class AlgorithmConfig:
     Retired: ``"clip"`` (straight through in both directions; commit c44231f still runs it,
     :data:`mixedrl.config.RETIRED_ACTOR_OUTPUTS`)."""
 
-    actor_average_window: float = 0.0
-    """Departure (averaged actor, :mod:`mixedrl.departures.actor_average`): fraction ``a`` in [0, 1] of the budget,
-    at its end, over which the deployed actor's weights are the uniform average of the actor's after every
-    iteration; 0 = the last actor (the paper's)."""
-
     def __post_init__(self) -> None:
         w = "algorithm"
         for name in ("iterations", "region_budget", "horizon", "noise_samples", "j_max", "stop_patience"):
@@ -212,8 +207,7 @@ class AlgorithmConfig:
                              f"{w}.ibe_case is {self.ibe_case}")
         check_fraction(self.lr_decay_to, f"{w}.lr_decay_to", low_open=True)
         for i, name in enumerate(("critic_target", "rollout_discount_start",  # below 1
-                                  "rollout_lambda", "rollout_discount_ramp", "rollout_region",
-                                  "actor_average_window")):
+                                  "rollout_lambda", "rollout_discount_ramp", "rollout_region")):
             check_fraction(getattr(self, name), f"{w}.{name}", high_open=i < 2)
 
 

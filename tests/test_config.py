@@ -243,11 +243,12 @@ def test_a_course_sampler_on_a_custom_task_without_a_course_is_refused_by_the_tr
 def test_every_shipped_flat_run_config_is_refused_naming_the_release() -> None:
     """The configs embedded in shipped per-run results in the flat form are records of runs of
     :data:`FLAT_FORM_RELEASE`: each is refused with an error naming it; the sectioned ones load and round-trip, but
-    for those of a retired ``algorithm.feedforward`` (learner_tuning's ``default_lq``), refused naming its commit."""
+    for those of a retired ``algorithm.feedforward`` (learner_tuning's ``default_lq``) or of a deleted setting away
+    from today's behaviour (``experiments/results/actor_average``), refused naming the commit that runs them."""
     root = Path(__file__).resolve().parents[1] / "experiments" / "results"
-    from mixedrl.config import RETIRED_FEEDFORWARDS
+    from mixedrl.config import DELETED_AT, DELETED_SETTINGS, RETIRED_FEEDFORWARDS
 
-    flat = sectioned = retired = 0
+    flat = sectioned = retired = deleted = 0
     for path in sorted(root.rglob("*.json")):
         data = json.loads(path.read_text())
         if not (isinstance(data, dict) and isinstance(data.get("config"), dict) and "method" in data["config"]):
@@ -262,6 +263,15 @@ def test_every_shipped_flat_run_config_is_refused_naming_the_release() -> None:
                 TrainConfig.from_dict(config)
             retired += 1
             continue
+        gone = [(sec, name) for (sec, name), today in DELETED_SETTINGS.items()
+                if name in config.get(sec, {}) and config[sec][name] != today]
+        if gone:  # a run of a setting deleted since: refused naming the commit that runs it
+            sec, name = gone[0]
+            with pytest.raises(ValueError, match=rf"^{sec}\.{name}: this setting was deleted .*; git commit "
+                                                 rf"{DELETED_AT[(sec, name)]} can still run it$"):
+                TrainConfig.from_dict(config)
+            deleted += 1
+            continue
         if "algorithm" in config:
             cfg = TrainConfig.from_dict(config)
             assert TrainConfig.from_dict(cfg.to_dict()) == cfg, path
@@ -270,7 +280,7 @@ def test_every_shipped_flat_run_config_is_refused_naming_the_release() -> None:
         with pytest.raises(ValueError, match=r"^config: \[.*\] at the top level is the flat form, " + _RELEASE):
             TrainConfig.from_dict(config)
         flat += 1
-    assert flat >= 300 and retired == 12
+    assert flat >= 300 and retired == 12 and deleted == 120
 
 
 def test_dlc_obs_scale_override() -> None:

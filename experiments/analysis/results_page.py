@@ -328,6 +328,16 @@ DELETED: tuple[tuple[str, str], ...] = (
      "(``experiments/results/model_based/summary.csv``, design Q1 against M, the one-step learner, seeds 0-4) "
      "``beta = 0.995`` gave lateral 0.119 m and course cost 30.0 against M's 0.110 m and 27.1, and held-out "
      "seed 6 still left the lane (0.593 m; M: 0.514 m): no gain."),
+    ("algorithm.actor_average_window",
+     "the deployed actor's weights the uniform average of the actor's after every iteration of the budget's last "
+     "fraction ``a`` (stochastic weight averaging, training unchanged); deleted at commit f18569e, which runs it "
+     "and ``experiments/analysis/actor_average_check.py`` (one run evaluated with its last and its averaged actor; "
+     "``experiments/results/actor_average``). On the tracking tuning system ``slalom_weak`` ``a = 0.5`` cut the "
+     "paired spread of model-driven minus mixed RL's lateral MAE from 0.0042 to 0.0016 on the screen's seeds "
+     "100-109 but only from 0.0036 to 0.0029 on fresh seeds 140-159 (criterion fixed before: 0.0027; mixed RL "
+     "better on 16 of 20 either way, both methods' lateral MAE about 0.001 m lower); it lowered 19 of the "
+     "swing-up's 20 returns (seeds 100-109; model-driven RL's worst -144.5 to -167.1) and moved the cart's and "
+     "the two tanks' cost over the LQR by at most +0.05% for mixed RL: not a default (:doc:`tuning`)."),
     ("algorithm.bellman_steps",
      "PEV's target and PIM's objective on an ``n``-step model rollout (the one-step learner); on the pendulum "
      "(``experiments/results/precision/FINDINGS.md``, seeds 0-2) ``n = 10`` gave mixed RL a steady offset of "

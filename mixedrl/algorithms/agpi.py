@@ -33,7 +33,7 @@ from torch.optim.swa_utils import AveragedModel
 from mixedrl.config import TrainConfig
 from mixedrl.algorithms import algorithm2
 from mixedrl.samplers import SAMPLER_CLASSES
-from mixedrl.departures import actor_average, actor_output, anchor, critic_target, state_weights
+from mixedrl.departures import actor_output, anchor, critic_target, state_weights
 from mixedrl.departures.anchor import feedforward_policy
 from mixedrl.expectation import NodeCache, expectation_nodes, h_value
 from mixedrl.networks import Actor, AffineActor, ClippedActor, Critic, QuadraticCritic
@@ -156,9 +156,6 @@ class AGPI:
         #: The target critic ``V(x; w_bar)`` of PEV (:mod:`mixedrl.departures.critic_target`), else ``None``
         #: (eq. 50: the critic itself).
         self.critic_target: AveragedModel | None = critic_target.make(self.critic, config)
-        #: The averaged actor ``pi(x; theta_bar)`` the run deploys (:mod:`mixedrl.departures.actor_average`),
-        #: else ``None`` (the last actor).
-        self.actor_average: AveragedModel | None = actor_average.make(self.actor, config)
         #: End states of the last rollouts that the next iteration's region starts carry over
         #: (:mod:`mixedrl.departures.region`), else ``None``; part of the checkpoint once set.
         self.region_carry: torch.Tensor | None = None
@@ -178,10 +175,8 @@ class AGPI:
 
     @property
     def learned_policy(self) -> torch.nn.Module:
-        """The learned policy (before a feed-forward of :attr:`policy`): the actor ``pi(x; theta)``, or, with
-        ``algorithm.actor_average_window``, the averaged actor ``pi(x; theta_bar)`` once it holds a weight
-        (:func:`mixedrl.departures.actor_average.policy`)."""
-        return actor_average.policy(self)
+        """The learned policy: the actor ``pi(x; theta)`` (before a feed-forward of :attr:`policy`)."""
+        return self.actor
 
     @property
     def policy(self) -> torch.nn.Module:
@@ -354,8 +349,8 @@ class AGPI:
 
     def plug_ins(self) -> dict[str, Any]:
         """The run's parts that departures add, by checkpoint key: ``sampler`` (a model-rollout sampler),
-        ``critic_target`` (target values), ``actor_average`` (averaged actor); only those the run has."""
-        parts = {"sampler": self.sampler, "critic_target": self.critic_target, "actor_average": self.actor_average}
+        ``critic_target`` (target values); only those the run has."""
+        parts = {"sampler": self.sampler, "critic_target": self.critic_target}
         return {key: part for key, part in parts.items() if part is not None}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:

@@ -36,7 +36,7 @@ from typing import Any, Sequence
 import numpy as np
 import torch
 
-from mixedrl.departures import actor_average, anchor, critic_target, region, rollout, sampler, schedule, state_weights
+from mixedrl.departures import anchor, critic_target, region, rollout, sampler, schedule, state_weights
 from mixedrl.expectation import expectation_nodes, h_value
 from mixedrl.pev import critic_step
 from mixedrl.pim import MVCResult, actor_step, mvc_check
@@ -170,7 +170,6 @@ def iteration(engine: Any, active: Sequence[bool] | None = None) -> list[dict[st
             m.stop_count = 0
         m.stopped = cfg.stop_epsilon > 0 and m.stop_count >= cfg.stop_patience
         critic_target.end(m)  # departure hook: w_bar <- beta w_bar + (1 - beta) w^{k+1}
-        actor_average.end(m)  # departure hook: theta_bar, the average of the late theta^{k+1}
         m.k += 1
         m.last_batch = batches[r]
         rows[r] = metrics_row(m, residuals[r], v_before[sl], critic_losses[r], actor_objs[r], dv, dpi, mvc, j_r)

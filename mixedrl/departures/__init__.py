@@ -16,7 +16,6 @@ target values          :mod:`~mixedrl.departures.critic_target`     PEV (the net
 rollouts               :mod:`~mixedrl.departures.rollout`           PEV and PIM (``H``-step model rollouts)
 region starts          :mod:`~mixedrl.departures.region`            PEV and PIM (the rollouts' start states)
 actor output           :mod:`~mixedrl.departures.actor_output`      the actor's class (clip, not ``tanh``)
-averaged actor         :mod:`~mixedrl.departures.actor_average`     end of the iteration; ``AGPI.learned_policy``
 =====================  ===========================================  ==========================================
 
 :func:`used` lists the departures a configuration switches on (written to a run's ``results.json`` as
@@ -27,14 +26,14 @@ from __future__ import annotations
 
 from typing import Any
 
-from mixedrl.departures import (actor_average, actor_output, anchor, critic_target, region, rollout, sampler,
-                                schedule, state_weights)
+from mixedrl.departures import (actor_output, anchor, critic_target, region, rollout, sampler, schedule,
+                                state_weights)
 
-__all__ = ["DEPARTURES", "used", "actor_average", "actor_output", "anchor", "critic_target", "region", "rollout", "sampler", "schedule",
+__all__ = ["DEPARTURES", "used", "actor_output", "anchor", "critic_target", "region", "rollout", "sampler", "schedule",
            "state_weights"]
 
 #: Every departure module, in the order of the loop.
-DEPARTURES = (schedule, anchor, actor_output, sampler, state_weights, critic_target, region, rollout, actor_average)
+DEPARTURES = (schedule, anchor, actor_output, sampler, state_weights, critic_target, region, rollout)
 
 
 def used(config: Any) -> list[str]:
