@@ -149,6 +149,12 @@ class AlgorithmConfig:
     """Departure (anchor): width ``rho`` >= 0 of the ``"lq_ss"`` shift (and of the hand-over), weighted by
     ``exp(-|(o - o_ss) / (rho obs_scale)|^2 / 2)``; 0 = a constant shift (docs/tuning.rst)."""
 
+    feedforward_calibration: int = 0
+    """Departure (anchor): Newton steps >= 0 that correct the ``"lq_ss"`` shift (and ``"lq_handover"``'s) so that
+    the deployed closed loop's mean state in the planning model, under the run's own noise, is the LQ optimum's
+    (:func:`mixedrl.departures.anchor.calibrate_shift`); 0 = the shift as :func:`~mixedrl.departures.anchor.steady_anchor`
+    gives it."""
+
     compile: str = "off"
     """How the updates run, Algorithm 2's PEV and PIM steps and DDPG's critic and actor steps alike
     (:mod:`mixedrl.compiled`, docs/algorithm2.rst): ``"off"`` = eagerly (the reference), ``"on"`` = compiled by
@@ -184,7 +190,7 @@ class AlgorithmConfig:
         w = "algorithm"
         for name in ("iterations", "region_budget", "horizon", "noise_samples", "j_max", "stop_patience"):
             setattr(self, name, check_positive_int(getattr(self, name), f"{w}.{name}"))
-        for name in ("lr_decay_iterations", "rollout_horizon"):
+        for name in ("lr_decay_iterations", "rollout_horizon", "feedforward_calibration"):
             setattr(self, name, check_nonnegative_int(getattr(self, name), f"{w}.{name}"))
         _check_optimiser(self, w)
         if isinstance(self.hidden_sizes, (str, bytes)) or not isinstance(self.hidden_sizes, (list, tuple)) \
