@@ -96,3 +96,20 @@ def test_iteration_parts(benchmark, part: str) -> None:
     benchmark.group = "training-iteration-parts"
     benchmark.pedantic(calls[part], rounds=60, iterations=1, warmup_rounds=2)
     benchmark.extra_info["batch_size"] = trainer.config.algorithm.batch_size
+
+
+@pytest.mark.parametrize("calibration", [0, 1])
+def test_deployed_policy(benchmark, calibration: int) -> None:
+    """Building the deployed policy of the default (``"lq_handover"``) once, without and with the calibrated shift
+    (:func:`mixedrl.departures.anchor.calibrate_shift`: one Newton step, 256 model closed loops over the task's
+    evaluation horizon); a run builds it at each of its evaluations. Nothing is cached between rounds."""
+    trainer = _trainer("mixed")
+    trainer.config.algorithm.feedforward_calibration = calibration
+
+    def build() -> None:
+        trainer._calibration = None
+        _ = trainer.policy
+
+    benchmark.group = "deployed-policy"
+    benchmark.pedantic(build, rounds=8, iterations=1, warmup_rounds=1)
+    benchmark.extra_info["feedforward"] = trainer.feedforward

@@ -117,6 +117,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="evaluate with this algorithm.feedforward instead of the run's ('lq_ss': the actor shifted "
                         "near the LQ optimum's steady state to the optimum's action there, for the method's own "
                         "noise mean)")
+    p.add_argument("--calibration", type=int, default=None, metavar="K",
+                   help="evaluate with this algorithm.feedforward_calibration instead of the run's (0: the shift "
+                        "alone, no Newton step on the model's mean state)")
     p.set_defaults(handler=_evaluate)
 
     add_sweep_parser(sub)  # Ray is imported only when a sweep runs on it
@@ -214,10 +217,11 @@ def _train(args: argparse.Namespace) -> int:
 
 
 def _evaluate(args: argparse.Namespace) -> int:
-    out = evaluate_run(args.run_dir, seeds=args.seeds, feedforward=args.feedforward)
+    out = evaluate_run(args.run_dir, seeds=args.seeds, feedforward=args.feedforward, calibration=args.calibration)
     config, metrics, gap = out["config"], out["metrics"], out["policy_gap"]
     print(json.dumps({"run": str(args.run_dir), "method": config.method, "seed": config.seed,
                       "iteration": out["iteration"], "feedforward": config.algorithm.feedforward,
+                      "feedforward_calibration": config.algorithm.feedforward_calibration,
                       **{k: v for k, v in metrics.items() if isinstance(v, (int, float))},
                       "policy_gap": gap_summary(gap)}, indent=2))
     print(format_policy_gap(gap, out["policy_gap_reason"]), file=sys.stderr)

@@ -149,11 +149,11 @@ class AlgorithmConfig:
     """Departure (anchor): width ``rho`` >= 0 of the ``"lq_ss"`` shift (and of the hand-over), weighted by
     ``exp(-|(o - o_ss) / (rho obs_scale)|^2 / 2)``; 0 = a constant shift (docs/tuning.rst)."""
 
-    feedforward_calibration: int = 0
+    feedforward_calibration: int = 1
     """Departure (anchor): Newton steps >= 0 that correct the ``"lq_ss"`` shift (and ``"lq_handover"``'s) so that
     the deployed closed loop's mean state in the planning model, under the run's own noise, is the LQ optimum's
     (:func:`mixedrl.departures.anchor.calibrate_shift`); 0 = the shift as :func:`~mixedrl.departures.anchor.steady_anchor`
-    gives it."""
+    gives it (docs/precision.rst)."""
 
     compile: str = "off"
     """How the updates run, Algorithm 2's PEV and PIM steps and DDPG's critic and actor steps alike

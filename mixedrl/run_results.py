@@ -80,7 +80,7 @@ def make_trainer(config: TrainConfig, task: Task | None = None) -> AGPI | DDPG:
 
 
 def evaluate_run(path: str | Path, *, seeds: int | None = None, feedforward: str | None = None,
-                 task: Task | None = None) -> dict[str, Any]:
+                 task: Task | None = None, calibration: int | None = None) -> dict[str, Any]:
     """Evaluate a run directory's final policy on its task (``mixedrl evaluate``); reads only.
 
     Parameters
@@ -94,6 +94,9 @@ def evaluate_run(path: str | Path, *, seeds: int | None = None, feedforward: str
         the LQ optimum's action near its steady state for the method's own noise mean).
     task : Task, optional
         The task object of a user's own task (not rebuilt from the config).
+    calibration : int, optional
+        Evaluate with this ``algorithm.feedforward_calibration`` instead of the run's (0: the shift alone). A run
+        saved before the setting existed holds none and is read at today's default.
 
     Returns
     -------
@@ -104,14 +107,16 @@ def evaluate_run(path: str | Path, *, seeds: int | None = None, feedforward: str
     Raises
     ------
     ValueError
-        If ``path`` is not a run directory, or as :class:`TrainConfig` for a bad ``feedforward``.
+        If ``path`` is not a run directory, or as :class:`TrainConfig` for a bad ``feedforward`` or
+        ``calibration``.
     """
     run = RunDirectory(path)
     if not run.path.is_dir():
         raise ValueError(f"run_dir: {run.path} is not a directory" if run.path.exists()
                          else f"run_dir: {run.path} does not exist")
     config = run.read_config()
-    for key, value in (("run.eval_seeds", seeds), ("algorithm.feedforward", feedforward)):
+    for key, value in (("run.eval_seeds", seeds), ("algorithm.feedforward", feedforward),
+                       ("algorithm.feedforward_calibration", calibration)):
         if value is not None:
             config = config.replace(**{key: value})
     trainer = make_trainer(config, task)

@@ -308,8 +308,10 @@ def test_train_and_evaluate_print_the_policy_gap(tmp_path: Path, capsys: pytest.
 
 # ------------------------------------------------ algorithm.feedforward = "lq_ss" (a departure), a constant shift
 def _ff(method: str) -> TrainConfig:
+    """``"lq_ss"`` as :func:`~mixedrl.departures.anchor.steady_anchor` gives it: a constant shift, not calibrated."""
     return TrainConfig(method=method, task="linear", seed=0, algorithm={
-        "batch_size": 16, "hidden_sizes": (8,), "feedforward": "lq_ss", "feedforward_width": 0.0})
+        "batch_size": 16, "hidden_sizes": (8,), "feedforward": "lq_ss", "feedforward_width": 0.0,
+        "feedforward_calibration": 0})
 
 
 def _steady(lin: object, mu: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -361,9 +363,10 @@ def test_feedforward_lq_ss_follows_the_ibe_and_leaves_training_unchanged() -> No
     """Mixed RL's feed-forward is the IBE posterior's; the option changes no weight of training."""
     a = AGPI(LinearTask(), TrainConfig(method="mixed", task="linear", seed=0,
                                        algorithm={"batch_size": 16, "hidden_sizes": (8,)}))
-    b = AGPI(LinearTask(), _ff("mixed"))
+    b = AGPI(LinearTask(), _ff("mixed"))  # the calibration (not read in training either) off: the shift's anchor
     for _ in range(5):
         a.iteration()
+        _ = a.policy  # the default deploys a calibrated shift: its draws must leave training's stream alone
         b.iteration()
     for pa, pb in zip(list(a.actor.parameters()) + list(a.critic.parameters()),
                       list(b.actor.parameters()) + list(b.critic.parameters())):
@@ -510,7 +513,8 @@ def test_lq_ss_takes_the_optimums_steady_action_at_its_steady_state(width: float
     l0``; away from it the shift is the same constant (``width`` 0) or fades (``width`` > 0)."""
     task = LinearTask()
     trainer = AGPI(task, TrainConfig(method="oracle", task="linear", seed=0, algorithm={
-        "batch_size": 16, "hidden_sizes": (8,), "feedforward": "lq_ss", "feedforward_width": width}))
+        "batch_size": 16, "hidden_sizes": (8,), "feedforward": "lq_ss", "feedforward_width": width,
+        "feedforward_calibration": 0}))
     lin = task.linearisation()
     L, l0 = scipy_optimum(lin.A, lin.B, lin.Q, lin.R, lin.gamma, lin.E @ task.true_mean)
     x_ss = np.linalg.solve(np.eye(2) - lin.A + lin.B @ L, lin.E @ task.true_mean - lin.B @ l0)

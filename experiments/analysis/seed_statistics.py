@@ -22,14 +22,16 @@ Usage::
 
     python experiments/analysis/seed_statistics.py runs/table1_seeds20 --dest experiments/results/table1_seeds20/seeds20
     python experiments/analysis/seed_statistics.py runs/table1_seeds20_default --feedforward lq_ss \
-        --dest experiments/results/table1_seeds20/default_lqss
+        --calibration 0 --dest experiments/results/table1_seeds20/default_lqss
     python experiments/analysis/seed_statistics.py experiments/results/table1_seeds20/seeds20/per_seed.csv runs/table1_seeds20_ddpg \
         --dest experiments/results/table1_seeds20/seeds20_ddpg
 
 With ``--feedforward lq_ss`` every run's final checkpoint is evaluated again with ``algorithm.feedforward =
 "lq_ss"`` (the same trained actor shifted, near the discounted LQ optimum's steady state for the method's own
 noise mean, to the optimum's action there; docs page ``precision.rst``) on the run's own evaluation seeds: a
-paired comparison of the two policies each run would deploy (sweep directories only). The rows evaluated with
+paired comparison of the two policies each run would deploy (sweep directories only); ``--calibration K`` sets
+``algorithm.feedforward_calibration`` of that evaluation (0: the shift alone; default: the run's config, read at
+today's default where it predates the setting). The rows evaluated with
 the retired ``--feedforward lq`` (``feedforward``, ``default_feedforward``) are re-derived at commit c44231f.
 """
 
@@ -95,17 +97,19 @@ SHIFTS = {"lq_ss": "shifted, near the LQ optimum's steady state for each method'
                    "on this task"}
 
 
-def _evaluated(path: Path, feedforward: str) -> dict[str, Any]:
-    """A run's final policy evaluated with ``algorithm.feedforward = feedforward`` (:func:`evaluate_run`), in
-    the keys of ``results.json`` that :func:`load_rows` reads."""
-    out = evaluate_run(path, feedforward=feedforward)
+def _evaluated(path: Path, feedforward: str, calibration: int | None = None) -> dict[str, Any]:
+    """A run's final policy evaluated with ``algorithm.feedforward = feedforward`` (and
+    ``algorithm.feedforward_calibration = calibration`` when given; :func:`evaluate_run`), in the keys of
+    ``results.json`` that :func:`load_rows` reads."""
+    out = evaluate_run(path, feedforward=feedforward, calibration=calibration)
     m = out["metrics"]
     return {"lateral_mae": float(m["lateral_mae"]), "speed_mae": float(m["speed_mae"]), "cost": float(m["cost"]),
             "final": {"terminated": m.get("terminated")}, "iterations": out["iteration"],
             "policy_gap": out["policy_gap"]}
 
 
-def load_rows(sweep: Path, feedforward: str | None = None, partial: bool = False) -> dict[str, list[dict[str, Any]]]:
+def load_rows(sweep: Path, feedforward: str | None = None, partial: bool = False, calibration: int | None = None
+              ) -> dict[str, list[dict[str, Any]]]:
     """Per row (:func:`row_key`), the sweep's finished runs sorted by seed: the figures of :data:`FIGURES`.
 
     A sweep with unfinished runs (no results yet) is refused unless ``partial``; with it, only the finished
@@ -131,7 +135,7 @@ def load_rows(sweep: Path, feedforward: str | None = None, partial: bool = False
                              f"analysis is for the double lane change (Table I)")
         learned_err = ((res.get("policy_gap") or {}).get("action_error") or [None, None])[1]
         if feedforward is not None:
-            res = {**res, **_evaluated(sweep / rec["run_dir"], feedforward)}
+            res = {**res, **_evaluated(sweep / rec["run_dir"], feedforward, calibration)}
         gap = res.get("policy_gap") or {}
         err = gap.get("action_error") or [None, None]
         variant = (rec.get("point") or {}).get("variant")
@@ -177,8 +181,8 @@ def load_csv_rows(path: Path) -> dict[str, list[dict[str, Any]]]:
     return {m: sorted(v, key=lambda r: r["seed"]) for m, v in rows.items()}
 
 
-def load_sources(sources: list[Path], feedforward: str | None = None, partial: bool = False
-                 ) -> tuple[dict[str, list[dict[str, Any]]], dict[str, list[str]]]:
+def load_sources(sources: list[Path], feedforward: str | None = None, partial: bool = False,
+                 calibration: int | None = None) -> tuple[dict[str, list[dict[str, Any]]], dict[str, list[str]]]:
     """The rows of every source (a sweep directory or a ``per_seed.csv``), merged, and per source the rows
     it gave (``partial``: a sweep's finished runs only, :func:`load_rows`).
 
@@ -192,7 +196,7 @@ def load_sources(sources: list[Path], feedforward: str | None = None, partial: b
     given: dict[str, list[str]] = {}
     for src in sources:
         if src.is_dir():
-            got = load_rows(src, feedforward, partial)
+            got = load_rows(src, feedforward, partial, calibration)
         elif src.is_file():
             if feedforward is not None:
                 raise ValueError(f"{src}: --feedforward evaluates checkpoints again; it needs sweep directories, "
@@ -274,7 +278,7 @@ def targets(rows: dict[str, list[dict[str, Any]]], stats: dict[str, Any]) -> dic
 
 
 def format_table(rows: dict[str, list[dict[str, Any]]], stats: dict[str, Any], feedforward: str | None = None,
-                 sources: dict[str, list[str]] | None = None) -> str:
+                 sources: dict[str, list[str]] | None = None, calibration: int | None = None) -> str:
     """``table.txt`` (with ``sources``, from more than one, a line naming each source's rows)."""
     n = max((len(v) for v in rows.values()), default=0)
     what = "Algorithm-2 rows" if set(rows) <= set(METHODS) else "rows"
@@ -283,7 +287,8 @@ def format_table(rows: dict[str, list[dict[str, Any]]], stats: dict[str, Any], f
         lines += [f"Rows from {src}: {', '.join(keys)}" for src, keys in sources.items()]
     if feedforward is not None:
         lines.append(f"Policies evaluated with algorithm.feedforward = {feedforward!r} (the same trained actors, "
-                     f"{SHIFTS.get(feedforward, 'shifted')})")
+                     f"{SHIFTS.get(feedforward, 'shifted')})"
+                     + ("" if calibration is None else f"; algorithm.feedforward_calibration = {calibration}"))
     trained = sorted({r.get("trained_feedforward") or "learned" for runs in rows.values() for r in runs} - {"learned"})
     if trained:
         lines.append(f"Runs with algorithm.feedforward = {', '.join(map(repr, trained))}")
@@ -383,11 +388,16 @@ def main(argv: list[str] | None = None) -> int:
                         help="evaluate each run's final checkpoint again with this algorithm.feedforward "
                              "('lq_ss': the actor shifted near the LQ optimum's steady state to the optimum's "
                              "action there, locally)")
+    parser.add_argument("--calibration", type=int, default=None, metavar="K",
+                        help="with --feedforward: algorithm.feedforward_calibration of that evaluation (0: the shift "
+                             "alone; default: the run's config)")
     parser.add_argument("--partial", action="store_true",
                         help="read only the finished runs of an unfinished sweep (default: refuse it)")
     args = parser.parse_args(argv)
     try:
-        rows, sources = load_sources(args.sources, args.feedforward, args.partial)
+        if args.calibration is not None and args.feedforward is None:
+            raise ValueError("--calibration: it sets the calibration of --feedforward's evaluation; give --feedforward")
+        rows, sources = load_sources(args.sources, args.feedforward, args.partial, args.calibration)
     except ValueError as exc:
         parser.error(str(exc))
     if not rows:
@@ -396,7 +406,7 @@ def main(argv: list[str] | None = None) -> int:
     args.dest.mkdir(parents=True, exist_ok=True)
     atomic_write_text(args.dest / "per_seed.csv", csv_text([r for m in ordered(rows) for r in rows[m]]))
     atomic_write_text(args.dest / "summary.json", json.dumps(stats, indent=2) + "\n")
-    table = format_table(rows, stats, args.feedforward, sources)
+    table = format_table(rows, stats, args.feedforward, sources, args.calibration)
     atomic_write_text(args.dest / "table.txt", table + "\n")
     make_figure(rows, args.dest / "per_seed.png", args.feedforward)
     print(table)

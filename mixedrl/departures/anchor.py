@@ -14,7 +14,7 @@ RL: the prior; the oracle: the truth; :func:`own_noise`):
   state the planning model never visits (model-driven RL against an unmodelled mean), the actor's
   extrapolation is not trusted.
 
-With ``algorithm.feedforward_calibration = k > 0`` the ``"lq_ss"`` shift (and so ``"lq_handover"``'s) is
+With ``algorithm.feedforward_calibration = k > 0`` (default 1) the ``"lq_ss"`` shift (and so ``"lq_handover"``'s) is
 corrected by ``k`` Newton steps so that the deployed closed loop's mean state, simulated in the planning model
 with the run's own noise, is the LQ optimum's (:func:`calibrate_shift`): the shift alone makes the two rest
 at one point only to first order, and a curved actor under noise rests elsewhere.
@@ -43,7 +43,7 @@ from mixedrl.task_base import Linearisation, Task
 __all__ = ["NAME", "KEY", "PAPER", "active", "resolve", "LQReference", "lq_reference", "own_noise",
            "FeedForwardPolicy", "HandoverPolicy", "feedforward_policy", "handover_policy", "equilibrium_observation",
            "equilibrium_gain", "feedforward_action", "steady_anchor", "remember", "AffinePolicy", "calibrate_shift",
-           "deployed_policy", "CALIBRATION_COPIES", "CALIBRATION_STEP"]
+           "deployed_policy", "CALIBRATION_COPIES", "CALIBRATION_HORIZON", "CALIBRATION_STEP"]
 
 logger = logging.getLogger(__name__)
 
@@ -53,6 +53,9 @@ PAPER = PAPER_SETTINGS["algorithm"]["feedforward"]
 
 #: Model copies of the calibration's closed loops (:func:`calibrate_shift`).
 CALIBRATION_COPIES = 256
+#: Most steps of the calibration's closed loops: ``min(task.eval_horizon, CALIBRATION_HORIZON)`` (the evaluation
+#: horizon of every system the calibration was chosen on; a course of 2,000 steps is not needed to see a rest point).
+CALIBRATION_HORIZON = 200
 #: Finite-difference step of the calibration's Jacobian, as a fraction of the action bound (of 1 where unbounded).
 CALIBRATION_STEP = 1e-2
 #: Mixed with the run's seed into the seed of the calibration's noise draws (a stream of its own).
@@ -408,7 +411,8 @@ def calibrate_shift(trainer: Any, deploy: Any, reference: torch.nn.Module, start
     r"""Implements ``algorithm.feedforward_calibration``: the correction ``delta`` of the deployed shift's action
     whose closed loop in the planning model rests, in the mean, where the LQ optimum's does.
 
-    With ``e(delta)`` the mean of ``task.state_error`` over the second half of ``task.eval_horizon`` steps of
+    With ``e(delta)`` the mean of ``task.state_error`` over the second half of ``task.eval_horizon`` steps (at most
+    :data:`CALIBRATION_HORIZON`) of
     :data:`CALIBRATION_COPIES` copies of ``f(s, u) + E xi``, ``xi ~ N(mean, cov)`` (the run's own noise), from
     the states ``start`` (drawn by :func:`deployed_policy` from the optimum's stationary distribution on the
     linearisation, so that the window sees the noise's full spread), under ``deploy(delta)``, and ``e_LQ`` the same under ``reference`` (the
@@ -445,7 +449,8 @@ def calibrate_shift(trainer: Any, deploy: Any, reference: torch.nn.Module, start
     task: Task = trainer.task
     m, d = int(task.action_dim), int(task.noise_dim)
     gen = torch.Generator().manual_seed(_calibration_seed(trainer, 0))
-    z = torch.randn(int(task.eval_horizon), CALIBRATION_COPIES, d, generator=gen, dtype=torch.float64)
+    horizon = min(int(task.eval_horizon), CALIBRATION_HORIZON)
+    z = torch.randn(horizon, CALIBRATION_COPIES, d, generator=gen, dtype=torch.float64)
     vals, vecs = np.linalg.eigh(np.asarray(cov, dtype=np.float64).reshape(d, d))
     root = torch.as_tensor(vecs * np.sqrt(np.clip(vals, 0.0, None)), dtype=torch.float64)
     xi = torch.as_tensor(np.asarray(mean, dtype=np.float64).reshape(d)) + z @ root.T
