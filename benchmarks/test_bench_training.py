@@ -101,7 +101,7 @@ def test_iteration_parts(benchmark, part: str) -> None:
 @pytest.mark.parametrize("calibration", [0, 1])
 def test_deployed_policy(benchmark, calibration: int) -> None:
     """Building the deployed policy of the default (``"lq_handover"``) once, without and with the calibrated shift
-    (:func:`mixedrl.departures.anchor.calibrate_shift`: one Newton step, 256 model closed loops over the task's
+    (:func:`mixedrl.departures.calibration.calibrate_shift`: one Newton step, 256 model closed loops over the task's
     evaluation horizon); a run builds it at each of its evaluations. Nothing is cached between rounds."""
     trainer = _trainer("mixed")
     trainer.config.algorithm.feedforward_calibration = calibration

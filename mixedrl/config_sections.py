@@ -152,7 +152,7 @@ class AlgorithmConfig:
     feedforward_calibration: int = 1
     """Departure (anchor): Newton steps >= 0 that correct the ``"lq_ss"`` shift (and ``"lq_handover"``'s) so that
     the deployed closed loop's mean state in the planning model, under the run's own noise, is the LQ optimum's
-    (:func:`mixedrl.departures.anchor.calibrate_shift`); 0 = the shift as :func:`~mixedrl.departures.anchor.steady_anchor`
+    (:func:`mixedrl.departures.calibration.calibrate_shift`); 0 = the shift as :func:`~mixedrl.departures.anchor.steady_anchor`
     gives it (docs/precision.rst)."""
 
     compile: str = "off"

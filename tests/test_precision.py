@@ -843,7 +843,7 @@ def test_feedforward_calibration_must_be_a_nonnegative_integer() -> None:
 def test_the_calibration_starts_from_the_optimums_stationary_distribution() -> None:
     """The copies start from ``N(x_ss, S)``, ``S`` the stationary covariance of the optimum's closed loop (here by
     iterating ``S <- A_c S A_c^T + E K E^T`` to its fixed point, not scipy's Lyapunov solver)."""
-    from mixedrl.departures.anchor import CALIBRATION_COPIES, _stationary_draws
+    from mixedrl.departures.calibration import CALIBRATION_COPIES, _stationary_draws
 
     trainer, x_ss = _calibrated_trainer()
     lin, task = trainer.task.linearisation(), trainer.task

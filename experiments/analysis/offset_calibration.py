@@ -1,4 +1,4 @@
-"""The calibrated shift (``algorithm.feedforward_calibration``, :func:`mixedrl.departures.anchor.calibrate_shift`)
+"""The calibrated shift (``algorithm.feedforward_calibration``, :func:`mixedrl.departures.calibration.calibrate_shift`)
 against the shift alone, on the tuning systems near an equilibrium only.
 
 The departure changes only the deployed policy, so one run gives both: a run is trained at the library defaults

@@ -33,7 +33,7 @@ from torch.optim.swa_utils import AveragedModel
 from mixedrl.config import TrainConfig
 from mixedrl.algorithms import algorithm2
 from mixedrl.samplers import SAMPLER_CLASSES
-from mixedrl.departures import actor_output, anchor, critic_target, state_weights
+from mixedrl.departures import actor_output, anchor, calibration, critic_target, state_weights
 from mixedrl.expectation import NodeCache, expectation_nodes, h_value
 from mixedrl.networks import Actor, AffineActor, ClippedActor, Critic, QuadraticCritic
 from mixedrl.noise import make_noise_source
@@ -184,10 +184,10 @@ class AGPI:
         steady state (:func:`mixedrl.departures.anchor.feedforward_policy`); with ``"lq_handover"`` the latter,
         handed over to the optimum outside :attr:`trained_box`
         (:func:`mixedrl.departures.anchor.handover_policy`); either shift calibrated with
-        ``algorithm.feedforward_calibration`` (:func:`mixedrl.departures.anchor.deployed_policy`)."""
+        ``algorithm.feedforward_calibration`` (:func:`mixedrl.departures.calibration.deployed_policy`)."""
         if self.feedforward == "learned":
             return self.learned_policy
-        return anchor.deployed_policy(self, self.learned_policy, self._linearisation, self.feedforward)
+        return calibration.deployed_policy(self, self.learned_policy, self._linearisation, self.feedforward)
 
     def nodes(self, mean: np.ndarray, cov: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
         """Quadrature of ``N(mean, cov)`` with this run's rule: :func:`mixedrl.algorithms.algorithm2.nodes`."""

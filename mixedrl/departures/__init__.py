@@ -10,6 +10,7 @@ hook                   module                                       where the lo
 =====================  ===========================================  ==========================================
 schedule               :mod:`~mixedrl.departures.schedule`          start of the iteration (learning rates)
 anchor                 :mod:`~mixedrl.departures.anchor`            ``AGPI.policy``; after PIM (trained box)
+anchor (calibration)   :mod:`~mixedrl.departures.calibration`       ``AGPI.policy`` (the shift corrected)
 sampler                :mod:`~mixedrl.departures.sampler`           data (the batch and the true transitions)
 state weights          :mod:`~mixedrl.departures.state_weights`     PEV and PIM (per-state weights)
 target values          :mod:`~mixedrl.departures.critic_target`     PEV (the network inside ``V_target``)
