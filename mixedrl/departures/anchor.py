@@ -40,7 +40,7 @@ from mixedrl.lq import LQSolution, discounted_lq_optimum
 from mixedrl.task_base import Linearisation, Task
 
 __all__ = ["NAME", "KEY", "PAPER", "active", "resolve", "LQReference", "lq_reference", "own_noise",
-           "FeedForwardPolicy", "HandoverPolicy", "feedforward_policy", "handover_policy", "equilibrium_observation",
+           "FeedForwardPolicy", "AffinePolicy", "HandoverPolicy", "feedforward_policy", "handover_policy", "equilibrium_observation",
            "equilibrium_gain", "feedforward_action", "steady_anchor", "remember"]
 
 logger = logging.getLogger(__name__)
@@ -227,6 +227,25 @@ class FeedForwardPolicy(torch.nn.Module):
         return u if self.bound is None else torch.maximum(torch.minimum(u, self.bound), -self.bound)
 
 
+class AffinePolicy(torch.nn.Module):
+    """The discounted LQ optimum's affine policy in observations, ``clip(u_a + G (o - o_a), -u_bar, u_bar)``
+    (unclipped without ``bound``): :class:`HandoverPolicy`'s outer policy and the calibration's reference closed
+    loop (:mod:`mixedrl.departures.calibration`)."""
+
+    def __init__(self, gain: torch.Tensor, observation: torch.Tensor, action: torch.Tensor,
+                 bound: torch.Tensor | None = None) -> None:
+        super().__init__()
+        f32 = dict(dtype=torch.float32)
+        self.gain = torch.as_tensor(gain, **f32)
+        self.observation = torch.as_tensor(observation, **f32).reshape(-1)
+        self.action = torch.as_tensor(action, **f32).reshape(-1)
+        self.bound = None if bound is None else torch.as_tensor(bound, **f32)
+
+    def forward(self, obs: torch.Tensor) -> torch.Tensor:
+        u = self.action + (obs - self.observation) @ self.gain.T
+        return u if self.bound is None else torch.maximum(torch.minimum(u, self.bound), -self.bound)
+
+
 class HandoverPolicy(torch.nn.Module):
     """A policy inside a box of observations, handed over to an affine policy outside it (``"lq_handover"``).
 
@@ -260,9 +279,7 @@ class HandoverPolicy(torch.nn.Module):
         self.policy = policy
         f32 = dict(dtype=torch.float32)
         self.low, self.high = torch.as_tensor(low, **f32).reshape(-1), torch.as_tensor(high, **f32).reshape(-1)
-        self.gain = torch.as_tensor(gain, **f32)
-        self.observation = torch.as_tensor(observation, **f32).reshape(-1)
-        self.action = torch.as_tensor(action, **f32).reshape(-1)
+        self.affine = AffinePolicy(gain, observation, action)
         self.width = None if width is None else torch.as_tensor(width, **f32).reshape(-1)
         self.bound = None if bound is None else torch.as_tensor(bound, **f32)
 
@@ -274,8 +291,7 @@ class HandoverPolicy(torch.nn.Module):
             return u
         w = (torch.zeros_like(distance[..., :1]) if self.width is None
              else torch.exp(-0.5 * ((distance / self.width) ** 2).sum(-1, keepdim=True)))
-        affine = self.action + (obs - self.observation) @ self.gain.T
-        blend = w * u + (1.0 - w) * affine
+        blend = w * u + (1.0 - w) * self.affine(obs)
         if self.bound is not None:
             blend = torch.maximum(torch.minimum(blend, self.bound), -self.bound)
         return torch.where(outside, blend, u)  # inside the box: pi's action, bit for bit
@@ -310,15 +326,17 @@ def feedforward_policy(trainer: Any, policy: torch.nn.Module, lin: Linearisation
     return FeedForwardPolicy(policy, obs, action, bound, width)
 
 
-def handover_policy(trainer: Any, shifted: FeedForwardPolicy, lin: Linearisation) -> torch.nn.Module:
-    """``"lq_handover"``'s deployed policy: ``shifted`` (the ``"lq_ss"`` policy of :func:`feedforward_policy`)
-    inside the run's :attr:`~mixedrl.algorithms.agpi.AGPI.trained_box`, handed over outside it to the discounted
-    LQ optimum's affine policy through ``shifted``'s anchor, with ``shifted``'s width (:class:`HandoverPolicy`);
-    ``shifted`` itself while the run has no box (before its first iteration)."""
+def handover_policy(trainer: Any, shifted: FeedForwardPolicy, lin: Linearisation,
+                    inside: torch.nn.Module | None = None) -> torch.nn.Module:
+    """``"lq_handover"``'s deployed policy: ``inside`` (default ``shifted``, the ``"lq_ss"`` policy of
+    :func:`feedforward_policy`) inside the run's :attr:`~mixedrl.algorithms.agpi.AGPI.trained_box`, handed over
+    outside it to the discounted LQ optimum's affine policy through ``shifted``'s anchor, with ``shifted``'s width
+    (:class:`HandoverPolicy`); ``inside`` itself while the run has no box (before its first iteration)."""
+    inside = shifted if inside is None else inside
     box = trainer.trained_box
     if box is None:
-        return shifted
-    return HandoverPolicy(shifted, box[0], box[1], equilibrium_gain(trainer.task, lin), shifted.observation[0],
+        return inside
+    return HandoverPolicy(inside, box[0], box[1], equilibrium_gain(trainer.task, lin), shifted.observation[0],
                           shifted.action, shifted.width, shifted.bound)
 
 

@@ -17,11 +17,11 @@ import numpy as np
 import scipy.linalg
 import torch
 
-from mixedrl.departures.anchor import (FeedForwardPolicy, HandoverPolicy, LQReference, equilibrium_gain,
-                                       feedforward_policy, lq_reference, own_noise)
+from mixedrl.departures.anchor import (AffinePolicy, FeedForwardPolicy, LQReference, equilibrium_gain,
+                                       feedforward_policy, handover_policy, lq_reference, own_noise)
 from mixedrl.task_base import Linearisation, Task
 
-__all__ = ["AffinePolicy", "calibrate_shift", "deployed_policy", "CALIBRATION_COPIES", "CALIBRATION_HORIZON",
+__all__ = ["calibrate_shift", "deployed_policy", "CALIBRATION_COPIES", "CALIBRATION_HORIZON",
            "CALIBRATION_STEP"]
 
 logger = logging.getLogger(__name__)
@@ -35,24 +35,6 @@ CALIBRATION_HORIZON = 200
 CALIBRATION_STEP = 1e-2
 #: Mixed with the run's seed into the seed of the calibration's noise draws (a stream of its own).
 _CALIBRATION_STREAM = 0x6361_6C69
-
-
-class AffinePolicy(torch.nn.Module):
-    """The discounted LQ optimum's affine policy in observations, ``clip(u_a + G (o - o_a), -u_bar, u_bar)``
-    (the hand-over's outer policy, :class:`HandoverPolicy`): the calibration's reference closed loop."""
-
-    def __init__(self, gain: torch.Tensor, observation: torch.Tensor, action: torch.Tensor,
-                 bound: torch.Tensor | None = None) -> None:
-        super().__init__()
-        f32 = dict(dtype=torch.float32)
-        self.gain = torch.as_tensor(gain, **f32)
-        self.observation = torch.as_tensor(observation, **f32).reshape(-1)
-        self.action = torch.as_tensor(action, **f32).reshape(-1)
-        self.bound = None if bound is None else torch.as_tensor(bound, **f32)
-
-    def forward(self, obs: torch.Tensor) -> torch.Tensor:
-        u = self.action + (obs - self.observation) @ self.gain.T
-        return u if self.bound is None else torch.maximum(torch.minimum(u, self.bound), -self.bound)
 
 
 def _model_means(task: Task, policies: Sequence[torch.nn.Module], start: torch.Tensor, noise: torch.Tensor
@@ -186,13 +168,9 @@ def deployed_policy(trainer: Any, policy: torch.nn.Module, lin: Linearisation, f
     def deploy(delta: torch.Tensor | None) -> torch.nn.Module:
         moved = shifted if delta is None else FeedForwardPolicy(policy, shifted.observation[0], shifted.action + delta,
                                                                 shifted.bound, shifted.width)
-        if feedforward != "lq_handover" or trainer.trained_box is None:
-            return moved
-        box = trainer.trained_box
-        return HandoverPolicy(moved, box[0], box[1], equilibrium_gain(trainer.task, lin), shifted.observation[0],
-                              shifted.action, shifted.width, shifted.bound)
+        return handover_policy(trainer, shifted, lin, moved) if feedforward == "lq_handover" else moved
 
-    steps = int(getattr(trainer.config.algorithm, "feedforward_calibration", 0))
+    steps = trainer.config.algorithm.feedforward_calibration
     if steps == 0:
         return deploy(None)
     mean, cov = own_noise(trainer, lin, policy)
